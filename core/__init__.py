@@ -1,0 +1,1 @@
+"""Pure computation for AnkleScan: no Qt, no devices."""

@@ -1,0 +1,1 @@
+"""Devices behind small interfaces: cameras, USB discovery, the simulated rig."""
