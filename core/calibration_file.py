@@ -1,0 +1,142 @@
+"""The calibration file (SPEC §4): load, validate, save.
+
+Validation is strict because a silently wrong calibration turns into wrong angles for a
+patient; every problem is reported as one line naming the device and the key.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from core.device_model import AXES, Device
+from core.errors import CalibrationError
+
+ORTHONORMAL_TOL = 1e-4
+
+
+@dataclass(eq=False)
+class Calibration:
+    camera: Device
+    projector: Device
+    extra: dict = field(default_factory=dict)  # quality report, source, ... kept on round trip
+
+
+def _matrix(obj: dict, device: str, key: str, shape: tuple[int, ...], allow_null_row: int | None = None) -> np.ndarray:
+    if key not in obj:
+        raise CalibrationError(f"calibration: {device} is missing '{key}'")
+    value = obj[key]
+    if allow_null_row is not None and isinstance(value, list) and len(value) == shape[0]:
+        value = [[math.nan] * shape[1] if r == allow_null_row and (row is None or any(v is None for v in row)) else row
+                 for r, row in enumerate(value)]
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"calibration: {device}.{key} is not numeric") from None
+    if arr.shape != shape:
+        raise CalibrationError(f"calibration: {device}.{key} has shape {list(arr.shape)}, expected {list(shape)}")
+    return arr
+
+
+def device_from_dict(obj: dict, device: str) -> Device:
+    if not isinstance(obj, dict):
+        raise CalibrationError(f"calibration: '{device}' must be an object")
+    axis = obj.get("axis", "both")
+    if axis not in AXES:
+        raise CalibrationError(f"calibration: {device}.axis must be one of {list(AXES)}, not {axis!r}")
+    for key in ("width", "height"):
+        if key not in obj:
+            raise CalibrationError(f"calibration: {device} is missing '{key}'")
+        if not isinstance(obj[key], int) or obj[key] <= 0:
+            raise CalibrationError(f"calibration: {device}.{key} must be a positive integer, not {obj[key]!r}")
+    K = _matrix(obj, device, "K", (3, 3), allow_null_row=1 if axis == "column" else None)
+    if axis == "column" and not np.isfinite(K[1]).all():
+        # Row intrinsics unknown: nominal values, used only to name rows; never for geometry.
+        K[1] = [0.0, K[0, 0], (obj["height"] - 1) / 2.0]
+    if not np.isfinite(K).all():
+        raise CalibrationError(f"calibration: {device}.K has non-finite entries")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise CalibrationError(f"calibration: {device}.K must be [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
+    dist = np.asarray(obj.get("dist", []), dtype=np.float64).ravel() if _numeric_list(obj.get("dist", [])) else None
+    if dist is None or dist.size > 5 or not np.isfinite(dist).all():
+        raise CalibrationError(f"calibration: {device}.dist must be up to 5 finite numbers [k1,k2,p1,p2,k3]")
+    R = _matrix(obj, device, "R", (3, 3))
+    if not np.isfinite(R).all() or not np.allclose(R @ R.T, np.eye(3), atol=ORTHONORMAL_TOL) or np.linalg.det(R) < 0:
+        raise CalibrationError(f"calibration: {device}.R is not a rotation (not orthonormal with det +1)")
+    t = _matrix(obj, device, "t", (3,))
+    if not np.isfinite(t).all():
+        raise CalibrationError(f"calibration: {device}.t has non-finite entries")
+    return Device(obj["width"], obj["height"], K, dist, R, t, axis)
+
+
+def _numeric_list(value) -> bool:
+    try:
+        np.asarray(value, dtype=np.float64)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def device_to_dict(dev: Device) -> dict:
+    out = {"width": dev.width, "height": dev.height, "K": dev.K.tolist(), "dist": dev.dist.tolist(),
+           "R": dev.R.tolist(), "t": dev.t.tolist()}
+    if dev.axis != "both":
+        out["axis"] = dev.axis
+    return out
+
+
+def calibration_from_dict(obj) -> Calibration:
+    if not isinstance(obj, dict):
+        raise CalibrationError("calibration: the file must hold a JSON object")
+    units = obj.get("units", "mm")
+    if units != "mm":
+        raise CalibrationError(f"calibration: units must be 'mm', not {units!r}")
+    for key in ("camera", "projector"):
+        if key not in obj:
+            raise CalibrationError(f"calibration: missing '{key}'")
+    extra = {k: v for k, v in obj.items() if k not in ("units", "camera", "projector")}
+    return Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
+
+
+def calibration_to_dict(cal: Calibration) -> dict:
+    return {"units": "mm", "camera": device_to_dict(cal.camera), "projector": device_to_dict(cal.projector), **cal.extra}
+
+
+def load_calibration(path: str | os.PathLike) -> Calibration:
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"cannot read calibration file {path}: {exc}") from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"calibration file {path} is not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    return calibration_from_dict(obj)
+
+
+def save_calibration(cal: Calibration, path: str | os.PathLike) -> None:
+    write_text_atomic(Path(path), json.dumps(calibration_to_dict(cal), indent=2) + "\n")
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write via a temporary sibling and rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
