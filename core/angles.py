@@ -1,0 +1,305 @@
+"""Posture angles from the seven marks (SPEC §3) with first-order uncertainty.
+
+All angles are in degrees, signed as SPEC §3 defines them. Uncertainties are propagated
+from the marks' position covariance through a numeric Jacobian: the angle functions are
+smooth away from the degenerate cases we reject, so central differences are exact to far
+below the scanner's ~0.2 mm noise and we avoid maintaining hand-derived derivatives.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import AnkleScanError, GeometryError
+
+LABELS = (1, 2, 3, 4, 5, 6, 7)
+
+# Mark-centre localisation is worse than the paper's 0.2 mm surface accuracy (a mark is
+# picked on a few mm wide plate), so the default is deliberately more conservative.
+DEFAULT_SIGMA_MM = 0.5
+
+# Which marks each angle needs; the order is the argument order of its function.
+ANGLE_MARKS: dict[str, tuple[int, ...]] = {
+    "leg_inversion": (1, 2),
+    "leg_plantar_flexion": (3, 4),
+    "table_inversion": (5, 6, 7),
+    "table_plantar_flexion": (5, 6, 7),
+}
+
+# Below this |n_z| the table is within ~0.06° of vertical: both table angles are then
+# numerically meaningless (and physically impossible for a foot rest).
+_MIN_NZ = 1e-3
+# Relative tolerance for "collinear": sine of the angle between the two table edges.
+_MIN_SINE = 1e-6
+_MIN_LENGTH_MM = 1e-6
+_JACOBIAN_STEP_MM = 1e-3
+
+
+class AngleResult(dict):
+    """``{angle_name: {"value": deg, "sd": deg}}`` for the angles the marks allow.
+
+    A plain dict to JSON, so it drops straight into RESULT.json; ``missing`` maps every
+    angle that could not be computed to the labels it lacks.
+    """
+
+    def __init__(self, *args, missing: Mapping[str, list[int]] | None = None, **kw):
+        super().__init__(*args, **kw)
+        self.missing: dict[str, list[int]] = dict(missing or {})
+
+    @property
+    def missing_marks(self) -> list[int]:
+        return sorted({lab for labs in self.missing.values() for lab in labs})
+
+    def missing_message(self) -> str:
+        """One line naming the angles not computed and why ('' if none)."""
+        if not self.missing:
+            return ""
+        parts = [f"{name} (needs mark{'s' if len(l) > 1 else ''} {', '.join(map(str, l))})"
+                 for name, l in self.missing.items()]
+        return "not computed: " + "; ".join(parts)
+
+
+# --------------------------------------------------------------------------- geometry
+
+def _point(p, name: str) -> np.ndarray:
+    a = np.asarray(p, dtype=float).reshape(-1)
+    if a.shape != (3,):
+        raise GeometryError(f"{name} must have 3 coordinates, got {a.size}")
+    if not np.all(np.isfinite(a)):
+        raise GeometryError(f"{name} has a non-finite coordinate")
+    return a
+
+
+def _projected_slope(a: float, b: float, what: str) -> float:
+    if math.hypot(a, b) < _MIN_LENGTH_MM:
+        raise GeometryError(f"{what} has no extent in its projection plane")
+    return math.degrees(math.atan2(a, b))
+
+
+def leg_inversion(P1, P2) -> float:
+    """θ1 = atan2(x1 − x2, z1 − z2): line knee-front→ankle-front in the x–z plane."""
+    p1, p2 = _point(P1, "mark 1"), _point(P2, "mark 2")
+    d = p1 - p2
+    return _projected_slope(d[0], d[2], "leg line 1–2")
+
+
+def leg_plantar_flexion(P3, P4) -> float:
+    """θ2 = atan2(y3 − y4, z3 − z4): lateral knee→lateral ankle in the y–z plane."""
+    p3, p4 = _point(P3, "mark 3"), _point(P4, "mark 4")
+    d = p3 - p4
+    return _projected_slope(d[1], d[2], "leg line 3–4")
+
+
+def table_normal(P5, P6, P7) -> np.ndarray:
+    """Unit normal of the plane through marks 5, 6, 7, oriented n_z > 0."""
+    p5, p6, p7 = (_point(p, f"mark {k}") for p, k in ((P5, 5), (P6, 6), (P7, 7)))
+    a, b = p6 - p5, p7 - p5
+    la, lb = np.linalg.norm(a), np.linalg.norm(b)
+    if min(la, lb, np.linalg.norm(p7 - p6)) < _MIN_LENGTH_MM:
+        raise GeometryError("table marks 5, 6, 7 are coincident")
+    n = np.cross(a, b)
+    nn = np.linalg.norm(n)
+    if nn < _MIN_SINE * la * lb:
+        raise GeometryError("table marks 5, 6, 7 are collinear; they must span a plane")
+    n = n / nn
+    if abs(n[2]) < _MIN_NZ:
+        raise GeometryError("table plane through marks 5, 6, 7 is vertical")
+    return n if n[2] > 0 else -n
+
+
+def table_angles(P5, P6, P7) -> tuple[float, float]:
+    """(table inversion, table plantar flexion) = (atan2(n_x, n_z), atan2(n_y, n_z))."""
+    n = table_normal(P5, P6, P7)
+    return (math.degrees(math.atan2(n[0], n[2])), math.degrees(math.atan2(n[1], n[2])))
+
+
+_ANGLE_FUNCS: dict[str, Callable[..., float]] = {
+    "leg_inversion": leg_inversion,
+    "leg_plantar_flexion": leg_plantar_flexion,
+    "table_inversion": lambda a, b, c: table_angles(a, b, c)[0],
+    "table_plantar_flexion": lambda a, b, c: table_angles(a, b, c)[1],
+}
+
+
+# ----------------------------------------------------------------- uncertainty
+
+def _label(key) -> int:
+    try:
+        lab = int(str(key).strip())
+    except ValueError:
+        raise AnkleScanError(f"mark label {key!r} is not a number 1-7") from None
+    if lab not in LABELS:
+        raise AnkleScanError(f"mark label {lab} is out of range (expected 1-7)")
+    return lab
+
+
+def _normalise_marks(marks: Mapping) -> dict[int, np.ndarray]:
+    out: dict[int, np.ndarray] = {}
+    for key, p in marks.items():
+        lab = _label(key)
+        if lab in out:
+            raise AnkleScanError(f"mark {lab} is given twice")
+        out[lab] = _point(p, f"mark {lab}")
+    return out
+
+
+def _covariance(sigma, label: int) -> np.ndarray:
+    """3x3 covariance for one mark from a scalar sigma, a per-mark dict, or a matrix."""
+    s = sigma.get(label, sigma.get(str(label))) if isinstance(sigma, Mapping) else sigma
+    if s is None:
+        raise AnkleScanError(f"no uncertainty given for mark {label}")
+    c = np.asarray(s, dtype=float)
+    if c.ndim == 0:
+        if not (np.isfinite(c) and c >= 0):
+            raise AnkleScanError(f"sigma for mark {label} must be a non-negative number")
+        return np.eye(3) * float(c) ** 2
+    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        raise AnkleScanError(f"covariance for mark {label} must be a finite 3x3 matrix")
+    if not np.allclose(c, c.T) or np.linalg.eigvalsh(c).min() < -1e-12:
+        raise AnkleScanError(f"covariance for mark {label} is not symmetric positive semi-definite")
+    return c
+
+
+def _jacobian(f: Callable[..., float], pts: list[np.ndarray]) -> np.ndarray:
+    x0 = np.concatenate(pts)
+    J = np.empty(x0.size)
+    for i in range(x0.size):
+        xp, xm = x0.copy(), x0.copy()
+        xp[i] += _JACOBIAN_STEP_MM
+        xm[i] -= _JACOBIAN_STEP_MM
+        fp, fm = f(*xp.reshape(-1, 3)), f(*xm.reshape(-1, 3))
+        # Angles near ±180° would jump by 360° across the step; differences are unwrapped.
+        J[i] = ((fp - fm + 180.0) % 360.0 - 180.0) / (2 * _JACOBIAN_STEP_MM)
+    return J
+
+
+def angle_with_sd(name: str, points: list, covariances: list[np.ndarray]) -> dict:
+    """One angle and its first-order standard deviation (degrees)."""
+    f = _ANGLE_FUNCS[name]
+    pts = [_point(p, f"mark {lab}") for p, lab in zip(points, ANGLE_MARKS[name])]
+    value = f(*pts)
+    J = _jacobian(f, pts)
+    cov = np.zeros((J.size, J.size))
+    for k, c in enumerate(covariances):
+        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
+    return {"value": float(value), "sd": float(math.sqrt(max(J @ cov @ J, 0.0)))}
+
+
+def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM) -> AngleResult:
+    """SPEC §3 angles from labelled marks (mm), each ``{"value", "sd"}`` in degrees.
+
+    ``sigma_mm`` is the isotropic position SD of every mark, or a mapping label → SD or
+    label → 3x3 covariance (mm²). Angles whose marks are absent are left out and listed
+    in ``result.missing``; degenerate geometry raises GeometryError.
+    """
+    pts = _normalise_marks(marks)
+    result, missing = {}, {}
+    for name, labels in ANGLE_MARKS.items():
+        lacking = [lab for lab in labels if lab not in pts]
+        if lacking:
+            missing[name] = lacking
+            continue
+        covs = [_covariance(sigma_mm, lab) for lab in labels]
+        result[name] = angle_with_sd(name, [pts[lab] for lab in labels], covs)
+    return AngleResult(result, missing=missing)
+
+
+# -------------------------------------------------------------------- mismatch
+
+def _value_sd(angles: Mapping, axis: str, what: str) -> tuple[float, float]:
+    v = angles.get(axis, angles.get(f"table_{axis}"))
+    if v is None:
+        raise AnkleScanError(f"{what} angles lack {axis}")
+    if isinstance(v, Mapping):
+        return float(v["value"]), float(v.get("sd") or 0.0)
+    return float(v), 0.0
+
+
+def wrap_degrees(a: float) -> float:
+    """Map to (−180, 180] so a difference across ±180° stays small."""
+    w = (a + 180.0) % 360.0 - 180.0
+    return 180.0 if w == -180.0 else w
+
+
+def mismatch(adjusted_table_angles: Mapping, reference_angles: Mapping) -> dict:
+    """Per axis adjusted − reference (SPEC §3), ``{"value", "sd"}`` in degrees.
+
+    Each argument maps ``inversion``/``plantar_flexion`` (or the ``table_…`` keys of
+    ``compute_angles``) to a number (an operator-set angle, sd 0) or ``{"value","sd"}``.
+    The two tables are measured independently, so variances add.
+    """
+    out = {}
+    for axis in ("inversion", "plantar_flexion"):
+        va, sa = _value_sd(adjusted_table_angles, axis, "adjusted table")
+        vr, sr = _value_sd(reference_angles, axis, "reference")
+        out[axis] = {"value": wrap_degrees(va - vr), "sd": math.hypot(sa, sr)}
+    return out
+
+
+# ------------------------------------------------------------------------- CSV
+
+def _parse_float(text: str, where: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise AnkleScanError(f"{where}: {text.strip()!r} is not a number") from None
+    if not math.isfinite(v):
+        raise AnkleScanError(f"{where}: coordinate is {text.strip()} (must be finite)")
+    return v
+
+
+def _header_columns(header: list[str], path: Path) -> dict[str, int]:
+    names = [h.strip().lower() for h in header]
+    cols = {}
+    for want in ("label", "x", "y", "z"):
+        if want not in names:
+            raise AnkleScanError(f"{path}: header must name columns label,x,y,z "
+                                 f"(found {','.join(names) or 'nothing'})")
+        cols[want] = names.index(want)
+    return cols
+
+
+def read_marks_csv(path) -> dict[int, np.ndarray]:
+    """Marks from a ``label,x,y,z`` CSV (header required; extra columns ignored)."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    except (OSError, UnicodeDecodeError) as e:
+        raise AnkleScanError(f"cannot read marks file {path}: {e}") from None
+    except csv.Error as e:
+        raise AnkleScanError(f"{path}: malformed CSV: {e}") from None
+    if not rows:
+        raise AnkleScanError(f"{path}: empty file (expected header label,x,y,z)")
+    cols = _header_columns(rows[0], path)
+    marks: dict[int, np.ndarray] = {}
+    for line_no, row in enumerate(rows[1:], start=2):
+        where = f"{path}:{line_no}"
+        if len(row) <= max(cols.values()):
+            raise AnkleScanError(f"{where}: expected label,x,y,z, got {len(row)} fields")
+        raw = row[cols["label"]].strip()
+        if not raw:
+            raise AnkleScanError(f"{where}: missing mark label")
+        try:
+            lab = _label(raw)
+        except AnkleScanError as e:
+            raise AnkleScanError(f"{where}: {e}") from None
+        if lab in marks:
+            raise AnkleScanError(f"{where}: duplicate mark label {lab}")
+        marks[lab] = np.array([_parse_float(row[cols[c]], where) for c in "xyz"])
+    if not marks:
+        raise AnkleScanError(f"{path}: no marks after the header")
+    return marks
+
+
+def format_angles(result: AngleResult) -> str:
+    """Human-readable lines for the command line."""
+    lines = [f"{name:24s} {v['value']:8.2f}° ± {v['sd']:.2f}°" for name, v in result.items()]
+    if result.missing:
+        lines.append(result.missing_message())
+    return "\n".join(lines)

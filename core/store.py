@@ -1,0 +1,739 @@
+"""The sessions database: patients, calibrations, sessions, trials and marks (SQLite).
+
+Design (details in docs/sessions.md):
+- WAL + synchronous=FULL: readers never block the writer, and a crash or power cut leaves
+  the last committed transaction; every write is one ``BEGIN IMMEDIATE … COMMIT``.
+- ``BEGIN IMMEDIATE`` takes the write lock up front, so two app instances queue on the busy
+  timeout instead of deadlocking when a read transaction tries to upgrade.
+- The schema version lives in ``PRAGMA user_version``; ``MIGRATIONS[i]`` upgrades i → i+1,
+  each applied in the same transaction as the version bump.
+- We never create, repair or delete over an existing file that is not a healthy SQLite
+  database: the clinic's data is worth more than a working app.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+import re
+import sqlite3
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import platformdirs
+
+from core.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
+from core.errors import AnkleScanError
+
+DB_FILENAME = "anklescan.sqlite"
+DEFAULT_TIMEOUT_S = 10.0
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+
+# ----------------------------------------------------------------- schema
+
+_V1 = """
+CREATE TABLE patients (
+    id INTEGER PRIMARY KEY,
+    code TEXT NOT NULL UNIQUE,
+    sprain_count INTEGER NOT NULL DEFAULT 0 CHECK (sprain_count >= 0),
+    last_sprain TEXT,
+    affected_side TEXT CHECK (affected_side IN ('left', 'right', 'both')),
+    notes TEXT NOT NULL DEFAULT '',
+    created TEXT NOT NULL
+);
+CREATE TABLE calibrations (
+    id INTEGER PRIMARY KEY,
+    created TEXT NOT NULL,
+    json TEXT NOT NULL,
+    rms REAL,
+    source TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE sessions (
+    id INTEGER PRIMARY KEY,
+    patient_id INTEGER NOT NULL REFERENCES patients(id),
+    date TEXT NOT NULL,
+    operator TEXT NOT NULL DEFAULT '',
+    condition TEXT NOT NULL,
+    calibration_id INTEGER REFERENCES calibrations(id),
+    notes TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE trials (
+    id INTEGER PRIMARY KEY,
+    session_id INTEGER NOT NULL REFERENCES sessions(id),
+    created TEXT NOT NULL,
+    ref_inversion REAL,
+    ref_plantar_flexion REAL,
+    leg_inversion REAL, leg_inversion_sd REAL,
+    leg_plantar_flexion REAL, leg_plantar_flexion_sd REAL,
+    table_inversion REAL, table_inversion_sd REAL,
+    table_plantar_flexion REAL, table_plantar_flexion_sd REAL,
+    mismatch_inversion REAL, mismatch_inversion_sd REAL,
+    mismatch_plantar_flexion REAL, mismatch_plantar_flexion_sd REAL,
+    capture_path TEXT,
+    capture_sha256 TEXT,
+    notes TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE marks (
+    trial_id INTEGER NOT NULL REFERENCES trials(id) ON DELETE CASCADE,
+    label INTEGER NOT NULL CHECK (label BETWEEN 1 AND 7),
+    x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL,
+    source TEXT NOT NULL CHECK (source IN ('auto', 'manual')),
+    placed_by TEXT NOT NULL DEFAULT '',
+    updated TEXT NOT NULL,
+    PRIMARY KEY (trial_id, label)
+);
+"""
+
+# v2: point clouds are kept next to captures, calibrations can be marked verified, and
+# the per-session / per-patient look-ups the reports do get indexes.
+_V2 = """
+ALTER TABLE calibrations ADD COLUMN verified INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE trials ADD COLUMN cloud_path TEXT;
+ALTER TABLE trials ADD COLUMN cloud_sha256 TEXT;
+CREATE INDEX trials_session ON trials(session_id);
+CREATE INDEX sessions_patient ON sessions(patient_id);
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+CONDITIONS = ("barefoot", "shoes")
+SIDES = ("left", "right", "both")
+MARK_SOURCES = ("auto", "manual")
+ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion",
+                "table_plantar_flexion")
+_CODE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
+
+
+# ------------------------------------------------------------- dataclasses
+
+@dataclass(frozen=True)
+class Patient:
+    id: int
+    code: str
+    sprain_count: int
+    last_sprain: str | None
+    affected_side: str | None
+    notes: str
+    created: str
+
+    @property
+    def has_sprain_history(self) -> bool:
+        return self.sprain_count > 0
+
+
+@dataclass(frozen=True)
+class Calibration:
+    id: int
+    created: str
+    json: str
+    rms: float | None
+    source: str
+    verified: bool
+
+    @property
+    def data(self) -> dict:
+        return json.loads(self.json)
+
+
+@dataclass(frozen=True)
+class Session:
+    id: int
+    patient_id: int
+    date: str
+    operator: str
+    condition: str
+    calibration_id: int | None
+    notes: str
+
+
+@dataclass(frozen=True)
+class Mark:
+    trial_id: int
+    label: int
+    x: float
+    y: float
+    z: float
+    source: str
+    placed_by: str
+    updated: str
+
+
+@dataclass(frozen=True)
+class Trial:
+    id: int
+    session_id: int
+    created: str
+    ref_inversion: float | None
+    ref_plantar_flexion: float | None
+    leg_inversion: float | None = None
+    leg_inversion_sd: float | None = None
+    leg_plantar_flexion: float | None = None
+    leg_plantar_flexion_sd: float | None = None
+    table_inversion: float | None = None
+    table_inversion_sd: float | None = None
+    table_plantar_flexion: float | None = None
+    table_plantar_flexion_sd: float | None = None
+    mismatch_inversion: float | None = None
+    mismatch_inversion_sd: float | None = None
+    mismatch_plantar_flexion: float | None = None
+    mismatch_plantar_flexion_sd: float | None = None
+    capture_path: str | None = None
+    capture_sha256: str | None = None
+    cloud_path: str | None = None
+    cloud_sha256: str | None = None
+    notes: str = ""
+
+
+@dataclass(frozen=True)
+class AxisSummary:
+    """Summary of one mismatch axis over a session's measured trials (degrees)."""
+    n: int
+    mean: float | None
+    mean_abs: float | None
+    sd: float | None
+    min: float | None
+    max: float | None
+
+
+@dataclass(frozen=True)
+class SessionSummary:
+    session: Session
+    patient: Patient
+    calibration: Calibration | None
+    trials: list[Trial]
+    inversion: AxisSummary
+    plantar_flexion: AxisSummary
+    incomplete_trials: list[int] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------- helpers
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def default_data_dir() -> Path:
+    """ANKLESCAN_DATA if set, else the platform's per-user data folder."""
+    env = os.environ.get("ANKLESCAN_DATA")
+    if env:
+        return Path(env).expanduser()
+    return Path(platformdirs.user_data_dir("AnkleScan", appauthor=False))
+
+
+def sha256_path(path) -> str:
+    """sha256 of a file, or of a folder (every file's relative path and content, sorted).
+
+    Folder hashes are independent of listing order and timestamps, so a copied capture
+    folder verifies as identical.
+    """
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_file():
+        _hash_file(p, h)
+    elif p.is_dir():
+        for f in sorted(q for q in p.rglob("*") if q.is_file()):
+            rel = f.relative_to(p).as_posix().encode()
+            h.update(len(rel).to_bytes(8, "big") + rel)
+            fh = hashlib.sha256()
+            _hash_file(f, fh)
+            h.update(fh.digest())
+    else:
+        raise AnkleScanError(f"cannot hash {p}: no such file or folder")
+    return h.hexdigest()
+
+
+def _hash_file(p: Path, h) -> None:
+    try:
+        with open(p, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError as e:
+        raise AnkleScanError(f"cannot read {p}: {e.strerror or e}") from None
+
+
+def _date(value, what: str) -> str | None:
+    if value is None or value == "":
+        return None
+    if isinstance(value, _dt.datetime):
+        return value.date().isoformat()
+    if isinstance(value, _dt.date):
+        return value.isoformat()
+    try:
+        return _dt.date.fromisoformat(str(value).strip()).isoformat()
+    except ValueError:
+        raise AnkleScanError(f"{what} {value!r} is not a date (YYYY-MM-DD)") from None
+
+
+def _opt_float(v, what: str) -> float | None:
+    if v is None:
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise AnkleScanError(f"{what} must be a number, got {v!r}") from None
+    if not math.isfinite(f):
+        raise AnkleScanError(f"{what} must be finite")
+    return f
+
+
+def _errname(e: sqlite3.Error) -> str:
+    return getattr(e, "sqlite_errorname", "") or ""
+
+
+def _translate(e: sqlite3.Error, path: Path, timeout: float) -> AnkleScanError:
+    """One clear line for the sqlite failures a user can actually run into."""
+    name, msg = _errname(e), str(e)
+    if name.startswith("SQLITE_BUSY") or name.startswith("SQLITE_LOCKED") or "locked" in msg:
+        return AnkleScanError(
+            f"database {path} is locked by another program (waited {timeout:g} s); "
+            "close the other AnkleScan window or try again")
+    if name.startswith("SQLITE_FULL") or "full" in msg:
+        return AnkleScanError(f"cannot write to database {path}: disk is full; "
+                              "the change was not saved, earlier data is intact")
+    if name.startswith("SQLITE_NOTADB") or name.startswith("SQLITE_CORRUPT") or \
+            "not a database" in msg or "malformed" in msg:
+        return AnkleScanError(f"database {path} is damaged ({msg}); it was left untouched, "
+                              "restore it from a backup")
+    if name.startswith("SQLITE_READONLY"):
+        return AnkleScanError(f"database {path} is read-only; cannot save changes")
+    if name.startswith(("SQLITE_IOERR", "SQLITE_CANTOPEN")):
+        return AnkleScanError(f"cannot access database {path}: {msg}")
+    if isinstance(e, sqlite3.IntegrityError):
+        return AnkleScanError(f"database rejected the change: {msg}")
+    return AnkleScanError(f"database {path}: {msg}")
+
+
+def _check_header(path: Path) -> None:
+    """Refuse a non-SQLite file before sqlite ever touches it (it would never be ours)."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise AnkleScanError(f"cannot access database {path}: {e.strerror or e}") from None
+    if size == 0:
+        return  # sqlite treats an empty file as a new database; nothing to lose
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+    except OSError as e:
+        raise AnkleScanError(f"cannot read database {path}: {e.strerror or e}") from None
+    if head != _SQLITE_MAGIC:
+        raise AnkleScanError(f"{path} is not an AnkleScan database (not SQLite); "
+                             "it was left untouched")
+
+
+# -------------------------------------------------------------------- store
+
+class Store:
+    """One connection to the sessions database. Not shared between threads."""
+
+    def __init__(self, conn: sqlite3.Connection, path: Path, data_dir: Path, timeout: float):
+        self._conn = conn
+        self.path = path
+        self.data_dir = data_dir
+        self.timeout = timeout
+
+    # ------------------------------------------------------------ lifecycle
+
+    @classmethod
+    def open(cls, path=None, *, data_dir=None, timeout: float = DEFAULT_TIMEOUT_S) -> "Store":
+        """Open (creating and migrating as needed) the database.
+
+        Files live in ``data_dir``: the argument, else the folder of an explicit ``path``,
+        else ANKLESCAN_DATA, else the platform user data folder; the default database is
+        ``data_dir/anklescan.sqlite``.
+        """
+        if path is not None:
+            path = Path(path).expanduser()
+            data_dir = Path(data_dir) if data_dir is not None else path.parent
+        else:
+            data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
+            path = data_dir / DB_FILENAME
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise AnkleScanError(f"cannot create data folder {path.parent}: "
+                                 f"{e.strerror or e}") from None
+        _check_header(path)
+        try:
+            conn = sqlite3.connect(path, timeout=timeout, isolation_level=None)
+        except sqlite3.Error as e:
+            raise _translate(e, path, timeout) from None
+        store = cls(conn, path, data_dir, timeout)
+        try:
+            store._configure()
+            store._migrate()
+        except BaseException:
+            conn.close()
+            raise
+        return store
+
+    def _configure(self) -> None:
+        with self._errors():
+            c = self._conn
+            c.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
+            c.execute("PRAGMA foreign_keys = ON")
+            mode = c.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if str(mode).lower() != "wal":
+                raise AnkleScanError(f"database {self.path}: cannot enable WAL journal "
+                                     f"(got {mode}); is it on a network drive?")
+            # FULL: in WAL mode NORMAL can lose the last commits on power loss; clinical
+            # records are small, so the extra fsync is cheap.
+            c.execute("PRAGMA synchronous = FULL")
+            bad = c.execute("PRAGMA quick_check(1)").fetchone()[0]
+            if bad != "ok":
+                raise AnkleScanError(f"database {self.path} is damaged ({bad}); it was left "
+                                     "untouched, restore it from a backup")
+
+    def _migrate(self, target: int = SCHEMA_VERSION) -> None:
+        version = self.schema_version()
+        if version > SCHEMA_VERSION:
+            raise AnkleScanError(f"database {self.path} has schema v{version}, newer than this "
+                                 f"AnkleScan (v{SCHEMA_VERSION}); update the program")
+        if version >= target:
+            return
+        with self._write() as c:
+            # Re-read under the write lock: another instance may have migrated meanwhile.
+            version = c.execute("PRAGMA user_version").fetchone()[0]
+            for v in range(version, target):
+                for stmt in _statements(MIGRATIONS[v]):
+                    c.execute(stmt)
+                c.execute(f"PRAGMA user_version = {v + 1}")
+
+    def schema_version(self) -> int:
+        with self._errors():
+            return self._conn.execute("PRAGMA user_version").fetchone()[0]
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ transactions
+
+    @contextmanager
+    def _errors(self) -> Iterator[None]:
+        try:
+            yield
+        except sqlite3.Error as e:
+            raise _translate(e, self.path, self.timeout) from None
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction: all of it is committed, or none of it."""
+        with self._errors():
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._conn
+                self._conn.execute("COMMIT")
+            except BaseException:
+                if self._conn.in_transaction:
+                    self._conn.execute("ROLLBACK")
+                raise
+
+    def _one(self, sql: str, args=()) -> sqlite3.Row | None:
+        with self._errors():
+            cur = self._conn.execute(sql, args)
+            cur.row_factory = sqlite3.Row
+            return cur.fetchone()
+
+    def _all(self, sql: str, args=()) -> list[sqlite3.Row]:
+        with self._errors():
+            cur = self._conn.execute(sql, args)
+            cur.row_factory = sqlite3.Row
+            return cur.fetchall()
+
+    # ------------------------------------------------------------ patients
+
+    def add_patient(self, code: str, *, sprain_count: int = 0, last_sprain=None,
+                    affected_side: str | None = None, notes: str = "") -> Patient:
+        code = (code or "").strip()
+        if not _CODE_RE.match(code):
+            raise AnkleScanError(f"patient code {code!r} must be 1-32 letters, digits, '.', '_' "
+                                 "or '-' (a pseudonym, not a name)")
+        if not isinstance(sprain_count, int) or sprain_count < 0:
+            raise AnkleScanError(f"sprain count must be a whole number >= 0, got {sprain_count!r}")
+        if affected_side is not None and affected_side not in SIDES:
+            raise AnkleScanError(f"affected side must be one of {', '.join(SIDES)}")
+        last = _date(last_sprain, "last sprain date")
+        if self._one("SELECT 1 FROM patients WHERE code = ?", (code,)):
+            raise AnkleScanError(f"patient code {code} already exists")
+        with self._write() as c:
+            pid = c.execute(
+                "INSERT INTO patients (code, sprain_count, last_sprain, affected_side, notes,"
+                " created) VALUES (?, ?, ?, ?, ?, ?)",
+                (code, sprain_count, last, affected_side, notes or "", _now())).lastrowid
+        return self.get_patient(pid)
+
+    def get_patient(self, key: int | str) -> Patient:
+        """By id (int) or pseudonymous code (str)."""
+        col = "id" if isinstance(key, int) else "code"
+        row = self._one(f"SELECT * FROM patients WHERE {col} = ?", (key,))
+        if row is None:
+            raise AnkleScanError(f"no patient {key}")
+        return Patient(**dict(row))
+
+    def list_patients(self) -> list[Patient]:
+        return [Patient(**dict(r)) for r in self._all("SELECT * FROM patients ORDER BY code")]
+
+    # ------------------------------------------------------------ calibrations
+
+    def add_calibration(self, calibration: Mapping | str, *, rms: float | None = None,
+                        source: str = "", verified: bool = False) -> Calibration:
+        text = calibration if isinstance(calibration, str) else json.dumps(calibration)
+        try:
+            json.loads(text)
+        except ValueError as e:
+            raise AnkleScanError(f"calibration is not valid JSON: {e}") from None
+        rms = _opt_float(rms, "calibration RMS")
+        with self._write() as c:
+            cid = c.execute(
+                "INSERT INTO calibrations (created, json, rms, source, verified)"
+                " VALUES (?, ?, ?, ?, ?)", (_now(), text, rms, source, int(verified))).lastrowid
+        return self.get_calibration(cid)
+
+    def get_calibration(self, cid: int) -> Calibration:
+        row = self._one("SELECT * FROM calibrations WHERE id = ?", (cid,))
+        if row is None:
+            raise AnkleScanError(f"no calibration {cid}")
+        d = dict(row)
+        d["verified"] = bool(d["verified"])
+        return Calibration(**d)
+
+    # ------------------------------------------------------------ sessions
+
+    def start_session(self, patient: int | str, *, condition: str, date=None,
+                      operator: str = "", calibration_id: int | None = None,
+                      notes: str = "") -> Session:
+        if condition not in CONDITIONS:
+            raise AnkleScanError(f"condition must be one of {', '.join(CONDITIONS)}, "
+                                 f"got {condition!r}")
+        pid = self.get_patient(patient).id
+        if calibration_id is not None:
+            self.get_calibration(calibration_id)
+        day = _date(date, "session date") or _dt.date.today().isoformat()
+        with self._write() as c:
+            sid = c.execute(
+                "INSERT INTO sessions (patient_id, date, operator, condition, calibration_id,"
+                " notes) VALUES (?, ?, ?, ?, ?, ?)",
+                (pid, day, operator or "", condition, calibration_id, notes or "")).lastrowid
+        return self.get_session(sid)
+
+    def get_session(self, sid: int) -> Session:
+        row = self._one("SELECT * FROM sessions WHERE id = ?", (sid,))
+        if row is None:
+            raise AnkleScanError(f"no session {sid}")
+        return Session(**dict(row))
+
+    def list_sessions(self, patient: int | str | None = None) -> list[Session]:
+        if patient is None:
+            rows = self._all("SELECT * FROM sessions ORDER BY date, id")
+        else:
+            pid = self.get_patient(patient).id
+            rows = self._all("SELECT * FROM sessions WHERE patient_id = ? ORDER BY date, id",
+                             (pid,))
+        return [Session(**dict(r)) for r in rows]
+
+    # ------------------------------------------------------------ trials
+
+    def add_trial(self, session_id: int, *, ref_inversion: float | None,
+                  ref_plantar_flexion: float | None, notes: str = "") -> Trial:
+        """A trial with the operator's reference-table set angles (degrees)."""
+        self.get_session(session_id)
+        ri = _opt_float(ref_inversion, "reference inversion")
+        rp = _opt_float(ref_plantar_flexion, "reference plantar flexion")
+        with self._write() as c:
+            tid = c.execute(
+                "INSERT INTO trials (session_id, created, ref_inversion, ref_plantar_flexion,"
+                " notes) VALUES (?, ?, ?, ?, ?)", (session_id, _now(), ri, rp, notes or "")
+            ).lastrowid
+        return self.get_trial(tid)
+
+    def get_trial(self, tid: int) -> Trial:
+        row = self._one("SELECT * FROM trials WHERE id = ?", (tid,))
+        if row is None:
+            raise AnkleScanError(f"no trial {tid}")
+        return Trial(**dict(row))
+
+    def list_trials(self, session_id: int) -> list[Trial]:
+        rows = self._all("SELECT * FROM trials WHERE session_id = ? ORDER BY id", (session_id,))
+        return [Trial(**dict(r)) for r in rows]
+
+    def update_trial_angles(self, trial_id: int, angles: Mapping,
+                            reference: Mapping | None = None) -> Trial:
+        """Store measured angles (``compute_angles`` output) and the resulting mismatch.
+
+        ``reference`` defaults to the trial's set angles; pass the scanned reference
+        table's ``{"inversion": {"value", "sd"}, ...}`` when it was measured (SPEC §3).
+        """
+        with self._write() as c:
+            self._store_angles(c, self.get_trial(trial_id), angles, reference)
+        return self.get_trial(trial_id)
+
+    def _store_angles(self, c, trial: Trial, angles: Mapping, reference) -> None:
+        cols: dict[str, float | None] = {}
+        for name in ANGLE_FIELDS:
+            v = angles.get(name)
+            cols[name] = _opt_float(v["value"], name) if v else None
+            cols[f"{name}_sd"] = _opt_float(v.get("sd"), f"{name} sd") if v else None
+        if reference is None and None not in (trial.ref_inversion, trial.ref_plantar_flexion):
+            reference = {"inversion": trial.ref_inversion,
+                         "plantar_flexion": trial.ref_plantar_flexion}
+        have_table = angles.get("table_inversion") and angles.get("table_plantar_flexion")
+        mm = mismatch(angles, reference) if (have_table and reference) else {}
+        for axis in ("inversion", "plantar_flexion"):
+            cols[f"mismatch_{axis}"] = mm[axis]["value"] if mm else None
+            cols[f"mismatch_{axis}_sd"] = mm[axis]["sd"] if mm else None
+        sets = ", ".join(f"{k} = ?" for k in cols)
+        c.execute(f"UPDATE trials SET {sets} WHERE id = ?", (*cols.values(), trial.id))
+
+    def set_trial_files(self, trial_id: int, *, capture=None, cloud=None) -> Trial:
+        """Record a capture folder and/or cloud file with its sha256 (paths relative to
+        the data folder when inside it, so the folder can be moved as a whole)."""
+        self.get_trial(trial_id)
+        cols = {}
+        for name, p in (("capture", capture), ("cloud", cloud)):
+            if p is not None:
+                cols[f"{name}_sha256"] = sha256_path(p)
+                cols[f"{name}_path"] = self._relative(Path(p))
+        if not cols:
+            return self.get_trial(trial_id)
+        with self._write() as c:
+            sets = ", ".join(f"{k} = ?" for k in cols)
+            c.execute(f"UPDATE trials SET {sets} WHERE id = ?", (*cols.values(), trial_id))
+        return self.get_trial(trial_id)
+
+    def _relative(self, p: Path) -> str:
+        try:
+            return p.resolve().relative_to(self.data_dir.resolve()).as_posix()
+        except ValueError:
+            return str(p.resolve())
+
+    def resolve(self, stored_path: str) -> Path:
+        """Absolute path of a capture/cloud path as stored in a trial."""
+        p = Path(stored_path)
+        return p if p.is_absolute() else self.data_dir / p
+
+    def trial_dir(self, trial_id: int, create: bool = False) -> Path:
+        """``data_dir/patients/<code>/session-<id>/trial-<id>``: where its files belong."""
+        row = self._one(
+            "SELECT p.code, s.id AS sid FROM trials t JOIN sessions s ON s.id = t.session_id"
+            " JOIN patients p ON p.id = s.patient_id WHERE t.id = ?", (trial_id,))
+        if row is None:
+            raise AnkleScanError(f"no trial {trial_id}")
+        d = self.data_dir / "patients" / row["code"] / f"session-{row['sid']}" / f"trial-{trial_id}"
+        if create:
+            try:
+                d.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise AnkleScanError(f"cannot create {d}: {e.strerror or e}") from None
+        return d
+
+    def verify_trial_files(self, trial_id: int) -> list[str]:
+        """Problems with the trial's stored files (missing or changed); [] if all good."""
+        t = self.get_trial(trial_id)
+        problems = []
+        for name in ("capture", "cloud"):
+            rel, digest = getattr(t, f"{name}_path"), getattr(t, f"{name}_sha256")
+            if rel is None:
+                continue
+            p = self.resolve(rel)
+            if not p.exists():
+                problems.append(f"{name} {p} is missing")
+            elif sha256_path(p) != digest:
+                problems.append(f"{name} {p} has changed since it was recorded")
+        return problems
+
+    # ------------------------------------------------------------ marks
+
+    def update_marks(self, trial_id: int, marks: Mapping, source: str, placed_by: str = "",
+                     *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True) -> list[Mark]:
+        """Insert or replace marks (label → xyz mm) and, by default, recompute the trial's
+        angles from all its marks in the same transaction, so stored angles never
+        disagree with stored marks."""
+        if source not in MARK_SOURCES:
+            raise AnkleScanError(f"mark source must be 'auto' or 'manual', got {source!r}")
+        trial = self.get_trial(trial_id)
+        clean = {}
+        for key, p in marks.items():
+            try:
+                lab = int(str(key).strip())
+            except ValueError:
+                raise AnkleScanError(f"mark label {key!r} is not a number 1-7") from None
+            if lab not in range(1, 8):
+                raise AnkleScanError(f"mark label {lab} is out of range (expected 1-7)")
+            xyz = [_opt_float(v, f"mark {lab} coordinate") for v in p]
+            if len(xyz) != 3 or None in xyz:
+                raise AnkleScanError(f"mark {lab} must have 3 coordinates")
+            clean[lab] = xyz
+        now = _now()
+        with self._write() as c:
+            c.executemany(
+                "INSERT OR REPLACE INTO marks (trial_id, label, x, y, z, source, placed_by,"
+                " updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                [(trial_id, lab, *xyz, source, placed_by or "", now) for lab, xyz in clean.items()])
+            if recompute:
+                allm = {r[0]: r[1:] for r in c.execute(
+                    "SELECT label, x, y, z FROM marks WHERE trial_id = ?", (trial_id,))}
+                self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma_mm), None)
+        return self.get_marks(trial_id)
+
+    def get_marks(self, trial_id: int) -> list[Mark]:
+        rows = self._all("SELECT * FROM marks WHERE trial_id = ? ORDER BY label", (trial_id,))
+        return [Mark(**dict(r)) for r in rows]
+
+    # ------------------------------------------------------------ summaries
+
+    def session_summary(self, session_id: int) -> SessionSummary:
+        s = self.get_session(session_id)
+        trials = self.list_trials(session_id)
+        cal = self.get_calibration(s.calibration_id) if s.calibration_id else None
+        incomplete = [t.id for t in trials if t.mismatch_inversion is None]
+        return SessionSummary(
+            session=s, patient=self.get_patient(s.patient_id), calibration=cal, trials=trials,
+            inversion=_axis_summary([t.mismatch_inversion for t in trials]),
+            plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in trials]),
+            incomplete_trials=incomplete)
+
+    def study_rows(self) -> list[dict]:
+        """Every trial joined with its session, patient and calibration (for stats/CSV)."""
+        return [dict(r) for r in self._all(
+            "SELECT p.code AS patient_code, p.sprain_count, p.last_sprain, p.affected_side,"
+            " s.id AS session_id, s.date AS session_date, s.operator, s.condition,"
+            " s.calibration_id, c.rms AS calibration_rms, t.id AS trial_id, t.*"
+            " FROM trials t JOIN sessions s ON s.id = t.session_id"
+            " JOIN patients p ON p.id = s.patient_id"
+            " LEFT JOIN calibrations c ON c.id = s.calibration_id"
+            " ORDER BY p.code, s.date, s.id, t.id")]
+
+
+def _axis_summary(values: list[float | None]) -> AxisSummary:
+    v = [x for x in values if x is not None]
+    if not v:
+        return AxisSummary(0, None, None, None, None, None)
+    n = len(v)
+    mean = sum(v) / n
+    sd = math.sqrt(sum((x - mean) ** 2 for x in v) / (n - 1)) if n > 1 else None
+    return AxisSummary(n, mean, sum(abs(x) for x in v) / n, sd, min(v), max(v))
+
+
+def _statements(script: str) -> list[str]:
+    """Split a migration script; executescript() would COMMIT our open transaction."""
+    out, buf = [], ""
+    for line in script.splitlines(keepends=True):
+        buf += line
+        if sqlite3.complete_statement(buf):
+            out.append(buf.strip())
+            buf = ""
+    return [s for s in out if s]

@@ -1,0 +1,195 @@
+"""PDF/CSV reports and the study statistics behind the group page."""
+
+import csv
+import math
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core import study_stats as st
+from core.errors import AnkleScanError
+from core.report import CSV_COLUMNS, write_session_report, write_study_report
+from core.store import Store
+
+INV_SETTINGS = (0.0, 20.0)
+PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
+
+
+def synthetic_study(store: Store, n_per_group=3, repeats=2, seed=0):
+    """Sprain-history patients mis-sense more, shoes help: the paper's qualitative result."""
+    rng = np.random.default_rng(seed)
+    cal = store.add_calibration({"units": "mm"}, rms=0.21, source="simulated rig", verified=True)
+    sessions = []
+    for g, sprains in (("S", 3), ("C", 0)):
+        for i in range(n_per_group):
+            code = f"{g}-{i + 1:02d}"
+            store.add_patient(code, sprain_count=sprains, affected_side="right" if sprains else None,
+                              last_sprain="2024-01-15" if sprains else None)
+            for cond in ("barefoot", "shoes"):
+                s = store.start_session(code, condition=cond, date="2024-06-03",
+                                        operator="Dr. Test", calibration_id=cal.id)
+                sessions.append(s.id)
+                spread = (4.0 if sprains else 1.5) * (0.6 if cond == "shoes" else 1.0)
+                for inv in INV_SETTINGS:
+                    for pf in PF_SETTINGS:
+                        for _ in range(repeats):
+                            t = store.add_trial(s.id, ref_inversion=inv, ref_plantar_flexion=pf)
+                            ti, tp = inv + rng.normal(0, spread), pf + rng.normal(0.05 * pf, spread)
+                            store.update_trial_angles(t.id, {
+                                "leg_inversion": {"value": rng.normal(2, 1), "sd": 0.1},
+                                "leg_plantar_flexion": {"value": pf * 0.4, "sd": 0.1},
+                                "table_inversion": {"value": ti, "sd": 0.15},
+                                "table_plantar_flexion": {"value": tp, "sd": 0.15}})
+    return sessions
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    path = tmp_path_factory.mktemp("study") / "db.sqlite"
+    with Store.open(path) as s:
+        sessions = synthetic_study(s)
+    s = Store.open(path)
+    yield s, sessions
+    s.close()
+
+
+def pdf_pages(path: Path) -> int:
+    """Page count from the PDF page tree (matplotlib writes one /Count)."""
+    import re
+    counts = re.findall(rb"/Type /Pages[^>]*?/Count (\d+)|/Count (\d+)[^>]*?/Type /Pages",
+                        path.read_bytes())
+    return max(int(a or b) for a, b in counts)
+
+
+# ----------------------------------------------------------------- reports
+
+def test_session_report_pdf_and_csv(study, tmp_path):
+    store, sessions = study
+    pdf, out_csv = tmp_path / "r.pdf", tmp_path / "r.csv"
+    res = write_session_report(store, sessions[:1], pdf, out_csv)
+    # header/table page (16 trials fit) + Fig. 10 + one error-range page per inversion
+    # setting + the group page
+    assert res.pages == 1 + 1 + len(INV_SETTINGS) + 1
+    assert pdf.read_bytes()[:5] == b"%PDF-" and pdf_pages(pdf) == res.pages
+    rows = list(csv.DictReader(out_csv.open()))
+    trials = store.list_trials(sessions[0])
+    assert len(rows) == len(trials) and tuple(rows[0]) == CSV_COLUMNS
+    for r, t in zip(rows, trials):
+        assert int(r["trial_id"]) == t.id and r["patient_code"] == "S-01"
+        assert r["condition"] == "barefoot" and float(r["calibration_rms"]) == 0.21
+        for k in ("ref_inversion", "table_inversion", "mismatch_plantar_flexion",
+                  "mismatch_inversion_sd"):
+            assert float(r[k]) == getattr(t, k)
+        assert r["capture_path"] == ""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv", "r.pdf"]
+    if shutil.which("pdftoppm"):   # the page must also rasterise (what a viewer does)
+        subprocess.run(["pdftoppm", "-r", "30", "-png", "-f", "1", "-l", "1", str(pdf),
+                        str(tmp_path / "p")], check=True, timeout=60)
+        png = next(tmp_path.glob("p*.png"))
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_multi_session_report_pages(study, tmp_path):
+    store, sessions = study
+    res = write_session_report(store, sessions[:2], tmp_path / "r.pdf")
+    assert res.pages == 2 * (2 + len(INV_SETTINGS)) + 1 and res.csv_path is None
+
+
+def test_long_session_table_continues(tmp_path):
+    with Store.open(tmp_path / "db.sqlite") as s:
+        s.add_patient("L-1")
+        ses = s.start_session("L-1", condition="shoes")
+        for i in range(30):
+            s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=i)   # none measured
+        res = write_session_report(s, [ses.id], tmp_path / "l.pdf", tmp_path / "l.csv")
+    # 24 rows + continuation page, Fig. 10 page ("no measured trials"), group page
+    assert res.pages == 2 + 1 + 1
+    rows = list(csv.DictReader((tmp_path / "l.csv").open()))
+    assert len(rows) == 30 and rows[0]["mismatch_inversion"] == ""
+
+
+def test_study_report(study, tmp_path):
+    store, _ = study
+    res = write_study_report(store, tmp_path / "s.pdf", tmp_path / "s.csv")
+    assert res.pages == 1 + 2 + 1 and pdf_pages(tmp_path / "s.pdf") == 4
+    rows = list(csv.DictReader((tmp_path / "s.csv").open()))
+    assert len(rows) == 12 * len(INV_SETTINGS) * len(PF_SETTINGS) * 2
+
+
+def test_report_errors_leave_nothing(study, tmp_path):
+    store, sessions = study
+    with pytest.raises(AnkleScanError, match="does not exist"):
+        write_session_report(store, sessions[:1], tmp_path / "nope" / "r.pdf")
+    with pytest.raises(AnkleScanError, match="no session"):
+        write_session_report(store, [99999], tmp_path / "r.pdf", tmp_path / "r.csv")
+    (tmp_path / "r.pdf").write_bytes(b"old")
+    with pytest.raises(AnkleScanError, match="no sessions"):
+        write_session_report(store, [], tmp_path / "r.pdf")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.pdf"]
+    assert (tmp_path / "r.pdf").read_bytes() == b"old"
+
+
+def test_csv_neutralises_formulas(tmp_path):
+    with Store.open(tmp_path / "db.sqlite") as s:
+        s.add_patient("F-1")
+        ses = s.start_session("F-1", condition="shoes", operator="=HYPERLINK(1)")
+        s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=0, notes="-2 felt odd")
+        write_study_report(s, tmp_path / "f.pdf", tmp_path / "f.csv")
+    r = next(csv.DictReader((tmp_path / "f.csv").open()))
+    assert r["operator"] == "'=HYPERLINK(1)" and r["notes"] == "'-2 felt odd"
+
+
+# ------------------------------------------------------------------- stats
+
+def rows_for(values: dict[tuple[str, str], list[float]], sprains: dict[str, int]):
+    return [{"patient_code": p, "condition": c, "sprain_count": sprains[p],
+             "mismatch_inversion": v, "mismatch_plantar_flexion": -v}
+            for (p, c), vs in values.items() for v in vs]
+
+
+def test_per_patient_aggregation_and_groups():
+    vals = {("A", "barefoot"): [2, -4], ("B", "barefoot"): [5, 7], ("C", "barefoot"): [1, -1],
+            ("D", "barefoot"): [0.5, 1.5]}
+    s = st.study_stats(rows_for(vals, {"A": 2, "B": 1, "C": 0, "D": 0}))
+    assert s.patient_means[("A", "barefoot", "inversion")] == 3.0
+    ps = s.patient_summary[("sprain history", "barefoot", "inversion")]
+    assert (ps.n, ps.mean_abs, ps.min, ps.max) == (2, 4.5, 3.0, 6.0)
+    assert ps.sd == pytest.approx(math.sqrt(4.5))
+    ts = s.trial_summary[("sprain history", "barefoot", "inversion")]
+    assert ts.n == 4 and ts.mean_abs == 4.5 and ts.mean_signed == 2.5
+    t = s.history_tests[("barefoot", "inversion")]
+    assert (t.n_a, t.n_b) == (2, 2) and t.mean_diff == pytest.approx(3.5)
+    assert t.rank_biserial == 1.0 and "indicative" in t.note
+    assert s.history_tests[("shoes", "inversion")].note == st.TOO_SMALL
+    assert s.condition_tests[("all", "inversion")].note == st.TOO_SMALL
+
+
+def test_group_test_matches_scipy():
+    from scipy import stats
+    a, b = [3.1, 4.2, 5.0, 6.3, 4.4], [1.2, 2.0, 1.7, 2.9]
+    t = st.compare_groups(a, b)
+    assert t.welch_p == pytest.approx(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    assert t.mwu_p == pytest.approx(stats.mannwhitneyu(a, b).pvalue)
+    assert t.hedges_g > 1
+
+
+def test_paired_condition_comparison():
+    a, b = [4.0, 5.0, 3.5, 6.0, 4.5], [2.0, 3.9, 2.5, 4.0, 2.2]
+    t = st.compare_paired(a, b)
+    assert t.n == 5 and t.mean_diff == pytest.approx(np.mean(np.subtract(a, b)))
+    assert t.wilcoxon_p == pytest.approx(0.0625) and "0.0625" in t.note
+    assert "n too small" in st.format_paired_test(st.compare_paired([1.0], [2.0]))
+    assert st.compare_paired([1, 2], [0, 1]).note == "differences are all equal"
+
+
+def test_report_stats_reflect_synthetic_effect(study):
+    store, _ = study
+    s = st.study_stats(store.study_rows())
+    for c in st.CONDITIONS:
+        t = s.history_tests[(c, "inversion")]
+        assert t.n_a == t.n_b == 3 and t.mean_diff > 0
+    assert s.condition_tests[("all", "inversion")].n == 6
+    assert s.condition_tests[("all", "inversion")].mean_diff > 0

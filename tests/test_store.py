@@ -1,0 +1,298 @@
+"""The sessions database: round trip, concurrency, migrations, corruption, locks, full disk."""
+
+import math
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core import store as store_mod
+from core.errors import AnkleScanError
+from core.store import SCHEMA_VERSION, Store, sha256_path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def marks_for(tab_inv, tab_pf):
+    """Seven marks: a vertical leg and a table with the given slopes (see test_angles)."""
+    sx, sy = math.tan(math.radians(tab_inv)), math.tan(math.radians(tab_pf))
+    table = {k: [u, v, 50 - sx * u - sy * v] for k, (u, v) in
+             zip((5, 6, 7), [(-40, -60), (45, -50), (5, 90)])}
+    return {1: [0, 40, 480], 2: [0, 40, 80], 3: [35, 0, 485], 4: [35, 0, 85], **table}
+
+
+@pytest.fixture
+def db(tmp_path):
+    s = Store.open(tmp_path / "a.sqlite", timeout=2.0)
+    yield s
+    s.close()
+
+
+def populate(s):
+    p = s.add_patient("P-001", sprain_count=2, last_sprain="2024-03-01", affected_side="right")
+    cal = s.add_calibration({"units": "mm"}, rms=0.18, source="sim", verified=True)
+    ses = s.start_session("P-001", condition="barefoot", date="2024-05-02", operator="op1",
+                          calibration_id=cal.id)
+    t = s.add_trial(ses.id, ref_inversion=10.0, ref_plantar_flexion=20.0)
+    return p, cal, ses, t
+
+
+def test_round_trip(tmp_path, db):
+    p, cal, ses, t = populate(db)
+    marks = db.update_marks(t.id, marks_for(12.0, 17.5), "auto", "detector")
+    assert [m.label for m in marks] == list(range(1, 8))
+    t2 = db.get_trial(t.id)
+    assert t2.table_inversion == pytest.approx(12.0)
+    assert t2.mismatch_inversion == pytest.approx(2.0)
+    assert t2.mismatch_plantar_flexion == pytest.approx(-2.5)
+    assert t2.leg_inversion == pytest.approx(0.0, abs=1e-9) and t2.leg_inversion_sd > 0
+    # Manual correction of one mark replaces it and the angles follow.
+    db.update_marks(t.id, {6: marks_for(14.0, 17.5)[6]}, "manual", "op1")
+    m6 = [m for m in db.get_marks(t.id) if m.label == 6][0]
+    assert (m6.source, m6.placed_by) == ("manual", "op1")
+    assert db.get_trial(t.id).table_inversion != pytest.approx(12.0)
+    db.close()
+    with Store.open(tmp_path / "a.sqlite") as s2:
+        assert s2.schema_version() == SCHEMA_VERSION
+        assert s2.get_patient("P-001") == p
+        assert s2.get_patient(p.id).has_sprain_history
+        assert s2.get_calibration(cal.id).data == {"units": "mm"}
+        assert s2.get_calibration(cal.id).verified is True
+        assert s2.list_sessions("P-001") == [ses]
+        assert [x.id for x in s2.list_trials(ses.id)] == [t.id]
+        summ = s2.session_summary(ses.id)
+        assert summ.patient.code == "P-001" and summ.calibration.rms == 0.18
+        assert summ.inversion.n == 1 and summ.incomplete_trials == []
+
+
+def test_partial_marks_give_partial_angles(db):
+    *_, t = populate(db)
+    db.update_marks(t.id, {k: v for k, v in marks_for(5, 5).items() if k in (1, 2)}, "manual")
+    t2 = db.get_trial(t.id)
+    assert t2.leg_inversion is not None and t2.table_inversion is None
+    assert t2.mismatch_inversion is None
+    assert db.session_summary(t.session_id).incomplete_trials == [t.id]
+
+
+def test_update_trial_angles_with_measured_reference(db):
+    *_, t = populate(db)
+    angles = {"table_inversion": {"value": 11.0, "sd": 0.3},
+              "table_plantar_flexion": {"value": 19.0, "sd": 0.4}}
+    ref = {"inversion": {"value": 10.5, "sd": 0.4}, "plantar_flexion": {"value": 20.0, "sd": 0.3}}
+    t2 = db.update_trial_angles(t.id, angles, reference=ref)
+    assert t2.mismatch_inversion == pytest.approx(0.5)
+    assert t2.mismatch_inversion_sd == pytest.approx(0.5)
+    assert t2.leg_inversion is None
+
+
+@pytest.mark.parametrize("call,msg", [
+    (lambda s: s.add_patient("John Smith"), "pseudonym"),
+    (lambda s: s.add_patient("P-001"), "already exists"),
+    (lambda s: s.add_patient("P-9", sprain_count=-1), "sprain count"),
+    (lambda s: s.add_patient("P-9", last_sprain="yesterday"), "date"),
+    (lambda s: s.start_session("P-001", condition="socks"), "condition"),
+    (lambda s: s.start_session("nobody", condition="shoes"), "no patient"),
+    (lambda s: s.add_trial(999, ref_inversion=0, ref_plantar_flexion=0), "no session"),
+    (lambda s: s.update_marks(1, {1: [0, 0, 0]}, "guess"), "source"),
+    (lambda s: s.update_marks(1, {9: [0, 0, 0]}, "auto"), "out of range"),
+    (lambda s: s.add_calibration("{not json"), "JSON"),
+])
+def test_validation_errors(db, call, msg):
+    populate(db)
+    with pytest.raises(AnkleScanError, match=msg):
+        call(db)
+
+
+def test_failed_write_leaves_previous_state(db):
+    *_, t = populate(db)
+    db.update_marks(t.id, marks_for(10, 20), "auto")
+    before = db.get_marks(t.id), db.get_trial(t.id)
+    # Mark 7 makes the table collinear: the angle computation fails inside the transaction.
+    bad = {5: [0, 0, 0], 6: [10, 10, 1], 7: [20, 20, 2]}
+    with pytest.raises(AnkleScanError, match="collinear"):
+        db.update_marks(t.id, bad, "manual")
+    assert (db.get_marks(t.id), db.get_trial(t.id)) == before
+
+
+def test_killed_process_mid_transaction_keeps_last_commit(tmp_path):
+    path = tmp_path / "k.sqlite"
+    with Store.open(path) as s:
+        s.add_patient("P-1")
+    code = (
+        "import os, sys\n"
+        "from core.store import Store\n"
+        f"s = Store.open({str(path)!r})\n"
+        "with s._write() as c:\n"
+        "    c.execute(\"INSERT INTO patients (code, created) VALUES ('P-2', 'x')\")\n"
+        "    os._exit(9)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=60)
+    assert r.returncode == 9
+    with Store.open(path) as s:
+        assert [p.code for p in s.list_patients()] == ["P-1"]
+
+
+def test_two_connections_write_concurrently(tmp_path):
+    path = tmp_path / "c.sqlite"
+    with Store.open(path) as s:
+        populate(s)
+    errors, n = [], 25
+
+    def worker(tag):
+        try:
+            with Store.open(path, timeout=10) as s:
+                for i in range(n):
+                    t = s.add_trial(1, ref_inversion=i, ref_plantar_flexion=0, notes=tag)
+                    s.update_marks(t.id, marks_for(i, 1), "auto", tag)
+        except Exception as e:          # noqa: BLE001 — surfaced by the assert below
+            errors.append(e)
+
+    threads = [threading.Thread(target=worker, args=(f"w{k}",)) for k in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert errors == []
+    with Store.open(path) as s:
+        trials = s.list_trials(1)
+        assert len(trials) == 2 * n + 1
+        for tag in ("w0", "w1"):
+            mine = [t for t in trials if t.notes == tag]
+            assert [t.ref_inversion for t in mine] == list(range(n))
+            assert all(len(s.get_marks(t.id)) == 7 for t in mine)
+            assert all(t.table_inversion == pytest.approx(t.ref_inversion) for t in mine)
+
+
+def test_migration_from_empty_file(tmp_path):
+    path = tmp_path / "empty.sqlite"
+    path.touch()
+    with Store.open(path) as s:
+        assert s.schema_version() == SCHEMA_VERSION
+        populate(s)
+
+
+def test_migration_from_v1(tmp_path):
+    path = tmp_path / "v1.sqlite"
+    raw = sqlite3.connect(path)
+    for stmt in store_mod._statements(store_mod.MIGRATIONS[0]):
+        raw.execute(stmt)
+    raw.execute("PRAGMA user_version = 1")
+    raw.execute("INSERT INTO patients (code, created) VALUES ('OLD-1', '2023-01-01')")
+    raw.execute("INSERT INTO calibrations (created, json, rms) VALUES ('t', '{}', 0.3)")
+    raw.execute("INSERT INTO sessions (patient_id, date, condition, calibration_id)"
+                " VALUES (1, '2023-01-02', 'shoes', 1)")
+    raw.execute("INSERT INTO trials (session_id, created, ref_inversion, ref_plantar_flexion)"
+                " VALUES (1, 't', 0, 10)")
+    raw.commit()
+    raw.close()
+    with Store.open(path) as s:
+        assert s.schema_version() == SCHEMA_VERSION
+        assert s.get_patient("OLD-1").id == 1
+        assert s.get_calibration(1).verified is False
+        t = s.list_trials(1)[0]
+        assert t.cloud_path is None and t.ref_plantar_flexion == 10
+        s.update_marks(t.id, marks_for(0, 10), "auto")
+        assert s.get_trial(t.id).mismatch_plantar_flexion == pytest.approx(0, abs=1e-9)
+
+
+def test_newer_schema_refused(tmp_path):
+    path = tmp_path / "new.sqlite"
+    raw = sqlite3.connect(path)
+    raw.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    raw.close()
+    with pytest.raises(AnkleScanError, match="newer"):
+        Store.open(path)
+
+
+@pytest.mark.parametrize("content,msg", [
+    (b"name,x,y,z\n" * 500, "not an AnkleScan database"),
+    (b"SQLite format 3\x00" + bytes(range(256)) * 40, "damaged"),
+])
+def test_corrupt_file_left_untouched(tmp_path, content, msg):
+    path = tmp_path / "corrupt.sqlite"
+    path.write_bytes(content)
+    with pytest.raises(AnkleScanError, match=msg) as e:
+        Store.open(path)
+    assert "\n" not in str(e.value)
+    assert path.read_bytes() == content
+    assert sorted(p.name for p in tmp_path.iterdir() if p.stat().st_size) == ["corrupt.sqlite"]
+
+
+def test_locked_database_times_out_with_clear_error(tmp_path):
+    path = tmp_path / "l.sqlite"
+    with Store.open(path) as s:
+        s.add_patient("P-1")
+    other = sqlite3.connect(path, isolation_level=None, timeout=0)
+    other.execute("BEGIN EXCLUSIVE")
+    other.execute("INSERT INTO patients (code, created) VALUES ('P-X', 'x')")
+    try:
+        with Store.open(path, timeout=0.3) as s:
+            assert [p.code for p in s.list_patients()] == ["P-1"]   # WAL: reads still work
+            t0 = time.monotonic()
+            with pytest.raises(AnkleScanError, match="locked by another program") as e:
+                s.add_patient("P-2")
+            assert time.monotonic() - t0 >= 0.25
+            assert "\n" not in str(e.value)
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    with Store.open(path) as s:
+        assert [p.code for p in s.list_patients()] == ["P-1"]
+
+
+def test_disk_full_keeps_earlier_data(db):
+    p, *_ = populate(db)
+    pages = db._conn.execute("PRAGMA page_count").fetchone()[0]
+    db._conn.execute(f"PRAGMA max_page_count = {pages}")   # simulate a full disk
+    with pytest.raises(AnkleScanError, match="disk is full"):
+        db.add_patient("P-BIG", notes="x" * 200_000)
+    assert [x.code for x in db.list_patients()] == ["P-001"]
+    assert db.get_patient("P-001") == p
+    assert not db._conn.in_transaction
+
+
+def test_data_dir_env_and_files(tmp_path, monkeypatch):
+    monkeypatch.setenv("ANKLESCAN_DATA", str(tmp_path / "data"))
+    with Store.open() as s:
+        assert s.path == tmp_path / "data" / "anklescan.sqlite" and s.path.exists()
+        *_, t = populate(s)
+        d = s.trial_dir(t.id, create=True)
+        assert d.is_dir() and d.relative_to(s.data_dir).parts[:2] == ("patients", "P-001")
+        cap = d / "capture"
+        cap.mkdir()
+        (cap / "frame_00.png").write_bytes(b"a")
+        (cap / "manifest.json").write_text("{}")
+        cloud = d / "cloud.ply"
+        cloud.write_bytes(b"ply\n")
+        t2 = s.set_trial_files(t.id, capture=cap, cloud=cloud)
+        assert not Path(t2.capture_path).is_absolute()
+        assert t2.capture_sha256 == sha256_path(cap) and len(t2.cloud_sha256) == 64
+        assert s.verify_trial_files(t.id) == []
+        (cap / "frame_00.png").write_bytes(b"b")
+        cloud.unlink()
+        problems = s.verify_trial_files(t.id)
+        assert len(problems) == 2 and "changed" in problems[0] and "missing" in problems[1]
+
+
+def test_sha256_folder_independent_of_creation_order(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for root, names in ((a, ["x", "y", "sub/z"]), (b, ["sub/z", "y", "x"])):
+        for n in names:
+            (root / n).parent.mkdir(parents=True, exist_ok=True)
+            (root / n).write_text(n)
+    assert sha256_path(a) == sha256_path(b)
+    (b / "x").write_text("changed")
+    assert sha256_path(a) != sha256_path(b)
+    with pytest.raises(AnkleScanError, match="no such"):
+        sha256_path(tmp_path / "none")
+
+
+def test_explicit_data_dir_overrides(tmp_path):
+    with Store.open(tmp_path / "db" / "x.sqlite", data_dir=tmp_path / "files") as s:
+        assert s.data_dir == tmp_path / "files"
+    with Store.open(tmp_path / "db" / "x.sqlite") as s:
+        assert s.data_dir == tmp_path / "db"
