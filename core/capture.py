@@ -1,0 +1,284 @@
+"""Capture folders (SPEC section 5): one camera image per manifest frame + manifest.json.
+
+A capture folder holds the pattern set's ``manifest.json`` (optionally with a ``"capture"``
+key for device, exposure, timestamps ...) and one image per frame under the SAME file name.
+Images may be 8- or 16-bit, gray or colour (BGR/BGRA as OpenCV reads them), but all frames
+of one capture must share size and bit depth.
+
+``Capture.frames`` is the stack of gray frames, shape ``(n_frames, H, W)``, in manifest
+order and in the images' own integer type (uint8 or uint16): decoding works on the native
+integers, which is both faster and exact, and ``max_value`` (255 / 65535) tells it where
+the sensor saturates.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from core.errors import CaptureError
+from core.patterns import (PatternSet, imwrite_checked, load_manifest, replace_dir,
+                           write_json_atomic)
+
+MANIFEST = "manifest.json"
+IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",
+              ".webp", ".jp2", ".exr", ".hdr"}
+MAX_VALUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
+
+
+@dataclass
+class Capture:
+    folder: Path | None
+    pattern_set: PatternSet
+    frames: np.ndarray  # (n_frames, H, W) uint8 or uint16, manifest order
+    white_color: np.ndarray | None = None  # (H, W, 3) uint8 BGR, None for gray cameras
+    metadata: dict = field(default_factory=dict)  # the manifest's "capture" object
+
+    @property
+    def max_value(self) -> int:
+        return MAX_VALUE[self.frames.dtype]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.frames.shape[1:]
+
+    def frame(self, name: str) -> np.ndarray:
+        return self.frames[self.pattern_set.files.index(name)]
+
+
+# ------------------------------------------------------------------------ images
+def _to_gray(img: np.ndarray, name: str) -> np.ndarray:
+    if img.ndim == 2:
+        return img
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim == 3 and img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+    raise CaptureError(f"{name}: unsupported image layout {img.shape}")
+
+
+def _color_8bit(img: np.ndarray) -> np.ndarray | None:
+    if img.ndim != 3 or img.shape[2] not in (3, 4):
+        return None
+    bgr = img[:, :, :3]
+    if bgr.dtype == np.uint16:
+        bgr = (bgr >> 8).astype(np.uint8)
+    return np.ascontiguousarray(bgr)
+
+
+def _read(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise CaptureError(f"unreadable image {path}")
+    if img.dtype not in MAX_VALUE:
+        raise CaptureError(f"{path}: unsupported pixel type {img.dtype} (need 8- or 16-bit)")
+    return img
+
+
+def _describe(img: np.ndarray) -> str:
+    return f"{img.shape[1]}x{img.shape[0]}"
+
+
+# ----------------------------------------------------------------------- loading
+def load_capture(folder) -> Capture:
+    """Load and check a capture folder; every defect raises a one-line CaptureError."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise CaptureError(f"capture folder not found: {folder}")
+    if not folder.is_dir():
+        raise CaptureError(f"capture path is not a folder: {folder}")
+    manifest_path = folder / MANIFEST
+    if not manifest_path.is_file():
+        raise CaptureError(f"capture {folder} has no {MANIFEST}")
+    pset = load_manifest(manifest_path)
+    metadata = _capture_metadata(manifest_path)
+    _check_files(folder, pset)
+
+    paths = [folder / f for f in pset.files]
+    # PNG/TIFF decoding releases the GIL: two threads roughly halve load time
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        images = pool.map(_read, paths)
+        stack, color = _stack(images, paths, pset.index("white"))
+    return Capture(folder, pset, stack, color, metadata)
+
+
+def _capture_metadata(manifest_path: Path) -> dict:
+    meta = json.loads(manifest_path.read_text(encoding="utf-8")).get("capture", {})
+    if not isinstance(meta, dict):
+        raise CaptureError(f"{manifest_path}: 'capture' must be an object")
+    return meta
+
+
+def _check_files(folder: Path, pset: PatternSet) -> None:
+    wanted = set(pset.files)
+    present = {p.name for p in folder.iterdir() if p.is_file()}
+    missing = [f for f in pset.files if f not in present]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise CaptureError(f"capture {folder}: frame file {missing[0]} is missing{more}")
+    # dot files are our own temporaries (CaptureWriter); other non-images are notes etc.
+    extra = sorted(n for n in present - wanted
+                   if not n.startswith(".") and Path(n).suffix.lower() in IMAGE_EXTS)
+    if extra:
+        raise CaptureError(f"capture {folder}: image {extra[0]} is not a frame of the manifest")
+
+
+def _stack(images, paths, white_idx):
+    stack = color = None
+    first = None
+    for i, (img, path) in enumerate(zip(images, paths)):
+        if stack is None:
+            first = (path.name, img)
+            stack = np.empty((len(paths),) + img.shape[:2], img.dtype)
+        else:
+            _check_same(first, path.name, img)
+        stack[i] = _to_gray(img, path.name)
+        if i == white_idx:
+            color = _color_8bit(img)
+    return stack, color
+
+
+def _check_same(first, name: str, img: np.ndarray) -> None:
+    fname, fimg = first
+    if img.shape[:2] != fimg.shape[:2]:
+        raise CaptureError(f"frame {name} is {_describe(img)} but {fname} is {_describe(fimg)}")
+    if img.dtype != fimg.dtype:
+        raise CaptureError(f"frame {name} is {img.dtype.itemsize * 8}-bit but {fname} is "
+                           f"{fimg.dtype.itemsize * 8}-bit (mixed bit depth)")
+
+
+def capture_from_images(pattern_set: PatternSet, images, metadata=None) -> Capture:
+    """An in-memory capture (e.g. from a simulator), checked like a loaded one."""
+    images = _as_list(pattern_set, images)
+    names = [Path(n) for n in pattern_set.files]
+    for img, name in zip(images, names):
+        if not isinstance(img, np.ndarray) or img.dtype not in MAX_VALUE:
+            raise CaptureError(f"frame {name}: need an 8- or 16-bit numpy image")
+    stack, color = _stack(images, names, pattern_set.index("white"))
+    return Capture(None, pattern_set, stack, color, dict(metadata or {}))
+
+
+def _as_list(pattern_set: PatternSet, images) -> list:
+    if isinstance(images, dict):
+        missing = [f for f in pattern_set.files if f not in images]
+        if missing:
+            raise CaptureError(f"no image for frame {missing[0]}")
+        extra = sorted(set(images) - set(pattern_set.files))
+        if extra:
+            raise CaptureError(f"image {extra[0]} is not a frame of the pattern set")
+        return [images[f] for f in pattern_set.files]
+    images = list(images)
+    if len(images) != len(pattern_set.frames):
+        raise CaptureError(f"got {len(images)} images for {len(pattern_set.frames)} frames")
+    return images
+
+
+# ----------------------------------------------------------------------- writing
+def _manifest_with(pattern_set: PatternSet, metadata: dict | None) -> dict:
+    m = pattern_set.to_manifest()
+    if metadata:
+        m["capture"] = metadata
+    return m
+
+
+def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path:
+    """Write a whole capture atomically: a temporary sibling folder renamed into place."""
+    folder = Path(folder)
+    images = _as_list(pattern_set, images)
+    capture_from_images(pattern_set, images)  # size/depth checks before touching disk
+    if not folder.parent.is_dir():
+        raise CaptureError(f"output folder's parent {folder.parent} does not exist")
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp.", dir=folder.parent))
+    try:
+        for name, img in zip(pattern_set.files, images):
+            imwrite_checked(tmp / name, img)
+        write_json_atomic(tmp / MANIFEST, _manifest_with(pattern_set, metadata))
+        replace_dir(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+class CaptureWriter:
+    """Writes frames as they arrive, so a crash loses nothing already captured.
+
+    Each frame goes to a hidden temporary file that is renamed into place; the manifest
+    is written last by ``finish()``, so a folder without a manifest is an unfinished
+    capture (its frames are complete and can be recovered)."""
+
+    def __init__(self, folder, pattern_set: PatternSet, metadata: dict | None = None):
+        self.folder = Path(folder)
+        self.pattern_set = pattern_set
+        self.metadata = dict(metadata or {})
+        self._written: dict[str, str] = {}
+        self._ref = None
+        if self.folder.exists() and not self.folder.is_dir():
+            raise CaptureError(f"capture path {self.folder} exists and is not a folder")
+        if self.folder.is_dir() and (self.folder / MANIFEST).exists():
+            raise CaptureError(f"capture folder {self.folder} already holds a finished capture")
+        if not self.folder.parent.is_dir():
+            raise CaptureError(f"capture folder's parent {self.folder.parent} does not exist")
+        self.folder.mkdir(exist_ok=True)
+        self.metadata.setdefault("started", _now())
+
+    def add(self, frame_name: str, image: np.ndarray) -> Path:
+        if frame_name not in self.pattern_set.files:
+            raise CaptureError(f"{frame_name} is not a frame of the pattern set")
+        if not isinstance(image, np.ndarray) or image.dtype not in MAX_VALUE:
+            raise CaptureError(f"frame {frame_name}: need an 8- or 16-bit numpy image")
+        if self._ref is None:
+            self._ref = (frame_name, image)
+        else:
+            _check_same(self._ref, frame_name, image)
+        dest = self.folder / frame_name
+        # the temporary keeps the real extension so imwrite picks the same encoder
+        tmp = self.folder / f".{frame_name}.tmp{dest.suffix}"
+        try:
+            imwrite_checked(tmp, image)
+            os.replace(tmp, dest)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+        self._written[frame_name] = _now()
+        return dest
+
+    @property
+    def missing(self) -> list[str]:
+        return [f for f in self.pattern_set.files if f not in self._written]
+
+    def finish(self) -> Path:
+        if self.missing:
+            raise CaptureError(f"capture {self.folder} incomplete: frame {self.missing[0]} "
+                               f"was never added ({len(self.missing)} missing)")
+        self.metadata["finished"] = _now()
+        self.metadata["frame_times"] = dict(self._written)
+        write_json_atomic(self.folder / MANIFEST,
+                          _manifest_with(self.pattern_set, self.metadata))
+        return self.folder
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.finish()
+        return False

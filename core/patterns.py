@@ -1,0 +1,517 @@
+"""Structured-light pattern sets: Gray code with inverses, white/black, phase shifting.
+
+Conventions (SPEC section 4): the centre of projector column ``c`` is the continuous
+coordinate ``c``.  A Gray code with ``stripe`` columns per code decodes to the centre of
+its stripe, ``code * stripe + (stripe - 1) / 2``.  The phase frames are
+
+    I_k(c) = 0.5 + 0.5 * cos(2*pi*(c - k*P/N) / P),   k = 0 .. N-1
+
+so the N-step phase ``atan2(sum I_k sin d_k, sum I_k cos d_k)`` with ``d_k = 2*pi*k/N`` is
+``2*pi*c/P``: phase 0 at column 0, and the decoded column at the centre of projector
+column ``c`` is exactly ``c``.  A projector pixel is a box of width 1 around ``c``; box
+filtering a cosine keeps its phase, so the convention holds for a real camera too.
+
+Rows (axis ``"row"``) use the same formulas with the row index.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from core.errors import CaptureError
+
+FORMAT = "anklescan-patterns"
+VERSION = 1
+KINDS = ("white", "black", "gray", "phase")
+AXES = ("column", "row")
+AXIS_TAG = {"column": "col", "row": "row"}
+PRESETS = ("default", "paper")
+PAPER_BITS = 8  # the paper projects 8 Gray sheets (+ inverses, white, black): 18 frames
+DEFAULT_PERIOD = 16  # projector px; with 8 steps, gamma harmonics up to order 6 cancel
+DEFAULT_STEPS = 8
+PHASE_FORMULA = "I_k(c) = 0.5 + 0.5*cos(2*pi*(c - k*period/steps)/period), k = shift"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One projected frame and what it encodes.
+
+    ``bit`` counts from the most significant (0) of ``bits``; ``stripe`` is the number
+    of projector columns (rows) per Gray code.  For phase frames ``shift`` is the step
+    index k (the pattern moves by ``k * period / steps`` pixels).
+    """
+
+    file: str
+    kind: str
+    axis: str | None = None
+    bit: int | None = None
+    bits: int | None = None
+    stripe: int | None = None
+    inverse: bool = False
+    period: float | None = None
+    shift: int | None = None
+    steps: int | None = None
+
+    def to_dict(self) -> dict:
+        d = {"file": self.file, "kind": self.kind}
+        if self.kind == "gray":
+            d.update(axis=self.axis, bit=self.bit, bits=self.bits, stripe=self.stripe,
+                     inverse=self.inverse)
+        elif self.kind == "phase":
+            d.update(axis=self.axis, period=self.period, shift=self.shift, steps=self.steps)
+        return d
+
+
+@dataclass(frozen=True)
+class AxisCode:
+    """The frames that encode one axis, as indices into ``PatternSet.frames``."""
+
+    axis: str
+    size: int  # projector width (column) or height (row)
+    bits: int
+    stripe: int
+    gray: tuple[int, ...]  # frame index of bit i (MSB first)
+    gray_inv: tuple[int, ...]
+    period: float | None = None
+    steps: int | None = None
+    phase: tuple[int, ...] = ()  # frame index of step k
+
+    @property
+    def n_codes(self) -> int:
+        """Codes that exist on the projector (higher Gray codes are never projected)."""
+        return -(-self.size // self.stripe)
+
+    def code_centre(self, code):
+        """Continuous projector coordinate of a stripe's centre (SPEC section 4)."""
+        return code * self.stripe + (self.stripe - 1) / 2.0
+
+
+@dataclass
+class PatternSet:
+    preset: str
+    width: int
+    height: int
+    frames: list[Frame]
+    axes: tuple[str, ...] = ("column",)
+    _codes: dict = field(default=None, init=False, repr=False, compare=False)
+
+    # ----------------------------------------------------------------- structure
+    @property
+    def files(self) -> list[str]:
+        return [f.file for f in self.frames]
+
+    def index(self, kind: str) -> int:
+        """Frame index of the (single) white or black frame."""
+        for i, f in enumerate(self.frames):
+            if f.kind == kind:
+                return i
+        raise CaptureError(f"pattern set has no {kind} frame")
+
+    def axis_code(self, axis: str) -> AxisCode | None:
+        if self._codes is None:
+            self._codes = {a: _axis_code(self, a) for a in self.axes}
+        return self._codes.get(axis)
+
+    # ------------------------------------------------------------------ manifest
+    def to_manifest(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "preset": self.preset,
+            "projector": {"width": self.width, "height": self.height},
+            "axes": list(self.axes),
+            "conventions": {
+                "pixel_centre": "projector column c's centre is the continuous coordinate c",
+                "gray": "reflected binary Gray code of floor(c/stripe), bit 0 = MSB, "
+                        "white (255) where the bit is 1; inverse frames are 255 - frame",
+                "gray_decoded": "code*stripe + (stripe-1)/2",
+                "phase": PHASE_FORMULA,
+            },
+            "frames": [f.to_dict() for f in self.frames],
+        }
+
+    @classmethod
+    def from_manifest(cls, m: dict, source: str = "manifest") -> "PatternSet":
+        """Build and validate a pattern set; any defect raises a one-line CaptureError."""
+        if not isinstance(m, dict):
+            raise CaptureError(f"{source}: expected a JSON object, got {type(m).__name__}")
+        for key in ("format", "version", "preset", "projector", "axes", "frames"):
+            if key not in m:
+                raise CaptureError(f"{source}: missing key '{key}'")
+        if m["format"] != FORMAT:
+            raise CaptureError(f"{source}: format is {m['format']!r}, expected {FORMAT!r}")
+        if m["version"] != VERSION:
+            raise CaptureError(f"{source}: unsupported version {m['version']!r} "
+                               f"(expected {VERSION})")
+        proj = m["projector"]
+        if not isinstance(proj, dict) or not all(
+                _is_pos_int(proj.get(k)) for k in ("width", "height")):
+            raise CaptureError(f"{source}: projector width/height must be positive integers, "
+                               f"got {proj!r}")
+        axes = m["axes"]
+        if (not isinstance(axes, list) or not axes or any(a not in AXES for a in axes)
+                or len(set(axes)) != len(axes)):
+            raise CaptureError(f"{source}: axes must be a non-empty list of {AXES}, got {axes!r}")
+        if not isinstance(m["frames"], list) or not m["frames"]:
+            raise CaptureError(f"{source}: 'frames' must be a non-empty list")
+        frames = [_frame_from_dict(d, i, source) for i, d in enumerate(m["frames"])]
+        pset = cls(str(m["preset"]), int(proj["width"]), int(proj["height"]), frames,
+                   tuple(axes))
+        pset.validate(source)
+        return pset
+
+    def validate(self, source: str = "pattern set") -> None:
+        files = self.files
+        seen = set()
+        for name in files:
+            if name in seen:
+                raise CaptureError(f"{source}: duplicate frame file name '{name}'")
+            if not name or os.path.basename(name) != name or name.startswith("."):
+                raise CaptureError(f"{source}: frame file name '{name}' must be a plain name")
+            seen.add(name)
+        for kind in ("white", "black"):
+            n = sum(f.kind == kind for f in self.frames)
+            if n != 1:
+                raise CaptureError(f"{source}: expected exactly one {kind} frame, found {n}")
+        for f in self.frames:
+            if f.kind in ("gray", "phase") and f.axis not in self.axes:
+                raise CaptureError(f"{source}: frame '{f.file}' encodes axis {f.axis!r} "
+                                   f"not listed in axes {list(self.axes)}")
+        self._codes = None
+        for a in self.axes:
+            _axis_code(self, a, source)
+
+
+def _is_pos_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v > 0
+
+
+def _frame_from_dict(d, i: int, source: str) -> Frame:
+    if not isinstance(d, dict):
+        raise CaptureError(f"{source}: frame #{i} is not an object")
+    for key in ("file", "kind"):
+        if key not in d:
+            raise CaptureError(f"{source}: frame #{i} is missing '{key}'")
+    name, kind = d["file"], d["kind"]
+    if not isinstance(name, str):
+        raise CaptureError(f"{source}: frame #{i} file name must be a string")
+    if kind not in KINDS:
+        raise CaptureError(f"{source}: frame '{name}' has unknown kind {kind!r} "
+                           f"(expected one of {KINDS})")
+    if kind in ("white", "black"):
+        return Frame(name, kind)
+    need = ("axis", "bit", "bits", "stripe", "inverse") if kind == "gray" else \
+        ("axis", "period", "shift", "steps")
+    for key in need:
+        if key not in d:
+            raise CaptureError(f"{source}: {kind} frame '{name}' is missing '{key}'")
+    if d["axis"] not in AXES:
+        raise CaptureError(f"{source}: frame '{name}' has unknown axis {d['axis']!r}")
+    if kind == "gray":
+        if not (_is_pos_int(d["bits"]) and _is_pos_int(d["stripe"])
+                and isinstance(d["bit"], int) and 0 <= d["bit"] < d["bits"]
+                and isinstance(d["inverse"], bool)):
+            raise CaptureError(f"{source}: gray frame '{name}' has bad bit/bits/stripe/inverse "
+                               f"({d['bit']!r}/{d['bits']!r}/{d['stripe']!r}/{d['inverse']!r})")
+        return Frame(name, kind, d["axis"], d["bit"], d["bits"], d["stripe"], d["inverse"])
+    period, shift, steps = d["period"], d["shift"], d["steps"]
+    if not (isinstance(period, (int, float)) and not isinstance(period, bool) and period > 0
+            and _is_pos_int(steps) and steps >= 3
+            and isinstance(shift, int) and 0 <= shift < steps):
+        raise CaptureError(f"{source}: phase frame '{name}' has bad period/shift/steps "
+                           f"({period!r}/{shift!r}/{steps!r})")
+    return Frame(name, kind, d["axis"], period=float(period), shift=shift, steps=steps)
+
+
+def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> AxisCode:
+    size = pset.width if axis == "column" else pset.height
+    gray = [f for f in pset.frames if f.kind == "gray" and f.axis == axis]
+    if not gray:
+        raise CaptureError(f"{source}: axis '{axis}' has no gray frames")
+    bits = {f.bits for f in gray}
+    stripes = {f.stripe for f in gray}
+    if len(bits) != 1 or len(stripes) != 1:
+        raise CaptureError(f"{source}: {axis} gray frames disagree on bits/stripe")
+    nbits, stripe = bits.pop(), stripes.pop()
+    if stripe * 2 ** nbits < size:
+        raise CaptureError(f"{source}: {axis} code of {nbits} bits x stripe {stripe} covers "
+                           f"{stripe * 2 ** nbits} < projector size {size}")
+    idx = {(f.bit, f.inverse): i for i, f in enumerate(pset.frames)
+           if f.kind == "gray" and f.axis == axis}
+    if len(idx) != len(gray):
+        raise CaptureError(f"{source}: {axis} has a repeated gray bit")
+    for b in range(nbits):
+        for inv in (False, True):
+            if (b, inv) not in idx:
+                raise CaptureError(f"{source}: {axis} gray bit {b}"
+                                   f"{' inverse' if inv else ''} frame is missing")
+    phase = [(i, f) for i, f in enumerate(pset.frames) if f.kind == "phase" and f.axis == axis]
+    period = steps = None
+    order = ()
+    if phase:
+        periods = {f.period for _, f in phase}
+        stepss = {f.steps for _, f in phase}
+        if len(periods) != 1 or len(stepss) != 1:
+            raise CaptureError(f"{source}: {axis} phase frames disagree on period/steps")
+        period, steps = periods.pop(), stepss.pop()
+        by_shift = {f.shift: i for i, f in phase}
+        if len(by_shift) != len(phase) or sorted(by_shift) != list(range(steps)):
+            raise CaptureError(f"{source}: {axis} phase needs shifts 0..{steps - 1} once each, "
+                               f"got {sorted(f.shift for _, f in phase)}")
+        if period < 2 * stripe:
+            # unwrapping needs the Gray code to within +-period/2
+            raise CaptureError(f"{source}: {axis} phase period {period:g} is shorter than two "
+                               f"Gray stripes ({stripe})")
+        order = tuple(by_shift[k] for k in range(steps))
+    return AxisCode(axis, size, nbits, stripe,
+                    tuple(idx[(b, False)] for b in range(nbits)),
+                    tuple(idx[(b, True)] for b in range(nbits)),
+                    period, steps, order)
+
+
+# ---------------------------------------------------------------------- building
+def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 768,
+                     axes=("column",), period: float = DEFAULT_PERIOD,
+                     steps: int = DEFAULT_STEPS) -> PatternSet:
+    """``paper``: white, black, 8 Gray bits + inverses (18 frames for one axis).
+    ``default``: Gray code down to single pixels + inverses, white, black, and
+    ``steps``-step phase shifting of ``period`` pixels per axis."""
+    if preset not in PRESETS:
+        raise CaptureError(f"unknown pattern preset {preset!r} (expected one of {PRESETS})")
+    if not (_is_pos_int(width) and _is_pos_int(height)) or width < 2 or height < 2:
+        raise CaptureError(f"projector size must be at least 2x2, got {width}x{height}")
+    axes = tuple(axes)
+    if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
+        raise CaptureError(f"axes must be a non-empty subset of {AXES}, got {axes!r}")
+    specs = [("white", {}), ("black", {})]
+    for axis in axes:
+        size = width if axis == "column" else height
+        full = max(1, math.ceil(math.log2(size)))
+        nbits = min(PAPER_BITS, full) if preset == "paper" else full
+        # paper: 8 bits whatever the size, so stripes are 2**(full-8) wide (4 for 1024)
+        stripe = 2 ** (full - nbits)
+        for b in range(nbits):
+            for inv in (False, True):
+                specs.append(("gray", dict(axis=axis, bit=b, bits=nbits, stripe=stripe,
+                                           inverse=inv)))
+        if preset == "default":
+            for k in range(steps):
+                specs.append(("phase", dict(axis=axis, period=float(period), shift=k,
+                                            steps=steps)))
+    digits = max(2, len(str(len(specs) - 1)))
+    frames = [Frame(_file_name(i, digits, kind, kw), kind, **kw)
+              for i, (kind, kw) in enumerate(specs)]
+    pset = PatternSet(preset, width, height, frames, axes)
+    pset.validate()
+    return pset
+
+
+def _file_name(i: int, digits: int, kind: str, kw: dict) -> str:
+    head = f"{i:0{digits}d}_"
+    if kind in ("white", "black"):
+        return f"{head}{kind}.png"
+    tag = AXIS_TAG[kw["axis"]]
+    if kind == "gray":
+        return f"{head}{tag}_gray_b{kw['bit']:02d}{'_inv' if kw['inverse'] else ''}.png"
+    return f"{head}{tag}_phase_p{kw['period']:g}_s{kw['shift']}.png"
+
+
+def gray_profile(n: int, bit: int, bits: int, stripe: int) -> np.ndarray:
+    """0/1 value of Gray bit ``bit`` (0 = MSB) for coordinates 0..n-1."""
+    code = np.arange(n, dtype=np.int64) // stripe
+    gray = code ^ (code >> 1)
+    return ((gray >> (bits - 1 - bit)) & 1).astype(np.uint8)
+
+
+def _cos_period(u, period: float):
+    """cos(2*pi*u/period), evaluated on the folded argument min(m, P - m), m = u mod P.
+
+    Folding makes mirror-image samples bit-identical, so 8-bit rounding errors are
+    symmetric and cancel in the N-step sums: the decoded column is exact at centres."""
+    m = np.mod(u, period)
+    m = np.minimum(m, period - m)
+    return np.cos(m * (2 * np.pi / period))
+
+
+def phase_profile(n: int, period: float, shift: int, steps: int) -> np.ndarray:
+    c = np.arange(n, dtype=np.float64)
+    return 0.5 + 0.5 * _cos_period(c - shift * period / steps, period)
+
+
+def render_frame(pset: PatternSet, frame: Frame) -> np.ndarray:
+    """The projector image (uint8, height x width) of one frame."""
+    h, w = pset.height, pset.width
+    if frame.kind == "white":
+        return np.full((h, w), 255, np.uint8)
+    if frame.kind == "black":
+        return np.zeros((h, w), np.uint8)
+    n = w if frame.axis == "column" else h
+    if frame.kind == "gray":
+        prof = gray_profile(n, frame.bit, frame.bits, frame.stripe) * np.uint8(255)
+        if frame.inverse:
+            prof = 255 - prof
+    else:
+        prof = np.rint(255.0 * phase_profile(n, frame.period, frame.shift, frame.steps))
+        prof = prof.astype(np.uint8)
+    # build from a 1-D profile: broadcasting is far cheaper than evaluating per pixel
+    if frame.axis == "column":
+        return np.ascontiguousarray(np.broadcast_to(prof[None, :], (h, w)))
+    return np.ascontiguousarray(np.broadcast_to(prof[:, None], (h, w)))
+
+
+def render_all(pset: PatternSet) -> list[np.ndarray]:
+    return [render_frame(pset, f) for f in pset.frames]
+
+
+def pattern_value(frame: Frame, u: np.ndarray) -> np.ndarray:
+    """Projector intensity in [0, 1] (float32) at continuous coordinates ``u``.
+
+    Gray stripes switch at pixel boundaries (``c + 0.5``); the phase frames are the
+    continuous cosine, which is what a box-pixel projector shows once its optics blur
+    the pixel grid (box filtering keeps the phase, only the amplitude drops)."""
+    if frame.kind == "white":
+        return np.ones_like(u, dtype=np.float32)
+    if frame.kind == "black":
+        return np.zeros_like(u, dtype=np.float32)
+    if frame.kind == "gray":
+        code = np.floor((u + 0.5) / frame.stripe).astype(np.int64)
+        code = np.clip(code, 0, 2 ** frame.bits - 1)
+        bit = ((code ^ (code >> 1)) >> (frame.bits - 1 - frame.bit)) & 1
+        if frame.inverse:
+            bit = 1 - bit
+        return bit.astype(np.float32)
+    shifted = u - np.float32(frame.shift * frame.period / frame.steps)
+    return (0.5 + 0.5 * _cos_period(shifted, np.float32(frame.period))).astype(np.float32)
+
+
+def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
+                    albedo=0.8, ambient=0.05, blur: float = 0.0, noise: float = 0.0,
+                    gamma: float = 1.0, dtype=np.uint8, rng=None) -> np.ndarray:
+    """A synthetic capture: camera pixel (x, y) sees projector point
+    (column_map, row_map); intensity = ambient + albedo * pattern**gamma, Gaussian blur
+    of ``blur`` camera px, additive noise ``noise`` (fraction of full scale), clipped and
+    quantised to ``dtype``.  Returns the (n_frames, H, W) stack in manifest order."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    full = 255.0 if np.dtype(dtype) == np.uint8 else 65535.0
+    shape = np.shape(column_map)
+    # blur needs the scene beyond the image border: continue the maps linearly (odd
+    # reflection) instead of mirroring the pattern, which would shift phases there
+    pad = int(math.ceil(4 * blur)) + 1 if blur > 0 else 0
+    crop = (slice(pad, pad + shape[0]), slice(pad, pad + shape[1]))
+
+    def extend(m, **how):
+        m = np.broadcast_to(np.asarray(m, np.float32), shape)
+        return np.pad(m, pad, **how) if pad else m
+
+    column_map = extend(column_map, mode="reflect", reflect_type="odd")
+    row_map = None if row_map is None else extend(row_map, mode="reflect", reflect_type="odd")
+    albedo = extend(albedo, mode="edge")
+    out = np.empty((len(pset.frames),) + shape, dtype)
+    for i, f in enumerate(pset.frames):
+        if f.kind in ("gray", "phase") and f.axis == "row":
+            if row_map is None:
+                raise CaptureError("simulate_frames needs a row map for row patterns")
+            u = np.asarray(row_map, np.float32)
+        else:
+            u = column_map
+        img = pattern_value(f, u)
+        if gamma != 1.0:
+            img = np.power(img, np.float32(gamma))
+        img = np.float32(ambient) + albedo * img
+        if blur > 0:
+            img = cv2.GaussianBlur(img, (0, 0), blur)[crop]
+        if noise > 0:
+            img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise)
+        out[i] = np.clip(np.rint(img * full), 0, full).astype(dtype)
+    return out
+
+
+# ----------------------------------------------------------------------- writing
+def write_json_atomic(path: Path, obj) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(obj, fh, indent=2)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        _unlink_quiet(tmp)
+        raise
+
+
+def _unlink_quiet(p) -> None:
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def imwrite_checked(path: Path, image: np.ndarray) -> None:
+    ok = cv2.imwrite(str(path), image)
+    if not ok:
+        raise CaptureError(f"could not write image {path}")
+
+
+def replace_dir(tmp_dir: Path, out_dir: Path) -> None:
+    """Move a finished temporary directory into place.
+
+    An existing ``out_dir`` is renamed aside first and removed only after the new one is
+    in place, so at every instant ``out_dir`` is either the old or the new complete set.
+    """
+    out_dir = Path(out_dir)
+    old = None
+    if out_dir.exists():
+        if not out_dir.is_dir():
+            raise CaptureError(f"output {out_dir} exists and is not a directory")
+        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
+        os.rmdir(old)
+        os.replace(out_dir, old)
+    os.replace(tmp_dir, out_dir)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_patterns(pset: PatternSet, out_dir) -> Path:
+    """Write one 8-bit PNG per frame plus manifest.json, atomically (tmp dir + rename)."""
+    out_dir = Path(out_dir)
+    parent = out_dir.parent
+    if not parent.is_dir():
+        raise CaptureError(f"output folder's parent {parent} does not exist")
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp.", dir=parent))
+    try:
+        for f in pset.frames:
+            imwrite_checked(tmp / f.file, render_frame(pset, f))
+        write_json_atomic(tmp / "manifest.json", pset.to_manifest())
+        replace_dir(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def load_manifest(path) -> PatternSet:
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise CaptureError(f"manifest not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CaptureError(f"{path}: malformed JSON ({e})") from None
+    except OSError as e:
+        raise CaptureError(f"cannot read {path}: {e.strerror}") from None
+    return PatternSet.from_manifest(data, str(path))
+
+
+__all__ = ["Frame", "AxisCode", "PatternSet", "make_pattern_set", "render_frame",
+           "render_all", "pattern_value", "simulate_frames", "write_patterns", "load_manifest", "gray_profile", "phase_profile",
+           "PHASE_FORMULA"]
