@@ -1,0 +1,155 @@
+"""Point clouds and binary PLY (what MeshLab, CloudCompare and Open3D read).
+
+Vertex properties: ``float x y z`` (world mm), ``uchar red green blue`` (from the white frame),
+``ushort cam_u cam_v`` (the camera pixel each point came from), ``float quality`` (decoding
+contrast, 0..1) — the extra properties are scalar fields in CloudCompare and ignored by viewers
+that do not know them.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import AnkleScanError
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+@dataclass(eq=False)
+class PointCloud:
+    points: np.ndarray  # (N, 3) float32, world mm
+    colors: np.ndarray | None = None  # (N, 3) uint8 RGB
+    pixels: np.ndarray | None = None  # (N, 2) uint16 camera (u, v)
+    quality: np.ndarray | None = None  # (N,) float32
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def subset(self, keep: np.ndarray) -> "PointCloud":
+        pick = lambda a: None if a is None else a[keep]  # noqa: E731
+        return PointCloud(self.points[keep], pick(self.colors), pick(self.pixels), pick(self.quality), dict(self.meta))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        if len(self) == 0:
+            raise AnkleScanError("the point cloud is empty")
+        return self.points.min(axis=0), self.points.max(axis=0)
+
+
+def _vertex_dtype(cloud: PointCloud) -> np.dtype:
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if cloud.colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if cloud.pixels is not None:
+        fields += [("cam_u", "<u2"), ("cam_v", "<u2")]
+    if cloud.quality is not None:
+        fields += [("quality", "<f4")]
+    return np.dtype(fields)
+
+
+def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | None = None) -> None:
+    """Binary little-endian PLY, written to a temporary sibling and renamed into place."""
+    path = Path(path)
+    dtype = _vertex_dtype(cloud)
+    data = np.empty(len(cloud), dtype=dtype)
+    data["x"], data["y"], data["z"] = cloud.points[:, 0], cloud.points[:, 1], cloud.points[:, 2]
+    if cloud.colors is not None:
+        data["red"], data["green"], data["blue"] = cloud.colors[:, 0], cloud.colors[:, 1], cloud.colors[:, 2]
+    if cloud.pixels is not None:
+        data["cam_u"], data["cam_v"] = cloud.pixels[:, 0], cloud.pixels[:, 1]
+    if cloud.quality is not None:
+        data["quality"] = cloud.quality
+    inverse = {"<f4": "float", "u1": "uchar", "<u2": "ushort", "|u1": "uchar"}
+    header = ["ply", "format binary_little_endian 1.0", "comment AnkleScan point cloud, world frame, units mm"]
+    header += [f"comment {c}" for c in (comments or [])]
+    header.append(f"element vertex {len(cloud)}")
+    for name in dtype.names:
+        header.append(f"property {inverse[dtype[name].str]} {name}")
+    header.append("end_header")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            data.tofile(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
+    if f.readline().strip() != b"ply":
+        raise AnkleScanError(f"{path} is not a PLY file")
+    fmt, elements = None, []
+    while True:
+        line = f.readline()
+        if not line:
+            raise AnkleScanError(f"{path}: PLY header has no end_header")
+        words = line.decode("ascii", "replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise AnkleScanError(f"{path}: PLY property before any element")
+            if words[1] == "list":
+                elements[-1][2].append((words[4], "list:" + words[2] + ":" + words[3]))
+            elif words[1] in _PLY_TYPES:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise AnkleScanError(f"{path}: unknown PLY property type {words[1]!r}")
+    if fmt not in ("binary_little_endian", "ascii"):
+        raise AnkleScanError(f"{path}: PLY format {fmt!r} is not supported (binary_little_endian or ascii)")
+    return fmt, elements
+
+
+def read_ply(path: str | os.PathLike) -> PointCloud:
+    """Read the vertex element of a binary little-endian or ASCII PLY (faces are skipped)."""
+    path = Path(path)
+    try:
+        f = open(path, "rb")
+    except OSError as exc:
+        raise AnkleScanError(f"cannot open {path}: {exc.strerror}") from None
+    with f:
+        fmt, elements = _parse_header(f, path)
+        if not elements or elements[0][0] != "vertex":
+            raise AnkleScanError(f"{path}: PLY has no vertex element first")
+        _, count, props = elements[0]
+        if any(t.startswith("list:") for _, t in props):
+            raise AnkleScanError(f"{path}: list properties on vertices are not supported")
+        if fmt == "ascii":
+            rows = np.loadtxt(f, max_rows=count, ndmin=2)
+            data = np.empty(count, dtype=[(n, t) for n, t in props])
+            for i, (n, _) in enumerate(props):
+                data[n] = rows[:, i]
+        else:
+            dtype = np.dtype([(n, "<" + t if t[0] in "fiu" and t[1] != "1" else t) for n, t in props])
+            data = np.fromfile(f, dtype=dtype, count=count)
+            if data.shape[0] != count:
+                raise AnkleScanError(f"{path}: PLY is truncated ({data.shape[0]} of {count} vertices)")
+    names = data.dtype.names
+    for n in ("x", "y", "z"):
+        if n not in names:
+            raise AnkleScanError(f"{path}: PLY vertices have no '{n}'")
+    points = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32)
+    colors = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.uint8) \
+        if {"red", "green", "blue"} <= set(names) else None
+    pixels = np.stack([data["cam_u"], data["cam_v"]], axis=1).astype(np.uint16) \
+        if {"cam_u", "cam_v"} <= set(names) else None
+    quality = data["quality"].astype(np.float32) if "quality" in names else None
+    return PointCloud(points, colors, pixels, quality)
