@@ -79,16 +79,19 @@ def cmd_reconstruct(args) -> int:
 def cmd_calibrate_points(args) -> int:
     from core.calibrate import run_calibrate_points
 
-    report = run_calibrate_points(args.camera, args.projector, args.out)
+    report = run_calibrate_points(args.camera, args.projector, args.out,
+                                  camera_size=args.camera_size, projector_size=args.projector_size)
     print(report.format_text())
     print(f"wrote calibration to {args.out}")
     return 0
 
 
 def cmd_calibrate_box(args) -> int:
-    from core.box_calibration import run_calibrate_box
+    from core.calibration_box import calibrate_from_box_capture
+    from core.calibration_file import save_calibration
 
-    report = run_calibrate_box(args.capture, args.out)
+    cal, report = calibrate_from_box_capture(args.capture)
+    save_calibration(cal, args.out)
     print(report.format_text())
     print(f"wrote calibration to {args.out}")
     return 0
@@ -150,6 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--camera", required=True, help="CSV with columns X,Y,Z,u,v")
     cp.add_argument("--projector", required=True, help="CSV with columns X,Y,Z,u")
     cp.add_argument("--out", required=True)
+    cp.add_argument("--camera-size", type=_size, default=(1600, 1200), help="camera resolution WxH")
+    cp.add_argument("--projector-size", type=_size, default=(1024, 768), help="projector resolution WxH")
     cp.set_defaults(func=cmd_calibrate_points)
     cb = csub.add_parser("box", help="automatic calibration from a scan of the calibration box")
     cb.add_argument("capture")

@@ -54,6 +54,9 @@ class DecodeResult:
     thresholds: dict
     _white_raw: np.ndarray = field(repr=False, default=None)
     _black_raw: np.ndarray = field(repr=False, default=None)
+    # predicted standard deviation of the decoded column (projector px) from the sensor noise
+    # and the local pattern modulation; lets triangulation reject points that are too noisy
+    column_sigma: np.ndarray | None = field(repr=False, default=None)
 
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
@@ -162,6 +165,7 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
 
     h, w = frames.shape[1:]
     coords = {axis: np.empty((h, w), np.float32) for axis in pset.axes}
+    sigmas = {axis: np.empty((h, w), np.float32) for axis in pset.axes}
     flags = np.empty((h, w), np.uint8)
     # Every step is per pixel, so the image is decoded in strips of ~64k pixels: the
     # dozens of temporaries of one strip stay in cache instead of streaming ~30 full
@@ -169,11 +173,12 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
     rows = max(8, strip_pixels // w) if strip_pixels else h
     for r0 in range(0, h, rows):
         block = frames[:, r0:r0 + rows]
-        block_coords, block_flags, info = _decode_block(
+        block_coords, block_sigmas, block_flags, info = _decode_block(
             block, pset, thr, k_phase, phase_tolerance, min_coarse_run, saturation, full)
         flags[r0:r0 + rows] = block_flags
         for axis, c in block_coords.items():
             coords[axis][r0:r0 + rows] = c
+            sigmas[axis][r0:r0 + rows] = block_sigmas[axis]
     thr.update(info)
 
     reason = cv2.LUT(flags, _FLAGS_TO_REASON)
@@ -181,7 +186,7 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
     for coord in coords.values():
         cv2.copyTo(nan, flags, coord)  # flags != 0 exactly where the pixel is invalid
     return DecodeResult(coords.get("column"), coords.get("row"), flags == 0, reason, thr,
-                        white, black)
+                        white, black, sigmas.get("column"))
 
 
 def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
@@ -191,11 +196,12 @@ def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
     shadow = _cmp(cv2.subtract(white, black), thr["shadow"], cv2.CMP_LT)
     flags = cv2.bitwise_and(shadow, _FLAG[SHADOW])
     sat = _cmp(white, saturation, cv2.CMP_GE)
-    coords, info = {}, {}
+    coords, sigmas, info = {}, {}, {}
     for axis in pset.axes:
         ac = pset.axis_code(axis)
-        coord, masks, sat_axis, axis_info = _decode_axis(frames, ac, thr, k_phase, tol,
-                                                         min_run, saturation, full)
+        coord, coord_sigma, masks, sat_axis, axis_info = _decode_axis(frames, ac, thr, k_phase, tol,
+                                                                      min_run, saturation, full)
+        sigmas[axis] = coord_sigma
         info.update({f"{axis}_{k}": v for k, v in axis_info.items()})
         if sat_axis is not None:
             cv2.max(sat, sat_axis, dst=sat)
@@ -203,7 +209,7 @@ def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
             cv2.bitwise_or(flags, _FLAG[reason], dst=flags, mask=m)
         coords[axis] = coord
     cv2.bitwise_or(flags, _FLAG[SATURATED], dst=flags, mask=sat)
-    return coords, flags, info
+    return coords, sigmas, flags, info
 
 
 def _frames_and_set(obj, pattern_set):
@@ -234,13 +240,18 @@ def _decode_axis(frames, ac: AxisCode, thr, k_phase, tol, min_run, saturation, f
     inconsistent = None
     if ac.phase:
         tol = ac.period / 4.0 if tol is None else float(tol)
-        coord, weak, inconsistent, sat = _decode_phase(
+        coord, weak, inconsistent, sat, mag = _decode_phase(
             frames, ac, gray_centre, thr["sigma"] * k_phase, tol, saturation, full)
+        # phase noise = sigma sqrt(N/2) / |(S, C)| rad, times P / 2pi px per rad
+        scale = ac.period / (2 * np.pi) * thr["sigma"] * np.sqrt(ac.steps / 2.0)
+        coord_sigma = cv2.divide(np.float32(scale), cv2.max(mag, 1e-6))
         cv2.max(masks[LOW_CONTRAST], weak, dst=masks[LOW_CONTRAST])
         info.update(phase_period=ac.period, phase_steps=ac.steps, phase_tolerance=tol,
                     k_phase=k_phase, phase_modulation=thr["sigma"] * k_phase)
     else:
         coord = gray_centre
+        # a stripe decoded to its centre is uniformly wrong by up to half a stripe
+        coord_sigma = np.full(coord.shape, ac.stripe / np.sqrt(12.0), np.float32)
     if ac.n_codes < 2 ** ac.bits:
         # Gray codes past the projector's last stripe are never projected
         bad = cv2.compare(gray_centre, float(ac.code_centre(ac.n_codes - 1)), cv2.CMP_GT)
@@ -248,7 +259,7 @@ def _decode_axis(frames, ac: AxisCode, thr, k_phase, tol, min_run, saturation, f
     if inconsistent is not None:
         masks[INCONSISTENT] = inconsistent
     masks[OUTSIDE] = cv2.bitwise_not(cv2.inRange(coord, -0.5, size - 0.5))
-    return coord, masks, sat, info
+    return coord, coord_sigma, masks, sat, info
 
 
 def _decode_gray(frames, ac: AxisCode, contrast_thr: float, min_run: float):
@@ -305,7 +316,7 @@ def _decode_phase(frames, ac: AxisCode, gray_centre, min_modulation, tol, satura
         for idx in ac.phase[1:]:
             brightest = cv2.max(brightest, frames[idx])
     sat = _cmp(brightest, saturation, cv2.CMP_GE)
-    return column, weak, inconsistent, sat
+    return column, weak, inconsistent, sat, mag
 
 
 def _phase_sums(frames, order, n):

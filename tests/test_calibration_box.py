@@ -1,0 +1,99 @@
+import json
+
+import numpy as np
+import pytest
+
+from core import calibration_box as cb
+
+
+def test_corners_lie_on_their_faces_and_ids_are_unique():
+    corners = cb.marker_corners_world()
+    assert sorted(corners) == list(range(27))
+    for mid, (face, _, _) in cb.marker_layout().items():
+        X = corners[mid]
+        assert np.allclose((X - face.origin) @ face.outward_normal, 0, atol=1e-9)
+        side = np.linalg.norm(np.diff(np.vstack([X, X[:1]]), axis=0), axis=1)
+        assert np.allclose(side, cb.MARKER_MM)
+        assert np.all(np.abs(X[:, :2]) <= cb.BOX_SIZE_MM / 2 + 1e-9) and np.all((X[:, 2] >= 0) & (X[:, 2] <= cb.BOX_SIZE_MM))
+
+
+def test_faces_are_not_mirrored_seen_from_outside():
+    centre = np.array([0, 0, cb.BOX_SIZE_MM / 2])
+    for f in cb.FACES:
+        mid = f.point(0.5, 0.5)
+        assert (mid - centre) @ f.outward_normal > 0
+
+
+def test_texture_markers_decode_upright():
+    tex = cb.face_texture(cb.FACES[1], px_per_mm=1.0)
+    img = (np.pad(tex, 20, constant_values=cb.WHITE_ALBEDO) * 255).astype(np.uint8)
+    found = cb.detect_markers(img)
+    assert sorted(found) == list(range(9, 18))
+    # texel (col, row) of corner k of marker 9 = (s, t) mm * 1 px/mm + the 20 px pad - 0.5
+    s, t = cb.marker_layout()[9][1:]
+    assert np.allclose(found[9][0], [s + 20 - 0.5, t + 20 - 0.5], atol=0.6)
+
+
+def test_description_is_json():
+    d = json.loads(json.dumps(cb.box_description()))
+    assert d["size"] == cb.BOX_SIZE_MM and len(d["corners"]) == 27
+
+
+def test_local_homography_recovers_a_plane_map():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-15, 15, (200, 2))
+    H = np.array([[0.7, 0.05, 300.0], [0.02, 0.69, 200.0], [1e-4, -2e-4, 1.0]])
+    p = np.hstack([xy, np.ones((200, 1))]) @ H.T
+    q = p[:, :2] / p[:, 2:]
+    _, centre = cb._fit_local(xy, q + rng.normal(0, 0.05, q.shape))
+    assert np.allclose(centre, [300.0, 200.0], atol=0.02)
+    _, c1 = cb._fit_local(xy, q[:, :1])
+    assert abs(c1[0] - 300.0) < 1e-6
+
+
+@pytest.fixture(scope="module")
+def box_capture(tmp_path_factory):
+    sim = pytest.importorskip("hardware.simrig")
+    from hardware.sim_scene import quad_scene
+
+    from core.capture import save_capture
+    from core.patterns import make_pattern_set, render_all
+
+    rig = sim.SimRig(quad_scene(cb.box_scene_objects(4.0)), scale=0.5)
+    pset = make_pattern_set("default", 512, 384, axes=("column",))
+    folder = tmp_path_factory.mktemp("box") / "capture"
+    save_capture(folder, pset, rig.capture_many(render_all(pset)))
+    return folder, rig.true_calibration()
+
+
+def test_detection_on_simulated_capture(box_capture):
+    from core.capture import load_capture
+
+    folder, true = box_capture
+    cap = load_capture(folder)
+    found = cb.detect_markers(cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")]))
+    world = cb.marker_corners_world()
+    assert len(found) >= 18
+    err = np.concatenate([found[i] - true.camera.project(world[i]) for i in found])
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.6
+
+
+def test_whole_box_path(box_capture):
+    folder, true = box_capture
+    cal, report = cb.calibrate_from_box_capture(folder)
+    assert cal.projector.axis == "column" and report.projector.n_points >= 40
+    g = np.linspace(-150, 150, 5)
+    X = np.stack(np.meshgrid(g, g, g + 200), -1).reshape(-1, 3)
+    cam_err = np.linalg.norm(cal.camera.project(X) - true.camera.project(X), axis=1)
+    proj_err = np.abs(cal.projector.project(X)[:, 0] - true.projector.project(X)[:, 0])
+    assert np.sqrt(np.mean(cam_err**2)) < 0.6 and np.sqrt(np.mean(proj_err**2)) < 0.3
+
+
+def test_shipped_drawing_and_description_are_current():
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+
+    res = Path(__file__).resolve().parents[1] / "resources"
+    assert (res / "calibration_box.svg").read_text() == cb.box_svg()
+    ET.fromstring(cb.box_svg())
+    assert json.loads((res / "calibration_box.json").read_text()) == json.loads(json.dumps(cb.box_description(), indent=1))
