@@ -2,7 +2,7 @@
 
 Vertex properties: ``float x y z`` (world mm), ``uchar red green blue`` (from the white frame),
 ``ushort cam_u cam_v`` (the camera pixel each point came from), ``float quality`` (decoding
-contrast, 0..1) — the extra properties are scalar fields in CloudCompare and ignored by viewers
+contrast, 0..1), ``float sigma`` (predicted noise along the camera ray, mm) — the extra properties are scalar fields in CloudCompare and ignored by viewers
 that do not know them.
 """
 
@@ -28,6 +28,7 @@ class PointCloud:
     colors: np.ndarray | None = None  # (N, 3) uint8 RGB
     pixels: np.ndarray | None = None  # (N, 2) uint16 camera (u, v)
     quality: np.ndarray | None = None  # (N,) float32
+    sigma: np.ndarray | None = None  # (N,) float32 predicted noise along the camera ray, mm
     meta: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -35,7 +36,8 @@ class PointCloud:
 
     def subset(self, keep: np.ndarray) -> "PointCloud":
         pick = lambda a: None if a is None else a[keep]  # noqa: E731
-        return PointCloud(self.points[keep], pick(self.colors), pick(self.pixels), pick(self.quality), dict(self.meta))
+        return PointCloud(self.points[keep], pick(self.colors), pick(self.pixels), pick(self.quality),
+                          pick(self.sigma), dict(self.meta))
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         if len(self) == 0:
@@ -51,6 +53,8 @@ def _vertex_dtype(cloud: PointCloud) -> np.dtype:
         fields += [("cam_u", "<u2"), ("cam_v", "<u2")]
     if cloud.quality is not None:
         fields += [("quality", "<f4")]
+    if cloud.sigma is not None:
+        fields += [("sigma", "<f4")]
     return np.dtype(fields)
 
 
@@ -66,6 +70,8 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
         data["cam_u"], data["cam_v"] = cloud.pixels[:, 0], cloud.pixels[:, 1]
     if cloud.quality is not None:
         data["quality"] = cloud.quality
+    if cloud.sigma is not None:
+        data["sigma"] = cloud.sigma
     inverse = {"<f4": "float", "u1": "uchar", "<u2": "ushort", "|u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0", "comment AnkleScan point cloud, world frame, units mm"]
     header += [f"comment {c}" for c in (comments or [])]
@@ -152,4 +158,5 @@ def read_ply(path: str | os.PathLike) -> PointCloud:
     pixels = np.stack([data["cam_u"], data["cam_v"]], axis=1).astype(np.uint16) \
         if {"cam_u", "cam_v"} <= set(names) else None
     quality = data["quality"].astype(np.float32) if "quality" in names else None
-    return PointCloud(points, colors, pixels, quality)
+    sigma = data["sigma"].astype(np.float32) if "sigma" in names else None
+    return PointCloud(points, colors, pixels, quality, sigma)

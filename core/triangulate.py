@@ -148,11 +148,14 @@ def undistorted_projector_x(cache: TriangulationCache, column: np.ndarray, row: 
 
 
 def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray | None = None,
-                        row: np.ndarray | None = None):
+                        row: np.ndarray | None = None, column_sigma: np.ndarray | None = None):
     """World points for camera pixels with decoded projector columns.
 
     ``column``: (H, W) float32 projector column per camera pixel, NaN where undecoded.
-    Returns ``(points (N, 3) float32, pixel_index (N,) int64 into the flattened image)``.
+    ``column_sigma``: optional (H, W) predicted column noise (projector px); when given, the
+    predicted noise of each point along its camera ray (mm) is returned as well.
+    Returns ``(points (N, 3) float32, pixel_index (N,) int64 into the flattened image,
+    sigma_mm (N,) float32 or None)``.
     """
     cache = cache_for(cal)
     H, W = cache.ad.shape
@@ -168,9 +171,15 @@ def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray 
     if valid is not None:
         ok &= valid
     idx = np.flatnonzero(ok)
-    s = num.ravel()[idx] / den.ravel()[idx]
+    den_v = den.ravel()[idx]
+    s = num.ravel()[idx] / den_v
     front = s > 0
-    idx, s = idx[front], s[front]
+    idx, s, den_v = idx[front], s[front], den_v[front]
     pts = cache.rays.reshape(-1, 3)[idx] * s[:, None]
     pts += cache.cam_center.astype(np.float32)
-    return pts, idx
+    sigma = None
+    if column_sigma is not None:
+        # ds/dx_u = (s b·d - b·Δ) / den, and dx_u/dcolumn ~ 1/fx (distortion is a small change)
+        ds_dx = np.abs(s * cache.bd.ravel()[idx] - np.float32(cache.b_delta)) / np.abs(den_v)
+        sigma = ds_dx * column_sigma.ravel()[idx] * np.float32(1.0 / cal.projector.fx)
+    return pts, idx, sigma

@@ -1,0 +1,526 @@
+"""The built-in simulated rig: a virtual projector and camera photographing an analytic scene.
+
+Every accuracy figure of the product is measured against this rig, so it is built to be
+honest: images are formed only from the projector image and the scene's optics (no decoded
+truth leaks in), and the ground truth (``SimRig.truth``) is exact to float64 rounding.
+
+Cost model: everything that does not depend on the projector image (camera rays, ray casting,
+projector coordinates, shadows, shading) is computed once per rig and kept as a sparse
+"light transport" of 4 bilinear taps per camera sub-sample; a frame is then 4 gathers,
+a few multiply-adds, a blur and noise.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import math
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from core.calibration_file import Calibration
+from core.device_model import Device, look_at
+from hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
+from hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
+
+__all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "SimulatedCamera",
+           "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
+
+RIG_TARGET = np.array([0.0, 0.0, 290.0])  # where both devices aim: above the table, between leg and box
+_SHADOW_EPS_MM = 1e-3
+_CHUNK_RAYS = 1 << 17
+
+
+@dataclass(frozen=True)
+class Optics:
+    """Image-formation constants. Blur sigmas are in device pixels at full resolution
+    (``SimRig`` scales them with ``scale``: same optics, coarser sensor)."""
+
+    supersample: int = 2  # n x n sub-pixel rays per camera pixel (pixel integration)
+    projector_gamma: float = 2.2
+    projector_black: float = 0.002  # black level / white (~500:1 contrast)
+    projector_blur_px: float = 0.8  # Gaussian defocus, projector pixels
+    camera_blur_px: float = 0.6  # Gaussian optical blur, camera pixels
+    ambient: float = 0.04  # ambient irradiance / full white at the aim distance
+    exposure: float = 1.15  # signal = exposure * albedo * irradiance; 1.15 keeps the brightest mark < ~240 DN
+    noise_sigma: float = 2.0 / 255.0  # read noise, fraction of full scale
+    shot_noise: float = 0.0  # shot-noise variance per unit signal (full scale = 1); 0 = off
+    specular: float = 0.0  # Blinn-Phong weight of the projector's highlight; 0 = Lambertian only
+    shininess: float = 30.0
+    bit_depth: int = 8  # 8 or 16
+
+
+@contextmanager
+def _single_threaded_blas():
+    """Run the ray casting with one BLAS thread.
+
+    Its matrix products are (N, 3) @ (3, 3): memory-bound, gaining nothing from threads, and
+    OpenBLAS's threads on a busy 2-core machine make them ~30x slower (measured). numpy's own
+    bundled OpenBLAS is switched for the duration only; anything else (no such library) is a
+    no-op.
+    """
+    lib = _openblas()
+    if lib is None:
+        yield
+        return
+    old = lib.scipy_openblas_get_num_threads64_()
+    lib.scipy_openblas_set_num_threads64_(1)
+    try:
+        yield
+    finally:
+        lib.scipy_openblas_set_num_threads64_(old)
+
+
+_OPENBLAS: list = []
+
+
+def _openblas():
+    if not _OPENBLAS:
+        lib = None
+        libs = os.path.join(os.path.dirname(os.path.dirname(np.__file__)), "numpy.libs")
+        for path in glob.glob(os.path.join(libs, "libscipy_openblas64_*.so")):
+            try:
+                cand = ctypes.CDLL(path)
+                cand.scipy_openblas_get_num_threads64_, cand.scipy_openblas_set_num_threads64_  # noqa: B018
+                lib = cand
+            except (OSError, AttributeError):
+                continue
+        _OPENBLAS.append(lib)
+    return _OPENBLAS[0]
+
+
+# ---- devices ------------------------------------------------------------------------------
+
+
+def _aim(eye, target, K, width, height) -> tuple[np.ndarray, np.ndarray]:
+    """R, t so that ``target`` images at the frame centre despite an off-centre principal point
+    (a projector's optical axis points well below its image) and the x axis stays level."""
+    R0, _ = look_at(eye, target)
+    c = np.array([((width - 1) / 2 - K[0, 2]) / K[0, 0], ((height - 1) / 2 - K[1, 2]) / K[1, 1], 1.0])
+    c /= np.linalg.norm(c)
+    # Two elementary rotations keep the image rows level: pitch for the vertical offset, then yaw.
+    pitch = -math.atan2(c[1], math.hypot(c[0], c[2]))
+    yaw = math.atan2(c[0], c[2])
+    Rx = np.array([[1, 0, 0], [0, math.cos(pitch), -math.sin(pitch)], [0, math.sin(pitch), math.cos(pitch)]])
+    Ry = np.array([[math.cos(yaw), 0, math.sin(yaw)], [0, 1, 0], [-math.sin(yaw), 0, math.cos(yaw)]])
+    Q = Ry @ Rx  # maps the device's (0,0,1) to c
+    R = Q @ R0
+    return R, -R @ np.asarray(eye, float)
+
+
+def _scaled_K(fx, fy, cx, cy, scale):
+    # Pixel centres are at integers (SPEC §4), so the image edge -0.5 is what scales.
+    return np.array([[fx * scale, 0, (cx + 0.5) * scale - 0.5], [0, fy * scale, (cy + 0.5) * scale - 0.5], [0, 0, 1]])
+
+
+CAMERA_EYE = RIG_TARGET + 1250.0 * np.array([math.cos(math.radians(27)) * math.sin(math.radians(40)),
+                                             math.cos(math.radians(27)) * math.cos(math.radians(40)),
+                                             math.sin(math.radians(27))])
+
+
+def default_camera(scale: float = 1.0, *, eye=None, target=None, f=2400.0, dist=(-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:
+    """1600x1200 camera front-right of the leg (+x, +y), elevated, seeing front, lateral side and table."""
+    W, H = round(1600 * scale), round(1200 * scale)
+    K = _scaled_K(f, f * 1.0004, 799.5 + 6.3, 599.5 - 4.1, scale)
+    R, t = _aim(CAMERA_EYE if eye is None else eye, RIG_TARGET if target is None else target, K, W, H)
+    return Device(W, H, K, np.asarray(dist, float), R, t, "both")
+
+
+def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=350.0, target=None, f=1150.0,
+                      dist=(-0.03, 0.004, 3e-4, -2e-4, 0.0)) -> Device:
+    """1024x768 projector ``baseline`` mm to the camera's left (lateral), level with it, so the
+    baseline runs across projector columns (vertical stripes encode columns)."""
+    cam_eye = CAMERA_EYE if camera_eye is None else np.asarray(camera_eye, float)
+    tgt = RIG_TARGET if target is None else np.asarray(target, float)
+    view = tgt - cam_eye
+    left = np.cross([0.0, 0.0, 1.0], view)
+    eye = cam_eye + baseline * left / np.linalg.norm(left)
+    W, H = round(1024 * scale), round(768 * scale)
+    K = _scaled_K(f, f, 511.5 + 3.0, 0.8 * 768, scale)
+    R, t = _aim(eye, tgt, K, W, H)
+    return Device(W, H, K, np.asarray(dist, float), R, t, "both")
+
+
+# ---- ground truth -------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Truth:
+    """Exact scene geometry per camera pixel centre (the rays a reconstruction uses)."""
+
+    points: np.ndarray  # (H, W, 3) world mm, NaN where nothing is hit
+    normals: np.ndarray  # (H, W, 3) outward unit normals, NaN where nothing is hit
+    object_id: np.ndarray  # (H, W) int8 ObjectId
+    mark_label: np.ndarray  # (H, W) int8, 1..7 on a mark plate, else 0
+    seen: np.ndarray  # (H, W) bool: the ray hits the scene
+    lit: np.ndarray  # (H, W) bool: seen, inside the projector frame, facing it, not shadowed
+    proj_uv: np.ndarray  # (H, W, 2) exact projector pixel coordinates of the hit (NaN if none)
+    marks: dict  # "1".."7" -> (3,) centre of the plate's top face
+    mark_normals: dict  # "1".."7" -> (3,)
+    table_angles: tuple | None  # set (inversion, plantar flexion), deg
+    angles: dict  # SPEC §3 angles from the true mark centres, deg
+    leg_axis_angles: tuple | None  # the leg axis' set (inversion, plantar flexion), deg
+
+
+# ---- the rig --------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class _Transport:
+    """What a frame needs, precomputed: 4 bilinear taps per sub-sample into the padded,
+    blurred projector radiance image, weights already holding shading and the 1/n^2 mean."""
+
+    idx: np.ndarray  # (S, H*W) int32 flat index of the top-left tap
+    w: np.ndarray  # (4, S, H*W) float32 tap weights: (0,0), (0,1), (1,0), (1,1)
+    ambient: np.ndarray  # (H, W) float32 mean albedo * ambient
+    pad: int
+    padded_shape: tuple
+
+
+class SimRig:
+    """Virtual camera + projector looking at ``scene``.
+
+    ``scale`` shrinks the default devices' resolutions and intrinsics (0.25 for fast tests);
+    explicit ``camera`` / ``projector`` Devices override the defaults (their scale is theirs).
+    """
+
+    def __init__(self, scene: Scene | None = None, camera: Device | None = None, projector: Device | None = None,
+                 *, scale: float = 1.0, optics: Optics | None = None, seed: int | None = 0):
+        self.scene = scene if scene is not None else leg_scene()
+        self.scale = float(scale)
+        self.camera = camera if camera is not None else default_camera(scale)
+        self.projector = projector if projector is not None else default_projector(scale)
+        self.optics = optics or Optics()
+        self.rng = np.random.default_rng(seed)
+        self.d0 = float(np.linalg.norm(RIG_TARGET - self.projector.center))
+        self._transport: _Transport | None = None
+        self._truth: Truth | None = None
+        self._cache: dict = {}
+
+    # ---- public ----------------------------------------------------------------------------
+    def true_calibration(self) -> Calibration:
+        """What a perfect calibration of this rig gives."""
+        return Calibration(self.camera, self.projector, {"source": "simulated rig ground truth"})
+
+    def with_scene(self, scene: Scene) -> "SimRig":
+        """Same devices and optics looking at another scene (e.g. calibration box, then leg)."""
+        return SimRig(scene, self.camera, self.projector, scale=self.scale, optics=self.optics,
+                      seed=int(self.rng.integers(2**31)))
+
+    def reseed(self, seed: int | None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def prepare(self) -> None:
+        """Build the projector-independent light transport now rather than at the first frame."""
+        if self._transport is None:
+            with _single_threaded_blas():
+                self._transport = self._build_transport()
+
+    def render_linear(self, projector_image: np.ndarray, *, blur: bool = True) -> np.ndarray:
+        """Noise-free camera irradiance (H, W) float32, 1 = full scale at exposure 1."""
+        self.prepare()
+        tr = self._transport
+        P = self._projector_radiance(projector_image, tr.pad).ravel()
+        acc = tr.ambient.ravel().copy()
+        Wp = tr.padded_shape[1]
+        for s in range(tr.idx.shape[0]):
+            i = tr.idx[s]
+            acc += P[i] * tr.w[0, s] + P[i + 1] * tr.w[1, s] + P[i + Wp] * tr.w[2, s] + P[i + Wp + 1] * tr.w[3, s]
+        img = acc.reshape(self.camera.height, self.camera.width)
+        sigma = self._sigma(self.optics.camera_blur_px)
+        if blur and sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+        return img
+
+    def capture(self, projector_image: np.ndarray, *, exposure: float | None = None, gain: float = 1.0,
+                noise: bool = True, rng: np.random.Generator | None = None, bit_depth: int | None = None) -> np.ndarray:
+        """Photograph ``projector_image`` (uint8/uint16 or float in [0, 1], projector-sized).
+
+        Returns a gray uint8 image (uint16 with ``bit_depth=16``). ``gain`` amplifies the
+        signal and the read noise alike, ``exposure`` the signal (and its shot noise) only.
+        """
+        o = self.optics
+        exposure = o.exposure if exposure is None else float(exposure)
+        signal = self.render_linear(projector_image) * np.float32(exposure)
+        if noise:
+            rng = rng or self.rng
+            var = np.float32(o.noise_sigma**2) + np.float32(o.shot_noise) * np.maximum(signal, 0)
+            signal = signal + rng.standard_normal(signal.shape, dtype=np.float32) * np.sqrt(var)
+        signal *= np.float32(gain)
+        depth = bit_depth or o.bit_depth
+        full = 65535.0 if depth == 16 else 255.0
+        out = np.clip(np.rint(signal * full), 0, full)
+        return out.astype(np.uint16 if depth == 16 else np.uint8)
+
+    def capture_many(self, images, **kw) -> list[np.ndarray]:
+        return [self.capture(im, **kw) for im in images]
+
+    def truth(self) -> Truth:
+        if self._truth is None:
+            with _single_threaded_blas():
+                self._truth = self._build_truth()
+        return self._truth
+
+    # ---- projector side -------------------------------------------------------------------
+    def _sigma(self, full_res_px: float) -> float:
+        return full_res_px * self.scale  # same optics on a coarser sensor
+
+    def _projector_radiance(self, image: np.ndarray, pad: int) -> np.ndarray:
+        """Emitted radiance (gamma, black level) with the frame's dark surround, defocused."""
+        img = np.asarray(image)
+        if img.ndim == 3:
+            img = img.mean(axis=2)
+        if img.shape != (self.projector.height, self.projector.width):
+            raise ValueError(f"projector image is {img.shape[1]}x{img.shape[0]}, the projector is "
+                             f"{self.projector.width}x{self.projector.height}")
+        if img.dtype == np.uint8:
+            v = img.astype(np.float32) / 255.0
+        elif img.dtype == np.uint16:
+            v = img.astype(np.float32) / 65535.0
+        else:
+            v = np.clip(img.astype(np.float32), 0.0, 1.0)
+        o = self.optics
+        rad = np.float32(o.projector_black) + np.float32(1 - o.projector_black) * v ** np.float32(o.projector_gamma)
+        rad = cv2.copyMakeBorder(rad, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
+        sigma = self._sigma(o.projector_blur_px)
+        if sigma > 0:
+            rad = cv2.GaussianBlur(rad, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+        return rad
+
+    def _pad(self) -> int:
+        return int(math.ceil(3 * self._sigma(self.optics.projector_blur_px))) + 2
+
+    # ---- geometry ---------------------------------------------------------------------------
+    def _field_limits(self) -> np.ndarray:
+        if "field" not in self._cache:
+            self._cache["field"] = self._compute_field_limits()
+        return self._cache["field"]
+
+    def _compute_field_limits(self) -> np.ndarray:
+        """|x|, |y| bounds of undistorted projector coordinates just beyond the frame: guards
+        against the distortion polynomial folding far-off points back into the image."""
+        p, m = self.projector, self._pad() + 2
+        corners = np.array([[-m, -m], [p.width - 1 + m, -m], [-m, p.height - 1 + m], [p.width - 1 + m, p.height - 1 + m]], float)
+        xu, yu = p.normalized_from_pixels(corners)
+        return np.array([np.abs(xu).max(), np.abs(yu).max()]) * 1.2
+
+    def _cast(self, uv: np.ndarray) -> dict:
+        """Everything projector-independent about camera rays through pixel coordinates uv (N, 2)."""
+        cam, prj, scene = self.camera, self.projector, self.scene
+        d = cam.rays(uv)
+        t, index = scene.intersect(cam.center, d)
+        seen = np.isfinite(t)
+        X = np.full(d.shape, np.nan)
+        X[seen] = cam.center + t[seen, None] * d[seen]
+        normals, albedo = scene.surface(X, index, viewer=cam.center)
+        puv = np.full(uv.shape, np.nan)
+        if seen.any():
+            puv[seen] = prj.project(X[seen])
+        to_p = prj.center - X
+        dist = np.linalg.norm(to_p, axis=-1)
+        cos = np.einsum("ij,ij->i", normals, to_p) / dist
+        Xp = prj.to_device(X)
+        lim = self._field_limits()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            in_field = seen & (Xp[:, 2] > 0) & (np.abs(Xp[:, 0] / Xp[:, 2]) < lim[0]) & (np.abs(Xp[:, 1] / Xp[:, 2]) < lim[1])
+        facing = in_field & (cos > 0)
+        unshadowed = np.zeros(len(uv), bool)
+        rows = np.flatnonzero(facing)
+        if rows.size:
+            tp, _ = scene.intersect(prj.center, -to_p[rows] / dist[rows, None])
+            unshadowed[rows] = tp >= dist[rows] - _SHADOW_EPS_MM
+        return {"d": d, "X": X, "index": index, "seen": seen, "normals": normals, "albedo": albedo,
+                "proj_uv": puv, "cos": np.where(facing, cos, 0.0), "dist": dist, "lit": facing & unshadowed}
+
+    def _shading(self, c: dict) -> np.ndarray:
+        """Projector-light weight per ray: albedo cos / (d/d0)^2 (+ optional highlight)."""
+        o = self.optics
+        inv_sq = (self.d0 / np.where(c["lit"], c["dist"], np.inf)) ** 2
+        w = c["albedo"] * c["cos"] * inv_sq
+        if o.specular > 0:
+            to_p = (self.projector.center - c["X"]) / c["dist"][:, None]
+            h = to_p - c["d"]
+            h /= np.linalg.norm(h, axis=-1, keepdims=True)
+            ndh = np.clip(np.einsum("ij,ij->i", np.nan_to_num(c["normals"]), np.nan_to_num(h)), 0, 1)
+            w = w + o.specular * ndh**o.shininess * inv_sq * (c["cos"] > 0)
+        return np.where(c["lit"], w, 0.0)
+
+    def _subpixel_offsets(self) -> np.ndarray:
+        n = int(self.optics.supersample)
+        g = (np.arange(n) + 0.5) / n - 0.5
+        du, dv = np.meshgrid(g, g)
+        return np.stack([du.ravel(), dv.ravel()], axis=-1)  # (S, 2)
+
+    def _row_chunks(self, rays_per_row: int):
+        rows = max(1, _CHUNK_RAYS // rays_per_row)
+        for r0 in range(0, self.camera.height, rows):
+            yield r0, min(self.camera.height, r0 + rows)
+
+    def _build_transport(self) -> _Transport:
+        cam, prj, o = self.camera, self.projector, self.optics
+        H, W = cam.height, cam.width
+        offs = self._subpixel_offsets()
+        S = len(offs)
+        pad = self._pad()
+        Hp, Wp = prj.height + 2 * pad, prj.width + 2 * pad
+        idx = np.zeros((S, H * W), np.int32)
+        w = np.zeros((4, S, H * W), np.float32)
+        ambient = np.zeros(H * W, np.float64)
+        u = np.arange(W, dtype=np.float64)
+        for r0, r1 in self._row_chunks(W * S):
+            v = np.arange(r0, r1, dtype=np.float64)
+            uu, vv = np.meshgrid(u, v)
+            base = np.stack([uu.ravel(), vv.ravel()], axis=-1)
+            uv = (base[None, :, :] + offs[:, None, :]).reshape(-1, 2)
+            c = self._cast(uv)
+            shade = self._shading(c) / S
+            x = c["proj_uv"][:, 0] + pad
+            y = c["proj_uv"][:, 1] + pad
+            ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
+            x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
+            y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
+            fx = np.where(ok, x - x0, 0.0)
+            fy = np.where(ok, y - y0, 0.0)
+            s = np.where(ok, shade, 0.0)
+            sl = slice(r0 * W, r1 * W)
+            n = (r1 - r0) * W
+            idx[:, sl] = (y0 * Wp + x0).reshape(S, n)
+            for k, wk in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
+                w[k, :, sl] = (s * wk).reshape(S, n)
+            ambient[sl] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
+        return _Transport(idx, w, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
+
+    def _build_truth(self) -> Truth:
+        cam, prj = self.camera, self.projector
+        H, W = cam.height, cam.width
+        out = {k: [] for k in ("X", "normals", "index", "seen", "lit", "proj_uv")}
+        u = np.arange(W, dtype=np.float64)
+        for r0, r1 in self._row_chunks(W):
+            uu, vv = np.meshgrid(u, np.arange(r0, r1, dtype=np.float64))
+            c = self._cast(np.stack([uu.ravel(), vv.ravel()], axis=-1))
+            puv = c["proj_uv"]
+            in_frame = ((puv[:, 0] >= -0.5) & (puv[:, 0] <= prj.width - 0.5)
+                        & (puv[:, 1] >= -0.5) & (puv[:, 1] <= prj.height - 0.5))
+            c["lit"] = c["lit"] & in_frame
+            for k in out:
+                out[k].append(c[k])
+        cat = {k: np.concatenate(v) for k, v in out.items()}
+        index = cat["index"]
+        marks = {k: m.centre.copy() for k, m in sorted(self.scene.marks.items())}
+        info = self.scene.info
+        angles = angles_from_marks(marks) if all(str(i) in marks for i in range(1, 8)) else {}
+        return Truth(points=cat["X"].reshape(H, W, 3), normals=cat["normals"].reshape(H, W, 3),
+                     object_id=self.scene.object_kinds(index).reshape(H, W),
+                     mark_label=self.scene.mark_labels(index).reshape(H, W),
+                     seen=cat["seen"].reshape(H, W), lit=cat["lit"].reshape(H, W),
+                     proj_uv=cat["proj_uv"].reshape(H, W, 2), marks=marks,
+                     mark_normals={k: m.normal.copy() for k, m in sorted(self.scene.marks.items())},
+                     table_angles=info.get("table_angles"), angles=angles,
+                     leg_axis_angles=info.get("leg_axis_angles"))
+
+
+# ---- simulated devices ----------------------------------------------------------------------
+
+
+class SimulatedProjector(ProjectorOutput):
+    """Remembers the image shown; a black frame until something is shown."""
+
+    def __init__(self, width: int, height: int):
+        self._size = (int(width), int(height))
+        self.image = np.zeros((height, width), np.uint8)
+        self.shown = 0
+
+    @classmethod
+    def for_rig(cls, rig: SimRig) -> "SimulatedProjector":
+        return cls(rig.projector.width, rig.projector.height)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self._size
+
+    def show(self, image: np.ndarray) -> None:
+        img = np.asarray(image)
+        if img.shape[:2] != (self._size[1], self._size[0]):
+            raise ValueError(f"image is {img.shape[1]}x{img.shape[0]}, projector is {self._size[0]}x{self._size[1]}")
+        self.image = img.copy()
+        self.shown += 1
+
+
+class SimulatedCamera(Camera):
+    """Photographs whatever ``projector`` currently shows through ``rig``.
+
+    Controls: ``exposure`` (relative exposure time: scales signal and shot noise) and
+    ``gain`` (scales signal and read noise). ``fail_after(n)`` makes the (n+1)-th grab raise
+    ``CameraDisconnected``, as an unplugged camera would, until ``reconnect()``.
+    """
+
+    PREVIEW_FACTOR = 4
+
+    def __init__(self, rig: SimRig, projector: SimulatedProjector, name: str = "Simulated camera"):
+        self.rig, self.projector = rig, projector
+        self._info = CameraInfo(name, "simulated", rig.camera.width, rig.camera.height)
+        self._open = False
+        self._left: int | None = None
+        self._controls = {
+            "exposure": Control("exposure", 0.05, 8.0, 0.0, rig.optics.exposure, rig.optics.exposure, "x"),
+            "gain": Control("gain", 1.0, 16.0, 0.0, 1.0, 1.0, "x"),
+        }
+
+    @property
+    def info(self) -> CameraInfo:
+        return self._info
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        if self._left == 0:
+            raise CameraDisconnected(f"{self._info.name}: device not found")
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+
+    def fail_after(self, n: int) -> None:
+        self._left = int(n)
+
+    def reconnect(self) -> None:
+        self._left = None
+
+    def controls(self) -> dict[str, Control]:
+        return dict(self._controls)
+
+    def set_control(self, name: str, value: float) -> None:
+        if name not in self._controls:
+            raise KeyError(f"unknown camera control {name!r}; available: {', '.join(self._controls)}")
+        self._controls[name] = replace(self._controls[name], value=self._controls[name].check(value))
+
+    def _grab(self) -> np.ndarray:
+        if not self._open:
+            raise CameraDisconnected(f"{self._info.name} is not open")
+        if self._left is not None:
+            if self._left <= 0:
+                self._open = False
+                raise CameraDisconnected(f"{self._info.name} was disconnected")
+            self._left -= 1
+        return self.rig.capture(self.projector.image, exposure=self._controls["exposure"].value,
+                                gain=self._controls["gain"].value)
+
+    def capture(self) -> np.ndarray:
+        return self._grab()
+
+    def preview(self) -> np.ndarray:
+        img = self._grab()
+        f = self.PREVIEW_FACTOR
+        return cv2.resize(img, (img.shape[1] // f, img.shape[0] // f), interpolation=cv2.INTER_AREA)
+
+
+def simulated_devices(rig: SimRig) -> tuple[SimulatedCamera, SimulatedProjector]:
+    """A connected (camera, projector) pair on ``rig``; the camera is not opened yet."""
+    proj = SimulatedProjector.for_rig(rig)
+    return SimulatedCamera(rig, proj), proj
