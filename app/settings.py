@@ -1,0 +1,74 @@
+"""Settings kept between runs (screens, camera, thresholds, data folder).
+
+A thin typed layer over QSettings so that every key has one name, one type and one default
+in one place. ``ANKLESCAN_SETTINGS`` names an INI file to use instead of the user's settings;
+the tests use it so that they never read or change a clinician's real configuration.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from PySide6.QtCore import QSettings
+
+
+@dataclass(frozen=True)
+class Key:
+    name: str
+    default: object
+    kind: type
+
+
+KEYS = {
+    "projector_screen": Key("projector/screen", "", str),       # QScreen.name(); "" = automatic
+    "projector_size": Key("projector/size", "1024x768", str),
+    "camera_backend": Key("camera/backend", "simulated", str),
+    "camera_device": Key("camera/device", "", str),
+    "camera_exposure_ms": Key("camera/exposure_ms", 0.0, float),  # 0 = the device's default
+    "camera_gain": Key("camera/gain", 0.0, float),
+    "settle_ms": Key("scan/settle_ms", 30, int),
+    "sim_scale": Key("scan/sim_scale", 0.25, float),
+    "pattern_preset": Key("scan/pattern_preset", "default", str),
+    "saturation_level": Key("thresholds/saturation_level", 250, int),
+    "data_folder": Key("data/folder", str(Path.home() / "AnkleScan"), str),
+    "window_geometry": Key("window/geometry", b"", bytes),
+}
+
+
+class Settings:
+    def __init__(self, path: str | os.PathLike | None = None):
+        path = path or os.environ.get("ANKLESCAN_SETTINGS")
+        if path:
+            self._qs = QSettings(str(path), QSettings.Format.IniFormat)
+        else:
+            self._qs = QSettings("AnkleScan", "AnkleScan")
+
+    def get(self, key: str):
+        spec = KEYS[key]
+        value = self._qs.value(spec.name, spec.default)
+        if spec.kind is bytes:
+            return bytes(value) if value else b""
+        try:
+            return spec.kind(value)
+        except (TypeError, ValueError):
+            return spec.default  # a hand-edited or stale value must not stop the app starting
+
+    def set(self, key: str, value) -> None:
+        self._qs.setValue(KEYS[key].name, value)
+
+    def sync(self) -> None:
+        self._qs.sync()
+
+    @property
+    def data_folder(self) -> Path:
+        return Path(self.get("data_folder"))
+
+    @property
+    def projector_size(self) -> tuple[int, int]:
+        try:
+            w, h = (int(v) for v in str(self.get("projector_size")).lower().split("x"))
+            return w, h
+        except ValueError:
+            return 1024, 768

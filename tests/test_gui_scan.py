@@ -1,0 +1,154 @@
+"""A whole scan through the main window on the simulated rig (scale 0.25)."""
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PySide6.QtCore import QElapsedTimer, QTimer
+
+from app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
+
+pytestmark = pytest.mark.gui
+REPO = Path(__file__).resolve().parent.parent
+
+
+class GapMeter:
+    """A 10 ms timer on the UI thread; the longest gap between ticks is how long it was blocked."""
+
+    def __init__(self):
+        self.clock = QElapsedTimer()
+        self.timer = QTimer()
+        self.timer.setInterval(10)
+        self.timer.timeout.connect(self._tick)
+        self.last = None
+        self.max_gap_ms = 0
+
+    def _tick(self):
+        now = self.clock.elapsed()
+        if self.last is not None:
+            self.max_gap_ms = max(self.max_gap_ms, now - self.last)
+        self.last = now
+
+    def start(self):
+        self.clock.start()
+        self.timer.start()
+
+    def stop(self):
+        self.timer.stop()
+
+
+@pytest.fixture
+def window(qtbot):
+    win = MainWindow(open_rig_now=True)
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
+    win.new_patient("P-001", 2, "right")
+    win.new_session("barefoot")
+    yield win
+    if win.controller.busy:
+        win.controller.cancel()
+        win.controller.wait(3000)
+    win.close()
+
+
+def _run_scan(qtbot, win, timeout=120_000):
+    meter = GapMeter()
+    meter.start()
+    with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
+        assert win.start_scan()
+    meter.stop()
+    return meter.max_gap_ms
+
+
+def test_full_scan_matches_offline_reconstruction(qtbot, window):
+    window.scan_page.form.inversion.setValue(10.0)
+    window.scan_page.form.plantar_flexion.setValue(-5.0)
+    max_gap = _run_scan(qtbot, window)
+    print(f"\nUI thread: longest gap between 10 ms ticks during the scan = {max_gap} ms")
+    assert max_gap < 100
+    result = window.last_result
+    assert result is not None, window.banner.text
+    pset_files = [f.file for f in window._scan_job(result.folder).pattern_set.frames]
+    assert sorted(p.name for p in result.folder.iterdir() if not p.name.startswith(".")) == sorted(pset_files + ["manifest.json"])
+    trial = window.store.get_trial(window._trial_id)
+    assert (trial.ref_inversion, trial.ref_plantar_flexion) == (10.0, -5.0)
+    assert trial.capture_path and window.store.verify_trial_files(trial.id) == []
+    from app.scan_worker import reconstruct_folder
+    try:
+        import core.reconstruct  # noqa: F401
+    except ImportError:
+        pytest.skip("core.reconstruct is not written yet; the capture folder was checked")
+    offline = reconstruct_folder(result.folder, window.rig.calibration)
+    assert np.array_equal(offline.points, result.cloud.points)
+    assert trial.cloud_path
+
+
+def test_each_frame_shows_its_own_pattern(qtbot, window):
+    """The camera never photographs the previous pattern: compare with the rig's noise-free image."""
+    _run_scan(qtbot, window)
+    import cv2
+    from core.patterns import render_frame
+    folder = window.last_result.folder
+    pset = window._scan_job(folder).pattern_set
+    rig = window.rig.camera.rig
+    gray = [i for i, f in enumerate(pset.frames) if f.kind == "gray"][:6]
+    for i in gray:
+        shot = cv2.imread(str(folder / pset.frames[i].file), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255
+        own = rig.render_linear(render_frame(pset, pset.frames[i]))
+        prev = rig.render_linear(render_frame(pset, pset.frames[i - 1]))
+        assert np.abs(shot - own).mean() < 0.5 * np.abs(shot - prev).mean()
+
+
+def test_cancel_stops_within_a_second(qtbot, window):
+    captured = []
+    window.controller.frameCaptured.connect(lambda i, _: captured.append(i))
+    assert window.start_scan()
+    qtbot.waitUntil(lambda: len(captured) >= 3, timeout=30_000)
+    t0 = time.perf_counter()
+    with qtbot.waitSignal(window.controller.cancelled, timeout=1000):
+        window.cancel_scan()
+    elapsed = time.perf_counter() - t0
+    print(f"\ncancel took {elapsed * 1000:.0f} ms")
+    assert elapsed < 1.0
+    assert window.banner.kind == "info" and "cancelled" in window.banner.text
+    assert window.scan_page.scan_button.isEnabled()
+
+
+def test_camera_unplugged_mid_scan_keeps_frames_and_app(qtbot, window):
+    window.rig.camera.fail_after(5)
+    with qtbot.waitSignal(window.controller.failed, timeout=60_000):
+        assert window.start_scan()
+    assert window.banner.kind == "error" and "disconnected" in window.banner.text
+    trial = window.store.get_trial(window._trial_id)
+    kept = [p for p in window.store.resolve(trial.capture_path).iterdir() if p.suffix == ".png"]
+    assert len(kept) == 5
+    assert window.scan_page.scan_button.isEnabled() and window.current_session_id() is not None
+
+
+def test_projector_screen_gone_stops_scan(qtbot, window):
+    captured = []
+    window.controller.frameCaptured.connect(lambda i, _: captured.append(i))
+    assert window.start_scan()
+    qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
+    with qtbot.waitSignal(window.controller.failed, timeout=2000):
+        window.projector._screen_name = "HDMI-1"
+        window.projector._native = True
+        window.projector._screen_removed(type("S", (), {"name": lambda self: "HDMI-1"})())
+    assert "projector" in window.banner.text.lower()
+
+
+def test_gui_starts_quickly():
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", "import sys; from app.main_window import run_gui; "
+                          "sys.exit(run_gui(['anklescan', '--quit-when-shown']))"],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    wall = time.perf_counter() - t0
+    print(f"\n{out.stdout.strip()}; process wall time {wall:.2f} s")
+    assert out.returncode == 0, out.stderr
+    shown = float(out.stdout.split("after")[1].split()[0])
+    assert shown < 3.0

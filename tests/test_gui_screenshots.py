@@ -1,0 +1,52 @@
+"""Screenshots for docs/screenshots/ (run with ANKLESCAN_SCREENSHOTS=1; skipped otherwise)."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+from app import resources
+from app.main_window import PAGE_CAMERA, PAGE_SCAN, MainWindow
+
+pytestmark = pytest.mark.gui
+OUT = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
+
+
+@pytest.mark.skipif(not os.environ.get("ANKLESCAN_SCREENSHOTS"), reason="set ANKLESCAN_SCREENSHOTS=1 to refresh")
+def test_screenshots(qtbot, qapp):
+    qapp.setStyleSheet(resources.STYLE)
+    win = MainWindow(open_rig_now=True)
+    qtbot.addWidget(win)
+    win.resize(1280, 780)
+    win.show()
+    qtbot.waitExposed(win)
+    win.settings.set("settle_ms", 5)
+    for code, n in (("P-014", 0), ("P-017", 3), ("P-021", 1)):
+        win.new_patient(code, n, "right")
+    win.new_session("barefoot")
+    form = win.scan_page.form
+    form.inversion.setValue(15.0)
+    form.plantar_flexion.setValue(10.0)
+    with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: not b):
+        win.start_scan()
+    win.banner.hide()
+    win.tabs.setCurrentIndex(PAGE_SCAN)
+    form.notes.setPlainText("Second trial after rest.")
+    qtbot.wait(100)
+    OUT.mkdir(parents=True, exist_ok=True)
+    win.grab().save(str(OUT / "main_window.png"))
+    win.tabs.setCurrentIndex(PAGE_CAMERA)
+    win.camera_panel.zebra.setChecked(True)
+    win.projector.show_white()
+    qtbot.wait(50)
+    win.camera_panel.test_capture()
+    qtbot.wait(100)
+    win.grab().save(str(OUT / "camera_panel.png"))
+    win.tabs.setCurrentIndex(PAGE_SCAN)
+    from core.patterns import render_frame
+    pset = win._scan_job(win.last_result.folder).pattern_set
+    win.projector.show_frame(render_frame(pset, pset.frames[10]))
+    win.projector.resize(640, 480)
+    qtbot.wait(100)
+    win.projector.grab().save(str(OUT / "projector_preview.png"))
+    win.close()
