@@ -267,6 +267,7 @@ class DeviceQuality:
     warnings: list
     notes: list
     nfev: int
+    excluded: list = field(default_factory=list)  # 0-based indices (of the input) left out as mis-read
 
     @property
     def n_points(self) -> int:
@@ -286,7 +287,8 @@ class DeviceQuality:
                 "rms_px": self.rms_px, "max_px": float(self.point_errors_px.max()), "sigma_px": self.sigma_px,
                 "robust_sigma_px": self.robust_sigma_px, "parameters": self.parameters, "std_errors": self.std_errors,
                 "residuals_px": self.residuals_px.tolist(), "flagged": [int(i) for i in self.flagged],
-                "warnings": list(self.warnings), "notes": list(self.notes), "nfev": self.nfev}
+                "warnings": list(self.warnings), "notes": list(self.notes), "nfev": self.nfev,
+                "excluded": [int(i) for i in self.excluded]}
 
     def format_text(self) -> str:
         lines = [f"{self.device} ({self.model}): {self.n_points} points, RMS {self.rms_px:.3f} px, "
@@ -297,6 +299,9 @@ class DeviceQuality:
         if self.flagged:
             lines.append("  likely mis-picked points (1-based): " + ", ".join(
                 f"{i + 1} ({self.point_errors_px[i]:.2f} px)" for i in self.flagged))
+        if self.excluded:
+            lines.append("  left out as mis-read and refitted without (1-based input points): "
+                         + ", ".join(str(i + 1) for i in self.excluded))
         lines += [f"  warning: {w}" for w in self.warnings] + [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -415,8 +420,26 @@ def _geometry_warnings(problem: _Problem, v, r, dof, size, flagged) -> list:
 
 # ==== one device ===========================================================================
 def calibrate_device(xyz, obs, kind: str, size: tuple[int, int], radial_terms: int = 1,
-                     loss: str = "linear", f_scale: float = 1.0) -> tuple[np.ndarray, DeviceQuality]:
-    """Paper vector (Cn, Pn, or Cn for "projector2d") and its quality for one device."""
+                     loss: str = "linear", f_scale: float = 1.0,
+                     exclude_flagged: bool = False) -> tuple[np.ndarray, DeviceQuality]:
+    """Paper vector (Cn, Pn, or Cn for "projector2d") and its quality for one device.
+
+    ``exclude_flagged``: for automatically read points, leave out the ones the robust test
+    flags and fit once more without them (a hand-picked set is reported, not edited).
+    """
+    v, q = _calibrate_device_once(xyz, obs, kind, size, radial_terms, loss, f_scale)
+    if not (exclude_flagged and q.flagged):
+        return v, q
+    keep = np.setdiff1d(np.arange(len(np.asarray(xyz))), q.flagged)
+    if keep.size < MIN_POINTS[kind]:
+        return v, q
+    v, q = _calibrate_device_once(np.asarray(xyz)[keep], np.asarray(obs)[keep], kind, size, radial_terms, loss,
+                                  f_scale)
+    q.excluded = sorted(int(i) for i in np.setdiff1d(np.arange(len(np.asarray(xyz))), keep))
+    return v, q
+
+
+def _calibrate_device_once(xyz, obs, kind, size, radial_terms, loss, f_scale) -> tuple[np.ndarray, DeviceQuality]:
     if kind not in MIN_POINTS:
         raise CalibrationError(f"unknown device kind {kind!r}")
     if radial_terms not in (1, 2):
@@ -436,18 +459,18 @@ def calibrate_device(xyz, obs, kind: str, size: tuple[int, int], radial_terms: i
 
 def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_CAMERA_SIZE,
                      projector_size=DEFAULT_PROJECTOR_SIZE, radial_terms: int = 1, loss: str = "linear",
-                     f_scale: float = 1.0) -> tuple[Calibration, CalibrationReport]:
+                     f_scale: float = 1.0, exclude_flagged: bool = False) -> tuple[Calibration, CalibrationReport]:
     """The paper's calibration of both devices (SPEC §6 ``calibrate points``).
 
     ``proj_u`` holds projector columns (N,) — a 1-D projector, saved with axis "column" — or
     columns and rows (N, 2), when horizontal stripes were captured too: then the projector gets
     the camera's full 2-D model.
     """
-    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, "camera", camera_size, radial_terms, loss, f_scale)
+    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, "camera", camera_size, radial_terms, loss, f_scale, exclude_flagged)
     pu = np.asarray(proj_u, dtype=np.float64)
     two_d = pu.ndim == 2 and pu.shape[1] == 2
     kind = "projector2d" if two_d else "projector"
-    Pn, proj_q = calibrate_device(proj_xyz, pu, kind, projector_size, radial_terms, loss, f_scale)
+    Pn, proj_q = calibrate_device(proj_xyz, pu, kind, projector_size, radial_terms, loss, f_scale, exclude_flagged)
     camera = pm.camera_to_device(Cn, *camera_size)
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
     report = CalibrationReport(cam_q, proj_q)

@@ -299,7 +299,8 @@ def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str 
     H, W = capture.shape
     pset = capture.pattern_set
     cal, report = calibrate_points(obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv, camera_size=(W, H),
-                                   projector_size=(pset.width, pset.height), radial_terms=radial_terms, loss=loss)
+                                   projector_size=(pset.width, pset.height), radial_terms=radial_terms, loss=loss,
+                                   exclude_flagged=True)  # read automatically: a mis-read point is dropped
     cal.extra["source"] = f"calibration box capture {Path(capture_dir).name}"
     cal.extra["box"] = {"size_mm": BOX_SIZE_MM, "markers_found": obs.marker_ids,
                         "camera_points": len(obs.cam_xyz), "projector_points": len(obs.proj_xyz)}

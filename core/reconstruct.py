@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from core.calibration_file import Calibration
@@ -11,12 +12,11 @@ from core.errors import CaptureError
 from core.pointcloud import PointCloud
 from core.triangulate import triangulate_columns
 
-# A point is kept when its predicted noise along the camera ray is at most this, or at most
-# NOISE_FACTOR times the scan's median when the whole scan is coarser (e.g. the paper preset,
-# whose error is the 4-px stripe quantisation everywhere). 0.5 mm keeps errors > 2 mm at
-# about one in ten thousand for Gaussian noise.
+# A phase-decoded point is kept when its predicted noise along the camera ray (from the local
+# pattern modulation, the sensor noise and the ray/plane geometry) is at most this: Gaussian
+# errors then exceed 2 mm about once in 10^4. Gray-code-only sets (the paper preset) have no
+# noise model: their error is the deterministic stripe quantisation, so no point is dropped.
 MAX_POINT_SIGMA_MM = 0.5
-NOISE_FACTOR = 3.0
 
 
 def check_compatible(capture: Capture, cal: Calibration) -> None:
@@ -49,18 +49,45 @@ def point_quality(decoded: DecodeResult, idx: np.ndarray, full_scale: float) -> 
     return np.clip((w - b) / np.float32(full_scale), 0, 1)
 
 
-def noise_limit(sigma: np.ndarray) -> float:
-    if sigma.size == 0:
-        return MAX_POINT_SIGMA_MM
-    return max(MAX_POINT_SIGMA_MM, NOISE_FACTOR * float(np.median(sigma)))
+EDGE_BASE_TOL_PX = 0.5  # column second differences on smooth surfaces stay far below this
+EDGE_K_SIGMA = 5.0  # plus this many standard deviations of a second difference's noise
+
+
+def depth_edges(column: np.ndarray, column_sigma: np.ndarray, stripe: float | None) -> np.ndarray:
+    """Pixels next to a kink in the decoded column map: mixed pixels at depth edges.
+
+    A camera pixel straddling a depth edge decodes a mixture of both surfaces' columns and
+    triangulates into mid-air. On any smooth surface the column map is locally linear, so its
+    second difference is only noise; at a depth edge it jumps. A mixed pixel can sit on a ramp
+    between the two surfaces (zero second difference of its own), so every pixel within one
+    pixel of a kink is flagged. For Gray-code-only decoding the map is a staircase of
+    ``stripe`` px, which sets the tolerance instead of the noise.
+    """
+    if stripe:
+        tol = np.full(column.shape, stripe + EDGE_BASE_TOL_PX, np.float32)
+    else:
+        tol = EDGE_BASE_TOL_PX + EDGE_K_SIGMA * np.sqrt(6.0, dtype=np.float32) * column_sigma
+    kink = None
+    for kernel in (_D2_H, _D2_V):
+        # filter2D is multithreaded; NaN neighbours give NaN, which never compares greater
+        d2 = np.abs(cv2.filter2D(column, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
+        k = cv2.compare(d2, tol, cv2.CMP_GT)
+        kink = k if kink is None else cv2.bitwise_or(kink, k, dst=kink)
+    return cv2.dilate(kink, np.ones((3, 3), np.uint8)).view(bool)
+
+
+_D2_H = np.array([[1.0, -2.0, 1.0]], np.float32)
+_D2_V = _D2_H.T.copy()
 
 
 def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult) -> PointCloud:
-    points, idx, sigma = triangulate_columns(cal, decoded.column, decoded.valid, column_sigma=decoded.column_sigma)
-    limit = noise_limit(sigma)
-    keep = sigma <= limit
-    noisy = int(keep.size - keep.sum())
-    points, idx, sigma = points[keep], idx[keep], sigma[keep]
+    code = capture.pattern_set.axis_code("column")
+    edges = depth_edges(decoded.column, decoded.column_sigma, None if code.phase else code.stripe) & decoded.valid
+    valid = decoded.valid & ~edges
+    has_phase = bool(code.phase)
+    points, idx, sigma = triangulate_columns(cal, decoded.column, valid, column_sigma=decoded.column_sigma,
+                                             max_sigma_mm=MAX_POINT_SIGMA_MM if has_phase else None)
+    noisy = int(valid.sum()) - idx.size  # dropped for predicted noise (or, rarely, grazing rays)
     width = capture.shape[1]
     pixels = np.stack([idx % width, idx // width], axis=1).astype(np.uint16)
     cloud = PointCloud(points, point_colors(capture, idx, decoded._white_raw), pixels,
@@ -68,12 +95,14 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     n_pix = decoded.valid.size
     counts = np.bincount(decoded.reason.ravel(), minlength=len(REASON_NAMES))
     rejected = {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if i and c}
+    if edges.any():
+        rejected["depth_edge"] = int(edges.sum())
     if noisy:
         rejected["noisy_geometry"] = noisy
     cloud.meta = {
         "decoded_pixels": int(decoded.valid.sum()),
         "points": len(cloud),
-        "sigma_limit_mm": limit,
+        "sigma_limit_mm": MAX_POINT_SIGMA_MM if has_phase else None,
         "rejected": rejected,
         "thresholds": decoded.thresholds,
         "summary": f"{len(cloud)} points from {n_pix} pixels ({100.0 * len(cloud) / n_pix:.1f} %)",

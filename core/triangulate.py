@@ -18,6 +18,8 @@ image sampled bilinearly (cv2.remap); with 1-px spacing the interpolation error 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -31,20 +33,24 @@ TABLE_MARGIN = 64  # projector pixels of table beyond the image, for columns dec
 MIN_TRIANGULATION_ANGLE_DEG = 2.0  # rays meeting planes more obliquely than this are unreliable
 
 
+# Fields of the per-pixel table; field-major so each gather and each operation is contiguous.
+RAY_X, RAY_Y, RAY_Z, AD, BD, EPI_Q0, EPI_Q1, EPI_Q2 = range(8)
+ROW_CHUNK = 128  # camera rows per chunk when building the cache: bounds its float64 temporaries
+
+
 @dataclass
 class TriangulationCache:
     """Everything that depends on the calibration only."""
 
     cam_center: np.ndarray  # (3,)
-    rays: np.ndarray  # (H, W, 3) float32 unit world rays of the camera pixel centres
-    ad: np.ndarray  # (H, W) float32  a·d
-    bd: np.ndarray  # (H, W) float32  b·d
+    shape: tuple  # camera (H, W)
+    pixel: np.ndarray  # (8, H*W) float32, field-major: unit world ray, a·d, b·d, epipolar q0..q2
     a_delta: float
     b_delta: float
     xu_table: np.ndarray  # (Hp + 2m, Wp + 2m) float32  x_u at distorted projector pixel (u, v)
-    epi_q: list  # three (H, W) float32 maps: epipolar row = q0 + w (q1 + w q2), w = (u - h) / h
-    epi_half: float  # h, half the projector width
+    epi_half: float  # epipolar row = q0 + w (q1 + w q2), w = (u - epi_half) / epi_half
     cos_limit: float
+    fx_projector: float
 
 
 def projector_xu_table(projector: Device, margin: int = TABLE_MARGIN) -> np.ndarray:
@@ -102,25 +108,34 @@ def _epipolar_curves(cal: Calibration) -> list[np.ndarray]:
 
 def build_cache(cal: Calibration) -> TriangulationCache:
     cam, proj = cal.camera, cal.projector
-    rays = cam.pixel_grid_rays()
     a, b = proj.R[0], proj.R[2]
     delta = proj.center - cam.center
     if np.linalg.norm(delta) < 1e-6:
         raise GeometryError("calibration: camera and projector centres coincide; no baseline to triangulate")
-    ad, bd = rays @ a, rays @ b
-    a_delta, b_delta = float(a @ delta), float(b @ delta)
-    xu_table = projector_xu_table(proj)
+    H, W = cam.height, cam.width
+    pixel = np.empty((8, H * W), np.float32)
+    q = _epipolar_curves(cal)
+    u = np.arange(W, dtype=np.float64)
+    for r0 in range(0, H, ROW_CHUNK):
+        r1 = min(H, r0 + ROW_CHUNK)
+        uu, vv = np.meshgrid(u, np.arange(r0, r1, dtype=np.float64))
+        rays = cam.rays(np.stack([uu, vv], axis=-1)).reshape(-1, 3)
+        block = pixel[:, r0 * W:r1 * W]
+        block[RAY_X:RAY_Z + 1] = rays.T
+        block[AD] = rays @ a
+        block[BD] = rays @ b
+        for k in range(3):
+            block[EPI_Q0 + k] = q[k][r0:r1].ravel()
     return TriangulationCache(
         cam_center=cam.center,
-        rays=rays.astype(np.float32),
-        ad=ad.astype(np.float32),
-        bd=bd.astype(np.float32),
-        a_delta=a_delta,
-        b_delta=b_delta,
-        xu_table=xu_table,
-        epi_q=_epipolar_curves(cal),
+        shape=(H, W),
+        pixel=pixel,
+        a_delta=float(a @ delta),
+        b_delta=float(b @ delta),
+        xu_table=projector_xu_table(proj),
         epi_half=(proj.width - 1) / 2.0,
         cos_limit=float(np.sin(np.radians(MIN_TRIANGULATION_ANGLE_DEG))),
+        fx_projector=proj.fx,
     )
 
 
@@ -133,53 +148,103 @@ def cache_for(cal: Calibration) -> TriangulationCache:
     return cache
 
 
-def undistorted_projector_x(cache: TriangulationCache, column: np.ndarray, row: np.ndarray | None = None) -> np.ndarray:
-    """x_u for decoded projector columns (H, W) float32; NaN stays NaN."""
+def undistorted_projector_x(cache: TriangulationCache, column: np.ndarray, idx: np.ndarray,
+                            row: np.ndarray | None = None) -> np.ndarray:
+    """x_u for decoded projector columns (N,) of the camera pixels ``idx`` (flat indices)."""
     if row is None:
-        q0, q1, q2 = cache.epi_q
+        q = cache.pixel
         w = (column - np.float32(cache.epi_half)) * np.float32(1.0 / cache.epi_half)
-        row = q0 + w * (q1 + w * q2)
-    m = TABLE_MARGIN
-    map_x = column + np.float32(m)
-    map_y = row + np.float32(m)
-    xu = cv2.remap(cache.xu_table, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                   borderValue=np.nan)
-    return xu
+        row = w * q[EPI_Q2][idx]
+        row += q[EPI_Q1][idx]
+        row *= w
+        row += q[EPI_Q0][idx]
+    return sample_bilinear(cache.xu_table, column + np.float32(TABLE_MARGIN), row + np.float32(TABLE_MARGIN))
+
+
+REMAP_WIDTH = 4096  # cv2.remap takes 2-D maps below 32767 a side; N points are laid out in rows
+
+
+def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``table`` at N arbitrary points (NaN outside), via cv2.remap."""
+    n = x.size
+    rows = -(-n // REMAP_WIDTH) or 1
+    mx = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
+    my = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(table, mx.reshape(rows, REMAP_WIDTH), my.reshape(rows, REMAP_WIDTH),
+                    interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    return out.ravel()[:n]
 
 
 def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray | None = None,
-                        row: np.ndarray | None = None, column_sigma: np.ndarray | None = None):
+                        row: np.ndarray | None = None, column_sigma: np.ndarray | None = None,
+                        max_sigma_mm: float | None = None):
     """World points for camera pixels with decoded projector columns.
 
     ``column``: (H, W) float32 projector column per camera pixel, NaN where undecoded.
+    ``row``: optional decoded projector row (H, W); by default it is read off the epipolar curve.
     ``column_sigma``: optional (H, W) predicted column noise (projector px); when given, the
-    predicted noise of each point along its camera ray (mm) is returned as well.
+    predicted noise of each point along its camera ray (mm) is returned as well, and points
+    above ``max_sigma_mm`` are dropped.
     Returns ``(points (N, 3) float32, pixel_index (N,) int64 into the flattened image,
     sigma_mm (N,) float32 or None)``.
     """
     cache = cache_for(cal)
-    H, W = cache.ad.shape
+    H, W = cache.shape
     if column.shape != (H, W):
         raise GeometryError(f"decoded map is {column.shape[1]}x{column.shape[0]} but the calibrated camera is {W}x{H}")
-    column = np.asarray(column, dtype=np.float32)
-    xu = undistorted_projector_x(cache, column, row)
-    den = cache.ad - xu * cache.bd
-    num = np.float32(cache.a_delta) - xu * np.float32(cache.b_delta)
-    # |den| / |n| is the sine of the angle between ray and plane; grazing rays are unreliable.
-    n_norm = np.sqrt(1.0 + xu * xu)
-    ok = np.abs(den) > cache.cos_limit * n_norm
-    if valid is not None:
-        ok &= valid
-    idx = np.flatnonzero(ok)
-    den_v = den.ravel()[idx]
-    s = num.ravel()[idx] / den_v
-    front = s > 0
-    idx, s, den_v = idx[front], s[front], den_v[front]
-    pts = cache.rays.reshape(-1, 3)[idx] * s[:, None]
-    pts += cache.cam_center.astype(np.float32)
-    sigma = None
-    if column_sigma is not None:
-        # ds/dx_u = (s b·d - b·Δ) / den, and dx_u/dcolumn ~ 1/fx (distortion is a small change)
-        ds_dx = np.abs(s * cache.bd.ravel()[idx] - np.float32(cache.b_delta)) / np.abs(den_v)
-        sigma = ds_dx * column_sigma.ravel()[idx] * np.float32(1.0 / cal.projector.fx)
+    flat = np.asarray(column, dtype=np.float32).ravel()
+    idx = np.flatnonzero(valid.ravel() if valid is not None else np.isfinite(flat))
+    rows = None if row is None else np.asarray(row, dtype=np.float32).ravel()
+    sig = None if column_sigma is None else np.asarray(column_sigma, dtype=np.float32).ravel()
+    # numpy releases the GIL on large arrays: chunks of points run in parallel threads
+    chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
+    work = lambda i: _triangulate_chunk(cache, flat, i, rows, sig, max_sigma_mm)  # noqa: E731
+    parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
+    pts = np.concatenate([p[0] for p in parts])
+    idx = np.concatenate([p[1] for p in parts])
+    sigma = None if sig is None else np.concatenate([p[2] for p in parts])
     return pts, idx, sigma
+
+
+_WORKERS = max(1, min(4, os.cpu_count() or 1))
+MIN_CHUNK = 1 << 16
+_POOL: list = []
+
+
+def _pool() -> ThreadPoolExecutor:
+    if not _POOL:
+        _POOL.append(ThreadPoolExecutor(max_workers=_WORKERS, thread_name_prefix="triangulate"))
+    return _POOL[0]
+
+
+def _triangulate_chunk(cache: TriangulationCache, flat: np.ndarray, idx: np.ndarray, rows, sig, max_sigma_mm):
+    col = flat[idx]
+    q = cache.pixel
+    xu = undistorted_projector_x(cache, col, idx, None if rows is None else rows[idx])
+    bd = q[BD][idx]
+    den = q[AD][idx]
+    den -= xu * bd
+    s = xu * np.float32(-cache.b_delta)
+    s += np.float32(cache.a_delta)
+    s /= den
+    # |den| / |n| is the sine of the angle between ray and plane; grazing rays are unreliable.
+    ok = np.abs(den) > np.float32(cache.cos_limit) * np.sqrt(xu * xu + np.float32(1.0))
+    ok &= s > 0
+    sigma = None
+    if sig is not None:
+        # ds/dx_u = (s b·d - b·Δ) / den, and dx_u/dcolumn ~ 1/fx (distortion is a small change)
+        sigma = s * bd
+        sigma -= np.float32(cache.b_delta)
+        sigma /= den
+        np.abs(sigma, out=sigma)
+        sigma *= sig[idx]
+        sigma *= np.float32(1.0 / cache.fx_projector)
+        if max_sigma_mm is not None:
+            ok &= sigma <= np.float32(max_sigma_mm)
+    keep = np.flatnonzero(ok)
+    idx, s = idx[keep], s[keep]
+    pts = np.empty((idx.size, 3), np.float32)
+    for k in range(3):
+        pts[:, k] = q[RAY_X + k][idx] * s + np.float32(cache.cam_center[k])
+    return pts, idx, (None if sigma is None else sigma[keep])

@@ -485,7 +485,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               ankle_back=55.0, ankle_height=20.0,
               knee_mark_height=380.0, ankle_mark_height=60.0, table_marks=None,
               mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9,
-              floor_albedo=0.35, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
+              floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
 
     Angles in degrees. The leg axis is ∝ (tan leg_inv, tan leg_pf, 1); unset leg angles are

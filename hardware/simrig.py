@@ -30,7 +30,7 @@ from hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
 __all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
 
-RIG_TARGET = np.array([0.0, 0.0, 290.0])  # where both devices aim: above the table, between leg and box
+RIG_TARGET = np.array([0.0, 0.0, 260.0])  # where both devices aim: above the table, between leg and box
 _SHADOW_EPS_MM = 1e-3
 _CHUNK_RAYS = 1 << 17
 
@@ -46,7 +46,7 @@ class Optics:
     projector_blur_px: float = 0.8  # Gaussian defocus, projector pixels
     camera_blur_px: float = 0.6  # Gaussian optical blur, camera pixels
     ambient: float = 0.04  # ambient irradiance / full white at the aim distance
-    exposure: float = 1.15  # signal = exposure * albedo * irradiance; 1.15 keeps the brightest mark < ~240 DN
+    exposure: float = 1.0  # signal = exposure * albedo * irradiance; 1.0 keeps the brightest mark (lateral knee) ~220 DN
     noise_sigma: float = 2.0 / 255.0  # read noise, fraction of full scale
     shot_noise: float = 0.0  # shot-noise variance per unit signal (full scale = 1); 0 = off
     specular: float = 0.0  # Blinn-Phong weight of the projector's highlight; 0 = Lambertian only
@@ -117,12 +117,25 @@ def _scaled_K(fx, fy, cx, cy, scale):
     return np.array([[fx * scale, 0, (cx + 0.5) * scale - 0.5], [0, fy * scale, (cy + 0.5) * scale - 0.5], [0, 0, 1]])
 
 
-CAMERA_EYE = RIG_TARGET + 1250.0 * np.array([math.cos(math.radians(27)) * math.sin(math.radians(40)),
-                                             math.cos(math.radians(27)) * math.cos(math.radians(40)),
-                                             math.sin(math.radians(27))])
+# Rig geometry. Depth resolution is (projector column footprint) / tan(triangulation angle):
+# a 500 mm baseline at ~1.1 m gives ~24 degrees and ~2 mm of depth per projector column, about
+# twice as good as a 350 mm baseline at 1.25 m, and the elevation keeps the dim, grazing far
+# floor out of most of the view.
+CAMERA_DISTANCE_MM = 1100.0
+CAMERA_ELEVATION_DEG = 32.0
+CAMERA_AZIMUTH_DEG = 32.0  # from +y (anterior) towards +x; the projector sits ~26 deg further round,
+# so camera and projector straddle the front-lateral bisector and light both sides evenly
+BASELINE_MM = 500.0
+CAMERA_F_PX = 1750.0
+PROJECTOR_F_PX = 1250.0
+
+CAMERA_EYE = RIG_TARGET + CAMERA_DISTANCE_MM * np.array([
+    math.cos(math.radians(CAMERA_ELEVATION_DEG)) * math.sin(math.radians(CAMERA_AZIMUTH_DEG)),
+    math.cos(math.radians(CAMERA_ELEVATION_DEG)) * math.cos(math.radians(CAMERA_AZIMUTH_DEG)),
+    math.sin(math.radians(CAMERA_ELEVATION_DEG))])
 
 
-def default_camera(scale: float = 1.0, *, eye=None, target=None, f=2400.0, dist=(-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:
+def default_camera(scale: float = 1.0, *, eye=None, target=None, f=CAMERA_F_PX, dist=(-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:
     """1600x1200 camera front-right of the leg (+x, +y), elevated, seeing front, lateral side and table."""
     W, H = round(1600 * scale), round(1200 * scale)
     K = _scaled_K(f, f * 1.0004, 799.5 + 6.3, 599.5 - 4.1, scale)
@@ -130,7 +143,7 @@ def default_camera(scale: float = 1.0, *, eye=None, target=None, f=2400.0, dist=
     return Device(W, H, K, np.asarray(dist, float), R, t, "both")
 
 
-def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=350.0, target=None, f=1150.0,
+def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=BASELINE_MM, target=None, f=PROJECTOR_F_PX,
                       dist=(-0.03, 0.004, 3e-4, -2e-4, 0.0)) -> Device:
     """1024x768 projector ``baseline`` mm to the camera's left (lateral), level with it, so the
     baseline runs across projector columns (vertical stripes encode columns)."""

@@ -110,7 +110,7 @@ def test_saturated_region_is_masked_as_saturated():
 
 
 def test_scrambled_code_is_inconsistent():
-    ps = make_pattern_set("default", 128, 96)
+    ps = make_pattern_set("default", 128, 96, period=16)  # the reasoning below is for P = 16
     truth = smooth_map()
     frames = simulate_frames(ps, truth, noise=NOISE)
     ac = ps.axis_code("column")
@@ -144,7 +144,7 @@ def test_random_codes_and_low_contrast():
 
 
 def test_column_outside_projector():
-    ps = make_pattern_set("default", 128, 96)
+    ps = make_pattern_set("default", 128, 96, period=16)  # the reasoning below is for P = 16
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
     truth = xx * 0.9 - 10  # left part of the image lies left of the projector
     frames = simulate_frames(ps, truth, noise=NOISE)
@@ -159,7 +159,7 @@ def test_column_outside_projector():
 
 
 def test_thresholds_and_stats_are_reported():
-    ps = make_pattern_set("default", 128, 96)
+    ps = make_pattern_set("default", 128, 96, period=16)  # the reasoning below is for P = 16
     res = decode(simulate_frames(ps, smooth_map(), noise=NOISE), ps)
     t = res.thresholds
     assert t["shadow"] == pytest.approx(t["k_shadow"] * t["sigma"])

@@ -28,10 +28,10 @@ def test_default_preset_layout_and_names():
     ps = make_pattern_set("default", 1024, 768)
     kinds = [f.kind for f in ps.frames]
     assert kinds.count("gray") == 20 and kinds.count("phase") == 8 and len(kinds) == 30
-    assert ps.files[22] == "22_col_phase_p16_s0.png"
-    assert ps.files[-1] == "29_col_phase_p16_s7.png"
+    assert ps.files[22] == "22_col_phase_p8_s0.png"
+    assert ps.files[-1] == "29_col_phase_p8_s7.png"
     ac = ps.axis_code("column")
-    assert (ac.bits, ac.stripe, ac.period, ac.steps) == (10, 1, 16.0, 8)
+    assert (ac.bits, ac.stripe, ac.period, ac.steps) == (10, 1, 8.0, 8)
     both = make_pattern_set("default", 1024, 768, axes=("column", "row"))
     assert both.axis_code("row").bits == 10 and len(both.frames) == 2 + 2 * (20 + 8)
     assert any("row_gray_b09_inv" in f for f in both.files)
@@ -54,9 +54,9 @@ def test_render_values_and_inverse():
     assert np.all(g[:, :64] == 0) and np.all(g[:, 64:] == 255)  # MSB
     ph = [f for f in ps.frames if f.kind == "phase"]
     p0 = render_frame(ps, ph[0])
-    assert p0[0, 0] == 255 and p0[0, 8] == 0 and p0[0, 16] == 255  # phase 0 at column 0
-    p1 = render_frame(ps, ph[1])  # shifted by P/N = 2 columns
-    assert p1[0, 2] == 255 and np.array_equal(p1[:, 2:], p0[:, :-2])
+    assert p0[0, 0] == 255 and p0[0, 4] == 0 and p0[0, 8] == 255  # phase 0 at column 0, P = 8
+    p1 = render_frame(ps, ph[1])  # shifted by P/N = 1 column
+    assert p1[0, 1] == 255 and np.array_equal(p1[:, 1:], p0[:, :-1])
     rows = make_pattern_set("paper", 64, 32, axes=("row",))
     r = render_frame(rows, rows.frames[2])
     assert np.all(r[:16] == 0) and np.all(r[16:] == 255) and np.all(r == r[:, :1])

@@ -1,0 +1,95 @@
+"""Scan pipeline figures on the simulated rig at full resolution (camera 1600x1200, projector
+1024x768, noise 2/255): accuracy of the default and paper presets against ground truth, time of
+decode + triangulate, and peak memory of the whole ``anklescan reconstruct`` command.
+
+    python benchmarks/bench_reconstruct.py [--runs 7] [--scale 1.0] [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from core.calibration_file import save_calibration  # noqa: E402
+from core.capture import load_capture, save_capture  # noqa: E402
+from core.decode import decode  # noqa: E402
+from core.patterns import make_pattern_set, render_all  # noqa: E402
+from core.reconstruct import cloud_from_decoded  # noqa: E402
+from core.triangulate import cache_for  # noqa: E402
+from hardware.sim_accuracy import evaluate  # noqa: E402
+from hardware.simrig import SimRig  # noqa: E402
+
+
+def simulate(rig: SimRig, preset: str, folder: Path) -> Path:
+    pset = make_pattern_set(preset, rig.projector.width, rig.projector.height)
+    return save_capture(folder, pset, [rig.capture(img) for img in render_all(pset)])
+
+
+def time_reconstruct(capture, cal, runs: int) -> tuple[float, float, object]:
+    cloud = cloud_from_decoded(capture, cal, decode(capture))  # warm-up: builds the calibration cache
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        cloud = cloud_from_decoded(capture, cal, decode(capture))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)) * 1e3, float(np.min(times)) * 1e3, cloud
+
+
+def command_peak_mb(capture_dir: Path, cal_path: Path, out: Path) -> tuple[float, float]:
+    """Peak RSS of the command by GNU time: the rusage of a child forked from this (large)
+    process would count pages it inherited before exec."""
+    cmd = [sys.executable, "-m", "app.cli", "-q", "reconstruct", str(capture_dir), "--calibration", str(cal_path),
+           "--out", str(out)]
+    gnu_time = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
+    t0 = time.perf_counter()
+    if gnu_time is None:
+        subprocess.run(cmd, check=True, cwd=ROOT)
+        return float("nan"), time.perf_counter() - t0
+    done = subprocess.run([gnu_time, "-f", "%M", *cmd], check=True, cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    return int(done.stderr.strip().splitlines()[-1]) / 1024.0, wall
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--scale", type=float, default=1.0)
+    ap.add_argument("--keep", type=Path, help="keep the simulated captures here")
+    args = ap.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-"))
+    rig = SimRig(scale=args.scale)
+    cal = rig.true_calibration()
+    cal_path = work / "calibration.json"
+    save_calibration(cal, cal_path)
+    print(f"rig: camera {rig.camera.width}x{rig.camera.height}, projector {rig.projector.width}x{rig.projector.height}")
+    t0 = time.perf_counter()
+    cache_for(cal)
+    print(f"calibration cache build: {time.perf_counter() - t0:.2f} s (once per calibration)")
+    truth = rig.truth()
+    for preset in ("default", "paper"):
+        folder = simulate(rig, preset, work / f"capture_{preset}")
+        capture = load_capture(folder)
+        med, best, cloud = time_reconstruct(capture, cal, args.runs)
+        acc = evaluate(cloud, truth)
+        print(f"\n[{preset}] {len(capture.pattern_set.frames)} frames")
+        print(f"  decode + triangulate: median {med:.1f} ms, min {best:.1f} ms ({args.runs} runs)")
+        print(f"  subject (leg, foot, table, marks): {acc['subject'].format()}")
+        print(f"  whole frame (incl. floor):         {acc['frame'].format()}")
+        print(f"  rejected pixels: {cloud.meta['rejected']}")
+        if preset == "default":
+            peak, wall = command_peak_mb(folder, cal_path, work / "cloud.ply")
+            print(f"  `anklescan reconstruct` command: peak RSS {peak:.0f} MB, wall {wall:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
