@@ -1,5 +1,6 @@
-"""Camera control panel: backend and device, live preview, the device's controls,
-an over-exposure indicator and a test capture.
+"""Camera control panel: backend and device (with USB plug/unplug detection), live preview,
+the device's controls, an over-exposure indicator, a test capture and the latency self-test
+that sets the settle time.
 
 The panel shows whatever controls the device reports (exposure, gain, white balance, focus …),
 so a new camera needs no GUI change. Saturated pixels carry no stripe information, so the
@@ -8,14 +9,20 @@ indicator is the one number the clinician must watch while setting exposure.
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
-from PySide6.QtCore import Qt, QTimer, Signal
+from PySide6.QtCore import QObject, Qt, QTimer, Signal, Slot
 from PySide6.QtGui import QImage, QPixmap
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGroupBox,
-                               QHBoxLayout, QLabel, QPushButton, QSizePolicy, QVBoxLayout, QWidget)
+                               QHBoxLayout, QLabel, QPushButton, QSizePolicy, QSpinBox, QVBoxLayout,
+                               QWidget)
 
 
 PREVIEW_MS = 100
+USB_POLL_MS = 2000  # plug/unplug shows within 2 s; one enumeration costs well under a millisecond
+SHOW_TIMEOUT_S = 5.0
 WARN_PERCENT = 0.5  # above this share of saturated pixels the stripes start to be lost
 
 
@@ -37,7 +44,8 @@ def control_specs(camera) -> list[dict]:
         specs.append(dict(name=str(name), label=str(get("label", str(name).replace("_", " ").capitalize())),
                           min=float(lo), max=float(hi), value=float(value),
                           step=float(get("step", 0) or 0) or (float(hi) - float(lo)) / 100.0,
-                          unit={"x": "×"}.get(str(get("unit", "") or ""), str(get("unit", "") or ""))))
+                          unit={"x": "×"}.get(str(get("unit", "") or ""), str(get("unit", "") or "")),
+                          choices=tuple(get("choices", ()) or ())))
     return specs
 
 
@@ -92,6 +100,8 @@ class ImageView(QLabel):
 
 class CameraPanel(QWidget):
     backendChanged = Signal(str)               # backend key chosen by the user
+    deviceChanged = Signal(str, str)           # backend key, device id chosen by the user
+    settleChanged = Signal(float)              # settle time in ms (self-test result or typed)
     controlChanged = Signal(str, float)        # name, value (for the settings)
     testCaptured = Signal(object)              # the full test frame
 
@@ -106,6 +116,31 @@ class CameraPanel(QWidget):
             self.backend.addItem(label, key)
         self.backend.currentIndexChanged.connect(lambda _: self.backendChanged.emit(self.backend.currentData()))
         self.device = QComboBox()
+        self.device.activated.connect(self._device_chosen)
+        self.refresh_button = QPushButton("Refresh")
+        self.refresh_button.setToolTip("List the cameras of this backend again")
+        self.refresh_button.clicked.connect(self.refresh_devices)
+        self.usb_status = QLabel("")
+        self.usb_status.setWordWrap(True)
+        self.settle = QSpinBox()
+        self.settle.setRange(0, 5000)
+        self.settle.setSuffix(" ms")
+        self.settle.setValue(30)
+        self.settle.setAlignment(Qt.AlignmentFlag.AlignRight)
+        self.settle.valueChanged.connect(self._settle_typed)
+        self.latency_button = QPushButton("Measure latency")
+        self.latency_button.setToolTip("Projects black and white in turn and measures when the camera sees "
+                                       "the change; sets the settle time from it")
+        self.latency_button.clicked.connect(self.run_latency_test)
+        self.latency_result = QLabel("Not measured: the settle time is the stored one.")
+        self.latency_result.setWordWrap(True)
+        self._projector = None
+        self._runner = None
+        self._backend_key = ""
+        self._watcher = None
+        self._usb_timer = QTimer(self)
+        self._usb_timer.setInterval(USB_POLL_MS)
+        self._usb_timer.timeout.connect(self.poll_usb)
         self.saturation = QLabel("—")
         self.zebra = QCheckBox("Show over-exposed pixels")
         self.live = QCheckBox("Live preview")
@@ -122,7 +157,16 @@ class CameraPanel(QWidget):
         source = QGroupBox("Camera")
         form = QFormLayout(source)
         form.addRow("Backend", self.backend)
-        form.addRow("Device", self.device)
+        device_row = QHBoxLayout()
+        device_row.addWidget(self.device, 1)
+        device_row.addWidget(self.refresh_button)
+        form.addRow("Device", device_row)
+        form.addRow(self.usb_status)
+        timing = QGroupBox("Synchronisation")
+        tf = QFormLayout(timing)
+        tf.addRow("Settle time", self.settle)
+        tf.addRow(self.latency_button)
+        tf.addRow(self.latency_result)
         controls = QGroupBox("Controls")
         controls.setLayout(self._controls_form)
         exposure = QGroupBox("Exposure check")
@@ -134,7 +178,7 @@ class CameraPanel(QWidget):
         buttons.addStretch(1)
         buttons.addWidget(self.test_button)
         side = QVBoxLayout()
-        for w in (source, controls, exposure):
+        for w in (source, controls, exposure, timing):
             side.addWidget(w)
         side.addStretch(1)
         side_w = QWidget()
@@ -155,9 +199,12 @@ class CameraPanel(QWidget):
             self.backend.blockSignals(True)
             self.backend.setCurrentIndex(index)
             self.backend.blockSignals(False)
-        self.device.clear()
-        self.device.addItem(device_label)
+        self._backend_key = backend
+        self._fill_devices(device_label)
         self._rebuild_controls()
+        self._show_settle_of(camera)
+        if self._watcher is None:
+            self.start_usb_watch()
 
     def _rebuild_controls(self) -> None:
         while self._controls_form.rowCount():
@@ -169,7 +216,9 @@ class CameraPanel(QWidget):
         if not specs:
             self._controls_form.addRow(QLabel("This device reports no adjustable controls."))
 
-    def _control_box(self, spec: dict) -> QDoubleSpinBox:
+    def _control_box(self, spec: dict):
+        if spec["choices"]:
+            return self._choice_box(spec)
         box = QDoubleSpinBox()
         box.setRange(spec["min"], spec["max"])
         box.setSingleStep(spec["step"])
@@ -179,6 +228,15 @@ class CameraPanel(QWidget):
             box.setSuffix(f" {spec['unit']}")
         box.setAlignment(Qt.AlignmentFlag.AlignRight)
         box.valueChanged.connect(lambda v, n=spec["name"]: self._set_control(n, v))
+        self._boxes[spec["name"]] = box
+        return box
+
+    def _choice_box(self, spec: dict) -> QComboBox:
+        # ISO, shutter, aperture ...: the camera's own words, the index is what is set.
+        box = QComboBox()
+        box.addItems(list(spec["choices"]))
+        box.setCurrentIndex(int(spec["value"]))
+        box.currentIndexChanged.connect(lambda i, n=spec["name"]: self._set_control(n, float(i)))
         self._boxes[spec["name"]] = box
         return box
 
@@ -192,8 +250,11 @@ class CameraPanel(QWidget):
 
     def set_control_value(self, name: str, value: float) -> None:
         """Apply a stored value (from the settings) through the same path as the user's edit."""
-        if name in self._boxes:
-            self._boxes[name].setValue(value)
+        box = self._boxes.get(name)
+        if isinstance(box, QComboBox):
+            box.setCurrentIndex(int(value))
+        elif box is not None:
+            box.setValue(value)
 
     @property
     def control_names(self) -> list[str]:
@@ -208,6 +269,9 @@ class CameraPanel(QWidget):
             self._timer.start()
         self.test_button.setEnabled(not busy)
         self.backend.setEnabled(not busy)
+        self.device.setEnabled(not busy)
+        self.refresh_button.setEnabled(not busy)
+        self.latency_button.setEnabled(not busy)
         for box in self._boxes.values():
             box.setEnabled(not busy)
 
@@ -240,3 +304,189 @@ class CameraPanel(QWidget):
         self.saturation.setText(f"Over-exposed pixels: {pct:.2f} %" + ("  — reduce exposure" if warn else ""))
         self.saturation.setStyleSheet("color: #b3261e; font-weight: 600;" if warn else "color: #2e6b3a;")
         self.preview.set_image(to_display(image, self._level if self.zebra.isChecked() else None))
+
+    # ---- devices and USB ----------------------------------------------------------------
+    def _fill_devices(self, current_label: str = "") -> None:
+        from app.rig import backend_problem, list_devices
+        self.device.clear()
+        try:
+            devices = list_devices(self._backend_key)
+            problem = backend_problem(self._backend_key)
+        except Exception as exc:
+            devices, problem = [], str(exc)
+        for device_id, label in devices:
+            self.device.addItem(label, device_id)
+        if current_label and self.device.findText(current_label) < 0:
+            self.device.insertItem(0, current_label, None)  # the open camera, if not listed
+        self.device.setCurrentIndex(max(0, self.device.findText(current_label)))
+        if problem:
+            self._usb_message(problem, error=True)
+        elif not devices and not current_label:
+            self._usb_message("No camera of this kind is connected.", error=True)
+
+    def refresh_devices(self) -> None:
+        current = self.device.currentText()
+        self._fill_devices(current)
+
+    def _device_chosen(self, index: int) -> None:
+        device_id = self.device.itemData(index)
+        if device_id is not None:
+            self.deviceChanged.emit(self._backend_key, device_id)
+
+    def start_usb_watch(self, watcher=None) -> None:
+        """Poll USB every 2 s for cameras coming and going (``watcher`` for tests)."""
+        from hardware.usb_discovery import UsbWatcher
+        self._watcher = watcher or UsbWatcher()
+        self.poll_usb()
+        if not self._watcher.unavailable:
+            self._usb_timer.start()
+
+    def poll_usb(self) -> None:
+        if self._watcher is None:
+            return
+        change = self._watcher.poll()
+        if self._watcher.unavailable:
+            self._usb_timer.stop()
+            self._usb_message(f"{self._watcher.unavailable}; choose the device from the list.", error=False)
+            return
+        problems = self._watcher.problems
+        if change:
+            self.refresh_devices()
+        if problems:
+            self._usb_message("; ".join(problems), error=True)
+        elif change:
+            self._usb_message(change.message(), error=False)
+
+    def _usb_message(self, text: str, error: bool) -> None:
+        self.usb_status.setText(text)
+        self.usb_status.setStyleSheet("color: #b3261e;" if error else "color: #5f6b76;")
+
+    # ---- synchronisation ----------------------------------------------------------------
+    def set_projector(self, projector) -> None:
+        """The projector window (``show_frame(array) -> token``, ``painted(token)``,
+        ``projector_size``) the latency self-test shows black and white on."""
+        self._projector = projector
+
+    def set_settle_ms(self, ms: float) -> None:
+        """The stored settle time (settings), shown until a self-test measures one."""
+        self.settle.blockSignals(True)
+        self.settle.setValue(round(ms))
+        self.settle.blockSignals(False)
+
+    def _settle_typed(self, ms: int) -> None:
+        from hardware.sync import Settle, remember
+        if self._camera is not None:
+            remember(self._camera, Settle(ms / 1000.0, "manual"))
+        self.settleChanged.emit(float(ms))
+
+    def _show_settle_of(self, camera) -> None:
+        from hardware.sync import settle_for
+        settle = settle_for(camera, self.settle.value() / 1000.0)
+        self.set_settle_ms(settle.seconds * 1000)
+        self.latency_result.setText(settle.result.summary() if settle.result else
+                                    "Not measured: the settle time is the stored one.")
+
+    def _find_projector(self):
+        # The main window owns the projector window; until it hands it over explicitly, use its.
+        return self._projector or getattr(self.window(), "projector", None)
+
+    def _show_projector(self) -> bool:
+        # As the main window does before a scan: the window paints nothing while hidden.
+        show = getattr(self.window(), "show_projector", None)
+        if callable(show):
+            show()
+        projector = self._find_projector()
+        return bool(projector is not None and projector.isVisible())
+
+    def run_latency_test(self, **kw) -> bool:
+        projector = self._find_projector()
+        if self._camera is None or projector is None or self._runner is not None:
+            self.latency_result.setText("Open the camera and the projector window first.")
+            return False
+        if not projector.isVisible() and not self._show_projector():
+            self.latency_result.setText("Show the projector window first (Projector menu).")
+            return False
+        self._timer.stop()  # the self-test owns the camera while it runs
+        self.latency_button.setEnabled(False)
+        self.test_button.setEnabled(False)
+        self.latency_result.setText("Measuring… keep the camera pointed at the projected area.")
+        self._runner = LatencyRunner(self._camera, projector, self, **kw)
+        self._runner.done.connect(self._latency_done)
+        self._runner.start()
+        return True
+
+    def _latency_done(self, result, message: str) -> None:
+        from hardware.sync import Settle, remember
+        self._runner.detach()
+        self._runner = None
+        self.latency_button.setEnabled(True)
+        self.test_button.setEnabled(True)
+        if self.live.isChecked():
+            self._timer.start()
+        if result is None:
+            self.latency_result.setText(f"Latency test failed: {message}")
+            return
+        remember(self._camera, Settle(result.settle_s, "self-test", result))
+        self.set_settle_ms(result.settle_s * 1000)
+        self.latency_result.setText(result.summary())
+        self.settleChanged.emit(result.settle_s * 1000)
+
+
+class LatencyRunner(QObject):
+    """Runs hardware.sync.run_latency_test on its own thread; projector frames are shown on
+    the UI thread, and the worker waits for each to be painted, as the scan does."""
+
+    done = Signal(object, str)  # LatencyResult or None, error message
+    _show = Signal(bool)
+
+    def __init__(self, camera, projector, parent=None, **test_kw):
+        super().__init__(parent)
+        self.camera, self.projector, self.test_kw = camera, projector, test_kw
+        self._painted = threading.Event()
+        self._token = None
+        self._presented = 0.0
+        self._show.connect(self._show_on_ui)  # queued: emitted from the worker thread
+        projector.painted.connect(self._on_painted)
+        self._thread = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="latency-test", daemon=True)
+        self._thread.start()
+
+    def wait(self, timeout: float = 10.0) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        from hardware.sync import run_latency_test
+        try:
+            result = run_latency_test(self.camera, self._show_and_wait, **self.test_kw)
+        except Exception as exc:
+            self._finish(None, str(exc))
+        else:
+            self._finish(result, "")
+
+    def _finish(self, result, message: str) -> None:
+        self.done.emit(result, message)
+
+    def detach(self) -> None:
+        """On the UI thread, once done: stop listening to the projector."""
+        self.projector.painted.disconnect(self._on_painted)
+
+    def _show_and_wait(self, bright: bool) -> float:
+        self._painted.clear()
+        self._show.emit(bright)
+        if not self._painted.wait(SHOW_TIMEOUT_S):
+            raise RuntimeError("the projector window did not show the test frame")
+        return self._presented
+
+    @Slot(bool)
+    def _show_on_ui(self, bright: bool) -> None:
+        w, h = self.projector.projector_size
+        self._token = self.projector.show_frame(np.full((h, w), 255 if bright else 0, np.uint8))
+
+    @Slot(int)
+    def _on_painted(self, token: int) -> None:
+        if token == self._token:
+            self._presented = time.monotonic()
+            self._painted.set()

@@ -65,6 +65,25 @@ def available_backends() -> list[tuple[str, str]]:
     return found
 
 
+def list_devices(backend: str) -> list[tuple[str, str]]:
+    """(device id, label) for ``backend``; the simulated rig has exactly one camera."""
+    if backend == SIMULATED:
+        return [("", "Simulated camera")]
+    camera_mod = importlib.import_module("hardware.camera")
+    lister = getattr(camera_mod, "list_devices", None)
+    if not callable(lister):
+        return []
+    return [(d.id, d.label) for d in lister(backend)]
+
+
+def backend_problem(backend: str) -> str:
+    """Why ``backend`` cannot be used on this computer ("" when it can)."""
+    if backend == SIMULATED:
+        return ""
+    checker = getattr(importlib.import_module("hardware.camera"), "backend_problem", None)
+    return checker(backend) if callable(checker) else ""
+
+
 def open_rig(backend: str = SIMULATED, scale: float = 0.25, device: str = "") -> Rig:
     if backend != SIMULATED:
         camera_mod = importlib.import_module("hardware.camera")

@@ -9,9 +9,11 @@ widget and lives on the UI thread. For each frame the worker
 2. waits until the UI thread calls ``confirm_shown(index)``, which it does only after the window
    has painted that frame *and* one event-loop round trip has passed (the backing store has
    been flushed to the window system), so the camera can never see the previous pattern;
-3. waits the settle time (projector LCD response, camera exposure start);
+3. waits the settle time (projector LCD response, camera exposure start): the camera's
+   latency self-test result when one was run (hardware.sync), else ``ScanJob.settle_s``;
 4. captures, and hands the image to ``CaptureWriter`` at once, so a crash loses nothing
-   already captured.
+   already captured. The manifest's "capture" key records the device, its settings, the
+   settle time and, per frame, when it was shown and captured.
 
 Every wait is sliced into short steps that check the cancel flag, so cancel takes effect within
 one slice (50 ms) plus, at worst, one camera exposure. Decode and reconstruct are single calls
@@ -149,16 +151,24 @@ class ScanWorker(QObject):
     def _capture_all(self) -> None:
         from core.capture import CaptureWriter  # imported here: the worker module loads fast
 
+        from hardware.sync import settle_for
+
         pset = self.job.pattern_set
         render = self.job.render or _default_render()
-        writer = CaptureWriter(self.job.folder, pset, self.job.metadata)
+        settle = settle_for(self.job.camera, self.job.settle_s)
+        writer = CaptureWriter(self.job.folder, pset, {**_device_metadata(self.job.camera, settle), **self.job.metadata})
+        timing = writer.metadata.setdefault("frames", {})
+        t0 = time.monotonic()
         total = len(pset.frames)
         for i, frame in enumerate(pset.frames):
             self._check_cancel()
             self.progress.emit(i, total, f"Frame {i + 1} of {total}")
             self._show_and_wait(i, render(pset, frame))
-            self._sleep(self.job.settle_s)
+            shown = time.monotonic()
+            self._sleep(settle.seconds)
+            start = time.monotonic()
             image = self._capture()
+            timing[frame.file] = _frame_timing(self.job.camera, t0, shown, start)
             writer.add(frame.file, image)
             self.frameCaptured.emit(i, image)
         writer.finish()
@@ -200,6 +210,31 @@ class ScanWorker(QObject):
             if self._abort_message:
                 raise ScanError(self._abort_message)
             raise Cancelled
+
+
+def _device_metadata(camera, settle) -> dict:
+    """Device, backend, exposure, gain ... as the camera reports them; duck-typed cameras
+    without ``metadata()`` still get their name recorded."""
+    try:
+        meta = dict(camera.metadata())
+    except Exception:
+        from app.rig import camera_name
+        meta = {"device": camera_name(camera)}
+    meta["settle_ms"] = round(settle.seconds * 1000, 1)
+    meta["settle_source"] = settle.source
+    if settle.result is not None:
+        meta["latency_test"] = settle.result.as_dict()
+    return meta
+
+
+def _frame_timing(camera, t0: float, shown: float, start: float) -> dict:
+    """Seconds since the first frame's start; "started" is the wall-clock start of the scan."""
+    out = {"shown_s": round(shown - t0, 4), "capture_start_s": round(start - t0, 4),
+           "capture_end_s": round(time.monotonic() - t0, 4)}
+    info = getattr(camera, "frame_info", None)
+    if callable(info):
+        out.update({k: v for k, v in info().items() if k not in ("requested", "returned")})
+    return out
 
 
 def _default_render():
