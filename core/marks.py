@@ -1,0 +1,611 @@
+"""Find the seven mark plates (SPEC §2) in a scan, measure their 3-D centres, label them 1–7.
+
+Pipeline (docs/marks.md has the reasoning and the measured accuracy):
+
+1. **Candidates** in the projector-lit image ``white − black`` (ambient cancels): a white
+   top-hat (grey opening with a square larger than any plate) gives the brightness relative
+   to the surrounding surface, so plates are found by local contrast, then by size (the
+   expected plate radius at the blob's reconstructed depth) and shape (ellipse fill, solidity).
+2. **Plane**: robust least-squares plane through the decoded 3-D points of the plate's
+   interior (the rim is skipped: decoding blurs across the edge and the side wall is there).
+3. **Edge**: sub-pixel edge points along radial image profiles (the half-contrast crossing),
+   their camera rays cut with the plane.
+4. **Circle**: a geometric least-squares circle in the plane through the edge points on the
+   plate's *far* side only. On the near side the camera also sees the plate's 1.5 mm side
+   wall, which pushes the outline outwards by up to 1.5 tan(view angle) mm; on the far side
+   the top face's rim is the silhouette, so it is the true edge. The circle's centre is the
+   mark (the centre of the plate's top face), its radius a check (≈ 7.5 mm).
+5. **Labels** by geometry: the table triple (three parallel plate normals, coplanar with their
+   centres), knee above ankle, front vs lateral by the normal's direction about the leg axis.
+
+Nothing here raises for "wrong number of marks": the ``MarkSet`` keeps what was found and
+says what is missing, so an operator can correct it; ``core.measure`` turns that into an error.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from core.calibration_file import Calibration
+from core.pointcloud import PointCloud
+
+PLATE_RADIUS_MM = 7.5
+LABELS = ("1", "2", "3", "4", "5", "6", "7")
+TABLE_LABELS = ("5", "6", "7")
+
+# Detection. A plate (albedo ~0.9) on skin (~0.45) or the table (~0.55) has a top-hat of
+# 0.6–1.0 x its surround; 0.3 leaves room for shading differences without admitting the
+# smooth skin-albedo variation (±5 %).
+MIN_RELATIVE_CONTRAST = 0.3
+MIN_CONTRAST_SIGMAS = 8.0  # and well above the noise in dark regions
+AREA_RANGE = (0.12, 1.8)  # x pi r_px^2: from grazing views (cos ~0.15) to face-on plus side wall
+MIN_FILL, MAX_FILL = 0.80, 1.15  # blob area / fitted ellipse area
+MIN_SOLIDITY = 0.88
+
+# 3-D checks: a plate is flat and round with the nominal radius.
+RADIUS_TOLERANCE_MM = 1.5
+MAX_PLANE_RMS_MM = 0.6
+MAX_CIRCLE_RMS_MM = 0.35
+MIN_INTERIOR_POINTS = 6
+MIN_EDGE_POINTS = 8
+
+# Geometry of the fit.
+INTERIOR_FRACTION = 0.55  # of the image ellipse: clear of the rim and of a visible side wall
+PROFILE_STEP_PX = 0.2
+EDGE_OUTSIDE_PX = 2.5  # the outside level is the darkest within this of the edge (a thin shadow)
+WALL_SLOPE_LIMIT = 0.02  # keep edge points where a side wall would shift them < 0.02 x its height
+PLATE_THICKNESS_MM = 1.5  # height of the plate's top face over the surface (casts the shadow)
+SLIVER_MAX_PX = 0.0  # a projector-shadow sliver beside the rim biases the edge inwards ...
+SLIVER_RESOLVED_PX = 3.0  # ... unless it is resolved, several pixels wide
+RADIUS_PRIOR_SD_MM = 0.1  # plates are made to 7.5 mm; the prior steadies short-arc fits
+EDGE_NOISE_FLOOR_MM = 0.03  # lower bound of the edge-point scatter used for weights and SDs
+# Fit-based SDs miss systematic errors (calibration, decoding biases near the plate); this
+# floor is the RMS centre error measured on the simulated rig with a true calibration
+# (docs/marks.md), added in quadrature.
+SD_FLOOR_MM = 0.05
+
+# Labelling.
+TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
+AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
+
+
+@dataclass(eq=False)
+class Mark:
+    """One measured plate. ``centre`` is the centre of its top face in world mm."""
+
+    centre: np.ndarray
+    normal: np.ndarray  # unit, towards the camera
+    radius: float  # mm, fitted (nominal 7.5)
+    circle_rms: float  # mm, edge points about the circle
+    plane_rms: float  # mm, interior points about the plane
+    covariance: np.ndarray  # (3, 3) mm^2, fit + SD_FLOOR_MM
+    pixel: tuple  # (u, v) camera pixel of the centre
+    n_edge: int
+    n_interior: int
+    label: str | None = None
+
+    @property
+    def sd(self) -> float:
+        """Isotropic-equivalent position SD, mm (RMS over the three axes)."""
+        return float(math.sqrt(max(np.trace(self.covariance), 0.0) / 3.0))
+
+    def to_dict(self) -> dict:
+        return {"label": self.label, "centre": [round(float(v), 4) for v in self.centre],
+                "normal": [round(float(v), 5) for v in self.normal], "radius_mm": round(self.radius, 4),
+                "circle_rms_mm": round(self.circle_rms, 4), "plane_rms_mm": round(self.plane_rms, 4),
+                "sd_mm": round(self.sd, 4), "pixel": [round(float(v), 2) for v in self.pixel],
+                "edge_points": self.n_edge, "interior_points": self.n_interior}
+
+
+@dataclass
+class MarkSet:
+    """Every plate found, labelled where the geometry allows, and what went wrong."""
+
+    marks: list = field(default_factory=list)  # list[Mark], labelled ones first in label order
+    rejected: list = field(default_factory=list)  # [{"pixel": (u, v), "reason": str}]
+    problems: list = field(default_factory=list)  # labelling / count messages
+
+    @property
+    def labelled(self) -> dict:
+        return {m.label: m for m in self.marks if m.label is not None}
+
+    @property
+    def unlabelled(self) -> list:
+        return [m for m in self.marks if m.label is None]
+
+    @property
+    def missing(self) -> list:
+        return [lab for lab in LABELS if lab not in self.labelled]
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing and not self.unlabelled and not self.problems
+
+    def centres(self) -> dict:
+        return {lab: m.centre for lab, m in sorted(self.labelled.items())}
+
+    def covariances(self) -> dict:
+        return {lab: m.covariance for lab, m in sorted(self.labelled.items())}
+
+    def message(self) -> str:
+        """One line: what was found and what is missing ('' when all seven are labelled)."""
+        if self.complete:
+            return ""
+        found = ", ".join(f"{m.label or '?'} at pixel ({m.pixel[0]:.0f}, {m.pixel[1]:.0f})" for m in self.marks)
+        parts = [f"found {len(self.marks)} mark plate{'s' if len(self.marks) != 1 else ''}"
+                 + (f" ({found})" if found else "")]
+        if self.missing:
+            parts.append(f"missing label{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}")
+        parts += self.problems
+        if self.rejected and len(self.marks) < len(LABELS):
+            parts.append(f"{len(self.rejected)} candidate blob(s) rejected, e.g. "
+                         + "; ".join(f"({r['pixel'][0]:.0f}, {r['pixel'][1]:.0f}): {r['reason']}"
+                                     for r in self.rejected[:3]))
+        return "; ".join(parts)
+
+
+# ---------------------------------------------------------------------------- public entry
+
+def find_marks(white: np.ndarray, black: np.ndarray | None, cloud: PointCloud, cal: Calibration, *,
+               plate_radius_mm: float = PLATE_RADIUS_MM) -> MarkSet:
+    """Detect, fit and label the mark plates of one scan.
+
+    ``white``/``black``: the capture's white and black frames (any integer or float type);
+    ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used.
+    """
+    image = _lit_image(white, black)
+    points = points_image(cloud, image.shape)
+    noise = _noise_sigma(image)
+    result = MarkSet()
+    for blob in candidate_blobs(image, points, cal, noise, plate_radius_mm):
+        mark, reason = fit_mark(image, points, blob, cal, plate_radius_mm)
+        if mark is None:
+            result.rejected.append({"pixel": blob["centre"], "reason": reason})
+        else:
+            result.marks.append(mark)
+    label_marks(result)
+    return result
+
+
+def points_image(cloud: PointCloud, shape: tuple) -> np.ndarray:
+    """(H, W, 3) float32 world points per camera pixel, NaN where nothing was decoded."""
+    img = np.full((*shape, 3), np.nan, np.float32)
+    if len(cloud):
+        px = cloud.pixels.astype(np.intp)
+        img[px[:, 1], px[:, 0]] = cloud.points
+    return img
+
+
+def _lit_image(white, black) -> np.ndarray:
+    """Projector light only: ambient and dark level cancel in white − black."""
+    w = np.asarray(white, np.float32)
+    return w - np.asarray(black, np.float32) if black is not None else w
+
+
+def _noise_sigma(image: np.ndarray) -> float:
+    """Robust per-pixel noise from the Laplacian-like residual of a 3x3 mean (MAD)."""
+    r = image - cv2.blur(image, (3, 3))
+    return float(max(1.4826 * np.median(np.abs(r - np.median(r))) * 1.06, 1e-3))
+
+
+# ---------------------------------------------------------------------------- candidates
+
+def _plate_radius_px(cal: Calibration, depth_mm, radius_mm: float):
+    return cal.camera.fx * radius_mm / np.asarray(depth_mm, float)
+
+
+def _camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
+    return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
+
+
+def candidate_blobs(image, points, cal, noise, radius_mm) -> list[dict]:
+    """Compact bright blobs, each cut out at half its own contrast over its surround.
+
+    Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
+    any plate): brightness relative to the surrounding surface, not absolute. Each seed's blob
+    is then cut at its own level, so a plate beside a bright area or a shadow edge does not
+    merge with it; a blob filling its search window is a large region, not a plate.
+    """
+    valid = np.isfinite(points[..., 0])
+    if valid.sum() < 10:
+        return []
+    depth = _camera_depth(cal, points[valid])
+    r_max = float(_plate_radius_px(cal, np.percentile(depth, 1), radius_mm))
+    r_min = float(_plate_radius_px(cal, np.percentile(depth, 99.5), radius_mm))
+    smooth = cv2.GaussianBlur(image, (0, 0), max(0.25 * r_min, 0.7))
+    side = int(2 * math.ceil(2.2 * r_max) + 1)
+    background = cv2.morphologyEx(smooth, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)))
+    tophat = smooth - background
+    k = int(2 * math.ceil(0.6 * r_min) + 1)
+    peaks = ((smooth >= cv2.dilate(smooth, np.ones((k, k), np.uint8)))
+             & (tophat > MIN_RELATIVE_CONTRAST * np.maximum(background, 0)) & (tophat > MIN_CONTRAST_SIGMAS * noise))
+    vs, us = np.nonzero(peaks)
+    order = np.argsort(-tophat[vs, us])
+    taken = np.zeros(image.shape, bool)
+    blobs = []
+    half = int(math.ceil(2.5 * r_max))
+    for v, u in zip(vs[order], us[order]):
+        if taken[v, u]:
+            continue  # inside a blob already cut from a brighter seed
+        blob = _cut_blob(smooth, (u, v), background[v, u], half)
+        if blob is None:
+            continue
+        taken[blob["slice"]] |= blob["region"]
+        blobs.append(blob)
+    return blobs
+
+
+def _cut_blob(smooth, seed, bg, half):
+    """The connected region around ``seed`` above half-way between its level and the
+    background; None where it reaches its window's border inside the image."""
+    u, v = seed
+    H, W = smooth.shape
+    y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
+    roi = smooth[y0:y1, x0:x1]
+    peak, bg = float(smooth[v, u]), float(bg)
+    region = _region_at(roi, (u - x0, v - y0), bg + 0.35 * (peak - bg))
+    # The seed may be a brightly lit sliver of side wall; the plate's own level is its median.
+    region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(float(np.median(roi[region])), peak) - bg))
+    touches = ((region[0].any() and y0 > 0) or (region[-1].any() and y1 < H)
+               or (region[:, 0].any() and x0 > 0) or (region[:, -1].any() and x1 < W))
+    if touches:
+        return None
+    return {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
+            "centre": (float(u), float(v))}
+
+
+def _region_at(roi, seed, level) -> np.ndarray:
+    _, lab = cv2.connectedComponents((roi > level).astype(np.uint8), connectivity=8)
+    return lab == lab[seed[1], seed[0]]
+
+
+def _blob_shape(blob):
+    """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
+    region = blob["region"].astype(np.uint8)
+    x0, y0 = blob["origin"]
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    c = max(contours, key=cv2.contourArea)
+    if len(c) < 5:
+        return None
+    (cx, cy), (d1, d2), ang = cv2.fitEllipse(c)
+    # Areas of the outline polygon (through pixel centres), like the ellipse fitted to it, so
+    # the fill ratio does not depend on the blob's size in pixels.
+    poly, hull = cv2.contourArea(c), cv2.contourArea(cv2.convexHull(c))
+    return {"centre": (cx + x0, cy + y0), "axes": (d1 / 2, d2 / 2), "angle": ang, "area": float(region.sum()),
+            "fill": poly / max(math.pi * d1 * d2 / 4, 1e-9), "solidity": poly / max(hull, 1e-9)}
+
+
+# ---------------------------------------------------------------------------- 3-D fit
+
+def fit_mark(image, points, blob, cal: Calibration, radius_mm: float):
+    """Plane + far-side edge circle for one candidate; (Mark, '') or (None, reason)."""
+    shape = _blob_shape(blob)
+    if shape is None:
+        return None, "too small to fit"
+    if not (MIN_FILL <= shape["fill"] <= MAX_FILL and shape["solidity"] >= MIN_SOLIDITY):
+        return None, f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})"
+    interior = _ellipse_pixels(shape, INTERIOR_FRACTION, image.shape)
+    P = points[interior[:, 1], interior[:, 0]].astype(np.float64)
+    P = P[np.isfinite(P[:, 0])]
+    if len(P) < MIN_INTERIOR_POINTS:
+        return None, f"only {len(P)} decoded 3-D points on the plate"
+    centroid, normal, plane_rms, n_in = fit_plane(P)
+    cam_c = cal.camera.center
+    if normal @ (cam_c - centroid) < 0:
+        normal = -normal
+    if plane_rms > MAX_PLANE_RMS_MM:
+        return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
+    r_px = float(_plate_radius_px(cal, _camera_depth(cal, centroid[None])[0], radius_mm))
+    if not (AREA_RANGE[0] * math.pi * r_px**2 <= shape["area"] <= AREA_RANGE[1] * math.pi * r_px**2):
+        return None, f"wrong size for a plate at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
+    uv = edge_points(image, shape)
+    if len(uv) < MIN_EDGE_POINTS:
+        return None, "no clear edge"
+    rays = cal.camera.rays(uv)
+    E = _ray_plane(cam_c, rays, centroid, normal)
+    fit = far_side_circle(E, rays, centroid, normal, cam_c, cal.projector.center, r_px / radius_mm, radius_mm)
+    if fit is None:
+        return None, "edge points do not form a circle"
+    centre, radius, rms, cov2, basis, n_edge, used_rays = fit
+    if abs(radius - radius_mm) > RADIUS_TOLERANCE_MM or rms > MAX_CIRCLE_RMS_MM:
+        return None, f"not a {radius_mm:g} mm plate (radius {radius:.2f} mm, edge RMS {rms:.2f} mm)"
+    cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
+    pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
+    return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in), ""
+
+
+def _ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
+    """Integer (u, v) pixels inside the blob's ellipse shrunk by ``fraction``."""
+    mask = np.zeros(img_shape, np.uint8)
+    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    cv2.ellipse(mask, ((cx, cy), (2 * a * fraction, 2 * b * fraction), shape["angle"]), 1, -1)
+    v, u = np.nonzero(mask)
+    return np.stack([u, v], axis=1)
+
+
+def fit_plane(P: np.ndarray, iterations: int = 3):
+    """Least-squares plane with MAD-based rejection (stray decodes at the rim)."""
+    keep = np.ones(len(P), bool)
+    for _ in range(iterations):
+        c = P[keep].mean(axis=0)
+        _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
+        n = vt[2]
+        d = (P - c) @ n
+        mad = 1.4826 * np.median(np.abs(d[keep]))
+        new = np.abs(d) <= max(3.5 * mad, 0.05)
+        if new.sum() < 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    c = P[keep].mean(axis=0)
+    _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
+    n = vt[2]
+    rms = float(np.sqrt(np.mean(((P[keep] - c) @ n) ** 2)))
+    return c, n, rms, int(keep.sum())
+
+
+def _ray_plane(origin, rays, point, normal) -> np.ndarray:
+    s = ((point - origin) @ normal) / (rays @ normal)
+    return origin + s[:, None] * rays
+
+
+def edge_points(image: np.ndarray, shape: dict) -> np.ndarray:
+    """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
+    half-way from the plate's interior level to the darkest level within ~2.5 px outside
+    the edge. The outside level is re-read at the edge found, because the blob's ellipse
+    (which includes any visible side wall) is only a rough guide to where the rim is."""
+    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    t = math.radians(shape["angle"])
+    ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
+    n_dir = int(np.clip(2 * math.pi * max(a, b), 48, 240))  # ~1 profile per outline pixel
+    phi = np.arange(n_dir) * (2 * math.pi / n_dir)
+    rim = a * np.cos(phi)[:, None] * ea + b * np.sin(phi)[:, None] * eb  # (n, 2) centre → ellipse
+    step = PROFILE_STEP_PX / np.linalg.norm(rim, axis=1)  # profile step in units of s, per direction
+    k_out = int(math.ceil(EDGE_OUTSIDE_PX / PROFILE_STEP_PX))
+    n_s = int(math.ceil(2.0 / step.min()))
+    s = np.arange(n_s)[None, :] * step[:, None]  # (n, n_s)
+    pts = np.array([cx, cy]) + s[..., None] * rim[:, None, :]
+    prof = cv2.remap(image, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    prof = np.where(s <= 2.0, prof, np.inf)
+    inner = np.nanmedian(np.where((s >= 0.15) & (s <= 0.6), prof, np.nan), axis=1)
+    start = np.argmax(s >= 0.6, axis=1)
+    after = np.arange(n_s)[None, :] >= start[:, None]
+    level = 0.5 * (inner + np.min(np.where(after, prof, np.inf), axis=1))
+    for _ in range(2):
+        k = _first_below(prof, level, after)
+        window = after & (np.arange(n_s)[None, :] >= k[:, None]) & (np.arange(n_s)[None, :] <= k[:, None] + k_out)
+        outer = np.min(np.where(window, prof, np.inf), axis=1)
+        level = 0.5 * (inner + outer)
+    k = _first_below(prof, level, after)
+    rows = np.flatnonzero((k > start) & (inner - outer > 0) & np.isfinite(outer))
+    k = k[rows]
+    p0, p1 = prof[rows, k - 1], prof[rows, k]
+    frac = (p0 - level[rows]) / np.where(p0 != p1, p0 - p1, 1.0)
+    s_edge = (k - 1 + frac) * step[rows]
+    return np.array([cx, cy]) + s_edge[:, None] * rim[rows]
+
+
+def _first_below(prof, level, after) -> np.ndarray:
+    """Index of the first profile sample (from ``after``) below ``level``; 0 if none."""
+    below = after & (prof < level[:, None])
+    return np.where(below.any(axis=1), np.argmax(below, axis=1), 0)
+
+
+def _plane_basis(normal):
+    e1 = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(normal, e1)])  # (2, 3)
+
+
+def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm) -> np.ndarray:
+    """Edge points whose image outline is the top face's rim against a cleanly lit surround.
+
+    With ``m`` the outward rim direction and ``d`` a ray (n towards the camera):
+    * the camera hides the surface for ``h a_c`` beyond the rim, ``a_c = (m·d_c)/(−n·d_c)``;
+      ``a_c < 0`` means it sees the side wall there instead (the near side): rejected;
+    * the projector shadows the surface for ``h a_p`` beyond the rim, likewise with its rays.
+    Where ``a_p > a_c`` a shadow sliver ``h (a_p − a_c)`` wide shows just outside the rim; a
+    sliver narrower than the blur pulls the half-contrast level inwards (measured: up to
+    0.4 mm), so such points are dropped unless the sliver is resolved (several pixels).
+    """
+    m = E - centre
+    m -= np.outer(m @ normal, normal)
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+    a_c = np.einsum("ij,ij->i", m, rays) / -(rays @ normal)
+    dp = E - proj_c
+    dp /= np.linalg.norm(dp, axis=1, keepdims=True)
+    a_p = np.einsum("ij,ij->i", m, dp) / -(dp @ normal)
+    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm
+    return (a_c >= -WALL_SLOPE_LIMIT) & ((sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX))
+
+
+def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm):
+    """Circle through the clean edge points (``clean_edge_mask``), in the plate's plane.
+
+    Returns the centre from a fit with the radius prior, and the free fit's radius (a check
+    that the blob is a plate). Three passes, because which points are clean depends on the
+    centre; stray points (another object inside a profile) are dropped by their residual.
+    If too few points are clean, the whole far side is used (less accurate, still a plate).
+    """
+    B = _plane_basis(normal)
+    q = (E - origin_pt) @ B.T
+    centre2 = _circle_kasa(q)
+    prior = (radius_mm, EDGE_NOISE_FLOOR_MM / RADIUS_PRIOR_SD_MM)
+    for _ in range(3):
+        use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm)
+        if use.sum() < MIN_EDGE_POINTS:
+            use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, 0.0)
+        if use.sum() < MIN_EDGE_POINTS:
+            return None
+        res = _circle_geometric(q[use], centre2, radius_mm, prior)
+        if res is None:
+            return None
+        centre2, _, resid, cov2 = res
+        bad = np.abs(resid) > max(4 * 1.4826 * np.median(np.abs(resid)), 0.05)
+        if bad.any() and (~bad).sum() >= MIN_EDGE_POINTS:
+            use[np.flatnonzero(use)[bad]] = False
+            res = _circle_geometric(q[use], centre2, radius_mm, prior)
+            if res is None:
+                return None
+            centre2, _, resid, cov2 = res
+    free = _circle_geometric(q[use], centre2, radius_mm)
+    radius = free[1] if free is not None else float("nan")
+    centre = origin_pt + centre2 @ B
+    rms = float(np.sqrt(np.mean(resid**2)))
+    return centre, radius, rms, cov2, B, int(use.sum()), rays[use]
+
+
+def _circle_kasa(q: np.ndarray) -> np.ndarray:
+    A = np.column_stack([2 * q, np.ones(len(q))])
+    sol, *_ = np.linalg.lstsq(A, (q**2).sum(axis=1), rcond=None)
+    return sol[:2]
+
+
+def _circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
+    """Gauss-Newton on the distances |q - c| - r; returns centre, radius, residuals, cov(c).
+
+    ``prior = (R, weight)`` adds the pseudo-residual weight (r - R): a short arc leaves centre
+    and radius strongly correlated, and the plate's radius is known to a tenth of a mm.
+    """
+    p = np.array([c0[0], c0[1], r0], float)
+
+    def system(p):
+        d = q - p[:2]
+        rho = np.linalg.norm(d, axis=1)
+        J = np.column_stack([-d / rho[:, None], -np.ones(len(q))])
+        r = rho - p[2]
+        if prior is None:
+            return J, r, rho
+        return np.vstack([J, [0.0, 0.0, prior[1]]]), np.r_[r, prior[1] * (p[2] - prior[0])], rho
+
+    for _ in range(iterations):
+        J, r, rho = system(p)
+        if np.any(rho < 1e-9):
+            return None
+        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        p += step
+        if np.abs(step).max() < 1e-7:
+            break
+    J, r, rho = system(p)
+    resid = rho - p[2]
+    dof = max(len(q) - 3, 1)
+    try:
+        cov = np.linalg.inv(J.T @ J) * max(float(resid @ resid) / dof, EDGE_NOISE_FLOOR_MM**2)
+    except np.linalg.LinAlgError:
+        return None
+    return p[:2], float(p[2]), resid, cov[:2, :2]
+
+
+def _centre_covariance(cov2, basis, normal, rays, plane_rms, n_interior) -> np.ndarray:
+    """World covariance of the centre: the in-plane circle fit, the plane's offset error
+    carried along the edge rays (moving the plane by δ moves each edge point by δ d/(n·d)),
+    and the systematic floor."""
+    in_plane = basis.T @ cov2 @ basis
+    g = (rays / (rays @ normal)[:, None]).mean(axis=0)
+    var_offset = plane_rms**2 / max(n_interior, 1)
+    return in_plane + var_offset * np.outer(g, g) + SD_FLOOR_MM**2 * np.eye(3)
+
+
+# ---------------------------------------------------------------------------- labelling
+
+def label_marks(ms: MarkSet) -> None:
+    """Label in place (SPEC §2). Unresolvable parts stay unlabelled, with a message."""
+    for m in ms.marks:
+        m.label = None
+    marks = ms.marks
+    if len(marks) != len(LABELS):
+        ms.problems.append(f"expected 7 mark plates, found {len(marks)}")
+    table = _table_triple(marks, ms.problems)
+    if table is not None:
+        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
+            m.label = lab
+        leg = [m for i, m in enumerate(marks) if i not in table]
+        if len(leg) == 4:
+            _label_leg(leg, ms.problems)
+    order = {lab: i for i, lab in enumerate(LABELS)}
+    ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label, 99), m.pixel[1], m.pixel[0]))
+
+
+def _angle_deg(a, b) -> float:
+    return math.degrees(math.acos(float(np.clip(abs(a @ b), -1.0, 1.0))))
+
+
+def _triple_score(ms) -> float:
+    """Worst disagreement (deg) among the three plate normals and the plane through the centres."""
+    P = np.array([m.centre for m in ms])
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    if np.linalg.norm(n) < 1e-9:
+        return 180.0
+    n /= np.linalg.norm(n)
+    return max([_angle_deg(m.normal, n) for m in ms] + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
+
+
+def _table_triple(marks, problems):
+    """Indices of the table marks: the only triple whose plates all lie in one plane, flat on it.
+
+    Leg marks come in pairs along a generator (front, lateral) whose normals are ~90° apart,
+    so any triple other than the table's has a large normal spread. Ties are ambiguous.
+    """
+    if len(marks) < 3:
+        problems.append("fewer than 3 plates: cannot find the table marks")
+        return None
+    scored = sorted((_triple_score([marks[i] for i in t]), t) for t in itertools.combinations(range(len(marks)), 3))
+    best, t = scored[0]
+    if best > TABLE_NORMAL_SPREAD_DEG:
+        problems.append(f"no three plates lie flat in one plane (best {best:.1f}°): table marks not identified")
+        return None
+    if len(scored) > 1 and scored[1][0] - best < AMBIGUITY_MARGIN_DEG:
+        problems.append(f"two candidate sets of table marks ({best:.1f}° vs {scored[1][0]:.1f}°): ambiguous")
+        return None
+    return set(t)
+
+
+def _table_order(ms):
+    """5, 6, 7: counter-clockwise seen from above (about +z) around their centroid, starting
+    after the widest angular gap (for the default layout: lateral-posterior, lateral-anterior,
+    medial)."""
+    P = np.array([m.centre for m in ms])
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    n = n / np.linalg.norm(n) * (1 if n[2] >= 0 else -1)
+    B = _plane_basis(n)
+    if np.cross(B[0], B[1]) @ n < 0:
+        B = B[::-1]
+    q = (P - P.mean(axis=0)) @ B.T
+    ang = np.arctan2(q[:, 1], q[:, 0])
+    order = np.argsort(ang)
+    gaps = np.diff(np.r_[ang[order], ang[order[0]] + 2 * math.pi])
+    start = (int(np.argmax(gaps)) + 1) % 3
+    return [ms[i] for i in np.roll(order, -start)]
+
+
+def _label_leg(leg, problems):
+    """Knee pair above the ankle pair (along the leg axis, i.e. z); within a pair the front
+    plate faces anterior (+y) more than lateral (+x), the lateral one the other way round."""
+    z = np.array([m.centre[2] for m in leg])
+    idx = np.argsort(z)
+    ankle, knee = [leg[i] for i in idx[:2]], [leg[i] for i in idx[2:]]
+    axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
+    gap = (z[idx[2]] - z[idx[1]])
+    if gap < 0.25 * np.linalg.norm(axis):
+        problems.append("knee and ankle marks are not clearly separated in height")
+        return
+    axis /= np.linalg.norm(axis)
+    for pair, (front, lateral) in ((knee, ("1", "3")), (ankle, ("2", "4"))):
+        s = [_anterior_score(m, axis) for m in pair]
+        if abs(s[0] - s[1]) < 0.5:  # normals ~90° apart give ~1.4; a tie means no decision
+            problems.append(f"cannot tell the front from the lateral {'knee' if front == '1' else 'ankle'} mark")
+            continue
+        f, l = (pair[0], pair[1]) if s[0] > s[1] else (pair[1], pair[0])
+        f.label, l.label = front, lateral
+
+
+def _anterior_score(m, axis) -> float:
+    """(n_y − n_x) of the plate normal perpendicular to the leg axis: +√2 anterior, −√2 lateral."""
+    n = m.normal - (m.normal @ axis) * axis
+    n /= max(np.linalg.norm(n), 1e-9)
+    return float(n[1] - n[0])

@@ -1,0 +1,94 @@
+"""``anklescan measure``: capture + calibration → the seven marks and SPEC §3's angles.
+
+``measure_capture`` does the work in memory (the app and the demo call it and may accept an
+incomplete result for manual correction); ``run_measure`` is the command: it refuses to
+write RESULT.json unless all seven marks are found and labelled, and writes it atomically.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from core.angles import AngleResult, compute_angles
+from core.calibration_file import Calibration, load_calibration, write_text_atomic
+from core.capture import Capture, load_capture
+from core.decode import decode
+from core.errors import AnkleScanError
+from core.marks import MarkSet, find_marks
+from core.reconstruct import check_compatible, cloud_from_decoded
+
+ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
+
+
+@dataclass
+class MeasureResult:
+    marks: MarkSet
+    angles: AngleResult  # only the angles whose marks were labelled
+    reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
+
+    @property
+    def complete(self) -> bool:
+        return self.marks.complete
+
+    def to_dict(self) -> dict:
+        lab = self.marks.labelled
+        return {
+            "marks": {k: [float(v) for v in lab[k].centre] for k in sorted(lab)},
+            "angles": {k: dict(self.angles[k]) for k in ANGLE_ORDER if k in self.angles},
+            "mark_details": {k: lab[k].to_dict() for k in sorted(lab)},
+            "unlabelled_marks": [m.to_dict() for m in self.marks.unlabelled],
+            "reconstruction": self.reconstruction,
+        }
+
+    def format_text(self) -> str:
+        lines = ["mark        x          y          z      radius   sd (mm)"]
+        for k, m in sorted(self.marks.labelled.items()):
+            x, y, z = m.centre
+            lines.append(f"  {k}   {x:9.2f}  {y:9.2f}  {z:9.2f}   {m.radius:6.2f}   {m.sd:.3f}")
+        for m in self.marks.unlabelled:
+            x, y, z = m.centre
+            lines.append(f"  ?   {x:9.2f}  {y:9.2f}  {z:9.2f}   {m.radius:6.2f}   {m.sd:.3f}")
+        for name in ANGLE_ORDER:
+            if name in self.angles:
+                a = self.angles[name]
+                lines.append(f"{name:24s} {a['value']:8.2f}° ± {a['sd']:.2f}°")
+        if not self.complete:
+            lines.append("incomplete: " + self.marks.message())
+        return "\n".join(lines)
+
+
+def measure_capture(capture: Capture, calibration: Calibration) -> MeasureResult:
+    """Reconstruct, find and label the marks, compute the angles; no file I/O, no raising for
+    missing marks (see ``result.complete`` and ``result.marks.message()``)."""
+    check_compatible(capture, calibration)
+    decoded = decode(capture)
+    cloud = cloud_from_decoded(capture, calibration, decoded)
+    marks = find_marks(decoded._white_raw, decoded._black_raw, cloud, calibration)
+    angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
+    summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
+    return MeasureResult(marks, angles, _jsonable(summary))
+
+
+def run_measure(capture_dir, calibration_path, out_path) -> MeasureResult:
+    """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError."""
+    cal = load_calibration(calibration_path)
+    capture = load_capture(capture_dir)
+    result = measure_capture(capture, cal)
+    if not result.complete:
+        raise AnkleScanError(f"{capture_dir}: marks not found: {result.marks.message()}; nothing written")
+    write_text_atomic(Path(out_path), json.dumps(result.to_dict(), indent=2) + "\n")
+    return result
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj

@@ -1,0 +1,76 @@
+"""core.measure and ``anklescan measure``: RESULT.json, and bad input → exit 2, nothing written."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.angles import compute_angles
+from core.marks import Mark, MarkSet, label_marks
+from core.measure import MeasureResult
+from hardware.sim_scene import leg_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _result():
+    scene = leg_scene(10, -5)
+    ms = MarkSet(marks=[Mark(m.centre.copy(), m.normal.copy(), 7.5, 0.05, 0.05, np.eye(3) * 0.01, (1.0, 2.0), 40, 100)
+                        for m in scene.marks.values()])
+    label_marks(ms)
+    return MeasureResult(ms, compute_angles(ms.centres(), ms.covariances()), {"points": 1})
+
+
+def test_result_json_layout():
+    d = json.loads(json.dumps(_result().to_dict()))
+    assert sorted(d["marks"]) == list("1234567") and all(len(v) == 3 for v in d["marks"].values())
+    assert set(d["angles"]) == {"leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"}
+    assert all(set(v) == {"value", "sd"} for v in d["angles"].values())
+    assert d["mark_details"]["1"]["radius_mm"] == 7.5 and "reconstruction" in d
+    assert abs(d["angles"]["table_inversion"]["value"] - 10) < 1e-9
+
+
+def test_format_text_lists_marks_and_angles():
+    text = _result().format_text()
+    assert "table_plantar_flexion" in text and text.count("\n") >= 11
+
+
+@pytest.fixture(scope="module")
+def plain_plane_capture(tmp_path_factory):
+    """A scan of a bare board on the floor: no marks at all."""
+    from core.calibration_file import save_calibration
+    from core.capture import save_capture
+    from core.patterns import make_pattern_set, render_all
+    from hardware.sim_scene import Box, ObjectId, quad_scene
+    from hardware.simrig import SimRig
+
+    d = tmp_path_factory.mktemp("plain")
+    board = Box(kind=ObjectId.TABLE, centre=(0.0, 0.0, 200.0), half=(200.0, 200.0, 10.0))
+    rig = SimRig(quad_scene([board]), scale=0.25, seed=3)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    save_capture(d / "cap", pset, rig.capture_many(render_all(pset)))
+    save_calibration(rig.true_calibration(), d / "cal.json")
+    return d
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_cli_capture_without_marks_exits_2_and_writes_nothing(plain_plane_capture):
+    d = plain_plane_capture
+    out = d / "RESULT.json"
+    p = _cli("-q", "measure", d / "cap", "--calibration", d / "cal.json", "--out", out)
+    assert p.returncode == 2, p.stderr
+    assert "marks not found" in p.stderr and "found 0" in p.stderr and "Traceback" not in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    assert not out.exists() and not list(d.glob(".RESULT.json*"))
+
+
+def test_cli_missing_capture_exits_2(tmp_path):
+    p = _cli("-q", "measure", tmp_path / "nope", "--calibration", tmp_path / "cal.json", "--out", tmp_path / "r.json")
+    assert p.returncode == 2 and not (tmp_path / "r.json").exists()
