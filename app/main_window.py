@@ -29,7 +29,7 @@ from app.trial_form import CONDITIONS, TrialForm
 
 
 log = logging.getLogger("anklescan.gui")
-PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT = range(3)
+PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT, PAGE_MARKS, PAGE_SESSION = range(5)
 
 
 # ---------------------------------------------------------------------------- small widgets
@@ -160,6 +160,9 @@ class MainWindow(QMainWindow):
         self.camera_panel = None
         self.last_result = None
         self._trial_id = None
+        self.marks_page = None    # the 3-D viewer + mark editor, built after the window shows (GL is slow to load)
+        self.session_view = None
+        self._viewer_trial = None  # the trial whose cloud the viewer shows
         self.setWindowTitle("AnkleScan")
         self.setWindowIcon(resources.app_icon())
         self._build()
@@ -180,6 +183,7 @@ class MainWindow(QMainWindow):
         self.trials = QListWidget()
         self.patients.currentItemChanged.connect(lambda *_: self._patient_changed())
         self.sessions.currentItemChanged.connect(lambda *_: self._session_changed())
+        self.trials.itemActivated.connect(lambda item: self.open_trial(item.data(Qt.ItemDataRole.UserRole)))
         self.tabs = QTabWidget()
         self.scan_page = ScanPage()
         self.result_page = ResultPage()
@@ -188,6 +192,13 @@ class MainWindow(QMainWindow):
         self.tabs.addTab(self.camera_holder, "1  Camera setup")
         self.tabs.addTab(self.scan_page, "2  Scan")
         self.tabs.addTab(self.result_page, "3  Result")
+        self.marks_holder = QStackedWidget()
+        self.marks_holder.addWidget(QLabel("Loading the 3-D viewer…"))
+        self.session_holder = QStackedWidget()
+        self.session_holder.addWidget(QLabel("Loading the session plots…"))
+        self.tabs.addTab(self.marks_holder, "4  3-D marks")
+        self.tabs.addTab(self.session_holder, "5  Session plots")
+        self.tabs.currentChanged.connect(self._tab_changed)
         self.tabs.setCurrentIndex(PAGE_SCAN)
         self.scan_page.scan_button.clicked.connect(self.start_scan)
         self.scan_page.cancel_button.clicked.connect(self.cancel_scan)
@@ -249,6 +260,10 @@ class MainWindow(QMainWindow):
         act(file, "New &session", lambda: self.new_session(), "Ctrl+Shift+N")
         act(file, "Data &folder…", self.choose_data_folder)
         file.addSeparator()
+        act(file, "Open point &cloud…", self.open_cloud_file, "Ctrl+O")
+        act(file, "Export session p&lots (PNG/SVG)…", self.export_plots)
+        act(file, "Session &report (PDF + CSV)…", self.export_session_report, "Ctrl+R")
+        file.addSeparator()
         act(file, "&Quit", self.close, QKeySequence.StandardKey.Quit)
         scan = bar.addMenu("&Scan")
         self.scan_action = act(scan, "&Start scan", self.start_scan, "F5")
@@ -261,7 +276,7 @@ class MainWindow(QMainWindow):
         act(project, "Crosshair", lambda: self._projector_show("crosshair"))
         act(project, "Calibration spot (arrow keys move it)", lambda: self._projector_show("spot"))
         view = bar.addMenu("&View")
-        for i, name in enumerate(("&Camera setup", "S&can", "&Result")):
+        for i, name in enumerate(("&Camera setup", "S&can", "&Result", "3-D &marks", "Session &plots")):
             act(view, name, lambda _=False, i=i: self.tabs.setCurrentIndex(i), f"Ctrl+{i + 1}")
         view.addSeparator()
         self.screen_menu = view.addMenu("Projector &monitor")
@@ -325,12 +340,15 @@ class MainWindow(QMainWindow):
         sid = self.current_session_id()
         if sid is None or self.store is None:
             return
+        if self.session_view is not None and self.tabs.currentIndex() == PAGE_SESSION:
+            self._refresh_session_view()
         session = self.store.get_session(sid)
         self.scan_page.form.set_condition(session.condition)
         for t in self.store.list_trials(sid):
             state = "scanned" if t.cloud_path else ("frames only" if t.capture_path else "no scan")
             item = QListWidgetItem(f"Trial {t.id}   {_deg(t.ref_inversion)} / {_deg(t.ref_plantar_flexion)}")
-            item.setToolTip(f"Reference inversion / plantar flexion; {state}")
+            item.setToolTip(f"Reference inversion / plantar flexion; {state}. Double-click: open in 3-D")
+            item.setData(Qt.ItemDataRole.UserRole, t.id)
             self.trials.addItem(item)
 
     def new_patient(self, code: str | None = None, sprain_count: int = 0, side: str | None = None) -> None:
@@ -380,6 +398,7 @@ class MainWindow(QMainWindow):
         self.camera_holder.addWidget(self.camera_panel)
         self.camera_holder.setCurrentWidget(self.camera_panel)
         self.switch_backend(self.settings.get("camera_backend"))
+        QTimer.singleShot(0, self.ensure_marks_page)
 
     def switch_backend(self, backend: str) -> None:
         from app.rig import SIMULATED, open_rig
@@ -560,6 +579,8 @@ class MainWindow(QMainWindow):
             cloud_path = self._save_cloud(result)
         self._record_files(result.folder, cloud_path)
         self._show_result(result)
+        if result.cloud is not None and len(result.cloud) > 0 and self._trial_id is not None:
+            self._show_cloud(result.cloud, self._trial_id)
         self.scan_page.form.clear_notes()
         self.scan_page.progress.setFormat("Done")
 
@@ -610,6 +631,134 @@ class MainWindow(QMainWindow):
         self.scan_page.progress.setFormat("Cancelled")
         self.banner.show_message("info", f"Scan cancelled. {kept} frame(s) kept in {folder}.")
 
+    # ---- the 3-D viewer, marks and session plots ----------------------------------------
+    def ensure_marks_page(self):
+        if self.marks_page is None:
+            from app.mark_editor import MarksPage
+            from app.session_view import SessionView
+            self.marks_page = MarksPage(operator=_os_user())
+            self.marks_page.editor.saveFailed.connect(lambda text: self.banner.show_message("error", text))
+            self.marks_page.editor.marksChanged.connect(lambda _: self._marks_edited())
+            self.marks_holder.addWidget(self.marks_page)
+            self.marks_holder.setCurrentWidget(self.marks_page)
+            self.session_view = SessionView()
+            self.session_view.trialActivated.connect(self.open_trial)
+            self.session_holder.addWidget(self.session_view)
+            self.session_holder.setCurrentWidget(self.session_view)
+        return self.marks_page
+
+    def _tab_changed(self, index: int) -> None:
+        if index in (PAGE_MARKS, PAGE_SESSION):
+            self.ensure_marks_page()
+        if index == PAGE_SESSION:
+            self._refresh_session_view()
+
+    def _refresh_session_view(self) -> None:
+        sid = self.current_session_id()
+        if self.session_view is None or self.store is None:
+            return
+        if sid is None:
+            self.session_view.set_rows([])
+            return
+        s = self.store.get_session(sid)
+        self.session_view.set_rows([r for r in self.store.study_rows() if r["session_id"] == sid],
+                                   title=f"{self.store.get_patient(s.patient_id).code}, {s.condition}, {s.date}")
+
+    def _marks_edited(self) -> None:
+        # The store recomputed the trial's angles; the trial list and plots show them.
+        if self.tabs.currentIndex() == PAGE_SESSION:
+            self._refresh_session_view()
+
+    def _scanner_eye(self):
+        cal = getattr(self.rig, "calibration", None) if self.rig is not None else None
+        return None if cal is None else cal.camera.center
+
+    def _show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:
+        page = self.ensure_marks_page()
+        self._viewer_trial = trial_id
+        page.open_cloud(cloud, self._scanner_eye(), title or f"Trial {trial_id}")
+        if trial_id is not None and self.store is not None:
+            # Marks are signed by the session's operator, or the logged-in user when none was entered.
+            session = self.store.get_session(self.store.get_trial(trial_id).session_id)
+            page.editor.operator = session.operator or _os_user()
+            page.editor.load_trial(self.store, trial_id)
+        else:
+            page.editor.load({})
+
+    def open_trial(self, trial_id: int | None) -> bool:
+        """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
+        if trial_id is None or self.store is None:
+            return False
+        from core.pointcloud import read_ply
+        trial = self.store.get_trial(int(trial_id))
+        if not trial.cloud_path:
+            self.banner.show_message("info", f"Trial {trial.id} has no point cloud (not reconstructed).")
+            return False
+        try:
+            cloud = read_ply(self.store.resolve(trial.cloud_path))
+        except Exception as exc:
+            self.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
+            return False
+        ref = f"reference {_deg(trial.ref_inversion)} / {_deg(trial.ref_plantar_flexion)}"
+        self._show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}")
+        self.tabs.setCurrentIndex(PAGE_MARKS)
+        return True
+
+    def open_cloud_file(self, path: str | None = None) -> bool:
+        """A PLY from disk, viewed and marked without saving to any trial."""
+        if path is None:
+            path, _ = QFileDialog.getOpenFileName(self, "Open point cloud", str(self.data_folder()), "PLY (*.ply)")
+            if not path:
+                return False
+        from core.pointcloud import read_ply
+        try:
+            cloud = read_ply(path)
+        except Exception as exc:
+            self.banner.show_message("error", str(exc))
+            return False
+        self._show_cloud(cloud, None, f"{Path(path).name} (not part of a trial: marks are not saved)")
+        self.tabs.setCurrentIndex(PAGE_MARKS)
+        return True
+
+    def export_plots(self, path: str | None = None) -> Path | None:
+        self.ensure_marks_page()
+        self._refresh_session_view()
+        if path is None:
+            path, _ = QFileDialog.getSaveFileName(self, "Export session plots", str(self.data_folder() / "session_plots.png"),
+                                                  "PNG image (*.png);;SVG vector (*.svg)")
+            if not path:
+                return None
+        try:
+            out = self.session_view.export(path)
+        except Exception as exc:
+            self.banner.show_message("error", f"The plots could not be exported: {exc}")
+            return None
+        self.banner.show_message("info", f"Session plots saved to {out}")
+        return out
+
+    def export_session_report(self, pdf_path: str | None = None):
+        sid = self.current_session_id()
+        if self.store is None or sid is None:
+            self.banner.show_message("warning", "Select a session first.")
+            return None
+        if pdf_path is None:
+            pdf_path, _ = QFileDialog.getSaveFileName(self, "Session report", str(self.data_folder() / f"session-{sid}.pdf"),
+                                                      "PDF (*.pdf)")
+            if not pdf_path:
+                return None
+        from core.report import write_session_report
+        pdf = Path(pdf_path).with_suffix(".pdf")
+        QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
+        try:
+            result = write_session_report(self.store, [sid], pdf, pdf.with_suffix(".csv"))
+        except Exception as exc:
+            self.banner.show_message("error", f"The session report could not be written: {exc}")
+            return None
+        finally:
+            QApplication.restoreOverrideCursor()
+        self.banner.show_message("info", f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
+        return result
+
     # ---- housekeeping -------------------------------------------------------------------
     def about(self) -> None:
         QMessageBox.about(self, "About AnkleScan",
@@ -640,6 +789,14 @@ class MainWindow(QMainWindow):
 
 def _deg(value) -> str:
     return "—" if value is None else f"{value:+.1f}°"
+
+
+def _os_user() -> str:
+    import getpass
+    try:
+        return getpass.getuser()
+    except Exception:
+        return ""
 
 
 def _frames_in(folder) -> int:

@@ -1,0 +1,382 @@
+"""Mark editing on the 3-D viewer: place, move, relabel, delete and confirm marks 1–7.
+
+Model: ``MarkSet`` (label → position + provenance), changed only through ``QUndoCommand``s,
+so undo/redo and saving share one path: every command's redo/undo ends in
+``MarkEditor._apply``, which redraws the viewer, recomputes the angles panel and writes the
+changed labels to the trial. Provenance per mark: ``auto`` (found by the detector, shown with
+a "?" until the operator confirms it) or ``manual`` (placed or moved by the operator).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from PySide6.QtCore import Qt, Signal
+from PySide6.QtGui import QKeySequence, QShortcut, QUndoCommand, QUndoStack
+from PySide6.QtWidgets import (QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
+                               QListWidget, QListWidgetItem, QPushButton, QVBoxLayout, QWidget)
+
+from core.angles import LABELS, compute_angles
+
+MARK_NAMES = {1: "front of the knee", 2: "front of the ankle", 3: "lateral knee", 4: "lateral ankle",
+              5: "table", 6: "table", 7: "table"}
+ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Leg plantar flexion θ2",
+                "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion"}
+CONFIRMED_PREFIX = "confirmed by "
+
+
+@dataclass(frozen=True)
+class Mark:
+    xyz: tuple[float, float, float]
+    source: str = "manual"   # 'auto' | 'manual' (the store's vocabulary)
+    confirmed: bool = True   # auto marks start unconfirmed
+    placed_by: str = ""
+
+
+MarkSet = dict[int, Mark]
+
+
+# ---------------------------------------------------------------------------- undo commands
+
+class _SetMarks(QUndoCommand):
+    """Replace some labels' marks (None = absent). Every edit is one of these."""
+
+    def __init__(self, editor: "MarkEditor", text: str, after: dict[int, Mark | None]):
+        super().__init__(text)
+        self.editor = editor
+        self.after = after
+        self.before = {k: editor.marks.get(k) for k in after}
+
+    def redo(self) -> None:
+        self.editor._apply(self.after)
+
+    def undo(self) -> None:
+        self.editor._apply(self.before)
+
+
+# ---------------------------------------------------------------------------- the editor
+
+class MarkEditor(QWidget):
+    """Side panel next to a CloudViewer. ``store``/``trial_id`` optional: without them the
+    editor still works (e.g. on a PLY opened from disk) and nothing is saved."""
+
+    marksChanged = Signal(dict)   # label → (x, y, z)
+    saveFailed = Signal(str)
+
+    def __init__(self, viewer, operator: str = "", parent=None):
+        super().__init__(parent)
+        self.viewer = viewer
+        self.operator = operator
+        self.store = None
+        self.trial_id: int | None = None
+        self.marks: MarkSet = {}
+        self.current_label = 1
+        self.angles = {}
+        self.undo_stack = QUndoStack(self)
+        self._build()
+        viewer.picked.connect(self.place_at_pick)
+        self._refresh()
+
+    # ---- UI ------------------------------------------------------------------------------
+    def _build(self) -> None:
+        self.label_buttons = QButtonGroup(self)
+        grid = QGridLayout()
+        for lab in LABELS:
+            b = QPushButton(str(lab))
+            b.setCheckable(True)
+            b.setFixedWidth(34)
+            b.setStyleSheet("QPushButton { padding: 5px 0px; } QPushButton:checked { background: #1f5f8b; color: white; }")
+            b.setToolTip(f"Mark {lab}: {MARK_NAMES[lab]} (key {lab})")
+            self.label_buttons.addButton(b, lab)
+            grid.addWidget(b, 0, lab - 1)
+        self.label_buttons.idClicked.connect(self.set_current_label)
+        self.hint = QLabel()
+        self.hint.setWordWrap(True)
+        self.hint.setObjectName("hint")
+        self.list = QListWidget()
+        self.list.currentItemChanged.connect(lambda *_: self._list_selected())
+        self.confirm_button = QPushButton("Confirm automatic marks")
+        self.confirm_button.clicked.connect(self.confirm_all)
+        self.delete_button = QPushButton("Delete")
+        self.delete_button.clicked.connect(lambda: self.delete(self.current_label))
+        self.relabel_buttons = QButtonGroup(self)  # relabel the selected mark as …
+        relabel = QHBoxLayout()
+        relabel.addWidget(QLabel("Relabel as"))
+        for lab in LABELS:
+            b = QPushButton(str(lab))
+            b.setFixedWidth(26)
+            b.setStyleSheet("padding: 4px 0px;")
+            self.relabel_buttons.addButton(b, lab)
+            relabel.addWidget(b)
+        self.relabel_buttons.idClicked.connect(lambda lab: self.relabel(self.current_label, lab))
+        undo = QPushButton("Undo")
+        undo.clicked.connect(self.undo_stack.undo)
+        redo = QPushButton("Redo")
+        redo.clicked.connect(self.undo_stack.redo)
+        self.undo_stack.canUndoChanged.connect(undo.setEnabled)
+        self.undo_stack.canRedoChanged.connect(redo.setEnabled)
+        undo.setEnabled(False)
+        redo.setEnabled(False)
+        edit_row = QHBoxLayout()
+        for w in (self.delete_button, undo, redo):
+            edit_row.addWidget(w)
+        marks_box = QGroupBox("Marks")
+        mv = QVBoxLayout(marks_box)
+        mv.addLayout(grid)
+        mv.addWidget(self.hint)
+        mv.addWidget(self.list, 1)
+        mv.addWidget(self.confirm_button)
+        mv.addLayout(relabel)
+        mv.addLayout(edit_row)
+        self.angle_labels = {name: QLabel("—") for name in ANGLE_TITLES}
+        angles_box = QGroupBox("Angles (SPEC §3)")
+        ag = QGridLayout(angles_box)
+        for row, (name, title) in enumerate(ANGLE_TITLES.items()):
+            ag.addWidget(QLabel(title), row, 0)
+            self.angle_labels[name].setAlignment(Qt.AlignmentFlag.AlignRight)
+            self.angle_labels[name].setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+            ag.addWidget(self.angle_labels[name], row, 1)
+        self.missing_label = QLabel()
+        self.missing_label.setWordWrap(True)
+        self.missing_label.setObjectName("hint")
+        ag.addWidget(self.missing_label, len(ANGLE_TITLES), 0, 1, 2)
+        self.pick_label = QLabel("Click the cloud to place the selected mark.")
+        self.pick_label.setWordWrap(True)
+        self.pick_label.setObjectName("hint")
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(0, 0, 0, 0)
+        outer.addWidget(marks_box, 1)
+        outer.addWidget(angles_box)
+        outer.addWidget(self.pick_label)
+        self.setMinimumWidth(300)
+        for lab in LABELS:
+            QShortcut(QKeySequence(str(lab)), self, lambda lab=lab: self.set_current_label(lab),
+                      context=Qt.ShortcutContext.WindowShortcut)
+        QShortcut(QKeySequence.StandardKey.Undo, self, self.undo_stack.undo, context=Qt.ShortcutContext.WindowShortcut)
+        QShortcut(QKeySequence.StandardKey.Redo, self, self.undo_stack.redo, context=Qt.ShortcutContext.WindowShortcut)
+        QShortcut(QKeySequence.StandardKey.Delete, self, lambda: self.delete(self.current_label),
+                  context=Qt.ShortcutContext.WindowShortcut)
+
+    # ---- loading -------------------------------------------------------------------------
+    def load(self, marks: MarkSet, store=None, trial_id: int | None = None) -> None:
+        """Start editing a trial's marks (a fresh undo history)."""
+        self.store, self.trial_id = store, trial_id
+        self.marks = dict(marks)
+        self.undo_stack.clear()
+        self.current_label = next((lab for lab in LABELS if lab not in self.marks), 1)
+        self._refresh()
+
+    def load_trial(self, store, trial_id: int) -> None:
+        self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
+
+    def propose_auto(self, detected: dict) -> None:
+        """Detected marks (label → xyz) to confirm; one undoable step, saved as 'auto'."""
+        after = {int(k): Mark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
+        self.undo_stack.push(_SetMarks(self, "automatic marks", after))
+
+    # ---- edits (all undoable) ------------------------------------------------------------
+    def set_current_label(self, label: int) -> None:
+        self.current_label = int(label)
+        self._refresh(save=False)
+
+    def place_at_pick(self, pick) -> None:
+        self.place(self.current_label, pick.point)
+
+    def place(self, label: int, xyz) -> None:
+        verb = "move" if label in self.marks else "place"
+        mark = Mark(tuple(float(v) for v in xyz), "manual", True, self.operator)
+        self.undo_stack.push(_SetMarks(self, f"{verb} mark {label}", {label: mark}))
+        if verb == "place":  # the operator usually places marks in order
+            self.current_label = next((lab for lab in LABELS if lab not in self.marks), label)
+            self._refresh(save=False)
+
+    def delete(self, label: int) -> None:
+        if label in self.marks:
+            self.undo_stack.push(_SetMarks(self, f"delete mark {label}", {label: None}))
+
+    def relabel(self, old: int, new: int) -> None:
+        """Give mark ``old`` the label ``new``; an existing ``new`` takes ``old`` (a swap),
+        the usual fix when the detector mixed up two marks."""
+        if old == new or old not in self.marks:
+            return
+        a, b = self.marks[old], self.marks.get(new)
+        a = replace(a, confirmed=True, placed_by=self.operator or a.placed_by)
+        after = {new: a, old: None if b is None else replace(b, confirmed=True)}
+        self.undo_stack.push(_SetMarks(self, f"relabel mark {old} as {new}", after))
+        self.current_label = new
+        self._refresh(save=False)
+
+    def confirm_all(self) -> None:
+        pending = {lab: replace(m, confirmed=True, placed_by=CONFIRMED_PREFIX + (self.operator or "operator"))
+                   for lab, m in self.marks.items() if not m.confirmed}
+        if pending:
+            self.undo_stack.push(_SetMarks(self, "confirm automatic marks", pending))
+
+    # ---- the one place state changes -----------------------------------------------------
+    def _apply(self, changes: dict[int, Mark | None]) -> None:
+        for lab, m in changes.items():
+            if m is None:
+                self.marks.pop(lab, None)
+            else:
+                self.marks[lab] = m
+        self._save(changes)
+        self._refresh()
+
+    def _save(self, changes: dict[int, Mark | None]) -> None:
+        if self.store is None or self.trial_id is None:
+            return
+        try:
+            save_marks(self.store, self.trial_id, changes)
+        except Exception as exc:  # the edit stays on screen; the operator is told it is unsaved
+            self.saveFailed.emit(f"The marks could not be saved: {exc}")
+
+    def _refresh(self, save: bool = True) -> None:
+        unconfirmed = {lab for lab, m in self.marks.items() if not m.confirmed}
+        self.viewer.set_marks({lab: m.xyz for lab, m in self.marks.items()}, unconfirmed, self.current_label)
+        self._refresh_list()
+        self._refresh_angles()
+        button = self.label_buttons.button(self.current_label)
+        if button is not None:
+            button.setChecked(True)
+        verb = "move" if self.current_label in self.marks else "place"
+        self.hint.setText(f"Click the cloud to {verb} mark {self.current_label} "
+                          f"({MARK_NAMES[self.current_label]}). Keys 1–7 choose the mark.")
+        self.confirm_button.setEnabled(bool(unconfirmed))
+        self.delete_button.setEnabled(self.current_label in self.marks)
+        self.marksChanged.emit({lab: m.xyz for lab, m in self.marks.items()})
+
+    def _refresh_list(self) -> None:
+        self.list.blockSignals(True)
+        self.list.clear()
+        for lab in LABELS:
+            m = self.marks.get(lab)
+            if m is None:
+                text = f"{lab}  {MARK_NAMES[lab]:<18}  not placed"
+            else:
+                how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
+                text = f"{lab}  ({m.xyz[0]:7.1f}, {m.xyz[1]:7.1f}, {m.xyz[2]:7.1f}) mm  · {how}"
+            item = QListWidgetItem(text)
+            item.setData(Qt.ItemDataRole.UserRole, lab)
+            self.list.addItem(item)
+            if lab == self.current_label:
+                self.list.setCurrentItem(item)
+        self.list.blockSignals(False)
+
+    def _list_selected(self) -> None:
+        item = self.list.currentItem()
+        if item is not None:
+            self.set_current_label(item.data(Qt.ItemDataRole.UserRole))
+
+    def _refresh_angles(self) -> None:
+        try:
+            self.angles = compute_angles({lab: m.xyz for lab, m in self.marks.items()})
+        except Exception as exc:  # degenerate geometry (e.g. 5, 6, 7 collinear) while editing
+            self.angles = {}
+            self.missing_label.setText(str(exc))
+            for lab in self.angle_labels.values():
+                lab.setText("—")
+            return
+        for name, lab in self.angle_labels.items():
+            v = self.angles.get(name)
+            lab.setText("—" if v is None else f"{v['value']:+.2f}° ± {v['sd']:.2f}°")
+        self.missing_label.setText(self.angles.missing_message())
+
+    def show_pick(self, text: str) -> None:
+        self.pick_label.setText(text)
+
+
+# ---------------------------------------------------------------------------- store glue
+
+def marks_from_store(rows) -> MarkSet:
+    """core.store.Mark rows → MarkSet. An auto mark counts as confirmed once an operator has
+    confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
+    return {r.label: Mark((r.x, r.y, r.z), r.source,
+                          r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
+            for r in rows}
+
+
+def save_marks(store, trial_id: int, changes: dict[int, Mark | None]) -> None:
+    """Write changed marks (grouped by provenance, as update_marks takes one source per call),
+    delete removed ones, and let the store recompute the trial's angles."""
+    groups: dict[tuple[str, str], dict[int, tuple]] = {}
+    for lab, m in changes.items():
+        if m is not None:
+            groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
+    for (source, placed_by), marks in groups.items():
+        store.update_marks(trial_id, marks, source, placed_by)
+    removed = [lab for lab, m in changes.items() if m is None]
+    if removed:
+        delete_marks(store, trial_id, removed)
+
+
+def delete_marks(store, trial_id: int, labels) -> None:
+    """Remove marks and recompute the trial's angles from the rest.
+
+    Uses ``Store.delete_marks`` when the store has it; core.store has no public delete yet,
+    so until then this runs the same two steps in one of the store's own write transactions.
+    """
+    if hasattr(store, "delete_marks"):
+        store.delete_marks(trial_id, list(labels))
+        return
+    trial = store.get_trial(trial_id)
+    with store._write() as c:
+        c.executemany("DELETE FROM marks WHERE trial_id = ? AND label = ?", [(trial_id, int(lab)) for lab in labels])
+        rest = {r[0]: r[1:] for r in c.execute("SELECT label, x, y, z FROM marks WHERE trial_id = ?", (trial_id,))}
+        store._store_angles(c, trial, compute_angles(rest), None)
+
+
+def as_array(marks: MarkSet) -> dict[int, np.ndarray]:
+    return {lab: np.asarray(m.xyz) for lab, m in marks.items()}
+
+
+# ---------------------------------------------------------------------------- the page
+
+class MarksPage(QWidget):
+    """The main window's 3-D page: view controls, the viewer, the mark editor beside it."""
+
+    def __init__(self, operator: str = "", parent=None):
+        super().__init__(parent)
+        from PySide6.QtWidgets import QComboBox, QSplitter
+        from app.viewer import COLOR_DEPTH, COLOR_WHITE, CloudViewer
+        self.viewer = CloudViewer()
+        self.editor = MarkEditor(self.viewer, operator)
+        self.title = QLabel("3-D view and marks")
+        self.title.setObjectName("heading")
+        bar = QHBoxLayout()
+        bar.addWidget(self.title, 1)
+        for text, key, slot in (("Reset", "R", self.viewer.reset_view),
+                                ("Front", "F", lambda: self.viewer.set_view("front")),
+                                ("Lateral", "L", lambda: self.viewer.set_view("lateral")),
+                                ("Top", "T", lambda: self.viewer.set_view("top"))):
+            b = QPushButton(text)
+            b.setToolTip(f"{text} view (key {key} in the view)")
+            b.clicked.connect(slot)
+            bar.addWidget(b)
+        self.colour = QComboBox()
+        self.colour.addItem("Colour: white frame", COLOR_WHITE)
+        self.colour.addItem("Colour: depth", COLOR_DEPTH)
+        self.colour.currentIndexChanged.connect(lambda _: self.viewer.set_color_mode(self.colour.currentData()))
+        self.point_size = QComboBox()
+        self.point_size.addItem("Points: auto", None)
+        for s in (1, 2, 3, 4, 6):
+            self.point_size.addItem(f"Points: {s} px", s)
+        self.point_size.currentIndexChanged.connect(lambda _: self.viewer.set_point_size(self.point_size.currentData()))
+        bar.addWidget(self.colour)
+        bar.addWidget(self.point_size)
+        self.status = QLabel("Drag to orbit, right-drag or Shift-drag to pan, wheel to zoom; click to place a mark.")
+        self.status.setObjectName("hint")
+        self.viewer.statusMessage.connect(self.status.setText)
+        split = QSplitter()
+        split.addWidget(self.viewer)
+        split.addWidget(self.editor)
+        split.setStretchFactor(0, 1)
+        split.setSizes([900, 330])
+        outer = QVBoxLayout(self)
+        outer.addLayout(bar)
+        outer.addWidget(split, 1)
+        outer.addWidget(self.status)
+
+    def open_cloud(self, cloud, scanner_eye=None, title: str = "") -> None:
+        self.viewer.set_cloud(cloud, scanner_eye=scanner_eye)
+        self.title.setText(title or "3-D view and marks")

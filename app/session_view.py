@@ -1,0 +1,219 @@
+"""Session plots (pyqtgraph): the paper's Fig. 10 and Figs. 11–12, interactive.
+
+Top: mismatch against the reference plantar-flexion setting, one curve (mean per setting) per
+inversion setting, every trial as a point; hovering a point names the trial, clicking it
+emits ``trialActivated`` so the main window opens that trial in the 3-D viewer. Bottom: the
+error range per plantar-flexion setting for one inversion setting (mean, ±1 SD, min–max).
+The grouping is core.report's (settings rounded to 0.1°), so screen and PDF agree.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
+
+from core.report import COLOURS
+
+AXES = {"inversion": "Mismatch of inversion (°)", "plantar_flexion": "Mismatch of plantar flexion (°)"}
+PF_LABEL = "Reference plantar flexion (°)"
+
+
+def _setting(v):
+    return None if v is None else round(float(v), 1)
+
+
+def measured_rows(rows) -> list[dict]:
+    return [r for r in rows if r.get("mismatch_inversion") is not None
+            and r.get("ref_inversion") is not None and r.get("ref_plantar_flexion") is not None]
+
+
+def group(rows, axis: str) -> dict[float, dict[float, list[dict]]]:
+    """inversion setting → plantar-flexion setting → the trials (rows) measured there."""
+    out: dict = defaultdict(lambda: defaultdict(list))
+    for r in measured_rows(rows):
+        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(r)
+    return out
+
+
+def trial_tip(r: dict, axis: str) -> str:
+    return (f"Trial {r['trial_id']} · {r.get('patient_code', '')} {r.get('session_date', '')}\n"
+            f"reference inv {r['ref_inversion']:+.1f}°, PF {r['ref_plantar_flexion']:+.1f}°\n"
+            f"mismatch {axis.replace('_', ' ')} {r[f'mismatch_{axis}']:+.2f}°"
+            + (f" ± {r[f'mismatch_{axis}_sd']:.2f}°" if r.get(f"mismatch_{axis}_sd") is not None else ""))
+
+
+class SessionView(QWidget):
+    trialActivated = Signal(int)
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        pg.setConfigOptions(antialias=True)
+        self.rows: list[dict] = []
+        self.title = ""
+        self.axis_box = QComboBox()
+        for key, label in AXES.items():
+            self.axis_box.addItem(label.replace(" (°)", ""), key)
+        self.inversion_box = QComboBox()
+        self.axis_box.currentIndexChanged.connect(lambda _: self.redraw())
+        self.inversion_box.currentIndexChanged.connect(lambda _: self._draw_error_range())
+        self.info = QLabel("")
+        self.info.setObjectName("hint")
+        controls = QHBoxLayout()
+        controls.addWidget(QLabel("Axis"))
+        controls.addWidget(self.axis_box)
+        controls.addSpacing(16)
+        controls.addWidget(QLabel("Error range at inversion"))
+        controls.addWidget(self.inversion_box)
+        controls.addStretch(1)
+        controls.addWidget(self.info)
+        self.layout_widget = pg.GraphicsLayoutWidget()
+        self.layout_widget.setBackground("w")
+        self.fig10 = self.layout_widget.addPlot(row=0, col=0)
+        self.error_plot = self.layout_widget.addPlot(row=1, col=0)
+        for p in (self.fig10, self.error_plot):
+            p.showGrid(x=True, y=True, alpha=0.15)
+            p.setLabel("bottom", PF_LABEL)
+            p.setMenuEnabled(False)
+            p.getViewBox().setDefaultPadding(0.1)  # room for the n= labels above the bars
+            for side in ("left", "bottom"):
+                p.getAxis(side).setPen("#8a949e")
+                p.getAxis(side).setTextPen("#33414e")
+        outer = QVBoxLayout(self)
+        outer.addLayout(controls)
+        outer.addWidget(self.layout_widget, 1)
+        self.redraw()
+
+    @property
+    def axis(self) -> str:
+        return self.axis_box.currentData()
+
+    # ---- data ----------------------------------------------------------------------------
+    def set_rows(self, rows: list[dict], title: str = "") -> None:
+        """Rows as core.store.Store.study_rows() gives them (one session's or several)."""
+        self.rows, self.title = list(rows), title
+        settings = sorted(group(self.rows, "inversion"))
+        self.inversion_box.blockSignals(True)
+        self.inversion_box.clear()
+        for inv in settings:
+            self.inversion_box.addItem(f"{inv:g}°", inv)
+        self.inversion_box.blockSignals(False)
+        n = len(measured_rows(self.rows))
+        self.info.setText(f"{n} measured trial{'s' if n != 1 else ''} of {len(self.rows)}")
+        self.redraw()
+
+    def load_sessions(self, store, session_ids) -> None:
+        ids = {int(i) for i in session_ids}
+        self.set_rows([r for r in store.study_rows() if r["session_id"] in ids])
+
+    # ---- drawing -------------------------------------------------------------------------
+    def redraw(self) -> None:
+        self._draw_fig10()
+        self._draw_error_range()
+
+    def _draw_fig10(self) -> None:
+        p, axis = self.fig10, self.axis
+        p.clear()
+        p.addLegend(offset=(10, 10), labelTextSize="9pt")
+        p.setTitle("Mismatch against plantar flexion, one curve per inversion setting"
+                   + (f" — {self.title}" if self.title else ""), size="10pt")
+        p.setLabel("left", AXES[axis])
+        p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
+        data = group(self.rows, axis)
+        self.trial_points = {}
+        for k, inv in enumerate(sorted(data)):
+            colour = COLOURS[k % len(COLOURS)]
+            dx = (k - (len(data) - 1) / 2) * 0.6  # curves side by side, as in the PDF report
+            pfs = sorted(data[inv])
+            means = [np.mean([r[f"mismatch_{axis}"] for r in data[inv][pf]]) for pf in pfs]
+            p.plot([pf + dx for pf in pfs], means, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=8,
+                   symbolBrush=colour, symbolPen="w", name=f"inversion {inv:g}°")
+            self._add_trial_points(p, data[inv], dx, colour, axis)
+        if not data:
+            self._no_data(p)
+
+    def _add_trial_points(self, plot, per_pf, dx, colour, axis) -> None:
+        spots = [{"pos": (pf + dx, r[f"mismatch_{axis}"]), "data": r} for pf, rows in per_pf.items() for r in rows]
+        scatter = pg.ScatterPlotItem(size=7, pen=pg.mkPen(colour), brush=pg.mkBrush(pg.mkColor(colour).lighter(170)),
+                                     hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
+                                     tip=lambda x, y, data: trial_tip(data, axis))
+        scatter.addPoints(spots)
+        scatter.sigClicked.connect(self._point_clicked)
+        plot.addItem(scatter)
+        for s in spots:
+            self.trial_points[s["data"]["trial_id"]] = s["pos"]
+
+    def _point_clicked(self, _item, points, _ev=None) -> None:
+        if len(points):
+            self.trialActivated.emit(int(points[0].data()["trial_id"]))
+
+    def _draw_error_range(self) -> None:
+        p, axis = self.error_plot, self.axis
+        p.clear()
+        inv = self.inversion_box.currentData()
+        p.setLabel("left", AXES[axis])
+        p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
+        per_pf = group(self.rows, axis).get(inv, {}) if inv is not None else {}
+        p.setTitle(f"Error range of the mismatch — inversion setting {inv:g}°" if inv is not None
+                   else "Error range of the mismatch", size="10pt")
+        if not per_pf:
+            self._no_data(p)
+            return
+        p.addLegend(offset=(10, 10), labelTextSize="9pt")
+        pfs = sorted(per_pf)
+        values = [np.array([r[f"mismatch_{axis}"] for r in per_pf[pf]]) for pf in pfs]
+        x = np.array(pfs, float)
+        lo, hi = np.array([v.min() for v in values]), np.array([v.max() for v in values])
+        mean = np.array([v.mean() for v in values])
+        sd = np.array([v.std(ddof=1) if v.size > 1 else 0.0 for v in values])
+        p.addItem(pg.ErrorBarItem(x=x, y=(lo + hi) / 2, height=hi - lo, beam=0.8, pen=pg.mkPen("#59636e", width=1.2)))
+        p.addItem(pg.ErrorBarItem(x=x, y=mean, height=2 * sd, beam=0, pen=pg.mkPen(pg.mkColor(COLOURS[0] + "80"), width=9)))
+        p.plot(x, mean, pen=None, symbol="o", symbolSize=9, symbolBrush=COLOURS[1], symbolPen="w", name="mean")
+        p.plot([], [], pen=pg.mkPen(pg.mkColor(COLOURS[0] + "80"), width=9), name="± 1 SD")
+        p.plot([], [], pen=pg.mkPen("#59636e", width=1.2), name="min – max")
+        for xi, top, v in zip(x, np.maximum(hi, mean + sd), values):
+            t = pg.TextItem(f"n={v.size}", color="#59636e", anchor=(0.5, 1.2))
+            t.setPos(xi, top)
+            p.addItem(t)
+
+    def _no_data(self, plot) -> None:
+        t = pg.TextItem("no measured trials yet: place the seven marks", color="#7a8692", anchor=(0.5, 0.5))
+        t.setPos(0, 0)
+        plot.addItem(t)
+
+    # ---- export --------------------------------------------------------------------------
+    def export(self, path) -> Path:
+        """Both plots as one PNG (2× for print) or SVG, chosen by the file's suffix."""
+        path = Path(path)
+        if path.suffix.lower() == ".svg":
+            self._export_svg(path)
+        else:
+            from pyqtgraph import exporters
+            item = self.layout_widget.ci
+            ex = exporters.ImageExporter(item)
+            ex.parameters()["width"] = int(item.boundingRect().width() * 2)
+            ex.export(str(path))
+        return path
+
+    def _export_svg(self, path: Path) -> None:
+        # pyqtgraph 0.14's SVGExporter fails on the path syntax Qt 6.11 writes
+        # (pyqtgraph issue #3485); Qt's own generator renders the same scene as vectors.
+        from PySide6.QtCore import QRectF, QSize
+        from PySide6.QtGui import QPainter
+        from PySide6.QtSvg import QSvgGenerator
+        rect = self.layout_widget.ci.sceneBoundingRect()
+        gen = QSvgGenerator()
+        gen.setFileName(str(path))
+        gen.setSize(QSize(int(rect.width()), int(rect.height())))
+        gen.setViewBox(QRectF(0, 0, rect.width(), rect.height()))
+        gen.setTitle("AnkleScan session plots")
+        painter = QPainter(gen)
+        try:
+            painter.fillRect(QRectF(0, 0, rect.width(), rect.height()), pg.mkColor("w"))
+            self.layout_widget.scene().render(painter, QRectF(0, 0, rect.width(), rect.height()), rect)
+        finally:
+            painter.end()
