@@ -395,10 +395,17 @@ class MainWindow(QMainWindow):
         self.camera_panel = CameraPanel(available_backends(), self.settings.get("saturation_level"))
         self.camera_panel.backendChanged.connect(self.switch_backend)
         self.camera_panel.controlChanged.connect(self._remember_control)
+        self.camera_panel.set_settle_ms(self.settings.get("settle_ms"))
+        self.camera_panel.settleChanged.connect(lambda ms: self.settings.set("settle_ms", round(ms)))
+        self.camera_panel.deviceChanged.connect(self._choose_device)
         self.camera_holder.addWidget(self.camera_panel)
         self.camera_holder.setCurrentWidget(self.camera_panel)
         self.switch_backend(self.settings.get("camera_backend"))
         QTimer.singleShot(0, self.ensure_marks_page)
+
+    def _choose_device(self, backend: str, device: str) -> None:
+        self.settings.set("camera_device", device)
+        self.switch_backend(backend)
 
     def switch_backend(self, backend: str) -> None:
         from app.rig import SIMULATED, open_rig
@@ -455,6 +462,8 @@ class MainWindow(QMainWindow):
             self.controller.cancelled.connect(self._scan_cancelled)
             self.controller.busyChanged.connect(self._busy)
             self.projector.frameShown.connect(self._feed_simulated_projector)
+            if self.camera_panel is not None:
+                self.camera_panel.set_projector(self.projector)
         elif self.projector.projector_size != self.rig.projector_size:
             self.projector.set_projector_size(self.rig.projector_size)
 
