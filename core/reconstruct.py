@@ -49,7 +49,8 @@ def point_quality(decoded: DecodeResult, idx: np.ndarray, full_scale: float) -> 
     return np.clip((w - b) / np.float32(full_scale), 0, 1)
 
 
-EDGE_BASE_TOL_PX = 0.5  # column second differences on smooth surfaces stay far below this
+EDGE_BASE_TOL_PX = 1.0  # a mixed pixel errs by at most the step it straddles; a 1-px column step is
+# ~2 mm of depth here, so smaller steps (a mark plate's 1.5 mm rim) cannot make outliers
 EDGE_K_SIGMA = 5.0  # plus this many standard deviations of a second difference's noise
 
 
