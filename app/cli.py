@@ -116,7 +116,8 @@ def cmd_angles(args) -> int:
 def cmd_demo(args) -> int:
     from app.demo import run_demo
 
-    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet))
+    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
+                    scale=1.0 if args.full_resolution else 0.5)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -131,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="a whole clinical session on the built-in simulated rig")
     d.add_argument("--out", required=True, help="output folder")
-    d.add_argument("--quick", action="store_true", help="fewer trials at a lower resolution (for a quick look)")
+    d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
+    d.add_argument("--full-resolution", action="store_true",
+                   help="simulate the 1600x1200 camera and 1024x768 projector (default: half, for speed)")
     d.set_defaults(func=cmd_demo)
 
     pt = sub.add_parser("patterns", help="write the projector patterns and manifest.json")
