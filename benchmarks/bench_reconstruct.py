@@ -2,7 +2,11 @@
 1024x768, noise 2/255): accuracy of the default and paper presets against ground truth, time of
 decode + triangulate, and peak memory of the whole ``anklescan reconstruct`` command.
 
-    python benchmarks/bench_reconstruct.py [--runs 7] [--scale 1.0] [--keep DIR]
+    python benchmarks/bench_reconstruct.py [--runs 7] [--scale 1.0] [--keep DIR] [--calibration true|box]
+
+``--calibration box`` first calibrates from a simulated scan of the calibration box (column and
+row patterns) and reconstructs with that instead of the rig's true calibration: the whole
+calibrate-then-scan path.
 """
 
 from __future__ import annotations
@@ -35,6 +39,19 @@ def simulate(rig: SimRig, preset: str, folder: Path) -> Path:
     return save_capture(folder, pset, [rig.capture(img) for img in render_all(pset)])
 
 
+def box_calibration(rig: SimRig, work: Path):
+    from core.calibration_box import box_scene_objects, calibrate_from_box_capture
+    from hardware.sim_scene import quad_scene
+
+    box = rig.with_scene(quad_scene(box_scene_objects()))
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
+    folder = save_capture(work / "capture_box", pset, [box.capture(img) for img in render_all(pset)])
+    cal, report = calibrate_from_box_capture(folder)
+    print("box calibration:\n  " + "\n  ".join(report.format_text().splitlines()[:1] + [
+        line for line in report.format_text().splitlines() if line.startswith("projector")]))
+    return cal
+
+
 def time_reconstruct(capture, cal, runs: int) -> tuple[float, float, object]:
     cloud = cloud_from_decoded(capture, cal, decode(capture))  # warm-up: builds the calibration cache
     times = []
@@ -65,10 +82,11 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--keep", type=Path, help="keep the simulated captures here")
+    ap.add_argument("--calibration", choices=("true", "box"), default="true")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-"))
     rig = SimRig(scale=args.scale)
-    cal = rig.true_calibration()
+    cal = rig.true_calibration() if args.calibration == "true" else box_calibration(rig, work)
     cal_path = work / "calibration.json"
     save_calibration(cal, cal_path)
     print(f"rig: camera {rig.camera.width}x{rig.camera.height}, projector {rig.projector.width}x{rig.projector.height}")

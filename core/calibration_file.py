@@ -9,12 +9,12 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from core.atomic import write_text_atomic  # noqa: F401  (re-exported: callers write via this module)
 from core.device_model import AXES, Device
 from core.errors import CalibrationError
 
@@ -125,18 +125,3 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
 
 def save_calibration(cal: Calibration, path: str | os.PathLike) -> None:
     write_text_atomic(Path(path), json.dumps(calibration_to_dict(cal), indent=2) + "\n")
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write via a temporary sibling and rename, so readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

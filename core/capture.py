@@ -25,9 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.atomic import write_json_atomic
 from core.errors import CaptureError
-from core.patterns import (PatternSet, imwrite_checked, load_manifest, replace_dir,
-                           write_json_atomic)
+from core.patterns import PatternSet, imwrite_checked, load_manifest, replace_dir
 
 MANIFEST = "manifest.json"
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",

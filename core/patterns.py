@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from core.atomic import write_json_atomic
 from core.errors import CaptureError
 
 FORMAT = "anklescan-patterns"
@@ -438,19 +439,6 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
 
 
 # ----------------------------------------------------------------------- writing
-def write_json_atomic(path: Path, obj) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(obj, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        _unlink_quiet(tmp)
-        raise
-
-
 def _unlink_quiet(p) -> None:
     try:
         os.unlink(p)
