@@ -157,6 +157,7 @@ class MainWindow(QMainWindow):
         self.rig = None
         self.projector = None
         self.controller = None
+        self.calibration_id = None  # the stored calibration patient scans use (None: the rig's own)
         self.camera_panel = None
         self.last_result = None
         self._trial_id = None
@@ -270,6 +271,7 @@ class MainWindow(QMainWindow):
         self.cancel_action = act(scan, "&Cancel scan", self.cancel_scan, "Esc")
         self.cancel_action.setEnabled(False)
         scan.addSeparator()
+        act(scan, "Ca&libration…", self.open_calibration)
         project = scan.addMenu("&Projector shows")
         act(project, "White", lambda: self._projector_show("white"))
         act(project, "Black", lambda: self._projector_show("black"))
@@ -373,7 +375,7 @@ class MainWindow(QMainWindow):
             self.banner.show_message("warning", "Select or add a patient first (Ctrl+N).")
             return None
         condition = condition or self.new_session_condition.currentData()
-        session = self.store.start_session(pid, condition=condition)
+        session = self.store.start_session(pid, condition=condition, calibration_id=self.calibration_id)
         self._patient_changed(select_session=session.id)
         return session
 
@@ -434,6 +436,31 @@ class MainWindow(QMainWindow):
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
             self.show_projector()
         self._update_projector_label()
+        from app.calibration_wizard import load_current_calibration
+        cal, cid = load_current_calibration()
+        if cal is not None:  # the accepted calibration replaces the rig's default
+            self.rig.calibration, self.calibration_id = cal, cid
+        self.check_calibration_age()
+
+    def open_calibration(self) -> None:
+        from app.calibration_wizard import CalibrationWizard
+        if self.rig is None or self.projector is None or (self.controller and self.controller.busy):
+            return
+        dlg = CalibrationWizard(self.rig, self.projector, store=self.store, data_folder=self.data_folder(),
+                                settle_s=self.settings.get("settle_ms") / 1000.0, parent=self)
+        dlg.calibrationAccepted.connect(self._calibration_accepted)
+        dlg.verificationDone.connect(lambda _r: self.check_calibration_age())
+        dlg.exec()
+        self.check_calibration_age()
+
+    def _calibration_accepted(self, cal, cid, path) -> None:
+        self.rig.calibration, self.calibration_id = cal, cid
+
+    def check_calibration_age(self) -> None:
+        from app.calibration_wizard import calibration_warning
+        text = calibration_warning()
+        if text:
+            self.banner.show_message("warning", text)
 
     def _apply_stored_controls(self) -> None:
         stored = {"exposure": "camera_exposure_ms", "gain": "camera_gain"}

@@ -307,23 +307,7 @@ def save_marks(store, trial_id: int, changes: dict[int, Mark | None]) -> None:
         store.update_marks(trial_id, marks, source, placed_by)
     removed = [lab for lab, m in changes.items() if m is None]
     if removed:
-        delete_marks(store, trial_id, removed)
-
-
-def delete_marks(store, trial_id: int, labels) -> None:
-    """Remove marks and recompute the trial's angles from the rest.
-
-    Uses ``Store.delete_marks`` when the store has it; core.store has no public delete yet,
-    so until then this runs the same two steps in one of the store's own write transactions.
-    """
-    if hasattr(store, "delete_marks"):
-        store.delete_marks(trial_id, list(labels))
-        return
-    trial = store.get_trial(trial_id)
-    with store._write() as c:
-        c.executemany("DELETE FROM marks WHERE trial_id = ? AND label = ?", [(trial_id, int(lab)) for lab in labels])
-        rest = {r[0]: r[1:] for r in c.execute("SELECT label, x, y, z FROM marks WHERE trial_id = ?", (trial_id,))}
-        store._store_angles(c, trial, compute_angles(rest), None)
+        store.delete_marks(trial_id, removed)
 
 
 def as_array(marks: MarkSet) -> dict[int, np.ndarray]:

@@ -29,6 +29,7 @@ KEYS = {
     "camera_exposure_ms": Key("camera/exposure_ms", 0.0, float),  # 0 = the device's default
     "camera_gain": Key("camera/gain", 0.0, float),
     "settle_ms": Key("scan/settle_ms", 30, int),
+    "calibration_max_age_days": Key("calibration/max_age_days", 30, int),  # read by app.calibration_wizard
     "sim_scale": Key("scan/sim_scale", 0.25, float),
     "pattern_preset": Key("scan/pattern_preset", "default", str),
     "saturation_level": Key("thresholds/saturation_level", 250, int),

@@ -511,6 +511,23 @@ class Store:
         d["verified"] = bool(d["verified"])
         return Calibration(**d)
 
+    def set_calibration_verified(self, cid: int, verified: bool) -> Calibration:
+        """Record the outcome of a verification scan of the box for this calibration."""
+        self.get_calibration(cid)
+        with self._write() as c:
+            c.execute("UPDATE calibrations SET verified = ? WHERE id = ?", (int(bool(verified)), cid))
+        return self.get_calibration(cid)
+
+    def delete_marks(self, trial_id: int, labels) -> list[Mark]:
+        """Remove marks and recompute the trial's angles from those left, in one transaction."""
+        trial = self.get_trial(trial_id)
+        labs = [int(x) for x in labels]
+        with self._write() as c:
+            c.executemany("DELETE FROM marks WHERE trial_id = ? AND label = ?", [(trial_id, lab) for lab in labs])
+            left = {r[0]: r[1:] for r in c.execute("SELECT label, x, y, z FROM marks WHERE trial_id = ?", (trial_id,))}
+            self._store_angles(c, trial, compute_angles(left), None)
+        return self.get_marks(trial_id)
+
     # ------------------------------------------------------------ sessions
 
     def start_session(self, patient: int | str, *, condition: str, date=None,

@@ -296,3 +296,15 @@ def test_explicit_data_dir_overrides(tmp_path):
         assert s.data_dir == tmp_path / "files"
     with Store.open(tmp_path / "db" / "x.sqlite") as s:
         assert s.data_dir == tmp_path / "db"
+
+
+def test_verification_verdict_and_deleting_marks(db):
+    p, cal, ses, t = populate(db)
+    assert db.set_calibration_verified(cal.id, True).verified
+    assert not db.set_calibration_verified(cal.id, False).verified
+    db.update_marks(t.id, marks_for(12.0, 17.5), "auto", "detector")
+    left = db.delete_marks(t.id, [5])
+    assert [m.label for m in left] == [1, 2, 3, 4, 6, 7]
+    trial = db.get_trial(t.id)
+    assert trial.table_inversion is None  # a table needs marks 5, 6 and 7
+    assert trial.leg_inversion is not None

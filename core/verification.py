@@ -1,0 +1,148 @@
+"""Verification of a calibration: distances between box control points measured by a scan.
+
+A scan of the calibration box is reconstructed at the box's marker corners only: each
+detected corner's camera ray meets the projector plane of the column (and row) decoded there
+(read by core.calibration_box.projector_at's local homography). The control point that is
+compared is the marker *centre*, the mean of its four triangulated corners: optical blur pulls
+each corner of a black square inwards along its diagonal, and the four pulls cancel in the
+mean, while they add up in a corner-to-corner distance (docs/calibration_app.md has figures).
+
+Every pair of measured centres gives a distance, compared with the box drawing's. Pure
+numpy: no Qt, no files except in ``verify_box_capture``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core import calibration_box as cb
+from core.calibration_file import Calibration
+from core.errors import CalibrationError
+
+# Pass rule (docs/calibration_app.md): the RMS of the distance errors says whether the scale and
+# shape of the reconstruction are right; the maximum catches one region gone wrong.
+PASS_RMS_MM = 0.3
+PASS_MAX_MM = 1.0
+MIN_CENTRES = 6
+
+
+@dataclass
+class DistanceCheck:
+    a: int  # marker id
+    b: int
+    true_mm: float
+    measured_mm: float
+
+    @property
+    def error_mm(self) -> float:
+        return self.measured_mm - self.true_mm
+
+
+@dataclass
+class VerificationResult:
+    centres: dict  # marker id -> measured (3,) mm
+    pairs: list  # DistanceCheck
+    rms_mm: float
+    max_abs_mm: float
+    mean_mm: float  # signed: a scale error shows as a mean far from 0
+    passed: bool
+    limits: dict = field(default_factory=lambda: {"rms_mm": PASS_RMS_MM, "max_mm": PASS_MAX_MM})
+
+    def worst(self, n: int = 10) -> list:
+        return sorted(self.pairs, key=lambda p: -abs(p.error_mm))[:n]
+
+    def format_text(self) -> str:
+        verdict = "PASS" if self.passed else "FAIL"
+        lines = [f"Verification {verdict}: {len(self.pairs)} distances between {len(self.centres)} marker centres; "
+                 f"error RMS {self.rms_mm:.3f} mm, max {self.max_abs_mm:.3f} mm, mean {self.mean_mm:+.3f} mm "
+                 f"(limits: RMS ≤ {self.limits['rms_mm']:g} mm, max ≤ {self.limits['max_mm']:g} mm)"]
+        lines += [f"  markers {p.a:2d}–{p.b:2d}: true {p.true_mm:8.2f} mm, measured {p.measured_mm:8.2f} mm, "
+                  f"error {p.error_mm:+.3f} mm" for p in self.worst(5)]
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {"passed": self.passed, "rms_mm": self.rms_mm, "max_abs_mm": self.max_abs_mm, "mean_mm": self.mean_mm,
+                "limits": dict(self.limits), "n_centres": len(self.centres), "n_pairs": len(self.pairs),
+                "worst": [{"a": p.a, "b": p.b, "true_mm": p.true_mm, "measured_mm": p.measured_mm} for p in self.worst()]}
+
+
+# ==== triangulation at single points ======================================================
+def projector_planes(cal: Calibration, proj: np.ndarray) -> np.ndarray:
+    """World planes (N, 4) of projector columns; proj is (N,) columns or (N, 2) columns, rows.
+
+    With the row known the column's undistorted coordinate is exact for any lens; without it
+    the device's column plane is (exact for a column-only projector model).
+    """
+    p = cal.projector
+    proj = np.asarray(proj, dtype=np.float64)
+    if proj.ndim == 1 or p.axis == "column":
+        return p.column_plane(proj if proj.ndim == 1 else proj[:, 0])
+    xu, _ = p.normalized_from_pixels(proj)
+    n = np.stack([np.ones_like(xu), np.zeros_like(xu), -xu], axis=-1) @ p.R
+    return np.concatenate([n, -(n @ p.center)[:, None]], axis=1)
+
+
+def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -> np.ndarray:
+    """(N, 3) world mm: camera ray through each pixel ∩ its projector plane."""
+    cam = cal.camera
+    d = cam.rays(np.asarray(cam_uv, dtype=np.float64).reshape(-1, 2))
+    planes = projector_planes(cal, proj)
+    n, off = planes[:, :3], planes[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -(n @ cam.center + off) / np.einsum("ij,ij->i", n, d)
+    return cam.center + s[:, None] * d
+
+
+# ==== the box =============================================================================
+def measure_centres(cal: Calibration, white: np.ndarray, column: np.ndarray, row=None) -> dict:
+    """Marker id -> measured centre (3,) mm, for markers whose four corners were all read."""
+    found = cb.detect_markers(white)
+    w = np.asarray(white, dtype=np.float32)
+    if w.ndim == 3:
+        w = w.mean(axis=2)
+    maps = [column] if row is None else [column, row]
+    out = {}
+    for mid, corners in found.items():
+        proj = [cb.projector_at(c, maps, w) for c in corners]
+        if any(q is None for q in proj):
+            continue  # a centre from three corners would keep the blur's bias
+        X = triangulate_points(cal, corners, np.array(proj).reshape(4, len(maps)).squeeze())
+        if np.isfinite(X).all():
+            out[mid] = X.mean(axis=0)
+    return out
+
+
+def true_centres() -> dict:
+    return {mid: X.mean(axis=0) for mid, X in cb.marker_corners_world().items()}
+
+
+def compare_distances(measured: dict, truth: dict | None = None, *, rms_limit: float = PASS_RMS_MM,
+                      max_limit: float = PASS_MAX_MM) -> VerificationResult:
+    """Every pair of measured centres against the true distance."""
+    truth = true_centres() if truth is None else truth
+    ids = sorted(k for k in measured if k in truth)
+    if len(ids) < MIN_CENTRES:
+        raise CalibrationError(f"verification needs at least {MIN_CENTRES} whole markers; the scan read {len(ids)}: "
+                               "is the box fully in view and lit?")
+    pairs = [DistanceCheck(a, b, float(np.linalg.norm(truth[a] - truth[b])),
+                           float(np.linalg.norm(measured[a] - measured[b])))
+             for i, a in enumerate(ids) for b in ids[i + 1:]]
+    err = np.array([p.error_mm for p in pairs])
+    rms, mx = float(np.sqrt(np.mean(err**2))), float(np.abs(err).max())
+    return VerificationResult({k: measured[k] for k in ids}, pairs, rms, mx, float(err.mean()),
+                              bool(rms <= rms_limit and mx <= max_limit), {"rms_mm": rms_limit, "max_mm": max_limit})
+
+
+def verify_decoded(cal: Calibration, white, column, row=None) -> VerificationResult:
+    return compare_distances(measure_centres(cal, white, column, row))
+
+
+def verify_box_capture(capture_dir, cal: Calibration) -> VerificationResult:
+    """Verification from a capture folder of the box (SPEC §5)."""
+    from core.capture import load_capture
+    from core.decode import decode
+
+    result = decode(load_capture(capture_dir))
+    return verify_decoded(cal, result.white, result.column, result.row)

@@ -1,0 +1,188 @@
+"""The calibration dialog on the simulated rig (scale 0.5: coarser than full resolution, see
+docs/calibration_app.md for the thresholds and the full-resolution figures)."""
+
+import datetime as dt
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.gui
+
+SCALE = 0.5
+LEG_RMS_LIMIT_MM = 0.25  # at scale 0.5; the true calibration gives 0.133 mm here (0.15 mm is the full-res goal)
+SHOTS = os.environ.get("ANKLESCAN_CALIB_SHOTS")  # a folder: save the docs' screenshots there
+
+
+def _shot(widget, name):
+    if SHOTS:
+        widget.grab().save(str(Path(SHOTS) / name))
+
+
+@pytest.fixture
+def setup(qtbot, tmp_path):
+    from app.calibration_wizard import CalibrationWizard
+    from app.projector_window import ProjectorWindow
+    from app.rig import SIMULATED, open_rig
+    from core.store import Store
+
+    rig = open_rig(SIMULATED, scale=SCALE)
+    projector = ProjectorWindow(rig.projector_size)
+    qtbot.addWidget(projector)
+    projector.place("")
+    store = Store.open(data_dir=tmp_path / "data")
+    wiz = CalibrationWizard(rig, projector, store=store, data_folder=tmp_path / "data", settle_s=0.0)
+    qtbot.addWidget(wiz)
+    wiz.show()
+    yield rig, projector, store, wiz
+    wiz.done(0)
+    store.close()
+
+
+def _leg_rms(rig, cal, folder):
+    from core.capture import load_capture, save_capture
+    from core.patterns import make_pattern_set, render_all
+    from core.reconstruct import reconstruct
+    from hardware.sim_accuracy import evaluate
+
+    sim = rig.camera.rig  # the leg scene, same devices as the box scene
+    pset = make_pattern_set("default", sim.projector.width, sim.projector.height)
+    save_capture(folder, pset, sim.capture_many(render_all(pset)))
+    return evaluate(reconstruct(load_capture(folder), cal), sim.truth())["subject"].rms_mm
+
+
+def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
+    from PySide6.QtCore import Qt
+
+    from app.calibration_wizard import (PAGE_REPORT, PAGE_VERIFY, calibration_warning, current_calibration_info,
+                                        load_current_calibration)
+
+    rig, projector, store, wiz = setup
+    qtbot.waitUntil(lambda: "markers found" in wiz.place_count.text(), timeout=20000)
+    assert int(wiz.place_count.text().split()[0]) >= 18
+    _shot(wiz, "calib_place.png")
+    qtbot.mouseClick(wiz.scan_box_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.scan_progress.value() >= 20, timeout=60000)
+    _shot(wiz, "calib_scan.png")
+    qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT, timeout=120000)
+    rep = wiz.report
+    assert rep.camera.rms_px < 0.6 and rep.projector.rms_px < 0.6 and rep.projector.n_points >= 60
+    assert "RMS" in wiz.report_summary.text() and "±" in wiz.report_text.toPlainText()
+    assert wiz.calibration.projector.axis == "both"  # rows were scanned: the full 2-D model
+    _shot(wiz, "calib_report.png")
+
+    qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
+    assert wiz.pages.currentIndex() == PAGE_VERIFY
+    info = current_calibration_info()
+    assert Path(info["path"]).exists() and info["id"] is not None
+    assert store.get_calibration(info["id"]).rms == pytest.approx(rep.camera.rms_px)
+    cal, cid = load_current_calibration()
+    assert cid == info["id"] and np.allclose(cal.camera.K, wiz.calibration.camera.K)
+    session = store.start_session(store.add_patient("P1").id, condition="barefoot", calibration_id=cid)
+    assert store.session_summary(session.id).calibration.id == cid
+    assert calibration_warning() == ""
+
+    leg = _leg_rms(rig, cal, tmp_path / "leg")
+    print(f"leg scan with the wizard's calibration: RMS {leg:.3f} mm (scale {SCALE})")
+    assert leg <= LEG_RMS_LIMIT_MM
+
+    qtbot.mouseClick(wiz.verify_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.verification is not None, timeout=120000)
+    res = wiz.verification
+    print(res.format_text())
+    assert res.passed and res.rms_mm <= 0.2 and len(res.centres) >= 18
+    assert "PASS" in wiz.verify_verdict.text() and wiz.verify_table.rowCount() > 0
+    assert current_calibration_info()["verified"] == "pass"
+    assert Path(info["path"]).with_suffix(".verification.json").exists()
+    _shot(wiz, "calib_verify.png")
+
+    # a second accepted calibration is a new version; sessions keep theirs
+    wiz.accept_current()
+    assert current_calibration_info()["id"] != cid
+    assert store.get_session(session.id).calibration_id == cid
+
+
+def _visible_corners(sim_box, cal):
+    """Manual points the camera really sees (not hidden by the box itself)."""
+    from app.calibration_wizard import manual_points
+
+    truth = sim_box.truth()
+    out = []
+    for i, (_, X) in enumerate(manual_points()):
+        u, v = np.round(cal.camera.project(X[None])[0]).astype(int)
+        if 0 <= u < cal.camera.width and 0 <= v < cal.camera.height and \
+                np.linalg.norm(truth.points[v, u] - X) < 3.0 and truth.lit[v, u]:
+            out.append(i)
+    return out
+
+
+def test_manual_flow_reaches_focal_length(setup, qtbot):
+    from PySide6.QtCore import Qt
+
+    from app.calibration_wizard import PAGE_MANUAL, PAGE_REPORT, manual_points
+
+    rig, projector, store, wiz = setup
+    true = rig.calibration
+    wiz.go(PAGE_MANUAL)
+    projector.show_white()
+    qtbot.waitUntil(lambda: wiz._white_frame is not None, timeout=20000)
+    wiz._timer.stop()  # the test drives the picks; the live preview would only slow it down
+    white = wiz.camera.capture()
+    wiz.set_manual_image(white)
+    rng = np.random.default_rng(7)
+    pts = manual_points()
+    visible = _visible_corners(wiz.camera.rig, true)
+    assert len(visible) >= 80
+
+    # one real mouse click, to prove the event path: it lands on the named corner, refined
+    wiz.manual_goto(visible[0])
+    target = true.camera.project(pts[visible[0]][1][None])[0]
+    wiz.manual_view.zoom_to(*target, 8.0)
+    pos = wiz.manual_view.mapFromScene(*target)
+    qtbot.mouseClick(wiz.manual_view.viewport(), Qt.MouseButton.LeftButton, pos=pos)
+    assert np.hypot(*(np.array(wiz._manual_cam[visible[0]]) - target)) < 1.0
+    wiz.manual_undo()
+    assert visible[0] not in wiz._manual_cam
+
+    for i in visible:
+        X = pts[i][1]
+        wiz.manual_goto(i)
+        wiz.pick_camera(*(true.camera.project(X[None])[0] + rng.normal(0, 0.5, 2)))
+        # the spot is steered in whole projector pixels: the truth plus noise, rounded
+        projector.show_spot(*np.round(true.projector.project(X[None])[0] + rng.normal(0, 0.5, 2)).astype(int))
+        wiz.record_spot()
+    if SHOTS:  # the picture a clinician sees mid-way: spot on a corner, picks marked, zoomed in
+        i = visible[len(visible) // 3]
+        wiz.manual_goto(i)
+        projector.show_spot(*np.round(true.projector.project(pts[i][1][None])[0]).astype(int))
+        qtbot.wait(100)
+        wiz._show_manual_frame(wiz.camera.capture())
+        wiz.manual_view.zoom_to(*true.camera.project(pts[i][1][None])[0], 2.5)
+        _shot(wiz, "calib_manual.png")
+    assert wiz.calibrate_manual() and wiz.pages.currentIndex() == PAGE_REPORT
+    cal = wiz.calibration
+    f_err = abs(cal.camera.fx / true.camera.fx - 1)
+    fp_err = abs(cal.projector.fx / true.projector.fx - 1)
+    print(f"manual: camera f error {100 * f_err:.3f} %, projector f error {100 * fp_err:.3f} % "
+          f"({len(visible)} points)")
+    assert f_err <= 0.002
+    assert fp_err <= 0.015  # the spot's whole-pixel steps limit the projector (docs/calibration_app.md)
+
+
+def test_warning_banner_hook(tmp_path):
+    from app.calibration_wizard import (KEY_CREATED, KEY_MAX_AGE, KEY_PATH, KEY_VERIFIED, calibration_warning,
+                                        qsettings)
+
+    qs = qsettings()
+    assert "No calibration" in calibration_warning(qs)
+    now = dt.datetime(2025, 3, 1, tzinfo=dt.timezone.utc)
+    qs.setValue(KEY_PATH, str(tmp_path / "c.json"))
+    qs.setValue(KEY_CREATED, (now - dt.timedelta(days=10)).isoformat())
+    assert calibration_warning(qs, now) == ""
+    qs.setValue(KEY_CREATED, (now - dt.timedelta(days=45)).isoformat())
+    assert "45 days old" in calibration_warning(qs, now)
+    qs.setValue(KEY_MAX_AGE, 60)
+    assert calibration_warning(qs, now) == ""
+    qs.setValue(KEY_VERIFIED, "fail")
+    assert "verification failed" in calibration_warning(qs, now)
