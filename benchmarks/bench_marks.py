@@ -2,8 +2,9 @@
 
     /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick]
 
-Prints, per trial, each mark's centre error (mm), fitted radius, the four angle errors (deg)
-and whether all seven were found and labelled; then the worst cases.
+Prints, per trial, each labelled mark's centre error (mm), the four angle errors (deg),
+whether all seven were found and labelled, and which true marks were not found (each plate
+found is matched to the nearest true centre); then the worst cases and the counts.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.capture import capture_from_images  # noqa: E402
+from core.marks import LABELS  # noqa: E402
 from core.measure import measure_capture  # noqa: E402
 from core.patterns import make_pattern_set, render_all  # noqa: E402
 from hardware.sim_scene import leg_scene  # noqa: E402
@@ -37,6 +39,11 @@ def trial(inv, pf, scale, seed):
     tr = rig.truth()
     mark_err = {k: float(np.linalg.norm(m.centre - tr.marks[k])) for k, m in res.marks.labelled.items()}
     ang_err = {k: float(v["value"] - tr.angles[k]) for k, v in res.angles.items()}
+    nearest = {}
+    for m in res.marks.marks:
+        k = min(tr.marks, key=lambda k: np.linalg.norm(tr.marks[k] - m.centre))
+        nearest[k] = m.label
+    res.found_truth = nearest  # true label -> label given (None: found, not labelled)
     return res, mark_err, ang_err, dt
 
 
@@ -46,10 +53,14 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     a = ap.parse_args(argv)
     worst_mark, worst_angle, failures = 0.0, 0.0, 0
+    n_found = n_right = n_total = 0
     for i, (inv, pf) in enumerate(QUICK if a.quick else SETTINGS):
         res, me, ae, dt = trial(inv, pf, a.scale, seed=i)
         ok = res.complete
         failures += not ok
+        n_total += 7
+        n_found += len(res.found_truth)
+        n_right += sum(k == lab for k, lab in res.found_truth.items())
         worst_mark = max([worst_mark, *me.values()])
         worst_angle = max([worst_angle, *map(abs, ae.values())])
         marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(me.items()))
@@ -58,7 +69,9 @@ def main(argv=None):
               f"[{dt:.1f} s]", flush=True)
         if not ok:
             print("    " + res.marks.message(), flush=True)
-    print(f"worst mark error {worst_mark:.3f} mm, worst angle error {worst_angle:.3f} deg, incomplete trials {failures}")
+            print(f"    true marks not found: {', '.join(sorted(set(LABELS) - set(res.found_truth))) or 'none'}", flush=True)
+    print(f"worst mark error {worst_mark:.3f} mm, worst angle error {worst_angle:.3f} deg, incomplete trials {failures}; "
+          f"plates found {n_found}/{n_total}, correctly labelled {n_right}/{n_total}")
 
 
 if __name__ == "__main__":

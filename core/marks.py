@@ -6,8 +6,10 @@ Pipeline (docs/marks.md has the reasoning and the measured accuracy):
    top-hat (grey opening with a square larger than any plate) gives the brightness relative
    to the surrounding surface, so plates are found by local contrast, then by size (the
    expected plate radius at the blob's reconstructed depth) and shape (ellipse fill, solidity).
-2. **Plane**: robust least-squares plane through the decoded 3-D points of the plate's
-   interior (the rim is skipped: decoding blurs across the edge and the side wall is there).
+2. **Plane**: a consensus, then weighted robust least-squares plane through the decoded 3-D
+   points of the blob's interior; once a circle is found, refitted to the pixels well inside
+   the image of that circle (the top face only: at an oblique view the interior also holds
+   side wall and blurred rim, which tilted the plane by up to 9°), alternating with step 4.
 3. **Edge**: sub-pixel edge points along radial image profiles (the half-contrast crossing),
    their camera rays cut with the plane.
 4. **Circle**: a geometric least-squares circle in the plane through the edge points on the
@@ -55,7 +57,11 @@ MIN_INTERIOR_POINTS = 6
 MIN_EDGE_POINTS = 8
 
 # Geometry of the fit.
-INTERIOR_FRACTION = 0.55  # of the image ellipse: clear of the rim and of a visible side wall
+INTERIOR_FRACTION = 0.55  # of the image ellipse: a first plane, clear of most of the rim
+TOP_MARGIN_PX = 2.0  # the refined plane uses pixels this far inside the top face's image
+PLANE_PASSES = 6  # at most: plane from the top face <-> circle in that plane, until the
+PLANE_CONVERGED_MM = 0.005  # centre moves less than this
+CONSENSUS_TRIALS = 150  # first plane: the largest consensus among the blob's interior points
 PROFILE_STEP_PX = 0.2
 EDGE_OUTSIDE_PX = 2.5  # the outside level is the darkest within this of the edge (a thin shadow)
 WALL_SLOPE_LIMIT = 0.02  # keep edge points where a side wall would shift them < 0.02 x its height
@@ -72,6 +78,7 @@ SD_FLOOR_MM = 0.05
 # Labelling.
 TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
 AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
+PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
 
 
 @dataclass(eq=False)
@@ -160,10 +167,11 @@ def find_marks(white: np.ndarray, black: np.ndarray | None, cloud: PointCloud, c
     """
     image = _lit_image(white, black)
     points = points_image(cloud, image.shape)
+    sigma = sigma_image(cloud, image.shape)
     noise = _noise_sigma(image)
     result = MarkSet()
     for blob in candidate_blobs(image, points, cal, noise, plate_radius_mm):
-        mark, reason = fit_mark(image, points, blob, cal, plate_radius_mm)
+        mark, reason = fit_mark(image, points, blob, cal, plate_radius_mm, sigma)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
         else:
@@ -178,6 +186,17 @@ def points_image(cloud: PointCloud, shape: tuple) -> np.ndarray:
     if len(cloud):
         px = cloud.pixels.astype(np.intp)
         img[px[:, 1], px[:, 0]] = cloud.points
+    return img
+
+
+def sigma_image(cloud: PointCloud, shape: tuple):
+    """(H, W) float32 predicted noise per decoded pixel (NaN elsewhere), or None if the cloud
+    has no ``sigma``."""
+    if cloud.sigma is None or not len(cloud):
+        return None
+    img = np.full(shape, np.nan, np.float32)
+    px = cloud.pixels.astype(np.intp)
+    img[px[:, 1], px[:, 0]] = cloud.sigma
     return img
 
 
@@ -282,22 +301,28 @@ def _blob_shape(blob):
 
 # ---------------------------------------------------------------------------- 3-D fit
 
-def fit_mark(image, points, blob, cal: Calibration, radius_mm: float):
-    """Plane + far-side edge circle for one candidate; (Mark, '') or (None, reason)."""
+def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None):
+    """Plane + far-side edge circle for one candidate; (Mark, '') or (None, reason).
+
+    The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
+    holds side-wall and rim pixels), then refitted to the decoded points of the *top face*
+    only — the pixels at least ``TOP_MARGIN_PX`` inside the image of the circle found — and the
+    circle refitted in that plane (``PLANE_PASSES`` times). At the lateral plates' ~70° view a
+    plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
+    7.5 mm·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
+    """
     shape = _blob_shape(blob)
     if shape is None:
         return None, "too small to fit"
     if not (MIN_FILL <= shape["fill"] <= MAX_FILL and shape["solidity"] >= MIN_SOLIDITY):
         return None, f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})"
     interior = _ellipse_pixels(shape, INTERIOR_FRACTION, image.shape)
-    P = points[interior[:, 1], interior[:, 0]].astype(np.float64)
-    P = P[np.isfinite(P[:, 0])]
-    if len(P) < MIN_INTERIOR_POINTS:
-        return None, f"only {len(P)} decoded 3-D points on the plate"
-    centroid, normal, plane_rms, n_in = fit_plane(P)
     cam_c = cal.camera.center
-    if normal @ (cam_c - centroid) < 0:
-        normal = -normal
+    plane = _plane_from_pixels(points, sigma, interior, cam_c, consensus=True)
+    if plane is None:
+        n_dec = int(np.isfinite(points[interior[:, 1], interior[:, 0], 0]).sum())
+        return None, f"only {n_dec} decoded 3-D points on the plate"
+    centroid, normal, plane_rms, n_in = plane
     if plane_rms > MAX_PLANE_RMS_MM:
         return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
     r_px = float(_plate_radius_px(cal, _camera_depth(cal, centroid[None])[0], radius_mm))
@@ -307,16 +332,96 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float):
     if len(uv) < MIN_EDGE_POINTS:
         return None, "no clear edge"
     rays = cal.camera.rays(uv)
-    E = _ray_plane(cam_c, rays, centroid, normal)
-    fit = far_side_circle(E, rays, centroid, normal, cam_c, cal.projector.center, r_px / radius_mm, radius_mm)
-    if fit is None:
-        return None, "edge points do not form a circle"
+    px_per_mm = r_px / radius_mm
+    fit, last, seen = None, None, set()
+    for i in range(PLANE_PASSES + 1):
+        E = _ray_plane(cam_c, rays, centroid, normal)
+        fit = far_side_circle(E, rays, centroid, normal, cam_c, cal.projector.center, px_per_mm, radius_mm)
+        if fit is None:
+            return None, "edge points do not form a circle"
+        if i == PLANE_PASSES or (last is not None and np.linalg.norm(fit[0] - last) < PLANE_CONVERGED_MM):
+            break
+        last = fit[0]
+        top = _top_face_pixels(cal, fit[0], normal, radius_mm, image.shape)
+        key = top.tobytes()
+        if key in seen:
+            break  # the same pixels as a pass before: converged (or a 2-cycle of a pixel)
+        seen.add(key)
+        plane = _plane_from_pixels(points, sigma, top, cam_c)
+        if plane is None:
+            break  # keep the plane we have: too few decoded top-face points to do better
+        centroid, normal, plane_rms, n_in = plane
     centre, radius, rms, cov2, basis, n_edge, used_rays = fit
     if abs(radius - radius_mm) > RADIUS_TOLERANCE_MM or rms > MAX_CIRCLE_RMS_MM:
         return None, f"not a {radius_mm:g} mm plate (radius {radius:.2f} mm, edge RMS {rms:.2f} mm)"
+    if plane_rms > MAX_PLANE_RMS_MM:
+        return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in), ""
+
+
+def _plane_from_pixels(points, sigma, uv, cam_c, consensus=False):
+    """Robust plane (weighted by the points' predicted noise ``sigma`` where given) through the
+    decoded points at pixels ``uv``, its normal towards the camera; None if fewer than
+    MIN_INTERIOR_POINTS. ``consensus``: first keep only the largest set of points within
+    3 sigma of one plane (at an oblique view the blob's interior is up to ~40 % side wall and
+    rim, too many for the MAD rejection alone)."""
+    P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
+    ok = np.isfinite(P[:, 0])
+    if ok.sum() < MIN_INTERIOR_POINTS:
+        return None
+    P = P[ok]
+    s = (sigma[uv[ok, 1], uv[ok, 0]].astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
+    s = np.maximum(np.nan_to_num(s, nan=0.5), 0.01)
+    w = 1.0 / s**2
+    if consensus and len(P) > MIN_INTERIOR_POINTS:
+        sel = _plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
+        if sel.sum() >= MIN_INTERIOR_POINTS:
+            P, w = P[sel], w[sel]
+    c, n, rms, k = fit_plane(P, weights=w)
+    return c, (n if n @ (cam_c - c) >= 0 else -n), rms, k
+
+
+def _plane_consensus(P: np.ndarray, tol: float) -> np.ndarray:
+    """Inliers of the plane through three of the points that has the most points within
+    ``tol`` (deterministic sampling)."""
+    rng = np.random.default_rng(len(P))
+    best = np.ones(len(P), bool)
+    best_n = -1
+    for _ in range(CONSENSUS_TRIALS):
+        a, b, c = P[rng.choice(len(P), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-6:
+            continue
+        inl = np.abs((P - a) @ (n / norm)) <= tol
+        k = int(inl.sum())
+        if k > best_n:
+            best, best_n = inl, k
+    return best
+
+
+def _top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> np.ndarray:
+    """Integer (u, v) pixels at least TOP_MARGIN_PX inside the image of the circle (centre,
+    normal, radius): pixels that see only the plate's top face, clear of the blurred rim."""
+    B = _plane_basis(normal)
+    phi = np.linspace(0, 2 * math.pi, 96, endpoint=False)
+    rim = centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1])
+    uv = cal.camera.project(rim)
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 3
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, img_shape[1]), min(y1, img_shape[0])
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return np.zeros((0, 2), int)
+    # Rasterise at 8x sub-pixel precision, then keep pixel centres far enough inside.
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    poly = np.round((uv - [x0, y0]) * 8).astype(np.int32)
+    cv2.fillPoly(mask, [poly], 1, lineType=cv2.LINE_8, shift=3)
+    dist = cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    v, u = np.nonzero(dist > TOP_MARGIN_PX)
+    return np.stack([u + x0, v + y0], axis=1)
 
 
 def _ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
@@ -328,22 +433,27 @@ def _ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
     return np.stack([u, v], axis=1)
 
 
-def fit_plane(P: np.ndarray, iterations: int = 3):
-    """Least-squares plane with MAD-based rejection (stray decodes at the rim)."""
+def fit_plane(P: np.ndarray, iterations: int = 3, weights=None):
+    """(Weighted) least-squares plane with MAD-based rejection (stray decodes at the rim).
+    Returns centroid, unit normal, RMS distance of the kept points, number kept."""
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, float)
     keep = np.ones(len(P), bool)
+
+    def solve(sel):
+        ww = w[sel] / w[sel].sum()
+        c = ww @ P[sel]
+        _, _, vt = np.linalg.svd((P[sel] - c) * np.sqrt(ww)[:, None], full_matrices=False)
+        return c, vt[2]
+
     for _ in range(iterations):
-        c = P[keep].mean(axis=0)
-        _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
-        n = vt[2]
+        c, n = solve(keep)
         d = (P - c) @ n
         mad = 1.4826 * np.median(np.abs(d[keep]))
         new = np.abs(d) <= max(3.5 * mad, 0.05)
         if new.sum() < 3 or np.array_equal(new, keep):
             break
         keep = new
-    c = P[keep].mean(axis=0)
-    _, _, vt = np.linalg.svd(P[keep] - c, full_matrices=False)
-    n = vt[2]
+    c, n = solve(keep)
     rms = float(np.sqrt(np.mean(((P[keep] - c) @ n) ** 2)))
     return c, n, rms, int(keep.sum())
 
@@ -435,7 +545,7 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
     B = _plane_basis(normal)
     q = (E - origin_pt) @ B.T
     centre2 = _circle_kasa(q)
-    prior = (radius_mm, EDGE_NOISE_FLOOR_MM / RADIUS_PRIOR_SD_MM)
+    prior = (radius_mm, RADIUS_PRIOR_SD_MM)
     for _ in range(3):
         use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm)
         if use.sum() < MIN_EDGE_POINTS:
@@ -469,10 +579,14 @@ def _circle_kasa(q: np.ndarray) -> np.ndarray:
 def _circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     """Gauss-Newton on the distances |q - c| - r; returns centre, radius, residuals, cov(c).
 
-    ``prior = (R, weight)`` adds the pseudo-residual weight (r - R): a short arc leaves centre
-    and radius strongly correlated, and the plate's radius is known to a tenth of a mm.
+    ``prior = (R, sd)`` adds the observation r = R ± sd: a short arc leaves centre and radius
+    strongly correlated, and the plate's radius is known to a tenth of a mm. The prior's weight
+    is relative to the edge points' own scatter (their RMS residual, at least
+    EDGE_NOISE_FLOOR_MM), re-estimated every iteration: a fixed weight would let noisier edges
+    outvote it and trade the centre against the radius again.
     """
     p = np.array([c0[0], c0[1], r0], float)
+    scale = EDGE_NOISE_FLOOR_MM
 
     def system(p):
         d = q - p[:2]
@@ -481,12 +595,16 @@ def _circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
         r = rho - p[2]
         if prior is None:
             return J, r, rho
-        return np.vstack([J, [0.0, 0.0, prior[1]]]), np.r_[r, prior[1] * (p[2] - prior[0])], rho
+        w = scale / prior[1]
+        return np.vstack([J, [0.0, 0.0, w]]), np.r_[r, w * (p[2] - prior[0])], rho
 
     for _ in range(iterations):
         J, r, rho = system(p)
         if np.any(rho < 1e-9):
             return None
+        if prior is not None:
+            scale = max(float(np.sqrt(np.mean(r[: len(q)] ** 2))), EDGE_NOISE_FLOOR_MM)
+            J, r, rho = system(p)
         step, *_ = np.linalg.lstsq(J, -r, rcond=None)
         p += step
         if np.abs(step).max() < 1e-7:
@@ -525,8 +643,10 @@ def label_marks(ms: MarkSet) -> None:
         for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
             m.label = lab
         leg = [m for i, m in enumerate(marks) if i not in table]
-        if len(leg) == 4:
+        if len(leg) <= 4:
             _label_leg(leg, ms.problems)
+        else:
+            ms.problems.append(f"{len(leg)} leg mark plates (expected 4): leg marks not labelled")
     order = {lab: i for i, lab in enumerate(LABELS)}
     ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label, 99), m.pixel[1], m.pixel[0]))
 
@@ -585,20 +705,46 @@ def _table_order(ms):
 
 def _label_leg(leg, problems):
     """Knee pair above the ankle pair (along the leg axis, i.e. z); within a pair the front
-    plate faces anterior (+y) more than lateral (+x), the lateral one the other way round."""
+    plate faces anterior (+y) more than lateral (+x), the lateral one the other way round.
+
+    With only two or three leg plates found, what the geometry still decides is labelled: the
+    knee/ankle split is the widest gap in height (it must be clear: ≥ 100 mm), a lone plate in
+    its group is front or lateral by the sign of its score (|score| ≥ 0.5, else unlabelled).
+    """
+    if len(leg) < 2:
+        return
     z = np.array([m.centre[2] for m in leg])
     idx = np.argsort(z)
-    ankle, knee = [leg[i] for i in idx[:2]], [leg[i] for i in idx[2:]]
-    axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
-    gap = (z[idx[2]] - z[idx[1]])
-    if gap < 0.25 * np.linalg.norm(axis):
-        problems.append("knee and ankle marks are not clearly separated in height")
-        return
+    if len(leg) == 4:
+        ankle, knee = [leg[i] for i in idx[:2]], [leg[i] for i in idx[2:]]
+        axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
+        gap = (z[idx[2]] - z[idx[1]])
+        if gap < 0.25 * np.linalg.norm(axis):
+            problems.append("knee and ankle marks are not clearly separated in height")
+            return
+    else:
+        gaps = np.diff(z[idx])
+        k = int(np.argmax(gaps))
+        if gaps[k] < PARTIAL_LEG_GAP_MM:
+            problems.append("knee and ankle marks are not clearly separated in height")
+            return
+        ankle, knee = [leg[i] for i in idx[: k + 1]], [leg[i] for i in idx[k + 1:]]
+        if len(ankle) > 2 or len(knee) > 2:
+            problems.append("more than two leg marks at one height")
+            return
+        axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
     axis /= np.linalg.norm(axis)
     for pair, (front, lateral) in ((knee, ("1", "3")), (ankle, ("2", "4"))):
+        where = "knee" if front == "1" else "ankle"
         s = [_anterior_score(m, axis) for m in pair]
+        if len(pair) == 1:
+            if abs(s[0]) < 0.5:
+                problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
+            else:
+                pair[0].label = front if s[0] > 0 else lateral
+            continue
         if abs(s[0] - s[1]) < 0.5:  # normals ~90° apart give ~1.4; a tie means no decision
-            problems.append(f"cannot tell the front from the lateral {'knee' if front == '1' else 'ankle'} mark")
+            problems.append(f"cannot tell the front from the lateral {where} mark")
             continue
         f, l = (pair[0], pair[1]) if s[0] > s[1] else (pair[1], pair[0])
         f.label, l.label = front, lateral
