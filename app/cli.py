@@ -116,8 +116,10 @@ def cmd_angles(args) -> int:
 def cmd_demo(args) -> int:
     from app.demo import run_demo
 
+    from app.demo import DEMO_SCALE
+
     return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
-                    scale=1.0 if args.full_resolution else 0.5)
+                    scale=1.0 if args.full_resolution else DEMO_SCALE)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -134,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", required=True, help="output folder")
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
     d.add_argument("--full-resolution", action="store_true",
-                   help="simulate the 1600x1200 camera and 1024x768 projector (default: half, for speed)")
+                   help="simulate the 1600x1200 camera and 1024x768 projector (default: 0.75 of it, for speed)")
     d.set_defaults(func=cmd_demo)
 
     pt = sub.add_parser("patterns", help="write the projector patterns and manifest.json")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.atomic import write_text_atomic  # noqa: F401  (re-exported: callers write via this module)
+from core.atomic import write_text_atomic
 from core.device_model import AXES, Device
 from core.errors import CalibrationError
 

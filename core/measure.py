@@ -14,11 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from core.angles import AngleResult, compute_angles
-from core.calibration_file import Calibration, load_calibration, write_text_atomic
+from core.atomic import write_text_atomic
+from core.calibration_file import Calibration, load_calibration
 from core.capture import Capture, load_capture
 from core.decode import decode
 from core.errors import AnkleScanError
 from core.marks import MarkSet, find_marks
+from core.pointcloud import PointCloud
 from core.reconstruct import check_compatible, cloud_from_decoded
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
@@ -29,6 +31,7 @@ class MeasureResult:
     marks: MarkSet
     angles: AngleResult  # only the angles whose marks were labelled
     reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
+    cloud: PointCloud | None = field(default=None, repr=False)  # kept for the viewer and the PLY
 
     @property
     def complete(self) -> bool:
@@ -70,7 +73,7 @@ def measure_capture(capture: Capture, calibration: Calibration) -> MeasureResult
     marks = find_marks(decoded._white_raw, decoded._black_raw, cloud, calibration)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
-    return MeasureResult(marks, angles, _jsonable(summary))
+    return MeasureResult(marks, angles, _jsonable(summary), cloud)
 
 
 def run_measure(capture_dir, calibration_path, out_path) -> MeasureResult:

@@ -46,7 +46,8 @@ class Optics:
     projector_blur_px: float = 0.8  # Gaussian defocus, projector pixels
     camera_blur_px: float = 0.6  # Gaussian optical blur, camera pixels
     ambient: float = 0.04  # ambient irradiance / full white at the aim distance
-    exposure: float = 1.0  # signal = exposure * albedo * irradiance; 1.0 keeps the brightest mark (lateral knee) ~220 DN
+    exposure: float = 1.0  # signal = exposure * albedo * irradiance; the lateral knee plate, the brightest
+    # surface, is ~220 DN at the neutral posture but partly clips at plantar flexion > 0 (docs/marks.md)
     noise_sigma: float = 2.0 / 255.0  # read noise, fraction of full scale
     shot_noise: float = 0.0  # shot-noise variance per unit signal (full scale = 1); 0 = off
     specular: float = 0.0  # Blinn-Phong weight of the projector's highlight; 0 = Lambertian only
