@@ -155,13 +155,16 @@ class CameraPanel(QWidget):
 
     def _build(self) -> None:
         source = QGroupBox("Camera")
-        form = QFormLayout(source)
+        # a box layout, not a form row: only it gives a word-wrapped label the height it needs
+        source_box = QVBoxLayout(source)
+        form = QFormLayout()
         form.addRow("Backend", self.backend)
         device_row = QHBoxLayout()
         device_row.addWidget(self.device, 1)
         device_row.addWidget(self.refresh_button)
         form.addRow("Device", device_row)
-        form.addRow(self.usb_status)
+        source_box.addLayout(form)
+        source_box.addWidget(self.usb_status)
         timing = QGroupBox("Synchronisation")
         tf = QFormLayout(timing)
         tf.addRow("Settle time", self.settle)
@@ -183,7 +186,7 @@ class CameraPanel(QWidget):
         side.addStretch(1)
         side_w = QWidget()
         side_w.setLayout(side)
-        side_w.setFixedWidth(300)
+        side_w.setFixedWidth(360)  # room for "Backend", a device name and Refresh side by side
         right = QVBoxLayout()
         right.addWidget(self.preview, 1)
         right.addLayout(buttons)
