@@ -79,6 +79,7 @@ SD_FLOOR_MM = 0.05
 TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
 AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
 PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
+LEG_NORMAL_MAX_Z = 0.7  # without the table triple: leg plates are those with |n_z| < this
 
 
 @dataclass(eq=False)
@@ -351,14 +352,28 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
         if plane is None:
             break  # keep the plane we have: too few decoded top-face points to do better
         centroid, normal, plane_rms, n_in = plane
-    centre, radius, rms, cov2, basis, n_edge, used_rays = fit
-    if abs(radius - radius_mm) > RADIUS_TOLERANCE_MM or rms > MAX_CIRCLE_RMS_MM:
-        return None, f"not a {radius_mm:g} mm plate (radius {radius:.2f} mm, edge RMS {rms:.2f} mm)"
+    centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
+    # The free radius is a size check; on the short arc of an oblique plate it is itself
+    # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed one.
+    tol = max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd)
+    if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
+        return None, (f"not a {radius_mm:g} mm plate (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, "
+                      f"seen at {_view_deg(cam_c, centre, normal):.0f}°)")
     if plane_rms > MAX_PLANE_RMS_MM:
         return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
+    # The fit's centre assumes the nominal radius; a free radius off by Δ means the edge
+    # points are biased (side wall, blur at a grazing view) and the centre moves with them:
+    # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
+    cov += (0.5 * (radius - radius_mm)) ** 2 * (basis.T @ basis)
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in), ""
+
+
+def _view_deg(cam_c, centre, normal) -> float:
+    """Angle (deg) between the plate normal and the camera ray to its centre."""
+    d = centre - cam_c
+    return math.degrees(math.acos(min(abs(float(d @ normal)) / float(np.linalg.norm(d)), 1.0)))
 
 
 def _plane_from_pixels(points, sigma, uv, cam_c, consensus=False):
@@ -565,9 +580,25 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
             centre2, _, resid, cov2 = res
     free = _circle_geometric(q[use], centre2, radius_mm)
     radius = free[1] if free is not None else float("nan")
+    radius_sd = _radius_sd(q[use], free[0], free[1]) if free is not None else float("inf")
     centre = origin_pt + centre2 @ B
     rms = float(np.sqrt(np.mean(resid**2)))
-    return centre, radius, rms, cov2, B, int(use.sum()), rays[use]
+    return centre, radius, rms, cov2, B, int(use.sum()), rays[use], radius_sd
+
+
+def _radius_sd(q, c, r) -> float:
+    """SD of the *free* circle fit's radius (Gauss-Newton covariance at the solution, scaled
+    by the residual scatter, at least EDGE_NOISE_FLOOR_MM): small on a long arc, large on the
+    short arc of an obliquely seen plate, where centre and radius trade off."""
+    d = q - c
+    rho = np.linalg.norm(d, axis=1)
+    J = np.column_stack([-d / np.maximum(rho, 1e-9)[:, None], -np.ones(len(q))])
+    resid = rho - r
+    s2 = max(float(resid @ resid) / max(len(q) - 3, 1), EDGE_NOISE_FLOOR_MM**2)
+    try:
+        return float(math.sqrt(max(np.linalg.inv(J.T @ J)[2, 2] * s2, 0.0)))
+    except np.linalg.LinAlgError:
+        return float("inf")
 
 
 def _circle_kasa(q: np.ndarray) -> np.ndarray:
@@ -647,6 +678,13 @@ def label_marks(ms: MarkSet) -> None:
             _label_leg(leg, ms.problems)
         else:
             ms.problems.append(f"{len(leg)} leg mark plates (expected 4): leg marks not labelled")
+    else:
+        # No table triple: the leg plates still label themselves if exactly four plates face
+        # sideways (leg plates' normals are perpendicular to the near-vertical leg axis; the
+        # table plates' are within ~30° of +z), so a lost table plate does not cost the leg.
+        leg = [m for m in marks if abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
+        if len(leg) == 4:
+            _label_leg(leg, ms.problems)
     order = {lab: i for i, lab in enumerate(LABELS)}
     ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label, 99), m.pixel[1], m.pixel[0]))
 

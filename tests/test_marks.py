@@ -147,3 +147,19 @@ def test_full_resolution_targets():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
     for name, a in res.angles.items():
         assert abs(a["value"] - truth.angles[name]) < 0.2, name
+
+
+@pytest.mark.parametrize("inv,pf,drop", [(20, 10, ("5",)), (0, -20, ("6", "7")), (10, 20, ("5", "6", "7"))])
+def test_leg_marks_labelled_without_the_table_triple(inv, pf, drop):
+    """Table triple not identified (a table plate lost): the four leg plates still get 1–4."""
+    scene = leg_scene(inv, pf)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    rng = np.random.default_rng(5)
+    marks = _truth_marks(scene, drop=drop)
+    ms = MarkSet(marks=[marks[i] for i in rng.permutation(len(marks))])
+    label_marks(ms)
+    assert {m.label for m in ms.marks if m.label} == {"1", "2", "3", "4"}
+    for m in ms.marks:
+        assert m.label in (None, truth[tuple(np.round(m.centre, 6))])
+    assert ms.missing == ["5", "6", "7"] and len(ms.unlabelled) == 3 - len(drop)  # kept, unlabelled
+    assert not ms.complete and "table marks not identified" in ms.message()
