@@ -37,16 +37,20 @@ def point_colors(capture: Capture, idx: np.ndarray, white: np.ndarray) -> np.nda
     """RGB colour of each point from the white frame (colour camera) or its grey level."""
     if capture.white_color is not None:
         return capture.white_color.reshape(-1, 3)[idx][:, ::-1].copy()  # BGR → RGB
-    scale = 255.0 / capture.max_value
-    g = np.clip(white.reshape(-1)[idx] * scale, 0, 255).astype(np.uint8)
-    return np.repeat(g[:, None], 3, axis=1)
+    g = white.reshape(-1)[idx]
+    if capture.max_value != 255:
+        g = (g >> 8).astype(np.uint8)  # 16-bit: the high byte
+    out = np.empty((idx.size, 3), np.uint8)
+    out[:] = g[:, None]
+    return out
 
 
 def point_quality(decoded: DecodeResult, idx: np.ndarray, full_scale: float) -> np.ndarray:
     """Projector contrast (white − black) relative to full scale: low values are noisier points."""
     w = decoded._white_raw.reshape(-1)[idx].astype(np.float32)
-    b = decoded._black_raw.reshape(-1)[idx].astype(np.float32)
-    return np.clip((w - b) / np.float32(full_scale), 0, 1)
+    w -= decoded._black_raw.reshape(-1)[idx]
+    w *= np.float32(1.0 / full_scale)
+    return np.clip(w, 0, 1, out=w)
 
 
 EDGE_BASE_TOL_PX = 1.0  # a mixed pixel errs by at most the step it straddles; a 1-px column step is
@@ -83,25 +87,29 @@ _D2_V = _D2_H.T.copy()
 
 def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult) -> PointCloud:
     code = capture.pattern_set.axis_code("column")
-    edges = depth_edges(decoded.column, decoded.column_sigma, None if code.phase else code.stripe) & decoded.valid
-    valid = decoded.valid & ~edges
+    edges = depth_edges(decoded.column, decoded.column_sigma, None if code.phase else code.stripe)
+    decoded_valid = decoded.valid.view(np.uint8)
+    valid = cv2.bitwise_and(decoded_valid, cv2.bitwise_not(edges.view(np.uint8)) & 1).view(bool)
+    n_decoded, n_valid = cv2.countNonZero(decoded_valid), cv2.countNonZero(valid.view(np.uint8))
     has_phase = bool(code.phase)
     points, idx, sigma = triangulate_columns(cal, decoded.column, valid, column_sigma=decoded.column_sigma,
                                              max_sigma_mm=MAX_POINT_SIGMA_MM if has_phase else None)
-    noisy = int(valid.sum()) - idx.size  # dropped for predicted noise (or, rarely, grazing rays)
-    width = capture.shape[1]
-    pixels = np.stack([idx % width, idx // width], axis=1).astype(np.uint16)
+    noisy = n_valid - idx.size  # dropped for predicted noise (or, rarely, grazing rays)
+    row, col = np.divmod(idx, capture.shape[1])
+    pixels = np.empty((idx.size, 2), np.uint16)
+    pixels[:, 0], pixels[:, 1] = col, row
     cloud = PointCloud(points, point_colors(capture, idx, decoded._white_raw), pixels,
                        point_quality(decoded, idx, capture.max_value), sigma=sigma)
     n_pix = decoded.valid.size
-    counts = np.bincount(decoded.reason.ravel(), minlength=len(REASON_NAMES))
+    n_reasons = len(REASON_NAMES)
+    counts = cv2.calcHist([decoded.reason], [0], None, [n_reasons], [0, n_reasons]).ravel().astype(np.int64)
     rejected = {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if i and c}
-    if edges.any():
-        rejected["depth_edge"] = int(edges.sum())
+    if n_decoded > n_valid:
+        rejected["depth_edge"] = n_decoded - n_valid
     if noisy:
         rejected["noisy_geometry"] = noisy
     cloud.meta = {
-        "decoded_pixels": int(decoded.valid.sum()),
+        "decoded_pixels": n_decoded,
         "points": len(cloud),
         "sigma_limit_mm": MAX_POINT_SIGMA_MM if has_phase else None,
         "rejected": rejected,
