@@ -187,7 +187,7 @@ def _record(store, trial_id: int, job: dict, res: dict) -> None:
 
 
 def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE) -> int:
-    from core.report import write_study_report
+    from core.report import write_session_report, write_study_report
     from core.store import Store
 
     t_start = time.perf_counter()
@@ -218,9 +218,12 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                              f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                              f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
         report = write_study_report(store, out / "report.pdf", out / "trials.csv")
+        for session in store.list_sessions():
+            patient = store.get_patient(session.patient_id).code
+            write_session_report(store, [session.id], out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
-    progress(f"database {out / 'anklescan.db'}, report {report.pdf_path} ({report.pages} pages), "
-             f"{report.csv_path}; {time.perf_counter() - t_start:.0f} s")
+    progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
+             f"{report.csv_path}, one session report per session; {time.perf_counter() - t_start:.0f} s")
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
 
 

@@ -137,14 +137,21 @@ def _fmt(v, sd=None, digits=1) -> str:
     return s if sd is None else f"{s} ± {sd:.{digits}f}"
 
 
+def _trials_text(trials, no_mismatch: list) -> str:
+    leg_missing = sum(t.leg_inversion is None or t.leg_plantar_flexion is None for t in trials)
+    return (f"{len(trials)} ({len(no_mismatch)} without a table mismatch, {leg_missing} with a leg angle "
+            "missing: place its marks in the 3-D view)")
+
+
 def _trial_cells(i: int, r: dict) -> list[str]:
+    # two decimals: the propagated SDs are hundredths of a degree
     return [str(i), _fmt(r["ref_inversion"]), _fmt(r["ref_plantar_flexion"]),
-            _fmt(r["leg_inversion"], r["leg_inversion_sd"]),
-            _fmt(r["leg_plantar_flexion"], r["leg_plantar_flexion_sd"]),
-            _fmt(r["table_inversion"], r["table_inversion_sd"]),
-            _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"]),
-            _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"]),
-            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"])]
+            _fmt(r["leg_inversion"], r["leg_inversion_sd"], 2),
+            _fmt(r["leg_plantar_flexion"], r["leg_plantar_flexion_sd"], 2),
+            _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
+            _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"], 2),
+            _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"], 2),
+            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2)]
 
 
 def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[str]],
@@ -324,7 +331,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
     p, s, cal = summ.patient, summ.session, summ.calibration
     cal_text = "none recorded"
     if cal is not None:
-        rms = "RMS unknown" if cal.rms is None else f"RMS {cal.rms:.3f} mm"
+        rms = "RMS unknown" if cal.rms is None else f"reprojection RMS {cal.rms:.3f} px"
         cal_text = (f"#{cal.id}, {rms}, {'verified' if cal.verified else 'not verified'}"
                     + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
     history = (f"{p.sprain_count} sprain(s)" + (f", last {p.last_sprain}" if p.last_sprain else "")
@@ -332,8 +339,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
     items = [("Patient", p.code), ("Sprain history", history), ("Condition", s.condition),
              ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator or "–"),
              ("Calibration", cal_text),
-             ("Trials", f"{len(summ.trials)} ({len(summ.incomplete_trials)} without "
-                        "complete measurement)")]
+             ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
     for axis in st.AXES:
         a = getattr(summ, axis)
         items.append((f"Mismatch {axis.replace('_', ' ')}",

@@ -1,0 +1,45 @@
+"""The README's main command, end to end at a small scale: files, database, reports."""
+
+import csv
+import json
+
+import pytest
+
+from app.demo import MARKER, run_demo
+from core.errors import AnkleScanError
+from core.store import Store
+
+
+@pytest.mark.slow
+def test_quick_demo_writes_a_whole_study(tmp_path):
+    out = tmp_path / "demo"
+    lines = []
+    assert run_demo(out, quick=True, progress=lines.append) == 0  # the command's own scale (0.75)
+    for name in ("anklescan.db", "calibration.json", "scan.ply", "report.pdf", "trials.csv", "summary.json",
+                 "session_SIM-01_barefoot.pdf", "session_SIM-02_barefoot.pdf"):
+        assert (out / name).exists(), name
+    assert (out / "report.pdf").read_bytes()[:4] == b"%PDF"
+    with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        patients = {p.code: p for p in store.list_patients()}
+        assert set(patients) == {"SIM-01", "SIM-02"} and patients["SIM-01"].sprain_count == 3
+        trials = [t for s in store.list_sessions() for t in store.list_trials(s.id)]
+        assert len(trials) == 8
+        # every trial's capture and cloud are on disk, and its table mismatch was measured
+        for t in trials:
+            assert not store.verify_trial_files(t.id), t.id
+            assert t.mismatch_inversion is not None and t.mismatch_plantar_flexion is not None
+    rows = list(csv.DictReader((out / "trials.csv").open()))
+    assert len(rows) == 8
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["trials"] == 8 and summary["max_angle_error_deg"] < 0.5
+    assert any("scanner accuracy" in line for line in lines)
+
+
+def test_demo_replaces_only_its_own_folder(tmp_path):
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "patient.txt").write_text("keep me")
+    with pytest.raises(AnkleScanError, match="not empty"):
+        run_demo(foreign, quick=True, progress=lambda _: None)
+    assert (foreign / "patient.txt").read_text() == "keep me"
+    assert not (foreign / MARKER).exists()
