@@ -142,14 +142,19 @@ class Device:
             self._cache["grid_rays"] = self.rays(np.stack([u, v], axis=-1))
         return self._cache["grid_rays"]
 
-    def column_plane(self, columns: np.ndarray) -> np.ndarray:
-        """World planes (..., 4) ``n·X + d = 0`` holding projector columns (``axis == 'column'``).
+    def column_plane(self, columns: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """World planes (..., 4) ``n·X + d = 0`` through the projector centre holding columns.
 
-        Exact only when the distortion does not depend on the row, i.e. for column devices or
-        distortion-free ones; other callers must refine (see core.triangulate).
+        With the decoded ``rows`` the plane is exact for any lens (it holds the undistorted
+        column of that very point); without them it is exact only when the distortion does not
+        depend on the row (column devices, distortion-free ones).
         """
-        xd = (np.asarray(columns, dtype=np.float64) - self.K[0, 2]) / self.K[0, 0]
-        xu, _ = self.undistort(xd, np.zeros_like(xd))
+        columns = np.asarray(columns, dtype=np.float64)
+        if rows is not None and self.axis == "both":
+            xu, _ = self.normalized_from_pixels(np.stack([columns, np.asarray(rows, dtype=np.float64)], axis=-1))
+        else:
+            xd = (columns - self.K[0, 2]) / self.K[0, 0]
+            xu, _ = self.undistort(xd, np.zeros_like(xd))
         n_dev = np.stack([np.ones_like(xu), np.zeros_like(xu), -xu], axis=-1)
         n = n_dev @ self.R  # world normal = R.T @ n_dev
         d = -(n @ self.center)

@@ -248,3 +248,18 @@ def _triangulate_chunk(cache: TriangulationCache, flat: np.ndarray, idx: np.ndar
     for k in range(3):
         pts[:, k] = q[RAY_X + k][idx] * s + np.float32(cache.cam_center[k])
     return pts, idx, (None if sigma is None else sigma[keep])
+
+
+def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -> np.ndarray:
+    """(N, 3) world mm for single sub-pixel observations, in float64: each camera ray ∩ the plane
+    of its projector column. ``proj`` is (N,) columns or (N, 2) columns and rows (then exact for
+    a 2-D-distorted projector). For whole decoded images use :func:`triangulate_columns`."""
+    cam = cal.camera
+    d = cam.rays(np.asarray(cam_uv, dtype=np.float64).reshape(-1, 2))
+    proj = np.asarray(proj, dtype=np.float64)
+    planes = cal.projector.column_plane(proj, None) if proj.ndim == 1 else cal.projector.column_plane(
+        proj[:, 0], proj[:, 1])
+    n, off = planes[:, :3], planes[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -(n @ cam.center + off) / np.einsum("ij,ij->i", n, d)
+    return cam.center + s[:, None] * d

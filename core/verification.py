@@ -20,6 +20,7 @@ import numpy as np
 from core import calibration_box as cb
 from core.calibration_file import Calibration
 from core.errors import CalibrationError
+from core.triangulate import triangulate_points
 
 # Pass rule (docs/calibration_app.md): the RMS of the distance errors says whether the scale and
 # shape of the reconstruction are right; the maximum catches one region gone wrong.
@@ -66,33 +67,6 @@ class VerificationResult:
         return {"passed": self.passed, "rms_mm": self.rms_mm, "max_abs_mm": self.max_abs_mm, "mean_mm": self.mean_mm,
                 "limits": dict(self.limits), "n_centres": len(self.centres), "n_pairs": len(self.pairs),
                 "worst": [{"a": p.a, "b": p.b, "true_mm": p.true_mm, "measured_mm": p.measured_mm} for p in self.worst()]}
-
-
-# ==== triangulation at single points ======================================================
-def projector_planes(cal: Calibration, proj: np.ndarray) -> np.ndarray:
-    """World planes (N, 4) of projector columns; proj is (N,) columns or (N, 2) columns, rows.
-
-    With the row known the column's undistorted coordinate is exact for any lens; without it
-    the device's column plane is (exact for a column-only projector model).
-    """
-    p = cal.projector
-    proj = np.asarray(proj, dtype=np.float64)
-    if proj.ndim == 1 or p.axis == "column":
-        return p.column_plane(proj if proj.ndim == 1 else proj[:, 0])
-    xu, _ = p.normalized_from_pixels(proj)
-    n = np.stack([np.ones_like(xu), np.zeros_like(xu), -xu], axis=-1) @ p.R
-    return np.concatenate([n, -(n @ p.center)[:, None]], axis=1)
-
-
-def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -> np.ndarray:
-    """(N, 3) world mm: camera ray through each pixel ∩ its projector plane."""
-    cam = cal.camera
-    d = cam.rays(np.asarray(cam_uv, dtype=np.float64).reshape(-1, 2))
-    planes = projector_planes(cal, proj)
-    n, off = planes[:, :3], planes[:, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(n @ cam.center + off) / np.einsum("ij,ij->i", n, d)
-    return cam.center + s[:, None] * d
 
 
 # ==== the box =============================================================================

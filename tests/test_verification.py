@@ -4,6 +4,7 @@ import pytest
 from core import calibration_box as cb
 from core import verification as ver
 from core.errors import CalibrationError
+from core.triangulate import triangulate_points
 
 
 def _true_cal(scale=0.25):
@@ -14,7 +15,7 @@ def _true_cal(scale=0.25):
 def test_exact_projections_triangulate_to_the_points():
     cal = _true_cal()
     X = np.concatenate(list(cb.marker_corners_world().values()))
-    got = ver.triangulate_points(cal, cal.camera.project(X), cal.projector.project(X))
+    got = triangulate_points(cal, cal.camera.project(X), cal.projector.project(X))
     assert np.abs(got - X).max() < 1e-6
 
 
