@@ -576,13 +576,13 @@ class MainWindow(QMainWindow):
 
     def _scan_job(self, folder: Path):
         from core.patterns import make_pattern_set
-        from app.scan_worker import ScanJob, reconstruct_folder
+        from app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
         pset = make_pattern_set(self.settings.get("pattern_preset"), w, h)
         has_reconstruct = _module_exists("core.reconstruct")
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
                        calibration=self.rig.calibration,
-                       reconstruct=reconstruct_folder if has_reconstruct else None,
+                       reconstruct=measure_folder if has_reconstruct else None,
                        metadata={"device": self.rig.description, "trial": self._trial_id})
 
     def cancel_scan(self) -> None:
@@ -617,6 +617,12 @@ class MainWindow(QMainWindow):
         self._show_result(result)
         if result.cloud is not None and len(result.cloud) > 0 and self._trial_id is not None:
             self._show_cloud(result.cloud, self._trial_id)
+            if result.marks:
+                # shown for confirmation in the 3-D view; undoable, saved as automatic
+                self.marks_page.editor.propose_auto(result.marks)
+            if result.marks_note:
+                self.banner.show_message("info", "Some marks were not found automatically: place them in the "
+                                         f"3-D view ({result.marks_note}).")
         self.scan_page.form.clear_notes()
         self.scan_page.progress.setFormat("Done")
 

@@ -60,7 +60,7 @@ class ScanJob:
     calibration: object = None          # core.calibration_file.Calibration or None: capture only
     metadata: dict = field(default_factory=dict)
     render: Callable | None = None      # (pattern_set, frame) -> uint8 array; core.patterns.render_frame
-    reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud
+    reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud, or a core.measure result
 
 
 @dataclass
@@ -73,6 +73,8 @@ class ScanResult:
     note: str = ""                      # why there is no cloud, when there is none
     preview: object = None              # (H, W, 3) uint8 RGB: depth image, or the white frame
     depth_range: tuple = (0.0, 0.0)     # mm from the camera, near and far ends of the colours
+    marks: dict = field(default_factory=dict)  # automatically found marks, label -> xyz mm
+    marks_note: str = ""                # what the detector could not find, when it missed some
 
 
 class ScanWorker(QObject):
@@ -137,7 +139,13 @@ class ScanWorker(QObject):
         n = len(self.job.pattern_set.frames)
         self.progress.emit(n, n, "Decoding and reconstructing…")
         t1 = time.perf_counter()
-        result.cloud = self._reconstruct()
+        out = self._reconstruct()
+        if hasattr(out, "marks"):  # a measurement: the cloud plus the marks found on it
+            result.cloud = out.cloud
+            result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
+            result.marks_note = "" if out.complete else out.marks.message()
+        else:
+            result.cloud = out
         result.process_s = time.perf_counter() - t1
         self._check_cancel()
         if result.cloud is not None and len(result.cloud) > 0:
@@ -283,6 +291,13 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else np.ascontiguousarray(img[..., ::-1])
+
+
+def measure_folder(folder, calibration):
+    """Reconstruct the saved frames and find the seven marks on them (``anklescan measure``)."""
+    from core.capture import load_capture
+    from core.measure import measure_capture
+    return measure_capture(load_capture(folder), calibration)
 
 
 def reconstruct_folder(folder, calibration):

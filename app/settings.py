@@ -30,7 +30,9 @@ KEYS = {
     "camera_gain": Key("camera/gain", 0.0, float),
     "settle_ms": Key("scan/settle_ms", 30, int),
     "calibration_max_age_days": Key("calibration/max_age_days", 30, int),  # read by app.calibration_wizard
-    "sim_scale": Key("scan/sim_scale", 0.25, float),
+    # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
+    # automatically (docs/marks.md), and a scan still takes seconds
+    "sim_scale": Key("scan/sim_scale", 0.75, float),
     "pattern_preset": Key("scan/pattern_preset", "default", str),
     "saturation_level": Key("thresholds/saturation_level", 250, int),
     "data_folder": Key("data/folder", str(Path.home() / "AnkleScan"), str),

@@ -19,5 +19,8 @@ def qapp_args():
 @pytest.fixture(autouse=True)
 def _isolated_settings(request, tmp_path, monkeypatch):
     if request.node.get_closest_marker("gui"):
+        # a quarter-scale simulated rig keeps GUI scans fast; the app's default (0.75) is what
+        # automatic marks need, and is covered by the demo's test
+        (tmp_path / "settings.ini").write_text("[scan]\nsim_scale=0.25\n")
         monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "settings.ini"))
         monkeypatch.setenv("ANKLESCAN_DATA", str(tmp_path / "data"))

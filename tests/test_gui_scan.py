@@ -152,3 +152,27 @@ def test_gui_starts_quickly():
     assert out.returncode == 0, out.stderr
     shown = float(out.stdout.split("after")[1].split()[0])
     assert shown < 3.0
+
+
+def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
+    """At the app's default rig scale the detector runs after the scan: marks appear in the 3-D
+    view for confirmation and are saved as automatic, with the angles computed from them."""
+    (tmp_path / "scale.ini").write_text("[scan]\nsim_scale=0.75\n")
+    monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "scale.ini"))
+    win = MainWindow(open_rig_now=True)
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    win.settings.set("settle_ms", 5)
+    win.new_patient("P-002", 0, None)
+    win.new_session("barefoot")
+    _run_scan(qtbot, win, timeout=240_000)
+    result = win.last_result
+    assert result is not None and result.cloud is not None, win.banner.text
+    assert set(result.marks) == set(range(1, 8)), result.marks_note
+    stored = win.store.get_marks(win._trial_id)
+    assert {m.label for m in stored} == set(range(1, 8)) and {m.source for m in stored} == {"auto"}
+    trial = win.store.get_trial(win._trial_id)
+    assert trial.table_inversion is not None and trial.leg_inversion is not None
+    assert set(win.marks_page.editor.marks) == set(range(1, 8))
+    win.close()
