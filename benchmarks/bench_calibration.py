@@ -167,9 +167,16 @@ def main(argv=None) -> None:
     print(f"{'':24}{'ours camera':>14}{'cv2 camera':>14}{'ours projector':>16}")
     rows = [("focal rel. error (max)", "fx_rel", "{:.2e}"), ("principal pt px (max)", "pp_px", "{:.3f}"),
             ("rotation deg (max)", "rot_deg", "{:.4f}"), ("translation mm (max)", "t_mm", "{:.3f}")]
+    def rms(path):
+        return float(np.sqrt(np.mean([r[path[0]][path[1]] ** 2 for r in runs])))
+
     for label, key, fmt in rows:
         print(f"{label:24}{fmt.format(worst(['cam', key])):>14}{fmt.format(worst(['cv', key])):>14}"
               f"{fmt.format(worst(['proj', key])):>16}")
+    for label, key, fmt in rows:  # the typical error: RMS over the trials
+        label = label.replace("(max)", "(RMS)")
+        print(f"{label:24}{fmt.format(rms(['cam', key])):>14}{fmt.format(rms(['cv', key])):>14}"
+              f"{fmt.format(rms(['proj', key])):>16}")
     se = runs[0]["se_cam"], runs[0]["se_proj"]
     print(f"predicted 1-sigma (trial 0): camera ku/ku {se[0]['ku'] / 2400:.1e}, u0 {se[0]['u0']:.2f} px, v0 {se[0]['v0']:.2f} px, "
           f"tz {se[0]['tz']:.2f} mm; projector ku/ku {se[1]['ku'] / 1700:.1e}, u0 {se[1]['u0']:.2f} px, tz {se[1]['tz']:.2f} mm")
