@@ -139,3 +139,26 @@ def test_angles_command(tmp_path):
 def test_missing_capture_folder(tmp_path, scan):
     _, _, cal = scan
     assert_user_error(run("reconstruct", tmp_path / "nowhere", "--calibration", cal, "--out", tmp_path / "o.ply"))
+
+
+@pytest.mark.parametrize("cam_csv, words", [
+    ("X,Y,Z,u,v\n1,2,3,4,5\n", ["at least 6"]),
+    ("X,Y,Z,u\n1,2,3,4\n", ["v"]),
+    ("X,Y,Z,u,v\n" + "".join(f"{i},{j},0,{100 + i},{200 + j}\n" for i in range(3) for j in range(3)), ["coplanar"]),
+    ("X,Y,Z,u,v\n1,2,3,nan,5\n" + "".join(f"{i},{i * i},{i ** 3},{i},{i}\n" for i in range(8)), ["finite"]),
+])
+def test_calibrate_points_bad_input(tmp_path, cam_csv, words):
+    (tmp_path / "cam.csv").write_text(cam_csv)
+    (tmp_path / "proj.csv").write_text("X,Y,Z,u\n" + "".join(f"{i},{i * i},{i ** 3},{i}\n" for i in range(8)))
+    done = run("calibrate", "points", "--camera", tmp_path / "cam.csv", "--projector", tmp_path / "proj.csv",
+               "--out", tmp_path / "cal.json")
+    assert_user_error(done)
+    assert any(w in done.stderr for w in words), done.stderr
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_calibrate_box_without_a_box(tmp_path, scan):
+    _, capture, _ = scan
+    done = run("calibrate", "box", capture, "--out", tmp_path / "cal.json")
+    assert_user_error(done, "markers")
+    assert not (tmp_path / "cal.json").exists()
