@@ -401,7 +401,7 @@ class CalibrationWizard(QDialog):
         w, v = self._page("Manual calibration (the paper's method)",
                           "<b>Camera:</b> click the named corner on the image (wheel zooms, right-drag pans); the "
                           "click snaps to the corner. <b>Projector:</b> steer the spot onto the same corner with the "
-                          "arrow keys (Shift = 10 px) while watching the camera, then Record spot.")
+                          "arrow keys (Shift = 10 px, Ctrl = 0.25 px) while watching the camera, then Record spot.")
         self.manual_view = ZoomView()
         self.manual_view.picked.connect(self.pick_camera)
         self.manual_prompt = QLabel("")

@@ -52,19 +52,26 @@ def crosshair(size: tuple[int, int]) -> np.ndarray:
     return img
 
 
-def spot(size: tuple[int, int], x: int, y: int, radius: int = SPOT_RADIUS) -> np.ndarray:
-    """A white disc centred on projector pixel (x, y): the paper's calibration spot."""
+SPOT_FINE_STEP = 0.25  # projector px per arrow key with Ctrl held
+
+
+def spot(size: tuple[int, int], x: float, y: float, radius: float = SPOT_RADIUS) -> np.ndarray:
+    """A white disc centred on projector coordinate (x, y): the paper's calibration spot.
+
+    Its edge is anti-aliased (each pixel lit by the fraction of it inside the disc, to first
+    order), so the spot's light is centred on (x, y) to a fraction of a pixel: the operator can
+    steer it onto a control point more finely than the projector's pixel grid.
+    """
     w, h = size
     yy, xx = np.mgrid[0:h, 0:w]
-    img = np.zeros((h, w), np.uint8)
-    img[(xx - x) ** 2 + (yy - y) ** 2 <= radius * radius] = 255
-    return img
+    cover = np.clip(radius + 0.5 - np.hypot(xx - x, yy - y), 0.0, 1.0)
+    return np.rint(cover * 255).astype(np.uint8)
 
 
 class ProjectorWindow(QWidget):
     painted = Signal(int)            # token of the frame now on screen (after an event-loop round trip)
     frameShown = Signal(object)      # the array just painted; the simulated projector listens
-    spotMoved = Signal(int, int)     # projector pixel under the calibration spot
+    spotMoved = Signal(float, float)  # projector coordinate of the calibration spot's centre
     screenLost = Signal(str)         # the monitor we were on went away
 
     def __init__(self, size: tuple[int, int] = (1024, 768), parent=None):
@@ -77,7 +84,7 @@ class ProjectorWindow(QWidget):
         self._token = 0
         self._emitted = -1
         self._mode = "black"
-        self._spot = (self._size[0] // 2, self._size[1] // 2)
+        self._spot = (float(self._size[0] // 2), float(self._size[1] // 2))
         self._native = False
         self._screen_name = ""
         self.setWindowTitle(PREVIEW_TITLE)
@@ -128,16 +135,16 @@ class ProjectorWindow(QWidget):
     def show_crosshair(self) -> int:
         return self.show_frame(crosshair(self._size), "crosshair")
 
-    def show_spot(self, x: int | None = None, y: int | None = None) -> int:
+    def show_spot(self, x: float | None = None, y: float | None = None) -> int:
         if x is not None and y is not None:
             w, h = self._size
-            self._spot = (int(np.clip(x, 0, w - 1)), int(np.clip(y, 0, h - 1)))
+            self._spot = (float(np.clip(x, 0, w - 1)), float(np.clip(y, 0, h - 1)))
         token = self.show_frame(spot(self._size, *self._spot), "spot")
         self.spotMoved.emit(*self._spot)
         return token
 
     @property
-    def spot_position(self) -> tuple[int, int]:
+    def spot_position(self) -> tuple[float, float]:
         return self._spot
 
     # ---- painting -----------------------------------------------------------------------
@@ -234,7 +241,9 @@ class ProjectorWindow(QWidget):
 
     # ---- steering the spot --------------------------------------------------------------
     def keyPressEvent(self, event: QKeyEvent) -> None:
-        step = 10 if event.modifiers() & Qt.KeyboardModifier.ShiftModifier else 1
+        mods = event.modifiers()
+        step = 10 if mods & Qt.KeyboardModifier.ShiftModifier else (
+            SPOT_FINE_STEP if mods & Qt.KeyboardModifier.ControlModifier else 1)
         moves = {Qt.Key.Key_Left: (-step, 0), Qt.Key.Key_Right: (step, 0),
                  Qt.Key.Key_Up: (0, -step), Qt.Key.Key_Down: (0, step)}
         if event.key() in moves and self._mode == "spot":
@@ -256,7 +265,7 @@ class ProjectorWindow(QWidget):
         r = self.target_rect()
         x = (pos.x() - r.x()) * self._size[0] / max(1, r.width())
         y = (pos.y() - r.y()) * self._size[1] / max(1, r.height())
-        self.show_spot(int(x), int(y))
+        self.show_spot(x, y)
 
 
 def choose_screen(screens: list, primary, preferred: str = ""):

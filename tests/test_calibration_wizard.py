@@ -149,13 +149,13 @@ def test_manual_flow_reaches_focal_length(setup, qtbot):
         X = pts[i][1]
         wiz.manual_goto(i)
         wiz.pick_camera(*(true.camera.project(X[None])[0] + rng.normal(0, 0.5, 2)))
-        # the spot is steered in whole projector pixels: the truth plus noise, rounded
-        projector.show_spot(*np.round(true.projector.project(X[None])[0] + rng.normal(0, 0.5, 2)).astype(int))
+        # the anti-aliased spot is steered to a fraction of a projector pixel: the truth plus noise
+        projector.show_spot(*(true.projector.project(X[None])[0] + rng.normal(0, 0.5, 2)))
         wiz.record_spot()
     if SHOTS:  # the picture a clinician sees mid-way: spot on a corner, picks marked, zoomed in
         i = visible[len(visible) // 3]
         wiz.manual_goto(i)
-        projector.show_spot(*np.round(true.projector.project(pts[i][1][None])[0]).astype(int))
+        projector.show_spot(*true.projector.project(pts[i][1][None])[0])
         qtbot.wait(100)
         wiz._show_manual_frame(wiz.camera.capture())
         wiz.manual_view.zoom_to(*true.camera.project(pts[i][1][None])[0], 2.5)
@@ -167,7 +167,12 @@ def test_manual_flow_reaches_focal_length(setup, qtbot):
     print(f"manual: camera f error {100 * f_err:.3f} %, projector f error {100 * fp_err:.3f} % "
           f"({len(visible)} points)")
     assert f_err <= 0.002
-    assert fp_err <= 0.015  # the spot's whole-pixel steps limit the projector (docs/calibration_app.md)
+    # The projector, steered to truth + 0.5 of its own (half-scale, 625 px focal) pixels, is
+    # determined to its report's standard error: the error must be consistent with it.
+    se = wiz.report.projector.std_errors
+    fp_sd = se["ku"] / cal.projector.fx
+    print(f"projector f: error {100 * fp_err:.3f} %, predicted SD {100 * fp_sd:.3f} %")
+    assert fp_err <= max(0.002, 3 * fp_sd)
 
 
 def test_warning_banner_hook(tmp_path):
