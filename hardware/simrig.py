@@ -12,15 +12,12 @@ a few multiply-adds, a blur and noise.
 
 from __future__ import annotations
 
-import ctypes
-import glob
 import math
-import os
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from core.calibration_file import Calibration
 from core.device_model import Device, look_at
@@ -55,43 +52,13 @@ class Optics:
     bit_depth: int = 8  # 8 or 16
 
 
-@contextmanager
 def _single_threaded_blas():
     """Run the ray casting with one BLAS thread.
 
     Its matrix products are (N, 3) @ (3, 3): memory-bound, gaining nothing from threads, and
-    OpenBLAS's threads on a busy 2-core machine make them ~30x slower (measured). numpy's own
-    bundled OpenBLAS is switched for the duration only; anything else (no such library) is a
-    no-op.
+    OpenBLAS's threads on a busy 2-core machine make them ~30x slower (measured).
     """
-    lib = _openblas()
-    if lib is None:
-        yield
-        return
-    old = lib.scipy_openblas_get_num_threads64_()
-    lib.scipy_openblas_set_num_threads64_(1)
-    try:
-        yield
-    finally:
-        lib.scipy_openblas_set_num_threads64_(old)
-
-
-_OPENBLAS: list = []
-
-
-def _openblas():
-    if not _OPENBLAS:
-        lib = None
-        libs = os.path.join(os.path.dirname(os.path.dirname(np.__file__)), "numpy.libs")
-        for path in glob.glob(os.path.join(libs, "libscipy_openblas64_*.so")):
-            try:
-                cand = ctypes.CDLL(path)
-                cand.scipy_openblas_get_num_threads64_, cand.scipy_openblas_set_num_threads64_  # noqa: B018
-                lib = cand
-            except (OSError, AttributeError):
-                continue
-        _OPENBLAS.append(lib)
-    return _OPENBLAS[0]
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 _RAYS: dict = {"key": None, "chunks": {}}
