@@ -579,10 +579,8 @@ class MainWindow(QMainWindow):
         from app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
         pset = make_pattern_set(self.settings.get("pattern_preset"), w, h)
-        has_reconstruct = _module_exists("core.reconstruct")
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
-                       calibration=self.rig.calibration,
-                       reconstruct=measure_folder if has_reconstruct else None,
+                       calibration=self.rig.calibration, reconstruct=measure_folder,
                        metadata={"device": self.rig.description, "trial": self._trial_id})
 
     def cancel_scan(self) -> None:
@@ -844,14 +842,6 @@ def _os_user() -> str:
 def _frames_in(folder) -> int:
     p = Path(folder)
     return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json") if p.is_dir() else 0
-
-
-def _module_exists(name: str) -> bool:
-    import importlib.util
-    try:
-        return importlib.util.find_spec(name) is not None
-    except (ImportError, ValueError):
-        return False
 
 
 # ---------------------------------------------------------------------------- entry point

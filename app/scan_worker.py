@@ -37,6 +37,7 @@ import numpy as np
 from PySide6.QtCore import QObject, QThread, Signal, Slot
 
 from core.errors import AnkleScanError
+from hardware.camera import CameraDisconnected
 
 
 SLICE_S = 0.05
@@ -131,8 +132,7 @@ class ScanWorker(QObject):
         result = ScanResult(Path(self.job.folder), len(self.job.pattern_set.frames), capture_s)
         if self.job.calibration is None or self.job.reconstruct is None:
             result.note = ("No calibration: the frames are saved but not reconstructed."
-                           if self.job.calibration is None else
-                           "Reconstruction is not available in this build: the frames are saved.")
+                           if self.job.calibration is None else "Capture only: the frames are saved.")
             result.preview = white_preview(self.job.folder, self.job.pattern_set)
             return result
         self._check_cancel()
@@ -199,10 +199,8 @@ class ScanWorker(QObject):
     def _capture(self) -> np.ndarray:
         try:
             return self.job.camera.capture()
-        except Exception as exc:
-            if type(exc).__name__ == "CameraDisconnected":  # hardware.camera's, or the stand-in's
-                raise ScanError(f"The camera was disconnected during the scan ({exc}).") from None
-            raise
+        except CameraDisconnected as exc:
+            raise ScanError(f"The camera was disconnected during the scan ({exc}).") from None
 
     def _reconstruct(self):
         return self.job.reconstruct(self.job.folder, self.job.calibration)
