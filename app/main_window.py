@@ -404,6 +404,7 @@ class MainWindow(QMainWindow):
         self.camera_holder.setCurrentWidget(self.camera_panel)
         self.switch_backend(self.settings.get("camera_backend"))
         QTimer.singleShot(0, self.ensure_marks_page)
+        QTimer.singleShot(0, _settle_memory)
 
     def _choose_device(self, backend: str, device: str) -> None:
         self.settings.set("camera_device", device)
@@ -843,6 +844,22 @@ def _frames_in(folder) -> int:
     p = Path(folder)
     return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json") if p.is_dir() else 0
 
+
+
+def _settle_memory() -> None:
+    """Load the measurement stack and move everything alive after start-up out of the garbage
+    collector's reach (gc.freeze).
+
+    A full collection runs in whichever thread allocates, holding the GIL, and takes time in
+    proportion to every object alive: with Qt, OpenGL, numpy, OpenCV and SciPy loaded it
+    stalled the UI for over 100 ms when it fell inside a scan's processing. Start-up objects
+    live as long as the app, so freezing them loses nothing and keeps collections short.
+    """
+    import gc
+
+    import core.measure  # noqa: F401  (its objects, too, are frozen rather than left to scan)
+    gc.collect()
+    gc.freeze()
 
 # ---------------------------------------------------------------------------- entry point
 
