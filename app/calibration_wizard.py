@@ -189,7 +189,7 @@ def observe(white, column, row) -> BoxPoints:
         for corner, X in zip(found[mid], world[mid]):
             cx.append(X)
             cu.append(corner)
-            q = cb.projector_at(corner, [column, row], w)
+            q = cb.projector_at(corner, [column, row], w, found[mid])
             if q is not None:
                 px.append(X)
                 pu.append(q)

@@ -79,7 +79,7 @@ def measure_centres(cal: Calibration, white: np.ndarray, column: np.ndarray, row
     maps = [column] if row is None else [column, row]
     out = {}
     for mid, corners in found.items():
-        proj = [cb.projector_at(c, maps, w) for c in corners]
+        proj = [cb.projector_at(c, maps, w, corners) for c in corners]
         if any(q is None for q in proj):
             continue  # a centre from three corners would keep the blur's bias
         X = triangulate_points(cal, corners, np.array(proj).reshape(4, len(maps)).squeeze())

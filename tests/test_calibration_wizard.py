@@ -11,7 +11,7 @@ import pytest
 pytestmark = pytest.mark.gui
 
 SCALE = 0.5
-LEG_RMS_LIMIT_MM = 0.25  # at scale 0.5; the true calibration gives 0.133 mm here (0.15 mm is the full-res goal)
+LEG_RMS_LIMIT_MM = 0.15  # the calibration issue's goal; at scale 0.5 the true calibration gives 0.133 mm
 SHOTS = os.environ.get("ANKLESCAN_CALIB_SHOTS")  # a folder: save the docs' screenshots there
 
 
@@ -91,7 +91,8 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     qtbot.waitUntil(lambda: wiz.verification is not None, timeout=120000)
     res = wiz.verification
     print(res.format_text())
-    assert res.passed and res.rms_mm <= 0.2 and len(res.centres) >= 18
+    # issue #8: every control-point distance within 0.2 mm of the drawing (measured: 0.063 mm)
+    assert res.passed and res.rms_mm <= 0.06 and res.max_abs_mm <= 0.2 and len(res.centres) >= 18
     assert "PASS" in wiz.verify_verdict.text() and wiz.verify_table.rowCount() > 0
     assert current_calibration_info()["verified"] == "pass"
     assert Path(info["path"]).with_suffix(".verification.json").exists()
