@@ -6,7 +6,8 @@ Steps (one dialog, a step list on the left):
    settle → capture loop as a patient scan), so the projector gets the full 2-D model.
 3. Quality report — RMS, residual arrows on the image, standard errors, flagged points; Accept.
 4. Manual (paper §3.2-3.3) — click each marker corner (zoom, cornerSubPix refinement, undo),
-   then steer the projector spot onto it and record the spot's projector position.
+   then steer the projector spot onto it and record the spot's projector position, refined
+   (unless switched off) to the clicked corner by eight local edge frames (core.projector_spot).
 5. Verify — a scan of the box reconstructed at the marker corners; distances between marker
    centres against the box drawing (core.verification).
 
@@ -30,9 +31,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PySide6.QtCore import QObject, QSettings, Qt, QTimer, Signal
+from PySide6.QtCore import QCoreApplication, QEventLoop, QObject, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QKeySequence, QShortcut
-from PySide6.QtWidgets import (QDialog, QHBoxLayout, QLabel, QListWidget, QPlainTextEdit,
+from PySide6.QtWidgets import (QCheckBox, QDialog, QHBoxLayout, QLabel, QListWidget, QPlainTextEdit,
                                QProgressBar, QPushButton, QSplitter, QStackedWidget, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
@@ -288,6 +289,8 @@ class CalibrationWizard(QDialog):
         self._manual_index = 0
         self._manual_cam: dict = {}  # point index -> (u, v)
         self._manual_proj: dict = {}  # point index -> (column, row)
+        self._manual_steered: dict = {}  # point index -> (column, row) where the operator left the spot
+        self._refining = False
         self._manual_history: list = []  # ("cam" | "proj", index) for undo
         self._manual_list = manual_points()
         from app.scan_worker import ScanController
@@ -401,7 +404,8 @@ class CalibrationWizard(QDialog):
         w, v = self._page("Manual calibration (the paper's method)",
                           "<b>Camera:</b> click the named corner on the image (wheel zooms, right-drag pans); the "
                           "click snaps to the corner. <b>Projector:</b> steer the spot onto the same corner with the "
-                          "arrow keys (Shift = 10 px, Ctrl = 0.25 px) while watching the camera, then Record spot.")
+                          "arrow keys (Shift = 10 px, Ctrl = 0.25 px) while watching the camera, then Record spot: "
+                          "the spot is then refined to the clicked corner by eight short edge frames.")
         self.manual_view = ZoomView()
         self.manual_view.picked.connect(self.pick_camera)
         self.manual_prompt = QLabel("")
@@ -417,9 +421,13 @@ class CalibrationWizard(QDialog):
             b.clicked.connect(slot)
             buttons.addWidget(b)
         QShortcut(QKeySequence.StandardKey.Undo, w, self.manual_undo)
+        self.refine_spot_box = QCheckBox("Refine the recorded spot to the clicked corner (the paper records it as "
+                                         "steered: about ½ projector pixel)")
+        self.refine_spot_box.setChecked(True)
         v.addWidget(self.manual_prompt)
         v.addWidget(self.manual_view, 1)
         v.addWidget(self.manual_counts)
+        v.addWidget(self.refine_spot_box)
         v.addLayout(buttons)
         return w
 
@@ -678,17 +686,77 @@ class CalibrationWizard(QDialog):
         super().keyPressEvent(event)
 
     def record_spot(self, position=None) -> None:
-        """Record the spot's projector pixel for the current point (the paper's projector step)."""
-        x, y = self.projector.spot_position if position is None else position
-        self._manual_proj[self._manual_index] = (float(x), float(y))
-        self._manual_history.append(("proj", self._manual_index))
-        self.manual_goto(self._manual_index)
+        """Record the spot's projector pixel for the current point (the paper's projector step),
+        refined to the point's camera click when that is on and possible."""
+        if self._refining:
+            return
+        i = self._manual_index
+        steered = tuple(float(c) for c in (self.projector.spot_position if position is None else position))
+        at, note = steered, "spot recorded as steered"
+        if self.refine_spot_box.isChecked():
+            if i not in self._manual_cam or self._white_frame is None:
+                note += " (click the corner on the camera image first to have it refined)"
+            else:
+                result = self.refine_projector_spot(self._manual_cam[i], steered)
+                if result.ok:
+                    at = result.position
+                    note = "spot refined to the clicked corner by ({:+.2f}, {:+.2f}) projector px".format(*result.shift)
+                else:
+                    note += f", not refined: {result.message}"
+        self._manual_proj[i] = at
+        self._manual_steered[i] = steered
+        self._manual_history.append(("proj", i))
+        self.manual_goto(i)
+        self.status.setText(f"Point {i + 1}: {note}.")
+
+    def refined_count(self) -> int:
+        return sum(self._manual_proj[i] != self._manual_steered.get(i) for i in self._manual_proj)
+
+    def refine_projector_spot(self, corner_uv, steered):
+        """Show the eight edge frames around the spot, photograph each, read the projector
+        coordinate at the corner (core.projector_spot); then show the spot where it was read."""
+        from core.projector_spot import SpotRefinement, refine_spot, refinement_frames
+        self._refining = True
+        live = self._timer.isActive()
+        self._timer.stop()  # the preview would photograph the edge frames as if they were the spot
+        try:
+            images = [self._show_and_capture(f) for f in refinement_frames(self.projector.projector_size, steered)]
+            result = refine_spot(images, corner_uv, steered, white=self._white_frame)
+        except Exception as exc:  # a camera or window failure: the steered spot is still recorded
+            result = SpotRefinement(None, steered, f"the refinement frames could not be taken ({exc})")
+        finally:
+            self._refining = False
+            self.projector.show_spot(*(result.position if result.ok else steered))
+            if live:
+                self._timer.start()
+        return result
+
+    def _show_and_capture(self, frame, timeout_s: float = 3.0):
+        """Show a frame, wait until the projector window has painted it and the settle time
+        has passed (the scan's own show → painted → settle → capture order), photograph it."""
+        painted: list[int] = []
+        slot = painted.append
+        self.projector.painted.connect(slot)
+        try:
+            token = self.projector.show_frame(frame, "spot")
+            deadline = time.monotonic() + timeout_s
+            while not any(t >= token for t in painted):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the projector window did not show the frame: is it open?")
+                QCoreApplication.processEvents(QEventLoop.ProcessEventsFlag.AllEvents, 20)
+        finally:
+            self.projector.painted.disconnect(slot)
+        if self.settle_s > 0:
+            time.sleep(self.settle_s)
+        return self.camera.capture()
 
     def manual_undo(self) -> None:
         if not self._manual_history:
             return
         kind, i = self._manual_history.pop()
         (self._manual_cam if kind == "cam" else self._manual_proj).pop(i, None)
+        if kind == "proj":
+            self._manual_steered.pop(i, None)
         self.manual_goto(i)
 
     def manual_observations(self):
@@ -710,7 +778,8 @@ class CalibrationWizard(QDialog):
             self.status.setText(f"Manual calibration failed: {exc}")
             return False
         cal.extra["source"] = "manual control points (paper §3.2-3.3)"
-        cal.extra["manual"] = {"camera_points": len(cam_xyz), "projector_points": len(proj_xyz)}
+        cal.extra["manual"] = {"camera_points": len(cam_xyz), "projector_points": len(proj_xyz),
+                               "projector_points_refined": self.refined_count()}
         white = self._white_frame if self._white_frame is not None else np.zeros(size_c[::-1], np.uint8)
         self.points = BoxPoints(np.asarray(white, np.float32), cam_xyz, cam_uv, proj_xyz, proj_uv,
                                 self._cam_pixels_of(proj_xyz, cam_xyz, cam_uv))
