@@ -236,18 +236,17 @@ def _edge_crossings(gray: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.
     return (base + off[:, None] * outward)[good]
 
 
-def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(point on line, unit normal) by total least squares, one round of 3-sigma rejection."""
+def fit_line(points: np.ndarray, min_points: int = 4, floor_px: float = 1e-3) -> tuple[np.ndarray, np.ndarray] | None:
+    """(point on line, unit normal) by total least squares with one round of rejecting points
+    beyond 3 robust sigmas (``floor_px`` keeps a near-perfect fit from rejecting everything)."""
     keep = np.ones(len(points), bool)
     for _ in range(2):
-        if keep.sum() < 4:
+        if keep.sum() < min_points:
             return None
         c = points[keep].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[keep] - c, full_matrices=False)
-        n = vt[1]
+        n = np.linalg.svd(points[keep] - c, full_matrices=False)[2][1]
         r = np.abs((points - c) @ n)
-        sigma = 1.4826 * float(np.median(r[keep])) + 1e-3
-        keep = r <= 3 * sigma
+        keep = r <= 3 * (1.4826 * float(np.median(r[keep])) + floor_px)
     return c, n
 
 
@@ -267,7 +266,7 @@ def refine_marker_corners(gray: np.ndarray, quad: np.ndarray) -> np.ndarray | No
             n = np.array([d[1], -d[0]])
             if np.dot(0.5 * (a + b) - centre, n) < 0:
                 n = -n
-            line = _fit_line(_edge_crossings(gray, a, b, n, half))
+            line = fit_line(_edge_crossings(gray, a, b, n, half))
             if line is None:
                 return None
             lines.append(line)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core.calibration_box import fit_line
+
 EDGE_OFFSET_PX = 3      # the two edges sit this far either side of the spot (projector px)
 WINDOW_HALF_PX = 14     # the frames light only this square around the spot
 MAX_SHIFT_PX = 3.0      # a refinement moving the spot further than this is refused
@@ -97,19 +99,6 @@ def _crossings(d: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.concatenate(dirs)
 
 
-def _line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(point, unit normal) of a total-least-squares line, one round of 3-sigma rejection."""
-    keep = np.ones(len(points), bool)
-    for _ in range(2):
-        if keep.sum() < MIN_CROSSINGS:
-            return None
-        c = points[keep].mean(axis=0)
-        n = np.linalg.svd(points[keep] - c, full_matrices=False)[2][1]
-        r = np.abs((points - c) @ n)
-        keep = r <= 3 * (1.4826 * float(np.median(r[keep])) + 0.02)
-    return c, n
-
-
 def refine_spot(images: list[np.ndarray], corner_uv, steered: tuple[float, float], white: np.ndarray,
                 radius_px: float | None = None) -> SpotRefinement:
     """The projector (column, row) at camera point ``corner_uv`` from the camera images of
@@ -168,7 +157,7 @@ def _read_edges(crop: list, edges: list, usable: np.ndarray, point: np.ndarray):
                 return ("no clear white surface lit by the refinement window around the control point: "
                         "is the spot on it, and is the camera point clicked?")
             pts, dirs = _crossings(crop[i] - crop[i + 1], usable)
-            fit = _line(pts) if len(pts) >= MIN_CROSSINGS else None
+            fit = fit_line(pts, MIN_CROSSINGS, 0.02)
             if fit is None:
                 return (f"the {'column' if axis == 0 else 'row'} edge at {edges[i].at:.1f} was not seen around "
                         "the control point: is the spot on it, and is the camera point clicked?")
