@@ -1,11 +1,19 @@
 """The 3-D point-cloud viewer: a QOpenGLWidget drawing with PyOpenGL, picking through the
 depth buffer as the paper (§5) does.
 
-Fixed-function GL (compatibility profile) on purpose: the projection and modelview live in
-the GL state, so a pick reads them back with ``glGetDoublev`` and inverts them with
-``gluUnProject`` exactly as the paper describes, and llvmpipe's fixed-function point path is
-the fastest way to push millions of points through software rendering (one interleaved-free
-position VBO + one RGBA colour VBO, a single ``glDrawArrays(GL_POINTS)``).
+Compatibility-profile GL on purpose: the projection and modelview live in the fixed-function
+GL state, so a pick reads them back with ``glGetDoublev`` and inverts them with
+``gluUnProject`` exactly as the paper describes.
+
+Two ways to draw the points, chosen when the GL context is created (``render_path``):
+- ``"splat"`` (GL 4.3+, e.g. Mesa llvmpipe's 4.5 compatibility profile): a compute shader
+  transforms every point with those same fixed-function matrices and keeps the nearest per
+  pixel, a full-screen pass writes its colour and its exact window depth (app.splat). Runs on
+  all cores: every frame draws all points.
+- ``"classic"`` (the fallback): one position VBO + one RGBA colour VBO, a single
+  ``glDrawArrays(GL_POINTS)``. llvmpipe transforms these on one thread, so while the view
+  moves only a uniform subsample (``lod_points``) is drawn.
+Both leave the same depth buffer behind, so picking does not care which one drew.
 
 What makes picking trustworthy:
 - near/far hug the cloud's bounding sphere every frame (24-bit depth precision spent on the leg);
@@ -18,6 +26,8 @@ What makes picking trustworthy:
 
 from __future__ import annotations
 
+import logging
+import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -29,13 +39,18 @@ from PySide6.QtGui import QColor, QFont, QPainter, QPen, QSurfaceFormat
 from PySide6.QtOpenGLWidgets import QOpenGLWidget
 from PySide6.QtWidgets import QWidget
 
-from app import picking
+from app import picking, splat
+
+log = logging.getLogger(__name__)
 
 COLOR_WHITE, COLOR_DEPTH = "white", "depth"
+RENDER_SPLAT, RENDER_CLASSIC = "splat", "classic"
+RENDER_PATH_ENV = "ANKLESCAN_VIEWER_PATH"  # "classic" forces the fixed-function path
 PICK_WINDOW = 7  # px (device pixels) searched around a click for a drawn point
-# Drawn while the view moves. llvmpipe transforms vertices on one thread (~10 M points/s on this
-# 2-core machine), so 2 M points take ~200 ms a frame; 250 k keep orbiting at >= 20 fps, and
-# on screen they look the same at the full view (there are more points than pixels).
+# Drawn while the view moves, on the classic path only. llvmpipe's fixed-function path
+# transforms vertices on one thread (~10 M points/s on this 2-core machine), so 2 M points
+# take ~200 ms a frame; 250 k keep orbiting at >= 20 fps, and on screen they look the same at
+# the full view (there are more points than pixels). The splat path always draws everything.
 LOD_POINTS = 250_000
 SETTLE_MS = 180  # full density this long after the last drag/wheel step
 BACKGROUND = (0.125, 0.14, 0.16)
@@ -78,17 +93,26 @@ def depth_colours(points: np.ndarray, eye=None) -> np.ndarray:
     """RGBA uint8 by distance from ``eye`` (the scanner camera), or by height when it is unknown;
     near/high = warm, like the scan page's depth preview. Percentiles keep outliers from
     flattening the ramp."""
+    return depth_palette()[depth_levels(points, eye)]
+
+
+def depth_palette() -> np.ndarray:
+    """The depth colour map (turbo) as 256 RGBA entries."""
     import cv2
 
+    rgb = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    return np.c_[rgb, np.full(256, 255, np.uint8)]
+
+
+def depth_levels(points: np.ndarray, eye=None) -> np.ndarray:
+    """0–255 per point for ``depth_palette``: far/low = 0, near/high = 255."""
     if eye is not None:
         d = points - np.asarray(eye, np.float32)  # float32 throughout: 2 M points in ~0.1 s
         value = -np.sqrt(np.einsum("ij,ij->i", d, d))
     else:
         value = points[:, 2]
     lo, hi = np.percentile(value[:: max(1, len(value) // 200_000)], [1, 99]) if len(value) > 1 else (0, 1)
-    level = np.clip((value - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
-    rgb = cv2.applyColorMap(level[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
-    return np.c_[rgb, np.full(len(rgb), 255, np.uint8)]
+    return np.clip((value - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
 
 
 def white_colours(cloud) -> np.ndarray:
@@ -97,13 +121,44 @@ def white_colours(cloud) -> np.ndarray:
     return np.c_[cloud.colors, np.full(len(cloud), 255, np.uint8)]
 
 
+class _Colours:
+    """One colour mode's colours, as RGBA (classic path) and/or as an 8-bit index into a
+    256-entry palette (splat path); each made from the other on first use."""
+
+    def __init__(self, rgba: np.ndarray | None = None, index: np.ndarray | None = None,
+                 palette: np.ndarray | None = None):
+        self._rgba, self._index, self._palette = rgba, index, palette
+
+    def rgba(self) -> np.ndarray:
+        if self._rgba is None:
+            self._rgba = self._palette[self._index]
+        return self._rgba
+
+    def indexed(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._index is None:
+            self._index, self._palette, exact = splat.indexed_colours(self._rgba)
+            if not exact:
+                log.info("colour cloud shown with a 256-colour palette on the splat path")
+        return self._index, self._palette
+
+
 class CloudViewer(QOpenGLWidget):
     picked = Signal(object)          # PickResult (clicks on the cloud)
     statusMessage = Signal(str)
 
-    def __init__(self, parent=None):
+    def __init__(self, parent=None, render_path: str | None = None):
+        """``render_path``: ``"splat"``, ``"classic"`` or None (splat where the context allows
+        it, unless the environment variable ANKLESCAN_VIEWER_PATH=classic)."""
         super().__init__(parent)
         self.setFormat(default_format())
+        wanted = render_path or os.environ.get(RENDER_PATH_ENV, "").strip().lower() or RENDER_SPLAT
+        if wanted not in (RENDER_SPLAT, RENDER_CLASSIC):
+            raise ValueError(f"render_path must be {RENDER_SPLAT!r} or {RENDER_CLASSIC!r}, not {wanted!r}")
+        self.wanted_render_path = wanted
+        self.render_path = RENDER_CLASSIC  # what initializeGL settles on
+        self.render_path_info = "no GL context yet"
+        self._splat: splat.SplatRenderer | None = None
+        self._splat_mode: str | None = None  # colour mode whose indices are in the splat buffer
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.setMinimumSize(320, 240)
         self.camera = picking.OrbitCamera()
@@ -135,8 +190,9 @@ class CloudViewer(QOpenGLWidget):
     def _clear_cloud_state(self) -> None:
         self.points = np.zeros((0, 3), np.float32)
         self.order = np.zeros(0, np.int64)
-        self._colours = {}
+        self._colours: dict[str, _Colours] = {}
         self._vbos: dict[str, int] = {}
+        self._splat_mode = None
         self._snapper: Future | None = None
         self.centre, self.radius = np.zeros(3), 1.0
         self.spacing_mm: float | None = None
@@ -151,7 +207,7 @@ class CloudViewer(QOpenGLWidget):
         self.order = np.random.default_rng(0).permutation(n) if n else np.zeros(0, np.int64)
         self.points = np.ascontiguousarray(cloud.points[self.order], dtype=np.float32)
         self.scanner_eye = None if scanner_eye is None else np.asarray(scanner_eye, np.float64)
-        self._colours = {COLOR_WHITE: white_colours(cloud)[self.order]}
+        self._colours = {COLOR_WHITE: _Colours(rgba=white_colours(cloud)[self.order])}
         # The KD-tree (~0.9 s for 2 M points) builds on a worker thread (scipy releases the GIL):
         # the cloud is on screen at once, and only a pick in the first second waits for it.
         self._snapper = _EXECUTOR.submit(picking.Snapper, self.points) if n else None
@@ -215,7 +271,7 @@ class CloudViewer(QOpenGLWidget):
     def set_color_mode(self, mode: str) -> None:
         if mode not in self._colours and len(self.points):
             # Depth colours are made on first use: most sessions never leave the white frame.
-            self._colours[mode] = depth_colours(self.points, self.scanner_eye)
+            self._colours[mode] = _Colours(index=depth_levels(self.points, self.scanner_eye), palette=depth_palette())
             self._pending_upload = True
         self.color_mode = mode
         self.update()
@@ -252,43 +308,96 @@ class CloudViewer(QOpenGLWidget):
         self._quadric = GLU.gluNewQuadric()
         GLU.gluQuadricNormals(self._quadric, GLU.GLU_SMOOTH)
         self.context().aboutToBeDestroyed.connect(self._gl_teardown)
+        self._choose_render_path()
         if self._pending_upload or self.points.size:
             self._upload_current()
+
+    def _choose_render_path(self) -> None:
+        renderer = GL.glGetString(GL.GL_RENDERER).decode(errors="replace")
+        version = GL.glGetString(GL.GL_VERSION).decode(errors="replace")
+        self._delete_splat()
+        reason = "ANKLESCAN_VIEWER_PATH / render_path asked for it"
+        if self.wanted_render_path == RENDER_SPLAT:
+            try:
+                self._splat = splat.SplatRenderer()
+            except splat.SplatUnavailable as e:
+                reason = str(e)
+            except Exception as e:  # a driver that claims 4.3 but trips over the shaders
+                GL.glGetError()
+                reason = f"{type(e).__name__}: {e}"
+        if self._splat is not None:
+            self.render_path = RENDER_SPLAT
+            self.render_path_info = f"compute splat, every point every frame ({renderer}; OpenGL {version})"
+        else:
+            self.render_path = RENDER_CLASSIC
+            self.render_path_info = (f"classic fixed-function GL_POINTS, {self.lod_points:,}-point level of "
+                                     f"detail while moving ({renderer}; OpenGL {version}; {reason})")
+        log.info("3-D viewer render path: %s", self.render_path_info)
+
+    def _fall_back_to_classic(self, error: Exception) -> None:
+        log.warning("splat rendering failed (%s); using the classic path", error)
+        GL.glGetError()
+        GL.glUseProgram(0)
+        self._delete_splat()
+        self.render_path = RENDER_CLASSIC
+        self.render_path_info = f"classic fixed-function GL_POINTS (the splat path failed: {error})"
+        self._upload_current()
+
+    def _delete_splat(self) -> None:
+        if self._splat is not None:
+            self._splat.delete()
+            self._splat = None
+        self._splat_mode = None
 
     def _upload_current(self) -> None:
         # initializeGL already has the context current; _upload's makeCurrent is harmless but
         # its doneCurrent would unbind it mid-initialisation, so upload inline here.
         self._delete_vbos()
+        self._splat_mode = None
         if len(self.points):
-            self._vbos = {"points": _make_vbo(self.points)}
-            for mode, rgba in self._colours.items():
-                self._vbos[mode] = _make_vbo(rgba)
+            if self._splat is not None:
+                self._upload_splat()
+            else:
+                self._vbos = {"points": _make_vbo(self.points)}
+                for mode, colours in self._colours.items():
+                    self._vbos[mode] = _make_vbo(colours.rgba())
         self._pending_upload = False
+
+    def _upload_splat(self) -> None:
+        """Positions + the current colour mode's palette indices (a mode switch re-uploads)."""
+        mode = self.color_mode if self.color_mode in self._colours else COLOR_WHITE
+        index, palette = self._colours[mode].indexed()
+        self._splat.upload(self.points, index)
+        self._splat.set_palette(palette)
+        self._splat_mode = mode
 
     def _gl_teardown(self) -> None:
         self.makeCurrent()
         self._delete_vbos()
+        self._delete_splat()
         self._pending_upload = True
         self.doneCurrent()
 
     def paintGL(self) -> None:
         if self._pending_upload:
             self._upload_current()
-        self._setup_frame()
+        # The splat's resolve pass writes every pixel's colour and depth: no clear needed.
+        self._setup_frame(clear=not (self._splat is not None and len(self.points)))
         self._draw_points()
         self._draw_overlays_gl()
         self._read_back_matrices()
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
         self.overlay.update()  # labels follow the frame just drawn
 
-    def _setup_frame(self) -> None:
+    def _setup_frame(self, clear: bool = True) -> None:
         dpr = self.devicePixelRatioF()
         w, h = max(1, round(self.width() * dpr)), max(1, round(self.height() * dpr))
         GL.glViewport(0, 0, w, h)
-        GL.glClearColor(*BACKGROUND, 1.0)
-        GL.glClearDepth(1.0)
         GL.glDepthMask(GL.GL_TRUE)
-        GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
+        if clear:
+            GL.glClearColor(*BACKGROUND, 1.0)
+            GL.glClearDepth(1.0)
+            GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
         mv = self.camera.modelview()
         near, far = picking.near_far(mv, self.lo, self.hi)
         GL.glMatrixMode(GL.GL_PROJECTION)
@@ -302,6 +411,13 @@ class CloudViewer(QOpenGLWidget):
         GL.glDisable(GL.GL_LIGHTING)
 
     def _draw_points(self) -> None:
+        if self._splat is not None and len(self.points):
+            try:
+                self._draw_splat()
+                return
+            except Exception as e:  # e.g. an out-of-memory GL error on a huge window
+                self._fall_back_to_classic(e)
+                self._setup_frame()
         if "points" not in self._vbos:
             return
         n = len(self.points)
@@ -319,6 +435,15 @@ class CloudViewer(QOpenGLWidget):
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
         GL.glDisableClientState(GL.GL_COLOR_ARRAY)
         GL.glDisableClientState(GL.GL_VERTEX_ARRAY)
+
+    def _draw_splat(self) -> None:
+        """Every point, every frame (app.splat): no level of detail needed."""
+        mode = self.color_mode if self.color_mode in self._colours else COLOR_WHITE
+        if self._splat_mode != mode:
+            self._upload_splat()
+        _, _, w, h = GL.glGetIntegerv(GL.GL_VIEWPORT)
+        self._splat.draw(int(w), int(h), self.effective_point_size(), BACKGROUND)
+        self.last_frame_full = True
 
     def _read_back_matrices(self) -> None:
         # The paper's step: acquire the matrices "set up to the CG hardware at present".
@@ -455,7 +580,7 @@ class CloudViewer(QOpenGLWidget):
         mode = "white frame" if self.color_mode == COLOR_WHITE else (
             "distance from the scanner" if self.scanner_eye is not None else "height")
         text = f"{len(self.points):,} points · colour: {mode}"
-        if self._interacting and len(self.points) > self.lod_points:
+        if self._interacting and len(self.points) > self.lod_points and self.render_path == RENDER_CLASSIC:
             text += f" · drawing {self.lod_points:,} while moving"
         font = QFont(self.font())
         font.setPointSizeF(9)

@@ -1,11 +1,13 @@
-"""The 3-D viewer under Xvfb: the paper's depth-buffer pick against the simulated scan's exact geometry."""
+"""The 3-D viewer under Xvfb: the paper's depth-buffer pick against the simulated scan's exact
+geometry, on both render paths (compute splat and classic fixed-function points)."""
 
 import numpy as np
 import pytest
+from OpenGL import GL
 from PySide6.QtCore import QPoint, Qt
 
-from app import picking
-from app.viewer import COLOR_DEPTH, CloudViewer
+from app import picking, splat
+from app.viewer import COLOR_DEPTH, COLOR_WHITE, RENDER_CLASSIC, RENDER_SPLAT, CloudViewer
 from core.pointcloud import PointCloud
 
 pytestmark = pytest.mark.gui
@@ -27,14 +29,21 @@ def scan():
             "eye": rig.camera.center, "marks": truth.marks}
 
 
-@pytest.fixture
-def viewer(qtbot, scan):
-    v = CloudViewer()
+def _make_viewer(qtbot, scan, path=None):
+    v = CloudViewer(render_path=path)
     qtbot.addWidget(v)
     v.set_cloud(scan["cloud"], scanner_eye=scan["eye"])
     v.show()
     qtbot.waitExposed(v)
+    if path is not None and v.render_path != path:
+        pytest.skip(f"no {path} path in this GL context: {v.render_path_info}")
     return v
+
+
+@pytest.fixture(params=[RENDER_SPLAT, RENDER_CLASSIC])
+def viewer(request, qtbot, scan):
+    """Every picking test runs on both render paths: they must leave the same depth buffer."""
+    return _make_viewer(qtbot, scan, request.param)
 
 
 def _show(viewer, qtbot, size, zoom):
@@ -194,3 +203,146 @@ def test_screenshots(qtbot, qapp, tmp_path):
     qtbot.wait(300)
     view.grab().save(str(out / "session_plots.png"))
     store.close()
+
+
+# ---- the two render paths ------------------------------------------------------------------
+
+def _frame(viewer):
+    """The frame's depth buffer (24-bit integers, rows = GL window y) and RGBA colours."""
+    viewer.render_now()
+    viewer.makeCurrent()
+    try:
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, viewer.defaultFramebufferObject())
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        _, _, w, h = viewer.viewport
+        depth = GL.glReadPixels(0, 0, w, h, GL.GL_DEPTH_COMPONENT, GL.GL_UNSIGNED_INT)
+        depth = np.frombuffer(np.asarray(depth, np.uint32).tobytes(), np.uint32).reshape(h, w) >> 8
+        rgba = np.frombuffer(bytes(GL.glReadPixels(0, 0, w, h, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE)), np.uint8)
+    finally:
+        viewer.doneCurrent()
+    return depth, rgba.reshape(h, w, 4)
+
+
+@pytest.fixture
+def both(qtbot, scan):
+    return _make_viewer(qtbot, scan, RENDER_SPLAT), _make_viewer(qtbot, scan, RENDER_CLASSIC)
+
+
+def test_splat_is_the_default_where_compute_shaders_exist(qtbot, scan, monkeypatch):
+    monkeypatch.delenv("ANKLESCAN_VIEWER_PATH", raising=False)
+    v = _make_viewer(qtbot, scan)
+    v.makeCurrent()
+    version = splat.context_version()
+    v.doneCurrent()
+    assert v.render_path == (RENDER_SPLAT if version >= (4, 3) else RENDER_CLASSIC)
+    assert v.render_path_info.startswith("compute splat" if v.render_path == RENDER_SPLAT else "classic")
+
+
+@pytest.mark.parametrize("zoom, point_size", [(1.0, 1.0), (2.5, 1.0), (2.5, 2.0), (4.0, 3.0), (6.0, None)])
+def test_splat_depth_buffer_is_the_classic_one(both, qtbot, zoom, point_size):
+    """Same matrices, same depth range, llvmpipe's own point rules: the splat's depth buffer
+    is the fixed-function one to the bit (measured: every pixel). Colours may differ where two
+    points have the same 24-bit depth: GL keeps the first drawn, the splat the smaller index."""
+    frames = []
+    for v in both:
+        v.resize(640, 480)
+        v.reset_view()
+        v.camera.zoom(zoom)
+        v.set_point_size(point_size)
+        qtbot.wait(10)
+        frames.append(_frame(v))
+    (ds, cs), (dc, cc) = frames
+    assert both[0].effective_point_size() == both[1].effective_point_size()
+    np.testing.assert_allclose(both[0].projection, both[1].projection)
+    np.testing.assert_allclose(both[0].modelview, both[1].modelview)
+    empty = (1 << 24) - 1
+    drawn_s, drawn_c = ds < empty, dc < empty
+    assert drawn_c.sum() > 10_000
+    assert (drawn_s != drawn_c).sum() <= 1e-4 * drawn_c.sum()
+    same = drawn_s & drawn_c
+    assert np.mean(ds[same] == dc[same]) > 0.9999
+    assert np.mean(np.all(cs[same] == cc[same], axis=-1)) > 0.995
+    # what a pick would make of it: every pixel drawn by both unprojects to the same place
+    ys, xs = np.nonzero(same)
+    win = np.c_[xs + 0.5, ys + 0.5, ds[same] / empty]
+    mats = (both[1].modelview, both[1].projection, both[1].viewport)
+    classic_win = np.c_[win[:, :2], dc[same] / empty]
+    gap = np.linalg.norm(picking.unproject(win, *mats) - picking.unproject(classic_win, *mats), axis=1)
+    assert np.percentile(gap, 99.9) < 1e-3 and gap.max() < 20.0
+
+
+def test_splat_colour_modes_match_classic(both, qtbot):
+    frames = []
+    for v in both:
+        v.resize(640, 480)
+        v.reset_view()
+        v.camera.zoom(2.0)
+        v.set_color_mode(COLOR_DEPTH)
+        qtbot.wait(10)
+        depth_mode = _frame(v)[1]
+        v.set_color_mode(COLOR_WHITE)
+        frames.append((depth_mode, _frame(v)[1]))
+    for splat_rgba, classic_rgba in zip(*frames):
+        assert np.mean(np.all(splat_rgba == classic_rgba, axis=-1)) > 0.999
+    assert not np.array_equal(frames[0][0], frames[0][1])  # the modes do differ
+
+
+def test_fallback_when_the_context_cannot_splat(qtbot, scan, monkeypatch):
+    def unavailable(self):
+        raise splat.SplatUnavailable("OpenGL 2.1 context, compute shaders need 4.3")
+    monkeypatch.setattr(splat.SplatRenderer, "__init__", unavailable)
+    monkeypatch.delenv("ANKLESCAN_VIEWER_PATH", raising=False)
+    v = _make_viewer(qtbot, scan)
+    assert v.render_path == RENDER_CLASSIC and "compute shaders need 4.3" in v.render_path_info
+    _show(v, qtbot, (640, 480), 2.0)
+    idx, pos = _targets(v, scan, n=3, seed=11)
+    for i in idx:
+        r = v.pick(*np.floor(pos[i, :2]).astype(int))
+        assert np.linalg.norm(r.raw - scan["points"][i]) < 2.0 and r.index == i
+
+
+def test_fallback_when_splat_drawing_fails(qtbot, scan, monkeypatch):
+    v = _make_viewer(qtbot, scan, RENDER_SPLAT)
+
+    def broken(self, *args):
+        raise GL.GLError(GL.GL_OUT_OF_MEMORY, "glDispatchCompute")
+    monkeypatch.setattr(splat.SplatRenderer, "draw", broken)
+    _show(v, qtbot, (640, 480), 2.0)
+    assert v.render_path == RENDER_CLASSIC and "failed" in v.render_path_info
+    depth, _ = _frame(v)
+    assert (depth < (1 << 24) - 1).sum() > 10_000  # the same frame was drawn the classic way
+    idx, pos = _targets(v, scan, n=3, seed=12)
+    assert all(v.pick(*np.floor(pos[i, :2]).astype(int)).index == i for i in idx)
+
+
+def test_environment_forces_the_classic_path(qtbot, scan, monkeypatch):
+    monkeypatch.setenv("ANKLESCAN_VIEWER_PATH", "classic")
+    v = _make_viewer(qtbot, scan)
+    assert v.render_path == RENDER_CLASSIC and v.wanted_render_path == RENDER_CLASSIC
+    with pytest.raises(ValueError):
+        CloudViewer(render_path="vulkan")
+
+
+def test_indexed_colours():
+    rng = np.random.default_rng(3)
+    grey = rng.integers(0, 256, 5000).astype(np.uint8)
+    rgba = np.c_[grey, grey, grey, np.full(5000, 255, np.uint8)]
+    index, palette, exact = splat.indexed_colours(rgba)
+    assert exact and np.array_equal(palette[index], rgba)
+    # a colour camera's white frame: skin and a blue table under shading
+    base = np.where(rng.random(20000)[:, None] < 0.7, [200, 150, 120], [60, 90, 160])
+    rgb = np.clip(base * rng.uniform(0.3, 1.0, (20000, 1)) + rng.normal(0, 6, (20000, 3)), 0, 255).astype(np.uint8)
+    index, palette, exact = splat.indexed_colours(np.c_[rgb, np.full(20000, 255, np.uint8)])
+    err = np.abs(palette[index, :3].astype(int) - rgb).max(axis=1)
+    assert not exact and err.mean() < 8 and err.max() < 40
+
+
+@pytest.mark.parametrize("size, window", [(1, (0, 0)), (2, (0, 1)), (3, (-1, 1)), (4, (-1, 2)), (5, (-2, 2))])
+def test_point_square_rules(size, window):
+    """Pixel p shows anchors m in p + window; the anchor's square m - s/2 ... then covers p."""
+    assert splat.resolve_window(size) == window
+    lo, hi = window
+    for m in range(-3, 4):
+        covered = {p for p in range(-10, 10) if lo <= m - p <= hi}
+        assert covered == set(range(m - size // 2, m - size // 2 + size))
+    assert splat.gl_point_size(2.5) == 2 and splat.gl_point_size(2.6) == 3 and splat.gl_point_size(0.2) == 1
