@@ -179,24 +179,10 @@ class BoxPoints:
 
 
 def observe(white, column, row) -> BoxPoints:
-    from core import calibration_box as cb
-    from core.errors import CalibrationError
-    found = cb.detect_markers(white)
-    if not found:
-        raise CalibrationError("No box markers found in the scan: is the box in view and lit?")
-    world, w = cb.marker_corners_world(), np.asarray(white, np.float32)
-    cx, cu, px, pu, pc = [], [], [], [], []
-    for mid in sorted(found):
-        for corner, X in zip(found[mid], world[mid]):
-            cx.append(X)
-            cu.append(corner)
-            q = cb.projector_at(corner, [column, row], w, found[mid])
-            if q is not None:
-                px.append(X)
-                pu.append(q)
-                pc.append(corner)
-    return BoxPoints(w, np.array(cx), np.array(cu), np.array(px).reshape(-1, 3), np.array(pu).reshape(-1, 2),
-                     np.array(pc).reshape(-1, 2), found)
+    from core.calibration_box import observe_box
+    obs = observe_box(white, column, row)
+    return BoxPoints(np.asarray(white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
+                     obs.proj_cam_uv, obs.found)
 
 
 def calibrate_box(points: BoxPoints, camera_size, projector_size, exclude_flagged: bool = True):

@@ -378,6 +378,8 @@ class BoxObservations:
     proj_xyz: np.ndarray
     proj_uv: np.ndarray  # (N,) columns or (N, 2) columns and rows
     marker_ids: list
+    proj_cam_uv: np.ndarray  # (N, 2) the camera pixel where each projector point was read
+    found: dict  # marker id -> (4, 2) camera corners
 
 
 def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = None) -> BoxObservations:
@@ -385,7 +387,7 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
     found = detect_markers(white)
     world = marker_corners_world()
     maps = [column] if row is None else [column, row]
-    cam_xyz, cam_uv, proj_xyz, proj_uv = [], [], [], []
+    cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam = [], [], [], [], []
     w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else _to_8bit(white).astype(np.float32)
     for mid in sorted(found):
         for corner, X in zip(found[mid], world[mid]):
@@ -395,11 +397,13 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
             if q is not None:
                 proj_xyz.append(X)
                 proj_uv.append(q)
+                proj_cam.append(corner)
     if not cam_xyz:
-        raise CalibrationError("no calibration-box markers found in the white frame")
+        raise CalibrationError("no calibration-box markers found in the white frame: is the box in view and lit?")
     proj_uv = np.array(proj_uv).reshape(len(proj_uv), len(maps))
     return BoxObservations(np.array(cam_xyz), np.array(cam_uv), np.array(proj_xyz).reshape(-1, 3),
-                           proj_uv[:, 0] if row is None else proj_uv, sorted(found))
+                           proj_uv[:, 0] if row is None else proj_uv, sorted(found),
+                           np.array(proj_cam).reshape(-1, 2), found)
 
 
 def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str = "linear"):
