@@ -356,6 +356,10 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
     # The free radius is a size check; on the short arc of an oblique plate it is itself
     # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed one.
     tol = max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd)
+    if not (np.isfinite(radius) and radius < 10 * radius_mm):
+        # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
+        return None, (f"edge points lie on a line, not a {radius_mm:g} mm circle "
+                      f"(seen at {_view_deg(cam_c, centre, normal):.0f}°)")
     if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
         return None, (f"not a {radius_mm:g} mm plate (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, "
                       f"seen at {_view_deg(cam_c, centre, normal):.0f}°)")
