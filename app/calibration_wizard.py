@@ -47,6 +47,7 @@ KEY_VERIFIED_AT = "calibration/verified_at"
 KEY_MAX_AGE = "calibration/max_age_days"
 DEFAULT_MAX_AGE_DAYS = 30
 PREVIEW_MS = 300
+SHOW_TIMEOUT_S = 3.0  # a projector frame not painted by then: the window is closed or hidden
 STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")
 PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
@@ -717,7 +718,7 @@ class CalibrationWizard(QDialog):
                 self._timer.start()
         return result
 
-    def _show_and_capture(self, frame, timeout_s: float = 3.0):
+    def _show_and_capture(self, frame, timeout_s: float | None = None):
         """Show a frame, wait until the projector window has painted it and the settle time
         has passed (the scan's own show → painted → settle → capture order), photograph it."""
         painted: list[int] = []
@@ -725,7 +726,7 @@ class CalibrationWizard(QDialog):
         self.projector.painted.connect(slot)
         try:
             token = self.projector.show_frame(frame, "spot")
-            deadline = time.monotonic() + timeout_s
+            deadline = time.monotonic() + (SHOW_TIMEOUT_S if timeout_s is None else timeout_s)
             while not any(t >= token for t in painted):
                 if time.monotonic() > deadline:
                     raise RuntimeError("the projector window did not show the frame: is it open?")

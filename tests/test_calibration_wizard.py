@@ -207,3 +207,21 @@ def test_warning_banner_hook(tmp_path):
     assert calibration_warning(qs, now) == ""
     qs.setValue(KEY_VERIFIED, "fail")
     assert "verification failed" in calibration_warning(qs, now)
+
+
+def test_spot_refinement_without_the_projector_window_keeps_the_steered_spot(setup, qtbot, monkeypatch):
+    """The projector window closed mid-way: a clear message, the spot recorded as steered."""
+    import app.calibration_wizard as cw
+
+    rig, projector, store, wiz = setup
+    wiz.go(cw.PAGE_MANUAL)
+    wiz._timer.stop()
+    wiz.set_manual_image(wiz.camera.capture())
+    wiz.manual_goto(5)
+    wiz._manual_cam[5] = (200.0, 150.0)  # a camera click for this point
+    projector.show_spot(300.2, 250.4)
+    projector.hide()
+    monkeypatch.setattr(cw, "SHOW_TIMEOUT_S", 0.3)
+    wiz.record_spot()
+    assert wiz._manual_proj[5] == (300.2, 250.4)
+    assert "could not be taken" in wiz.status.text() and "projector window" in wiz.status.text()
