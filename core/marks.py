@@ -193,11 +193,12 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
     are 0.9 against 0.45 again. Only new blobs away from the plates already found are tried,
     and they are fitted on the lit image as before (its edges are where the plate's are).
     """
+    decoded = np.isfinite(points[..., 0])
+    if decoded.sum() < 10:
+        return
     albedo = shading_corrected(image, points, cal)
     found = [m.pixel for m in result.marks]
-    r_px = float(_plate_radius_px(cal, np.nanmedian(_camera_depth(cal, points[np.isfinite(points[..., 0])])),
-                                  radius_mm))
-    decoded = np.isfinite(points[..., 0])
+    r_px = float(_plate_radius_px(cal, np.median(_camera_depth(cal, points[decoded])), radius_mm))
     for blob in candidate_blobs(albedo, points, cal, _noise_sigma(albedo), radius_mm):
         if any(np.hypot(*(np.asarray(blob["centre"]) - p)) < 2 * r_px for p in found):
             continue

@@ -86,6 +86,22 @@ def test_no_marks_message():
     assert not ms.complete and "found 0" in ms.message()
 
 
+def test_nothing_decoded_is_a_clear_empty_result(recwarn):
+    """A scan with no points (lens cap on): no plates, a message, no numpy warnings on the way
+    (the second look must not take the median of nothing)."""
+    from core.marks import find_marks
+    from core.pointcloud import PointCloud
+    from hardware.simrig import SimRig
+
+    cal = SimRig(scale=0.25).true_calibration()
+    dark = np.zeros((cal.camera.height, cal.camera.width), np.uint8)
+    cloud = PointCloud(np.zeros((0, 3), np.float32))
+    cloud.pixels = np.zeros((0, 2))
+    ms = find_marks(dark, dark, cloud, cal)
+    assert not ms.marks and "found 0" in ms.message()
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
 def test_circle_fit_recovers_centre_and_radius_on_a_half_arc():
     rng = np.random.default_rng(1)
     phi = np.linspace(0, math.pi, 40)
