@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.csv_numbers import finite_number
 from core.errors import AnkleScanError, GeometryError
 
 LABELS = (1, 2, 3, 4, 5, 6, 7)
@@ -243,16 +244,6 @@ def mismatch(adjusted_table_angles: Mapping, reference_angles: Mapping) -> dict:
 
 # ------------------------------------------------------------------------- CSV
 
-def _parse_float(text: str, where: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise AnkleScanError(f"{where}: {text.strip()!r} is not a number") from None
-    if not math.isfinite(v):
-        raise AnkleScanError(f"{where}: coordinate is {text.strip()} (must be finite)")
-    return v
-
-
 def _header_columns(header: list[str], path: Path) -> dict[str, int]:
     names = [h.strip().lower() for h in header]
     cols = {}
@@ -291,7 +282,7 @@ def read_marks_csv(path) -> dict[int, np.ndarray]:
             raise AnkleScanError(f"{where}: {e}") from None
         if lab in marks:
             raise AnkleScanError(f"{where}: duplicate mark label {lab}")
-        marks[lab] = np.array([_parse_float(row[cols[c]], where) for c in "xyz"])
+        marks[lab] = np.array([finite_number(row[cols[c]], where) for c in "xyz"])
     if not marks:
         raise AnkleScanError(f"{path}: no marks after the header")
     return marks

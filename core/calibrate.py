@@ -31,6 +31,7 @@ from scipy.stats import norm
 
 from core import paper_model as pm
 from core.calibration_file import Calibration, save_calibration
+from core.csv_numbers import finite_number
 from core.errors import CalibrationError, GeometryError
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
@@ -527,17 +528,7 @@ def _read_csv_rows(path: Path) -> list:
 def _parse_row(path: Path, line: int, row: list, cols: list, n_names: int) -> list:
     if len(row) != n_names:
         raise CalibrationError(f"{path}: line {line} has {len(row)} fields, the header has {n_names}")
-    values = []
-    for c in cols:
-        text = row[c].strip()
-        try:
-            value = float(text)
-        except ValueError:
-            raise CalibrationError(f"{path}: line {line}: {text!r} is not a number") from None
-        if not math.isfinite(value):
-            raise CalibrationError(f"{path}: line {line}: {text!r} is not a finite number")
-        values.append(value)
-    return values
+    return [finite_number(row[c], f"{path}: line {line}", CalibrationError) for c in cols]
 
 
 def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list) -> None:
