@@ -480,7 +480,7 @@ class CalibrationWizard(QDialog):
 
     def show_place_frame(self, frame) -> int:
         from core.calibration_box import detect_markers
-        found = detect_markers(frame)
+        found = detect_markers(frame, refine_edges=False)  # outlines only: no need for edge-fitted corners
         self.place_view.set_image(draw_outlines(frame, found))
         n = len(found)
         self.place_count.setText(f"{n} of 27 markers found" + ("" if n >= 18 else " — move the box fully into view"))
