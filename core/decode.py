@@ -195,7 +195,12 @@ def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
     # white - black saturates at 0 for integers, which is what a shadow test wants
     shadow = _cmp(cv2.subtract(white, black), thr["shadow"], cv2.CMP_LT)
     flags = cv2.bitwise_and(shadow, _FLAG[SHADOW])
-    sat = _cmp(white, saturation, cv2.CMP_GE)
+    # A clipped white only matters where no phase says otherwise: with phase on every axis,
+    # the phase frames' own clipping decides (see _too_clipped)
+    if all(pset.axis_code(axis).phase for axis in pset.axes):
+        sat = np.zeros_like(shadow)
+    else:
+        sat = _cmp(white, saturation, cv2.CMP_GE)
     coords, sigmas, info = {}, {}, {}
     for axis in pset.axes:
         ac = pset.axis_code(axis)
@@ -316,7 +321,31 @@ def _decode_phase(frames, ac: AxisCode, gray_centre, min_modulation, tol, satura
         for idx in ac.phase[1:]:
             brightest = cv2.max(brightest, frames[idx])
     sat = _cmp(brightest, saturation, cv2.CMP_GE)
+    if cv2.countNonZero(sat):
+        sat = _too_clipped(frames, ac, saturation)
     return column, weak, inconsistent, sat, mag
+
+
+MAX_CLIPPED_FRACTION = 0.5  # of the N phase samples; more and the clipped waveform has too little shape left
+
+
+def _too_clipped(frames, ac: AxisCode, saturation):
+    """Pixels with more than half (``MAX_CLIPPED_FRACTION``) of their N phase samples at the clip level.
+
+    Clipping cuts the samples around the waveform's peak, so the clipped waveform stays even
+    about the true phase and the N-step phase keeps it, with only the harmonics N ± 1 of the
+    clipped shape aliasing in: with projector gamma 2.2 at most 0.02 / 0.05 / 0.10 / 0.11
+    projector px for 1 / 2 / 3 / 4 clipped samples of 8 (docs/decoding.md). A least-squares
+    fit to the unclipped samples alone was tried and is worse with gamma (0.07-0.12 px): the
+    gamma harmonics no longer cancel on a partial set. A white plate lit head-on is the case
+    this keeps: its white frame clips, its phase does not need to be thrown away."""
+    lim = float(saturation)
+    count = None
+    for i in ac.phase:
+        c = _cmp(frames[i], lim, cv2.CMP_GE)
+        c = cv2.bitwise_and(c, 1)
+        count = c if count is None else cv2.add(count, c, dst=count)
+    return _cmp(count, MAX_CLIPPED_FRACTION * len(ac.phase), cv2.CMP_GT)
 
 
 def _phase_sums(frames, order, n):

@@ -95,6 +95,44 @@ def test_shadow_region_is_masked_as_shadow():
     assert res.stats()["reasons"]["shadow"] >= 26 * 36
 
 
+def test_a_clipped_white_keeps_its_phase():
+    # a white plate lit head-on: the white and the bright phase samples clip
+    ps = make_pattern_set("default", 128, 96)
+    truth = smooth_map()
+    albedo = np.full((H, W), 0.8, np.float32)
+    albedo[20:60, 30:90] = 1.4  # up to 3 of the 8 phase samples clip
+    # projector gamma: the clipped waveform is not a clipped sinusoid, only an even one
+    frames = simulate_frames(ps, truth, albedo=albedo, noise=NOISE, gamma=2.2)
+    ac = ps.axis_code("column")
+    clipped = (frames[list(ac.phase)] == 255).sum(axis=0)
+    region = (slice(20, 60), slice(30, 90))
+    assert (frames[ps.index("white")][region] == 255).all()
+    assert clipped[region].max() >= 3 and clipped[region].min() >= 1
+    res = decode(frames, ps)
+    assert res.valid[region].all()
+    err = res.column[region] - truth[region]
+    plain = res.column[70:110, 30:90] - truth[70:110, 30:90]
+    # as exact as the unclipped surface beside it (which has the lower albedo and noise)
+    assert np.sqrt(np.mean(err ** 2)) < 0.05 and np.abs(err).max() < 0.2
+    assert np.sqrt(np.mean(err ** 2)) < 1.5 * np.sqrt(np.mean(plain ** 2)) + 0.01
+
+
+def test_clipping_error_stays_within_the_bound():
+    # every phase (columns) at every over-exposure up to 6x (rows), projector gamma, no noise
+    ps = make_pattern_set("default", 128, 96)
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    truth = 4 + xx * 0.7 + 0.01 * yy
+    albedo = 0.9 + 5.0 * yy / (H - 1)
+    frames = simulate_frames(ps, truth, albedo=albedo, ambient=0.03, gamma=2.2)
+    ac = ps.axis_code("column")
+    clipped = (frames[list(ac.phase)] == 255).sum(axis=0)
+    res = decode(frames, ps, sigma=0.5)
+    assert np.all(res.reason[clipped > 4] == SATURATED)
+    ok = res.valid & (clipped >= 1)
+    assert ok.sum() > 0.3 * ok.size
+    assert np.abs(res.column[ok] - truth[ok]).max() < 0.12  # the N-step phase's bound, 4 of 8 clipped
+
+
 def test_saturated_region_is_masked_as_saturated():
     ps = make_pattern_set("default", 128, 96)
     frames = simulate_frames(ps, smooth_map(), noise=NOISE)
@@ -103,10 +141,25 @@ def test_saturated_region_is_masked_as_saturated():
     frames[phase, 60:90, 100:140] = np.clip(bright, 0, 255)  # a specular highlight
     res = decode(frames, ps)
     region = res.reason[60:90, 100:140]
-    # only where the highlight actually clips; the rest of it still decodes
-    assert np.all(region[frames[ps.index("white"), 60:90, 100:140] == 255] == SATURATED)
-    assert (region == SATURATED).mean() > 0.9
+    ac = ps.axis_code("column")
+    unclipped = (frames[list(ac.phase), 60:90, 100:140] < 255).sum(axis=0)
+    # more than half the phase samples clipped: saturated
+    assert np.all(region[unclipped < 4] == SATURATED)
+    assert (unclipped < 4).mean() > 0.5
+    # the rest of the highlight decodes, to the right column
+    ok = unclipped >= 4
+    assert ok.any() and np.all(region[ok] != SATURATED)
+    good = res.valid[60:90, 100:140] & ok
+    assert np.abs(res.column[60:90, 100:140][good] - smooth_map()[60:90, 100:140][good]).max() < 0.3
     assert res.valid[:50].all()
+
+
+def test_paper_preset_still_masks_a_clipped_white():
+    ps = make_pattern_set("paper", 128, 96)
+    albedo = np.full((H, W), 0.8, np.float32)
+    albedo[20:60, 30:90] = 1.4
+    res = decode(simulate_frames(ps, smooth_map(), albedo=albedo, noise=NOISE), ps)
+    assert np.all(res.reason[20:60, 30:90] == SATURATED)
 
 
 def test_scrambled_code_is_inconsistent():
