@@ -210,6 +210,9 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                                   for k, v in table.items() if k.startswith("table"))
                 status = "all 7 marks" if res["complete"] else (
                     f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
+                if res["mark_errors_mm"]:
+                    worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
+                    status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
                 progress(f"{res['label']}: {shown}  {status}")
                 if res["accuracy"]:
                     acc = res["accuracy"]["subject"]

@@ -79,6 +79,10 @@ SD_FLOOR_MM = 0.05
 TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
 AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
 PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
+SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round the leg to be told apart
+# Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
+# (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
+LONE_SPLIT_DEG = 65.0
 LEG_NORMAL_MAX_Z = 0.7  # without the table triple: leg plates are those with |n_z| < this
 
 
@@ -819,7 +823,8 @@ def _label_leg(leg, problems):
 
     With only two or three leg plates found, what the geometry still decides is labelled: the
     knee/ankle split is the widest gap in height (it must be clear: ≥ 100 mm), a lone plate in
-    its group is front or lateral by the sign of its score (|score| ≥ 0.5, else unlabelled).
+    its group is front or lateral by its normal's nearness to the other group's labelled pair
+    (or, without one, by which way round the leg its normal points).
     """
     if len(leg) < 2:
         return
@@ -844,24 +849,49 @@ def _label_leg(leg, problems):
             return
         axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
     axis /= np.linalg.norm(axis)
-    for pair, (front, lateral) in ((knee, ("1", "3")), (ankle, ("2", "4"))):
-        where = "knee" if front == "1" else "ankle"
-        s = [_anterior_score(m, axis) for m in pair]
-        if len(pair) == 1:
-            if abs(s[0]) < 0.5:
-                problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
-            else:
-                pair[0].label = front if s[0] > 0 else lateral
+    groups = ((knee, ("1", "3"), "knee"), (ankle, ("2", "4"), "ankle"))
+    for pair, (front, lateral), where in groups:
+        if len(pair) != 2:
             continue
-        if abs(s[0] - s[1]) < 0.5:  # normals ~90° apart give ~1.4; a tie means no decision
+        a = [_azimuth_about(m.normal, axis) for m in pair]
+        if abs(a[0] - a[1]) < SIDE_MARGIN_DEG:  # 55-90° apart; a tie means no decision
             problems.append(f"cannot tell the front from the lateral {where} mark")
             continue
-        f, l = (pair[0], pair[1]) if s[0] > s[1] else (pair[1], pair[0])
+        f, l = (pair[0], pair[1]) if a[0] > a[1] else (pair[1], pair[0])
         f.label, l.label = front, lateral
+    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
+        if len(pair) == 1:
+            label = _lone_label(pair[0], other, axis, front, lateral)
+            if label is None:
+                problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
+            pair[0].label = label
 
 
-def _anterior_score(m, axis) -> float:
-    """(n_y − n_x) of the plate normal perpendicular to the leg axis: +√2 anterior, −√2 lateral."""
-    n = m.normal - (m.normal @ axis) * axis
-    n /= max(np.linalg.norm(n), 1e-9)
-    return float(n[1] - n[0])
+def _lone_label(m, other, axis, front, lateral):
+    """A lone knee (ankle) plate is front or lateral by which plate of the labelled ankle
+    (knee) pair its normal is nearer to, around the leg axis: the leg carries both pairs,
+    wherever round its side the marks were stuck. Without that pair, by which side of
+    ``LONE_SPLIT_DEG`` its normal points round the leg (front marks face 90°, lateral ones
+    0-40°: docs/marks.md), at least half the margin clear of it."""
+    if len(other) == 2 and all(o.label is not None for o in other):
+        ref = sorted(other, key=lambda o: o.label)  # front ("1"/"2") before lateral ("3"/"4")
+        a = [abs(_wrap_deg(_azimuth_about(m.normal, axis) - _azimuth_about(o.normal, axis))) for o in ref]
+        if abs(a[0] - a[1]) >= SIDE_MARGIN_DEG:
+            return front if a[0] < a[1] else lateral
+        return None
+    a = _azimuth_about(m.normal, axis)
+    if a >= LONE_SPLIT_DEG + SIDE_MARGIN_DEG / 2:
+        return front
+    if a <= LONE_SPLIT_DEG - SIDE_MARGIN_DEG / 2:
+        return lateral
+    return None
+
+
+def _azimuth_about(n, axis) -> float:
+    """Direction (deg) of a normal round the leg, seen down its axis: 0 lateral (+x), 90 front (+y)."""
+    p = n - (n @ axis) * axis
+    return math.degrees(math.atan2(p[1], p[0]))
+
+
+def _wrap_deg(a: float) -> float:
+    return (a + 180.0) % 360.0 - 180.0

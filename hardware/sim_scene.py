@@ -474,6 +474,12 @@ def _plate(label, foot, n, radius=7.5, thickness=1.5, albedo=0.9) -> Mark:
 
 
 DEFAULT_TABLE_MARKS = {"5": (80.0, -100.0), "6": (80.0, 95.0), "7": (-48.0, 135.0)}
+# Where round the leg's lateral side marks 3 and 4 sit: degrees from straight lateral towards
+# the front (the leg section's polar angle). One camera cannot see a plate on the straight
+# lateral side at table inversion 20° (77-87° from the camera ray); the clinician sticks them
+# where the camera sees them, as the paper's operator, who picked all seven in every trial from
+# one view, must have. docs/marks.md "Where the lateral marks go" has the measurements.
+LATERAL_MARK_DEG = 35.0
 
 
 def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
@@ -483,7 +489,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               ankle_semi_axes=(38.0, 32.0), knee_scale=1.38, leg_length=460.0,
               foot_semi_axes=(47.5, 120.0, 35.0), foot_sink=13.0, foot_shift=-10.0,
               ankle_back=55.0, ankle_height=20.0,
-              knee_mark_height=380.0, ankle_mark_height=60.0, table_marks=None,
+              knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG, table_marks=None,
               mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9,
               floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
@@ -491,7 +497,9 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     Angles in degrees. The leg axis is ∝ (tan leg_inv, tan leg_pf, 1); unset leg angles are
     the table's plus ``leg_offset_deg`` (a patient does not stand exactly square to the
     table). Semi-axes: ankle (mediolateral, anteroposterior); the knee section is
-    ``knee_scale`` times it. Table marks are (across, along) the top in mm from its centre.
+    ``knee_scale`` times it. Table marks are (across, along) the top in mm from its centre;
+    ``lateral_mark_deg`` is how far round from straight lateral towards the front marks 3 and 4
+    sit (0: straight lateral).
     """
     if leg_inversion is None:
         leg_inversion = table_inversion + leg_offset_deg[0]
@@ -517,7 +525,8 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     objs.append(leg)
     marks = {}
     for label, ang, z in (("1", math.pi / 2, knee_mark_height), ("2", math.pi / 2, ankle_mark_height),
-                          ("3", 0.0, knee_mark_height), ("4", 0.0, ankle_mark_height)):
+                          ("3", math.radians(lateral_mark_deg), knee_mark_height),
+                          ("4", math.radians(lateral_mark_deg), ankle_mark_height)):
         X, nrm = leg.point(ang, z)
         marks[label] = _plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo)
     for label, (a, b) in (table_marks or DEFAULT_TABLE_MARKS).items():

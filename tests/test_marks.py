@@ -53,6 +53,29 @@ def test_partial_leg_marks_are_still_labelled(drop):
         assert m.label == truth[tuple(np.round(m.centre, 6))]
 
 
+@pytest.mark.parametrize("lateral_deg", [0.0, 35.0, 55.0])
+@pytest.mark.parametrize("inv,pf", [(0, 0), (20, 20), (10, -20)])
+def test_lone_leg_plate_labelled_by_the_other_pair(lateral_deg, inv, pf):
+    """A lone ankle plate is front or lateral by which knee plate its normal is nearer to round
+    the leg, wherever round its side the lateral marks were stuck; at 55° forward of lateral
+    (normal ~60° round the leg, between the two) only that comparison can tell."""
+    scene = leg_scene(inv, pf, lateral_mark_deg=lateral_deg)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    for drop in (("2",), ("4",), ("1",), ("3",)):
+        ms = MarkSet(marks=_truth_marks(scene, drop=drop))
+        label_marks(ms)
+        assert ms.missing == list(drop), (drop, ms.message())
+        for m in ms.marks:
+            assert m.label == truth[tuple(np.round(m.centre, 6))]
+    # with neither pair complete, the 55° plates face too near the split to call
+    ms = MarkSet(marks=_truth_marks(scene, drop=("1", "2")))
+    label_marks(ms)
+    if lateral_deg == 55.0:
+        assert len(ms.unlabelled) == 2 and "front or the lateral" in ms.message()
+    else:
+        assert sorted(ms.missing) == ["1", "2"]
+
+
 def test_circle_prior_holds_a_short_noisy_arc():
     """A 90° arc with 0.15 mm scatter: the radius prior (weighted against the arc's own
     scatter) keeps the centre; a fixed small weight let it drift ~0.5 mm (docs/marks.md)."""

@@ -9,7 +9,7 @@ import pytest
 from core.calibration_file import calibration_from_dict, calibration_to_dict
 from core.errors import AnkleScanError
 from hardware.camera import CameraDisconnected
-from hardware.sim_scene import ObjectId, Scene, TexturedQuad, leg_scene, quad_scene, table_normal
+from hardware.sim_scene import ObjectId, Scene, TexturedQuad, angles_from_marks, leg_scene, quad_scene, table_normal
 from hardware.simrig import Optics, SimRig, default_camera, default_projector, simulated_devices
 
 SCALE = 0.25
@@ -91,9 +91,14 @@ def test_leg_marks_sit_where_the_spec_puts_them(truth):
     assert m["1"][1] > m["3"][1] and m["2"][1] > m["4"][1]  # 1, 2 anterior (y+)
     P = np.array([m[k] for k in "567"])
     assert np.linalg.norm(np.cross(P[1] - P[0], P[2] - P[0])) > 1e4  # far from collinear
-    # The leg's set axis angles are what the marks measure (plates follow the surface).
-    assert truth.angles["leg_plantar_flexion"] == pytest.approx(truth.leg_axis_angles[1], abs=1e-9)
+    # The leg's set axis angles are what the marks measure (plates follow the surface): exactly
+    # for plantar flexion with 3, 4 straight lateral; 35° forward of it (the default, where the
+    # camera sees them) the leg's taper leans the line 3-4 ~1.1° forward (docs/marks.md).
+    assert truth.angles["leg_plantar_flexion"] == pytest.approx(truth.leg_axis_angles[1] + 1.1, abs=0.15)
     assert truth.angles["leg_inversion"] == pytest.approx(truth.leg_axis_angles[0], abs=0.5)
+    straight = leg_scene(12.0, -7.0, lateral_mark_deg=0.0)
+    angles = angles_from_marks({k: v.centre for k, v in straight.marks.items()})
+    assert angles["leg_plantar_flexion"] == pytest.approx(truth.leg_axis_angles[1], abs=1e-9)
 
 
 def test_every_mark_is_seen_and_lit(truth):
@@ -138,7 +143,13 @@ def test_white_marks_are_brighter_than_skin(rig, truth):
         around = binary_dilation(plate, iterations=5) & ~binary_dilation(plate, iterations=2)
         ring = around & (truth.object_id == (ObjectId.LEG if k <= 4 else ObjectId.TABLE)) & truth.lit
         assert np.median(img[mark]) > 1.3 * np.median(img[ring]), f"mark {k}"
-    assert img.max() < 255  # default exposure does not clip the marks
+    # Only the lateral knee plate, facing the projector almost head-on, clips, and mildly: its
+    # linear level stays under 1.2x full scale, so at most 2 of 8 phase samples clip and the
+    # decoder keeps its phase (test_decode.py::test_clipping_error_stays_within_the_bound).
+    clipped = img >= 255
+    assert not (clipped & (truth.mark_label != 3)).any()
+    linear = rig.render_linear(_frame(rig, 255))
+    assert np.percentile(linear[truth.mark_label == 3], 99) < 1.2
 
 
 def test_fixed_seed_is_deterministic():
