@@ -886,10 +886,10 @@ def _label_leg(leg, problems):
         if len(pair) != 2:
             continue
         a = [_azimuth_about(m.normal, axis) for m in pair]
-        if abs(a[0] - a[1]) < SIDE_MARGIN_DEG:  # 55-90° apart; a tie means no decision
+        if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:  # 50-90° apart; a tie means no decision
             problems.append(f"cannot tell the front from the lateral {where} mark")
             continue
-        f, l = (pair[0], pair[1]) if a[0] > a[1] else (pair[1], pair[0])
+        f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
         f.label, l.label = front, lateral
     for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
         if len(pair) == 1:
