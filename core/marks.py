@@ -104,6 +104,10 @@ class Mark:
     n_edge: int
     n_interior: int
     label: str | None = None
+    # degrees between the plate's normal and the camera ray / the projector ray to its centre:
+    # past ~70° a plate's centre is less accurate (docs/marks.md), a reason to re-stick it
+    view_deg: float | None = None
+    light_deg: float | None = None
 
     @property
     def sd(self) -> float:
@@ -115,7 +119,9 @@ class Mark:
                 "normal": [round(float(v), 5) for v in self.normal], "radius_mm": round(self.radius, 4),
                 "circle_rms_mm": round(self.circle_rms, 4), "plane_rms_mm": round(self.plane_rms, 4),
                 "sd_mm": round(self.sd, 4), "pixel": [round(float(v), 2) for v in self.pixel],
-                "edge_points": self.n_edge, "interior_points": self.n_interior}
+                "edge_points": self.n_edge, "interior_points": self.n_interior,
+                "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
+                "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1)}
 
 
 @dataclass
@@ -475,11 +481,13 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
     # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
     cov += (0.5 * (radius - radius_mm)) ** 2 * (basis.T @ basis)
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
-    return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in), ""
+    return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in,
+                view_deg=_view_deg(cam_c, centre, normal),
+                light_deg=_view_deg(cal.projector.center, centre, normal)), ""
 
 
 def _view_deg(cam_c, centre, normal) -> float:
-    """Angle (deg) between the plate normal and the camera ray to its centre."""
+    """Angle (deg) between the plate normal and the ray from ``cam_c`` (a device centre) to its centre."""
     d = centre - cam_c
     return math.degrees(math.acos(min(abs(float(d @ normal)) / float(np.linalg.norm(d)), 1.0)))
 

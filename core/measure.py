@@ -48,13 +48,12 @@ class MeasureResult:
         }
 
     def format_text(self) -> str:
-        lines = ["mark        x          y          z      radius   sd (mm)"]
-        for k, m in sorted(self.marks.labelled.items()):
+        lines = ["mark        x          y          z      radius   sd (mm)   seen / lit at"]
+        rows = [(k, m) for k, m in sorted(self.marks.labelled.items())] + [("?", m) for m in self.marks.unlabelled]
+        for k, m in rows:
             x, y, z = m.centre
-            lines.append(f"  {k}   {x:9.2f}  {y:9.2f}  {z:9.2f}   {m.radius:6.2f}   {m.sd:.3f}")
-        for m in self.marks.unlabelled:
-            x, y, z = m.centre
-            lines.append(f"  ?   {x:9.2f}  {y:9.2f}  {z:9.2f}   {m.radius:6.2f}   {m.sd:.3f}")
+            angles = "" if m.view_deg is None else f"   {m.view_deg:3.0f}° / {m.light_deg:3.0f}°"
+            lines.append(f"  {k}   {x:9.2f}  {y:9.2f}  {z:9.2f}   {m.radius:6.2f}   {m.sd:.3f}{angles}")
         for name in ANGLE_ORDER:
             if name in self.angles:
                 a = self.angles[name]

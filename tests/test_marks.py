@@ -169,6 +169,13 @@ def test_reduced_scale_table_marks_and_angles(inv, pf):
         assert abs(lab[k].radius - 7.5) < 1.0
     for name in ("table_inversion", "table_plantar_flexion"):
         assert abs(res.angles[name]["value"] - truth.angles[name]) < 0.3
+    # how obliquely each plate is seen and lit, as RESULT.json reports it for the clinician
+    for k, m in lab.items():
+        plate = rig.scene.marks[k]
+        for key, centre in (("seen_at_deg", rig.camera.center), ("lit_at_deg", rig.projector.center)):
+            d = centre - plate.centre
+            true_deg = math.degrees(math.acos(d @ plate.normal / np.linalg.norm(d)))
+            assert abs(m.to_dict()[key] - true_deg) < 2.0, (k, key)
 
 
 @pytest.mark.slow
