@@ -169,15 +169,21 @@ def _text(log) -> str:
     return log.decode(errors="replace").strip() if isinstance(log, bytes) else str(log)
 
 
+def _checked(obj: int, ok, log, delete, what: str) -> int:
+    """``obj`` if its status ``ok`` holds, else delete it and raise with its info log."""
+    if not ok:
+        text = _text(log(obj))
+        delete(obj)
+        raise SplatUnavailable(f"{what}: {text}")
+    return obj
+
+
 def _compile(kind, source: str) -> int:
     shader = GL.glCreateShader(kind)
     GL.glShaderSource(shader, source)
     GL.glCompileShader(shader)
-    if not GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS):
-        log = _text(GL.glGetShaderInfoLog(shader))
-        GL.glDeleteShader(shader)
-        raise SplatUnavailable(f"shader does not compile: {log}")
-    return shader
+    return _checked(shader, GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS), GL.glGetShaderInfoLog,
+                    GL.glDeleteShader, "shader does not compile")
 
 
 def _link(*shaders: int) -> int:
@@ -187,11 +193,8 @@ def _link(*shaders: int) -> int:
     GL.glLinkProgram(program)
     for s in shaders:
         GL.glDeleteShader(s)
-    if not GL.glGetProgramiv(program, GL.GL_LINK_STATUS):
-        log = _text(GL.glGetProgramInfoLog(program))
-        GL.glDeleteProgram(program)
-        raise SplatUnavailable(f"program does not link: {log}")
-    return program
+    return _checked(program, GL.glGetProgramiv(program, GL.GL_LINK_STATUS), GL.glGetProgramInfoLog,
+                    GL.glDeleteProgram, "program does not link")
 
 
 def context_version() -> tuple[int, int]:

@@ -365,11 +365,14 @@ class CloudViewer(QOpenGLWidget):
 
     def _upload_splat(self) -> None:
         """Positions + the current colour mode's palette indices (a mode switch re-uploads)."""
-        mode = self.color_mode if self.color_mode in self._colours else COLOR_WHITE
+        mode = self._shown_colour_mode()
         index, palette = self._colours[mode].indexed()
         self._splat.upload(self.points, index)
         self._splat.set_palette(palette)
         self._splat_mode = mode
+
+    def _shown_colour_mode(self) -> str:
+        return self.color_mode if self.color_mode in self._colours else COLOR_WHITE
 
     def _gl_teardown(self) -> None:
         self.makeCurrent()
@@ -438,8 +441,7 @@ class CloudViewer(QOpenGLWidget):
 
     def _draw_splat(self) -> None:
         """Every point, every frame (app.splat): no level of detail needed."""
-        mode = self.color_mode if self.color_mode in self._colours else COLOR_WHITE
-        if self._splat_mode != mode:
+        if self._splat_mode != self._shown_colour_mode():
             self._upload_splat()
         _, _, w, h = GL.glGetIntegerv(GL.GL_VIEWPORT)
         self._splat.draw(int(w), int(h), self.effective_point_size(), BACKGROUND)

@@ -301,6 +301,20 @@ def test_fallback_when_the_context_cannot_splat(qtbot, scan, monkeypatch):
         assert np.linalg.norm(r.raw - scan["points"][i]) < 2.0 and r.index == i
 
 
+def test_a_shader_that_does_not_compile_or_link_is_a_clear_unavailability(qtbot, scan):
+    v = _make_viewer(qtbot, scan, RENDER_SPLAT)
+    _show(v, qtbot, (320, 240), 1.0)
+    v.makeCurrent()
+    try:
+        with pytest.raises(splat.SplatUnavailable, match="does not compile"):
+            splat._compile(GL.GL_COMPUTE_SHADER, "#version 430\nthis is not GLSL")
+        vs = splat._compile(GL.GL_VERTEX_SHADER, "#version 430 compatibility\nvoid main() { gl_Position = vec4(0.0); }")
+        with pytest.raises(splat.SplatUnavailable, match="does not link"):  # no fragment ... with a compute shader
+            splat._link(vs, splat._compile(GL.GL_COMPUTE_SHADER, splat.SPLAT_CS))
+    finally:
+        v.doneCurrent()
+
+
 def test_fallback_when_splat_drawing_fails(qtbot, scan, monkeypatch):
     v = _make_viewer(qtbot, scan, RENDER_SPLAT)
 
