@@ -2,7 +2,8 @@
 
 Pipeline (docs/marks.md has the reasoning and the measured accuracy):
 
-1. **Candidates** in the projector-lit image ``white − black`` (ambient cancels): a white
+1. **Candidates** in the projector-lit image ``white − black`` (ambient cancels; averaged
+   over the capture's Gray-code pairs, ``core.lit_image``, for a third of the noise): a white
    top-hat (grey opening with a square larger than any plate) gives the brightness relative
    to the surrounding surface, so plates are found by local contrast, then by size (the
    expected plate radius at the blob's reconstructed depth) and shape (ellipse fill, solidity).
@@ -173,14 +174,15 @@ class MarkSet:
 
 # ---------------------------------------------------------------------------- public entry
 
-def find_marks(white: np.ndarray, black: np.ndarray | None, cloud: PointCloud, cal: Calibration, *,
+def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
                plate_radius_mm: float = PLATE_RADIUS_MM) -> MarkSet:
     """Detect, fit and label the mark plates of one scan.
 
-    ``white``/``black``: the capture's white and black frames (any integer or float type);
+    ``lit``: the projector's light alone per camera pixel (white − black, or better
+    ``core.lit_image.averaged_lit`` of the capture, with a third of the noise);
     ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used.
     """
-    image = _lit_image(white, black)
+    image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
     sigma = sigma_image(cloud, image.shape)
     noise = _noise_sigma(image)
@@ -281,12 +283,6 @@ def sigma_image(cloud: PointCloud, shape: tuple):
     px = cloud.pixels.astype(np.intp)
     img[px[:, 1], px[:, 0]] = cloud.sigma
     return img
-
-
-def _lit_image(white, black) -> np.ndarray:
-    """Projector light only: ambient and dark level cancel in white − black."""
-    w = np.asarray(white, np.float32)
-    return w - np.asarray(black, np.float32) if black is not None else w
 
 
 def _noise_sigma(image: np.ndarray) -> float:

@@ -19,6 +19,7 @@ from core.calibration_file import Calibration, load_calibration
 from core.capture import Capture, load_capture
 from core.decode import decode
 from core.errors import AnkleScanError
+from core.lit_image import averaged_lit
 from core.marks import MarkSet, find_marks
 from core.pointcloud import PointCloud
 from core.reconstruct import check_compatible, cloud_from_decoded
@@ -69,7 +70,7 @@ def measure_capture(capture: Capture, calibration: Calibration) -> MeasureResult
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
-    marks = find_marks(decoded._white_raw, decoded._black_raw, cloud, calibration)
+    marks = find_marks(averaged_lit(capture), cloud, calibration)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     return MeasureResult(marks, angles, _jsonable(summary), cloud)

@@ -120,7 +120,7 @@ def test_nothing_decoded_is_a_clear_empty_result(recwarn):
     dark = np.zeros((cal.camera.height, cal.camera.width), np.uint8)
     cloud = PointCloud(np.zeros((0, 3), np.float32))
     cloud.pixels = np.zeros((0, 2))
-    ms = find_marks(dark, dark, cloud, cal)
+    ms = find_marks(dark, cloud, cal)
     assert not ms.marks and "found 0" in ms.message()
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
