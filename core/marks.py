@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import scipy.special
 
 from core.calibration_file import Calibration
 from core.pointcloud import PointCloud
@@ -73,7 +75,11 @@ WALL_SLOPE_LIMIT = 0.02  # keep edge points where a side wall would shift them <
 PLATE_THICKNESS_MM = 1.5  # height of the plate's top face over the surface (casts the shadow)
 SLIVER_MAX_PX = 0.0  # a projector-shadow sliver beside the rim biases the edge inwards ...
 SLIVER_RESOLVED_PX = 3.0  # ... unless it is resolved, several pixels wide
-RADIUS_PRIOR_SD_MM = 0.1  # plates are made to 7.5 mm; the prior steadies short-arc fits
+SLIVER_PASSES = 2  # re-find the sliver edges with the centre found, refit; once more
+SLIVER_LEVEL_MAX = 0.8  # x the plate's level: above, the rim is no clear fall (surface as bright)
+MIN_BLUR_EDGES = 5  # clean edges needed to measure the blur; else DEFAULT_BLUR_PX
+DEFAULT_BLUR_PX = 0.8
+RADIUS_PRIOR_SD_MM = 0.05  # plates are cut to 15.0 ± 0.1 mm; the prior steadies short-arc fits
 EDGE_NOISE_FLOOR_MM = 0.03  # lower bound of the edge-point scatter used for weights and SDs
 # Fit-based SDs miss systematic errors (calibration, decoding biases near the plate); this
 # floor is the RMS centre error measured on the simulated rig with a true calibration
@@ -435,15 +441,17 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
     r_px = float(_plate_radius_px(cal, _camera_depth(cal, centroid[None])[0], radius_mm))
     if not (AREA_RANGE[0] * math.pi * r_px**2 <= shape["area"] <= AREA_RANGE[1] * math.pi * r_px**2):
         return None, f"wrong size for a plate at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
-    uv = edge_points(image, shape)
+    profiles = edge_profiles(image, shape)
+    uv = profiles.points()
     if len(uv) < MIN_EDGE_POINTS:
         return None, "no clear edge"
     rays = cal.camera.rays(uv)
     px_per_mm = r_px / radius_mm
+    proj_c = cal.projector.center
     fit, last, seen = None, None, set()
     for i in range(PLANE_PASSES + 1):
         E = _ray_plane(cam_c, rays, centroid, normal)
-        fit = far_side_circle(E, rays, centroid, normal, cam_c, cal.projector.center, px_per_mm, radius_mm)
+        fit = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm)
         if fit is None:
             return None, "edge points do not form a circle"
         if i == PLANE_PASSES or (last is not None and np.linalg.norm(fit[0] - last) < PLANE_CONVERGED_MM):
@@ -458,6 +466,19 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
         if plane is None:
             break  # keep the plane we have: too few decoded top-face points to do better
         centroid, normal, plane_rms, n_in = plane
+    for _ in range(SLIVER_PASSES):
+        # re-find the edges that have a shadow sliver beside them (dropped so far), now that
+        # the plate's plane and centre say how wide each sliver is
+        E = _ray_plane(cam_c, rays, centroid, normal)
+        s_new, relocated = sliver_edges(profiles, cal, E, fit[0], normal, proj_c, radius_mm)
+        if not relocated.any():
+            break
+        rays = cal.camera.rays(profiles.points(s_new))
+        E = _ray_plane(cam_c, rays, centroid, normal)
+        better = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated)
+        if better is None:
+            break
+        fit = better
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
     # The free radius is a size check; on the short arc of an oblique plate it is itself
     # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed one.
@@ -590,7 +611,31 @@ def _ray_plane(origin, rays, point, normal) -> np.ndarray:
     return origin + s[:, None] * rays
 
 
+@dataclass
+class EdgeProfiles:
+    """Radial image profiles across a blob's outline, and the half-contrast edge on each."""
+
+    origin: np.ndarray  # (2,) blob centre, px
+    dirs: np.ndarray  # (n, 2) origin -> blob ellipse: the profile reaches s = 1 there
+    step: np.ndarray  # (n,) s per sample (PROFILE_STEP_PX along the profile)
+    values: np.ndarray  # (n, n_s) image along the profiles, +inf past s = 2
+    start: np.ndarray  # (n,) first sample outside the plate's interior window
+    inner: np.ndarray  # (n,) the plate's level
+    outer: np.ndarray  # (n,) the darkest level just outside the edge
+    rows: np.ndarray  # profiles with an edge
+    s_edge: np.ndarray  # (len(rows),) where, in s units
+
+    def points(self, s_edge=None) -> np.ndarray:
+        """(len(rows), 2) image points of the edges (or of ``s_edge`` on the same rows)."""
+        s = self.s_edge if s_edge is None else s_edge
+        return self.origin + s[:, None] * self.dirs[self.rows]
+
+
 def edge_points(image: np.ndarray, shape: dict) -> np.ndarray:
+    return edge_profiles(image, shape).points()
+
+
+def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
     """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
     half-way from the plate's interior level to the darkest level within ~2.5 px outside
     the edge. The outside level is re-read at the edge found, because the blob's ellipse
@@ -620,11 +665,17 @@ def edge_points(image: np.ndarray, shape: dict) -> np.ndarray:
         level = 0.5 * (inner + outer)
     k = _first_below(prof, level, after)
     rows = np.flatnonzero((k > start) & (inner - outer > 0) & np.isfinite(outer))
-    k = k[rows]
-    p0, p1 = prof[rows, k - 1], prof[rows, k]
-    frac = (p0 - level[rows]) / np.where(p0 != p1, p0 - p1, 1.0)
-    s_edge = (k - 1 + frac) * step[rows]
-    return np.array([cx, cy]) + s_edge[:, None] * rim[rows]
+    x = _crossing(prof[rows], level[rows], k[rows])
+    return EdgeProfiles(np.array([cx, cy]), rim, step, prof, start, inner, outer, rows, x * step[rows])
+
+
+def _crossing(prof, level, k) -> np.ndarray:
+    """Sub-sample position (in samples) where ``prof`` falls through ``level`` between
+    samples k-1 and k."""
+    i = np.arange(len(k))
+    p0, p1 = prof[i, k - 1], prof[i, k]
+    frac = (p0 - level) / np.where(p0 != p1, p0 - p1, 1.0)
+    return k - 1 + frac
 
 
 def _first_below(prof, level, after) -> np.ndarray:
@@ -639,7 +690,21 @@ def _plane_basis(normal):
     return np.stack([e1, np.cross(normal, e1)])  # (2, 3)
 
 
-def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm) -> np.ndarray:
+def _rim_geometry(E, rays, centre, normal, proj_c):
+    """Per edge point: the outward rim direction ``m`` in the plate's plane and how far beyond
+    the rim (in plate thicknesses) the camera (``a_c``) and the projector (``a_p``) cannot see
+    the surface (n towards the camera; ``a_c < 0``: the camera sees the side wall there)."""
+    m = E - centre
+    m -= np.outer(m @ normal, normal)
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+    a_c = np.einsum("ij,ij->i", m, rays) / -(rays @ normal)
+    dp = E - proj_c
+    dp /= np.linalg.norm(dp, axis=1, keepdims=True)
+    a_p = np.einsum("ij,ij->i", m, dp) / -(dp @ normal)
+    return m, a_c, a_p
+
+
+def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated=None) -> np.ndarray:
     """Edge points whose image outline is the top face's rim against a cleanly lit surround.
 
     With ``m`` the outward rim direction and ``d`` a ray (n towards the camera):
@@ -648,20 +713,128 @@ def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm) -> np.nda
     * the projector shadows the surface for ``h a_p`` beyond the rim, likewise with its rays.
     Where ``a_p > a_c`` a shadow sliver ``h (a_p − a_c)`` wide shows just outside the rim; a
     sliver narrower than the blur pulls the half-contrast level inwards (measured: up to
-    0.4 mm), so such points are dropped unless the sliver is resolved (several pixels).
+    0.4 mm), so such points are dropped unless the sliver is resolved (several pixels) or the
+    edge was ``relocated`` by ``sliver_edges``, which allows for it.
     """
-    m = E - centre
-    m -= np.outer(m @ normal, normal)
-    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
-    a_c = np.einsum("ij,ij->i", m, rays) / -(rays @ normal)
-    dp = E - proj_c
-    dp /= np.linalg.norm(dp, axis=1, keepdims=True)
-    a_p = np.einsum("ij,ij->i", m, dp) / -(dp @ normal)
-    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm
-    return (a_c >= -WALL_SLOPE_LIMIT) & ((sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX))
+    m, a_c, a_p = _rim_geometry(E, rays, centre, normal, proj_c)
+    # the sliver runs along m on the surface; the camera sees that direction foreshortened
+    d = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    across = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", m, d) ** 2, 0.0))
+    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm * across
+    ok = (sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX)
+    if relocated is not None:
+        ok |= relocated
+    return (a_c >= -WALL_SLOPE_LIMIT) & ok
 
 
-def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm):
+def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, radius_mm):
+    """Edges re-found on the profiles where a projector-shadow sliver lies beside the rim.
+
+    Across the rim the image is the plate's level A falling at the rim, a shadow (no projector
+    light) ``w`` wide, then the surface's level C: I(x) = A Φ(−x/σ) + C Φ((x − w)/σ) with the
+    image blur σ. At the rim (x = 0) that is A/2 + C Φ(−w/σ), not the half-contrast level:
+    with w ≲ σ and a surface as bright as the plate the half-contrast edge lies up to 0.8 mm
+    inside the rim on the simulated rig. ``w`` comes from the geometry (``_sliver_along_profile``),
+    σ from the plate's own sliver-free edges, C from the profile beyond the shadow. Returns the
+    new ``s_edge`` and which rows were re-found.
+    """
+    rows = pr.rows
+    vals = pr.values[rows]
+    step_px = PROFILE_STEP_PX
+    rays = cal.camera.rays(pr.points())
+    m, a_c, _ = _rim_geometry(E, rays, centre, normal, proj_c)
+    uv_rim = cal.camera.project(E)
+    tangent = cal.camera.project(E + 0.1 * np.cross(normal, m)) - uv_rim
+    nu = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+    nu /= np.maximum(np.linalg.norm(nu, axis=1, keepdims=True), 1e-12)
+    p_hat = pr.dirs[rows] / np.linalg.norm(pr.dirs[rows], axis=1, keepdims=True)
+    cos_b = np.maximum(np.abs(np.einsum("ij,ij->i", p_hat, nu)), 0.2)  # profile vs outline normal
+    w_prof = _sliver_along_profile(pr, cal, centre, normal, proj_c, radius_mm)
+    sliver = w_prof > 0
+    blur = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b)
+    blur_prof = blur / cos_b  # along the profile, px
+    q = np.where(sliver, w_prof / blur_prof, -np.inf)
+
+    k_edge = pr.s_edge / pr.step[rows]
+    idx = np.arange(vals.shape[1])[None, :]
+    lo = k_edge + (w_prof + 2 * blur_prof) / step_px
+    hi = lo + np.maximum(2 * blur_prof, 1.0) / step_px
+    beyond = (idx >= lo[:, None]) & (idx <= hi[:, None]) & np.isfinite(vals)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # rows with nothing beyond: NaN, dropped
+        surface = np.nanmedian(np.where(beyond, vals, np.nan), axis=1)
+    A = pr.inner[rows]
+    level = 0.5 * A + surface * scipy.special.ndtr(-q)
+    ok = sliver & np.isfinite(surface) & (level <= SLIVER_LEVEL_MAX * A)
+    after = idx >= pr.start[rows][:, None]
+    k = _first_below(vals, np.where(ok, level, -np.inf), after)
+    ok &= k > pr.start[rows]
+    x = _crossing(vals, level, np.maximum(k, 1))
+    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / step_px
+    return np.where(ok, x * pr.step[rows], pr.s_edge), ok
+
+
+def _sliver_along_profile(pr: EdgeProfiles, cal: Calibration, centre, normal, proj_c, radius_mm):
+    """Width (px along each profile, 0 where none) of the projector shadow seen beyond the rim.
+
+    The plate's top disc casts its shadow on the surface PLATE_THICKNESS_MM below it (taken as
+    a plane; the reconstructed surface beside the plates changed nothing measurable) as the
+    same disc shifted along the projector's rays; the camera ray through
+    the rim meets that surface at Q0, and the rays further out along the profile move from
+    there by ``g`` per px. The sliver is the stretch from Q0 to where that line leaves the
+    shadow disc. (At a grazing 77° the shift is ~7 mm, nearly the plate's radius, so the
+    first-order width h·(a_p − a_c) was twice the true one.)"""
+    cam_c = cal.camera.center
+    unit = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
+    uv = pr.points()
+    # start from the fitted rim on each profile, not the (biased) edge found
+    p0 = _ray_plane(cam_c, cal.camera.rays(uv), centre, normal)
+    x_rim = _line_leaves_circle(p0 - centre, _ray_plane(cam_c, cal.camera.rays(uv + unit), centre, normal) - p0,
+                                radius_mm, nearest=True)
+    uv = uv + np.nan_to_num(x_rim)[:, None] * unit
+    base = centre - PLATE_THICKNESS_MM * normal  # the surface plane's point under the centre
+    q0 = _ray_plane(cam_c, cal.camera.rays(uv), base, normal)
+    g = _ray_plane(cam_c, cal.camera.rays(uv + unit), base, normal) - q0
+    rim_to_proj = (centre + (q0 - base)) - proj_c
+    dp = rim_to_proj / np.linalg.norm(rim_to_proj, axis=1, keepdims=True)
+    shadow_centre = base + PLATE_THICKNESS_MM * (dp - np.outer(dp @ normal, normal)) / -(dp @ normal)[:, None]
+    inside = np.einsum("ij,ij->i", q0 - shadow_centre, q0 - shadow_centre) < radius_mm**2
+    width = _line_leaves_circle(q0 - shadow_centre, g, radius_mm)
+    return np.where(inside & np.isfinite(width), width, 0.0)
+
+
+def _line_leaves_circle(f, g, radius, nearest=False):
+    """x solving |f + x g| = radius (rows of f, g): the larger root, or with ``nearest`` the
+    root nearest 0; NaN where the line misses the circle."""
+    a = np.einsum("ij,ij->i", g, g)
+    b = 2.0 * np.einsum("ij,ij->i", f, g)
+    c = np.einsum("ij,ij->i", f, f) - radius**2
+    disc = b * b - 4.0 * a * c
+    root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+    a = np.maximum(a, 1e-12)
+    hi, lo = (-b + root) / (2 * a), (-b - root) / (2 * a)
+    return np.where(np.abs(hi) <= np.abs(lo), hi, lo) if nearest else hi
+
+
+def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
+    """Image blur σ (px, across the outline) from the plate's clean edges: a blurred step
+    falls from 75 % to 25 % of its contrast over 1.349 σ."""
+    rows = pr.rows[clean]
+    if len(rows) < MIN_BLUR_EDGES:
+        return DEFAULT_BLUR_PX
+    vals, A, O = pr.values[rows], pr.inner[rows], pr.outer[rows]
+    after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
+    k75 = _first_below(vals, O + 0.75 * (A - O), after)
+    k25 = _first_below(vals, O + 0.25 * (A - O), after)
+    good = (k75 > pr.start[rows]) & (k25 >= k75)
+    if good.sum() < MIN_BLUR_EDGES:
+        return DEFAULT_BLUR_PX
+    x75 = _crossing(vals[good], (O + 0.75 * (A - O))[good], k75[good])
+    x25 = _crossing(vals[good], (O + 0.25 * (A - O))[good], k25[good])
+    return float(np.median((x25 - x75) * PROFILE_STEP_PX * cos_b[clean][good]) / 1.349)
+
+
+def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated=None):
     """Circle through the clean edge points (``clean_edge_mask``), in the plate's plane.
 
     Returns the centre from a fit with the radius prior, and the free fit's radius (a check
@@ -674,7 +847,7 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
     centre2 = _circle_kasa(q)
     prior = (radius_mm, RADIUS_PRIOR_SD_MM)
     for _ in range(3):
-        use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm)
+        use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm, relocated)
         if use.sum() < MIN_EDGE_POINTS:
             use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, 0.0)
         if use.sum() < MIN_EDGE_POINTS:

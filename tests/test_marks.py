@@ -201,9 +201,9 @@ def test_grazing_lit_front_plates_are_found_by_the_second_look():
     """20/20 at full resolution: the front ankle plate is lit 77° from the projector, at the
     terminator of the ankle's shading, hardly brighter than the skin beside it; the shading-
     corrected image finds it, cut against the skin around it rather than the shadow beyond
-    (before: only its lit side wall was seen, a crescent fitted as a line). Its centre is the
-    benchmark's worst, 0.32 mm there (docs/marks.md), so this asserts 0.4 mm, not the 0.3 mm
-    every other plate meets."""
+    (before: only its lit side wall was seen, a crescent fitted as a line). Its far-side edge
+    has a shadow sliver narrower than the blur beside it, which pulled the half-contrast edge
+    0.2–0.5 mm inwards (0.32 mm off before ``sliver_edges``; 0.10 mm now)."""
     from core.measure import measure_capture
 
     rig, cap = _scan(20, 20, 1.0)
@@ -211,7 +211,7 @@ def test_grazing_lit_front_plates_are_found_by_the_second_look():
     truth = rig.truth()
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():
-        assert np.linalg.norm(m.centre - truth.marks[k]) < (0.4 if k == "2" else 0.3), k
+        assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
     for name, a in res.angles.items():
         assert abs(a["value"] - truth.angles[name]) < 0.2, name
 
@@ -268,3 +268,38 @@ def test_shading_correction_recovers_albedo_on_a_curved_surface():
     shading = lit.reshape(150, 200)[away] / albedo.reshape(150, 200)[away]
     assert shading.max() / shading.min() > 2  # the light itself varies a lot over the surface
     assert ratio.std() / ratio.mean() < 0.02
+
+
+@pytest.mark.parametrize("inv,pf,label", [(10, 20, "2"), (0, -20, "5"), (0, 0, "6")])
+def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
+    """The width of the projector shadow seen beside a plate's far rim, which sets the level
+    at the rim (``sliver_edges``), against rays cast in the simulated scene, on the far side
+    where the sliver is narrow enough to matter (< 1.5 px; wider ones leave the level at A/2).
+    The first-order width h·(a_p − a_c) was twice the true one at the grazing 10/20."""
+    from core.marks import EdgeProfiles, _plane_basis, _rim_geometry, _sliver_along_profile
+    from hardware.simrig import SimRig
+
+    rig = SimRig(leg_scene(inv, pf))
+    cal, plate = rig.true_calibration(), rig.scene.marks[label]
+    c, n = plate.centre, plate.normal * np.sign(plate.normal @ (rig.camera.center - plate.centre))
+    basis = _plane_basis(n)
+    phi = np.radians(np.arange(0, 360, 10))
+    rim = c + 7.5 * (np.cos(phi)[:, None] * basis[0] + np.sin(phi)[:, None] * basis[1])
+    origin, uv = cal.camera.project(c[None])[0], cal.camera.project(rim)
+    rows = np.arange(len(phi))
+    profiles = EdgeProfiles(origin, uv - origin, None, None, None, None, None, rows, np.ones(len(phi)))
+    model = _sliver_along_profile(profiles, cal, c, n, cal.projector.center, 7.5)
+
+    unit = (uv - origin) / np.linalg.norm(uv - origin, axis=1, keepdims=True)
+    xs = np.arange(0.01, 3.0, 0.01)
+    exact = np.zeros(len(phi))
+    for i in rows:
+        hit = rig._cast(uv[i] + xs[:, None] * unit[i])
+        dark = ~hit["lit"] & (np.abs((hit["X"] - c) @ n) > 0.05)  # unlit, not the top face
+        j0 = int(np.argmax(np.abs((hit["X"] - c) @ n) > 0.05))
+        run = dark[j0:]
+        exact[i] = (np.argmin(run) if not run.all() else len(run)) * 0.01 if run[0] else 0.0
+    _, a_c, _ = _rim_geometry(rim, cal.camera.rays(uv), c, n, cal.projector.center)
+    narrow = (a_c >= 0) & (np.minimum(model, exact) < 1.5) & ((model > 0) | (exact > 0))
+    assert narrow.sum() >= 3
+    assert np.abs(model - exact)[narrow].max() < 0.15, np.c_[model, exact][narrow]
