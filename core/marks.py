@@ -54,6 +54,7 @@ MIN_SOLIDITY = 0.88
 
 # 3-D checks: a plate is flat and round with the nominal radius.
 RADIUS_TOLERANCE_MM = 1.5
+MAX_RADIUS_TOLERANCE_MM = 3.0  # real plates' free radius: within 0.65 mm over 732 simulated (docs/marks.md)
 MAX_PLANE_RMS_MM = 0.6  # first plane, on the blob's interior: rim and side wall still in it
 # The plane refitted to the top face: accepted plates <= 0.082 mm (full resolution) and
 # <= 0.096 mm (0.75 scale) over the 15 benchmark postures; fits that locked onto side wall and
@@ -481,8 +482,9 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
         fit = better
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
     # The free radius is a size check; on the short arc of an oblique plate it is itself
-    # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed one.
-    tol = max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd)
+    # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed
+    # one, but not without bound: a straight edge (radius_sd huge) is no plate.
+    tol = min(max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd), MAX_RADIUS_TOLERANCE_MM)
     if not (np.isfinite(radius) and radius < 10 * radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
         return None, (f"edge points lie on a line, not a {radius_mm:g} mm circle "
@@ -631,10 +633,6 @@ class EdgeProfiles:
         return self.origin + s[:, None] * self.dirs[self.rows]
 
 
-def edge_points(image: np.ndarray, shape: dict) -> np.ndarray:
-    return edge_profiles(image, shape).points()
-
-
 def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
     """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
     half-way from the plate's interior level to the darkest level within ~2.5 px outside
@@ -664,7 +662,10 @@ def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
         outer = np.min(np.where(window, prof, np.inf), axis=1)
         level = 0.5 * (inner + outer)
     k = _first_below(prof, level, after)
-    rows = np.flatnonzero((k > start) & (inner - outer > 0) & np.isfinite(outer))
+    # the outside level must come from a whole window past the edge: a profile that ends
+    # (s = 2) on the plate's own falling edge gives a level, and an edge, inside the plate
+    whole = k + k_out < np.isfinite(prof).sum(axis=1)
+    rows = np.flatnonzero((k > start) & (inner - outer > 0) & np.isfinite(outer) & whole)
     x = _crossing(prof[rows], level[rows], k[rows])
     return EdgeProfiles(np.array([cx, cy]), rim, step, prof, start, inner, outer, rows, x * step[rows])
 
@@ -716,11 +717,10 @@ def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated
     0.4 mm), so such points are dropped unless the sliver is resolved (several pixels) or the
     edge was ``relocated`` by ``sliver_edges``, which allows for it.
     """
-    m, a_c, a_p = _rim_geometry(E, rays, centre, normal, proj_c)
-    # the sliver runs along m on the surface; the camera sees that direction foreshortened
-    d = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    across = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", m, d) ** 2, 0.0))
-    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm * across
+    _, a_c, a_p = _rim_geometry(E, rays, centre, normal, proj_c)
+    # first order, and not foreshortened: "resolved" keeps more of the outline for the first
+    # fit (foreshortened, a grazing plate was left with 8 points and one fit 2 mm off)
+    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm
     ok = (sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX)
     if relocated is not None:
         ok |= relocated

@@ -303,3 +303,19 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     narrow = (a_c >= 0) & (np.minimum(model, exact) < 1.5) & ((model > 0) | (exact > 0))
     assert narrow.sum() >= 3
     assert np.abs(model - exact)[narrow].max() < 0.15, np.c_[model, exact][narrow]
+
+
+def test_profiles_that_end_on_the_plate_give_no_edge():
+    """A blob smaller than its plate: profiles run to twice the blob's ellipse, which can end
+    on the plate's own falling edge; an "edge" read there lies inside the plate (a front knee
+    plate was 0.59 mm off), so such profiles give none. Long enough profiles find the rim."""
+    from core.marks import edge_profiles
+
+    yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
+    r = np.hypot(xx - 60, yy - 60)
+    image = (45.0 * (1.0 - np.tanh((r - 20.0) / 1.0))).astype(np.float32)  # a blurred disc, radius 20 px
+    small = edge_profiles(image, {"centre": (60.0, 60.0), "axes": (9.0, 9.0), "angle": 0.0})
+    assert len(small.rows) == 0
+    whole = edge_profiles(image, {"centre": (60.0, 60.0), "axes": (14.0, 14.0), "angle": 0.0})
+    assert len(whole.rows) > 40
+    assert np.abs(np.hypot(*(whole.points() - 60.0).T) - 20.0).max() < 0.1
