@@ -1,4 +1,4 @@
-"""Decode speed on a synthetic 1600x1200 capture (image loading excluded).
+"""Decode speed on a synthetic 1600x1200 capture (image loading excluded), and the marks' lit image.
 
     /work/venv/bin/python benchmarks/bench_decode.py [--runs 7] [--width 1600 --height 1200]
 
@@ -24,6 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.decode import decode  # noqa: E402
+from core.lit_image import lit_from_frames  # noqa: E402
 from core.patterns import make_pattern_set, simulate_frames  # noqa: E402
 
 
@@ -38,11 +39,15 @@ def bench(preset: str, h: int, w: int, runs: int, dtype) -> dict:
     truth = column_map(h, w, 1024)
     frames = simulate_frames(pset, truth, blur=1.0, noise=2 / 255, gamma=2.2, dtype=dtype)
     decode(frames, pset)  # warm-up: first-call allocations, OpenCV thread pool
-    times = []
+    lit_from_frames(frames, pset)
+    times, lit_times = [], []
     for _ in range(runs):
         t0 = time.perf_counter()
         res = decode(frames, pset)
         times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        lit_from_frames(frames, pset)  # the marks' image, averaged over the Gray pairs
+        lit_times.append(time.perf_counter() - t0)
     tracemalloc.start()
     decode(frames, pset)
     _, peak = tracemalloc.get_traced_memory()
@@ -54,6 +59,7 @@ def bench(preset: str, h: int, w: int, runs: int, dtype) -> dict:
     err = (res.column - truth)[res.valid & covered]
     return {"preset": preset, "frames": len(pset.frames), "dtype": np.dtype(dtype).name,
             "median_ms": 1e3 * statistics.median(times), "min_ms": 1e3 * min(times),
+            "lit_ms": 1e3 * statistics.median(lit_times),
             "decode_peak_mb": peak / 2 ** 20, "input_mb": frames.nbytes / 2 ** 20,
             "valid": float(res.valid.mean()), "rms_px": float(np.sqrt(np.mean(err ** 2)))}
 
@@ -74,7 +80,8 @@ def main(argv=None) -> int:
         print(f"{r['preset']:8s} {r['frames']:2d} frames {r['dtype']:6s}  "
               f"median {r['median_ms']:6.1f} ms (min {r['min_ms']:.1f})  "
               f"decode peak {r['decode_peak_mb']:.0f} MB (input {r['input_mb']:.0f} MB)  "
-              f"valid {100 * r['valid']:.1f}%  rms {r['rms_px']:.4f} px")
+              f"valid {100 * r['valid']:.1f}%  rms {r['rms_px']:.4f} px  "
+              f"lit image (core.lit_image) {r['lit_ms']:.1f} ms")
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"process peak RSS {rss:.0f} MB")
     return 0

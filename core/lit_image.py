@@ -40,21 +40,20 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet) -> np.ndarray:
     black = frames[pset.index("black")]
     pairs = [(g, gi) for axis in pset.axes
              for g, gi in zip(pset.axis_code(axis).gray, pset.axis_code(axis).gray_inv)]
-    hi_sum = white.astype(np.float32)
-    lo_sum = black.astype(np.float32)
+    total = cv2.subtract(white.astype(np.float32), black.astype(np.float32))
     if not pairs:
-        return hi_sum - lo_sum
+        return total
     count = np.ones(white.shape, np.float32)
-    ranges = [(cv2.max(frames[g], frames[gi]), cv2.min(frames[g], frames[gi])) for g, gi in pairs]
-    diffs = [cv2.subtract(hi, lo) for hi, lo in ranges]
+    # max − min of a pair: cv2.absdiff (no wrap-round for unsigned frames)
+    diffs = [cv2.absdiff(frames[g], frames[gi]) for g, gi in pairs]
     threshold = cv2.max(_median([diffs[i] for i in _reference_indices(pset)]), cv2.subtract(white, black))
     threshold = threshold.astype(np.float32) * np.float32(DECISIVE_FRACTION)
-    for (hi, lo), d in zip(ranges, diffs):
-        mask = cv2.compare(d.astype(np.float32), threshold, cv2.CMP_GE)
-        cv2.add(hi_sum, hi.astype(np.float32), dst=hi_sum, mask=mask)
-        cv2.add(lo_sum, lo.astype(np.float32), dst=lo_sum, mask=mask)
+    for d in diffs:
+        d = d.astype(np.float32)
+        mask = cv2.compare(d, threshold, cv2.CMP_GE)
+        cv2.add(total, d, dst=total, mask=mask)
         cv2.add(count, 1.0, dst=count, mask=mask)
-    return (hi_sum - lo_sum) / count
+    return total / count
 
 
 def _reference_indices(pset: PatternSet) -> list[int]:
