@@ -740,38 +740,43 @@ def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, 
     """
     rows = pr.rows
     vals = pr.values[rows]
-    step_px = PROFILE_STEP_PX
-    rays = cal.camera.rays(pr.points())
-    m, a_c, _ = _rim_geometry(E, rays, centre, normal, proj_c)
+    m, a_c, _ = _rim_geometry(E, cal.camera.rays(pr.points()), centre, normal, proj_c)
+    cos_b = _profile_across_outline(pr, cal, E, normal, m)
+    w_prof = _sliver_along_profile(pr, cal, centre, normal, proj_c, radius_mm)
+    sliver = w_prof > 0
+    blur_prof = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b) / cos_b  # along the profile, px
+    k_edge = pr.s_edge / pr.step[rows]
+    surface = _level_beyond(vals, k_edge + (w_prof + 2 * blur_prof) / PROFILE_STEP_PX,
+                            np.maximum(2 * blur_prof, 1.0) / PROFILE_STEP_PX)
+    A = pr.inner[rows]
+    level = 0.5 * A + surface * scipy.special.ndtr(-np.where(sliver, w_prof / blur_prof, -np.inf))
+    ok = sliver & np.isfinite(surface) & (level <= SLIVER_LEVEL_MAX * A)
+    after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
+    k = _first_below(vals, np.where(ok, level, -np.inf), after)
+    ok &= k > pr.start[rows]
+    x = _crossing(vals, level, np.maximum(k, 1))
+    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / PROFILE_STEP_PX
+    return np.where(ok, x * pr.step[rows], pr.s_edge), ok
+
+
+def _profile_across_outline(pr: EdgeProfiles, cal: Calibration, E, normal, m) -> np.ndarray:
+    """|cos| of the angle between each profile and the image normal of the plate's outline
+    there (at least 0.2): widths across the outline are 1/cos longer along the profile."""
     uv_rim = cal.camera.project(E)
     tangent = cal.camera.project(E + 0.1 * np.cross(normal, m)) - uv_rim
     nu = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
     nu /= np.maximum(np.linalg.norm(nu, axis=1, keepdims=True), 1e-12)
-    p_hat = pr.dirs[rows] / np.linalg.norm(pr.dirs[rows], axis=1, keepdims=True)
-    cos_b = np.maximum(np.abs(np.einsum("ij,ij->i", p_hat, nu)), 0.2)  # profile vs outline normal
-    w_prof = _sliver_along_profile(pr, cal, centre, normal, proj_c, radius_mm)
-    sliver = w_prof > 0
-    blur = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b)
-    blur_prof = blur / cos_b  # along the profile, px
-    q = np.where(sliver, w_prof / blur_prof, -np.inf)
+    p_hat = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
+    return np.maximum(np.abs(np.einsum("ij,ij->i", p_hat, nu)), 0.2)
 
-    k_edge = pr.s_edge / pr.step[rows]
+
+def _level_beyond(vals, first, length) -> np.ndarray:
+    """Median of each profile over samples [first, first + length]; NaN where none."""
     idx = np.arange(vals.shape[1])[None, :]
-    lo = k_edge + (w_prof + 2 * blur_prof) / step_px
-    hi = lo + np.maximum(2 * blur_prof, 1.0) / step_px
-    beyond = (idx >= lo[:, None]) & (idx <= hi[:, None]) & np.isfinite(vals)
+    window = (idx >= first[:, None]) & (idx <= (first + length)[:, None]) & np.isfinite(vals)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # rows with nothing beyond: NaN, dropped
-        surface = np.nanmedian(np.where(beyond, vals, np.nan), axis=1)
-    A = pr.inner[rows]
-    level = 0.5 * A + surface * scipy.special.ndtr(-q)
-    ok = sliver & np.isfinite(surface) & (level <= SLIVER_LEVEL_MAX * A)
-    after = idx >= pr.start[rows][:, None]
-    k = _first_below(vals, np.where(ok, level, -np.inf), after)
-    ok &= k > pr.start[rows]
-    x = _crossing(vals, level, np.maximum(k, 1))
-    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / step_px
-    return np.where(ok, x * pr.step[rows], pr.s_edge), ok
+        warnings.simplefilter("ignore", RuntimeWarning)  # rows with nothing there: NaN, dropped
+        return np.nanmedian(np.where(window, vals, np.nan), axis=1)
 
 
 def _sliver_along_profile(pr: EdgeProfiles, cal: Calibration, centre, normal, proj_c, radius_mm):
@@ -779,10 +784,9 @@ def _sliver_along_profile(pr: EdgeProfiles, cal: Calibration, centre, normal, pr
 
     The plate's top disc casts its shadow on the surface PLATE_THICKNESS_MM below it (taken as
     a plane; the reconstructed surface beside the plates changed nothing measurable) as the
-    same disc shifted along the projector's rays; the camera ray through
-    the rim meets that surface at Q0, and the rays further out along the profile move from
-    there by ``g`` per px. The sliver is the stretch from Q0 to where that line leaves the
-    shadow disc. (At a grazing 77° the shift is ~7 mm, nearly the plate's radius, so the
+    same disc shifted along the projector's rays; the camera ray through the rim meets that
+    surface at Q0, and the rays further out along the profile move from there by ``g`` per px.
+    The sliver is the stretch from Q0 to where that line leaves the shadow disc. (At a grazing 77° the shift is ~7 mm, nearly the plate's radius, so the
     first-order width h·(a_p − a_c) was twice the true one.)"""
     cam_c = cal.camera.center
     unit = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
