@@ -46,8 +46,8 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet) -> np.ndarray:
     count = np.ones(white.shape, np.float32)
     # max − min of a pair: cv2.absdiff (no wrap-round for unsigned frames)
     diffs = [cv2.absdiff(frames[g], frames[gi]) for g, gi in pairs]
-    threshold = cv2.max(_median([diffs[i] for i in _reference_indices(pset)]), cv2.subtract(white, black))
-    threshold = threshold.astype(np.float32) * np.float32(DECISIVE_FRACTION)
+    reference = _median([diffs[i] for i in _reference_indices(pset)]).astype(np.float32)
+    threshold = cv2.max(reference, cv2.subtract(white, black).astype(np.float32)) * np.float32(DECISIVE_FRACTION)
     for d in diffs:
         d = d.astype(np.float32)
         mask = cv2.compare(d, threshold, cv2.CMP_GE)
