@@ -59,3 +59,11 @@ def test_other_pattern_sets_and_float_frames(rig_and_set, preset, axes):
     assert lit.dtype == np.float32 and lit.shape == plain.shape
     d = np.abs(lit - plain)
     assert np.percentile(d, 99) <= 1.5 and d.max() <= 4.0  # noiseless: rounding, and a few straddling pixels
+
+
+def test_sixteen_bit_frames_scale_with_the_frames(rig_and_set):
+    rig, pset = rig_and_set
+    frames8 = _frames(rig, pset, noise=False)
+    lit8 = lit_from_frames(frames8, pset)
+    lit16 = lit_from_frames(frames8.astype(np.uint16) * 257, pset)
+    assert np.allclose(lit16, 257 * lit8, atol=257 * 0.5)
