@@ -1,6 +1,7 @@
 """Mark centres and angles against the simulated rig's truth over the table settings.
 
     /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick]
+        [--postures 20/20,10/20] [--seed N] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
 
 Prints, per trial, each labelled mark's centre error (mm), the four angle errors (deg),
 whether all seven were found and labelled, and which true marks were not found (each plate
@@ -23,14 +24,14 @@ from core.marks import LABELS  # noqa: E402
 from core.measure import measure_capture  # noqa: E402
 from core.patterns import make_pattern_set, render_all  # noqa: E402
 from hardware.sim_scene import leg_scene  # noqa: E402
-from hardware.simrig import SimRig  # noqa: E402
+from hardware.simrig import Optics, SimRig  # noqa: E402
 
 SETTINGS = [(inv, pf) for inv in (0, 10, 20) for pf in (-20, -10, 0, 10, 20)]
 QUICK = [(0, 0), (20, 20), (10, -20), (20, -20)]
 
 
-def trial(inv, pf, scale, seed):
-    rig = SimRig(leg_scene(inv, pf), scale=scale, seed=seed)
+def trial(inv, pf, scale, seed, optics=None):
+    rig = SimRig(leg_scene(inv, pf), scale=scale, seed=seed, optics=optics)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
     cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
     t = time.perf_counter()
@@ -51,11 +52,22 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--postures", help="inversion/plantar flexion pairs, e.g. 20/20,0/-20 (default: all 15)")
+    ap.add_argument("--seed", type=int, help="one seed for every trial (default: the trial's index)")
+    ap.add_argument("--camera-blur", type=float, help="px (rig default 0.6)")
+    ap.add_argument("--projector-blur", type=float, help="projector px (rig default 0.8)")
+    ap.add_argument("--noise", type=float, help="read noise, fraction of full scale (rig default 2/255)")
     a = ap.parse_args(argv)
+    overrides = {k: v for k, v in (("camera_blur_px", a.camera_blur), ("projector_blur_px", a.projector_blur),
+                                   ("noise_sigma", a.noise)) if v is not None}
+    optics = Optics(**overrides) if overrides else None
+    settings = QUICK if a.quick else SETTINGS
+    if a.postures:
+        settings = [tuple(int(v) for v in p.split("/")) for p in a.postures.split(",")]
     worst_mark, worst_angle, failures = 0.0, 0.0, 0
     n_found = n_right = n_total = 0
-    for i, (inv, pf) in enumerate(QUICK if a.quick else SETTINGS):
-        res, me, ae, dt = trial(inv, pf, a.scale, seed=i)
+    for i, (inv, pf) in enumerate(settings):
+        res, me, ae, dt = trial(inv, pf, a.scale, seed=i if a.seed is None else a.seed, optics=optics)
         ok = res.complete
         failures += not ok
         n_total += 7
