@@ -1,7 +1,7 @@
 """Mark centres and angles against the simulated rig's truth over the table settings.
 
-    /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick]
-        [--postures 20/20,10/20] [--seed N] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
+    /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick] [--jobs 2]
+        [--postures 20/20,10/20] [--seed N | --seeds i,31,32] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
 
 Prints, per trial, each labelled mark's centre error (mm), the four angle errors (deg),
 whether all seven were found and labelled, and which true marks were not found (each plate
@@ -11,6 +11,7 @@ found is matched to the nearest true centre); then the worst cases and the count
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -45,7 +46,26 @@ def trial(inv, pf, scale, seed, optics=None):
         k = min(tr.marks, key=lambda k: np.linalg.norm(tr.marks[k] - m.centre))
         nearest[k] = m.label
     res.found_truth = nearest  # true label -> label given (None: found, not labelled)
+    res.truth_marks = tr.marks
     return res, mark_err, ang_err, dt
+
+
+def _run(job):
+    """One trial in a worker process; only the figures travel back."""
+    inv, pf, scale, seed, optics = job
+    res, me, ae, dt = trial(inv, pf, scale, seed, optics)
+    z = [float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
+         for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
+    return {"inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
+            "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message()}
+
+
+def _jobs(a, optics):
+    settings = QUICK if a.quick else SETTINGS
+    if a.postures:
+        settings = [tuple(int(v) for v in p.split("/")) for p in a.postures.split(",")]
+    seeds = a.seeds.split(",") if a.seeds else ["i" if a.seed is None else str(a.seed)]
+    return [(inv, pf, a.scale, i if s == "i" else int(s), optics) for s in seeds for i, (inv, pf) in enumerate(settings)]
 
 
 def main(argv=None):
@@ -54,6 +74,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--postures", help="inversion/plantar flexion pairs, e.g. 20/20,0/-20 (default: all 15)")
     ap.add_argument("--seed", type=int, help="one seed for every trial (default: the trial's index)")
+    ap.add_argument("--seeds", help="every posture with each of these seeds, 'i' meaning its index, e.g. i,31,32")
+    ap.add_argument("--jobs", type=int, default=1, help="trials run in parallel (processes)")
     ap.add_argument("--camera-blur", type=float, help="px (rig default 0.6)")
     ap.add_argument("--projector-blur", type=float, help="projector px (rig default 0.8)")
     ap.add_argument("--noise", type=float, help="read noise, fraction of full scale (rig default 2/255)")
@@ -61,29 +83,44 @@ def main(argv=None):
     overrides = {k: v for k, v in (("camera_blur_px", a.camera_blur), ("projector_blur_px", a.projector_blur),
                                    ("noise_sigma", a.noise)) if v is not None}
     optics = Optics(**overrides) if overrides else None
-    settings = QUICK if a.quick else SETTINGS
-    if a.postures:
-        settings = [tuple(int(v) for v in p.split("/")) for p in a.postures.split(",")]
-    worst_mark, worst_angle, failures = 0.0, 0.0, 0
-    n_found = n_right = n_total = 0
-    for i, (inv, pf) in enumerate(settings):
-        res, me, ae, dt = trial(inv, pf, a.scale, seed=i if a.seed is None else a.seed, optics=optics)
-        ok = res.complete
-        failures += not ok
-        n_total += 7
-        n_found += len(res.found_truth)
-        n_right += sum(k == lab for k, lab in res.found_truth.items())
-        worst_mark = max([worst_mark, *me.values()])
-        worst_angle = max([worst_angle, *map(abs, ae.values())])
-        marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(me.items()))
-        angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in ae.items())
-        print(f"inv {inv:3d} pf {pf:4d}  {'7/7' if ok else 'INCOMPLETE'}  marks(mm) {marks}  angles(deg) {angles}  "
-              f"[{dt:.1f} s]", flush=True)
-        if not ok:
-            print("    " + res.marks.message(), flush=True)
-            print(f"    true marks not found: {', '.join(sorted(set(LABELS) - set(res.found_truth))) or 'none'}", flush=True)
-    print(f"worst mark error {worst_mark:.3f} mm, worst angle error {worst_angle:.3f} deg, incomplete trials {failures}; "
-          f"plates found {n_found}/{n_total}, correctly labelled {n_right}/{n_total}")
+    jobs = _jobs(a, optics)
+    failures, n_found, n_right, errors, angle_errors, z = 0, 0, 0, [], [], []
+    with multiprocessing.Pool(a.jobs) if a.jobs > 1 else _Serial() as pool:
+        for r in pool.imap(_run, jobs):
+            failures += not r["complete"]
+            n_found += len(r["found"])
+            n_right += sum(k == lab for k, lab in r["found"].items())
+            errors += r["marks"].values()
+            angle_errors += map(abs, r["angles"].values())
+            z += r["z"]
+            marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(r["marks"].items()))
+            angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
+            print(f"inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE'}  "
+                  f"marks(mm) {marks}  angles(deg) {angles}  [{r['dt']:.1f} s]", flush=True)
+            if not r["complete"]:
+                print("    " + r["message"], flush=True)
+                print(f"    true marks not found: {', '.join(sorted(set(LABELS) - set(r['found']))) or 'none'}", flush=True)
+    e = np.array(errors) if errors else np.zeros(1)
+    angle_errors = angle_errors or [0.0]
+    z = z or [0.0]
+    print(f"worst mark error {e.max():.3f} mm, worst angle error {max(angle_errors):.3f} deg, incomplete trials "
+          f"{failures} of {len(jobs)}; plates found {n_found}/{7 * len(jobs)}, correctly labelled {n_right}/{7 * len(jobs)}")
+    print(f"centre errors: RMS {np.sqrt(np.mean(e ** 2)):.3f} mm, 95th percentile {np.percentile(e, 95):.3f} mm, "
+          f"over 0.25 mm {int((e > 0.25).sum())}; error / SD (Mahalanobis) median {np.median(z):.2f} (1.54 ideal)")
+
+
+class _Serial:
+    """Pool stand-in for --jobs 1: same imap, in this process."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def imap(fn, items):
+        return map(fn, items)
 
 
 if __name__ == "__main__":
