@@ -11,6 +11,7 @@ found is matched to the nearest true centre); then the worst cases and the count
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing
 import sys
 import time
@@ -85,8 +86,8 @@ def main(argv=None):
     optics = Optics(**overrides) if overrides else None
     jobs = _jobs(a, optics)
     failures, n_found, n_right, errors, angle_errors, z = 0, 0, 0, [], [], []
-    with multiprocessing.Pool(a.jobs) if a.jobs > 1 else _Serial() as pool:
-        for r in pool.imap(_run, jobs):
+    with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
+        for r in pool.imap(_run, jobs) if pool else map(_run, jobs):
             failures += not r["complete"]
             n_found += len(r["found"])
             n_right += sum(k == lab for k, lab in r["found"].items())
@@ -107,20 +108,6 @@ def main(argv=None):
           f"{failures} of {len(jobs)}; plates found {n_found}/{7 * len(jobs)}, correctly labelled {n_right}/{7 * len(jobs)}")
     print(f"centre errors: RMS {np.sqrt(np.mean(e ** 2)):.3f} mm, 95th percentile {np.percentile(e, 95):.3f} mm, "
           f"over 0.25 mm {int((e > 0.25).sum())}; error / SD (Mahalanobis) median {np.median(z):.2f} (1.54 ideal)")
-
-
-class _Serial:
-    """Pool stand-in for --jobs 1: same imap, in this process."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def imap(fn, items):
-        return map(fn, items)
 
 
 if __name__ == "__main__":

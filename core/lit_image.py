@@ -47,7 +47,8 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet) -> np.ndarray:
     # max − min of a pair: cv2.absdiff (no wrap-round for unsigned frames)
     diffs = [cv2.absdiff(frames[g], frames[gi]) for g, gi in pairs]
     reference = _median([diffs[i] for i in _reference_indices(pset)]).astype(np.float32)
-    threshold = cv2.max(reference, cv2.subtract(white, black).astype(np.float32)) * np.float32(DECISIVE_FRACTION)
+    # (total is white − black here; where it is negative the reference, >= 0, wins anyway)
+    threshold = cv2.max(reference, total) * np.float32(DECISIVE_FRACTION)
     for d in diffs:
         d = d.astype(np.float32)
         mask = cv2.compare(d, threshold, cv2.CMP_GE)

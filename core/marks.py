@@ -502,7 +502,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in,
                 view_deg=_view_deg(cam_c, centre, normal),
-                light_deg=_view_deg(cal.projector.center, centre, normal)), ""
+                light_deg=_view_deg(proj_c, centre, normal)), ""
 
 
 def _view_deg(cam_c, centre, normal) -> float:
@@ -740,9 +740,10 @@ def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, 
     """
     rows = pr.rows
     vals = pr.values[rows]
-    m, a_c, _ = _rim_geometry(E, cal.camera.rays(pr.points()), centre, normal, proj_c)
+    rays = cal.camera.rays(pr.points())
+    m, a_c, _ = _rim_geometry(E, rays, centre, normal, proj_c)
     cos_b = _profile_across_outline(pr, cal, E, normal, m)
-    w_prof = _sliver_along_profile(pr, cal, centre, normal, proj_c, radius_mm)
+    w_prof = _sliver_along_profile(pr, rays, cal, centre, normal, proj_c, radius_mm)
     sliver = w_prof > 0
     blur_prof = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b) / cos_b  # along the profile, px
     k_edge = pr.s_edge / pr.step[rows]
@@ -779,20 +780,21 @@ def _level_beyond(vals, first, length) -> np.ndarray:
         return np.nanmedian(np.where(window, vals, np.nan), axis=1)
 
 
-def _sliver_along_profile(pr: EdgeProfiles, cal: Calibration, centre, normal, proj_c, radius_mm):
+def _sliver_along_profile(pr: EdgeProfiles, rays, cal: Calibration, centre, normal, proj_c, radius_mm):
     """Width (px along each profile, 0 where none) of the projector shadow seen beyond the rim.
 
     The plate's top disc casts its shadow on the surface PLATE_THICKNESS_MM below it (taken as
     a plane; the reconstructed surface beside the plates changed nothing measurable) as the
     same disc shifted along the projector's rays; the camera ray through the rim meets that
     surface at Q0, and the rays further out along the profile move from there by ``g`` per px.
-    The sliver is the stretch from Q0 to where that line leaves the shadow disc. (At a grazing 77° the shift is ~7 mm, nearly the plate's radius, so the
-    first-order width h·(a_p − a_c) was twice the true one.)"""
+    The sliver is the stretch from Q0 to where that line leaves the shadow disc. (At a grazing
+    77° the shift is ~7 mm, nearly the plate's radius, so the first-order width h·(a_p − a_c)
+    was twice the true one.) ``rays``: the camera rays of the profiles' edges."""
     cam_c = cal.camera.center
     unit = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
     uv = pr.points()
     # start from the fitted rim on each profile, not the (biased) edge found
-    p0 = _ray_plane(cam_c, cal.camera.rays(uv), centre, normal)
+    p0 = _ray_plane(cam_c, rays, centre, normal)
     x_rim = _line_leaves_circle(p0 - centre, _ray_plane(cam_c, cal.camera.rays(uv + unit), centre, normal) - p0,
                                 radius_mm, nearest=True)
     uv = uv + np.nan_to_num(x_rim)[:, None] * unit

@@ -16,6 +16,7 @@ the control point is interpolated between the two lines of each axis. Pure numpy
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -130,7 +131,7 @@ def refine_spot(images: list[np.ndarray], corner_uv, steered: tuple[float, float
     # the window lit: an edge frame plus its inverse give the white frame's light there
     lit = (crop[0] + crop[1] >= MIN_LIT_FRACTION * wcrop) & (crop[4] + crop[5] >= MIN_LIT_FRACTION * wcrop)
     # the cleanest, nearest pixels first; wider or nearer the ink only when an edge is unseen
-    for radius, mask in ((radius, mask) for radius in radii for mask in clean):
+    for radius, mask in itertools.product(radii, clean):
         found = _read_edges(crop, edges, mask & lit & (dist <= radius), np.array([u - x0, v - y0]))
         if not isinstance(found, str):
             break
