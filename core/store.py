@@ -99,12 +99,36 @@ CREATE INDEX trials_session ON trials(session_id);
 CREATE INDEX sessions_patient ON sessions(patient_id);
 """
 
-MIGRATIONS: list[str] = [_V1, _V2]
+# v3: trials have a lifecycle (scanning → complete, cancelled or failed), can be excluded
+# with a reason and restored, and record the calibration they were measured with; patients
+# and sessions can be archived; every such change is kept in an events log, so that nothing a
+# clinician did is lost (nothing is ever deleted).
+_V3 = """
+ALTER TABLE trials ADD COLUMN status TEXT NOT NULL DEFAULT 'complete'
+    CHECK (status IN ('scanning', 'complete', 'cancelled', 'failed'));
+ALTER TABLE trials ADD COLUMN status_note TEXT NOT NULL DEFAULT '';
+ALTER TABLE trials ADD COLUMN excluded_reason TEXT;
+ALTER TABLE trials ADD COLUMN calibration_id INTEGER REFERENCES calibrations(id);
+ALTER TABLE patients ADD COLUMN archived TEXT;
+ALTER TABLE sessions ADD COLUMN archived TEXT;
+CREATE TABLE events (
+    id INTEGER PRIMARY KEY,
+    time TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    entity TEXT NOT NULL,
+    entity_id INTEGER NOT NULL,
+    detail TEXT NOT NULL DEFAULT '',
+    who TEXT NOT NULL DEFAULT ''
+);
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 CONDITIONS = ("barefoot", "shoes")
 SIDES = ("left", "right", "both")
 MARK_SOURCES = ("auto", "manual")
+TRIAL_STATES = ("scanning", "complete", "cancelled", "failed")
 ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion",
                 "table_plantar_flexion")
 _CODE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
@@ -121,6 +145,7 @@ class Patient:
     affected_side: str | None
     notes: str
     created: str
+    archived: str | None = None
 
     @property
     def has_sprain_history(self) -> bool:
@@ -150,6 +175,7 @@ class Session:
     condition: str
     calibration_id: int | None
     notes: str
+    archived: str | None = None
 
 
 @dataclass(frozen=True)
@@ -188,6 +214,33 @@ class Trial:
     cloud_path: str | None = None
     cloud_sha256: str | None = None
     notes: str = ""
+    status: str = "complete"
+    status_note: str = ""
+    excluded_reason: str | None = None
+    calibration_id: int | None = None
+
+    @property
+    def counted(self) -> bool:
+        """Whether the trial enters a session's statistics: complete and not excluded."""
+        return self.status == "complete" and self.excluded_reason is None
+
+    @property
+    def state_text(self) -> str:
+        """How lists and reports name the trial's state."""
+        if self.excluded_reason is not None:
+            return f"excluded: {self.excluded_reason}"
+        return self.status if not self.status_note else f"{self.status}: {self.status_note}"
+
+
+@dataclass(frozen=True)
+class Event:
+    id: int
+    time: str
+    kind: str
+    entity: str
+    entity_id: int
+    detail: str
+    who: str
 
 
 @dataclass(frozen=True)
@@ -484,8 +537,17 @@ class Store:
             raise AnkleScanError(f"no patient {key}")
         return Patient(**dict(row))
 
-    def list_patients(self) -> list[Patient]:
-        return [Patient(**dict(r)) for r in self._all("SELECT * FROM patients ORDER BY code")]
+    def list_patients(self, *, include_archived: bool = True) -> list[Patient]:
+        where = "" if include_archived else " WHERE archived IS NULL"
+        return [Patient(**dict(r)) for r in self._all(f"SELECT * FROM patients{where} ORDER BY code")]
+
+    def archive_patient(self, patient: int | str, archived: bool = True, *, who: str = "") -> Patient:
+        """Archive (hide from the working lists) or restore a patient; nothing is deleted."""
+        p = self.get_patient(patient)
+        with self._write() as c:
+            c.execute("UPDATE patients SET archived = ? WHERE id = ?", (_now() if archived else None, p.id))
+            _log(c, "archived" if archived else "restored", "patient", p.id, p.code, who)
+        return self.get_patient(p.id)
 
     # ------------------------------------------------------------ calibrations
 
@@ -553,29 +615,81 @@ class Store:
             raise AnkleScanError(f"no session {sid}")
         return Session(**dict(row))
 
-    def list_sessions(self, patient: int | str | None = None) -> list[Session]:
+    def list_sessions(self, patient: int | str | None = None, *,
+                      include_archived: bool = True) -> list[Session]:
+        live = "" if include_archived else " AND archived IS NULL"
         if patient is None:
-            rows = self._all("SELECT * FROM sessions ORDER BY date, id")
+            rows = self._all(f"SELECT * FROM sessions WHERE 1{live} ORDER BY date, id")
         else:
             pid = self.get_patient(patient).id
-            rows = self._all("SELECT * FROM sessions WHERE patient_id = ? ORDER BY date, id",
+            rows = self._all(f"SELECT * FROM sessions WHERE patient_id = ?{live} ORDER BY date, id",
                              (pid,))
         return [Session(**dict(r)) for r in rows]
+
+    def archive_session(self, sid: int, archived: bool = True, *, who: str = "") -> Session:
+        """Archive (hide from the working lists) or restore a session; nothing is deleted."""
+        s = self.get_session(sid)
+        with self._write() as c:
+            c.execute("UPDATE sessions SET archived = ? WHERE id = ?", (_now() if archived else None, s.id))
+            _log(c, "archived" if archived else "restored", "session", s.id, s.condition, who)
+        return self.get_session(s.id)
 
     # ------------------------------------------------------------ trials
 
     def add_trial(self, session_id: int, *, ref_inversion: float | None,
-                  ref_plantar_flexion: float | None, notes: str = "") -> Trial:
-        """A trial with the operator's reference-table set angles (degrees)."""
-        self.get_session(session_id)
+                  ref_plantar_flexion: float | None, notes: str = "",
+                  calibration_id: int | None = None, status: str = "complete") -> Trial:
+        """A trial with the operator's reference-table set angles (degrees), the calibration
+        it is measured with and its state (a scan in progress starts as ``scanning``)."""
+        session = self.get_session(session_id)
         ri = _opt_float(ref_inversion, "reference inversion")
         rp = _opt_float(ref_plantar_flexion, "reference plantar flexion")
+        _check_state(status)
+        cid = session.calibration_id if calibration_id is None else calibration_id
+        if cid is not None:
+            self.get_calibration(cid)
         with self._write() as c:
             tid = c.execute(
                 "INSERT INTO trials (session_id, created, ref_inversion, ref_plantar_flexion,"
-                " notes) VALUES (?, ?, ?, ?, ?)", (session_id, _now(), ri, rp, notes or "")
-            ).lastrowid
+                " notes, calibration_id, status) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (session_id, _now(), ri, rp, notes or "", cid, status)).lastrowid
         return self.get_trial(tid)
+
+    def set_trial_status(self, trial_id: int, status: str, note: str = "", *, who: str = "") -> Trial:
+        """Move a trial to ``complete``, ``cancelled`` or ``failed`` (with a short note why)."""
+        _check_state(status)
+        t = self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET status = ?, status_note = ? WHERE id = ?", (status, note or "", t.id))
+            _log(c, status, "trial", t.id, note, who)
+        return self.get_trial(t.id)
+
+    def exclude_trial(self, trial_id: int, reason: str, *, who: str = "") -> Trial:
+        """Leave a trial out of the statistics and plots, with the clinician's reason."""
+        reason = (reason or "").strip()
+        if not reason:
+            raise AnkleScanError("a reason is needed to exclude a trial")
+        t = self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET excluded_reason = ? WHERE id = ?", (reason, t.id))
+            _log(c, "excluded", "trial", t.id, reason, who)
+        return self.get_trial(t.id)
+
+    def restore_trial(self, trial_id: int, *, who: str = "") -> Trial:
+        """Undo an exclusion."""
+        t = self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET excluded_reason = NULL WHERE id = ?", (t.id,))
+            _log(c, "restored", "trial", t.id, t.excluded_reason or "", who)
+        return self.get_trial(t.id)
+
+    def events(self, entity: str | None = None, entity_id: int | None = None) -> list[Event]:
+        """What was done to patients, sessions and trials, oldest first."""
+        sql, args = "SELECT * FROM events", []
+        if entity is not None:
+            sql += " WHERE entity = ?" + (" AND entity_id = ?" if entity_id is not None else "")
+            args = [entity] + ([entity_id] if entity_id is not None else [])
+        return [Event(**dict(r)) for r in self._all(sql + " ORDER BY id", args)]
 
     def get_trial(self, tid: int) -> Trial:
         row = self._one("SELECT * FROM trials WHERE id = ?", (tid,))
@@ -716,11 +830,12 @@ class Store:
         s = self.get_session(session_id)
         trials = self.list_trials(session_id)
         cal = self.get_calibration(s.calibration_id) if s.calibration_id else None
-        incomplete = [t.id for t in trials if t.mismatch_inversion is None]
+        counted = [t for t in trials if t.counted]
+        incomplete = [t.id for t in counted if t.mismatch_inversion is None]
         return SessionSummary(
             session=s, patient=self.get_patient(s.patient_id), calibration=cal, trials=trials,
-            inversion=_axis_summary([t.mismatch_inversion for t in trials]),
-            plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in trials]),
+            inversion=_axis_summary([t.mismatch_inversion for t in counted]),
+            plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in counted]),
             incomplete_trials=incomplete)
 
     def study_rows(self) -> list[dict]:
@@ -728,10 +843,12 @@ class Store:
         return [dict(r) for r in self._all(
             "SELECT p.code AS patient_code, p.sprain_count, p.last_sprain, p.affected_side,"
             " s.id AS session_id, s.date AS session_date, s.operator, s.condition,"
-            " s.calibration_id, c.rms AS calibration_rms, t.id AS trial_id, t.*"
+            " c.rms AS calibration_rms, t.id AS trial_id, t.*,"
+            " COALESCE(t.calibration_id, s.calibration_id) AS calibration_id,"
+            " (t.status = 'complete' AND t.excluded_reason IS NULL) AS counted"
             " FROM trials t JOIN sessions s ON s.id = t.session_id"
             " JOIN patients p ON p.id = s.patient_id"
-            " LEFT JOIN calibrations c ON c.id = s.calibration_id"
+            " LEFT JOIN calibrations c ON c.id = COALESCE(t.calibration_id, s.calibration_id)"
             " ORDER BY p.code, s.date, s.id, t.id")]
 
 
@@ -743,6 +860,16 @@ def _axis_summary(values: list[float | None]) -> AxisSummary:
     mean = sum(v) / n
     sd = math.sqrt(sum((x - mean) ** 2 for x in v) / (n - 1)) if n > 1 else None
     return AxisSummary(n, mean, sum(abs(x) for x in v) / n, sd, min(v), max(v))
+
+
+def _check_state(status: str) -> None:
+    if status not in TRIAL_STATES:
+        raise AnkleScanError(f"trial state must be one of {', '.join(TRIAL_STATES)}, got {status!r}")
+
+
+def _log(c: sqlite3.Connection, kind: str, entity: str, entity_id: int, detail: str, who: str) -> None:
+    c.execute("INSERT INTO events (time, kind, entity, entity_id, detail, who) VALUES (?, ?, ?, ?, ?, ?)",
+              (_now(), kind, entity, entity_id, detail or "", who or ""))
 
 
 def _statements(script: str) -> list[str]:

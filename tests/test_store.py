@@ -308,3 +308,41 @@ def test_verification_verdict_and_deleting_marks(db):
     trial = db.get_trial(t.id)
     assert trial.table_inversion is None  # a table needs marks 5, 6 and 7
     assert trial.leg_inversion is not None
+
+
+def test_trial_lifecycle_exclusion_archive_and_events(tmp_path):
+    """Trials move scanning -> complete/cancelled/failed, can be excluded with a reason and
+    restored; patients and sessions archive; nothing is deleted and every change is logged."""
+    with Store.open(data_dir=tmp_path) as db:
+        p = db.add_patient("P-9")
+        cal = db.add_calibration({"units": "mm"}, rms=0.1)
+        ses = db.start_session("P-9", condition="barefoot", calibration_id=cal.id)
+        good = db.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status="scanning")
+        assert good.status == "scanning" and good.calibration_id == cal.id and not good.counted
+        db.set_trial_status(good.id, "complete")
+        db.update_marks(good.id, {1: (0, 0, 400), 2: (0, 0, 0), 3: (0, 0, 400), 4: (0, 0, 0),
+                                  5: (0, 0, 0), 6: (100, 0, 0), 7: (0, 100, 0)}, "auto")
+        gone = db.add_trial(ses.id, ref_inversion=5.0, ref_plantar_flexion=0.0, status="scanning")
+        gone = db.set_trial_status(gone.id, "cancelled", "stopped by the operator")
+        assert gone.state_text == "cancelled: stopped by the operator" and not gone.counted
+        assert db.session_summary(ses.id).inversion.n == 1
+        with pytest.raises(AnkleScanError, match="reason"):
+            db.exclude_trial(good.id, "  ")
+        db.exclude_trial(good.id, "patient stepped off", who="dr-a")
+        assert db.session_summary(ses.id).inversion.n == 0
+        rows = {r["trial_id"]: r for r in db.study_rows()}
+        assert rows[good.id]["counted"] == 0 and rows[good.id]["calibration_id"] == cal.id
+        db.restore_trial(good.id)
+        assert db.get_trial(good.id).counted and db.session_summary(ses.id).inversion.n == 1
+        db.archive_session(ses.id)
+        assert db.list_sessions(p.id, include_archived=False) == [] and len(db.list_sessions(p.id)) == 1
+        db.archive_patient(p.id)
+        assert db.list_patients(include_archived=False) == []
+        db.archive_patient(p.id, archived=False)
+        assert [x.code for x in db.list_patients(include_archived=False)] == ["P-9"]
+        kinds = [(e.entity, e.kind) for e in db.events()]
+        assert ("trial", "cancelled") in kinds and ("trial", "excluded") in kinds
+        assert ("session", "archived") in kinds and ("patient", "restored") in kinds
+        assert [e.who for e in db.events("trial", good.id) if e.kind == "excluded"] == ["dr-a"]
+        with pytest.raises(AnkleScanError, match="trial state"):
+            db.set_trial_status(good.id, "done")
