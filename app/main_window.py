@@ -15,11 +15,11 @@ import time
 import traceback
 from pathlib import Path
 
-from PySide6.QtCore import Qt, QTimer
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QActionGroup, QGuiApplication, QKeySequence
-from PySide6.QtWidgets import (QApplication, QComboBox, QDialog, QDialogButtonBox, QFileDialog,
-                               QFormLayout, QHBoxLayout, QLabel, QLineEdit, QListWidget,
-                               QListWidgetItem, QMainWindow, QMessageBox, QProgressBar,
+from PySide6.QtWidgets import (QApplication, QCheckBox, QComboBox, QDialog, QDialogButtonBox,
+                               QFileDialog, QFormLayout, QHBoxLayout, QInputDialog, QLabel, QLineEdit,
+                               QListWidget, QListWidgetItem, QMainWindow, QMessageBox, QProgressBar,
                                QPushButton, QSpinBox, QSplitter, QStackedWidget, QTabWidget,
                                QVBoxLayout, QWidget)
 
@@ -42,21 +42,40 @@ class Banner(QWidget):
         self.label = QLabel()
         self.label.setWordWrap(True)
         self.label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.action = QPushButton()  # the way out of the problem, when there is one ("Calibrate…")
+        self.action.hide()
+        self.action.clicked.connect(self._act)
         close = QPushButton("Dismiss")
         close.setFlat(True)
         close.clicked.connect(self.hide)
         row = QHBoxLayout(self)
         row.setContentsMargins(0, 0, 0, 0)
         row.addWidget(self.label, 1)
+        row.addWidget(self.action)
         row.addWidget(close)
         self.kind = ""
+        self._slot = None
         self.hide()
 
-    def show_message(self, kind: str, text: str) -> None:
+    def show_message(self, kind: str, text: str, action: tuple[str, object] | None = None) -> None:
         self.kind = kind
         self.label.setText(text)
         self.label.setStyleSheet(resources.BANNER_STYLE[kind])
+        self._slot = action[1] if action else None
+        self.action.setText(action[0] if action else "")
+        self.action.setVisible(action is not None)
         self.show()
+
+    def clear(self, kind: str | None = None) -> None:
+        """Hide the banner (only if it shows ``kind``, when given)."""
+        if kind is None or self.kind == kind:
+            self.hide()
+
+    def _act(self) -> None:
+        slot = self._slot
+        self.hide()
+        if slot is not None:
+            slot()
 
     @property
     def text(self) -> str:
@@ -64,11 +83,19 @@ class Banner(QWidget):
 
 
 class NewPatientDialog(QDialog):
-    def __init__(self, parent=None):
+    """Keeps what was typed when the code is refused, and says what a valid code is."""
+
+    def __init__(self, parent=None, exists=lambda code: False):
         super().__init__(parent)
+        from core.store import PATIENT_CODE_RULE
         self.setWindowTitle("New patient")
+        self._exists = exists
         self.code = QLineEdit()
         self.code.setPlaceholderText("Pseudonym, e.g. P-017 (no names)")
+        self.code.setToolTip("Patient code: " + PATIENT_CODE_RULE)
+        self.message = QLabel("A pseudonymous code: " + PATIENT_CODE_RULE + ".")
+        self.message.setWordWrap(True)
+        self.message.setObjectName("hint")
         self.sprains = QSpinBox()
         self.sprains.setRange(0, 50)
         self.side = QComboBox()
@@ -76,12 +103,27 @@ class NewPatientDialog(QDialog):
             self.side.addItem(key.capitalize() or "Not recorded", key or None)
         form = QFormLayout(self)
         form.addRow("Patient code", self.code)
+        form.addRow("", self.message)
         form.addRow("Sprains (last 6 months)", self.sprains)
         form.addRow("Affected side", self.side)
         buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
         buttons.accepted.connect(self.accept)
         buttons.rejected.connect(self.reject)
         form.addRow(buttons)
+        self.setMinimumWidth(440)
+
+    def accept(self) -> None:
+        from core.store import patient_code_problem
+        code = self.code.text().strip()
+        problem = patient_code_problem(code) or (f"Patient {code} already exists: choose another code."
+                                                 if self._exists(code) else "")
+        if problem:  # stay open with everything typed, and say why
+            self.message.setText(problem)
+            self.message.setStyleSheet("color: #b3261e;")
+            self.code.setFocus()
+            self.code.selectAll()
+            return
+        super().accept()
 
 
 # ---------------------------------------------------------------------------- pages
@@ -96,6 +138,12 @@ class ScanPage(QWidget):
         hint.setObjectName("hint")
         hint.setWordWrap(True)
         self.form = TrialForm()
+        # Shown instead of a usable Start button until the scanner is calibrated.
+        self.needs_calibration = QLabel("This scanner has no calibration yet: scans cannot be measured. "
+                                        "Calibrate it first.")
+        self.needs_calibration.setWordWrap(True)
+        self.needs_calibration.setStyleSheet(resources.BANNER_STYLE["warning"])
+        self.calibrate_button = QPushButton("Calibrate…")
         self.scan_button = QPushButton("Start scan")
         self.scan_button.setObjectName("primary")
         self.cancel_button = QPushButton("Cancel")
@@ -111,6 +159,8 @@ class ScanPage(QWidget):
         buttons.addWidget(self.cancel_button)
         buttons.addStretch(1)
         left = QVBoxLayout()
+        left.addWidget(self.needs_calibration)
+        left.addWidget(self.calibrate_button)
         left.addWidget(self.form)
         left.addLayout(buttons)
         left.addWidget(self.progress)
@@ -150,6 +200,8 @@ class ResultPage(QWidget):
 # ---------------------------------------------------------------------------- the window
 
 class MainWindow(QMainWindow):
+    reportWritten = Signal(str)  # the PDF path, once a report is on disk
+
     def __init__(self, settings: Settings | None = None, open_rig_now: bool = False):
         super().__init__()
         self.settings = settings or Settings()
@@ -157,10 +209,12 @@ class MainWindow(QMainWindow):
         self.rig = None
         self.projector = None
         self.controller = None
-        self.calibration_id = None  # the stored calibration patient scans use (None: the rig's own)
+        self.calibration = None     # the accepted calibration scans are measured with (None: scans are blocked)
+        self.calibration_id = None  # its row in this data folder's database
         self.camera_panel = None
         self.last_result = None
         self._trial_id = None
+        self._jobs = []            # background jobs (reports) still running
         self.marks_page = None    # the 3-D viewer + mark editor, built after the window shows (GL is slow to load)
         self.session_view = None
         self._viewer_trial = None  # the trial whose cloud the viewer shows
@@ -184,7 +238,7 @@ class MainWindow(QMainWindow):
         self.trials = QListWidget()
         self.patients.currentItemChanged.connect(lambda *_: self._patient_changed())
         self.sessions.currentItemChanged.connect(lambda *_: self._session_changed())
-        self.trials.itemActivated.connect(lambda item: self.open_trial(item.data(Qt.ItemDataRole.UserRole)))
+        self.trials.currentItemChanged.connect(lambda item, _prev: self._trial_selected(item))
         self.tabs = QTabWidget()
         self.scan_page = ScanPage()
         self.result_page = ResultPage()
@@ -201,8 +255,9 @@ class MainWindow(QMainWindow):
         self.tabs.addTab(self.session_holder, "5  Session plots")
         self.tabs.currentChanged.connect(self._tab_changed)
         self.tabs.setCurrentIndex(PAGE_SCAN)
-        self.scan_page.scan_button.clicked.connect(self.start_scan)
-        self.scan_page.cancel_button.clicked.connect(self.cancel_scan)
+        self.scan_page.scan_button.clicked.connect(_no_args(self.start_scan))
+        self.scan_page.cancel_button.clicked.connect(_no_args(self.cancel_scan))
+        self.scan_page.calibrate_button.clicked.connect(_no_args(self.open_calibration))
         self.result_page.new_trial.clicked.connect(lambda: self.tabs.setCurrentIndex(PAGE_SCAN))
         centre = QWidget()
         cv = QVBoxLayout(centre)
@@ -225,24 +280,39 @@ class MainWindow(QMainWindow):
         side = QWidget()
         v = QVBoxLayout(side)
         new_patient = QPushButton("New patient…")
-        new_patient.clicked.connect(self.new_patient)
+        new_patient.clicked.connect(_no_args(self.new_patient))
         self.new_session_condition = QComboBox()
         for key, label in CONDITIONS:
             self.new_session_condition.addItem(label, key)
         new_session = QPushButton("New session")
-        new_session.clicked.connect(lambda: self.new_session())
+        new_session.clicked.connect(_no_args(self.new_session))
         srow = QHBoxLayout()
         srow.addWidget(self.new_session_condition, 1)
         srow.addWidget(new_session)
+        self.show_archived = QCheckBox("Show archived")
+        self.show_archived.toggled.connect(lambda _on: self.refresh_patients())
+        prow = QHBoxLayout()
+        prow.addWidget(new_patient, 1)
+        prow.addWidget(self.show_archived)
+        self.exclude_button = QPushButton("Exclude trial…")
+        self.exclude_button.clicked.connect(_no_args(self.exclude_trial))
+        self.restore_button = QPushButton("Restore trial")
+        self.restore_button.clicked.connect(_no_args(self.restore_trial))
+        trow = QHBoxLayout()
+        trow.addWidget(self.exclude_button)
+        trow.addWidget(self.restore_button)
+        self._update_trial_buttons()
         for title, widget in (("Patients", self.patients), ("Sessions", self.sessions), ("Trials", self.trials)):
             label = QLabel(title)
             label.setObjectName("heading")
             v.addWidget(label)
             v.addWidget(widget, 1 if widget is not self.trials else 2)
             if widget is self.patients:
-                v.addWidget(new_patient)
+                v.addLayout(prow)
             elif widget is self.sessions:
                 v.addLayout(srow)
+            else:
+                v.addLayout(trow)
         side.setMinimumWidth(240)
         return side
 
@@ -251,19 +321,25 @@ class MainWindow(QMainWindow):
             a = QAction(text, self)
             if shortcut:
                 a.setShortcut(QKeySequence(shortcut))
-            a.triggered.connect(slot)
+            a.triggered.connect(_no_args(slot))  # ``triggered`` carries ``checked``: never let it reach a slot
             menu.addAction(a)
             return a
 
         bar = self.menuBar()
         file = bar.addMenu("&File")
         act(file, "New &patient…", self.new_patient, "Ctrl+N")
-        act(file, "New &session", lambda: self.new_session(), "Ctrl+Shift+N")
+        act(file, "New &session", self.new_session, "Ctrl+Shift+N")
+        act(file, "&Operator…", self.ask_operator)
         act(file, "Data &folder…", self.choose_data_folder)
         file.addSeparator()
         act(file, "Open point &cloud…", self.open_cloud_file, "Ctrl+O")
         act(file, "Export session p&lots (PNG/SVG)…", self.export_plots)
         act(file, "Session &report (PDF + CSV)…", self.export_session_report, "Ctrl+R")
+        file.addSeparator()
+        self.exclude_action = act(file, "E&xclude trial…", self.exclude_trial)
+        self.restore_action = act(file, "Res&tore trial", self.restore_trial)
+        self.archive_session_action = act(file, "Archive session…", self.archive_session)
+        self.archive_patient_action = act(file, "Archive patient…", self.archive_patient)
         file.addSeparator()
         act(file, "&Quit", self.close, QKeySequence.StandardKey.Quit)
         scan = bar.addMenu("&Scan")
@@ -303,15 +379,24 @@ class MainWindow(QMainWindow):
         self.refresh_patients()
 
     def refresh_patients(self, select_code: str | None = None) -> None:
+        current = select_code or self._current_code()
+        self.patients.blockSignals(True)
         self.patients.clear()
+        self.patients.blockSignals(False)
         if self.store is None:
             return
-        for p in self.store.list_patients():
-            item = QListWidgetItem(p.code + (f"   ·  {p.sprain_count} sprain(s)" if p.sprain_count else ""))
+        for p in self.store.list_patients(include_archived=self.show_archived.isChecked()):
+            text = p.code + (f"   ·  {p.sprain_count} sprain(s)" if p.sprain_count else "")
+            item = QListWidgetItem(text + ("   (archived)" if p.archived else ""))
             item.setData(Qt.ItemDataRole.UserRole, p.id)
+            item.setData(Qt.ItemDataRole.UserRole + 1, p.code)
             self.patients.addItem(item)
-            if p.code == select_code:
+            if p.code == current:
                 self.patients.setCurrentItem(item)
+
+    def _current_code(self) -> str | None:
+        item = self.patients.currentItem()
+        return item.data(Qt.ItemDataRole.UserRole + 1) if item else None
 
     def current_patient_id(self) -> int | None:
         item = self.patients.currentItem()
@@ -321,15 +406,19 @@ class MainWindow(QMainWindow):
         item = self.sessions.currentItem()
         return item.data(Qt.ItemDataRole.UserRole) if item else None
 
+    def current_trial_id(self) -> int | None:
+        item = self.trials.currentItem()
+        return item.data(Qt.ItemDataRole.UserRole) if item else None
+
     def _patient_changed(self, select_session: int | None = None) -> None:
         self.sessions.clear()
         pid = self.current_patient_id()
         if pid is None or self.store is None:
             return
-        sessions = self.store.list_sessions(pid)
+        sessions = self.store.list_sessions(pid, include_archived=self.show_archived.isChecked())
         for s in sessions:
             label = dict(CONDITIONS).get(s.condition, s.condition)
-            item = QListWidgetItem(f"{s.date}  ·  {label}")
+            item = QListWidgetItem(f"{s.date}  ·  {label}" + ("   (archived)" if s.archived else ""))
             item.setData(Qt.ItemDataRole.UserRole, s.id)
             self.sessions.addItem(item)
             if s.id == select_session:
@@ -337,8 +426,11 @@ class MainWindow(QMainWindow):
         if select_session is None and sessions:
             self.sessions.setCurrentRow(len(sessions) - 1)
 
-    def _session_changed(self) -> None:
+    def _session_changed(self, select_trial: int | None = None) -> None:
+        self.trials.blockSignals(True)
         self.trials.clear()
+        self.trials.blockSignals(False)
+        self._update_trial_buttons()
         sid = self.current_session_id()
         if sid is None or self.store is None:
             return
@@ -346,38 +438,157 @@ class MainWindow(QMainWindow):
             self._refresh_session_view()
         session = self.store.get_session(sid)
         self.scan_page.form.set_condition(session.condition)
+        self.trials.blockSignals(True)
         for t in self.store.list_trials(sid):
-            state = "scanned" if t.cloud_path else ("frames only" if t.capture_path else "no scan")
-            item = QListWidgetItem(f"Trial {t.id}   {_deg(t.ref_inversion)} / {_deg(t.ref_plantar_flexion)}")
-            item.setToolTip(f"Reference inversion / plantar flexion; {state}. Double-click: open in 3-D")
+            item = QListWidgetItem(f"Trial {t.id}   {_deg(t.ref_inversion)} / {_deg(t.ref_plantar_flexion)}"
+                                   + ("" if t.counted else f"   [{t.state_text}]"))
+            item.setToolTip(f"Reference inversion / plantar flexion; {t.state_text}"
+                            + ("" if t.cloud_path else " (no point cloud)") + ". Click: open in 3-D")
+            if not t.counted:
+                item.setForeground(Qt.GlobalColor.gray)
             item.setData(Qt.ItemDataRole.UserRole, t.id)
             self.trials.addItem(item)
+            if t.id == select_trial:
+                self.trials.setCurrentItem(item)
+        self.trials.blockSignals(False)
+        self._update_trial_buttons()
 
-    def new_patient(self, code: str | None = None, sprain_count: int = 0, side: str | None = None) -> None:
+    def _trial_selected(self, item) -> None:
+        self._update_trial_buttons()
+        if item is not None:  # one click opens it; on the plots page the plots stay in view
+            self.open_trial(item.data(Qt.ItemDataRole.UserRole), switch_tab=self.tabs.currentIndex() != PAGE_SESSION)
+
+    def _update_trial_buttons(self) -> None:
+        tid = self.current_trial_id() if hasattr(self, "trials") else None
+        trial = self.store.get_trial(tid) if (tid is not None and self.store is not None) else None
+        writable = self.store is not None and not getattr(self.store, "read_only", False)
+        self.exclude_button.setEnabled(bool(trial and writable and trial.excluded_reason is None))
+        self.restore_button.setEnabled(bool(trial and writable and trial.excluded_reason is not None))
+        for name, on in (("exclude_action", self.exclude_button.isEnabled()),
+                         ("restore_action", self.restore_button.isEnabled())):
+            if hasattr(self, name):
+                getattr(self, name).setEnabled(on)
+
+    # -- patients and sessions: the dialog-driven actions (slots take no data) --
+    def new_patient(self) -> None:
         if self.store is None:
             self.banner.show_message("error", "No sessions database: choose a data folder first (File ▸ Data folder).")
             return
-        if code is None:
-            dialog = NewPatientDialog(self)
-            if dialog.exec() != QDialog.DialogCode.Accepted:
-                return
-            code, sprain_count, side = dialog.code.text(), dialog.sprains.value(), dialog.side.currentData()
+        dialog = NewPatientDialog(self, exists=lambda code: self._patient_exists(code))
+        if dialog.exec() == QDialog.DialogCode.Accepted:
+            self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData())
+
+    def _patient_exists(self, code: str) -> bool:
+        try:
+            self.store.get_patient(code)
+            return True
+        except Exception:
+            return False
+
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None) -> bool:
         try:
             patient = self.store.add_patient(code, sprain_count=sprain_count, affected_side=side)
         except Exception as exc:
             self.banner.show_message("error", str(exc))
-            return
+            return False
+        self.banner.clear("error")
         self.refresh_patients(select_code=patient.code)
+        return True
 
-    def new_session(self, condition: str | None = None):
+    def new_session(self):
+        """A session for the selected patient, in the condition chosen beside the button."""
+        return self.start_session(self.new_session_condition.currentData())
+
+    def start_session(self, condition: str):
         pid = self.current_patient_id()
         if pid is None or self.store is None:
-            self.banner.show_message("warning", "Select or add a patient first (Ctrl+N).")
+            self.banner.show_message("warning", "Select or add a patient first (File ▸ New patient…).")
             return None
-        condition = condition or self.new_session_condition.currentData()
-        session = self.store.start_session(pid, condition=condition, calibration_id=self.calibration_id)
+        operator = self.operator()
+        try:
+            session = self.store.start_session(pid, condition=condition, calibration_id=self.calibration_id,
+                                               operator=operator)
+        except Exception as exc:
+            self.banner.show_message("error", f"The session could not be started: {exc}")
+            return None
         self._patient_changed(select_session=session.id)
         return session
+
+    def operator(self) -> str:
+        """Who measures: asked once, then remembered (File ▸ Operator… changes it)."""
+        name = self.settings.get("operator")
+        if not name:
+            name = self.ask_operator()
+        return name
+
+    def ask_operator(self) -> str:
+        name, ok = QInputDialog.getText(self, "Operator", "Your name or initials, for the records and reports:",
+                                        text=self.settings.get("operator"))
+        name = name.strip() if ok else ""
+        if name:
+            self.settings.set("operator", name)
+            if self.marks_page is not None:
+                self.marks_page.editor.operator = name
+        return name or self.settings.get("operator")
+
+    def exclude_trial(self) -> None:
+        tid = self.current_trial_id()
+        if tid is None or self.store is None:
+            self.banner.show_message("warning", "Select a trial first.")
+            return
+        reason, ok = QInputDialog.getText(self, "Exclude trial", f"Why is trial {tid} left out of the statistics?")
+        if not ok:
+            return
+        if not reason.strip():
+            self.banner.show_message("warning", "A trial is excluded only with a reason; nothing was changed.")
+            return
+        self._change(lambda: self.store.exclude_trial(tid, reason, who=self.settings.get("operator")), tid)
+
+    def restore_trial(self) -> None:
+        tid = self.current_trial_id()
+        if tid is not None and self.store is not None:
+            self._change(lambda: self.store.restore_trial(tid, who=self.settings.get("operator")), tid)
+
+    def _change(self, write, tid: int | None = None) -> None:
+        try:
+            write()
+        except Exception as exc:
+            self.banner.show_message("error", str(exc))
+            return
+        self._session_changed(select_trial=tid)
+        if self.tabs.currentIndex() == PAGE_SESSION:
+            self._refresh_session_view()
+
+    def archive_session(self) -> None:
+        sid = self.current_session_id()
+        if sid is None or self.store is None:
+            self.banner.show_message("warning", "Select a session first.")
+            return
+        if self._confirm("Archive session", "Archive this session? It leaves the working lists; "
+                         "nothing is deleted and “Show archived” brings it back."):
+            self._archive(lambda: self.store.archive_session(sid, who=self.settings.get("operator")))
+
+    def archive_patient(self) -> None:
+        pid = self.current_patient_id()
+        if pid is None or self.store is None:
+            self.banner.show_message("warning", "Select a patient first.")
+            return
+        if self._confirm("Archive patient", f"Archive patient {self._current_code()}? The patient leaves the "
+                         "working lists; nothing is deleted and “Show archived” brings them back."):
+            self._archive(lambda: self.store.archive_patient(pid, who=self.settings.get("operator")))
+
+    def _archive(self, write) -> None:
+        try:
+            write()
+        except Exception as exc:
+            self.banner.show_message("error", str(exc))
+            return
+        self.refresh_patients()
+
+    def _confirm(self, title: str, text: str) -> bool:
+        answer = QMessageBox.question(self, title, text, QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
+                                      QMessageBox.StandardButton.No)
+        return answer == QMessageBox.StandardButton.Yes
 
     def choose_data_folder(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Data folder", str(self.data_folder()))
@@ -386,6 +597,7 @@ class MainWindow(QMainWindow):
             if self.store is not None:
                 self.store.close()
             self._open_store()
+            self._load_calibration()
 
     # ---- the rig ------------------------------------------------------------------------
     def finish_startup(self) -> None:
@@ -437,31 +649,83 @@ class MainWindow(QMainWindow):
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
             self.show_projector()
         self._update_projector_label()
+        self._load_calibration()
+        if self.calibration is None:  # first start: lead to calibration before anything is measured
+            self.tabs.setCurrentIndex(PAGE_SCAN)
+
+    def _load_calibration(self) -> None:
+        """The accepted calibration (never a simulator's hidden truth): scans are blocked without one."""
         from app.calibration_wizard import load_current_calibration
-        cal, cid = load_current_calibration()
-        if cal is not None:  # the accepted calibration replaces the rig's default
-            self.rig.calibration, self.calibration_id = cal, cid
+        try:
+            cal, cid = load_current_calibration()
+        except Exception as exc:
+            cal, cid = None, None
+            self.banner.show_message("error", f"The current calibration could not be read: {exc}")
+        self.calibration, self.calibration_id = cal, self._calibration_in_store(cal, cid)
+        self._update_scan_enabled()
         self.check_calibration_age()
+
+    def _calibration_in_store(self, cal, cid):
+        """The calibration's id in THIS data folder's database (adding it when it was accepted in another)."""
+        if cal is None or self.store is None:
+            return None
+        from core.calibration_file import calibration_to_dict
+        data = calibration_to_dict(cal)
+        try:
+            if cid is not None and self.store.get_calibration(cid).data == data:
+                return cid
+        except Exception:
+            pass
+        try:
+            return self.store.add_calibration(data, source="current calibration").id
+        except Exception:
+            return None
+
+    def _update_scan_enabled(self) -> None:
+        ready = self.calibration is not None
+        page = self.scan_page
+        page.needs_calibration.setVisible(not ready)
+        page.calibrate_button.setVisible(not ready)
+        busy = self.controller is not None and self.controller.busy
+        page.scan_button.setEnabled(ready and not busy)
+        page.scan_button.setToolTip("" if ready else "Calibrate the scanner first (Scan ▸ Calibration…)")
+        if hasattr(self, "scan_action"):
+            self.scan_action.setEnabled(ready and not busy)
 
     def open_calibration(self) -> None:
         from app.calibration_wizard import CalibrationWizard
         if self.rig is None or self.projector is None or (self.controller and self.controller.busy):
+            if self.rig is None:
+                self.banner.show_message("info", "The camera is still connecting; try again in a moment.")
             return
         dlg = CalibrationWizard(self.rig, self.projector, store=self.store, data_folder=self.data_folder(),
                                 settle_s=self.settings.get("settle_ms") / 1000.0, parent=self)
         dlg.calibrationAccepted.connect(self._calibration_accepted)
         dlg.verificationDone.connect(lambda _r: self.check_calibration_age())
         dlg.exec()
+        self._restore_projector()
         self.check_calibration_age()
 
+    def _restore_projector(self) -> None:
+        """After the wizard: white while the camera panel's live preview runs, black otherwise."""
+        if self.projector is None:
+            return
+        live = self.camera_panel is not None and self.camera_panel.live.isChecked()
+        (self.projector.show_white if live else self.projector.show_black)()
+
     def _calibration_accepted(self, cal, cid, path) -> None:
-        self.rig.calibration, self.calibration_id = cal, cid
+        self.calibration, self.calibration_id = cal, self._calibration_in_store(cal, cid)
+        self.banner.clear("warning")
+        self._update_scan_enabled()
 
     def check_calibration_age(self) -> None:
         from app.calibration_wizard import calibration_warning
         text = calibration_warning()
-        if text:
-            self.banner.show_message("warning", text)
+        if self.calibration is None:
+            self.banner.show_message("warning", "No calibration yet: calibrate the scanner before measuring patients.",
+                                     ("Calibrate…", self.open_calibration))
+        elif text:
+            self.banner.show_message("warning", text, ("Calibrate…", self.open_calibration))
 
     def _apply_stored_controls(self) -> None:
         stored = {"exposure": "camera_exposure_ms", "gain": "camera_gain"}
@@ -549,13 +813,23 @@ class MainWindow(QMainWindow):
         """Create the trial, then project and capture in the worker. False if it cannot start."""
         if self.rig is None or self.controller is None or self.controller.busy:
             return False
+        if self.calibration is None:
+            self.check_calibration_age()
+            return False
         if self.store is None or self.current_session_id() is None:
-            self.banner.show_message("warning", "Select a patient and a session first (Ctrl+N adds a patient).")
+            self.banner.show_message("warning", "Select a patient and a session first (File ▸ New patient…, "
+                                     "then New session).")
             return False
         try:
-            folder = self._new_trial_folder()
+            entry = self.scan_page.form.entry()
+        except ValueError as exc:  # the field shows the same message
+            self.banner.show_message("warning", f"The scan did not start: {exc}")
+            return False
+        try:
+            folder = self._new_trial_folder(entry)
             job = self._scan_job(folder)
         except Exception as exc:
+            self._end_trial("failed", str(exc))
             self.banner.show_message("error", f"The scan could not start: {exc}")
             return False
         self.banner.hide()
@@ -564,15 +838,17 @@ class MainWindow(QMainWindow):
         self.controller.start(job)
         return True
 
-    def _new_trial_folder(self) -> Path:
-        entry = self.scan_page.form.entry()
+    def _new_trial_folder(self, entry) -> Path:
         session = self.store.get_session(self.current_session_id())
         if entry.condition != session.condition:
-            session = self.new_session(entry.condition)
+            session = self.start_session(entry.condition)
+            if session is None:
+                raise RuntimeError("no session for that condition")
         trial = self.store.add_trial(session.id, ref_inversion=entry.ref_inversion,
-                                     ref_plantar_flexion=entry.ref_plantar_flexion, notes=entry.notes)
+                                     ref_plantar_flexion=entry.ref_plantar_flexion, notes=entry.notes,
+                                     calibration_id=self.calibration_id, status="scanning")
         self._trial_id = trial.id
-        self._session_changed()
+        self._session_changed(select_trial=None)
         return self.store.trial_dir(trial.id, create=True) / "capture"
 
     def _scan_job(self, folder: Path):
@@ -581,8 +857,10 @@ class MainWindow(QMainWindow):
         w, h = self.rig.projector_size
         pset = make_pattern_set(self.settings.get("pattern_preset"), w, h)
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
-                       calibration=self.rig.calibration, reconstruct=measure_folder,
-                       metadata={"device": self.rig.description, "trial": self._trial_id})
+                       calibration=self.calibration, reconstruct=measure_folder,
+                       cloud_path=Path(folder).parent / "cloud.ply",
+                       metadata={"device": self.rig.description, "trial": self._trial_id,
+                                 "calibration_id": self.calibration_id})
 
     def cancel_scan(self) -> None:
         if self.controller is not None and self.controller.busy:
@@ -590,8 +868,7 @@ class MainWindow(QMainWindow):
             self.controller.cancel()
 
     def _busy(self, busy: bool) -> None:
-        self.scan_page.scan_button.setEnabled(not busy)
-        self.scan_action.setEnabled(not busy)
+        self._update_scan_enabled()
         self.scan_page.cancel_button.setEnabled(busy)
         self.cancel_action.setEnabled(busy)
         self.camera_panel.set_busy(busy)
@@ -609,40 +886,45 @@ class MainWindow(QMainWindow):
 
     def _scan_finished(self, result) -> None:
         self.last_result = result
-        cloud_path = None
-        if result.cloud is not None:
-            cloud_path = self._save_cloud(result)
-        self._record_files(result.folder, cloud_path)
+        tid = self._trial_id
+        has_cloud = result.cloud is not None and len(result.cloud) > 0
+        self._record_files(result.folder, result.cloud_path, result.capture_sha256, result.cloud_sha256)
+        self._end_trial("complete" if has_cloud else "failed", "" if has_cloud else result.note)
         self._show_result(result)
-        if result.cloud is not None and len(result.cloud) > 0 and self._trial_id is not None:
-            self._show_cloud(result.cloud, self._trial_id)
+        if result.save_error:
+            self.banner.show_message("error", result.save_error)
+        if has_cloud and tid is not None:
+            self._show_cloud(result.cloud, tid)
             if result.marks:
-                # shown for confirmation in the 3-D view; undoable, saved as automatic
+                # shown for confirmation in the 3-D view and saved as automatic; undo stops here
                 self.marks_page.editor.propose_auto(result.marks)
             if result.marks_note:
                 self.banner.show_message("info", "Some marks were not found automatically: place them in the "
                                          f"3-D view ({result.marks_note}).")
         self.scan_page.form.clear_notes()
         self.scan_page.progress.setFormat("Done")
+        self._session_changed(select_trial=tid)
 
-    def _save_cloud(self, result):
-        from core.pointcloud import write_ply
-        path = result.folder.parent / "cloud.ply"
-        try:
-            write_ply(path, result.cloud)
-        except Exception as exc:
-            self.banner.show_message("error", f"The point cloud could not be saved: {exc}")
-            return None
-        return path
-
-    def _record_files(self, capture: Path, cloud: Path | None = None) -> None:
-        if self._trial_id is None or self.store is None or not capture.exists():
+    def _end_trial(self, status: str, note: str = "") -> None:
+        """The scan's trial leaves 'scanning' (complete, cancelled or failed), so no trial is left half-made."""
+        tid, self._trial_id = self._trial_id, None
+        if tid is None or self.store is None:
             return
         try:
-            self.store.set_trial_files(self._trial_id, capture=capture, cloud=cloud)
+            self.store.set_trial_status(tid, status, note, who=self.settings.get("operator"))
+        except Exception as exc:
+            self.banner.show_message("error", f"Trial {tid} could not be updated: {exc}")
+        self._trial_id = tid if status == "complete" else None
+
+    def _record_files(self, capture: Path, cloud: Path | None = None, capture_sha256: str = "",
+                      cloud_sha256: str = "") -> None:
+        if self._trial_id is None or self.store is None or not Path(capture).exists():
+            return
+        try:
+            self.store.set_trial_files(self._trial_id, capture=capture, cloud=cloud,
+                                       capture_sha256=capture_sha256, cloud_sha256=cloud_sha256)
         except Exception as exc:
             self.banner.show_message("error", f"The trial's files could not be recorded: {exc}")
-        self._session_changed()
 
     def _show_result(self, result) -> None:
         from app.projector_window import array_to_qimage
@@ -656,21 +938,26 @@ class MainWindow(QMainWindow):
                                  f"reconstruction {result.process_s:.1f} s")
         else:
             page.summary.setText(result.note)
-            self.banner.show_message("warning", f"{result.note} Frames: {result.folder}")
+            self.banner.show_message("warning", f"{result.note} The trial is marked failed. Frames: {result.folder}")
         self.tabs.setCurrentIndex(PAGE_RESULT)
 
     def _scan_failed(self, message: str, folder: str) -> None:
         kept = _frames_in(folder)
         self._record_files(Path(folder))
+        self._end_trial("failed", message)
+        self._session_changed()
         self.scan_page.progress.setFormat("Stopped")
-        self.banner.show_message("error", f"{message}\n{kept} frame(s) kept in {folder}. "
-                                 "The session is intact; check the device and scan again.")
+        self.banner.show_message("error", f"{message}\n{kept} frame(s) kept in {folder}; the trial is marked "
+                                 "failed. The session is intact; check the device and scan again.")
 
     def _scan_cancelled(self, folder: str) -> None:
         kept = _frames_in(folder)
         self._record_files(Path(folder))
+        self._end_trial("cancelled", "stopped by the operator")
+        self._session_changed()
         self.scan_page.progress.setFormat("Cancelled")
-        self.banner.show_message("info", f"Scan cancelled. {kept} frame(s) kept in {folder}.")
+        self.banner.show_message("info", f"Scan cancelled: the trial is marked cancelled and left out of the "
+                                 f"statistics. {kept} frame(s) kept in {folder}.")
 
     # ---- the 3-D viewer, marks and session plots ----------------------------------------
     def ensure_marks_page(self):
@@ -726,14 +1013,15 @@ class MainWindow(QMainWindow):
         else:
             page.editor.load({})
 
-    def open_trial(self, trial_id: int | None) -> bool:
+    def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
         if trial_id is None or self.store is None:
             return False
         from core.pointcloud import read_ply
         trial = self.store.get_trial(int(trial_id))
+        self._select_trial_item(trial.id)
         if not trial.cloud_path:
-            self.banner.show_message("info", f"Trial {trial.id} has no point cloud (not reconstructed).")
+            self.banner.show_message("info", f"Trial {trial.id} has no point cloud ({trial.state_text}).")
             return False
         try:
             cloud = read_ply(self.store.resolve(trial.cloud_path))
@@ -741,16 +1029,28 @@ class MainWindow(QMainWindow):
             self.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False
         ref = f"reference {_deg(trial.ref_inversion)} / {_deg(trial.ref_plantar_flexion)}"
-        self._show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}")
-        self.tabs.setCurrentIndex(PAGE_MARKS)
+        state = "" if trial.counted else f" · {trial.state_text}"
+        self._show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}{state}")
+        if switch_tab:
+            self.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
-    def open_cloud_file(self, path: str | None = None) -> bool:
+    def _select_trial_item(self, trial_id: int) -> None:
+        """Keep the list's highlight on the trial the 3-D view shows."""
+        for row in range(self.trials.count()):
+            item = self.trials.item(row)
+            if item.data(Qt.ItemDataRole.UserRole) == trial_id and self.trials.currentItem() is not item:
+                self.trials.blockSignals(True)
+                self.trials.setCurrentItem(item)
+                self.trials.blockSignals(False)
+                self._update_trial_buttons()
+
+    def open_cloud_file(self) -> bool:
+        path, _ = QFileDialog.getOpenFileName(self, "Open point cloud", str(self.data_folder()), "PLY (*.ply)")
+        return bool(path) and self.open_cloud_path(path)
+
+    def open_cloud_path(self, path: str) -> bool:
         """A PLY from disk, viewed and marked without saving to any trial."""
-        if path is None:
-            path, _ = QFileDialog.getOpenFileName(self, "Open point cloud", str(self.data_folder()), "PLY (*.ply)")
-            if not path:
-                return False
         from core.pointcloud import read_ply
         try:
             cloud = read_ply(path)
@@ -761,14 +1061,14 @@ class MainWindow(QMainWindow):
         self.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
-    def export_plots(self, path: str | None = None) -> Path | None:
+    def export_plots(self) -> Path | None:
+        path, _ = QFileDialog.getSaveFileName(self, "Export session plots", str(self.data_folder() / "session_plots.png"),
+                                              "PNG image (*.png);;SVG vector (*.svg)")
+        return self.export_plots_to(path) if path else None
+
+    def export_plots_to(self, path: str) -> Path | None:
         self.ensure_marks_page()
         self._refresh_session_view()
-        if path is None:
-            path, _ = QFileDialog.getSaveFileName(self, "Export session plots", str(self.data_folder() / "session_plots.png"),
-                                                  "PNG image (*.png);;SVG vector (*.svg)")
-            if not path:
-                return None
         try:
             out = self.session_view.export(path)
         except Exception as exc:
@@ -777,34 +1077,63 @@ class MainWindow(QMainWindow):
         self.banner.show_message("info", f"Session plots saved to {out}")
         return out
 
-    def export_session_report(self, pdf_path: str | None = None):
+    def export_session_report(self) -> None:
+        sid = self.current_session_id()
+        if self.store is None or sid is None:
+            self.banner.show_message("warning", "Select a session first.")
+            return
+        path, _ = QFileDialog.getSaveFileName(self, "Session report", str(self.data_folder() / f"session-{sid}.pdf"),
+                                              "PDF (*.pdf)")
+        if path:
+            self.write_session_report_to(path)
+
+    def write_session_report_to(self, pdf_path: str):
+        """Render the selected session's PDF + CSV in the background; the banner says when it is saved."""
+        from app.background import run_in_background
         sid = self.current_session_id()
         if self.store is None or sid is None:
             self.banner.show_message("warning", "Select a session first.")
             return None
-        if pdf_path is None:
-            pdf_path, _ = QFileDialog.getSaveFileName(self, "Session report", str(self.data_folder() / f"session-{sid}.pdf"),
-                                                      "PDF (*.pdf)")
-            if not pdf_path:
-                return None
-        from core.report import write_session_report
         pdf = Path(pdf_path).with_suffix(".pdf")
-        QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
-        try:
-            result = write_session_report(self.store, [sid], pdf, pdf.with_suffix(".csv"))
-        except Exception as exc:
-            self.banner.show_message("error", f"The session report could not be written: {exc}")
-            return None
-        finally:
-            QApplication.restoreOverrideCursor()
+        db_path, data_dir = self.store.path, self.store.data_dir
+
+        def render():  # its own connection: a Store is not shared between threads
+            from core.report import write_session_report
+            from core.store import Store
+            with Store.open(db_path, data_dir=data_dir) as store:
+                return write_session_report(store, [sid], pdf, pdf.with_suffix(".csv"))
+
+        self.banner.show_message("info", f"Writing the session report to {pdf}…")
+        job = run_in_background(render, lambda result: self._report_written(pdf, result),
+                                lambda error: self.banner.show_message(
+                                    "error", f"The session report could not be written: {error}"))
+        self._jobs = [j for j in self._jobs if j.thread.is_alive()] + [job]
+        return job
+
+    def _report_written(self, pdf: Path, result) -> None:
+        self.last_report = result
         self.banner.show_message("info", f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
-        return result
+        self.reportWritten.emit(str(pdf))
 
     # ---- housekeeping -------------------------------------------------------------------
     def about(self) -> None:
         QMessageBox.about(self, "About AnkleScan",
                           "AnkleScan measures functional ankle instability with a structured-light "
                           "3-D scanner (one camera, one projector).")
+
+    def _stop_scan_for_exit(self) -> None:
+        """Cancel the scan, wait for the worker to leave, and close its trial as cancelled, before
+        the database closes (its signals are cut first: nothing may arrive after)."""
+        for signal in (self.controller.finished, self.controller.failed, self.controller.cancelled):
+            try:
+                signal.disconnect()
+            except (RuntimeError, TypeError):
+                pass
+        self.controller.stop()
+        if self._trial_id is not None and self.store is not None:
+            capture = self.store.trial_dir(self._trial_id) / "capture"
+            self._record_files(capture)
+            self._end_trial("cancelled", "the application was closed during the scan")
 
     def _restore_geometry(self) -> None:
         geometry = self.settings.get("window_geometry")
@@ -815,8 +1144,13 @@ class MainWindow(QMainWindow):
 
     def closeEvent(self, event) -> None:
         if self.controller is not None and self.controller.busy:
-            self.controller.cancel()
-            self.controller.wait(2000)
+            if not self._confirm("Quit AnkleScan", "A scan is running. Stop the scan and quit? The trial is "
+                                 "kept, marked cancelled."):
+                event.ignore()
+                return
+            self._stop_scan_for_exit()
+        for job in self._jobs:
+            job.wait(30)  # a report being written finishes: no half-written file is left
         self.settings.set("window_geometry", bytes(self.saveGeometry()))
         self.settings.sync()
         if self.projector is not None:
@@ -826,6 +1160,13 @@ class MainWindow(QMainWindow):
         if self.store is not None:
             self.store.close()
         super().closeEvent(event)
+
+
+def _no_args(slot):
+    """Connect ``slot`` so that a signal's arguments (``clicked``/``triggered`` pass ``checked``)
+    never reach it: slots that open dialogs take no data, and their data-taking twins are not
+    connected to signals."""
+    return lambda *_args: slot()
 
 
 def _deg(value) -> str:

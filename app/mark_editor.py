@@ -22,7 +22,8 @@ from core.angles import LABELS, compute_angles
 MARK_NAMES = {1: "front of the knee", 2: "front of the ankle", 3: "lateral knee", 4: "lateral ankle",
               5: "table", 6: "table", 7: "table"}
 ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Leg plantar flexion θ2",
-                "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion"}
+                "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion",
+                "mismatch_inversion": "Mismatch, inversion", "mismatch_plantar_flexion": "Mismatch, plantar flexion"}
 CONFIRMED_PREFIX = "confirmed by "
 
 
@@ -73,6 +74,7 @@ class MarkEditor(QWidget):
         self.marks: MarkSet = {}
         self.current_label = 1
         self.angles = {}
+        self.reference = None  # the trial's reference-table angles: the mismatch is measured against them
         self.undo_stack = QUndoStack(self)
         self._build()
         viewer.picked.connect(self.place_at_pick)
@@ -162,6 +164,11 @@ class MarkEditor(QWidget):
     def load(self, marks: MarkSet, store=None, trial_id: int | None = None) -> None:
         """Start editing a trial's marks (a fresh undo history)."""
         self.store, self.trial_id = store, trial_id
+        self.reference = None
+        if store is not None and trial_id is not None:
+            t = store.get_trial(trial_id)
+            if None not in (t.ref_inversion, t.ref_plantar_flexion):
+                self.reference = {"inversion": t.ref_inversion, "plantar_flexion": t.ref_plantar_flexion}
         self.marks = dict(marks)
         self.undo_stack.clear()
         self.current_label = next((lab for lab in LABELS if lab not in self.marks), 1)
@@ -171,9 +178,11 @@ class MarkEditor(QWidget):
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
 
     def propose_auto(self, detected: dict) -> None:
-        """Detected marks (label → xyz) to confirm; one undoable step, saved as 'auto'."""
+        """Detected marks (label → xyz) to confirm, saved as 'auto'. They are where the undo
+        history starts: Undo goes back to them, never past them to an empty trial."""
         after = {int(k): Mark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
-        self.undo_stack.push(_SetMarks(self, "automatic marks", after))
+        self._apply(after)
+        self.undo_stack.clear()
 
     # ---- edits (all undoable) ------------------------------------------------------------
     def set_current_label(self, label: int) -> None:
@@ -277,8 +286,13 @@ class MarkEditor(QWidget):
             for lab in self.angle_labels.values():
                 lab.setText("—")
             return
+        shown = dict(self.angles)
+        if self.reference and self.angles.get("table_inversion") and self.angles.get("table_plantar_flexion"):
+            from core.angles import mismatch
+            for axis, v in mismatch(self.angles, self.reference).items():
+                shown[f"mismatch_{axis}"] = v
         for name, lab in self.angle_labels.items():
-            v = self.angles.get(name)
+            v = shown.get(name)
             lab.setText("—" if v is None else f"{v['value']:+.2f}° ± {v['sd']:.2f}°")
         self.missing_label.setText(self.angles.missing_message())
 

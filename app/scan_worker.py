@@ -62,6 +62,7 @@ class ScanJob:
     metadata: dict = field(default_factory=dict)
     render: Callable | None = None      # (pattern_set, frame) -> uint8 array; core.patterns.render_frame
     reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud, or a core.measure result
+    cloud_path: Path | None = None      # where to write the cloud (PLY), in the worker thread
 
 
 @dataclass
@@ -76,6 +77,10 @@ class ScanResult:
     depth_range: tuple = (0.0, 0.0)     # mm from the camera, near and far ends of the colours
     marks: dict = field(default_factory=dict)  # automatically found marks, label -> xyz mm
     marks_note: str = ""                # what the detector could not find, when it missed some
+    cloud_path: Path | None = None      # the saved cloud, when ScanJob.cloud_path was given
+    capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
+    cloud_sha256: str = ""
+    save_error: str = ""                # why the cloud could not be saved, when it could not
 
 
 class ScanWorker(QObject):
@@ -154,7 +159,21 @@ class ScanWorker(QObject):
         else:
             result.note = "The reconstruction found no points: check focus, exposure and that the foot is lit."
             result.preview = white_preview(self.job.folder, self.job.pattern_set)
+        self._save(result)
         return result
+
+    def _save(self, result: ScanResult) -> None:
+        """Write the cloud and hash the files here: both touch every byte of the trial."""
+        from core.store import sha256_path
+        if self.job.cloud_path is not None and result.cloud is not None and len(result.cloud) > 0:
+            from core.pointcloud import write_ply
+            try:
+                write_ply(self.job.cloud_path, result.cloud)
+                result.cloud_path = Path(self.job.cloud_path)
+                result.cloud_sha256 = sha256_path(result.cloud_path)
+            except Exception as exc:  # the capture is still kept; the clinician is told
+                result.save_error = f"The point cloud could not be saved: {exc}"
+        result.capture_sha256 = sha256_path(self.job.folder)
 
     def _capture_all(self) -> None:
         from core.capture import CaptureWriter  # imported here: the worker module loads fast
@@ -360,6 +379,15 @@ class ScanController(QObject):
 
     def wait(self, timeout_ms: int = 5000) -> bool:
         return self._thread.wait(timeout_ms) if self._thread is not None else True
+
+    def stop(self, timeout_ms: int = 10_000) -> bool:
+        """Cancel and wait for the worker to return (for quitting). The thread's event loop is
+        told to exit once run() returns, so this does not wait on the UI thread's own queue."""
+        if self._thread is None:
+            return True
+        self.cancel()
+        self._thread.quit()
+        return self._thread.wait(timeout_ms)
 
     @Slot(int, object)
     def _show(self, index: int, pattern) -> None:

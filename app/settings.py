@@ -37,6 +37,7 @@ KEYS = {
     "saturation_level": Key("thresholds/saturation_level", 250, int),
     "data_folder": Key("data/folder", str(Path.home() / "AnkleScan"), str),
     "window_geometry": Key("window/geometry", b"", bytes),
+    "operator": Key("clinic/operator", "", str),  # asked once, then signs sessions and marks
 }
 
 

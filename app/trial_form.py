@@ -8,11 +8,12 @@ current session's asks the main window to start a session for that condition.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QGroupBox, QPlainTextEdit,
-                               QVBoxLayout)
+from PySide6.QtWidgets import (QComboBox, QFormLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
+                               QPlainTextEdit, QVBoxLayout, QWidget)
 
 CONDITIONS = (("barefoot", "Barefoot"), ("shoes", "Shoes"))
 ANGLE_RANGE = 45.0  # the inclined tables of the paper tilt well within ±45°
@@ -26,22 +27,66 @@ class TrialEntry:
     notes: str
 
 
-def _angle_box(tip: str) -> QDoubleSpinBox:
-    box = QDoubleSpinBox()
-    box.setRange(-ANGLE_RANGE, ANGLE_RANGE)
-    box.setDecimals(1)
-    box.setSingleStep(0.5)
-    box.setSuffix(" °")
-    box.setAlignment(Qt.AlignmentFlag.AlignRight)
-    box.setToolTip(tip)
-    return box
+class AngleField(QWidget):
+    """A reference angle typed by the clinician. Never silently changed: an entry that is not
+    a number, or is outside ±ANGLE_RANGE, is refused with a message at the field."""
+
+    def __init__(self, tip: str, parent=None):
+        super().__init__(parent)
+        self.edit = QLineEdit("0.0")
+        self.edit.setAlignment(Qt.AlignmentFlag.AlignRight)
+        self.edit.setToolTip(tip)
+        self.edit.setMaximumWidth(90)
+        self.message = QLabel("")
+        self.message.setWordWrap(True)
+        self.message.setStyleSheet("color: #b3261e;")
+        self.message.hide()
+        row = QHBoxLayout()
+        row.setContentsMargins(0, 0, 0, 0)
+        row.addWidget(self.edit)
+        row.addWidget(QLabel("°"))
+        row.addStretch(1)
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(0, 0, 0, 0)
+        outer.setSpacing(2)
+        outer.addLayout(row)
+        outer.addWidget(self.message)
+        self.edit.editingFinished.connect(self.check)
+        self.edit.textEdited.connect(lambda _t: self.message.hide())
+
+    def problem(self) -> str:
+        """Why the entry cannot be used, or "" when it can."""
+        text = self.edit.text().strip().replace(",", ".")
+        try:
+            v = float(text)
+        except ValueError:
+            return f"'{self.edit.text()}' is not a number of degrees." if text else "Enter an angle in degrees."
+        if not math.isfinite(v) or abs(v) > ANGLE_RANGE:
+            return f"{self.edit.text().strip()}° is outside the tables' range (−{ANGLE_RANGE:g}° to +{ANGLE_RANGE:g}°)."
+        return ""
+
+    def check(self) -> bool:
+        text = self.problem()
+        self.message.setText(text)
+        self.message.setVisible(bool(text))
+        return not text
+
+    def value(self) -> float:
+        text = self.problem()
+        if text:
+            raise ValueError(text)
+        return float(self.edit.text().strip().replace(",", "."))
+
+    def setValue(self, value: float) -> None:
+        self.edit.setText(f"{float(value):.1f}")
+        self.check()
 
 
 class TrialForm(QGroupBox):
     def __init__(self, parent=None):
         super().__init__("Trial", parent)
-        self.inversion = _angle_box("Inversion set on the reference (left) table; lateral edge down is positive.")
-        self.plantar_flexion = _angle_box("Plantar flexion set on the reference (left) table; toes down is positive.")
+        self.inversion = AngleField("Inversion set on the reference (left) table; lateral edge down is positive.")
+        self.plantar_flexion = AngleField("Plantar flexion set on the reference (left) table; toes down is positive.")
         self.condition = QComboBox()
         for key, label in CONDITIONS:
             self.condition.addItem(label, key)
@@ -58,6 +103,11 @@ class TrialForm(QGroupBox):
         layout.addLayout(form)
 
     def entry(self) -> TrialEntry:
+        """The trial as entered; ValueError (its message shown at the field) when an angle is not usable."""
+        bad = [f for f in (self.inversion, self.plantar_flexion) if not f.check()]
+        if bad:
+            bad[0].edit.setFocus()
+            raise ValueError(bad[0].problem())
         return TrialEntry(self.inversion.value(), self.plantar_flexion.value(),
                           self.condition.currentData(), self.notes.toPlainText().strip())
 

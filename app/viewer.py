@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from OpenGL import GL, GLU
-from PySide6.QtCore import QPoint, QPointF, Qt, QTimer, Signal
+from PySide6.QtCore import QPoint, QPointF, QRectF, Qt, QTimer, Signal
 from PySide6.QtGui import QColor, QFont, QPainter, QPen, QSurfaceFormat
 from PySide6.QtOpenGLWidgets import QOpenGLWidget
 from PySide6.QtWidgets import QWidget
@@ -554,10 +554,16 @@ class CloudViewer(QOpenGLWidget):
         font.setPointSizeF(10.5)
         font.setBold(True)
         painter.setFont(font)
+        metrics = painter.fontMetrics()
+        taken: list[QRectF] = []
         for label, (x, y, _) in zip(labels, pos):
             text = f"{label}?" if label in self.unconfirmed else str(label)
             colour = QColor(UNCONFIRMED_COLOUR if label in self.unconfirmed else MARK_COLOURS[label])
-            _outlined_text(painter, QPointF(x + 9, y - 9), text, colour)
+            at = _free_spot(QPointF(x + 9, y - 9), metrics.horizontalAdvance(text) + 4, metrics.height(), taken)
+            if (at - QPointF(x + 9, y - 9)).manhattanLength() > 1:  # moved away: a leader shows whose label it is
+                painter.setPen(colour)
+                painter.drawLine(QPointF(x, y), at + QPointF(0, -metrics.ascent() / 2))
+            _outlined_text(painter, at, text, colour)
 
     def _paint_axes(self, painter: QPainter) -> None:
         """A small x/y/z triad in the corner: the world frame the angles are defined in."""
@@ -735,6 +741,20 @@ def _make_vbo(array: np.ndarray) -> int:
     GL.glBufferData(GL.GL_ARRAY_BUFFER, array.nbytes, np.ascontiguousarray(array), GL.GL_STATIC_DRAW)
     GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
     return int(vbo)
+
+
+def _free_spot(at: QPointF, width: float, height: float, taken: list) -> QPointF:
+    """Where a label of this size can stand near ``at`` (its baseline start) without covering
+    one already drawn: marks 1 and 3 (and 2 and 4) often project a few pixels apart."""
+    for step in range(12):
+        dy = (step + 1) // 2 * height * (1 if step % 2 else -1)
+        spot = at + QPointF(0, dy)
+        rect = QRectF(spot.x(), spot.y() - height, width, height)
+        if not any(rect.intersects(r) for r in taken):
+            taken.append(rect)
+            return spot
+    taken.append(QRectF(at.x(), at.y() - height, width, height))
+    return at
 
 
 def _outlined_text(painter: QPainter, at: QPointF, text: str, colour: QColor) -> None:

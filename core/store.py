@@ -132,6 +132,16 @@ TRIAL_STATES = ("scanning", "complete", "cancelled", "failed")
 ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion",
                 "table_plantar_flexion")
 _CODE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
+PATIENT_CODE_RULE = ("1-32 letters, digits, '.', '_' or '-', starting with a letter or digit "
+                     "(a pseudonym, not a name)")
+
+
+def patient_code_problem(code: str) -> str:
+    """Why ``code`` is not a valid patient code, or "" when it is."""
+    code = (code or "").strip()
+    if not code:
+        return "Enter a patient code: " + PATIENT_CODE_RULE + "."
+    return "" if _CODE_RE.match(code) else f"'{code}' is not a valid code: use {PATIENT_CODE_RULE}."
 
 
 # ------------------------------------------------------------- dataclasses
@@ -729,14 +739,17 @@ class Store:
         sets = ", ".join(f"{k} = ?" for k in cols)
         c.execute(f"UPDATE trials SET {sets} WHERE id = ?", (*cols.values(), trial.id))
 
-    def set_trial_files(self, trial_id: int, *, capture=None, cloud=None) -> Trial:
+    def set_trial_files(self, trial_id: int, *, capture=None, cloud=None,
+                        capture_sha256: str = "", cloud_sha256: str = "") -> Trial:
         """Record a capture folder and/or cloud file with its sha256 (paths relative to
-        the data folder when inside it, so the folder can be moved as a whole)."""
+        the data folder when inside it, so the folder can be moved as a whole). A hash
+        already made (by the scan's worker thread) is taken as given."""
         self.get_trial(trial_id)
         cols = {}
+        known = {"capture": capture_sha256, "cloud": cloud_sha256}
         for name, p in (("capture", capture), ("cloud", cloud)):
             if p is not None:
-                cols[f"{name}_sha256"] = sha256_path(p)
+                cols[f"{name}_sha256"] = known[name] or sha256_path(p)
                 cols[f"{name}_path"] = self._relative(Path(p))
         if not cols:
             return self.get_trial(trial_id)

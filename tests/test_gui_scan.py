@@ -10,6 +10,7 @@ import pytest
 from PySide6.QtCore import QElapsedTimer, QTimer
 
 from app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
+from gui_actions import use_true_calibration
 
 pytestmark = pytest.mark.gui
 REPO = Path(__file__).resolve().parent.parent
@@ -47,8 +48,10 @@ def window(qtbot):
     win.show()
     qtbot.waitExposed(win)
     win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
-    win.new_patient("P-001", 2, "right")
-    win.new_session("barefoot")
+    win.settings.set("operator", "tester")
+    use_true_calibration(win)
+    win.add_patient("P-001", 2, "right")
+    win.start_session("barefoot")
     yield win
     if win.controller.busy:
         win.controller.cancel()
@@ -113,6 +116,9 @@ def test_cancel_stops_within_a_second(qtbot, window):
     assert elapsed < 1.0
     assert window.banner.kind == "info" and "cancelled" in window.banner.text
     assert window.scan_page.scan_button.isEnabled()
+    trial = window.store.list_trials(window.current_session_id())[-1]
+    assert trial.status == "cancelled" and not trial.counted
+    assert "[cancelled" in window.trials.item(window.trials.count() - 1).text()
 
 
 def test_camera_unplugged_mid_scan_keeps_frames_and_app(qtbot, window):
@@ -120,7 +126,8 @@ def test_camera_unplugged_mid_scan_keeps_frames_and_app(qtbot, window):
     with qtbot.waitSignal(window.controller.failed, timeout=60_000):
         assert window.start_scan()
     assert window.banner.kind == "error" and "disconnected" in window.banner.text
-    trial = window.store.get_trial(window._trial_id)
+    trial = window.store.list_trials(window.current_session_id())[-1]
+    assert trial.status == "failed" and "disconnected" in trial.status_note
     kept = [p for p in window.store.resolve(trial.capture_path).iterdir() if p.suffix == ".png"]
     assert len(kept) == 5
     assert window.scan_page.scan_button.isEnabled() and window.current_session_id() is not None
@@ -160,8 +167,10 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     win.show()
     qtbot.waitExposed(win)
     win.settings.set("settle_ms", 5)
-    win.new_patient("P-002", 0, None)
-    win.new_session("barefoot")
+    win.settings.set("operator", "tester")
+    use_true_calibration(win)
+    win.add_patient("P-002", 0, None)
+    win.start_session("barefoot")
     _run_scan(qtbot, win, timeout=240_000)
     result = win.last_result
     assert result is not None and result.cloud is not None, win.banner.text

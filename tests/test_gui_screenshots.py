@@ -7,6 +7,7 @@ import pytest
 
 from app import resources
 from app.main_window import PAGE_CAMERA, PAGE_SCAN, MainWindow
+from gui_actions import use_true_calibration
 
 pytestmark = pytest.mark.gui
 OUT = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
@@ -21,9 +22,11 @@ def test_screenshots(qtbot, qapp):
     win.show()
     qtbot.waitExposed(win)
     win.settings.set("settle_ms", 5)
+    win.settings.set("operator", "Dr. A. Clinician")
+    use_true_calibration(win)
     for code, n in (("P-014", 0), ("P-017", 3), ("P-021", 1)):
-        win.new_patient(code, n, "right")
-    win.new_session("barefoot")
+        win.add_patient(code, n, "right")
+    win.start_session("barefoot")
     form = win.scan_page.form
     form.inversion.setValue(15.0)
     form.plantar_flexion.setValue(10.0)

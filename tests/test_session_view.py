@@ -157,8 +157,9 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     win.resize(1200, 760)
     win.show()
     qtbot.waitExposed(win)
-    win.new_patient("P-100", 1, "right")
-    win.new_session("barefoot")
+    win.settings.set("operator", "tester")
+    win.add_patient("P-100", 1, "right")
+    win.start_session("barefoot")
     sid = win.current_session_id()
     trial = win.store.add_trial(sid, ref_inversion=10.0, ref_plantar_flexion=0.0)
     g = np.linspace(-100, 100, 201)
@@ -185,7 +186,8 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     assert t.table_inversion == pytest.approx(np.degrees(np.arctan(-0.2)), abs=1.0)  # n ∝ (−0.2, 0, 1)
     win.tabs.setCurrentIndex(PAGE_SESSION)
     assert "1 measured trial of 1" in win.session_view.info.text()
-    assert win.export_plots(str(tmp_path / "p.svg")).exists()
-    report = win.export_session_report(str(tmp_path / "r.pdf"))
-    assert report is not None and (tmp_path / "r.pdf").exists() and (tmp_path / "r.csv").exists()
+    assert win.export_plots_to(str(tmp_path / "p.svg")).exists()
+    with qtbot.waitSignal(win.reportWritten, timeout=60_000):
+        assert win.write_session_report_to(str(tmp_path / "r.pdf")) is not None
+    assert (tmp_path / "r.pdf").exists() and (tmp_path / "r.csv").exists()
     win.close()

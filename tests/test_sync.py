@@ -7,6 +7,7 @@ import pytest
 from core.errors import AnkleScanError
 from hardware import sync
 from hardware.simrig import SimRig, simulated_devices
+from gui_actions import use_true_calibration
 
 
 class FakeClock:
@@ -135,8 +136,10 @@ def test_panel_self_test_sets_the_settle_time_the_scan_records(qtbot, tmp_path):
         assert "latency" in panel.latency_result.text()
         assert measured.seconds < 0.5  # the simulated camera sees a painted frame at once
 
-        win.new_patient("P-002", 2, "right")
-        win.new_session("barefoot")
+        win.settings.set("operator", "tester")
+        use_true_calibration(win)
+        win.add_patient("P-002", 2, "right")
+        win.start_session("barefoot")
         with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: b is False):
             assert win.start_scan()
         folder = win.last_result.folder
