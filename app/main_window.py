@@ -215,6 +215,7 @@ class MainWindow(QMainWindow):
         self.last_result = None
         self._trial_id = None
         self._jobs = []            # background jobs (reports) still running
+        self._starting = False     # the rig is being opened in the background
         self.marks_page = None    # the 3-D viewer + mark editor, built after the window shows (GL is slow to load)
         self.session_view = None
         self._viewer_trial = None  # the trial whose cloud the viewer shows
@@ -225,7 +226,7 @@ class MainWindow(QMainWindow):
         self._open_store()
         self._restore_geometry()
         if open_rig_now:
-            self.finish_startup()
+            self.finish_startup(in_background=False)
         else:
             # The rig (numpy, OpenCV, the simulator) loads once the window is visible.
             QTimer.singleShot(0, self.finish_startup)
@@ -600,10 +601,39 @@ class MainWindow(QMainWindow):
             self._load_calibration()
 
     # ---- the rig ------------------------------------------------------------------------
-    def finish_startup(self) -> None:
-        """Open the rig and build what depends on it (after the window first shows)."""
-        if self.rig is not None:
+    def finish_startup(self, in_background: bool = True) -> None:
+        """Open the rig and build what depends on it, after the window first shows.
+
+        The slow part (importing numpy, OpenCV, SciPy and OpenGL, and opening the camera or building
+        the simulated scene) runs in a background job; the UI thread only builds widgets, one
+        step per event-loop turn, so the window keeps painting while the app starts."""
+        if self.rig is not None or self._starting:
             return
+        self._starting = True
+        backend, scale, device = (self.settings.get("camera_backend"), self.settings.get("sim_scale"),
+                                  self.settings.get("camera_device"))
+        projector = self.settings.projector_size
+        if not in_background:
+            self._rig_opened(_open_rig_safely(backend, scale, device, projector))
+            self.ensure_marks_page()
+            return
+        from app.background import run_in_background
+        run_in_background(lambda: _open_rig_safely(backend, scale, device, projector, warm=True), self._rig_opened,
+                          lambda error: self.banner.show_message("error", f"The camera could not be opened: {error}"))
+
+    def _rig_opened(self, opened) -> None:
+        rig, problem = opened
+        self._starting = False
+        if problem:
+            self.banner.show_message("warning", problem)
+        self._build_camera_panel()
+        self.rig = rig
+        self.settings.set("camera_backend", rig.backend)
+        self._rig_ready()
+        QTimer.singleShot(0, self.ensure_marks_page)
+        QTimer.singleShot(0, _settle_memory)
+
+    def _build_camera_panel(self) -> None:
         from app.camera_panel import CameraPanel
         from app.rig import available_backends
         self.camera_panel = CameraPanel(available_backends(), self.settings.get("saturation_level"))
@@ -614,9 +644,6 @@ class MainWindow(QMainWindow):
         self.camera_panel.deviceChanged.connect(self._choose_device)
         self.camera_holder.addWidget(self.camera_panel)
         self.camera_holder.setCurrentWidget(self.camera_panel)
-        self.switch_backend(self.settings.get("camera_backend"))
-        QTimer.singleShot(0, self.ensure_marks_page)
-        QTimer.singleShot(0, _settle_memory)
 
     def _choose_device(self, backend: str, device: str) -> None:
         self.settings.set("camera_device", device)
@@ -629,12 +656,10 @@ class MainWindow(QMainWindow):
         old, self.rig = self.rig, None
         if old is not None:
             old.close()
-        try:
-            self.rig = open_rig(backend, self.settings.get("sim_scale"), self.settings.get("camera_device"))
-        except Exception as exc:
-            self.banner.show_message("warning", f"The camera backend '{backend}' could not be opened ({exc}); "
-                                     "using the simulated rig instead.")
-            self.rig = open_rig(SIMULATED, self.settings.get("sim_scale"))
+        self.rig, problem = _open_rig_safely(backend, self.settings.get("sim_scale"),
+                                             self.settings.get("camera_device"), self.settings.projector_size)
+        if problem:
+            self.banner.show_message("warning", problem)
         self.settings.set("camera_backend", self.rig.backend)
         self._rig_ready()
 
@@ -1173,6 +1198,35 @@ def _deg(value) -> str:
     return "—" if value is None else f"{value:+.1f}°"
 
 
+def _open_rig_in(backend, scale, device, projector):
+    from app.rig import open_rig
+    return open_rig(backend, scale, device, projector)
+
+
+def _open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False):
+    """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
+    ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
+    from app.rig import SIMULATED
+    if warm:
+        _warm_imports()
+    try:
+        return _open_rig_in(backend, scale, device, projector), ""
+    except Exception as exc:
+        problem = f"The camera backend '{backend}' could not be opened ({exc}); using the simulated rig instead."
+        return _open_rig_in(SIMULATED, scale, "", projector), problem
+
+
+def _warm_imports() -> None:
+    """Import the heavy non-Qt modules off the UI thread, so that building the widgets that use
+    them is quick later. Nothing that touches Qt here: pyqtgraph's import, for one, crashes in a
+    thread other than the GUI's."""
+    import OpenGL.GL  # noqa: F401
+    import OpenGL.GLU  # noqa: F401
+
+    import core.measure  # noqa: F401
+    import core.pointcloud  # noqa: F401
+
+
 def _os_user() -> str:
     import getpass
     try:
@@ -1199,8 +1253,7 @@ def _settle_memory() -> None:
     import gc
 
     import core.measure  # noqa: F401  (its objects, too, are frozen rather than left to scan)
-    gc.collect()
-    gc.freeze()
+    gc.freeze()  # no collect first: a full collection here was itself a 0.5 s stall
 
 # ---------------------------------------------------------------------------- entry point
 

@@ -62,7 +62,7 @@ class MarkEditor(QWidget):
     """Side panel next to a CloudViewer. ``store``/``trial_id`` optional: without them the
     editor still works (e.g. on a PLY opened from disk) and nothing is saved."""
 
-    marksChanged = Signal(dict)   # label → (x, y, z)
+    marksChanged = Signal(object)   # dict label → (x, y, z) (object: a dict signal tries to convert to a QVariantMap)
     saveFailed = Signal(str)
 
     def __init__(self, viewer, operator: str = "", parent=None):

@@ -67,11 +67,13 @@ def backend_problem(backend: str) -> str:
     return camera.backend_problem(backend)
 
 
-def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "") -> Rig:
+def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
+             projector_size: tuple[int, int] = (1024, 768)) -> Rig:
+    """``projector_size`` is the real projector's resolution (the setting); the simulated rig has its own."""
     if backend != SIMULATED:
         from hardware import camera
 
-        return Rig(backend, camera.open_camera(backend, device), (1024, 768), simulated=False)
+        return Rig(backend, camera.open_camera(backend, device), tuple(projector_size), simulated=False)
     from hardware import simrig
 
     rig = simrig.SimRig(scale=scale)

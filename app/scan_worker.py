@@ -387,7 +387,11 @@ class ScanController(QObject):
             return True
         self.cancel()
         self._thread.quit()
-        return self._thread.wait(timeout_ms)
+        stopped = self._thread.wait(timeout_ms)
+        if stopped:  # the worker's own 'cancelled' is still queued: it finds nothing left to finish
+            self._thread, self._worker, self._pending = None, None, None
+            self.busyChanged.emit(False)
+        return stopped
 
     @Slot(int, object)
     def _show(self, index: int, pattern) -> None:
@@ -427,6 +431,8 @@ class ScanController(QObject):
         self._done(self.cancelled, folder)
 
     def _done(self, signal, *args) -> None:
+        if self._thread is None:  # already stopped (quitting): nothing more to report
+            return
         thread, self._thread, self._worker, self._pending = self._thread, None, None, None
         thread.quit()
         thread.wait()  # the worker has returned from run(); this is immediate

@@ -1,0 +1,340 @@
+"""The clinician's workflow driven only as a person drives it: visible buttons, menu actions and
+the dialogs they open, filled or dismissed through their own widgets (issue 14).
+
+No test here calls a slot with arguments: four actions were broken while such tests passed.
+"""
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QApplication, QLineEdit, QSpinBox
+
+from app.main_window import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION, MainWindow
+from gui_actions import (all_menu_actions, button, click, click_at, dismiss, fill_and_ok, menu_action,
+                         press_accept, save_as, use_true_calibration, with_dialog)
+
+pytestmark = pytest.mark.gui
+
+
+@pytest.fixture
+def fresh(qtbot, request):
+    """The app as a new clinician meets it: empty data folder, no calibration, no operator."""
+    scale = getattr(request, "param", None)
+    if scale:  # the calibration box needs more pixels than the quarter-scale rig of other GUI tests
+        import os
+        Path(os.environ["ANKLESCAN_SETTINGS"]).write_text(f"[scan]\nsim_scale={scale}\n")
+    win = MainWindow()
+    qtbot.addWidget(win)
+    win.resize(1280, 800)
+    win.show()
+    qtbot.waitExposed(win)
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
+    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
+    yield win
+    if win.controller is not None and win.controller.busy:
+        win.controller.stop()
+    win.close()
+
+
+def _no_error(win):
+    assert win.banner.kind != "error" or not win.banner.isVisible(), win.banner.text
+
+
+def _type(field: QLineEdit, text: str) -> None:
+    click(field)
+    field.selectAll()
+    QTest.keyClicks(field, text)
+    QTest.keyClick(field, Qt.Key.Key_Return)
+
+
+def _add_patient(qtbot, win, code: str, sprains: int = 0) -> None:
+    def fill(dialog):
+        QTest.keyClicks(dialog.code, code)
+        spin = dialog.findChild(QSpinBox)
+        spin.lineEdit().selectAll()
+        QTest.keyClicks(spin.lineEdit(), str(sprains))
+        press_accept(dialog)
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), fill)
+
+
+def _new_session(qtbot, win, operator: str | None = None) -> None:
+    if operator is None:
+        click(button(win, "New session"))
+    else:  # the first session asks who the operator is, once
+        with_dialog(qtbot, lambda: click(button(win, "New session")), fill_and_ok({"": operator}))
+
+
+def _scan(qtbot, win, inversion: str, plantar_flexion: str, timeout=180_000) -> int:
+    _click_tab(win, PAGE_SCAN)
+    form = win.scan_page.form
+    _type(form.inversion.edit, inversion)
+    _type(form.plantar_flexion.edit, plantar_flexion)
+    before = len(win.store.list_trials(win.current_session_id()))
+    with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
+        click(win.scan_page.scan_button)
+    trials = win.store.list_trials(win.current_session_id())
+    assert len(trials) == before + 1
+    return trials[-1].id
+
+
+def _calibrate_with_wizard(qtbot, win, open_it):
+    from app.calibration_wizard import PAGE_REPORT, PAGE_VERIFY
+
+    def drive(wiz):
+        qtbot.waitUntil(lambda: "markers found" in wiz.place_count.text(), timeout=30_000)
+        click(button(wiz, "Scan the box"))
+        qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT, timeout=180_000)
+        click(button(wiz, "Accept and save"))
+        assert wiz.pages.currentIndex() == PAGE_VERIFY
+        click(button(wiz, "Close"))
+    with_dialog(qtbot, open_it, drive, timeout_ms=240_000)
+
+
+def _click_tab(win, index: int) -> None:
+    bar = win.tabs.tabBar()
+    QTest.mouseClick(bar, Qt.MouseButton.LeftButton, pos=bar.tabRect(index).center())
+
+
+def _click_trial(win, trial_id: int) -> None:
+    for row in range(win.trials.count()):
+        item = win.trials.item(row)
+        if item.data(Qt.ItemDataRole.UserRole) == trial_id:
+            QTest.mouseClick(win.trials.viewport(), Qt.MouseButton.LeftButton,
+                             pos=win.trials.visualItemRect(item).center())
+            return
+    raise AssertionError(f"trial {trial_id} not in the list")
+
+
+def _pdf_pages(path: Path) -> int:
+    out = subprocess.run(["pdfinfo", str(path)], capture_output=True, text=True, check=True).stdout
+    return int(next(line.split()[-1] for line in out.splitlines() if line.startswith("Pages:")))
+
+
+def _pdf_text(path: Path) -> str:
+    return subprocess.run(["pdftotext", "-layout", str(path), "-"], capture_output=True, text=True, check=True).stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fresh", [0.5], indirect=True)
+def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
+    win = fresh
+    # first start: no calibration, so the scan is blocked and the way to calibrate is shown
+    assert "No calibration" in win.banner.text and button(win, "Calibrate…").isVisible()
+    assert not win.scan_page.scan_button.isEnabled() and win.scan_page.calibrate_button.isVisible()
+
+    # 1. a new patient through its dialog; a bad code keeps the dialog open with what was typed
+    def bad_then_good(dialog):
+        QTest.keyClicks(dialog.code, "Hans Meier")
+        press_accept(dialog)
+        assert dialog.isVisible() and dialog.code.text() == "Hans Meier"
+        assert "not a valid code" in dialog.message.text()
+        dialog.code.clear()
+        QTest.keyClicks(dialog.code, "P-001")
+        press_accept(dialog)
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), bad_then_good)
+    assert win.patients.count() == 1 and win.patients.currentItem().text().startswith("P-001")
+    _no_error(win)
+
+    # 2. calibration through the wizard, from the Scan page's own button
+    _calibrate_with_wizard(qtbot, win, lambda: click(win.scan_page.calibrate_button))
+    assert win.calibration is not None and win.scan_page.scan_button.isEnabled()
+    assert not win.scan_page.calibrate_button.isVisible()
+    _no_error(win)
+
+    # 3. a session; the operator is asked for once
+    _new_session(qtbot, win, operator="Dr. Ada Test")
+    assert win.store.get_session(win.current_session_id()).operator == "Dr. Ada Test"
+
+    # 4. three trials at different reference angles
+    trials = [_scan(qtbot, win, "5", pf) for pf in ("-10", "0", "10")]
+    stored = [win.store.get_trial(t) for t in trials]
+    assert [t.ref_plantar_flexion for t in stored] == [-10.0, 0.0, 10.0]
+    assert all(t.status == "complete" and t.cloud_path and t.calibration_id == win.calibration_id for t in stored)
+    _no_error(win)
+
+    # 5. one mark placed and moved by clicks in the 3-D view, on a trial opened by one click
+    _click_trial(win, trials[1])
+    assert win.tabs.currentIndex() == PAGE_MARKS and f"Trial {trials[1]}" in win.marks_page.title.text()
+    assert win.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[1]
+    viewer, editor = win.marks_page.viewer, win.marks_page.editor
+    qtbot.wait(100)
+    viewer.render_now()
+    click(button(editor, "1"))
+    centre = np.median(viewer.points, axis=0)
+    target = viewer.points[np.argmin(np.linalg.norm(viewer.points - centre, axis=1))]
+    for offset in (0, 12):
+        x, y, _ = viewer.widget_pos_of(target[None])[0]
+        with qtbot.waitSignal(viewer.picked, timeout=2000):
+            click_at(viewer, int(x) + offset, int(y))
+    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
+    assert mark.source == "manual" and mark.placed_by == "Dr. Ada Test"
+    assert "moved" not in win.banner.text
+    _no_error(win)
+
+    # 6. the session plots, by their tab
+    _click_tab(win, PAGE_SESSION)
+    assert "3 measured trial" in win.session_view.info.text() or "of 3" in win.session_view.info.text()
+    _no_error(win)
+
+    # 7. the report, through File ▸ Session report, its file dialog filled by typing
+    pdf = tmp_path / "out" / "session report.pdf"
+    pdf.parent.mkdir()
+    with qtbot.waitSignal(win.reportWritten, timeout=120_000):
+        with_dialog(qtbot, menu_action(win, "File/Session report (PDF + CSV)…").trigger, save_as(pdf))
+    # 8. the PDF, checked for its pages
+    assert pdf.exists() and pdf.with_suffix(".csv").exists()
+    assert _pdf_pages(pdf) >= 2
+    text = _pdf_text(pdf)
+    assert "P-001" in text and "Dr. Ada Test" in text
+    _no_error(win)
+
+
+def test_new_patient_from_button_menu_and_shortcut(qtbot, fresh):
+    win = fresh
+    _add_patient(qtbot, win, "P-010", 2)
+    with_dialog(qtbot, menu_action(win, "File/New patient…").trigger, fill_and_ok({"": "P-011"}))
+    win.activateWindow()
+    qtbot.waitUntil(lambda: QApplication.activeWindow() is win, timeout=5000)
+    with_dialog(qtbot, lambda: QTest.keyClick(win.patients, Qt.Key.Key_N, Qt.KeyboardModifier.ControlModifier),
+                fill_and_ok({"": "P-012"}))
+    codes = [win.patients.item(i).text().split()[0] for i in range(win.patients.count())]
+    assert codes == ["P-010", "P-011", "P-012"]
+    assert win.store.get_patient("P-010").sprain_count == 2
+    # a duplicate is refused inside the dialog, which keeps its input
+    def duplicate(dialog):
+        QTest.keyClicks(dialog.code, "P-011")
+        press_accept(dialog)
+        assert dialog.isVisible() and "already exists" in dialog.message.text()
+        dismiss(dialog)
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), duplicate)
+    _no_error(win)
+
+
+def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, fresh):
+    win = fresh
+    _add_patient(qtbot, win, "P-020")
+    _new_session(qtbot, win, operator="op")
+    menu_action(win, "Scan/Start scan").trigger()  # F5 with no calibration: blocked, the way out shown
+    assert not win.controller.busy and win.store.list_trials(win.current_session_id()) == []
+    assert "No calibration" in win.banner.text and win.banner.action.text() == "Calibrate…"
+    use_true_calibration(win)
+    form = win.scan_page.form
+    _type(form.inversion.edit, "95")
+    assert form.inversion.edit.text() == "95" and "outside" in form.inversion.message.text()
+    assert form.inversion.message.isVisible()
+    click(win.scan_page.scan_button)
+    assert not win.controller.busy and "outside" in win.banner.text
+    _type(form.inversion.edit, "abc")
+    assert "not a number" in form.inversion.message.text()
+    _type(form.inversion.edit, "-7.5")
+    assert not form.inversion.message.isVisible() and form.inversion.value() == -7.5
+
+
+def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
+    win = fresh
+    use_true_calibration(win)
+    _add_patient(qtbot, win, "P-030")
+    _new_session(qtbot, win, operator="op")
+    good = _scan(qtbot, win, "0", "0")
+    # a cancelled scan is kept, marked, and left out of the statistics
+    captured = []
+    win.controller.frameCaptured.connect(lambda i, _: captured.append(i))
+    _click_tab(win, PAGE_SCAN)
+    click(win.scan_page.scan_button)
+    qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
+    with qtbot.waitSignal(win.controller.cancelled, timeout=5000):
+        click(win.scan_page.cancel_button)
+    cancelled = win.store.list_trials(win.current_session_id())[-1]
+    assert cancelled.status == "cancelled"
+    assert "[cancelled" in win.trials.item(win.trials.count() - 1).text()
+    # exclude the good trial with a reason, through its button and dialog, then restore it
+    _click_trial(win, good)
+    with_dialog(qtbot, lambda: click(win.exclude_button), fill_and_ok({"": "patient stepped off"}))
+    assert win.store.get_trial(good).excluded_reason == "patient stepped off"
+    assert win.store.session_summary(win.current_session_id()).inversion.n == 0
+    _click_trial(win, good)
+    click(win.restore_button)
+    assert win.store.get_trial(good).counted
+    # archiving asks first; "No" changes nothing, "Yes" hides the patient (nothing is deleted)
+    with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, dismiss)
+    assert win.patients.count() == 1
+    with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, press_accept)
+    assert win.patients.count() == 0
+    click(win.show_archived)
+    assert win.patients.count() == 1 and "(archived)" in win.patients.item(0).text()
+    assert [e.kind for e in win.store.events("patient")] == ["archived"]
+    _no_error(win)
+
+
+def test_every_enabled_menu_action_runs_without_an_error(qtbot, fresh, tmp_path):
+    win = fresh
+    use_true_calibration(win)
+    win.settings.set("operator", "op")
+    _add_patient(qtbot, win, "P-040")
+    _new_session(qtbot, win)
+    _scan(qtbot, win, "0", "0")
+    closer = QTimer()
+    closer.setInterval(50)
+
+    def close_dialogs():
+        w = QApplication.activeModalWidget()
+        if w is not None and w.isVisible():
+            dismiss(w)
+    closer.timeout.connect(close_dialogs)
+    ran = []
+    for name, action in all_menu_actions(win):
+        if not action.isEnabled() or name.endswith("Quit"):
+            continue
+        closer.start()
+        action.trigger()
+        qtbot.waitUntil(lambda: not win.controller.busy, timeout=180_000)
+        qtbot.wait(30)
+        closer.stop()
+        _no_error(win)
+        ran.append(name)
+    assert {"File/New patient…", "File/Session report (PDF + CSV)…", "File/Export session plots (PNG/SVG)…",
+            "File/Open point cloud…", "Scan/Start scan", "Scan/Calibration…"} <= set(ran)
+    with_dialog(qtbot, menu_action(win, "File/Quit").trigger, dismiss) if win.controller.busy else \
+        menu_action(win, "File/Quit").trigger()
+    assert not win.isVisible()
+
+
+def test_quitting_during_a_scan_asks_then_stops_cleanly(qtbot, fresh, caplog):
+    win = fresh
+    use_true_calibration(win)
+    _add_patient(qtbot, win, "P-050")
+    _new_session(qtbot, win, operator="op")
+    captured = []
+    win.controller.frameCaptured.connect(lambda i, _: captured.append(i))
+    click(win.scan_page.scan_button)
+    qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
+    with_dialog(qtbot, menu_action(win, "File/Quit").trigger, dismiss)  # "No": keep scanning
+    assert win.isVisible() and win.controller.busy
+    store = win.store
+    sid = win.current_session_id()
+    with_dialog(qtbot, menu_action(win, "File/Quit").trigger, press_accept)
+    assert not win.isVisible() and not win.controller.busy
+    from core.store import Store
+    with Store.open(store.path) as db:
+        (trial,) = db.list_trials(sid)
+        assert trial.status == "cancelled" and "closed" in trial.status_note
+    assert "closed database" not in caplog.text
+
+
+def test_undo_stops_at_the_automatic_marks(qtbot):
+    from app.mark_editor import MarksPage
+    page = MarksPage(operator="op")
+    qtbot.addWidget(page)
+    page.show()
+    auto = {lab: (float(lab), 0.0, 100.0 * (lab % 2)) for lab in range(1, 8)}
+    page.editor.propose_auto(auto)
+    undo = button(page, "Undo")
+    assert not undo.isEnabled()  # nothing to undo: the automatic marks are the start
+    page.editor.place(1, (5.0, 5.0, 5.0))
+    click(undo)
+    assert set(page.editor.marks) == set(range(1, 8)) and page.editor.marks[1].xyz == (1.0, 0.0, 100.0)
+    assert not undo.isEnabled()
