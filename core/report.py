@@ -315,6 +315,19 @@ def span_limits(values, floor: float = MIN_HALF_SPAN_DEG, pad: float = 0.12) -> 
     return lo - d, hi + d
 
 
+MIN_X_SPAN_DEG = 10.0   # the settings axis: one or two close settings are not stretched across it
+
+
+def x_limits(xs, floor: float = MIN_X_SPAN_DEG, pad: float = 0.08) -> tuple[float, float]:
+    """x-limits over the plotted settings, at least ``floor`` wide, padded by ``pad``."""
+    lo, hi = float(min(xs)), float(max(xs))
+    if hi - lo < floor:
+        mid = (lo + hi) / 2
+        lo, hi = mid - floor / 2, mid + floor / 2
+    d = (hi - lo) * pad
+    return lo - d, hi + d
+
+
 def _trial_marker(ax, x, y, col, confirmed: bool, ms: float = 3.5, alpha: float = 0.45) -> None:
     """One trial's point: filled when its marks are manual or confirmed, hollow when they
     are still the automatic detection nobody has checked."""
@@ -340,6 +353,7 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
     """Paper Fig. 10: mismatch against plantar flexion, one curve per inversion setting."""
     by_rows = _rows_by_setting(rows)
     data = _by_setting(rows, axis)
+    all_x: list[float] = []
     if not data:
         _no_data(ax)
     for k, inv in enumerate(sorted(data)):
@@ -352,6 +366,7 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
             for r in by_rows[inv][p]:
                 _trial_marker(ax, p + dx, r[f"mismatch_{axis}"], col, _confirmed(r))
         xs = [p + dx for p in pfs]
+        all_x += xs
         if show_sd:
             sds = [np.std(data[inv][p], ddof=1) if len(data[inv][p]) > 1 else 0 for p in pfs]
             ax.errorbar(xs, means, yerr=sds, fmt="-o", ms=5, color=col, capsize=3,
@@ -359,6 +374,8 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         else:
             ax.plot(xs, means, "-o", ms=5, color=col, label=f"inversion {inv:g}°")
     _style(ax, AXIS_LABEL[axis])
+    if all_x:
+        ax.set_xlim(*x_limits(all_x))
 
 
 def _sym_limit(rows: list[dict]) -> float:
@@ -415,7 +432,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
     _style(ax, AXIS_LABEL[axis])
     ax.set_ylim(*span_limits(extent, pad=0.18))
     if pfs:
-        ax.margins(x=0.12)
+        ax.set_xlim(*x_limits([pfs[0] - 0.6, pfs[-1] + 1.4], pad=0.1))
         ax.plot([], [], "o", color=COLOURS[1], label="mean")
         ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
         ax.plot([], [], color="0.35", lw=1, label="min – max")
