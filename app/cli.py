@@ -120,6 +120,10 @@ def cmd_demo(args) -> int:
 
     if getattr(args, "study", False):
         from app.demo import run_study_demo
+        from core.errors import AnkleScanError
+
+        if args.quick:
+            raise AnkleScanError("--quick and --study cannot be combined: --study is the whole cohort")
 
         return run_study_demo(Path(args.out), progress=Progress(args.quiet),
                               scale=1.0 if args.full_resolution else DEMO_SCALE)

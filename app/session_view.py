@@ -120,7 +120,7 @@ class SessionView(QWidget):
         n = len(measured_rows(self.rows))
         left_out = sum(not is_counted(r) for r in self.rows)
         self.info.setText(f"{n} measured trial{'s' if n != 1 else ''} of {len(self.rows)}"
-                          + (f"; {left_out} left out (cancelled, failed or excluded)" if left_out else ""))
+                          + (f"; {left_out} left out (cancelled, failed, excluded or still scanning)" if left_out else ""))
         self.redraw()
 
     def load_sessions(self, store, session_ids) -> None:
