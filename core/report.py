@@ -761,9 +761,9 @@ def write_study_report(store: Store, pdf_path, csv_path=None) -> ReportResult:
             with_group = st.has_tests(stats_)
             _overview_pages(pages, store, rows, None if with_group else GROUP_OMITTED)
             for g in st.GROUPS:
-                _group_fig10_page(pages, [r for r in rows
-                                          if stats_.patient_group.get(r["patient_code"]) == g],
-                                  g, lim)
+                mine = [r for r in rows if stats_.patient_group.get(r["patient_code"]) == g]
+                if mine:   # a group nobody is in yet gets no page of empty axes
+                    _group_fig10_page(pages, mine, g, lim)
             if with_group:
                 _group_page(pages, rows, set())
             _pdf_info(pdf, "AnkleScan study report")
@@ -816,7 +816,8 @@ def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -
     fig = pages.new()
     fig.suptitle(f"Mismatch against plantar flexion — {group}", fontsize=12, weight="bold",
                  y=0.965)
-    fig.text(0.5, 0.935, f"{len({r['patient_code'] for r in rows})} patients; mean ± SD over "
+    n = len({r['patient_code'] for r in rows})
+    fig.text(0.5, 0.935, f"{n} patient{'s' if n != 1 else ''}; mean ± SD over "
              "trials per setting, faint points are single trials", ha="center",
              fontsize=8, color="0.3")
     axes = []

@@ -315,3 +315,13 @@ def test_group_page_only_with_something_to_compare(study, tmp_path, monkeypatch)
     write_session_report(store, sessions[:1], tmp_path / "r.pdf")
     assert figs[-1]._suptitle.get_text().startswith("Group comparison")
     assert st.has_tests(st.study_stats(store.study_rows()))
+
+
+def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path, monkeypatch):
+    store, *_ = states_session
+    figs = _capture_figures(monkeypatch)
+    res = write_study_report(store, tmp_path / "s.pdf")
+    # the overview (saying why there is no group comparison) and the one group that has a patient
+    assert res.pages == 2
+    assert "Group comparison" in [t.get_text() for t in figs[0].texts]
+    assert figs[1]._suptitle.get_text().endswith("sprain history") and any(t.get_text().startswith("1 patient;") for t in figs[1].texts)
