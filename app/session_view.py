@@ -228,9 +228,14 @@ class SessionView(QWidget):
         self._set_y_span(p, [*lo, *hi, *(mean - sd), *(mean + sd)], [*(x - 0.8), *(x + 1.4)])
 
     def _no_data(self, plot) -> None:
-        t = pg.TextItem("no measured trials yet: place the seven marks", color="#7a8692", anchor=(0.5, 0.5))
+        if self.rows and not any(is_counted(r) for r in self.rows):
+            text = "no counted trials: every trial is cancelled, failed or excluded"
+        else:
+            text = "no measured trials yet: place the seven marks"
+        t = pg.TextItem(text, color="#7a8692", anchor=(0.5, 0.5))
         t.setPos(0, 0)
         plot.addItem(t)
+        self._set_y_span(plot, [], [0.0])
 
     # ---- export --------------------------------------------------------------------------
     def export(self, path) -> Path:
