@@ -176,14 +176,12 @@ def _state_cell(r: dict) -> str:
     return state
 
 
-def _trial_note(i: int, r: dict) -> str | None:
-    """The reason a trial is left out, for the lines under the trial table."""
+def _left_out_why(r: dict) -> tuple[str, str] | None:
+    """(state, reason) of a trial that is shown but not counted; None for a counted one."""
     if r.get("excluded_reason") is not None:
-        return f"trial {i} excluded: {r['excluded_reason']}"
+        return "excluded", r["excluded_reason"]
     state = r.get("status") or "complete"
-    if state != "complete":
-        return f"trial {i} {state}" + (f": {r['status_note']}" if r.get("status_note") else "")
-    return None
+    return None if state == "complete" else (state, r.get("status_note") or "")
 
 
 def _trial_cells(i: int, r: dict) -> list[str]:
@@ -530,7 +528,12 @@ def _table_chunks(cells, rows, first_top: float, widths) -> list[tuple[int, int,
 
 
 def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
-    notes = [n for i in range(start, stop) if (n := _trial_note(i + 1, rows[i]))]
+    why: dict[tuple[str, str], list[int]] = defaultdict(list)   # trials sharing a reason: one note
+    for i in range(start, stop):
+        if (w := _left_out_why(rows[i])) is not None:
+            why[w].append(i + 1)
+    notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
+             for (state, reason), ts in why.items()]
     marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
     lines = []
     if notes:
