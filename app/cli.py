@@ -118,6 +118,15 @@ def cmd_demo(args) -> int:
 
     from app.demo import DEMO_SCALE
 
+    if getattr(args, "study", False):
+        from app.demo import run_study_demo
+        from core.errors import AnkleScanError
+
+        if args.quick:
+            raise AnkleScanError("--quick and --study cannot be combined: --study is the whole cohort")
+
+        return run_study_demo(Path(args.out), progress=Progress(args.quiet),
+                              scale=1.0 if args.full_resolution else DEMO_SCALE)
     return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
                     scale=1.0 if args.full_resolution else DEMO_SCALE)
 
@@ -135,6 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="a whole clinical session on the built-in simulated rig")
     d.add_argument("--out", required=True, help="output folder")
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
+    d.add_argument("--study", action="store_true",
+                   help="the paper's whole study: 4 patients with a sprain history and 4 without, barefoot and "
+                        "in shoes, 3 trials each (48 scans, several minutes)")
     d.add_argument("--full-resolution", action="store_true",
                    help="simulate the 1600x1200 camera and 1024x768 projector (default: 0.75 of it, for speed)")
     d.set_defaults(func=cmd_demo)

@@ -3,8 +3,14 @@
 Top: mismatch against the reference plantar-flexion setting, one curve (mean per setting) per
 inversion setting, every trial as a point; hovering a point names the trial, clicking it
 emits ``trialActivated`` so the main window opens that trial in the 3-D viewer. Bottom: the
-error range per plantar-flexion setting for one inversion setting (mean, ±1 SD, min–max).
-The grouping is core.report's (settings rounded to 0.1°), so screen and PDF agree.
+error range per plantar-flexion setting for one inversion setting (mean, ±1 SD, min–max),
+with the single trials beside each bar.
+
+As in the PDF (core.report): only counted trials (complete, not excluded) are plotted; a trial
+whose automatic marks nobody has confirmed is a hollow point ("automatic marks, not
+confirmed"); the mismatch axes span at least ±MIN_HALF_SPAN_DEG with no SI-prefix scaling, so
+hundredths of a degree never look like a spread. The grouping is core.report's (settings
+rounded to 0.1°), so screen and PDF agree.
 """
 
 from __future__ import annotations
@@ -17,7 +23,8 @@ import pyqtgraph as pg
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
-from core.report import COLOURS
+from core.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL, span_limits, x_limits
+from core.study_stats import is_counted
 
 AXES = {"inversion": "Mismatch of inversion (°)", "plantar_flexion": "Mismatch of plantar flexion (°)"}
 PF_LABEL = "Reference plantar flexion (°)"
@@ -28,8 +35,13 @@ def _setting(v):
 
 
 def measured_rows(rows) -> list[dict]:
-    return [r for r in rows if r.get("mismatch_inversion") is not None
+    """Counted trials (complete, not excluded) with a mismatch and both set angles."""
+    return [r for r in rows if is_counted(r) and r.get("mismatch_inversion") is not None
             and r.get("ref_inversion") is not None and r.get("ref_plantar_flexion") is not None]
+
+
+def marks_confirmed(r: dict) -> bool:
+    return bool(r.get("marks_confirmed", 1))
 
 
 def group(rows, axis: str) -> dict[float, dict[float, list[dict]]]:
@@ -44,7 +56,8 @@ def trial_tip(r: dict, axis: str) -> str:
     return (f"Trial {r['trial_id']} · {r.get('patient_code', '')} {r.get('session_date', '')}\n"
             f"reference inv {r['ref_inversion']:+.1f}°, PF {r['ref_plantar_flexion']:+.1f}°\n"
             f"mismatch {axis.replace('_', ' ')} {r[f'mismatch_{axis}']:+.2f}°"
-            + (f" ± {r[f'mismatch_{axis}_sd']:.2f}°" if r.get(f"mismatch_{axis}_sd") is not None else ""))
+            + (f" ± {r[f'mismatch_{axis}_sd']:.2f}°" if r.get(f"mismatch_{axis}_sd") is not None else "")
+            + ("" if marks_confirmed(r) else f"\n{UNCONFIRMED_LABEL}"))
 
 
 class SessionView(QWidget):
@@ -83,6 +96,8 @@ class SessionView(QWidget):
             for side in ("left", "bottom"):
                 p.getAxis(side).setPen("#8a949e")
                 p.getAxis(side).setTextPen("#33414e")
+                # degrees stay degrees: no "(x0.001)" or milli-/micro- rescaling of the axis
+                p.getAxis(side).enableAutoSIPrefix(False)
         outer = QVBoxLayout(self)
         outer.addLayout(controls)
         outer.addWidget(self.layout_widget, 1)
@@ -103,7 +118,9 @@ class SessionView(QWidget):
             self.inversion_box.addItem(f"{inv:g}°", inv)
         self.inversion_box.blockSignals(False)
         n = len(measured_rows(self.rows))
-        self.info.setText(f"{n} measured trial{'s' if n != 1 else ''} of {len(self.rows)}")
+        left_out = sum(not is_counted(r) for r in self.rows)
+        self.info.setText(f"{n} measured trial{'s' if n != 1 else ''} of {len(self.rows)}"
+                          + (f"; {left_out} left out (cancelled, failed, excluded or still scanning)" if left_out else ""))
         self.redraw()
 
     def load_sessions(self, store, session_ids) -> None:
@@ -125,6 +142,7 @@ class SessionView(QWidget):
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         data = group(self.rows, axis)
         self.trial_points = {}
+        values, xs = [], []
         for k, inv in enumerate(sorted(data)):
             colour = COLOURS[k % len(COLOURS)]
             dx = (k - (len(data) - 1) / 2) * 0.6  # curves side by side, as in the PDF report
@@ -132,20 +150,46 @@ class SessionView(QWidget):
             means = [np.mean([r[f"mismatch_{axis}"] for r in data[inv][pf]]) for pf in pfs]
             p.plot([pf + dx for pf in pfs], means, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=8,
                    symbolBrush=colour, symbolPen="w", name=f"inversion {inv:g}°")
-            self._add_trial_points(p, data[inv], dx, colour, axis)
+            spots = self._add_trial_points(p, data[inv], dx, colour, axis)
+            for s in spots:
+                self.trial_points[s["data"]["trial_id"]] = s["pos"]
+            values += [s["pos"][1] for s in spots]
+            xs += [s["pos"][0] for s in spots]
+        self._legend_unconfirmed(p, data)
+        self._set_y_span(p, values, xs)
         if not data:
             self._no_data(p)
 
-    def _add_trial_points(self, plot, per_pf, dx, colour, axis) -> None:
-        spots = [{"pos": (pf + dx, r[f"mismatch_{axis}"]), "data": r} for pf, rows in per_pf.items() for r in rows]
-        scatter = pg.ScatterPlotItem(size=7, pen=pg.mkPen(colour), brush=pg.mkBrush(pg.mkColor(colour).lighter(170)),
-                                     hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
+    def _add_trial_points(self, plot, per_pf, dx, colour, axis) -> list[dict]:
+        """One point per trial: filled when its marks are manual or confirmed, hollow when
+        they are automatic and not confirmed yet. Hover names the trial; click opens it."""
+        fill, clear = pg.mkBrush(pg.mkColor(colour).lighter(170)), pg.mkBrush(0, 0, 0, 0)
+        spots = [{"pos": (pf + dx, r[f"mismatch_{axis}"]), "data": r,
+                  **({"brush": fill, "pen": pg.mkPen(colour), "size": 7} if marks_confirmed(r) else
+                     {"brush": clear, "pen": pg.mkPen(colour, width=1.6), "size": 9})}
+                 for pf, rows in per_pf.items() for r in rows]
+        scatter = pg.ScatterPlotItem(hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
                                      tip=lambda x, y, data: trial_tip(data, axis))
         scatter.addPoints(spots)
         scatter.sigClicked.connect(self._point_clicked)
         plot.addItem(scatter)
-        for s in spots:
-            self.trial_points[s["data"]["trial_id"]] = s["pos"]
+        return spots
+
+    @staticmethod
+    def _legend_unconfirmed(plot, data) -> None:
+        if any(not marks_confirmed(r) for per_pf in data.values() for rows in per_pf.values() for r in rows):
+            # an empty ScatterPlotItem: a PlotDataItem without data draws its legend symbol filled
+            plot.addItem(pg.ScatterPlotItem(symbol="o", size=9, brush=pg.mkBrush(0, 0, 0, 0),
+                                            pen=pg.mkPen("#59636e", width=1.6), name=UNCONFIRMED_LABEL))
+
+    @staticmethod
+    def _set_y_span(plot, values, xs=()) -> None:
+        """Zero and every value in view, never less than ±MIN_HALF_SPAN_DEG; the settings
+        (x) over at least MIN_X_SPAN_DEG, so one setting is not stretched across the plot."""
+        lo, hi = span_limits(values, MIN_HALF_SPAN_DEG)
+        plot.setYRange(lo, hi, padding=0)
+        if len(xs):
+            plot.setXRange(*x_limits(xs), padding=0)
 
     def _point_clicked(self, _item, points, _ev=None) -> None:
         if len(points):
@@ -175,15 +219,23 @@ class SessionView(QWidget):
         p.plot(x, mean, pen=None, symbol="o", symbolSize=9, symbolBrush=COLOURS[1], symbolPen="w", name="mean")
         p.plot([], [], pen=pg.mkPen(pg.mkColor(COLOURS[0] + "80"), width=9), name="± 1 SD")
         p.plot([], [], pen=pg.mkPen("#59636e", width=1.2), name="min – max")
+        self._add_trial_points(p, per_pf, 1.4, "#59636e", axis)  # the single trials beside each bar
+        self._legend_unconfirmed(p, {inv: per_pf})
         for xi, top, v in zip(x, np.maximum(hi, mean + sd), values):
             t = pg.TextItem(f"n={v.size}", color="#59636e", anchor=(0.5, 1.2))
             t.setPos(xi, top)
             p.addItem(t)
+        self._set_y_span(p, [*lo, *hi, *(mean - sd), *(mean + sd)], [*(x - 0.8), *(x + 1.4)])
 
     def _no_data(self, plot) -> None:
-        t = pg.TextItem("no measured trials yet: place the seven marks", color="#7a8692", anchor=(0.5, 0.5))
+        if self.rows and not any(is_counted(r) for r in self.rows):
+            text = "no counted trials: every trial is cancelled, failed or excluded"
+        else:
+            text = "no measured trials yet: place the seven marks"
+        t = pg.TextItem(text, color="#7a8692", anchor=(0.5, 0.5))
         t.setPos(0, 0)
         plot.addItem(t)
+        self._set_y_span(plot, [], [0.0])
 
     # ---- export --------------------------------------------------------------------------
     def export(self, path) -> Path:

@@ -13,6 +13,7 @@ import datetime as _dt
 import math
 import os
 import tempfile
+import textwrap
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -32,6 +33,13 @@ A4 = (8.27, 11.69)
 FOOT_SIZE = 7
 FIRST_PAGE_ROWS = 24
 NEXT_PAGE_ROWS = 40
+# Mismatch axes never span less than ±MIN_HALF_SPAN_DEG. The method's own trial-to-trial
+# noise is a few hundredths of a degree (propagated mark SDs 0.02–0.1°, simulator angle errors
+# ≤ 0.04°: docs/performance.md) while the paper's mis-sensing is degrees, so a spread that
+# fills ±1° is never the scanner's noise magnified; auto-scaling made ±0.0015° look like one.
+MIN_HALF_SPAN_DEG = 1.0
+WRAP_CHARS = 80          # header values at 9 pt in the 5.2-inch value column
+UNCONFIRMED_LABEL = "automatic marks, not confirmed"
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf")
 
 CSV_COLUMNS = (
@@ -42,11 +50,14 @@ CSV_COLUMNS = (
     "table_inversion", "table_inversion_sd", "table_plantar_flexion",
     "table_plantar_flexion_sd", "mismatch_inversion", "mismatch_inversion_sd",
     "mismatch_plantar_flexion", "mismatch_plantar_flexion_sd",
-    "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes")
-_FREE_TEXT = ("operator", "notes")
+    "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
+    "status", "status_note", "excluded_reason", "counted", "marks_confirmed")
+_FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
-TABLE_HEAD = ("Trial", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)", "Leg PF\n(°)",
-              "Table inv.\n(°)", "Table PF\n(°)", "Mismatch inv.\n(°)", "Mismatch PF\n(°)")
+TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
+              "Leg PF\n(°)", "Table inv.\n(°)", "Table PF\n(°)", "Mismatch\ninv. (°)",
+              "Mismatch\nPF (°)")
+TABLE_WIDTHS = (0.05, 0.09, 0.05, 0.065, 0.065, 0.11, 0.11, 0.11, 0.11, 0.115, 0.115)
 
 
 @dataclass(frozen=True)
@@ -138,14 +149,46 @@ def _fmt(v, sd=None, digits=1) -> str:
 
 
 def _trials_text(trials, no_mismatch: list) -> str:
-    leg_missing = sum(t.leg_inversion is None or t.leg_plantar_flexion is None for t in trials)
-    return (f"{len(trials)} ({len(no_mismatch)} without a table mismatch, {leg_missing} with a leg angle "
-            "missing: place its marks in the 3-D view)")
+    """How many trials, how many of them count, why the others don't, and what is missing
+    from the counted ones (cancelled or failed scans never had marks to place)."""
+    counted = [t for t in trials if t.counted]
+    left_out = [("excluded", sum(t.excluded_reason is not None for t in trials))] + [
+        (state, sum(t.excluded_reason is None and t.status == state for t in trials))
+        for state in ("cancelled", "failed", "scanning")]
+    text = f"{len(trials)} in all, {len(counted)} counted (complete and not excluded)"
+    out = [f"{n} {'still scanning' if state == 'scanning' else state}" for state, n in left_out if n]
+    if out:
+        text += "; left out of plots and statistics: " + ", ".join(out)
+    leg_missing = sum(t.leg_inversion is None or t.leg_plantar_flexion is None for t in counted)
+    todo = ([f"{len(no_mismatch)} without a table mismatch"] if no_mismatch else []) + (
+        [f"{leg_missing} with a leg angle missing"] if leg_missing else [])
+    if todo:
+        text += f". Of the counted: {', '.join(todo)} (place their marks in the 3-D view)"
+    return text
+
+
+def _state_cell(r: dict) -> str:
+    if r.get("excluded_reason") is not None:
+        return "excluded"
+    state = r.get("status") or "complete"
+    if state == "complete" and not r.get("marks_confirmed", 1):
+        return "complete*"
+    return state
+
+
+def _left_out_why(r: dict) -> tuple[str, str] | None:
+    """(state, reason) of a trial that is shown but not counted; None for a counted one."""
+    if r.get("excluded_reason") is not None:
+        return "excluded", r["excluded_reason"]
+    state = r.get("status") or "complete"
+    return None if state == "complete" else (state, r.get("status_note") or "")
 
 
 def _trial_cells(i: int, r: dict) -> list[str]:
     # two decimals: the propagated SDs are hundredths of a degree
-    return [str(i), _fmt(r["ref_inversion"]), _fmt(r["ref_plantar_flexion"]),
+    cal = r.get("calibration_id")
+    return [str(i), _state_cell(r), "–" if cal is None else f"#{cal}",
+            _fmt(r["ref_inversion"]), _fmt(r["ref_plantar_flexion"]),
             _fmt(r["leg_inversion"], r["leg_inversion_sd"], 2),
             _fmt(r["leg_plantar_flexion"], r["leg_plantar_flexion_sd"], 2),
             _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
@@ -155,12 +198,14 @@ def _trial_cells(i: int, r: dict) -> list[str]:
 
 
 def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[str]],
-                widths: Sequence[float] | None = None, row_in: float = 0.22) -> float:
+                widths: Sequence[float] | None = None, row_in: float = 0.22,
+                muted: Sequence[int] = (), left: float = 0.06) -> float:
     """A table whose rows are row_in inches tall starting at figure fraction ``top``;
-    returns the figure fraction just below it."""
+    returns the figure fraction just below it. Rows listed in ``muted`` (0-based) are
+    greyed: trials that are shown but not counted."""
     h_in = row_in * (len(cells) + 1.6)
     h = h_in / A4[1]
-    ax = fig.add_axes((0.06, top - h, 0.88, h))
+    ax = fig.add_axes((left, top - h, 1 - 2 * left, h))
     ax.axis("off")
     tab = ax.table(cellText=cells or [["–"] * len(head)], colLabels=list(head),
                    cellLoc="center", colWidths=widths, bbox=(0, 0, 1, 1))
@@ -174,18 +219,37 @@ def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[s
             cell.set_text_props(weight="bold")
         elif row % 2 == 0:
             cell.set_facecolor("0.97")
+        if row > 0 and row - 1 in muted:
+            cell.get_text().set_color("0.5")
+            cell.get_text().set_style("italic")
     # The header row holds two lines: give it more of the height.
     for (row, _), cell in tab.get_celld().items():
         cell.set_height((1.6 if row == 0 else 1.0) / (len(cells) + 1.6))
     return top - h
 
 
+def _wrap(text: str, width: int = WRAP_CHARS, max_lines: int | None = None) -> list[str]:
+    """Lines of at most ``width`` characters; long unbroken words (paths) are split too."""
+    lines = [ln for para in str(text).splitlines() or [""]
+             for ln in (textwrap.wrap(para, width, break_on_hyphens=False) or [""])]
+    if max_lines is not None and len(lines) > max_lines:
+        lines = lines[:max_lines]
+        lines[-1] = lines[-1][:width - 1].rstrip() + "…"
+    return lines
+
+
+KV_LINE = 0.0135   # figure fraction per wrapped line of a 9-pt header value (1.25 spacing)
+KV_GAP = 0.0085
+
+
 def _key_values(fig: Figure, top: float, items: list[tuple[str, str]]) -> float:
+    """Bold keys, values wrapped to the page width; returns the figure fraction below."""
     y = top
     for k, v in items:
+        lines = _wrap(v)
         fig.text(0.08, y, k, fontsize=9, weight="bold", va="top")
-        fig.text(0.30, y, v, fontsize=9, va="top")
-        y -= 0.022
+        fig.text(0.31, y, "\n".join(lines), fontsize=9, va="top", linespacing=1.25)
+        y -= KV_LINE * len(lines) + KV_GAP
     return y
 
 
@@ -194,17 +258,28 @@ def _setting(v: float | None) -> float | None:
 
 
 def _measured(rows: list[dict]) -> list[dict]:
-    return [r for r in rows if r["mismatch_inversion"] is not None
+    """Counted trials (complete, not excluded) with a mismatch and both set angles: what
+    the plots and statistics use."""
+    return [r for r in st.counted_rows(rows) if r["mismatch_inversion"] is not None
             and r["ref_inversion"] is not None and r["ref_plantar_flexion"] is not None]
+
+
+def _confirmed(r: dict) -> bool:
+    return bool(r.get("marks_confirmed", 1))
+
+
+def _rows_by_setting(rows: list[dict]) -> dict[float, dict[float, list[dict]]]:
+    """inversion setting → plantar-flexion setting → the measured trials (rows) there."""
+    out: dict[float, dict[float, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for r in _measured(rows):
+        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(r)
+    return out
 
 
 def _by_setting(rows: list[dict], axis: str) -> dict[float, dict[float, list[float]]]:
     """inversion setting → plantar-flexion setting → mismatch values on ``axis``."""
-    out: dict[float, dict[float, list[float]]] = defaultdict(lambda: defaultdict(list))
-    for r in _measured(rows):
-        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(
-            r[f"mismatch_{axis}"])
-    return out
+    return {inv: {pf: [r[f"mismatch_{axis}"] for r in rs] for pf, rs in per.items()}
+            for inv, per in _rows_by_setting(rows).items()}
 
 
 AXIS_LABEL = {"inversion": "Mismatch of inversion (°)",
@@ -222,13 +297,61 @@ def _style(ax, ylabel: str) -> None:
     ax.set_xlabel(PF_LABEL, fontsize=9)
     ax.set_ylabel(ylabel, fontsize=9)
     ax.tick_params(labelsize=8)
+    _plain_ticks(ax)
+
+
+def _plain_ticks(ax, axis: str = "both") -> None:
+    """Degrees as degrees: no "×10⁻³" multiplier or "+1.2e1" offset above the axis."""
+    ax.ticklabel_format(axis=axis, style="plain", useOffset=False)
+
+
+def span_limits(values, floor: float = MIN_HALF_SPAN_DEG, pad: float = 0.12) -> tuple[float, float]:
+    """y-limits over ``values`` and zero, at least ±``floor``, padded by ``pad`` of the span."""
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
+    lo, hi = min(-floor, float(v.min(initial=0.0))), max(floor, float(v.max(initial=0.0)))
+    d = (hi - lo) * pad
+    return lo - d, hi + d
+
+
+MIN_X_SPAN_DEG = 10.0   # the settings axis: one or two close settings are not stretched across it
+
+
+def x_limits(xs, floor: float = MIN_X_SPAN_DEG, pad: float = 0.08) -> tuple[float, float]:
+    """x-limits over the plotted settings, at least ``floor`` wide, padded by ``pad``."""
+    lo, hi = float(min(xs)), float(max(xs))
+    if hi - lo < floor:
+        mid = (lo + hi) / 2
+        lo, hi = mid - floor / 2, mid + floor / 2
+    d = (hi - lo) * pad
+    return lo - d, hi + d
+
+
+def _trial_marker(ax, x, y, col, confirmed: bool, ms: float = 3.5, alpha: float = 0.45) -> None:
+    """One trial's point: filled when its marks are manual or confirmed, hollow when they
+    are still the automatic detection nobody has checked."""
+    if confirmed:
+        ax.plot(x, y, "o", ms=ms, color=col, alpha=alpha, mec="none")
+    else:
+        ax.plot(x, y, "o", ms=ms + 1, mfc="none", mec=col, mew=1.0, alpha=min(1.0, alpha + 0.4))
+
+
+def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
+    from matplotlib.lines import Line2D
+    handles = [Line2D([], [], ls="none", marker="o", ms=3.5, color=col, alpha=0.6, mec="none")]
+    labels = ["single trial"]
+    if unconfirmed:
+        handles.append(Line2D([], [], ls="none", marker="o", ms=4.5, mfc="none", mec=col, mew=1.0))
+        labels.append(UNCONFIRMED_LABEL)
+    return handles, labels
 
 
 # ------------------------------------------------------------------ figures
 
 def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
     """Paper Fig. 10: mismatch against plantar flexion, one curve per inversion setting."""
+    by_rows = _rows_by_setting(rows)
     data = _by_setting(rows, axis)
+    all_x: list[float] = []
     if not data:
         _no_data(ax)
     for k, inv in enumerate(sorted(data)):
@@ -238,9 +361,10 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         pfs = sorted(data[inv])
         means = [np.mean(data[inv][p]) for p in pfs]
         for p in pfs:
-            ax.plot([p + dx] * len(data[inv][p]), data[inv][p], "o", ms=3, color=col,
-                    alpha=0.35)
+            for r in by_rows[inv][p]:
+                _trial_marker(ax, p + dx, r[f"mismatch_{axis}"], col, _confirmed(r))
         xs = [p + dx for p in pfs]
+        all_x += xs
         if show_sd:
             sds = [np.std(data[inv][p], ddof=1) if len(data[inv][p]) > 1 else 0 for p in pfs]
             ax.errorbar(xs, means, yerr=sds, fmt="-o", ms=5, color=col, capsize=3,
@@ -248,12 +372,14 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         else:
             ax.plot(xs, means, "-o", ms=5, color=col, label=f"inversion {inv:g}°")
     _style(ax, AXIS_LABEL[axis])
+    if all_x:
+        ax.set_xlim(*x_limits(all_x))
 
 
 def _sym_limit(rows: list[dict]) -> float:
     """Symmetric y-limit covering every point and mean ± SD, shared by panels that the
-    reader compares (barefoot/shoes, with/without sprain)."""
-    m = 1.0
+    reader compares (barefoot/shoes, with/without sprain); never under MIN_HALF_SPAN_DEG."""
+    m = MIN_HALF_SPAN_DEG
     for axis in st.AXES:
         for per_pf in _by_setting(rows, axis).values():
             for v in per_pf.values():
@@ -263,23 +389,35 @@ def _sym_limit(rows: list[dict]) -> float:
     return m * 1.12
 
 
-def _page_legend(fig: Figure, axes: list, y: float) -> None:
+def _page_legend(fig: Figure, axes: list, y: float, rows: list[dict] | None = None) -> None:
+    """The inversion settings' colours, then a line for the trial markers (with the hollow
+    "automatic marks, not confirmed" one when any plotted trial has such marks)."""
     for ax in axes:
         handles, labels = ax.get_legend_handles_labels()
         if handles:
             fig.legend(handles, labels, loc="center", bbox_to_anchor=(0.5, y),
                        ncol=min(len(handles), 5), fontsize=8.5, frameon=False,
                        title="Reference table inversion setting", title_fontsize=8)
+            if rows is not None:
+                unconfirmed = any(not _confirmed(r) for r in _measured(rows))
+                fig.legend(*_marker_handles(unconfirmed), loc="center",
+                           bbox_to_anchor=(0.5, y - 0.032), ncol=2, fontsize=8, frameon=False)
             return
 
 
-def _plot_error_range(ax, per_pf: dict[float, list[float]], axis: str) -> None:
-    """Paper Figs. 11–12: per plantar-flexion setting, mean, ±SD bar and min–max range."""
-    pfs = sorted(per_pf)
+def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> None:
+    """Paper Figs. 11–12: per plantar-flexion setting, mean, ±SD bar and min–max range, with
+    the single trials beside the bar (hollow where their marks are unconfirmed)."""
+    pfs = sorted(per_pf_rows)
     if not pfs:
         _no_data(ax)
+    extent: list[float] = []
     for p in pfs:
-        v = np.asarray(per_pf[p])
+        v = np.asarray([r[f"mismatch_{axis}"] for r in per_pf_rows[p]], float)
+        for r in per_pf_rows[p]:
+            _trial_marker(ax, p + 1.4, r[f"mismatch_{axis}"], "0.35", _confirmed(r), alpha=0.6)
+        sd_ = v.std(ddof=1) if v.size > 1 else 0.0
+        extent += [v.min(), v.max(), v.mean() - sd_, v.mean() + sd_]
         ax.vlines(p, v.min(), v.max(), color="0.35", lw=1)
         ax.hlines([v.min(), v.max()], p - 0.6, p + 0.6, color="0.35", lw=1)
         if v.size > 1:
@@ -290,12 +428,16 @@ def _plot_error_range(ax, per_pf: dict[float, list[float]], axis: str) -> None:
                     else 0))), xytext=(0, 5), textcoords="offset points",
                     ha="center", fontsize=7, color="0.3")
     _style(ax, AXIS_LABEL[axis])
+    ax.set_ylim(*span_limits(extent, pad=0.18))
     if pfs:
-        ax.margins(x=0.12, y=0.18)
+        ax.set_xlim(*x_limits([pfs[0] - 0.6, pfs[-1] + 1.4], pad=0.1))
         ax.plot([], [], "o", color=COLOURS[1], label="mean")
         ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
         ax.plot([], [], color="0.35", lw=1, label="min – max")
-        ax.legend(fontsize=8, frameon=False, loc="best")
+        unconfirmed = any(not _confirmed(r) for rs in per_pf_rows.values() for r in rs)
+        h, lab = _marker_handles(unconfirmed)
+        h0, lab0 = ax.get_legend_handles_labels()
+        ax.legend(h0 + h, lab0 + lab, fontsize=8, frameon=False, loc="best")
 
 
 def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
@@ -309,62 +451,148 @@ def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
         _plot_fig10(ax, rows, axis)
         ax.set_ylim(-lim, lim)
         axes.append(ax)
-    _page_legend(fig, axes, 0.895)
+    _page_legend(fig, axes, 0.9, rows)
     pages.save(fig)
 
 
 def _error_range_pages(pages: _Pages, rows: list[dict], label: str) -> None:
-    per_axis = {axis: _by_setting(rows, axis) for axis in st.AXES}
-    for inv in sorted(per_axis["inversion"]):
+    per_inv = _rows_by_setting(rows)
+    for inv in sorted(per_inv):
         fig = pages.new()
         fig.suptitle(f"Error range of the mismatch — inversion setting {inv:g}°",
                      fontsize=12, weight="bold", y=0.965)
         fig.text(0.5, 0.935, label, ha="center", fontsize=8, color="0.3")
         for k, axis in enumerate(st.AXES):
             ax = fig.add_axes((0.13, 0.56 - 0.45 * k, 0.8, 0.33))
-            _plot_error_range(ax, per_axis[axis][inv], axis)
+            _plot_error_range(ax, per_inv[inv], axis)
         pages.save(fig)
 
 
-def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict]) -> None:
+def _calibration_text(cal) -> str:
+    rms = "RMS unknown" if cal.rms is None else f"reprojection RMS {cal.rms:.3f} px"
+    return (f"#{cal.id}, {rms}, {'verified' if cal.verified else 'not verified'}"
+            + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
+
+
+def _calibration_items(store: Store, session, rows: list[dict]) -> list[tuple[str, str]]:
+    """One line per calibration the session's trials were measured with (the trial table's
+    "Cal." column names it per trial); the session's own when no trial names one."""
+    used: dict[int | None, list[int]] = defaultdict(list)
+    for i, r in enumerate(rows, 1):
+        used[r.get("calibration_id")].append(i)
+    if not rows:
+        used[session.calibration_id] = []
+    items = []
+    for cid in sorted(used, key=lambda c: (c is None, c or 0)):
+        text = "none recorded" if cid is None else _calibration_text(store.get_calibration(cid))
+        if len(used) > 1:
+            text += f" — trials {_ranges(used[cid])}"
+        items.append(("Calibration" if not items else "", text))
+    return items
+
+
+def _ranges(nums: list[int]) -> str:
+    """[1, 2, 3, 5] → "1–3, 5"."""
+    out, start = [], None
+    for k, n in enumerate(nums):
+        if start is None:
+            start = n
+        if k + 1 == len(nums) or nums[k + 1] != n + 1:
+            out.append(str(start) if start == n else f"{start}–{n}")
+            start = None
+    return ", ".join(out)
+
+
+NOTE_LINE = 0.0125   # figure fraction per 7.5-pt line under the trial table
+TABLE_BOTTOM = 0.05  # keep clear of the footer
+
+
+def _table_chunks(cells, rows, first_top: float, widths) -> list[tuple[int, int, list[str]]]:
+    """Split the trial table into pages: (start, stop, note lines) so that each page's rows
+    and the notes on its left-out trials fit above the footer."""
+    chunks, start, top = [], 0, first_top
+    while start < len(cells) or not chunks:
+        cap = FIRST_PAGE_ROWS if not chunks else NEXT_PAGE_ROWS
+        stop = min(len(cells), start + cap)
+        while True:
+            notes = _notes_for(rows, start, stop)
+            h = 0.22 * (stop - start + 1.6) / A4[1] + (0.012 + NOTE_LINE * len(notes) if notes else 0)
+            if top - h >= TABLE_BOTTOM or stop - start <= 1:
+                break
+            stop -= 1
+        chunks.append((start, stop, notes))
+        start, top = stop, 0.93
+        if start >= len(cells):
+            break
+    return chunks
+
+
+def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
+    why: dict[tuple[str, str], list[int]] = defaultdict(list)   # trials sharing a reason: one note
+    for i in range(start, stop):
+        if (w := _left_out_why(rows[i])) is not None:
+            why[w].append(i + 1)
+    notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
+             for (state, reason), ts in why.items()]
+    marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
+    lines = []
+    if notes:
+        lines += _wrap("Shown, but left out of the plots and statistics: " + "; ".join(notes) + ".", 130)
+    if marks:
+        lines += _wrap("* automatic marks, not confirmed by an operator (plotted hollow): trials "
+                       + _ranges(marks) + ".", 130)
+    return lines
+
+
+def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
+                 group_note: str | None = None) -> None:
     summ = store.session_summary(session_id)
-    p, s, cal = summ.patient, summ.session, summ.calibration
-    cal_text = "none recorded"
-    if cal is not None:
-        rms = "RMS unknown" if cal.rms is None else f"reprojection RMS {cal.rms:.3f} px"
-        cal_text = (f"#{cal.id}, {rms}, {'verified' if cal.verified else 'not verified'}"
-                    + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
+    p, s = summ.patient, summ.session
     history = (f"{p.sprain_count} sprain(s)" + (f", last {p.last_sprain}" if p.last_sprain else "")
                + (f", {p.affected_side} side" if p.affected_side else ""))
     items = [("Patient", p.code), ("Sprain history", history), ("Condition", s.condition),
-             ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator or "–"),
-             ("Calibration", cal_text),
+             ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator.strip() or "not recorded"),
+             *_calibration_items(store, s, rows),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
     for axis in st.AXES:
         a = getattr(summ, axis)
         items.append((f"Mismatch {axis.replace('_', ' ')}",
                       "–" if a.n == 0 else
                       f"mean |m| {a.mean_abs:.2f}°, mean {a.mean:+.2f}°, SD "
-                      f"{'–' if a.sd is None else f'{a.sd:.2f}'}°, range {a.min:+.2f}…{a.max:+.2f}°"))
+                      f"{'–' if a.sd is None else f'{a.sd:.2f}'}°, range {a.min:+.2f}…{a.max:+.2f}° "
+                      f"(n={a.n})"))
+    if s.notes:
+        items.append(("Notes", "\n".join(_wrap(s.notes, max_lines=4))))
+    if group_note:
+        items.append(("Group comparison", group_note))
     cells = [_trial_cells(i + 1, r) for i, r in enumerate(rows)]
-    first, rest = cells[:FIRST_PAGE_ROWS], cells[FIRST_PAGE_ROWS:]
+    muted = [i for i, r in enumerate(rows) if not st.is_counted(r)]
     fig = pages.new()
     fig.text(0.06, 0.955, "AnkleScan — ankle joint-angle sensing report", fontsize=14,
              weight="bold")
     y = _key_values(fig, 0.925, items)
-    if s.notes:
-        y = _key_values(fig, y, [("Notes", s.notes[:110])])
-    fig.text(0.06, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; "
-             "mismatch = adjusted − reference table)", fontsize=8.5, va="top")
-    widths = (0.06, 0.09, 0.09, 0.12, 0.12, 0.12, 0.12, 0.14, 0.14)
-    _draw_table(fig, y - 0.03, TABLE_HEAD, first, widths)
+    fig.text(0.04, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; mismatch = "
+             "adjusted − reference table;\nCal. = the calibration the trial was measured with; grey "
+             "rows are shown but not counted)", fontsize=8, va="top", linespacing=1.3)
+    y -= 0.017   # the two-line caption
+    for k, (start, stop, notes) in enumerate(_table_chunks(cells, rows, y - 0.03, TABLE_WIDTHS)):
+        if k:
+            pages.save(fig)
+            fig = pages.new()
+            fig.text(0.06, 0.955, f"Trials (continued) — {p.code}, {s.condition}, {s.date}",
+                     fontsize=11, weight="bold")
+        top = y - 0.03 if not k else 0.93
+        bottom = _draw_table(fig, top, TABLE_HEAD, cells[start:stop], TABLE_WIDTHS,
+                             muted=[i - start for i in muted if start <= i < stop], left=0.04)
+        if notes:
+            fig.text(0.04, bottom - 0.008, "\n".join(notes), fontsize=7.5, va="top",
+                     color="0.25", linespacing=1.35)
     pages.save(fig)
-    for start in range(0, len(rest), NEXT_PAGE_ROWS):
-        fig = pages.new()
-        fig.text(0.06, 0.955, f"Trials (continued) — {p.code}, {s.condition}, {s.date}",
-                 fontsize=11, weight="bold")
-        _draw_table(fig, 0.93, TABLE_HEAD, rest[start:start + NEXT_PAGE_ROWS], widths)
-        pages.save(fig)
+
+
+GROUP_OMITTED = ("not included: no comparison can be computed yet (needs at least 2 patients "
+                 "with a sprain history and 2 without in one condition, or 2 patients measured "
+                 "both barefoot and in shoes)")
 
 
 def _group_page(pages: _Pages, rows: list[dict], highlight: set[str]) -> None:
@@ -478,7 +706,9 @@ def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
     ax.set_xticklabels([f"{'with' if g == st.GROUPS[0] else 'no'} sprain\n{c}"
                         for g, c in cats], fontsize=7.5)
     ax.set_xlim(-0.6, len(cats) - 0.4)
-    ax.set_ylim(bottom=0)
+    top = max((v for (_, _, a), v in s.patient_means.items() if a == axis), default=0.0)
+    ax.set_ylim(0, max(MIN_HALF_SPAN_DEG, top * 1.12))
+    _plain_ticks(ax, "y")
     ax.set_ylabel(f"Mean |mismatch of {axis.replace('_', ' ')}| (°)", fontsize=8.5)
     ax.tick_params(axis="y", labelsize=8)
     ax.grid(True, axis="y", color="0.9", lw=0.6)
@@ -488,13 +718,17 @@ def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
 
 def write_session_report(store: Store, session_ids: Sequence[int], pdf_path,
                          csv_path=None) -> ReportResult:
-    """Per session: header + trial table, Fig. 10, one Fig. 11/12 page per inversion
-    setting; then one group-comparison page over the whole database."""
+    """Per session: header + trial table (every trial, with its state and calibration),
+    Fig. 10, one Fig. 11/12 page per inversion setting (counted trials only); then one
+    group-comparison page over the whole database, when any comparison can be computed."""
     if not session_ids:
         raise AnkleScanError("no sessions selected for the report")
     sessions = [store.get_session(int(i)) for i in session_ids]
     all_rows = store.study_rows()
     codes = {store.get_patient(s.patient_id).code for s in sessions}
+    # the group page compares the whole database's patients (this report's starred); with
+    # nothing to compare it would be a page of "n too small", so it is left out and said so
+    with_group = st.has_tests(st.study_stats(all_rows))
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
     with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
@@ -503,12 +737,13 @@ def write_session_report(store: Store, session_ids: Sequence[int], pdf_path,
                                 f"generated {stamp}")
             for s in sessions:
                 rows = [r for r in all_rows if r["session_id"] == s.id]
-                _header_page(pages, store, s.id, rows)
+                _header_page(pages, store, s.id, rows, None if with_group else GROUP_OMITTED)
                 label = f"Patient {rows[0]['patient_code'] if rows else ''}, {s.condition}, {s.date}"
                 _fig10_page(pages, rows, f"Mismatch against plantar flexion — {s.condition}, "
                                          f"{s.date}")
                 _error_range_pages(pages, rows, label)
-            _group_page(pages, all_rows, codes)
+            if with_group:
+                _group_page(pages, all_rows, codes)
             _pdf_info(pdf, "AnkleScan session report")
         if tmp_csv is not None:
             ids = {s.id for s in sessions}
@@ -517,20 +752,23 @@ def write_session_report(store: Store, session_ids: Sequence[int], pdf_path,
 
 
 def write_study_report(store: Store, pdf_path, csv_path=None) -> ReportResult:
-    """All patients and sessions: overview, Fig. 10 per group, group comparison."""
+    """All patients and sessions: overview, Fig. 10 per group, group comparison (left out,
+    and said so on the overview, when no comparison can be computed)."""
     rows = store.study_rows()
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
     with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             pages = _Pages(pdf, f"AnkleScan study report — generated {stamp}")
-            _overview_pages(pages, store, rows)
             stats_, lim = st.study_stats(rows), _sym_limit(rows)
+            with_group = st.has_tests(stats_)
+            _overview_pages(pages, store, rows, None if with_group else GROUP_OMITTED)
             for g in st.GROUPS:
-                _group_fig10_page(pages, [r for r in rows
-                                          if stats_.patient_group.get(r["patient_code"]) == g],
-                                  g, lim)
-            _group_page(pages, rows, set())
+                mine = [r for r in rows if stats_.patient_group.get(r["patient_code"]) == g]
+                if mine:   # a group nobody is in yet gets no page of empty axes
+                    _group_fig10_page(pages, mine, g, lim)
+            if with_group:
+                _group_page(pages, rows, set())
             _pdf_info(pdf, "AnkleScan study report")
         if tmp_csv is not None:
             write_csv(rows, tmp_csv)
@@ -542,10 +780,11 @@ def _pdf_info(pdf: PdfPages, title: str) -> None:
     d["Title"], d["Creator"] = title, "AnkleScan"
 
 
-def _overview_pages(pages: _Pages, store: Store, rows: list[dict]) -> None:
+def _overview_pages(pages: _Pages, store: Store, rows: list[dict],
+                    group_note: str | None = None) -> None:
     s = st.study_stats(rows)
     patients = store.list_patients()
-    head = ("Patient", "Group", "Sprains", "Side", "Sessions", "Trials",
+    head = ("Patient", "Group", "Sprains", "Side", "Sessions", "Trials\ncounted",
             "|Δ inv.| barefoot\n(°)", "|Δ inv.| shoes\n(°)", "|Δ PF| barefoot\n(°)",
             "|Δ PF| shoes\n(°)")
     cells = []
@@ -554,12 +793,16 @@ def _overview_pages(pages: _Pages, store: Store, rows: list[dict]) -> None:
         mean = [s.patient_means.get((p.code, c, a)) for a in st.AXES for c in st.CONDITIONS]
         cells.append([p.code, "sprain" if p.has_sprain_history else "none",
                       str(p.sprain_count), p.affected_side or "–",
-                      str(len({r["session_id"] for r in mine})), str(len(mine)),
+                      str(len({r["session_id"] for r in mine})),
+                      str(sum(st.is_counted(r) for r in mine)),
                       *("–" if m is None else f"{m:.2f}" for m in mean)])
     counts = [("Patients", f"{len(patients)} ({sum(p.has_sprain_history for p in patients)} "
                            "with sprain history)"),
               ("Sessions", str(len({r['session_id'] for r in rows}))),
-              ("Trials", f"{len(rows)} ({len(_measured(rows))} measured)")]
+              ("Trials", f"{len(rows)} in all, {len(st.counted_rows(rows))} counted (complete and not "
+                         f"excluded), {len(_measured(rows))} of them measured")]
+    if group_note:
+        counts.append(("Group comparison", group_note))
     widths = (0.1, 0.08, 0.08, 0.07, 0.08, 0.07, 0.13, 0.13, 0.13, 0.13)
     for start in range(0, max(len(cells), 1), NEXT_PAGE_ROWS):
         fig = pages.new()
@@ -576,7 +819,8 @@ def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -
     fig = pages.new()
     fig.suptitle(f"Mismatch against plantar flexion — {group}", fontsize=12, weight="bold",
                  y=0.965)
-    fig.text(0.5, 0.935, f"{len({r['patient_code'] for r in rows})} patients; mean ± SD over "
+    n = len({r['patient_code'] for r in rows})
+    fig.text(0.5, 0.935, f"{n} patient{'s' if n != 1 else ''}; mean ± SD over "
              "trials per setting, faint points are single trials", ha="center",
              fontsize=8, color="0.3")
     axes = []
@@ -587,5 +831,5 @@ def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -
             ax.set_title(cond, fontsize=10)
             ax.set_ylim(-lim, lim)
             axes.append(ax)
-    _page_legend(fig, axes, 0.885)
+    _page_legend(fig, axes, 0.9, rows)
     pages.save(fig)

@@ -858,7 +858,11 @@ class Store:
             " s.id AS session_id, s.date AS session_date, s.operator, s.condition,"
             " c.rms AS calibration_rms, t.id AS trial_id, t.*,"
             " COALESCE(t.calibration_id, s.calibration_id) AS calibration_id,"
-            " (t.status = 'complete' AND t.excluded_reason IS NULL) AS counted"
+            " (t.status = 'complete' AND t.excluded_reason IS NULL) AS counted,"
+            # automatic marks count as confirmed once an operator confirmed them (recorded in
+            # placed_by, as app.mark_editor does) or moved them (source 'manual')
+            " NOT EXISTS (SELECT 1 FROM marks m WHERE m.trial_id = t.id AND m.source = 'auto'"
+            " AND m.placed_by NOT LIKE 'confirmed by %') AS marks_confirmed"
             " FROM trials t JOIN sessions s ON s.id = t.session_id"
             " JOIN patients p ON p.id = s.patient_id"
             " LEFT JOIN calibrations c ON c.id = COALESCE(t.calibration_id, s.calibration_id)"

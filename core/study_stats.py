@@ -151,10 +151,21 @@ def group_of(row: Mapping, min_sprains: int = 1) -> str:
     return GROUPS[0] if (row.get("sprain_count") or 0) >= min_sprains else GROUPS[1]
 
 
+def is_counted(row: Mapping) -> bool:
+    """Whether a trial enters the statistics: complete and not excluded (``Store.study_rows``'
+    ``counted``). Cancelled, failed and excluded trials stay in the database and the report's
+    trial table, never in a mean or a test. Rows without the column (older callers) count."""
+    return bool(row.get("counted", 1))
+
+
+def counted_rows(rows: Iterable[Mapping]) -> list[Mapping]:
+    return [r for r in rows if is_counted(r)]
+
+
 def patient_means(rows: Iterable[Mapping]) -> dict[tuple[str, str, str], float]:
-    """(patient, condition, axis) → mean |mismatch| over that patient's measured trials."""
+    """(patient, condition, axis) → mean |mismatch| over that patient's counted, measured trials."""
     acc: dict[tuple[str, str, str], list[float]] = defaultdict(list)
-    for r in rows:
+    for r in counted_rows(rows):
         for axis in AXES:
             v = r.get(f"mismatch_{axis}")
             if v is not None:
@@ -163,7 +174,9 @@ def patient_means(rows: Iterable[Mapping]) -> dict[tuple[str, str, str], float]:
 
 
 def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
-    """All descriptive summaries and tests from ``Store.study_rows()``-shaped rows."""
+    """All descriptive summaries and tests from ``Store.study_rows()``-shaped rows (only
+    counted trials enter them; see ``is_counted``)."""
+    rows = counted_rows(rows)
     out = StudyStats()
     out.patient_group = {r["patient_code"]: group_of(r, min_sprains) for r in rows}
     out.patient_means = patient_means(rows)
@@ -184,6 +197,13 @@ def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
             bare, shoes = _paired(out, g, axis)
             out.condition_tests[(g, axis)] = compare_paired(bare, shoes)
     return out
+
+
+def has_tests(s: StudyStats) -> bool:
+    """Whether any comparison could be computed (at least one test with n large enough);
+    a report leaves its group page out otherwise rather than print a page of "n too small"."""
+    tests = [*s.history_tests.values(), *s.condition_tests.values()]
+    return any(t.note != TOO_SMALL for t in tests)
 
 
 def _means(s: StudyStats, group: str, condition: str, axis: str) -> list[float]:

@@ -43,3 +43,26 @@ def test_demo_replaces_only_its_own_folder(tmp_path):
         run_demo(foreign, quick=True, progress=lambda _: None)
     assert (foreign / "patient.txt").read_text() == "keep me"
     assert not (foreign / MARKER).exists()
+
+
+def test_study_plan_is_the_papers_cohort():
+    """`demo --study`: four patients with a sprain history and four without, each barefoot and in
+    shoes at several plantar flexions; the simulated patients mis-set the table more with a
+    sprain history and less in shoes (structure only: no scanning here, the study takes minutes)."""
+    import numpy as np
+
+    from app.demo import STUDY_PLANTAR_FLEXIONS, study_plan
+
+    plan = study_plan()
+    codes = {t["patient"].code: t["patient"].sprain_count for t in plan}
+    assert len(codes) == 8 and sum(n > 0 for n in codes.values()) == 4
+    for code in codes:
+        for cond in ("barefoot", "shoes"):
+            pfs = sorted(t["ref"][1] for t in plan if t["patient"].code == code and t["condition"] == cond)
+            assert pfs == sorted(STUDY_PLANTAR_FLEXIONS) and len(set(pfs)) >= 3
+    assert len({t["seed"] for t in plan}) == len(plan) and plan == study_plan()  # distinct scans, reproducible
+
+    def err(sprain: bool, cond: str) -> float:
+        return float(np.mean([np.hypot(*np.subtract(t["table"], t["ref"])) for t in plan
+                              if (t["patient"].sprain_count > 0) == sprain and t["condition"] == cond]))
+    assert err(True, "barefoot") > 2 * err(False, "barefoot") and err(True, "shoes") < err(True, "barefoot")

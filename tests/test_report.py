@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from core import report
 from core import study_stats as st
 from core.errors import AnkleScanError
-from core.report import CSV_COLUMNS, write_session_report, write_study_report
+from core.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
 from core.store import Store
 
 INV_SETTINGS = (0.0, 20.0)
@@ -105,8 +106,9 @@ def test_long_session_table_continues(tmp_path):
         for i in range(30):
             s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=i)   # none measured
         res = write_session_report(s, [ses.id], tmp_path / "l.pdf", tmp_path / "l.csv")
-    # 24 rows + continuation page, Fig. 10 page ("no measured trials"), group page
-    assert res.pages == 2 + 1 + 1
+    # 24 rows + continuation page, Fig. 10 page ("no measured trials"); no group page: one
+    # patient has nothing to compare
+    assert res.pages == 2 + 1
     rows = list(csv.DictReader((tmp_path / "l.csv").open()))
     assert len(rows) == 30 and rows[0]["mismatch_inversion"] == ""
 
@@ -193,3 +195,133 @@ def test_report_stats_reflect_synthetic_effect(study):
         assert t.n_a == t.n_b == 3 and t.mean_diff > 0
     assert s.condition_tests[("all", "inversion")].n == 6
     assert s.condition_tests[("all", "inversion")].mean_diff > 0
+
+
+# ------------------------------------------------- trial states, calibrations, plots
+
+MARKS = {1: (10.0, 60.0, 520.0), 2: (0.0, 55.0, 200.0), 3: (55.0, 10.0, 520.0), 4: (45.0, 0.0, 200.0),
+         5: (80.0, -100.0, 120.0), 6: (80.0, 95.0, 135.0), 7: (-48.0, 135.0, 128.0)}
+LONG_SOURCE = ("imported from /home/clinic/anklescan/calibrations/2026-11-20_morning_box_scan_"
+               "after_the_projector_was_refocused_and_levelled/calibration.json")
+
+
+def _angles(ti, tp):
+    return {"table_inversion": {"value": ti, "sd": 0.001}, "table_plantar_flexion": {"value": tp, "sd": 0.001}}
+
+
+@pytest.fixture
+def states_session(tmp_path):
+    """One patient: three counted trials with a mismatch of thousandths of a degree (one of
+    them with unconfirmed automatic marks), and a cancelled, a failed and an excluded trial
+    whose large mismatch must not reach any plot or statistic; two calibrations."""
+    s = Store.open(tmp_path / "db.sqlite", data_dir=tmp_path)
+    c1 = s.add_calibration({"units": "mm"}, rms=0.21, source=LONG_SOURCE, verified=True)
+    c2 = s.add_calibration({"units": "mm"}, rms=0.3, source="simulated box scan")
+    s.add_patient("P-1", sprain_count=2)
+    ses = s.start_session("P-1", condition="barefoot", calibration_id=c1.id)   # no operator
+    ids = {}
+    for name, pf, d, cal in (("a", -20.0, 0.0015, None), ("b", 0.0, -0.0010, None), ("auto", 20.0, 0.0005, c2.id),
+                             ("cancel", 0.0, 30.0, None), ("fail", 0.0, 30.0, None), ("excl", 20.0, -30.0, None)):
+        t = s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=pf, calibration_id=cal)
+        s.update_trial_angles(t.id, _angles(d, pf - d))
+        ids[name] = t.id
+    s.update_marks(ids["auto"], {5: MARKS[5]}, "auto", "", recompute=False)
+    s.update_marks(ids["a"], {5: MARKS[5]}, "auto", "confirmed by dr.k", recompute=False)
+    s.set_trial_status(ids["cancel"], "cancelled", "operator stopped the scan")
+    s.set_trial_status(ids["fail"], "failed", "projector disconnected")
+    s.exclude_trial(ids["excl"], "patient moved")
+    yield s, ses.id, ids, (c1.id, c2.id)
+    s.close()
+
+
+def _capture_figures(monkeypatch) -> list:
+    figs = []
+    save = report._Pages.save
+
+    def keep(self, fig):
+        figs.append(fig)
+        save(self, fig)
+    monkeypatch.setattr(report._Pages, "save", keep)
+    return figs
+
+
+def test_study_rows_carry_state_and_mark_confirmation(states_session):
+    store, sid, ids, (c1, c2) = states_session
+    rows = {r["trial_id"]: r for r in store.study_rows()}
+    assert [rows[ids[k]]["counted"] for k in ("a", "auto", "cancel", "fail", "excl")] == [1, 1, 0, 0, 0]
+    assert rows[ids["a"]]["marks_confirmed"] == 1 and rows[ids["auto"]]["marks_confirmed"] == 0
+    assert rows[ids["b"]]["marks_confirmed"] == 1          # no marks: nothing left to confirm
+    assert rows[ids["a"]]["calibration_id"] == c1 and rows[ids["auto"]]["calibration_id"] == c2
+
+
+def test_states_shown_in_table_but_only_counted_trials_plotted(states_session, tmp_path, monkeypatch):
+    store, sid, ids, (c1, c2) = states_session
+    figs = _capture_figures(monkeypatch)
+    res = write_session_report(store, [sid], tmp_path / "r.pdf", tmp_path / "r.csv")
+    # header + Fig. 10 + one error-range page; no group page (one patient: nothing to compare)
+    assert res.pages == 3 == len(figs)
+    texts = [t.get_text() for t in figs[0].texts]
+    cells = [c.get_text().get_text() for ax in figs[0].axes for tab in ax.tables
+             for c in tab.get_celld().values()]
+    body = " ".join(texts + cells).replace("\n", " ")   # wrapped lines read as one
+    for want in ("cancelled", "failed", "excluded", "complete*", "operator stopped the scan",
+                 "patient moved", "projector disconnected", "not recorded", f"#{c1}", f"#{c2}",
+                 "3 counted", "Group comparison"):
+        assert want in body, want
+    # only counted trials are "to do": the cancelled, failed and excluded ones have no leg marks either
+    assert "3 with a leg angle missing" in body and "6 with" not in body
+    # every header line stays on the page (the long calibration source wraps)
+    r = figs[0].canvas.get_renderer()
+    page = figs[0].bbox
+    for t in figs[0].texts:
+        box = t.get_window_extent(r)
+        assert box.x0 >= page.x0 and box.x1 <= page.x1, t.get_text()[:40]
+    # plots: only the three counted trials, all within ±0.002°, on an axis of at least ±1°
+    fig10, err = figs[1], figs[2]
+    points = [y for ax in fig10.axes for ln in ax.lines if ln.get_marker() == "o" for y in ln.get_ydata()]
+    assert points and max(abs(float(y)) for y in points) < 0.01
+    for ax in fig10.axes + err.axes:
+        lo, hi = ax.get_ylim()
+        assert lo <= -report.MIN_HALF_SPAN_DEG and hi >= report.MIN_HALF_SPAN_DEG
+        ax.figure.canvas.draw()
+        assert ax.yaxis.get_offset_text().get_text() == ""          # no "1e-3" / "+1.2e1"
+    # the trial with unconfirmed automatic marks is hollow, with its legend entry
+    hollow = [ln for ax in err.axes for ln in ax.lines if ln.get_markerfacecolor() == "none" and len(ln.get_xdata())]
+    assert len(hollow) == 2                          # one point per axis panel
+    assert all(UNCONFIRMED_LABEL in [t.get_text() for t in ax.get_legend().get_texts()] for ax in err.axes)
+    assert any(UNCONFIRMED_LABEL in [t.get_text() for t in leg.get_texts()] for leg in fig10.legends)
+    rows = list(csv.DictReader((tmp_path / "r.csv").open()))
+    assert {r["status"] for r in rows} == {"complete", "cancelled", "failed"}
+    assert [r["excluded_reason"] for r in rows if r["counted"] == "0"][-1] == "patient moved"
+    if shutil.which("pdftotext"):
+        text = subprocess.run(["pdftotext", "-layout", str(tmp_path / "r.pdf"), "-"], capture_output=True,
+                              text=True, check=True).stdout
+        assert "operator stopped the scan" in text and "Group comparison — " not in text
+
+
+def test_stats_use_counted_trials_only(states_session):
+    store, *_ = states_session
+    rows = store.study_rows()
+    s = st.study_stats(rows)
+    assert s.patient_means[("P-1", "barefoot", "inversion")] == pytest.approx((0.0015 + 0.0010 + 0.0005) / 3)
+    assert s.trial_summary[("sprain history", "barefoot", "inversion")].n == 3
+    assert not st.has_tests(s)
+    assert sum(len(v) for per in report._by_setting(rows, "inversion").values() for v in per.values()) == 3
+
+
+def test_group_page_only_with_something_to_compare(study, tmp_path, monkeypatch):
+    store, sessions = study
+    figs = _capture_figures(monkeypatch)
+    write_session_report(store, sessions[:1], tmp_path / "r.pdf")
+    assert figs[-1]._suptitle.get_text().startswith("Group comparison")
+    assert st.has_tests(st.study_stats(store.study_rows()))
+
+
+def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path, monkeypatch):
+    store, *_ = states_session
+    figs = _capture_figures(monkeypatch)
+    res = write_study_report(store, tmp_path / "s.pdf")
+    # the overview (saying why there is no group comparison) and the one group that has a patient
+    assert res.pages == 2
+    assert "Group comparison" in [t.get_text() for t in figs[0].texts]
+    assert figs[1]._suptitle.get_text().endswith("sprain history") and any(t.get_text().startswith("1 patient;") for t in figs[1].texts)

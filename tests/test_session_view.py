@@ -191,3 +191,40 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
         assert win.write_session_report_to(str(tmp_path / "r.pdf")) is not None
     assert (tmp_path / "r.pdf").exists() and (tmp_path / "r.csv").exists()
     win.close()
+
+
+def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
+    """Cancelled and excluded trials stay off the plots; unconfirmed automatic marks are hollow
+    with a legend entry; thousandths of a degree sit on an axis of at least ±1°, unprefixed."""
+    from core.report import MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL
+    sess = store.start_session("P-001", condition="barefoot")
+    ids = []
+    for pf, d in ((-10.0, 0.0015), (0.0, -0.001), (10.0, 0.0005), (0.0, 25.0), (10.0, -25.0)):
+        t = store.add_trial(sess.id, ref_inversion=0.0, ref_plantar_flexion=pf)
+        store.update_trial_angles(t.id, {"table_inversion": {"value": d, "sd": 0.001},
+                                         "table_plantar_flexion": {"value": pf + d, "sd": 0.001}})
+        ids.append(t.id)
+    store.update_marks(ids[1], {5: MARKS[5]}, "auto", "", recompute=False)   # detected, not confirmed
+    store.set_trial_status(ids[3], "cancelled", "operator stopped the scan")
+    store.exclude_trial(ids[4], "patient moved")
+    view = SessionView()
+    qtbot.addWidget(view)
+    view.resize(900, 700)
+    view.load_sessions(store, [sess.id])
+    assert "3 measured trials of 5; 2 left out" in view.info.text()
+    assert set(view.trial_points) == set(ids[:3])
+    for plot in (view.fig10, view.error_plot):
+        lo, hi = plot.vb.viewRange()[1]
+        assert lo <= -MIN_HALF_SPAN_DEG and hi >= MIN_HALF_SPAN_DEG and hi - lo < 3
+        assert not plot.getAxis("left").autoSIPrefix and not plot.getAxis("bottom").autoSIPrefix
+        assert UNCONFIRMED_LABEL in [label.text for _, label in plot.legend.items]
+    import pyqtgraph as pg
+    spots = {s.data()["trial_id"]: s for item in view.fig10.items if isinstance(item, pg.ScatterPlotItem)
+             for s in item.points()}
+    assert spots[ids[1]].brush().color().alpha() == 0 and spots[ids[0]].brush().color().alpha() == 255
+    assert "automatic marks, not confirmed" in trial_tip(spots[ids[1]].data(), "inversion")
+    left_out = [r for r in store.study_rows() if r["trial_id"] in ids[3:]]
+    view.set_rows(left_out)
+    assert view.trial_points == {} and "0 measured trials of 2; 2 left out" in view.info.text()
+    texts = [i.textItem.toPlainText() for i in view.fig10.items if isinstance(i, pg.TextItem)]
+    assert any("cancelled, failed or excluded" in t for t in texts)
