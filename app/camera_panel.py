@@ -158,6 +158,10 @@ class CameraPanel(QWidget):
         # a box layout, not a form row: only it gives a word-wrapped label the height it needs
         source_box = QVBoxLayout(source)
         form = QFormLayout()
+        for combo in (self.backend, self.device):
+            # a long device name must not squeeze the labels ("Backend" was cut to "Backer")
+            combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+            combo.setMinimumContentsLength(12)
         form.addRow("Backend", self.backend)
         device_row = QHBoxLayout()
         device_row.addWidget(self.device, 1)

@@ -14,8 +14,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QKeySequence, QShortcut, QUndoCommand, QUndoStack
-from PySide6.QtWidgets import (QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout, QLabel,
-                               QListWidget, QListWidgetItem, QPushButton, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout,
+                               QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
+                               QVBoxLayout, QWidget)
 
 from core.angles import LABELS, compute_angles
 
@@ -96,8 +97,17 @@ class MarkEditor(QWidget):
         self.hint = QLabel()
         self.hint.setWordWrap(True)
         self.hint.setObjectName("hint")
-        self.list = QListWidget()
-        self.list.currentItemChanged.connect(lambda *_: self._list_selected())
+        # a table sized to its columns: the one-line list text was cut off at the panel's width
+        self.list = QTableWidget(len(LABELS), 5)
+        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", ""])
+        self.list.verticalHeader().hide()
+        self.list.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.list.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
+        self.list.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.list.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        self.list.horizontalHeader().setSectionResizeMode(4, QHeaderView.ResizeMode.Stretch)
+        self.list.currentCellChanged.connect(lambda *_: self._list_selected())
         self.confirm_button = QPushButton("Confirm automatic marks")
         self.confirm_button.clicked.connect(self.confirm_all)
         self.delete_button = QPushButton("Delete")
@@ -257,25 +267,27 @@ class MarkEditor(QWidget):
 
     def _refresh_list(self) -> None:
         self.list.blockSignals(True)
-        self.list.clear()
-        for lab in LABELS:
+        for row, lab in enumerate(LABELS):
             m = self.marks.get(lab)
             if m is None:
-                text = f"{lab}  {MARK_NAMES[lab]:<18}  not placed"
+                cells = [str(lab), "", "", "", f"{MARK_NAMES[lab]}: not placed"]
             else:
                 how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
-                text = f"{lab}  ({m.xyz[0]:7.1f}, {m.xyz[1]:7.1f}, {m.xyz[2]:7.1f}) mm  · {how}"
-            item = QListWidgetItem(text)
-            item.setData(Qt.ItemDataRole.UserRole, lab)
-            self.list.addItem(item)
-            if lab == self.current_label:
-                self.list.setCurrentItem(item)
+                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how]
+            for col, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                item.setData(Qt.ItemDataRole.UserRole, lab)
+                if col in (1, 2, 3):
+                    item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                self.list.setItem(row, col, item)
+        self.list.selectRow(LABELS.index(self.current_label) if self.current_label in LABELS else 0)
+        self.list.resizeRowsToContents()
         self.list.blockSignals(False)
 
     def _list_selected(self) -> None:
-        item = self.list.currentItem()
-        if item is not None:
-            self.set_current_label(item.data(Qt.ItemDataRole.UserRole))
+        row = self.list.currentRow()
+        if 0 <= row < len(LABELS):
+            self.set_current_label(LABELS[row])
 
     def _refresh_angles(self) -> None:
         try:

@@ -14,7 +14,11 @@ OUT = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
 
 
 @pytest.mark.skipif(not os.environ.get("ANKLESCAN_SCREENSHOTS"), reason="set ANKLESCAN_SCREENSHOTS=1 to refresh")
-def test_screenshots(qtbot, qapp):
+def test_screenshots(qtbot, qapp, monkeypatch):
+    import shutil
+    data = Path.home() / "AnkleScan-screenshots"  # a clinic-like path in the pictures, not a test's temp folder
+    shutil.rmtree(data, ignore_errors=True)
+    monkeypatch.setenv("ANKLESCAN_DATA", str(data))
     qapp.setStyleSheet(resources.STYLE)
     win = MainWindow(open_rig_now=True)
     qtbot.addWidget(win)
@@ -53,3 +57,4 @@ def test_screenshots(qtbot, qapp):
     qtbot.wait(100)
     win.projector.grab().save(str(OUT / "projector_preview.png"))
     win.close()
+    shutil.rmtree(data, ignore_errors=True)
