@@ -630,8 +630,9 @@ class MainWindow(QMainWindow):
         self.rig = rig
         self.settings.set("camera_backend", rig.backend)
         self._rig_ready()
-        QTimer.singleShot(0, self.ensure_marks_page)
-        QTimer.singleShot(0, _settle_memory)
+        # one widget-building step per event-loop turn, with room for paints in between
+        QTimer.singleShot(50, self.ensure_marks_page)
+        QTimer.singleShot(100, _settle_memory)
 
     def _build_camera_panel(self) -> None:
         from app.camera_panel import CameraPanel
@@ -988,22 +989,33 @@ class MainWindow(QMainWindow):
     def ensure_marks_page(self):
         if self.marks_page is None:
             from app.mark_editor import MarksPage
-            from app.session_view import SessionView
-            self.marks_page = MarksPage(operator=_os_user())
+            self.marks_page = MarksPage(operator=self.settings.get("operator") or _os_user())
             self.marks_page.editor.saveFailed.connect(lambda text: self.banner.show_message("error", text))
             self.marks_page.editor.marksChanged.connect(lambda _: self._marks_edited())
             self.marks_holder.addWidget(self.marks_page)
             self.marks_holder.setCurrentWidget(self.marks_page)
-            self.session_view = SessionView()
+        return self.marks_page
+
+    def ensure_session_view(self):
+        """Built when first needed: importing pyqtgraph takes ~0.6 s on the UI thread (it cannot be
+        imported in another thread), so start-up does not pay for it."""
+        if self.session_view is None:
+            QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
+            try:
+                from app.session_view import SessionView
+                self.session_view = SessionView()
+            finally:
+                QApplication.restoreOverrideCursor()
             self.session_view.trialActivated.connect(self.open_trial)
             self.session_holder.addWidget(self.session_view)
             self.session_holder.setCurrentWidget(self.session_view)
-        return self.marks_page
+        return self.session_view
 
     def _tab_changed(self, index: int) -> None:
-        if index in (PAGE_MARKS, PAGE_SESSION):
+        if index == PAGE_MARKS:
             self.ensure_marks_page()
         if index == PAGE_SESSION:
+            self.ensure_session_view()
             self._refresh_session_view()
 
     def _refresh_session_view(self) -> None:
@@ -1092,7 +1104,7 @@ class MainWindow(QMainWindow):
         return self.export_plots_to(path) if path else None
 
     def export_plots_to(self, path: str) -> Path | None:
-        self.ensure_marks_page()
+        self.ensure_session_view()
         self._refresh_session_view()
         try:
             out = self.session_view.export(path)
@@ -1222,7 +1234,10 @@ def _warm_imports() -> None:
     thread other than the GUI's."""
     import OpenGL.GL  # noqa: F401
     import OpenGL.GLU  # noqa: F401
+    import scipy.spatial  # noqa: F401
 
+    import app.picking  # noqa: F401  (numpy and SciPy only: the viewer's Qt part is built on the UI thread)
+    import app.splat  # noqa: F401
     import core.measure  # noqa: F401
     import core.pointcloud  # noqa: F401
 

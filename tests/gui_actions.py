@@ -128,3 +128,29 @@ def use_true_calibration(win) -> None:
     from app.calibration_wizard import accept_calibration
     accept_calibration(win.rig.calibration, None, win.data_folder(), win.store, source="simulator truth (test)")
     win._load_calibration()
+
+
+class GapMeter:
+    """A 10 ms timer on the UI thread; the longest gap between ticks is how long it was blocked."""
+
+    def __init__(self):
+        from PySide6.QtCore import QElapsedTimer
+        self.clock = QElapsedTimer()
+        self.timer = QTimer()
+        self.timer.setInterval(10)
+        self.timer.timeout.connect(self._tick)
+        self.last = None
+        self.max_gap_ms = 0
+
+    def _tick(self):
+        now = self.clock.elapsed()
+        if self.last is not None:
+            self.max_gap_ms = max(self.max_gap_ms, now - self.last)
+        self.last = now
+
+    def start(self):
+        self.clock.start()
+        self.timer.start()
+
+    def stop(self):
+        self.timer.stop()

@@ -338,3 +338,34 @@ def test_undo_stops_at_the_automatic_marks(qtbot):
     click(undo)
     assert set(page.editor.marks) == set(range(1, 8)) and page.editor.marks[1].xyz == (1.0, 0.0, 100.0)
     assert not undo.isEnabled()
+
+
+def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
+    """No UI-thread gap over 100 ms from the window's first paint to a usable app, nor while a
+    report is exported (the issue measured 1.7-2.3 s and 1.35 s)."""
+    from gui_actions import GapMeter
+    meter = GapMeter()
+    win = MainWindow()
+    qtbot.addWidget(win)
+    win.show()
+    meter.start()
+    qtbot.waitExposed(win)
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
+    qtbot.wait(200)
+    meter.stop()
+    startup = meter.max_gap_ms
+    use_true_calibration(win)
+    win.settings.set("operator", "op")
+    win.settings.set("settle_ms", 5)
+    _add_patient(qtbot, win, "P-060")
+    _new_session(qtbot, win)
+    _scan(qtbot, win, "0", "0")
+    meter = GapMeter()
+    meter.start()
+    with qtbot.waitSignal(win.reportWritten, timeout=60_000):
+        with_dialog(qtbot, menu_action(win, "File/Session report (PDF + CSV)…").trigger, save_as(tmp_path / "r.pdf"))
+    meter.stop()
+    print(f"\nlongest UI-thread gap: start-up {startup} ms, report export {meter.max_gap_ms} ms")
+    assert (tmp_path / "r.pdf").exists()
+    assert startup <= 100 and meter.max_gap_ms <= 100
+    win.close()
