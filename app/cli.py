@@ -2,6 +2,15 @@
 
 Every command turns a user's mistake into one line on stderr and exit code 2, and never leaves
 a partly written output file (outputs are written to a temporary sibling and renamed).
+
+Guards every command gets from ``main`` (so a new sub-command is covered without doing
+anything): argument errors are one line and exit 2 (``_Parser.error``); ``--out`` may not
+name, resolve to, sit inside or contain any existing path given as another argument
+(``core.atomic.guard_output`` over every path-like argument, before the command runs);
+SIGTERM takes the same clean-up path as Ctrl-C (temporaries removed), exit 143; every error
+message is folded onto one line, and library warnings (numpy, OpenCV) never reach stderr.
+A command with inputs that are not plain arguments (a folder named in a file) calls
+``guard_output(out, inputs)`` itself.
 Imports are made inside the commands so that ``anklescan gui`` starts without loading the
 reconstruction stack and ``--help`` is instant.
 """
@@ -10,12 +19,34 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import time
+import warnings
 from pathlib import Path
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
+EXIT_TERMINATED = 128 + signal.SIGTERM
+# Largest projector / camera side accepted on the command line (same as core.limits, which
+# is not imported here so that --help stays instant).
+MAX_SIDE = 16384
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (no usage block) and exit 2, like every other error."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that every ``except BaseException`` clean-up
+    (temporary files and folders) runs exactly as for Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
 
 
 class Progress:
@@ -33,12 +64,27 @@ class Progress:
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = text.lower().split("x")
+        if len(w) > 6 or len(h) > 6:
+            raise ValueError
         w, h = int(w), int(h)
         if w <= 0 or h <= 0:
             raise ValueError
-        return w, h
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, not {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, not {text[:40]!r}") from None
+    if w > MAX_SIDE or h > MAX_SIDE:
+        raise argparse.ArgumentTypeError(f"{w}x{h} is beyond any real camera or projector "
+                                         f"(at most {MAX_SIDE} px a side)")
+    return w, h
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {text[:40]!r}") from None
+    if not 0 < v < 1e6:  # math.isfinite without importing math: nan fails both comparisons
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, not {text[:40]!r}")
+    return v
 
 
 # ---------------------------------------------------------------------------- commands
@@ -70,6 +116,11 @@ def cmd_reconstruct(args) -> int:
     capture = load_capture(args.capture)
     progress("decoding and triangulating")
     cloud = reconstruct(capture, cal)
+    if len(cloud) == 0:
+        from core.errors import AnkleScanError
+
+        raise AnkleScanError(f"no surface points could be decoded from {args.capture} "
+                             f"({cloud.meta.get('summary', 'nothing decoded')}); nothing written")
     progress(f"writing {len(cloud)} points")
     write_ply(args.out, cloud, comments=[f"capture {Path(args.capture).name}"])
     print(f"wrote {len(cloud)} points to {args.out} ({cloud.meta.get('summary', '')})")
@@ -108,8 +159,12 @@ def cmd_measure(args) -> int:
 def cmd_angles(args) -> int:
     from core.angles import compute_angles, format_angles, read_marks_csv
 
+    from core.limits import require_finite
+
     marks = read_marks_csv(args.marks)
-    print(format_angles(compute_angles(marks, sigma_mm=args.sigma)))
+    angles = compute_angles(marks, sigma_mm=args.sigma)
+    require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
+    print(format_angles(angles))
     return 0
 
 
@@ -124,7 +179,7 @@ def cmd_demo(args) -> int:
 
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
+    p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     sub = p.add_subparsers(dest="command")
 
@@ -174,36 +229,78 @@ def build_parser() -> argparse.ArgumentParser:
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")
-    a.add_argument("--sigma", type=float, default=0.2, help="mark position uncertainty, mm (default 0.2)")
+    a.add_argument("--sigma", type=_positive, default=0.2, help="mark position uncertainty, mm (default 0.2)")
     a.set_defaults(func=cmd_angles)
     return p
+
+
+def _path_arguments(args) -> list[str]:
+    """Every argument other than --out that names an existing file or folder: the inputs."""
+    values = []
+    for key, v in vars(args).items():
+        if key == "out" or callable(v):
+            continue
+        for item in (v if isinstance(v, (list, tuple)) else [v]):
+            if isinstance(item, (str, os.PathLike)) and str(item) and os.path.lexists(item):
+                values.append(item)
+    return values
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def _say(text: str) -> None:
+    print(f"anklescan: {_one_line(text)}", file=sys.stderr, flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()
     args = parser.parse_args(argv or ["gui"])
+    if args.func is cmd_gui:
+        return args.func(args)
     from core.errors import AnkleScanError
 
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if _main_thread() else None
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            # Nonsense input is refused by validation; stray numpy/OpenCV warnings on stderr
+            # would break the one-line-error contract without telling the user more.
+            warnings.simplefilter("ignore")
+            if getattr(args, "out", None):
+                from core.atomic import guard_output
+
+                guard_output(args.out, _path_arguments(args), what="--out")
+            return args.func(args)
     except AnkleScanError as exc:
-        print(f"anklescan: error: {exc}", file=sys.stderr)
+        _say(f"error: {exc}")
         return EXIT_USER_ERROR
     except (OSError, MemoryError) as exc:
         # Disk full, permissions, a vanished file: the user's environment, not a bug.
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(f"anklescan: error: {getattr(exc, 'strerror', None) or exc}{where}", file=sys.stderr)
+        _say(f"error: {getattr(exc, 'strerror', None) or exc or type(exc).__name__}{where}")
         return EXIT_USER_ERROR
+    except Terminated:
+        _say("terminated; temporary files removed")
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print("anklescan: interrupted", file=sys.stderr)
+        _say("interrupted")
         return 130
     except Exception as exc:  # noqa: BLE001 - last line of defence: one line, never a traceback
         if os.environ.get("ANKLESCAN_DEBUG"):
             raise
-        print(f"anklescan: internal error: {type(exc).__name__}: {exc} (set ANKLESCAN_DEBUG=1 for details)",
-              file=sys.stderr)
+        _say(f"internal error: {type(exc).__name__}: {exc} (set ANKLESCAN_DEBUG=1 for details)")
         return EXIT_INTERNAL
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

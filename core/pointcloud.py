@@ -59,8 +59,13 @@ def _vertex_dtype(cloud: PointCloud) -> np.dtype:
 
 
 def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | None = None) -> None:
-    """Binary little-endian PLY, written to a temporary sibling and renamed into place."""
+    """Binary little-endian PLY, written to a temporary sibling and renamed into place.
+
+    Refuses non-finite coordinates (a broken calibration, never a surface). ``comments``
+    may hold any text (a patient's folder name in any script): it is escaped to ASCII."""
     path = Path(path)
+    if not np.isfinite(cloud.points).all():
+        raise AnkleScanError("the point cloud holds non-finite coordinates; nothing was written")
     dtype = _vertex_dtype(cloud)
     data = np.empty(len(cloud), dtype=dtype)
     data["x"], data["y"], data["z"] = cloud.points[:, 0], cloud.points[:, 1], cloud.points[:, 2]
@@ -74,7 +79,7 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
         data["sigma"] = cloud.sigma
     inverse = {"<f4": "float", "u1": "uchar", "<u2": "ushort", "|u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0", "comment AnkleScan point cloud, world frame, units mm"]
-    header += [f"comment {c}" for c in (comments or [])]
+    header += [f"comment {_header_text(c)}" for c in (comments or [])]
     header.append(f"element vertex {len(cloud)}")
     for name in dtype.names:
         header.append(f"property {inverse[dtype[name].str]} {name}")
@@ -82,6 +87,12 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
     with atomic_file(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         data.tofile(f)
+
+
+def _header_text(text: str) -> str:
+    """One ASCII header line: the PLY header is ASCII and line-based, so non-ASCII text is
+    written as Python-style escapes (\\xfc, \\u3042) and line breaks cannot end the comment."""
+    return str(text).encode("unicode_escape").decode("ascii")
 
 
 def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
