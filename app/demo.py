@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.atomic import make_private, make_private_dir, write_text_atomic
 from core.errors import AnkleScanError
 
 MARKER = ".anklescan-demo"
@@ -149,8 +150,8 @@ def _prepare_out(out: Path) -> None:
         if not (out / MARKER).exists():
             raise AnkleScanError(f"{out} is not empty and not an earlier demo folder; give a new folder")
         shutil.rmtree(out)  # only ever an earlier demo's own output
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("written by anklescan demo; the folder is replaced by the next demo run\n")
+    make_private_dir(out)  # simulated, but a clinic's folder layout: patient data is private
+    write_text_atomic(out / MARKER, "written by anklescan demo; the folder is replaced by the next demo run\n")
 
 
 def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list[tuple[dict, int]]:
@@ -216,6 +217,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                 if res["accuracy"]:
                     acc = res["accuracy"]["subject"]
                     shutil.copyfile(job["cloud"], out / "scan.ply")
+                    make_private(out / "scan.ply")
                     progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                              f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                              f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
@@ -236,7 +238,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
     summary = {"trials": len(results), "complete": complete,
                "max_mark_error_mm": max(mark_err, default=None), "max_angle_error_deg": max(ang_err, default=None),
                "scan_accuracy": next((r["accuracy"] for r in results if r["accuracy"]), None)}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
              f"table angles and mismatch); against the simulator's truth: "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "

@@ -509,8 +509,12 @@ class Store:
     @classmethod
     def _open_read_only(cls, path: Path, data_dir: Path, timeout: float, reason: str) -> "Store":
         conn = None
-        # mode=ro reads a -wal a writer left behind; immutable=1 when the -shm cannot be made
-        for query in ("mode=ro", "mode=ro&immutable=1"):
+        # Without a -wal there is nothing but the file to read: immutable=1 reads it without
+        # creating -wal/-shm next to an archive. A -wal a writer left behind needs mode=ro
+        # (and a -shm) to be read; immutable=1 is the fallback when that cannot be made.
+        wal = Path(f"{path}-wal")
+        has_wal = wal.exists() and wal.stat().st_size > 0
+        for query in (("mode=ro", "mode=ro&immutable=1") if has_wal else ("mode=ro&immutable=1",)):
             try:
                 conn = sqlite3.connect(_uri(path, query), uri=True, timeout=timeout, isolation_level=None)
                 conn.execute("PRAGMA query_only = ON")
@@ -815,6 +819,8 @@ class Store:
 
     def trial_dir(self, trial_id: int, create: bool = False) -> Path:
         """``data_dir/patients/<code>/session-<id>/trial-<id>``: where its files belong."""
+        if create:
+            self._require_writable()
         row = self._one(
             "SELECT p.code, s.id AS sid FROM trials t JOIN sessions s ON s.id = t.session_id"
             " JOIN patients p ON p.id = s.patient_id WHERE t.id = ?", (trial_id,))
@@ -822,7 +828,6 @@ class Store:
             raise AnkleScanError(f"no trial {trial_id}")
         d = self.data_dir / "patients" / row["code"] / f"session-{row['sid']}" / f"trial-{trial_id}"
         if create:
-            self._require_writable()
             try:
                 # patients/<code>/session-<id>/trial-<id>: each level private (0700)
                 for level in (d.parents[2], d.parents[1], d.parents[0], d):
