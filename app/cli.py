@@ -37,7 +37,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error (no usage block) and exit 2, like every other error."""
 
     def error(self, message: str):
-        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+        self.exit(EXIT_USER_ERROR, f"{_one_line(f'{self.prog}: error: {message}')} (see --help)\n")
 
 
 class Terminated(KeyboardInterrupt):
@@ -246,8 +246,12 @@ def _path_arguments(args) -> list[str]:
     return values
 
 
+MAX_MESSAGE_CHARS = 400  # a message quoting a 5000-digit "number" must stay readable
+
+
 def _one_line(text) -> str:
-    return " ".join(str(text).split())
+    line = " ".join(str(text).split())
+    return line if len(line) <= MAX_MESSAGE_CHARS else line[:MAX_MESSAGE_CHARS - 1] + "…"
 
 
 def _say(text: str) -> None:
@@ -268,10 +272,16 @@ def main(argv: list[str] | None = None) -> int:
             # Nonsense input is refused by validation; stray numpy/OpenCV warnings on stderr
             # would break the one-line-error contract without telling the user more.
             warnings.simplefilter("ignore")
+            inputs = _path_arguments(args)
+            if inputs:
+                from core.limits import check_input_file
+
+                for path in inputs:  # no /dev/zero, FIFO or 10 GB "CSV" read whole
+                    check_input_file(path, "input")
             if getattr(args, "out", None):
                 from core.atomic import guard_output
 
-                guard_output(args.out, _path_arguments(args), what="--out")
+                guard_output(args.out, inputs, what="--out")
             return args.func(args)
     except AnkleScanError as exc:
         _say(f"error: {exc}")

@@ -28,10 +28,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.atomic import make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
+from core.atomic import check_replaceable_dir, make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
 from core.errors import CaptureError
 from core.limits import capture_memory_limit, check_image_side, image_size, load_json
-from core.patterns import PatternSet, imwrite_checked, replace_dir
+from core.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
 
 MANIFEST = "manifest.json"
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",
@@ -291,12 +291,13 @@ def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path
     capture_from_images(pattern_set, images)  # size/depth checks before touching disk
     if not folder.parent.is_dir():
         raise CaptureError(f"output folder's parent {folder.parent} does not exist")
+    check_replaceable_dir(folder, lambda f: is_pattern_output(f, allow_capture=True))
     tmp = Path(mkdtemp_beside(folder))  # 0700
     try:
         for name, img in zip(pattern_set.files, images):
             imwrite_checked(tmp / name, img)
         write_json_atomic(tmp / MANIFEST, _manifest_with(pattern_set, metadata))
-        replace_dir(tmp, folder)
+        replace_dir(tmp, folder, lambda f: is_pattern_output(f, allow_capture=True))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

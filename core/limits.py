@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import struct
 import warnings
 from collections.abc import Mapping
@@ -50,6 +51,9 @@ MAX_FOCAL_PX = 1e6
 MAX_PRINCIPAL_POINT_SIZES = 10.0
 MAX_DISTORTION = 1e3
 MAX_TRANSLATION_MM = 1e5
+# Any single input file a command reads whole (CSV of marks or control points, JSON, a
+# device's calibration export): ours are kB to a few MB.
+MAX_INPUT_FILE_BYTES = 256 << 20
 # JSON files we read are a few kB (a manifest) to a few MB (a calibration with reports).
 MAX_JSON_BYTES = 64 << 20
 MAX_JSON_DEPTH = 64
@@ -107,9 +111,31 @@ def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanErr
     return obj
 
 
+def check_input_file(path, what: str, error: type[AnkleScanError] = AnkleScanError,
+                     limit: int = MAX_INPUT_FILE_BYTES) -> None:
+    """An input read whole must be a regular file (not /dev/zero, a FIFO, a socket) of at
+    most ``limit`` bytes; folders pass (their files are checked by whoever reads them)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except OSError as e:
+        raise error(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if stat.S_ISDIR(st.st_mode):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{what} {path} is not a regular file (a device, pipe or socket)")
+    if st.st_size > limit:
+        raise error(f"{what} {path} is {st.st_size / 2**20:.0f} MB, larger than any input of ours "
+                    f"({limit >> 20} MB at most)")
+
+
 def load_json(path, what: str, error: type[AnkleScanError] = AnkleScanError):
     """Read and parse a user's JSON file (``what`` names it in messages, e.g. 'manifest')."""
     path = Path(path)
+    if path.is_dir():
+        raise error(f"{what} {path} is a folder, not a file")
+    check_input_file(path, what, error, MAX_JSON_BYTES)
     try:
         with open(path, "rb") as fh:
             data = fh.read(MAX_JSON_BYTES + 1)

@@ -459,17 +459,18 @@ def imwrite_checked(path: Path, image: np.ndarray) -> None:
     os.chmod(path, PRIVATE_FILE_MODE)  # frames are patient data: private whatever the umask
 
 
-def replace_dir(tmp_dir: Path, out_dir: Path) -> None:
+def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
     """Move a finished temporary directory into place.
 
     An existing ``out_dir`` is renamed aside first and removed only after the new one is
     in place, so at every instant ``out_dir`` is either the old or the new complete set.
-    Only an empty folder or an earlier output of ours (``is_pattern_output``) is replaced:
-    a folder with any other file is refused untouched.
+    Only an empty folder or an earlier output of ours (``is_ours``, default
+    ``is_pattern_output``: a pattern set, never a capture) is replaced: a folder with any
+    other file is refused untouched.
     """
     out_dir = Path(out_dir)
     old = None
-    check_replaceable_dir(out_dir, is_pattern_output)
+    check_replaceable_dir(out_dir, is_ours or is_pattern_output)
     if out_dir.exists():
         old = Path(mkdtemp_beside(out_dir, "old"))
         os.rmdir(old)
@@ -503,14 +504,18 @@ def load_manifest(path) -> PatternSet:
     return PatternSet.from_manifest(load_json(path, "manifest", CaptureError), str(path))
 
 
-def is_pattern_output(folder) -> bool:
-    """True when ``folder`` holds only an earlier pattern set or capture of ours: a valid
-    manifest.json and nothing but its frames (and our own hidden temporaries)."""
+def is_pattern_output(folder, allow_capture: bool = False) -> bool:
+    """True when ``folder`` holds only an earlier pattern set of ours: a valid manifest.json
+    and nothing but its frames. A camera capture (a manifest with a "capture" object) is
+    someone's scan, so it counts only with ``allow_capture``."""
     folder = Path(folder)
     try:
-        pset = load_manifest(folder / "manifest.json")
+        manifest = load_json(folder / "manifest.json", "manifest", CaptureError)
+        pset = PatternSet.from_manifest(manifest, str(folder / "manifest.json"))
         entries = list(folder.iterdir())
     except (CaptureError, OSError):
+        return False
+    if "capture" in manifest and not allow_capture:
         return False
     allowed = set(pset.files) | {"manifest.json"}
     return all(e.name in allowed and e.is_file() and not e.is_symlink() for e in entries)

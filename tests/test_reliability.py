@@ -150,6 +150,10 @@ def test_patterns_never_deletes_files_it_did_not_write(capfd, tmp_path):
     (tmp_path / "p" / "notes.txt").write_text("mine")
     assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "p", "--projector", "64x48")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["docs", "p"]  # no temporaries left
+    # a camera capture is someone's scan: patterns never replace it
+    pset = make_pattern_set("paper", 16, 8)
+    save_capture(tmp_path / "scan", pset, render_all(pset), metadata={"device": "camera"})
+    assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "scan", "--projector", "64x48")
 
 
 def test_sigterm_during_patterns_leaves_no_temporary(tmp_path):
@@ -277,6 +281,18 @@ def test_absurd_calibration_refused_at_load(capfd, work, case, words):
     (work / "bad.json").write_text(text)
     assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "bad.json",
                    "--out", work / "x.ply", words=words)
+
+
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+def test_special_file_inputs_are_refused(capfd, tmp_path, special):
+    if special == "fifo":
+        special = tmp_path / "fifo"
+        os.mkfifo(special)
+    assert_refused(capfd, tmp_path, "angles", special, words=("regular file",))
+    label = "9" * 5000  # a message quoting it stays one readable line
+    (tmp_path / "m.csv").write_text(f"label,x,y,z\n{label},1,2,3\n")
+    line = assert_refused(capfd, tmp_path, "angles", tmp_path / "m.csv", words=("label",))
+    assert len(line) < 500
 
 
 def test_angles_out_of_range_is_an_error(capfd, tmp_path):
