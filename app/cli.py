@@ -50,15 +50,21 @@ def _on_sigterm(signum, frame):
 
 
 class Progress:
-    """Step messages on stderr, so stdout stays machine-readable."""
+    """Step messages on stderr, so stdout stays machine-readable.
 
-    def __init__(self, quiet: bool = False):
-        self.quiet = quiet
+    Only when stderr is a terminal (or with --verbose): a script or log that captures stderr
+    then sees exactly one line when a command fails. ``results=True`` (the demo, whose
+    messages are its findings) sends them to stdout when stderr is not a terminal."""
+
+    def __init__(self, quiet: bool = False, verbose: bool = False, results: bool = False):
+        tty = sys.stderr.isatty()
+        self.quiet = quiet or not (tty or verbose or results)
+        self.stream = sys.stderr if (tty or verbose) else sys.stdout
         self.t0 = time.perf_counter()
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True)
+            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream, flush=True)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -110,7 +116,7 @@ def cmd_reconstruct(args) -> int:
     from core.pointcloud import write_ply
     from core.reconstruct import reconstruct
 
-    progress = Progress(args.quiet)
+    progress = Progress(args.quiet, args.verbose)
     cal = load_calibration(args.calibration)
     progress(f"loading capture {args.capture}")
     capture = load_capture(args.capture)
@@ -173,7 +179,7 @@ def cmd_demo(args) -> int:
 
     from app.demo import DEMO_SCALE
 
-    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
+    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet, args.verbose, results=True),
                     scale=1.0 if args.full_resolution else DEMO_SCALE)
 
 
@@ -181,6 +187,8 @@ def cmd_demo(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="progress messages on stderr even when it is not a terminal")
     sub = p.add_subparsers(dest="command")
 
     g = sub.add_parser("gui", help="the desktop application (default)")
