@@ -286,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 for path in inputs:  # no /dev/zero, FIFO or 10 GB "CSV" read whole
                     check_input_file(path, "input")
-            if getattr(args, "out", None):
+            if getattr(args, "out", None) is not None:
                 from core.atomic import guard_output
 
                 guard_output(args.out, inputs, what="--out")

@@ -147,9 +147,19 @@ def guard_output(out: str | os.PathLike, inputs, *, what: str = "output") -> Pat
     any spelling (relative path, ``..``, symlink, hard link); ``out`` lies inside an input
     folder (it would add to or replace a file of, e.g., a capture); ``out`` is a folder
     that contains an input (replacing it would delete the input); ``out`` is a hard link
-    to a file inside an input folder. ``None`` inputs are skipped. Returns ``Path(out)``.
+    to a file inside an input folder; ``out`` is empty or an existing device, pipe or socket
+    (``/dev/null`` would be replaced by a file). ``None`` inputs are skipped. Returns
+    ``Path(out)``.
     """
+    if not str(out).strip():
+        raise AnkleScanError(f"{what} is empty; give a file or folder name")
     out_path = Path(out)
+    try:
+        mode = out_path.stat().st_mode
+    except OSError:
+        mode = None
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise AnkleScanError(f"{what} {out} is a device, pipe or socket, not a file; choose a file name")
     out_real = os.path.realpath(out_path)
     out_id = _identity(out_path)
     for inp in inputs:

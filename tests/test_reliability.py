@@ -125,6 +125,12 @@ def test_out_that_is_an_input_is_refused(capfd, work, case):
     assert_refused(capfd, work, *args, words=("--out",))
 
 
+@pytest.mark.parametrize("out", ["/dev/null", ""])
+def test_out_that_is_a_device_or_empty_is_refused(capfd, work, out):
+    assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "cal.json", "--out", out)
+    assert os.path.exists("/dev/null") and not os.path.isfile("/dev/null")
+
+
 def test_guard_output_helper(tmp_path):
     inp = tmp_path / "in.json"
     inp.write_text("{}")
