@@ -274,6 +274,10 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     from core.errors import AnkleScanError
 
+    try:  # file names that are not valid UTF-8 print as their bytes, never crash a print
+        sys.stdout.reconfigure(errors="surrogateescape")
+    except (AttributeError, ValueError):
+        pass
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if _main_thread() else None
     try:
         with warnings.catch_warnings():

@@ -186,8 +186,19 @@ def _read_all(paths: list[Path], lookahead: int = 4):
         raise CaptureError(f"{failure}{why}") from None
 
 
+def read_image(path) -> np.ndarray | None:
+    """``cv2.imread(path, IMREAD_UNCHANGED)`` for any path: OpenCV's own path handling crashes
+    (segfault) on names that are not valid UTF-8 (a folder copied from a Latin-1 system),
+    so we read the bytes and let OpenCV decode them."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise CaptureError(f"cannot read image {path}: {e.strerror or e}") from None
+    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+
+
 def _read(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = read_image(path)
     if img is None or img.size == 0:
         raise CaptureError(f"unreadable image {path}: damaged or not an image")
     check_image_side(img.shape[1], img.shape[0], f"frame {path.name}", CaptureError)

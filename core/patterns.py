@@ -453,10 +453,18 @@ def _unlink_quiet(p) -> None:
 
 
 def imwrite_checked(path: Path, image: np.ndarray) -> None:
-    ok = cv2.imwrite(str(path), image)
+    # encode + write ourselves: cv2.imwrite crashes on paths that are not valid UTF-8, and
+    # the file is created private (frames are patient data) whatever the umask
+    try:
+        ok, data = cv2.imencode(Path(path).suffix or ".png", image)
+    except cv2.error:
+        ok = False
     if not ok:
-        raise CaptureError(f"could not write image {path}")
-    os.chmod(path, PRIVATE_FILE_MODE)  # frames are patient data: private whatever the umask
+        raise CaptureError(f"could not encode image {path}")
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_FILE_MODE)
+    with os.fdopen(fd, "wb") as fh:
+        os.fchmod(fh.fileno(), PRIVATE_FILE_MODE)
+        fh.write(data.tobytes())
 
 
 def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:

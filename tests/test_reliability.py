@@ -194,6 +194,10 @@ def test_non_ascii_capture_folder_and_long_output_name(capfd, work):
     assert len(read_ply(out)) > 1000
     assert stat.S_IMODE(out.stat().st_mode) == 0o600
     assert not [p for p in work.iterdir() if p.name.startswith(".")]
+    latin1 = Path(os.fsdecode(bytes(work / "capture")[:-len(b"capture")] + b"M\xfcller"))  # not UTF-8
+    shutil.copytree(work / "capture", latin1)
+    code, lines = cli(capfd, "reconstruct", latin1, "--calibration", work / "cal.json", "--out", work / "l.ply")
+    assert code == 0 and len(read_ply(work / "l.ply")) > 1000, lines
     prefix, suffix = temp_affixes("é" * 200)
     assert len((prefix + "x" * 8 + suffix).encode()) <= 255
 
