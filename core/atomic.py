@@ -85,6 +85,23 @@ def make_private_dir(path: str | os.PathLike, *, tighten: bool = True) -> Path:
     return path
 
 
+def make_tree_private(folder: str | os.PathLike) -> int:
+    """Make every folder (0700) and file (0600) under ``folder`` private, e.g. patient data
+    written by an older version under a 022 umask; symlinks and entries we may not change
+    are skipped. Returns the number of entries changed."""
+    changed = 0
+    for root, dirs, files in os.walk(folder):
+        for name, mode in [(root, PRIVATE_DIR_MODE)] + [(os.path.join(root, f), PRIVATE_FILE_MODE) for f in files]:
+            try:
+                st = os.lstat(name)
+                if not stat.S_ISLNK(st.st_mode) and stat.S_IMODE(st.st_mode) != mode:
+                    os.chmod(name, mode)
+                    changed += 1
+            except OSError:
+                pass
+    return changed
+
+
 # --------------------------------------------------------------------------- writing
 @contextmanager
 def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None):

@@ -28,6 +28,7 @@ import math
 import os
 import re
 import sqlite3
+import stat
 import urllib.parse
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -37,7 +38,7 @@ from pathlib import Path
 import platformdirs
 
 from core.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
-from core.atomic import PRIVATE_FILE_MODE, make_private, make_private_dir
+from core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from core.errors import AnkleScanError
 
 DB_FILENAME = "anklescan.sqlite"
@@ -501,6 +502,9 @@ class Store:
             store._migrate()
             store._enable_wal()
             store._claim()
+            patients = data_dir / "patients"
+            if patients.is_dir() and stat.S_IMODE(patients.stat().st_mode) != PRIVATE_DIR_MODE:
+                make_tree_private(patients)  # written by a version before files were private
         except BaseException:
             conn.close()
             raise

@@ -380,6 +380,20 @@ def test_patient_data_is_private_whatever_the_umask(tmp_path):
         os.umask(old)
 
 
+def test_older_data_folders_are_made_private_on_open(tmp_path):
+    with Store.open(data_dir=tmp_path) as s:
+        s.add_patient("P1")
+    old = tmp_path / "patients" / "P1" / "session-1" / "trial-1" / "capture"
+    old.mkdir(parents=True)
+    (old / "00_white.png").write_bytes(b"x")
+    for p in [tmp_path / "patients", *(tmp_path / "patients").rglob("*")]:
+        os.chmod(p, 0o755 if p.is_dir() else 0o644)  # as an older version left them
+    os.chmod(tmp_path / "anklescan.sqlite", 0o644)
+    Store.open(data_dir=tmp_path).close()
+    for p in [tmp_path / "patients", *(tmp_path / "patients").rglob("*"), tmp_path / "anklescan.sqlite"]:
+        assert _mode(p) == (0o700 if p.is_dir() else 0o600), p
+
+
 # ------------------------------------------------------------------ foreign databases
 def _foreign(path: Path, kind: str) -> None:
     c = sqlite3.connect(path)
