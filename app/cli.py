@@ -274,6 +274,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     from core.errors import AnkleScanError
 
+    # OpenCV's own log lines ("[ WARN:0@...]") would add to the one error line; read when
+    # cv2 is first imported, which the commands do lazily after this point
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
     try:  # file names that are not valid UTF-8 print as their bytes, never crash a print
         sys.stdout.reconfigure(errors="surrogateescape")
     except (AttributeError, ValueError):

@@ -38,8 +38,9 @@ IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", 
               ".webp", ".jp2", ".exr", ".hdr"}
 MAX_VALUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 # A capture is refused as unlit when fewer than this fraction of its pixels are brighter in
-# the white frame than in the black one by LIT_CONTRAST of full scale: the projector was off,
-# the lens capped, or the frames are not what the manifest says.
+# the white frame than in the black one by LIT_CONTRAST of the brightest recorded level (the
+# projector was off, the lens capped), and as swapped when ten times more pixels are darker
+# in the white frame than brighter (the frames are not what the manifest says).
 LIT_MIN_FRACTION = 1e-3
 LIT_CONTRAST = 0.02
 
@@ -212,7 +213,11 @@ def check_lit(capture: "Capture") -> None:
     be decoded from it, and an empty result would look like a successful scan."""
     white = capture.frame(capture.pattern_set.files[capture.pattern_set.index("white")])
     black = capture.frame(capture.pattern_set.files[capture.pattern_set.index("black")])
-    thr = LIT_CONTRAST * capture.max_value
+    # contrast relative to the brightest pixels actually recorded, not to the integer type's
+    # range: a 12-bit camera stored in 16-bit PNGs never goes past 4095
+    brightest = np.maximum(white, black).ravel()
+    peak = float(np.partition(brightest, int(0.999 * (brightest.size - 1)))[int(0.999 * (brightest.size - 1))])
+    thr = max(1.0, LIT_CONTRAST * peak)
     diff = white.astype(np.int32) - black.astype(np.int32)
     lit, dark = int(np.count_nonzero(diff > thr)), int(np.count_nonzero(diff < -thr))
     if dark > 10 * lit and dark >= LIT_MIN_FRACTION * diff.size:

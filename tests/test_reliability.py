@@ -470,3 +470,15 @@ def test_damaged_database_is_one_line(tmp_path):
         Store.open(path)
     assert "\n" not in str(exc.value)
     assert snapshot(tmp_path) == before
+
+
+def test_a_dim_12_bit_capture_in_16_bit_files_is_not_called_unlit(tmp_path):
+    from core.capture import check_lit, capture_from_images
+
+    pset = make_pattern_set("paper", 64, 48)
+    frames = [(img.astype(np.uint16) * 4 + 40) for img in render_all(pset)]  # 12-bit range, dim
+    check_lit(capture_from_images(pset, frames))
+    with pytest.raises(AnkleScanError, match="swapped"):
+        check_lit(capture_from_images(pset, [frames[1], frames[0], *frames[2:]]))
+    with pytest.raises(AnkleScanError, match="no brighter"):
+        check_lit(capture_from_images(pset, [np.full_like(f, 40) for f in frames]))
