@@ -28,6 +28,8 @@ from pathlib import Path
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
 EXIT_TERMINATED = 128 + signal.SIGTERM
+# Signals that end a command the way Ctrl-C does: temporaries removed, exit 128 + signal.
+_CLEAN_EXIT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
 # Largest projector / camera side accepted on the command line (same as core.limits, which
 # is not imported here so that --help stays instant).
 MAX_SIDE = 16384
@@ -41,12 +43,18 @@ class _Parser(argparse.ArgumentParser):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread so that every ``except BaseException`` clean-up
-    (temporary files and folders) runs exactly as for Ctrl-C."""
+    """SIGTERM (or SIGHUP), raised in the main thread so that every ``except BaseException``
+    clean-up (temporary files and folders) runs exactly as for Ctrl-C."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(signum)
+        self.signum = signum
 
 
 def _on_sigterm(signum, frame):
-    raise Terminated()
+    for s in _CLEAN_EXIT_SIGNALS:  # a second signal must not interrupt the clean-up
+        signal.signal(s, signal.SIG_IGN)
+    raise Terminated(signum)
 
 
 class Progress:
@@ -281,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.reconfigure(errors="surrogateescape")
     except (AttributeError, ValueError):
         pass
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if _main_thread() else None
+    previous = {s: signal.signal(s, _on_sigterm) for s in _CLEAN_EXIT_SIGNALS} if _main_thread() else {}
     try:
         with warnings.catch_warnings():
             # Nonsense input is refused by validation; stray numpy/OpenCV warnings on stderr
@@ -306,9 +314,9 @@ def main(argv: list[str] | None = None) -> int:
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
         _say(f"error: {getattr(exc, 'strerror', None) or exc or type(exc).__name__}{where}")
         return EXIT_USER_ERROR
-    except Terminated:
-        _say("terminated; temporary files removed")
-        return EXIT_TERMINATED
+    except Terminated as exc:
+        _say(f"terminated by {signal.Signals(exc.signum).name}; temporary files removed")
+        return 128 + exc.signum
     except KeyboardInterrupt:
         _say("interrupted")
         return 130
@@ -318,8 +326,8 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"internal error: {type(exc).__name__}: {exc} (set ANKLESCAN_DEBUG=1 for details)")
         return EXIT_INTERNAL
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
 
 def _main_thread() -> bool:

@@ -483,7 +483,12 @@ def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
         old = Path(mkdtemp_beside(out_dir, "old"))
         os.rmdir(old)
         os.replace(out_dir, old)
-    os.replace(tmp_dir, out_dir)
+    try:
+        os.replace(tmp_dir, out_dir)
+    except BaseException:
+        if old is not None:  # put the earlier output back: never leave neither
+            os.replace(old, out_dir)
+        raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 
