@@ -482,3 +482,18 @@ def test_a_dim_12_bit_capture_in_16_bit_files_is_not_called_unlit(tmp_path):
         check_lit(capture_from_images(pset, [frames[1], frames[0], *frames[2:]]))
     with pytest.raises(AnkleScanError, match="no brighter"):
         check_lit(capture_from_images(pset, [np.full_like(f, 40) for f in frames]))
+
+
+@pytest.mark.parametrize("header", [
+    "element vertex 999999999999\nproperty float x\nproperty float y\nproperty float z\n",
+    "element vertex 10\nproperty float x\nproperty float x\nproperty float z\n",
+    "element vertex many\nproperty float x\n",
+    "element vertex 3\nproperty\n",
+])
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_damaged_ply_is_one_clear_error(tmp_path, header, fmt):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(f"ply\nformat {fmt} 1.0\n{header}end_header\n".encode() + b"1 2 3\n" * 2)
+    with pytest.raises(AnkleScanError) as exc:
+        read_ply(path)
+    assert "\n" not in str(exc.value)
