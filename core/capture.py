@@ -296,8 +296,22 @@ def _as_list(pattern_set: PatternSet, images) -> list:
 def _manifest_with(pattern_set: PatternSet, metadata: dict | None) -> dict:
     m = pattern_set.to_manifest()
     if metadata:
-        m["capture"] = metadata
+        m["capture"] = _json_safe(metadata)
     return m
+
+
+def _json_safe(obj):
+    """Metadata as strict JSON: a device reporting NaN/inf (an unknown gain, say) becomes
+    null, numpy scalars plain numbers; otherwise the manifest could not be read back."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path:

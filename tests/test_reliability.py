@@ -497,3 +497,14 @@ def test_damaged_ply_is_one_clear_error(tmp_path, header, fmt):
     with pytest.raises(AnkleScanError) as exc:
         read_ply(path)
     assert "\n" not in str(exc.value)
+
+
+def test_capture_metadata_with_nan_still_reads_back(tmp_path):
+    from core.capture import load_capture
+
+    pset = make_pattern_set("paper", 16, 8)
+    with CaptureWriter(tmp_path / "cap", pset, {"gain": float("nan"), "exposure": np.float32(2.5)}) as w:
+        for frame, img in zip(pset.frames, render_all(pset)):
+            w.add(frame.file, img)
+    meta = load_capture(tmp_path / "cap").metadata
+    assert meta["gain"] is None and meta["exposure"] == 2.5
