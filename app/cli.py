@@ -172,7 +172,6 @@ def cmd_measure(args) -> int:
 
 def cmd_angles(args) -> int:
     from core.angles import compute_angles, format_angles, read_marks_csv
-
     from core.limits import require_finite
 
     marks = read_marks_csv(args.marks)

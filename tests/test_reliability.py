@@ -330,6 +330,12 @@ def test_argument_errors_are_one_line(capfd, tmp_path, args):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_cli_size_limit_is_the_documented_constant():
+    from app.cli import MAX_SIDE
+
+    assert MAX_SIDE == MAX_IMAGE_SIDE
+
+
 def test_truncated_png_is_one_line_without_libpng_noise(work):
     frame = _frames(work)[3]
     frame.write_bytes(frame.read_bytes()[:300])
