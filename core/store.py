@@ -563,10 +563,7 @@ class Store:
             # FULL: in WAL mode NORMAL can lose the last commits on power loss; clinical
             # records are small, so the extra fsync is cheap.
             c.execute("PRAGMA synchronous = FULL")
-            bad = c.execute("PRAGMA quick_check(1)").fetchone()[0]
-            if bad != "ok":
-                raise AnkleScanError(f"database {self.path} is damaged ({' '.join(str(bad).split())}); "
-                                     "it was left untouched, restore it from a backup")
+            # integrity was checked read-only by _inspect before this connection existed
 
     def _migrate(self, target: int = SCHEMA_VERSION) -> None:
         version = self.schema_version()
