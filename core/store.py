@@ -304,6 +304,11 @@ def _errname(e: sqlite3.Error) -> str:
     return getattr(e, "sqlite_errorname", "") or ""
 
 
+class ReadOnlyDatabaseError(AnkleScanError):
+    """SQLite refused to write, or to open for writing (a read-only mount our checks could
+    not see, say): an existing database is then opened for reading instead."""
+
+
 def _translate(e: sqlite3.Error, path: Path, timeout: float) -> AnkleScanError:
     """One clear line for the sqlite failures a user can actually run into."""
     name, msg = _errname(e), " ".join(str(e).split())
@@ -319,8 +324,10 @@ def _translate(e: sqlite3.Error, path: Path, timeout: float) -> AnkleScanError:
         return AnkleScanError(f"database {path} is damaged ({msg}); it was left untouched, "
                               "restore it from a backup")
     if name.startswith("SQLITE_READONLY"):
-        return AnkleScanError(f"database {path} is read-only; cannot save changes")
-    if name.startswith(("SQLITE_IOERR", "SQLITE_CANTOPEN")):
+        return ReadOnlyDatabaseError(f"database {path} is read-only; cannot save changes")
+    if name.startswith("SQLITE_CANTOPEN"):
+        return ReadOnlyDatabaseError(f"cannot access database {path}: {msg}")
+    if name.startswith("SQLITE_IOERR"):
         return AnkleScanError(f"cannot access database {path}: {msg}")
     if isinstance(e, sqlite3.IntegrityError):
         return AnkleScanError(f"database rejected the change: {msg}")
@@ -505,6 +512,11 @@ class Store:
             patients = data_dir / "patients"
             if patients.is_dir() and stat.S_IMODE(patients.stat().st_mode) != PRIVATE_DIR_MODE:
                 make_tree_private(patients)  # written by a version before files were private
+        except ReadOnlyDatabaseError:
+            conn.close()
+            if not exists:
+                raise
+            return cls._open_read_only(path, data_dir, timeout, "the system refused to open it for writing")
         except BaseException:
             conn.close()
             raise

@@ -514,3 +514,34 @@ def test_capture_metadata_with_nan_still_reads_back(tmp_path):
             w.add(frame.file, img)
     meta = load_capture(tmp_path / "cap").metadata
     assert meta["gain"] is None and meta["exposure"] == 2.5
+
+
+@pytest.fixture
+def read_only_mount(tmp_path):
+    """A tmpfs remounted read-only (needs root; skipped elsewhere)."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mnt)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        def make_read_only():
+            subprocess.run(["mount", "-o", "remount,ro", str(mnt)], check=True)
+        yield mnt, make_read_only
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+@pytest.mark.parametrize("detected", [True, False])
+def test_database_on_a_read_only_mount_opens_for_reading(read_only_mount, monkeypatch, detected):
+    mnt, make_read_only = read_only_mount
+    with Store.open(mnt / "anklescan.sqlite") as s:
+        s.add_patient("P1")
+    make_read_only()
+    if not detected:  # a mount the statvfs flag does not reveal: SQLite's refusal decides
+        monkeypatch.setattr("core.store._read_only_reason", lambda path, exists: "")
+    with Store.open(mnt / "anklescan.sqlite") as s:
+        assert s.read_only and s.read_only_reason
+        assert [p.code for p in s.list_patients()] == ["P1"]
+        with pytest.raises(AnkleScanError, match="read-only"):
+            s.add_patient("P2")
