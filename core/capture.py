@@ -134,7 +134,7 @@ def load_capture(folder) -> Capture:
 
     paths = [folder / f for f in pset.files]
     _check_sizes(paths)
-    stack, color = _stack(_read_all(paths), paths, pset.index("white"))
+    stack, color = _load_frames(paths, pset.index("white"))
     capture = Capture(folder, pset, stack, color, metadata)
     check_lit(capture)
     return capture
@@ -164,27 +164,43 @@ def _check_sizes(paths: list[Path]) -> None:
                            f"more than this computer can decode (limit {limit / 2**30:.1f} GB)")
 
 
-def _read_all(paths: list[Path], lookahead: int = 4):
+def _load_frames(paths: list[Path], white_idx: int):
+    """(stack, colour) from the frame files. Image libraries print on stderr themselves
+    (libpng, libjpeg, libtiff, not through OpenCV's log level): that text is held back while
+    decoding, and the last line joins our one-line error when a frame cannot be read."""
+    with _decoder_messages() as messages:
+        frames = _read_ahead(paths)
+        try:
+            return _stack(frames, paths, white_idx)
+        except _UnreadableFrame as e:
+            failure = e
+        finally:
+            frames.close()  # stop the readers before stderr is restored
+    why = f" ({messages[-1].strip()})" if messages else ""
+    raise CaptureError(f"{failure}{why}") from None
+
+
+class _UnreadableFrame(CaptureError):
+    pass
+
+
+def _read_ahead(paths: list[Path], lookahead: int = 4):
     """Decoded frames in order, at most ``lookahead`` ahead of the consumer (so memory is
     the stack plus a few frames); PNG/TIFF decoding releases the GIL, so two threads
-    roughly halve load time. A decoder's own stderr message joins our one-line error."""
-    failure = None
-    with _decoder_messages() as messages:
+    roughly halve load time."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        todo = iter(paths)
+        pending = deque(pool.submit(_read, p) for p in itertools.islice(todo, lookahead))
         try:
-            with ThreadPoolExecutor(max_workers=2) as pool:
-                todo = iter(paths)
-                pending = deque(pool.submit(_read, p) for p in itertools.islice(todo, lookahead))
-                while pending:
-                    img = pending.popleft().result()
-                    nxt = next(todo, None)
-                    if nxt is not None:
-                        pending.append(pool.submit(_read, nxt))
-                    yield img
-        except CaptureError as e:
-            failure = e
-    if failure is not None:
-        why = f" ({messages[-1].strip()})" if messages else ""
-        raise CaptureError(f"{failure}{why}") from None
+            while pending:
+                img = pending.popleft().result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append(pool.submit(_read, nxt))
+                yield img
+        finally:
+            for f in pending:
+                f.cancel()
 
 
 def read_image(path) -> np.ndarray | None:
@@ -201,7 +217,7 @@ def read_image(path) -> np.ndarray | None:
 def _read(path: Path) -> np.ndarray:
     img = read_image(path)
     if img is None or img.size == 0:
-        raise CaptureError(f"unreadable image {path}: damaged or not an image")
+        raise _UnreadableFrame(f"unreadable image {path}: damaged or not an image")
     check_image_side(img.shape[1], img.shape[0], f"frame {path.name}", CaptureError)
     if img.dtype not in MAX_VALUE:
         raise CaptureError(f"{path}: unsupported pixel type {img.dtype} (need 8- or 16-bit)")

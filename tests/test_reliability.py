@@ -348,6 +348,29 @@ def test_truncated_png_is_one_line_without_libpng_noise(work):
     assert not (work / "x.ply").exists()
 
 
+@pytest.mark.parametrize("damage", ["16-bit", "corrupt-idat", "text", "empty", "float", "jpeg-truncated"])
+def test_damaged_frames_are_one_line(capfd, work, damage):
+    frame = _frames(work)[3]
+    img = cv2.imread(str(frame), cv2.IMREAD_UNCHANGED)
+    if damage == "16-bit":
+        cv2.imwrite(str(frame), img.astype(np.uint16) * 256)
+    elif damage == "corrupt-idat":
+        data = bytearray(frame.read_bytes())
+        data[60] ^= 0xFF
+        frame.write_bytes(bytes(data))
+    elif damage == "text":
+        frame.write_text("not an image")
+    elif damage == "empty":
+        frame.write_bytes(b"")
+    elif damage == "float":
+        frame.write_bytes(cv2.imencode(".tiff", img.astype(np.float32))[1].tobytes())
+    elif damage == "jpeg-truncated":
+        data = cv2.imencode(".jpg", img)[1].tobytes()
+        frame.write_bytes(data[:len(data) // 2])
+    assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "cal.json",
+                   "--out", work / "x.ply", words=(frame.name,))
+
+
 def test_json_loader_limits(tmp_path):
     ok = tmp_path / "ok.json"
     ok.write_text(json.dumps({"a": [1, 2.5, {"b": None}], "big": 10 ** 20}))
