@@ -103,22 +103,33 @@ def make_tree_private(folder: str | os.PathLike) -> int:
 
 
 # --------------------------------------------------------------------------- writing
+class WriteError(OSError, AnkleScanError):
+    """An output could not be written (full disk, no permission, a folder in the way): one
+    line naming the target, never our temporary. Still an OSError for callers that
+    catch those."""
+
+
 @contextmanager
 def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None):
     """A private (0600) temporary sibling renamed over ``path`` once fully written."""
     path = Path(path)
-    if not path.parent.is_dir():
-        make_private_dir(path.parent, tighten=False)
-    prefix, suffix = temp_affixes(path.name)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=suffix)  # mode 0600
+    try:
+        if not path.parent.is_dir():
+            make_private_dir(path.parent, tighten=False)
+        prefix, suffix = temp_affixes(path.name)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=suffix)  # mode 0600
+    except OSError as e:
+        raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
     try:
         with os.fdopen(fd, mode, encoding=encoding) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
+            raise WriteError(f"cannot write {path}: {exc.strerror or exc}") from None
         raise
 
 
