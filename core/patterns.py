@@ -461,7 +461,7 @@ def imwrite_checked(path: Path, image: np.ndarray) -> None:
         ok = False
     if not ok:
         raise CaptureError(f"could not encode image {path}")
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_FILE_MODE)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), PRIVATE_FILE_MODE)
     with os.fdopen(fd, "wb") as fh:
         os.fchmod(fh.fileno(), PRIVATE_FILE_MODE)
         fh.write(data.tobytes())
