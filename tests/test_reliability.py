@@ -305,6 +305,15 @@ def test_special_file_inputs_are_refused(capfd, tmp_path, special):
     assert len(line) < 500
 
 
+def test_control_points_out_of_range_are_refused(capfd, tmp_path):
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-1, 1, (40, 3)) * 1e150
+    (tmp_path / "cam.csv").write_text("X,Y,Z,u,v\n" + "".join(f"{a},{b},{c},10,20\n" for a, b, c in xyz))
+    (tmp_path / "proj.csv").write_text("X,Y,Z,u\n" + "".join(f"{a},{b},{c},10\n" for a, b, c in xyz))
+    assert_refused(capfd, tmp_path, "calibrate", "points", "--camera", tmp_path / "cam.csv",
+                   "--projector", tmp_path / "proj.csv", "--out", tmp_path / "c.json", words=("beyond",))
+
+
 def test_angles_out_of_range_is_an_error(capfd, tmp_path):
     rows = "".join(f"{i},{1e200 * (i % 3 + 1)},{1e200 * (i % 2)},{1e199 * i}\n" for i in range(1, 8))
     (tmp_path / "marks.csv").write_text("label,x,y,z\n" + rows)
