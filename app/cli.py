@@ -308,6 +308,14 @@ def main(argv: list[str] | None = None) -> int:
     except AnkleScanError as exc:
         _say(f"error: {exc}")
         return EXIT_USER_ERROR
+    except BrokenPipeError:
+        # stdout closed early (``| head``): end quietly like other tools, and keep Python
+        # from printing a second error when it flushes stdout at exit
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 128 + signal.SIGPIPE
     except (OSError, MemoryError) as exc:
         # Disk full, permissions, a vanished file: the user's environment, not a bug.
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
