@@ -57,17 +57,16 @@ def _on_sigterm(signum, frame):
     raise Terminated(signum)
 
 
+_VERBOSE = False  # set by main from -v
+
+
 class Progress:
-    """Step messages on stderr, so stdout stays machine-readable.
+    """Step messages: on stderr when it is a terminal (or with -v), else on stdout, so that a
+    script or log capturing stderr sees exactly one line when a command fails."""
 
-    Only when stderr is a terminal (or with --verbose): a script or log that captures stderr
-    then sees exactly one line when a command fails. ``results=True`` (the demo, whose
-    messages are its findings) sends them to stdout when stderr is not a terminal."""
-
-    def __init__(self, quiet: bool = False, verbose: bool = False, results: bool = False):
-        tty = sys.stderr.isatty()
-        self.quiet = quiet or not (tty or verbose or results)
-        self.stream = sys.stderr if (tty or verbose) else sys.stdout
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self.stream = sys.stderr if (_VERBOSE or sys.stderr.isatty()) else sys.stdout
         self.t0 = time.perf_counter()
 
     def __call__(self, message: str) -> None:
@@ -124,7 +123,7 @@ def cmd_reconstruct(args) -> int:
     from core.pointcloud import write_ply
     from core.reconstruct import reconstruct
 
-    progress = Progress(args.quiet, args.verbose)
+    progress = Progress(args.quiet)
     cal = load_calibration(args.calibration)
     progress(f"loading capture {args.capture}")
     capture = load_capture(args.capture)
@@ -186,7 +185,7 @@ def cmd_demo(args) -> int:
 
     from app.demo import DEMO_SCALE
 
-    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet, args.verbose, results=True),
+    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
                     scale=1.0 if args.full_resolution else DEMO_SCALE)
 
 
@@ -195,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.add_argument("-v", "--verbose", action="store_true",
-                   help="progress messages on stderr even when it is not a terminal")
+                   help="progress messages on stderr even when it is not a terminal (else stdout)")
     sub = p.add_subparsers(dest="command")
 
     g = sub.add_parser("gui", help="the desktop application (default)")
@@ -281,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     from core.errors import AnkleScanError
 
+    global _VERBOSE
+    _VERBOSE = bool(getattr(args, "verbose", False))
     # OpenCV's own log lines ("[ WARN:0@...]") would add to the one error line; read when
     # cv2 is first imported, which the commands do lazily after this point
     os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
