@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.atomic import make_private, make_private_dir, write_text_atomic
+from core.atomic import make_private_dir, make_tree_private, write_text_atomic
 from core.errors import AnkleScanError
 
 MARKER = ".anklescan-demo"
@@ -217,7 +217,6 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                 if res["accuracy"]:
                     acc = res["accuracy"]["subject"]
                     shutil.copyfile(job["cloud"], out / "scan.ply")
-                    make_private(out / "scan.ply")
                     progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                              f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                              f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
@@ -226,6 +225,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             patient = store.get_patient(session.patient_id).code
             write_session_report(store, [session.id], out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
+    make_tree_private(out)  # a clinic's layout, so patient-data rules: files 0600, folders 0700
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per session; {time.perf_counter() - t_start:.0f} s")
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
@@ -238,7 +238,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
     summary = {"trials": len(results), "complete": complete,
                "max_mark_error_mm": max(mark_err, default=None), "max_angle_error_deg": max(ang_err, default=None),
                "scan_accuracy": next((r["accuracy"] for r in results if r["accuracy"]), None)}
-    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
              f"table angles and mismatch); against the simulator's truth: "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "
