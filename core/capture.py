@@ -237,10 +237,10 @@ def check_lit(capture: "Capture") -> None:
     diff = white.astype(np.int32) - black.astype(np.int32)
     lit, dark = int(np.count_nonzero(diff > thr)), int(np.count_nonzero(diff < -thr))
     if dark > 10 * lit and dark >= LIT_MIN_FRACTION * diff.size:
-        raise CaptureError(f"capture {capture.folder}: the black frame is brighter than the white one "
+        raise CaptureError(f"capture {capture.folder or '(in memory)'}: the black frame is brighter than the white one "
                            "(frames swapped or mislabelled in the manifest)")
     if lit < LIT_MIN_FRACTION * diff.size:
-        raise CaptureError(f"capture {capture.folder}: the white frame is no brighter than the black one "
+        raise CaptureError(f"capture {capture.folder or '(in memory)'}: the white frame is no brighter than the black one "
                            "anywhere: was the projector on, the lens uncovered, the exposure right?")
 
 

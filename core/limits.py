@@ -11,6 +11,12 @@ refuse a real input; each is a documented constant here so the other modules sha
 - ``image_size``: an image file's width and height from its header, without decoding it.
 - ``check_image_side``: a width/height against ``MAX_IMAGE_SIDE``.
 - ``require_finite``: a result (dict/list/array of numbers) must hold only finite numbers.
+- ``check_input_file``: an input read whole is a regular file of sane size (the CLI applies
+  it to every path argument; not /dev/zero, a FIFO or a 10 GB "CSV").
+
+Related helpers elsewhere: ``core.atomic.guard_output`` (an output never replaces an input),
+``core.capture.read_image`` (decode any path, including names that are not valid UTF-8,
+on which ``cv2.imread`` crashes).
 """
 
 from __future__ import annotations
