@@ -224,7 +224,9 @@ def check_replaceable_dir(folder: str | os.PathLike, is_ours) -> None:
     folder = Path(folder)
     if not folder.exists() and not folder.is_symlink():
         return
-    if folder.is_symlink() or not folder.is_dir():
+    if folder.is_symlink():
+        raise AnkleScanError(f"output {folder} is a symbolic link; give the real folder or a new one")
+    if not folder.is_dir():
         raise AnkleScanError(f"output {folder} exists and is not a folder; choose a new folder")
     try:
         empty = not any(folder.iterdir())
