@@ -175,6 +175,10 @@ def cmd_angles(args) -> int:
 
     marks = read_marks_csv(args.marks)
     angles = compute_angles(marks, sigma_mm=args.sigma)
+    if not angles:  # SPEC: never an empty result with exit 0
+        from core.errors import AnkleScanError
+
+        raise AnkleScanError(f"{args.marks}: no angle can be computed; {angles.missing_message()}")
     require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
     print(format_angles(angles))
     return 0

@@ -314,6 +314,11 @@ def test_control_points_out_of_range_are_refused(capfd, tmp_path):
                    "--projector", tmp_path / "proj.csv", "--out", tmp_path / "c.json", words=("beyond",))
 
 
+def test_angles_with_no_computable_angle_is_an_error(capfd, tmp_path):
+    (tmp_path / "marks.csv").write_text("label,x,y,z\n1,0,0,0\n")
+    assert_refused(capfd, tmp_path, "angles", tmp_path / "marks.csv", words=("no angle",))
+
+
 def test_angles_out_of_range_is_an_error(capfd, tmp_path):
     rows = "".join(f"{i},{1e200 * (i % 3 + 1)},{1e200 * (i % 2)},{1e199 * i}\n" for i in range(1, 8))
     (tmp_path / "marks.csv").write_text("label,x,y,z\n" + rows)
