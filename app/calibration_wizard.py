@@ -508,7 +508,8 @@ class CalibrationWizard(QDialog):
         while folder.exists():
             folder = folder.with_name(f"{purpose}_{stamp}_{n}")
             n += 1
-        folder.parent.mkdir(parents=True, exist_ok=True)
+        from core.atomic import make_private_dir
+        make_private_dir(folder.parent, tighten=False)  # 0700: the data folder is private
         if not self.projector.isVisible():
             self._show_on_projector("white")
         self.scan_progress.setRange(0, len(pset.frames))

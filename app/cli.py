@@ -2,6 +2,15 @@
 
 Every command turns a user's mistake into one line on stderr and exit code 2, and never leaves
 a partly written output file (outputs are written to a temporary sibling and renamed).
+
+Guards every command gets from ``main`` (so a new sub-command is covered without doing
+anything): argument errors are one line and exit 2 (``_Parser.error``); ``--out`` may not
+name, resolve to, sit inside or contain any existing path given as another argument
+(``core.atomic.guard_output`` over every path-like argument, before the command runs);
+SIGTERM takes the same clean-up path as Ctrl-C (temporaries removed), exit 143; every error
+message is folded onto one line, and library warnings (numpy, OpenCV) never reach stderr.
+A command with inputs that are not plain arguments (a folder named in a file) calls
+``guard_output(out, inputs)`` itself.
 Imports are made inside the commands so that ``anklescan gui`` starts without loading the
 reconstruction stack and ``--help`` is instant.
 """
@@ -10,35 +19,85 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import time
+import warnings
 from pathlib import Path
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
+EXIT_TERMINATED = 128 + signal.SIGTERM
+# Signals that end a command the way Ctrl-C does: temporaries removed, exit 128 + signal.
+_CLEAN_EXIT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
+# Largest projector / camera side accepted on the command line (same as core.limits, which
+# is not imported here so that --help stays instant).
+MAX_SIDE = 16384
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (no usage block) and exit 2, like every other error."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USER_ERROR, f"{_one_line(f'{self.prog}: error: {message}')} (see --help)\n")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (or SIGHUP), raised in the main thread so that every ``except BaseException``
+    clean-up (temporary files and folders) runs exactly as for Ctrl-C."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_sigterm(signum, frame):
+    for s in _CLEAN_EXIT_SIGNALS:  # a second signal must not interrupt the clean-up
+        signal.signal(s, signal.SIG_IGN)
+    raise Terminated(signum)
+
+
+_VERBOSE = False  # set by main from -v
 
 
 class Progress:
-    """Step messages on stderr, so stdout stays machine-readable."""
+    """Step messages: on stderr when it is a terminal (or with -v), else on stdout, so that a
+    script or log capturing stderr sees exactly one line when a command fails."""
 
     def __init__(self, quiet: bool = False):
         self.quiet = quiet
+        self.stream = sys.stderr if (_VERBOSE or sys.stderr.isatty()) else sys.stdout
         self.t0 = time.perf_counter()
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True)
+            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream, flush=True)
 
 
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = text.lower().split("x")
+        if len(w) > 6 or len(h) > 6:
+            raise ValueError
         w, h = int(w), int(h)
         if w <= 0 or h <= 0:
             raise ValueError
-        return w, h
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, not {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, not {text[:40]!r}") from None
+    if w > MAX_SIDE or h > MAX_SIDE:
+        raise argparse.ArgumentTypeError(f"{w}x{h} is beyond any real camera or projector "
+                                         f"(at most {MAX_SIDE} px a side)")
+    return w, h
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, not {text[:40]!r}") from None
+    if not 0 < v < 1e6:  # math.isfinite without importing math: nan fails both comparisons
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, not {text[:40]!r}")
+    return v
 
 
 # ---------------------------------------------------------------------------- commands
@@ -70,6 +129,11 @@ def cmd_reconstruct(args) -> int:
     capture = load_capture(args.capture)
     progress("decoding and triangulating")
     cloud = reconstruct(capture, cal)
+    if len(cloud) == 0:
+        from core.errors import AnkleScanError
+
+        raise AnkleScanError(f"no surface points could be decoded from {args.capture} "
+                             f"({cloud.meta.get('summary', 'nothing decoded')}); nothing written")
     progress(f"writing {len(cloud)} points")
     write_ply(args.out, cloud, comments=[f"capture {Path(args.capture).name}"])
     print(f"wrote {len(cloud)} points to {args.out} ({cloud.meta.get('summary', '')})")
@@ -107,9 +171,16 @@ def cmd_measure(args) -> int:
 
 def cmd_angles(args) -> int:
     from core.angles import compute_angles, format_angles, read_marks_csv
+    from core.limits import require_finite
 
     marks = read_marks_csv(args.marks)
-    print(format_angles(compute_angles(marks, sigma_mm=args.sigma)))
+    angles = compute_angles(marks, sigma_mm=args.sigma)
+    if not angles:  # SPEC: never an empty result with exit 0
+        from core.errors import AnkleScanError
+
+        raise AnkleScanError(f"{args.marks}: no angle can be computed; {angles.missing_message()}")
+    require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
+    print(format_angles(angles))
     return 0
 
 
@@ -133,8 +204,10 @@ def cmd_demo(args) -> int:
 
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
+    p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="progress messages on stderr even when it is not a terminal (else stdout)")
     sub = p.add_subparsers(dest="command")
 
     g = sub.add_parser("gui", help="the desktop application (default)")
@@ -186,36 +259,105 @@ def build_parser() -> argparse.ArgumentParser:
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")
-    a.add_argument("--sigma", type=float, default=0.2, help="mark position uncertainty, mm (default 0.2)")
+    a.add_argument("--sigma", type=_positive, default=0.2, help="mark position uncertainty, mm (default 0.2)")
     a.set_defaults(func=cmd_angles)
     return p
+
+
+def _path_arguments(args) -> list[str]:
+    """Every argument other than --out that names an existing file or folder: the inputs."""
+    values = []
+    for key, v in vars(args).items():
+        if key == "out" or callable(v):
+            continue
+        for item in (v if isinstance(v, (list, tuple)) else [v]):
+            if isinstance(item, (str, os.PathLike)) and str(item) and os.path.lexists(item):
+                values.append(item)
+    return values
+
+
+MAX_MESSAGE_CHARS = 400  # a message quoting a 5000-digit "number" must stay readable
+
+
+def _one_line(text) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= MAX_MESSAGE_CHARS else line[:MAX_MESSAGE_CHARS - 1] + "…"
+
+
+def _say(text: str) -> None:
+    print(f"anklescan: {_one_line(text)}", file=sys.stderr, flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()
     args = parser.parse_args(argv or ["gui"])
+    if args.func is cmd_gui:
+        return args.func(args)
     from core.errors import AnkleScanError
 
+    global _VERBOSE
+    _VERBOSE = bool(getattr(args, "verbose", False))
+    # OpenCV's own log lines ("[ WARN:0@...]") would add to the one error line; read when
+    # cv2 is first imported, which the commands do lazily after this point
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+    try:  # file names that are not valid UTF-8 print as their bytes, never crash a print
+        sys.stdout.reconfigure(errors="surrogateescape")
+    except (AttributeError, ValueError):
+        pass
+    previous = {s: signal.signal(s, _on_sigterm) for s in _CLEAN_EXIT_SIGNALS} if _main_thread() else {}
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            # Nonsense input is refused by validation; stray numpy/OpenCV warnings on stderr
+            # would break the one-line-error contract without telling the user more.
+            warnings.simplefilter("ignore")
+            inputs = _path_arguments(args)
+            if inputs:
+                from core.limits import check_input_file
+
+                for path in inputs:  # no /dev/zero, FIFO or 10 GB "CSV" read whole
+                    check_input_file(path, "input")
+            if getattr(args, "out", None) is not None:
+                from core.atomic import guard_output
+
+                guard_output(args.out, inputs, what="--out")
+            return args.func(args)
     except AnkleScanError as exc:
-        print(f"anklescan: error: {exc}", file=sys.stderr)
+        _say(f"error: {exc}")
         return EXIT_USER_ERROR
+    except BrokenPipeError:
+        # stdout closed early (``| head``): end quietly like other tools, and keep Python
+        # from printing a second error when it flushes stdout at exit
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 128 + signal.SIGPIPE
     except (OSError, MemoryError) as exc:
         # Disk full, permissions, a vanished file: the user's environment, not a bug.
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(f"anklescan: error: {getattr(exc, 'strerror', None) or exc}{where}", file=sys.stderr)
+        _say(f"error: {getattr(exc, 'strerror', None) or exc or type(exc).__name__}{where}")
         return EXIT_USER_ERROR
+    except Terminated as exc:
+        _say(f"terminated by {signal.Signals(exc.signum).name}; temporary files removed")
+        return 128 + exc.signum
     except KeyboardInterrupt:
-        print("anklescan: interrupted", file=sys.stderr)
+        _say("interrupted")
         return 130
     except Exception as exc:  # noqa: BLE001 - last line of defence: one line, never a traceback
         if os.environ.get("ANKLESCAN_DEBUG"):
             raise
-        print(f"anklescan: internal error: {type(exc).__name__}: {exc} (set ANKLESCAN_DEBUG=1 for details)",
-              file=sys.stderr)
+        _say(f"internal error: {type(exc).__name__}: {exc} (set ANKLESCAN_DEBUG=1 for details)")
         return EXIT_INTERNAL
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.atomic import make_private_dir, make_tree_private, write_text_atomic
 from core.errors import AnkleScanError
 
 MARKER = ".anklescan-demo"
@@ -149,8 +150,8 @@ def _prepare_out(out: Path) -> None:
         if not (out / MARKER).exists():
             raise AnkleScanError(f"{out} is not empty and not an earlier demo folder; give a new folder")
         shutil.rmtree(out)  # only ever an earlier demo's own output
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("written by anklescan demo; the folder is replaced by the next demo run\n")
+    make_private_dir(out)  # simulated, but a clinic's folder layout: patient data is private
+    write_text_atomic(out / MARKER, "written by anklescan demo; the folder is replaced by the next demo run\n")
 
 
 def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list[tuple[dict, int]]:
@@ -224,6 +225,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             patient = store.get_patient(session.patient_id).code
             write_session_report(store, [session.id], out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
+    make_tree_private(out)  # a clinic's layout, so patient-data rules: files 0600, folders 0700
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per session; {time.perf_counter() - t_start:.0f} s")
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run

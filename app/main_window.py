@@ -373,6 +373,8 @@ class MainWindow(QMainWindow):
         from core.store import Store
         try:
             self.store = Store.open(data_dir=self.data_folder())
+            if self.store.read_only:
+                self.banner.show_message("warning", f"The sessions database is read-only ({self.store.read_only_reason}): you can review it, but changes cannot be saved.")
         except Exception as exc:
             self.store = None
             self.banner.show_message("error", f"The sessions database could not be opened: {exc}")

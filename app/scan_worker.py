@@ -297,12 +297,16 @@ def _project(cam, points):
 
 def white_preview(folder, pattern_set) -> np.ndarray | None:
     """The white frame as RGB: what the camera saw, when there is no cloud to show."""
-    import cv2
-
     white = [f.file for f in pattern_set.frames if f.kind == "white"]
     if not white:
         return None
-    img = cv2.imread(str(Path(folder) / white[0]), cv2.IMREAD_UNCHANGED)
+    from core.capture import read_image  # any path, even one that is not valid UTF-8
+    from core.errors import CaptureError
+
+    try:
+        img = read_image(Path(folder) / white[0])
+    except CaptureError:
+        return None
     if img is None:
         return None
     if img.dtype == np.uint16:

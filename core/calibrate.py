@@ -509,8 +509,22 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
     data = np.array([_parse_row(path, line, row, cols, len(names)) for line, row in body], dtype=np.float64).reshape(-1, len(wanted))
     if len(data) == 0:
         raise CalibrationError(f"{path}: no control points after the header")
+    _check_csv_range(path, data, [line for line, _ in body])
     _check_csv_duplicates(path, data, [line for line, _ in body])
     return data[:, :3], (data[:, 3] if kind == "projector" else data[:, 3:])
+
+
+def _check_csv_range(path: Path, data: np.ndarray, lines: list[int]) -> None:
+    """World points within MAX_TRANSLATION_MM of the origin and pixels within ten sensor
+    sizes: anything else is a unit mix-up or a damaged file (limits in core/limits.py)."""
+    from core.limits import MAX_IMAGE_SIDE, MAX_TRANSLATION_MM
+
+    for cols, limit, what in ((slice(0, 3), MAX_TRANSLATION_MM, "mm from the world origin"),
+                              (slice(3, None), 10 * MAX_IMAGE_SIDE, "px")):
+        far = np.nonzero(np.abs(data[:, cols]).max(axis=1) > limit)[0]
+        if far.size:
+            raise CalibrationError(f"{path}:{lines[far[0]]}: a coordinate beyond {limit:g} {what}; "
+                                   "not a control point of a real rig")
 
 
 def _read_csv_rows(path: Path) -> list:

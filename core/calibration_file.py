@@ -17,6 +17,8 @@ import numpy as np
 from core.atomic import write_text_atomic
 from core.device_model import AXES, Device
 from core.errors import CalibrationError
+from core.limits import (MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
+                         MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
 
 ORTHONORMAL_TOL = 1e-4
 
@@ -72,7 +74,32 @@ def device_from_dict(obj: dict, device: str) -> Device:
     t = _matrix(obj, device, "t", (3,))
     if not np.isfinite(t).all():
         raise CalibrationError(f"calibration: {device}.t has non-finite entries")
+    _check_plausible(device, obj["width"], obj["height"], K, dist, t)
     return Device(obj["width"], obj["height"], K, dist, R, t, axis)
+
+
+def _check_plausible(device: str, width: int, height: int, K: np.ndarray, dist: np.ndarray, t: np.ndarray) -> None:
+    """Refuse values no real rig has (limits in core/limits.py): finite but absurd numbers
+    (K = 1e-300, t = 1e308) would otherwise give an empty or garbage scan without a word."""
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise CalibrationError(f"calibration: {device} size {width}x{height} is beyond any real device "
+                               f"(at most {MAX_IMAGE_SIDE} px a side)")
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not MIN_FOCAL_PX <= f <= MAX_FOCAL_PX:
+            raise CalibrationError(f"calibration: {device}.K {name} = {f:g} px is outside "
+                                   f"{MIN_FOCAL_PX:g}..{MAX_FOCAL_PX:g} px (not a real lens)")
+    if abs(K[0, 1]) > K[0, 0]:
+        raise CalibrationError(f"calibration: {device}.K skew {K[0, 1]:g} is larger than fx")
+    for name, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+        if abs(c - size / 2) > MAX_PRINCIPAL_POINT_SIZES * size:
+            raise CalibrationError(f"calibration: {device}.K {name} = {c:g} px is far outside the "
+                                   f"{width}x{height} image")
+    if dist.size and np.abs(dist).max() > MAX_DISTORTION:
+        raise CalibrationError(f"calibration: {device}.dist has a coefficient of {np.abs(dist).max():g}; "
+                               f"real lenses are within +-{MAX_DISTORTION:g}")
+    if np.abs(t).max() > MAX_TRANSLATION_MM:
+        raise CalibrationError(f"calibration: {device}.t = {np.abs(t).max():g} mm puts the device more than "
+                               f"{MAX_TRANSLATION_MM / 1000:g} m from the world origin")
 
 
 def _numeric_list(value) -> bool:
@@ -109,19 +136,12 @@ def calibration_to_dict(cal: Calibration) -> dict:
 
 
 def load_calibration(path: str | os.PathLike) -> Calibration:
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"cannot read calibration file {path}: {exc}") from None
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"calibration file {path} is not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    return calibration_from_dict(obj)
+    return calibration_from_dict(load_json(Path(path), "calibration file", CalibrationError))
 
 
 def save_calibration(cal: Calibration, path: str | os.PathLike) -> None:
-    write_text_atomic(Path(path), json.dumps(calibration_to_dict(cal), indent=2) + "\n")
+    """Validated like a loaded file first (finite, plausible), so we never write one we
+    would refuse to read."""
+    obj = calibration_to_dict(cal)
+    calibration_from_dict(json.loads(json.dumps(obj)))
+    write_text_atomic(Path(path), json.dumps(obj, indent=2, allow_nan=False) + "\n")

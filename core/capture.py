@@ -13,11 +13,14 @@ the sensor saturates.
 
 from __future__ import annotations
 
-import json
+import itertools
 import os
 import shutil
+import sys
 import tempfile
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -25,14 +28,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.atomic import write_json_atomic
+from core.atomic import check_replaceable_dir, make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
 from core.errors import CaptureError
-from core.patterns import PatternSet, imwrite_checked, load_manifest, replace_dir
+from core.limits import capture_memory_limit, check_image_side, image_size, load_json
+from core.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
 
 MANIFEST = "manifest.json"
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",
               ".webp", ".jp2", ".exr", ".hdr"}
 MAX_VALUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
+# A capture is refused as unlit when fewer than this fraction of its pixels are brighter in
+# the white frame than in the black one by LIT_CONTRAST of the brightest recorded level (the
+# projector was off, the lens capped), and as swapped when ten times more pixels are darker
+# in the white frame than brighter (the frames are not what the manifest says).
+LIT_MIN_FRACTION = 1e-3
+LIT_CONTRAST = 0.02
 
 
 @dataclass
@@ -77,13 +87,27 @@ def _color_8bit(img: np.ndarray) -> np.ndarray | None:
     return np.ascontiguousarray(bgr)
 
 
-def _read(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None or img.size == 0:
-        raise CaptureError(f"unreadable image {path}")
-    if img.dtype not in MAX_VALUE:
-        raise CaptureError(f"{path}: unsupported pixel type {img.dtype} (need 8- or 16-bit)")
-    return img
+@contextmanager
+def _decoder_messages():
+    """Collect what image libraries print on stderr (libpng, libjpeg, libtiff write there
+    directly, not through OpenCV's log level) so that an error stays one line; yields a
+    list that receives the text."""
+    lines: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (embedded): nothing to redirect
+        yield lines
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(t for t in sink.read(4096).decode("utf-8", "replace").splitlines() if t.strip())
 
 
 def _describe(img: np.ndarray) -> str:
@@ -101,23 +125,123 @@ def load_capture(folder) -> Capture:
     manifest_path = folder / MANIFEST
     if not manifest_path.is_file():
         raise CaptureError(f"capture {folder} has no {MANIFEST}")
-    pset = load_manifest(manifest_path)
-    metadata = _capture_metadata(manifest_path)
+    manifest = load_json(manifest_path, "manifest", CaptureError)
+    pset = PatternSet.from_manifest(manifest, str(manifest_path))
+    metadata = manifest.get("capture", {})
+    if not isinstance(metadata, dict):
+        raise CaptureError(f"{manifest_path}: 'capture' must be an object")
     _check_files(folder, pset)
 
     paths = [folder / f for f in pset.files]
-    # PNG/TIFF decoding releases the GIL: two threads roughly halve load time
+    _check_sizes(paths)
+    stack, color = _load_frames(paths, pset.index("white"))
+    capture = Capture(folder, pset, stack, color, metadata)
+    check_lit(capture)
+    return capture
+
+
+def _check_sizes(paths: list[Path]) -> None:
+    """Refuse oversized or mismatched frames from their headers, before decoding any."""
+    sizes: dict[str, tuple[int, int]] = {}
+    for p in paths:
+        try:
+            size = image_size(p)
+        except OSError as e:
+            raise CaptureError(f"cannot read frame {p}: {e.strerror or e}") from None
+        if size is not None:
+            check_image_side(*size, f"frame {p.name}", CaptureError)
+            sizes[p.name] = size
+    if not sizes:
+        return  # formats without a readable header: each frame is checked as it is decoded
+    (n0, (w, h)), *rest = sizes.items()
+    for n1, (w1, h1) in rest:
+        if (w1, h1) != (w, h):
+            raise CaptureError(f"frame {n1} is {w1}x{h1} but {n0} is {w}x{h}")
+    need = len(paths) * w * h * 2  # worst case: 16-bit samples
+    limit = capture_memory_limit()
+    if need > limit:
+        raise CaptureError(f"capture of {len(paths)} frames of {w}x{h} needs {need / 2**30:.1f} GB, "
+                           f"more than this computer can decode (limit {limit / 2**30:.1f} GB)")
+
+
+def _load_frames(paths: list[Path], white_idx: int):
+    """(stack, colour) from the frame files. Image libraries print on stderr themselves
+    (libpng, libjpeg, libtiff, not through OpenCV's log level): that text is held back while
+    decoding, and the last line joins our one-line error when a frame cannot be read."""
+    with _decoder_messages() as messages:
+        frames = _read_ahead(paths)
+        try:
+            return _stack(frames, paths, white_idx)
+        except _UnreadableFrame as e:
+            failure = e
+        finally:
+            frames.close()  # stop the readers before stderr is restored
+    why = f" ({messages[-1].strip()})" if messages else ""
+    raise CaptureError(f"{failure}{why}") from None
+
+
+class _UnreadableFrame(CaptureError):
+    pass
+
+
+def _read_ahead(paths: list[Path], lookahead: int = 4):
+    """Decoded frames in order, at most ``lookahead`` ahead of the consumer (so memory is
+    the stack plus a few frames); PNG/TIFF decoding releases the GIL, so two threads
+    roughly halve load time."""
     with ThreadPoolExecutor(max_workers=2) as pool:
-        images = pool.map(_read, paths)
-        stack, color = _stack(images, paths, pset.index("white"))
-    return Capture(folder, pset, stack, color, metadata)
+        todo = iter(paths)
+        pending = deque(pool.submit(_read, p) for p in itertools.islice(todo, lookahead))
+        try:
+            while pending:
+                img = pending.popleft().result()
+                nxt = next(todo, None)
+                if nxt is not None:
+                    pending.append(pool.submit(_read, nxt))
+                yield img
+        finally:
+            for f in pending:
+                f.cancel()
 
 
-def _capture_metadata(manifest_path: Path) -> dict:
-    meta = json.loads(manifest_path.read_text(encoding="utf-8")).get("capture", {})
-    if not isinstance(meta, dict):
-        raise CaptureError(f"{manifest_path}: 'capture' must be an object")
-    return meta
+def read_image(path) -> np.ndarray | None:
+    """``cv2.imread(path, IMREAD_UNCHANGED)`` for any path: OpenCV's own path handling crashes
+    (segfault) on names that are not valid UTF-8 (a folder copied from a Latin-1 system),
+    so we read the bytes and let OpenCV decode them."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise CaptureError(f"cannot read image {path}: {e.strerror or e}") from None
+    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+
+
+def _read(path: Path) -> np.ndarray:
+    img = read_image(path)
+    if img is None or img.size == 0:
+        raise _UnreadableFrame(f"unreadable image {path}: damaged or not an image")
+    check_image_side(img.shape[1], img.shape[0], f"frame {path.name}", CaptureError)
+    if img.dtype not in MAX_VALUE:
+        raise CaptureError(f"{path}: unsupported pixel type {img.dtype} (need 8- or 16-bit)")
+    return img
+
+
+def check_lit(capture: "Capture") -> None:
+    """Refuse a capture whose white frame is not brighter than its black one: nothing can
+    be decoded from it, and an empty result would look like a successful scan."""
+    white = capture.frame(capture.pattern_set.files[capture.pattern_set.index("white")])
+    black = capture.frame(capture.pattern_set.files[capture.pattern_set.index("black")])
+    # contrast relative to the brightest pixels actually recorded, not to the integer type's
+    # range: a 12-bit camera stored in 16-bit PNGs never goes past 4095
+    brightest = np.maximum(white, black).ravel()
+    peak = float(np.partition(brightest, int(0.999 * (brightest.size - 1)))[int(0.999 * (brightest.size - 1))])
+    thr = max(1.0, LIT_CONTRAST * peak)
+    diff = white.astype(np.int32) - black.astype(np.int32)
+    lit, dark = int(np.count_nonzero(diff > thr)), int(np.count_nonzero(diff < -thr))
+    if dark > 10 * lit and dark >= LIT_MIN_FRACTION * diff.size:
+        raise CaptureError(f"capture {capture.folder or '(in memory)'}: the black frame is brighter than the white one "
+                           "(frames swapped or mislabelled in the manifest)")
+    if lit < LIT_MIN_FRACTION * diff.size:
+        raise CaptureError(f"capture {capture.folder or '(in memory)'}: the white frame is no brighter than the black one "
+                           "anywhere: was the projector on, the lens uncovered, the exposure right?")
 
 
 def _check_files(folder: Path, pset: PatternSet) -> None:
@@ -188,8 +312,22 @@ def _as_list(pattern_set: PatternSet, images) -> list:
 def _manifest_with(pattern_set: PatternSet, metadata: dict | None) -> dict:
     m = pattern_set.to_manifest()
     if metadata:
-        m["capture"] = metadata
+        m["capture"] = _json_safe(metadata)
     return m
+
+
+def _json_safe(obj):
+    """Metadata as strict JSON: a device reporting NaN/inf (an unknown gain, say) becomes
+    null, numpy scalars plain numbers; otherwise the manifest could not be read back."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path:
@@ -199,12 +337,13 @@ def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path
     capture_from_images(pattern_set, images)  # size/depth checks before touching disk
     if not folder.parent.is_dir():
         raise CaptureError(f"output folder's parent {folder.parent} does not exist")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp.", dir=folder.parent))
+    check_replaceable_dir(folder, lambda f: is_pattern_output(f, allow_capture=True))
+    tmp = Path(mkdtemp_beside(folder))  # 0700
     try:
         for name, img in zip(pattern_set.files, images):
             imwrite_checked(tmp / name, img)
         write_json_atomic(tmp / MANIFEST, _manifest_with(pattern_set, metadata))
-        replace_dir(tmp, folder)
+        replace_dir(tmp, folder, lambda f: is_pattern_output(f, allow_capture=True))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -234,7 +373,7 @@ class CaptureWriter:
             raise CaptureError(f"capture folder {self.folder} already holds a finished capture")
         if not self.folder.parent.is_dir():
             raise CaptureError(f"capture folder's parent {self.folder.parent} does not exist")
-        self.folder.mkdir(exist_ok=True)
+        make_private_dir(self.folder)  # patient data: 0700 whatever the umask
         self.metadata.setdefault("started", _now())
 
     def add(self, frame_name: str, image: np.ndarray) -> Path:
@@ -248,7 +387,8 @@ class CaptureWriter:
             _check_same(self._ref, frame_name, image)
         dest = self.folder / frame_name
         # the temporary keeps the real extension so imwrite picks the same encoder
-        tmp = self.folder / f".{frame_name}.tmp{dest.suffix}"
+        prefix, suffix = temp_affixes(frame_name, keep_suffix=dest.suffix)
+        tmp = self.folder / f"{prefix}{os.getpid()}{suffix}"
         try:
             imwrite_checked(tmp, image)
             os.replace(tmp, dest)

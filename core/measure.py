@@ -7,14 +7,13 @@ write RESULT.json unless all seven marks are found and labelled, and writes it a
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from core.angles import AngleResult, compute_angles
-from core.atomic import write_text_atomic
+from core.atomic import write_json_atomic
 from core.calibration_file import Calibration, load_calibration
 from core.capture import Capture, load_capture
 from core.decode import decode
@@ -83,7 +82,7 @@ def run_measure(capture_dir, calibration_path, out_path) -> MeasureResult:
     result = measure_capture(capture, cal)
     if not result.complete:
         raise AnkleScanError(f"{capture_dir}: marks not found: {result.marks.message()}; nothing written")
-    write_text_atomic(Path(out_path), json.dumps(result.to_dict(), indent=2) + "\n")
+    write_json_atomic(Path(out_path), result.to_dict())  # refuses NaN/inf: never a nonsense result
     return result
 
 

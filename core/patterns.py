@@ -16,19 +16,19 @@ Rows (axis ``"row"``) use the same formulas with the row index.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from core.atomic import write_json_atomic
+from core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, write_json_atomic
 from core.errors import CaptureError
+from core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_STEPS,
+                         check_image_side, load_json)
 
 FORMAT = "anklescan-patterns"
 VERSION = 1
@@ -160,12 +160,16 @@ class PatternSet:
                 _is_pos_int(proj.get(k)) for k in ("width", "height")):
             raise CaptureError(f"{source}: projector width/height must be positive integers, "
                                f"got {proj!r}")
+        check_image_side(proj["width"], proj["height"], f"{source}: projector", CaptureError)
         axes = m["axes"]
         if (not isinstance(axes, list) or not axes or any(a not in AXES for a in axes)
                 or len(set(axes)) != len(axes)):
             raise CaptureError(f"{source}: axes must be a non-empty list of {AXES}, got {axes!r}")
         if not isinstance(m["frames"], list) or not m["frames"]:
             raise CaptureError(f"{source}: 'frames' must be a non-empty list")
+        if len(m["frames"]) > MAX_FRAMES:
+            raise CaptureError(f"{source}: {len(m['frames'])} frames is more than any pattern set "
+                               f"(at most {MAX_FRAMES})")
         frames = [_frame_from_dict(d, i, source) for i, d in enumerate(m["frames"])]
         pset = cls(str(m["preset"]), int(proj["width"]), int(proj["height"]), frames,
                    tuple(axes))
@@ -220,15 +224,16 @@ def _frame_from_dict(d, i: int, source: str) -> Frame:
     if d["axis"] not in AXES:
         raise CaptureError(f"{source}: frame '{name}' has unknown axis {d['axis']!r}")
     if kind == "gray":
-        if not (_is_pos_int(d["bits"]) and _is_pos_int(d["stripe"])
-                and isinstance(d["bit"], int) and 0 <= d["bit"] < d["bits"]
+        if not (_is_pos_int(d["bits"]) and d["bits"] <= MAX_GRAY_BITS and _is_pos_int(d["stripe"])
+                and d["stripe"] <= MAX_IMAGE_SIDE and isinstance(d["bit"], int) and 0 <= d["bit"] < d["bits"]
                 and isinstance(d["inverse"], bool)):
             raise CaptureError(f"{source}: gray frame '{name}' has bad bit/bits/stripe/inverse "
                                f"({d['bit']!r}/{d['bits']!r}/{d['stripe']!r}/{d['inverse']!r})")
         return Frame(name, kind, d["axis"], d["bit"], d["bits"], d["stripe"], d["inverse"])
     period, shift, steps = d["period"], d["shift"], d["steps"]
-    if not (isinstance(period, (int, float)) and not isinstance(period, bool) and period > 0
-            and _is_pos_int(steps) and steps >= 3
+    if not (isinstance(period, (int, float)) and not isinstance(period, bool)
+            and 0 < period <= 2 * MAX_IMAGE_SIDE and math.isfinite(period)
+            and _is_pos_int(steps) and 3 <= steps <= MAX_PHASE_STEPS
             and isinstance(shift, int) and 0 <= shift < steps):
         raise CaptureError(f"{source}: phase frame '{name}' has bad period/shift/steps "
                            f"({period!r}/{shift!r}/{steps!r})")
@@ -292,6 +297,7 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
         raise CaptureError(f"unknown pattern preset {preset!r} (expected one of {PRESETS})")
     if not (_is_pos_int(width) and _is_pos_int(height)) or width < 2 or height < 2:
         raise CaptureError(f"projector size must be at least 2x2, got {width}x{height}")
+    check_image_side(width, height, "projector", CaptureError)
     axes = tuple(axes)
     if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
         raise CaptureError(f"axes must be a non-empty subset of {AXES}, got {axes!r}")
@@ -447,26 +453,42 @@ def _unlink_quiet(p) -> None:
 
 
 def imwrite_checked(path: Path, image: np.ndarray) -> None:
-    ok = cv2.imwrite(str(path), image)
+    # encode + write ourselves: cv2.imwrite crashes on paths that are not valid UTF-8, and
+    # the file is created private (frames are patient data) whatever the umask
+    try:
+        ok, data = cv2.imencode(Path(path).suffix or ".png", image)
+    except cv2.error:
+        ok = False
     if not ok:
-        raise CaptureError(f"could not write image {path}")
+        raise CaptureError(f"could not encode image {path}")
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), PRIVATE_FILE_MODE)
+    with os.fdopen(fd, "wb") as fh:
+        os.fchmod(fh.fileno(), PRIVATE_FILE_MODE)
+        fh.write(data.tobytes())
 
 
-def replace_dir(tmp_dir: Path, out_dir: Path) -> None:
+def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
     """Move a finished temporary directory into place.
 
     An existing ``out_dir`` is renamed aside first and removed only after the new one is
     in place, so at every instant ``out_dir`` is either the old or the new complete set.
+    Only an empty folder or an earlier output of ours (``is_ours``, default
+    ``is_pattern_output``: a pattern set, never a capture) is replaced: a folder with any
+    other file is refused untouched.
     """
     out_dir = Path(out_dir)
     old = None
+    check_replaceable_dir(out_dir, is_ours or is_pattern_output)
     if out_dir.exists():
-        if not out_dir.is_dir():
-            raise CaptureError(f"output {out_dir} exists and is not a directory")
-        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
+        old = Path(mkdtemp_beside(out_dir, "old"))
         os.rmdir(old)
         os.replace(out_dir, old)
-    os.replace(tmp_dir, out_dir)
+    try:
+        os.replace(tmp_dir, out_dir)
+    except BaseException:
+        if old is not None:  # put the earlier output back: never leave neither
+            os.replace(old, out_dir)
+        raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 
@@ -477,7 +499,8 @@ def write_patterns(pset: PatternSet, out_dir) -> Path:
     parent = out_dir.parent
     if not parent.is_dir():
         raise CaptureError(f"output folder's parent {parent} does not exist")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp.", dir=parent))
+    check_replaceable_dir(out_dir, is_pattern_output)  # refuse before the long rendering
+    tmp = Path(mkdtemp_beside(out_dir))
     try:
         for f in pset.frames:
             imwrite_checked(tmp / f.file, render_frame(pset, f))
@@ -491,15 +514,24 @@ def write_patterns(pset: PatternSet, out_dir) -> Path:
 
 def load_manifest(path) -> PatternSet:
     path = Path(path)
+    return PatternSet.from_manifest(load_json(path, "manifest", CaptureError), str(path))
+
+
+def is_pattern_output(folder, allow_capture: bool = False) -> bool:
+    """True when ``folder`` holds only an earlier pattern set of ours: a valid manifest.json
+    and nothing but its frames. A camera capture (a manifest with a "capture" object) is
+    someone's scan, so it counts only with ``allow_capture``."""
+    folder = Path(folder)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CaptureError(f"manifest not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CaptureError(f"{path}: malformed JSON ({e})") from None
-    except OSError as e:
-        raise CaptureError(f"cannot read {path}: {e.strerror}") from None
-    return PatternSet.from_manifest(data, str(path))
+        manifest = load_json(folder / "manifest.json", "manifest", CaptureError)
+        pset = PatternSet.from_manifest(manifest, str(folder / "manifest.json"))
+        entries = list(folder.iterdir())
+    except (CaptureError, OSError):
+        return False
+    if "capture" in manifest and not allow_capture:
+        return False
+    allowed = set(pset.files) | {"manifest.json"}
+    return all(e.name in allowed and e.is_file() and not e.is_symlink() for e in entries)
 
 
 __all__ = ["Frame", "AxisCode", "PatternSet", "make_pattern_set", "render_frame",

@@ -59,8 +59,13 @@ def _vertex_dtype(cloud: PointCloud) -> np.dtype:
 
 
 def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | None = None) -> None:
-    """Binary little-endian PLY, written to a temporary sibling and renamed into place."""
+    """Binary little-endian PLY, written to a temporary sibling and renamed into place.
+
+    Refuses non-finite coordinates (a broken calibration, never a surface). ``comments``
+    may hold any text (a patient's folder name in any script): it is escaped to ASCII."""
     path = Path(path)
+    if not np.isfinite(cloud.points).all():
+        raise AnkleScanError("the point cloud holds non-finite coordinates; nothing was written")
     dtype = _vertex_dtype(cloud)
     data = np.empty(len(cloud), dtype=dtype)
     data["x"], data["y"], data["z"] = cloud.points[:, 0], cloud.points[:, 1], cloud.points[:, 2]
@@ -74,7 +79,7 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
         data["sigma"] = cloud.sigma
     inverse = {"<f4": "float", "u1": "uchar", "<u2": "ushort", "|u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0", "comment AnkleScan point cloud, world frame, units mm"]
-    header += [f"comment {c}" for c in (comments or [])]
+    header += [f"comment {_header_text(c)}" for c in (comments or [])]
     header.append(f"element vertex {len(cloud)}")
     for name in dtype.names:
         header.append(f"property {inverse[dtype[name].str]} {name}")
@@ -84,12 +89,18 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
         data.tofile(f)
 
 
+def _header_text(text: str) -> str:
+    """One ASCII header line: the PLY header is ASCII and line-based, so non-ASCII text is
+    written as Python-style escapes (\\xfc, \\u3042) and line breaks cannot end the comment."""
+    return str(text).encode("unicode_escape").decode("ascii")
+
+
 def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
     if f.readline().strip() != b"ply":
         raise AnkleScanError(f"{path} is not a PLY file")
     fmt, elements = None, []
-    while True:
-        line = f.readline()
+    for _ in range(100_000):
+        line = f.readline(4096)
         if not line:
             raise AnkleScanError(f"{path}: PLY header has no end_header")
         words = line.decode("ascii", "replace").split()
@@ -98,18 +109,24 @@ def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[s
         if words[0] == "end_header":
             break
         if words[0] == "format":
-            fmt = words[1]
+            fmt = words[1] if len(words) > 1 else None
         elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 12:
+                raise AnkleScanError(f"{path}: bad PLY element line {line[:80]!r}")
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:
                 raise AnkleScanError(f"{path}: PLY property before any element")
+            if len(words) < 3 or (words[1] == "list" and len(words) != 5):
+                raise AnkleScanError(f"{path}: bad PLY property line {line[:80]!r}")
             if words[1] == "list":
                 elements[-1][2].append((words[4], "list:" + words[2] + ":" + words[3]))
             elif words[1] in _PLY_TYPES:
                 elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
             else:
                 raise AnkleScanError(f"{path}: unknown PLY property type {words[1]!r}")
+    else:
+        raise AnkleScanError(f"{path}: PLY header has no end_header in its first 100000 lines")
     if fmt not in ("binary_little_endian", "ascii"):
         raise AnkleScanError(f"{path}: PLY format {fmt!r} is not supported (binary_little_endian or ascii)")
     return fmt, elements
@@ -122,23 +139,35 @@ def read_ply(path: str | os.PathLike) -> PointCloud:
         f = open(path, "rb")
     except OSError as exc:
         raise AnkleScanError(f"cannot open {path}: {exc.strerror}") from None
-    with f:
-        fmt, elements = _parse_header(f, path)
-        if not elements or elements[0][0] != "vertex":
-            raise AnkleScanError(f"{path}: PLY has no vertex element first")
-        _, count, props = elements[0]
-        if any(t.startswith("list:") for _, t in props):
-            raise AnkleScanError(f"{path}: list properties on vertices are not supported")
-        if fmt == "ascii":
-            rows = np.loadtxt(f, max_rows=count, ndmin=2)
-            data = np.empty(count, dtype=[(n, t) for n, t in props])
-            for i, (n, _) in enumerate(props):
-                data[n] = rows[:, i]
-        else:
-            dtype = np.dtype([(n, "<" + t if t[0] in "fiu" and t[1] != "1" else t) for n, t in props])
-            data = np.fromfile(f, dtype=dtype, count=count)
-            if data.shape[0] != count:
-                raise AnkleScanError(f"{path}: PLY is truncated ({data.shape[0]} of {count} vertices)")
+    try:
+        with f:
+            return _read_vertices(f, path)
+    except (ValueError, TypeError, IndexError) as exc:  # malformed body/types: one line, exit 2
+        raise AnkleScanError(f"{path}: malformed PLY ({' '.join(str(exc).split())[:200]})") from None
+
+
+def _read_vertices(f, path: Path) -> PointCloud:
+    fmt, elements = _parse_header(f, path)
+    if not elements or elements[0][0] != "vertex":
+        raise AnkleScanError(f"{path}: PLY has no vertex element first")
+    _, count, props = elements[0]
+    if any(t.startswith("list:") for _, t in props):
+        raise AnkleScanError(f"{path}: list properties on vertices are not supported")
+    left = os.fstat(f.fileno()).st_size - f.tell()
+    if fmt == "ascii" and count * 2 * max(len(props), 1) > left:  # >= "0 " per value
+        raise AnkleScanError(f"{path}: PLY is truncated (the header claims {count} vertices)")
+    if fmt == "ascii":
+        rows = np.loadtxt(f, max_rows=count, ndmin=2)
+        data = np.empty(count, dtype=[(n, t) for n, t in props])
+        for i, (n, _) in enumerate(props):
+            data[n] = rows[:, i]
+    else:
+        dtype = np.dtype([(n, "<" + t if t[0] in "fiu" and t[1] != "1" else t) for n, t in props])
+        if count * dtype.itemsize > left:  # before allocating: a header can claim anything
+            raise AnkleScanError(f"{path}: PLY is truncated ({left // max(dtype.itemsize, 1)} of {count} vertices)")
+        data = np.fromfile(f, dtype=dtype, count=count)
+        if data.shape[0] != count:
+            raise AnkleScanError(f"{path}: PLY is truncated ({data.shape[0]} of {count} vertices)")
     names = data.dtype.names
     for n in ("x", "y", "z"):
         if n not in names:

@@ -26,6 +26,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from core import study_stats as st
+from core.atomic import temp_affixes
 from core.errors import AnkleScanError
 from core.store import Store
 
@@ -80,7 +81,8 @@ def _atomic_outputs(*targets: Path | None) -> Iterator[list[Path | None]]:
                 continue
             if not t.parent.is_dir():
                 raise AnkleScanError(f"output folder {t.parent} does not exist")
-            fd, name = tempfile.mkstemp(prefix=f".{t.name}.", suffix=".tmp", dir=t.parent)
+            prefix, suffix = temp_affixes(t.name)  # within NAME_MAX for long report names
+            fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=t.parent)  # 0600
             os.close(fd)
             tmps.append(Path(name))
         yield tmps

@@ -9,6 +9,14 @@ Design (details in docs/sessions.md):
   each applied in the same transaction as the version bump.
 - We never create, repair or delete over an existing file that is not a healthy SQLite
   database: the clinic's data is worth more than a working app.
+- Our database is recognised by ``PRAGMA application_id`` (set when it is created; older
+  databases of ours by their schema) after opening it READ-ONLY; any other SQLite file is
+  refused untouched (no WAL switch, no table, header unchanged).
+- A database that cannot be written (file mode without write bits, a read-only folder or
+  mount, ``read_only=True``) opens for reading: ``Store.read_only`` is True,
+  ``Store.read_only_reason`` says why, and every write method raises AnkleScanError.
+- Privacy: the database (and its -wal/-shm, which SQLite creates with the database's mode)
+  is 0600 and the folders we create 0700, whatever the umask (core/atomic.py).
 """
 
 from __future__ import annotations
@@ -20,6 +28,8 @@ import math
 import os
 import re
 import sqlite3
+import stat
+import urllib.parse
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -28,11 +38,19 @@ from pathlib import Path
 import platformdirs
 
 from core.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
+from core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from core.errors import AnkleScanError
 
 DB_FILENAME = "anklescan.sqlite"
 DEFAULT_TIMEOUT_S = 10.0
 _SQLITE_MAGIC = b"SQLite format 3\x00"
+# PRAGMA application_id of our databases: "AnkS" (SQLite's header field for exactly this).
+APPLICATION_ID = 0x416E6B53
+# Databases of ours created before APPLICATION_ID existed are recognised by these columns.
+_SCHEMA_MARKER = {"patients": {"code", "sprain_count", "affected_side"},
+                  "sessions": {"patient_id", "condition", "calibration_id"},
+                  "trials": {"session_id", "ref_inversion", "mismatch_inversion", "capture_sha256"},
+                  "marks": {"trial_id", "label", "source", "placed_by"}}
 
 # ----------------------------------------------------------------- schema
 
@@ -349,9 +367,14 @@ def _errname(e: sqlite3.Error) -> str:
     return getattr(e, "sqlite_errorname", "") or ""
 
 
+class ReadOnlyDatabaseError(AnkleScanError):
+    """SQLite refused to write, or to open for writing (a read-only mount our checks could
+    not see, say): an existing database is then opened for reading instead."""
+
+
 def _translate(e: sqlite3.Error, path: Path, timeout: float) -> AnkleScanError:
     """One clear line for the sqlite failures a user can actually run into."""
-    name, msg = _errname(e), str(e)
+    name, msg = _errname(e), " ".join(str(e).split())
     if name.startswith("SQLITE_BUSY") or name.startswith("SQLITE_LOCKED") or "locked" in msg:
         return AnkleScanError(
             f"database {path} is locked by another program (waited {timeout:g} s); "
@@ -364,8 +387,10 @@ def _translate(e: sqlite3.Error, path: Path, timeout: float) -> AnkleScanError:
         return AnkleScanError(f"database {path} is damaged ({msg}); it was left untouched, "
                               "restore it from a backup")
     if name.startswith("SQLITE_READONLY"):
-        return AnkleScanError(f"database {path} is read-only; cannot save changes")
-    if name.startswith(("SQLITE_IOERR", "SQLITE_CANTOPEN")):
+        return ReadOnlyDatabaseError(f"database {path} is read-only; cannot save changes")
+    if name.startswith("SQLITE_CANTOPEN"):
+        return ReadOnlyDatabaseError(f"cannot access database {path}: {msg}")
+    if name.startswith("SQLITE_IOERR"):
         return AnkleScanError(f"cannot access database {path}: {msg}")
     if isinstance(e, sqlite3.IntegrityError):
         return AnkleScanError(f"database rejected the change: {msg}")
@@ -392,26 +417,130 @@ def _check_header(path: Path) -> None:
                              "it was left untouched")
 
 
+def _uri(path: Path, query: str) -> str:
+    return f"file:{urllib.parse.quote(str(path.resolve()))}?{query}"
+
+
+def _header_fields(path: Path) -> tuple[int, int, int]:
+    """(journal version byte: 1 rollback, 2 WAL; user_version; application_id) from the
+    100-byte database header, read without SQLite."""
+    with open(path, "rb") as fh:
+        head = fh.read(100)
+    page = int.from_bytes(head[16:18], "big")
+    if len(head) < 100 or head[21:24] != b"\x40\x20\x20" or not (page == 1 or (
+            512 <= page <= 32768 and page & (page - 1) == 0)):
+        raise AnkleScanError(f"database {path} is damaged (invalid SQLite header); it was left "
+                             "untouched, restore it from a backup")
+    return head[18], int.from_bytes(head[60:64], "big"), int.from_bytes(head[68:72], "big")
+
+
+def _inspect(path: Path, timeout: float) -> None:
+    """Refuse, untouched, an existing SQLite file that is not a healthy database of ours.
+
+    Read-only throughout: a WAL file nobody has open is read as immutable (so no -wal/-shm
+    appear next to someone else's file); otherwise with mode=ro.
+    """
+    try:
+        journal, version, app_id = _header_fields(path)
+    except OSError as e:
+        raise AnkleScanError(f"cannot read database {path}: {e.strerror or e}") from None
+    if app_id not in (0, APPLICATION_ID):
+        raise AnkleScanError(f"{path} is an SQLite database of another program (application id "
+                             f"{app_id:#x}), not AnkleScan's; it was left untouched")
+    shm = Path(f"{path}-shm")
+    query = "mode=ro&immutable=1" if journal == 2 and not shm.exists() else "mode=ro"
+    conn = None
+    try:
+        conn = sqlite3.connect(_uri(path, query), uri=True, timeout=timeout, isolation_level=None)
+        conn.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
+        columns = {}
+        for (table,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'"):
+            columns[table] = {r[1] for r in conn.execute(f"PRAGMA table_info(\"{table}\")")}
+        blank = not columns and version == 0  # an empty SQLite file holds nothing to lose
+        if app_id != APPLICATION_ID and not blank and not all(
+                cols <= columns.get(t, set()) for t, cols in _SCHEMA_MARKER.items()):
+            raise AnkleScanError(f"{path} is an SQLite database of another program, not AnkleScan's; "
+                                 "it was left untouched")
+        bad = conn.execute("PRAGMA quick_check(1)").fetchone()[0]
+        if bad != "ok":
+            raise AnkleScanError(f"database {path} is damaged ({' '.join(str(bad).split())}); it was "
+                                 "left untouched, restore it from a backup")
+    except sqlite3.Error as e:
+        raise _translate(e, path, timeout) from None
+    finally:
+        if conn is not None:
+            conn.close()
+
+
+def _read_only_reason(path: Path, exists: bool) -> str:
+    """Why the database cannot be written ('' if it can), checked before SQLite tries."""
+    folder = path.parent if path.parent.exists() else next(p for p in path.parents if p.exists())
+    try:
+        if os.statvfs(folder).f_flag & os.ST_RDONLY:
+            return "it is on a read-only file system"
+    except (OSError, AttributeError):
+        pass
+    if exists:
+        mode = path.stat().st_mode
+        if not mode & 0o222:
+            return f"the file is marked read-only (mode {mode & 0o777:o})"
+        if not os.access(path, os.W_OK):
+            return "you do not have permission to write the file"
+    if not os.access(folder, os.W_OK):
+        return f"the folder {folder} cannot be written"
+    return ""
+
+
+def _create_private(path: Path) -> None:
+    """Create the database file 0600 (SQLite gives -wal/-shm the same mode), or tighten ours."""
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE))
+        os.chmod(path, PRIVATE_FILE_MODE)
+        return
+    except FileExistsError:
+        pass
+    for p in (path, Path(f"{path}-wal"), Path(f"{path}-shm")):
+        try:
+            make_private(p)
+        except OSError:
+            pass  # not ours to change (another owner) or gone: leave it
+
+
 # -------------------------------------------------------------------- store
 
 class Store:
     """One connection to the sessions database. Not shared between threads."""
 
-    def __init__(self, conn: sqlite3.Connection, path: Path, data_dir: Path, timeout: float):
+    def __init__(self, conn: sqlite3.Connection, path: Path, data_dir: Path, timeout: float,
+                 read_only_reason: str = ""):
         self._conn = conn
         self.path = path
         self.data_dir = data_dir
         self.timeout = timeout
+        self.read_only_reason = read_only_reason  # '' when writable
+
+    @property
+    def read_only(self) -> bool:
+        """True when the database was opened for reading only (``read_only_reason`` says why)."""
+        return bool(self.read_only_reason)
+
+    def _require_writable(self) -> None:
+        if self.read_only:
+            raise AnkleScanError(f"database {self.path} is open read-only ({self.read_only_reason}); "
+                                 "editing is disabled")
 
     # ------------------------------------------------------------ lifecycle
 
     @classmethod
-    def open(cls, path=None, *, data_dir=None, timeout: float = DEFAULT_TIMEOUT_S) -> "Store":
+    def open(cls, path=None, *, data_dir=None, timeout: float = DEFAULT_TIMEOUT_S,
+             read_only: bool = False) -> "Store":
         """Open (creating and migrating as needed) the database.
 
         Files live in ``data_dir``: the argument, else the folder of an explicit ``path``,
         else ANKLESCAN_DATA, else the platform user data folder; the default database is
-        ``data_dir/anklescan.sqlite``.
+        ``data_dir/anklescan.sqlite``. An existing file is first inspected read-only and
+        refused untouched unless it is a healthy AnkleScan database; one that cannot be
+        written (or ``read_only=True``) is opened for reading with ``read_only_reason`` set.
         """
         if path is not None:
             path = Path(path).expanduser()
@@ -419,12 +548,22 @@ class Store:
         else:
             data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
             path = data_dir / DB_FILENAME
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise AnkleScanError(f"cannot create data folder {path.parent}: "
-                                 f"{e.strerror or e}") from None
         _check_header(path)
+        exists = path.exists() and path.stat().st_size > 0
+        if exists:
+            _inspect(path, timeout)
+        reason = "opened read-only on request" if read_only else _read_only_reason(path, exists)
+        if reason:
+            if not exists and read_only:
+                raise AnkleScanError(f"database {path} does not exist (nothing to open read-only)")
+            if not exists:
+                raise AnkleScanError(f"cannot create database {path}: {reason}")
+            return cls._open_read_only(path, data_dir, timeout, reason)
+        try:
+            make_private_dir(path.parent, tighten=False)
+            _create_private(path)
+        except OSError as e:
+            raise AnkleScanError(f"cannot create database {path}: {e.strerror or e}") from None
         try:
             conn = sqlite3.connect(path, timeout=timeout, isolation_level=None)
         except sqlite3.Error as e:
@@ -433,16 +572,67 @@ class Store:
         try:
             store._configure()
             store._migrate()
+            store._enable_wal()
+            store._claim()
+            patients = data_dir / "patients"
+            if patients.is_dir() and stat.S_IMODE(patients.stat().st_mode) != PRIVATE_DIR_MODE:
+                make_tree_private(patients)  # written by a version before files were private
+        except ReadOnlyDatabaseError:
+            conn.close()
+            if not exists:
+                raise
+            return cls._open_read_only(path, data_dir, timeout, "the system refused to open it for writing")
         except BaseException:
             conn.close()
             raise
         return store
+
+    @classmethod
+    def _open_read_only(cls, path: Path, data_dir: Path, timeout: float, reason: str) -> "Store":
+        conn = None
+        # Without a -wal there is nothing but the file to read: immutable=1 reads it without
+        # creating -wal/-shm next to an archive. A -wal a writer left behind needs mode=ro
+        # (and a -shm) to be read; immutable=1 is the fallback when that cannot be made.
+        wal = Path(f"{path}-wal")
+        has_wal = wal.exists() and wal.stat().st_size > 0
+        for query in (("mode=ro", "mode=ro&immutable=1") if has_wal else ("mode=ro&immutable=1",)):
+            try:
+                conn = sqlite3.connect(_uri(path, query), uri=True, timeout=timeout, isolation_level=None)
+                conn.execute("PRAGMA query_only = ON")
+                conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+                break
+            except sqlite3.Error as e:
+                if conn is not None:
+                    conn.close()
+                conn, error = None, e
+        if conn is None:
+            raise _translate(error, path, timeout) from None
+        store = cls(conn, path, data_dir, timeout, reason)
+        version = store.schema_version()
+        if version != SCHEMA_VERSION:
+            conn.close()
+            raise AnkleScanError(f"database {path} has schema v{version} and is read-only ({reason}); "
+                                 f"this AnkleScan needs v{SCHEMA_VERSION}: open a writable copy to upgrade it")
+        return store
+
+    def _claim(self) -> None:
+        """Stamp our application id on a database of ours that predates it."""
+        with self._errors():
+            if self._conn.execute("PRAGMA application_id").fetchone()[0] != APPLICATION_ID:
+                with self._write() as c:
+                    c.execute(f"PRAGMA application_id = {APPLICATION_ID}")
 
     def _configure(self) -> None:
         with self._errors():
             c = self._conn
             c.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
             c.execute("PRAGMA foreign_keys = ON")
+
+    def _enable_wal(self) -> None:
+        """After the schema exists: a new file's first commit (schema + application id) is
+        atomic in rollback mode, so a half-made database never looks like a foreign one."""
+        with self._errors():
+            c = self._conn
             mode = c.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             if str(mode).lower() != "wal":
                 raise AnkleScanError(f"database {self.path}: cannot enable WAL journal "
@@ -450,10 +640,7 @@ class Store:
             # FULL: in WAL mode NORMAL can lose the last commits on power loss; clinical
             # records are small, so the extra fsync is cheap.
             c.execute("PRAGMA synchronous = FULL")
-            bad = c.execute("PRAGMA quick_check(1)").fetchone()[0]
-            if bad != "ok":
-                raise AnkleScanError(f"database {self.path} is damaged ({bad}); it was left "
-                                     "untouched, restore it from a backup")
+            # integrity was checked read-only by _inspect before this connection existed
 
     def _migrate(self, target: int = SCHEMA_VERSION) -> None:
         version = self.schema_version()
@@ -465,6 +652,8 @@ class Store:
         with self._write() as c:
             # Re-read under the write lock: another instance may have migrated meanwhile.
             version = c.execute("PRAGMA user_version").fetchone()[0]
+            if version == 0:
+                c.execute(f"PRAGMA application_id = {APPLICATION_ID}")  # with the first schema
             for v in range(version, target):
                 for stmt in _statements(MIGRATIONS[v]):
                     c.execute(stmt)
@@ -495,6 +684,7 @@ class Store:
     @contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
         """One write transaction: all of it is committed, or none of it."""
+        self._require_writable()
         with self._errors():
             self._conn.execute("BEGIN IMMEDIATE")
             try:
@@ -771,6 +961,8 @@ class Store:
 
     def trial_dir(self, trial_id: int, create: bool = False) -> Path:
         """``data_dir/patients/<code>/session-<id>/trial-<id>``: where its files belong."""
+        if create:
+            self._require_writable()
         row = self._one(
             "SELECT p.code, s.id AS sid FROM trials t JOIN sessions s ON s.id = t.session_id"
             " JOIN patients p ON p.id = s.patient_id WHERE t.id = ?", (trial_id,))
@@ -779,7 +971,9 @@ class Store:
         d = self.data_dir / "patients" / row["code"] / f"session-{row['sid']}" / f"trial-{trial_id}"
         if create:
             try:
-                d.mkdir(parents=True, exist_ok=True)
+                # patients/<code>/session-<id>/trial-<id>: each level private (0700)
+                for level in (d.parents[2], d.parents[1], d.parents[0], d):
+                    make_private_dir(level)
             except OSError as e:
                 raise AnkleScanError(f"cannot create {d}: {e.strerror or e}") from None
         return d

@@ -1,0 +1,228 @@
+"""Sanity limits on everything read from a user's files, checked before any allocation.
+
+A careless or damaged input (a manifest claiming 2e10 Gray bits, a 20000x20000 frame, a
+calibration JSON nested 200,000 levels deep, a 5,000-digit integer, ``Infinity``) must be
+refused with one line and exit 2, quickly, instead of exhausting memory or surfacing as an
+internal error. The limits sit far beyond any real camera, projector or rig, so they never
+refuse a real input; each is a documented constant here so the other modules share them.
+
+- ``load_json`` / ``parse_json``: THE way to read a user's JSON (manifest, calibration, ...):
+  size, nesting depth, integer length and finite floats are checked.
+- ``image_size``: an image file's width and height from its header, without decoding it.
+- ``check_image_side``: a width/height against ``MAX_IMAGE_SIDE``.
+- ``require_finite``: a result (dict/list/array of numbers) must hold only finite numbers.
+- ``check_input_file``: an input read whole is a regular file of sane size (the CLI applies
+  it to every path argument; not /dev/zero, a FIFO or a 10 GB "CSV").
+
+Related helpers elsewhere: ``core.atomic.guard_output`` (an output never replaces an input),
+``core.capture.read_image`` (decode any path, including names that are not valid UTF-8,
+on which ``cv2.imread`` crashes).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import stat
+import struct
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import AnkleScanError
+
+# Largest camera or projector side we accept, px. The largest sensors sold (~150 MP medium
+# format) are ~14200 px wide and projectors stop at 8K (7680): 16384 leaves room.
+MAX_IMAGE_SIDE = 16384
+# Most frames a capture / pattern set may hold (ours: 2 + 2x11 Gray + 8 phase per axis = 62).
+MAX_FRAMES = 1024
+# Gray code bits per axis: 2**16 stripes already exceed MAX_IMAGE_SIDE.
+MAX_GRAY_BITS = 16
+# Phase-shift steps per axis (ours: 8; the literature uses 3..32).
+MAX_PHASE_STEPS = 256
+# A capture's frame stack may use at most this fraction of physical memory (decoding needs
+# a few times the stack again), and never more than MAX_CAPTURE_BYTES.
+MAX_CAPTURE_MEMORY_FRACTION = 0.25
+MAX_CAPTURE_BYTES = 8 << 30
+# Calibrations (SPEC section 4): values beyond these are a corrupted or mistyped file, not a
+# rig. Focal lengths in px (a 16384 px sensor behind a 1000 mm lens is still < 1e6 px), the
+# principal point within 10 image sizes of the image (offset projector lenses put it just
+# outside), distortion coefficients of real lenses are O(1) (fisheyes O(10)), and a device
+# more than 100 m from the world origin is not in the room.
+MIN_FOCAL_PX = 1.0
+MAX_FOCAL_PX = 1e6
+MAX_PRINCIPAL_POINT_SIZES = 10.0
+MAX_DISTORTION = 1e3
+MAX_TRANSLATION_MM = 1e5
+# Any single input file a command reads whole (CSV of marks or control points, JSON, a
+# device's calibration export): ours are kB to a few MB.
+MAX_INPUT_FILE_BYTES = 256 << 20
+# JSON files we read are a few kB (a manifest) to a few MB (a calibration with reports).
+MAX_JSON_BYTES = 64 << 20
+MAX_JSON_DEPTH = 64
+MAX_JSON_INT_DIGITS = 30  # far beyond any count or id; Python refuses > 4300 digits anyway
+
+
+# ------------------------------------------------------------------------------ JSON
+class _NumberError(ValueError):
+    pass
+
+
+def _parse_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_JSON_INT_DIGITS:
+        raise _NumberError(f"an integer of {len(text.lstrip('-'))} digits is out of range")
+    return int(text)
+
+
+def _parse_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _NumberError(f"number {text[:20]}{'...' if len(text) > 20 else ''} is out of range")
+    return value
+
+
+def _parse_constant(name: str):
+    raise _NumberError(f"{name} is not a finite number")
+
+
+def _depth_ok(obj) -> bool:
+    stack = [(obj, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_JSON_DEPTH:
+            return False
+        if isinstance(node, dict):
+            stack.extend((v, depth + 1) for v in node.values() if isinstance(v, (dict, list)))
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node if isinstance(v, (dict, list)))
+    return True
+
+
+def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanError):
+    """``json.loads`` for untrusted text: any defect raises ``error`` naming ``where``."""
+    try:
+        obj = json.loads(text, parse_int=_parse_int, parse_float=_parse_float,
+                         parse_constant=_parse_constant)
+    except _NumberError as e:
+        raise error(f"{where}: {e}") from None
+    except json.JSONDecodeError as e:
+        raise error(f"{where} is not valid JSON (line {e.lineno}: {e.msg})") from None
+    except RecursionError:
+        raise error(f"{where}: JSON nested more than {MAX_JSON_DEPTH} levels deep") from None
+    if not _depth_ok(obj):
+        raise error(f"{where}: JSON nested more than {MAX_JSON_DEPTH} levels deep")
+    return obj
+
+
+def check_input_file(path, what: str, error: type[AnkleScanError] = AnkleScanError,
+                     limit: int = MAX_INPUT_FILE_BYTES) -> None:
+    """An input read whole must be a regular file (not /dev/zero, a FIFO, a socket) of at
+    most ``limit`` bytes; folders pass (their files are checked by whoever reads them)."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except OSError as e:
+        raise error(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if stat.S_ISDIR(st.st_mode):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{what} {path} is not a regular file (a device, pipe or socket)")
+    if st.st_size > limit:
+        raise error(f"{what} {path} is {st.st_size / 2**20:.0f} MB, larger than any input of ours "
+                    f"({limit >> 20} MB at most)")
+
+
+def load_json(path, what: str, error: type[AnkleScanError] = AnkleScanError):
+    """Read and parse a user's JSON file (``what`` names it in messages, e.g. 'manifest')."""
+    path = Path(path)
+    if path.is_dir():
+        raise error(f"{what} {path} is a folder, not a file")
+    check_input_file(path, what, error, MAX_JSON_BYTES)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_JSON_BYTES + 1)
+    except FileNotFoundError:
+        raise error(f"{what} not found: {path}") from None
+    except IsADirectoryError:
+        raise error(f"{what} {path} is a folder, not a file") from None
+    except OSError as e:
+        raise error(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if len(data) > MAX_JSON_BYTES:
+        raise error(f"{what} {path} is larger than {MAX_JSON_BYTES >> 20} MB; not a file of ours")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise error(f"{what} {path} is not UTF-8 text (byte {e.start})") from None
+    return parse_json(text, f"{what} {path}", error)
+
+
+# ---------------------------------------------------------------------------- images
+def check_image_side(width, height, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
+    """Refuse a size no real camera or projector has (before anything is allocated)."""
+    for v in (width, height):
+        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
+            raise error(f"{what}: size {width}x{height} is not a positive whole number of pixels")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise error(f"{what}: size {width}x{height} is beyond any real camera or projector "
+                    f"(at most {MAX_IMAGE_SIDE} px a side)")
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 24:
+        return struct.unpack(">II", head[16:24])
+    return None
+
+
+def image_size(path) -> tuple[int, int] | None:
+    """(width, height) from an image file's header without decoding the pixels, or None
+    when the format's header cannot be read this way (the caller then decodes one frame)."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(32)
+    size = _png_size(head)
+    if size is not None:
+        return int(size[0]), int(size[1])
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow ships with matplotlib
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DecompressionBombWarning: we apply our own limit
+            with Image.open(path) as im:
+                return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError:
+        return MAX_IMAGE_SIDE + 1, MAX_IMAGE_SIDE + 1
+    except Exception:  # noqa: BLE001 - unknown to Pillow (EXR, HDR ...): decode instead
+        return None
+
+
+def capture_memory_limit() -> int:
+    """Bytes a capture's frame stack may take on this machine."""
+    try:
+        phys = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - non-POSIX
+        phys = 16 << 30
+    return int(min(MAX_CAPTURE_BYTES, MAX_CAPTURE_MEMORY_FRACTION * phys))
+
+
+# --------------------------------------------------------------------------- results
+def require_finite(obj, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
+    """Raise ``error`` when a number anywhere in ``obj`` (dict/list/tuple/array) is NaN or
+    infinite: a nonsense input must never surface as ``nan`` in a result."""
+    stack = [(obj, what)]
+    while stack:
+        node, where = stack.pop()
+        if isinstance(node, Mapping):
+            stack.extend((v, f"{where}.{k}") for k, v in node.items())
+        elif isinstance(node, (list, tuple)):
+            stack.extend((v, f"{where}[{i}]") for i, v in enumerate(node))
+        elif isinstance(node, np.ndarray):
+            if node.dtype.kind in "fc" and not np.isfinite(node).all():
+                raise error(f"{where} is not finite (the input is out of range)")
+        elif isinstance(node, (float, np.floating)) and not math.isfinite(node):
+            raise error(f"{where} is not finite (the input is out of range)")
