@@ -334,6 +334,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
                                  out / f"session_{code}.pdf")
         _study_summary(store, progress)
     _summarise(results, out, progress)
+    make_tree_private(out)  # patient-data rules, as run_demo: files 0600, folders 0700
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per patient; {time.perf_counter() - t_start:.0f} s")
     return 0

@@ -280,12 +280,12 @@ class MainWindow(QMainWindow):
     def _build_sidebar(self) -> QWidget:
         side = QWidget()
         v = QVBoxLayout(side)
-        new_patient = QPushButton("New patient…")
+        new_patient = self.new_patient_button = QPushButton("New patient…")
         new_patient.clicked.connect(_no_args(self.new_patient))
         self.new_session_condition = QComboBox()
         for key, label in CONDITIONS:
             self.new_session_condition.addItem(label, key)
-        new_session = QPushButton("New session")
+        new_session = self.new_session_button = QPushButton("New session")
         new_session.clicked.connect(_no_args(self.new_session))
         srow = QHBoxLayout()
         srow.addWidget(self.new_session_condition, 1)
@@ -328,8 +328,8 @@ class MainWindow(QMainWindow):
 
         bar = self.menuBar()
         file = bar.addMenu("&File")
-        act(file, "New &patient…", self.new_patient, "Ctrl+N")
-        act(file, "New &session", self.new_session, "Ctrl+Shift+N")
+        self.new_patient_action = act(file, "New &patient…", self.new_patient, "Ctrl+N")
+        self.new_session_action = act(file, "New &session", self.new_session, "Ctrl+Shift+N")
         act(file, "&Operator…", self.ask_operator)
         act(file, "Data &folder…", self.choose_data_folder)
         file.addSeparator()
@@ -348,7 +348,7 @@ class MainWindow(QMainWindow):
         self.cancel_action = act(scan, "&Cancel scan", self.cancel_scan, "Esc")
         self.cancel_action.setEnabled(False)
         scan.addSeparator()
-        act(scan, "Ca&libration…", self.open_calibration)
+        self.calibration_action = act(scan, "Ca&libration…", self.open_calibration)
         project = scan.addMenu("&Projector shows")
         act(project, "White", lambda: self._projector_show("white"))
         act(project, "Black", lambda: self._projector_show("black"))
@@ -379,7 +379,25 @@ class MainWindow(QMainWindow):
             self.store = None
             self.banner.show_message("error", f"The sessions database could not be opened: {exc}")
         self.data_label.setText(f"Data: {self.data_folder()}")
+        self._apply_read_only()
         self.refresh_patients()
+
+    @property
+    def read_only(self) -> bool:
+        return self.store is not None and self.store.read_only
+
+    def _apply_read_only(self) -> None:
+        """A read-only database (an archived study on a read-only share) is for review: every
+        control that would write is disabled, with the reason as its tooltip."""
+        ro = self.read_only
+        why = f"Read-only database: {self.store.read_only_reason}" if ro else ""
+        for w in self._write_controls():
+            w.setEnabled(not ro)
+            w.setToolTip(why)
+        if self.marks_page is not None:
+            self.marks_page.editor.setEnabled(not ro)
+        self._update_scan_enabled()
+        self._update_trial_buttons()
 
     def refresh_patients(self, select_code: str | None = None) -> None:
         current = select_code or self._current_code()
@@ -709,8 +727,13 @@ class MainWindow(QMainWindow):
         except Exception:
             return None
 
+    def _write_controls(self) -> list:
+        names = ("new_patient_button", "new_session_button", "new_patient_action", "new_session_action",
+                 "calibration_action", "archive_session_action", "archive_patient_action")
+        return [getattr(self, n) for n in names if hasattr(self, n)]
+
     def _update_scan_enabled(self) -> None:
-        ready = self.calibration is not None
+        ready = self.calibration is not None and not self.read_only
         page = self.scan_page
         page.needs_calibration.setVisible(not ready)
         page.calibrate_button.setVisible(not ready)
@@ -749,6 +772,8 @@ class MainWindow(QMainWindow):
     def check_calibration_age(self) -> None:
         from app.calibration_wizard import calibration_warning
         text = calibration_warning()
+        if self.read_only:  # review only: nothing will be scanned, the read-only notice stays
+            return
         if self.calibration is None:
             self.banner.show_message("warning", "No calibration yet: calibrate the scanner before measuring patients.",
                                      ("Calibrate…", self.open_calibration))
@@ -996,6 +1021,7 @@ class MainWindow(QMainWindow):
             self.marks_page.editor.marksChanged.connect(lambda _: self._marks_edited())
             self.marks_holder.addWidget(self.marks_page)
             self.marks_holder.setCurrentWidget(self.marks_page)
+            self.marks_page.editor.setEnabled(not self.read_only)
         return self.marks_page
 
     def ensure_session_view(self):

@@ -200,6 +200,9 @@ class MarkEditor(QWidget):
         self._refresh(save=False)
 
     def place_at_pick(self, pick) -> None:
+        if not self.isEnabled():  # a read-only database: the view still orbits and picks, nothing is placed
+            self.show_pick("This database is read-only: marks cannot be changed.")
+            return
         self.place(self.current_label, pick.point)
 
     def place(self, label: int, xyz) -> None:

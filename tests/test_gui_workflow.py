@@ -369,3 +369,32 @@ def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
     assert (tmp_path / "r.pdf").exists()
     assert startup <= 100 and meter.max_gap_ms <= 100
     win.close()
+
+
+def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_path, monkeypatch):
+    import os
+    from core.store import Store
+    data = tmp_path / "archive"
+    with Store.open(data_dir=data) as db:
+        db.add_patient("P-070", sprain_count=1)
+        db.start_session("P-070", condition="shoes", operator="dr")
+    for p in data.iterdir():
+        if p.is_file():
+            p.chmod(0o444)
+    monkeypatch.setenv("ANKLESCAN_DATA", str(data))
+    win = MainWindow()
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
+    assert win.read_only and "read-only" in win.banner.text
+    item = win.patients.item(0)
+    QTest.mouseClick(win.patients.viewport(), Qt.MouseButton.LeftButton, pos=win.patients.visualItemRect(item).center())
+    assert win.patients.count() == 1 and win.sessions.count() == 1
+    new_patient = button(win, "New patient…")
+    assert not new_patient.isEnabled() and "Read-only" in new_patient.toolTip()
+    assert not button(win, "New session").isEnabled() and not win.scan_page.scan_button.isEnabled()
+    assert not menu_action(win, "File/New patient…").isEnabled()
+    assert not win.marks_page.editor.isEnabled()
+    win.close()
+    assert sorted(os.listdir(data)) == sorted(p.name for p in data.iterdir())
