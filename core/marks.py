@@ -221,7 +221,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     result = MarkSet()
     bounds = SIZE_RANGE_MM
     blobs = candidate_blobs(image, points, cal, noise, bounds)
-    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds)[0] for b in blobs]
+    albedo = shading_corrected(image, points, cal)
+    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo)[0]
+            for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
     if mark_diameter_mm is not None:
         r0, sd0 = 0.5 * float(mark_diameter_mm), RADIUS_PRIOR_SD_MM
@@ -239,13 +241,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         label_marks(result)
         return result
     for blob in blobs:
-        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0)
+        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
         else:
             result.marks.append(mark)
     if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, r0, sigma, sd0)
+        _second_look(result, image, points, cal, r0, sigma, sd0, albedo)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
@@ -282,7 +284,8 @@ def size_groups(marks) -> list[dict]:
     return sorted(groups, key=lambda g: -g["n"])
 
 
-def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd) -> None:
+def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
+                 albedo=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
     A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
@@ -295,7 +298,8 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
     decoded = np.isfinite(points[..., 0])
     if decoded.sum() < 10:
         return
-    albedo = shading_corrected(image, points, cal)
+    if albedo is None:
+        albedo = shading_corrected(image, points, cal)
     found = [m.pixel for m in result.marks]
     r_px = float(_plate_radius_px(cal, np.median(_camera_depth(cal, points[decoded])), radius_mm))
     for blob in candidate_blobs(albedo, points, cal, _noise_sigma(albedo), (radius_mm, radius_mm), ring_background=True):
@@ -303,7 +307,7 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
             continue
         if decoded[blob["slice"]][blob["region"]].mean() < SECOND_LOOK_MIN_DECODED:
             continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
-        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd)
+        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
@@ -493,7 +497,7 @@ def _blob_shape(blob):
 # ---------------------------------------------------------------------------- 3-D fit
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
-             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None):
+             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -504,6 +508,10 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     Whether the disk is a plate or a sticker is measured: the step of its face over the surface
     around it (``surface_step``). A sticker is fitted on the local quadric
     (``_fit_on_surface``); a plate by its plane and the far side of its rim (``_fit_plate``).
+    ``albedo``: the shading-corrected image (``shading_corrected``), where a sticker's edges are
+    found: on the curved skin the light falls off across the disk (a front sticker lit near the
+    terminator was 0.7 mm off with edges from the lit image); with no step in the surface the
+    correction is smooth across the disk's rim, which it is not round a plate's side wall.
     """
     shape = _blob_shape(blob)
     if shape is None:
@@ -532,6 +540,9 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     step = surface_step(points, sigma, shape, centroid, local_frame(centroid, normal))
     thickness = 0.0 if step is None else float(np.clip(step[0], 0.0, None))
     if step is not None and step[0] < STICKER_MAX_STEP_MM:
+        if albedo is not None:
+            pa = edge_profiles(albedo, shape)
+            profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
         out = _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
         kind = "sticker"
     else:
@@ -1292,3 +1303,56 @@ def _azimuth_about(n, axis) -> float:
 
 def _wrap_deg(a: float) -> float:
     return (a + 180.0) % 360.0 - 180.0
+
+
+# ---------------------------------------------------------------------------- manual placement
+
+def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0,
+                   mark_diameter_mm: float | None = None):
+    """The white disk nearest ``point`` (a clicked world point, mm) within ``search_mm``: a
+    fitted ``Mark`` (centre of the face; the skin under a sticker's centre), or None.
+
+    Candidates are the automatic search's blobs near the click, plus one cut at the brightest
+    pixel near the click over the surface around it (a disk the automatic search missed, e.g.
+    one lit at a grazing angle). Each is fitted with the given size as a prior, or with its own
+    free radius. ``core.marks_surface.snap_to_disk`` is the public name.
+    """
+    image = np.asarray(lit, np.float32)
+    point = np.asarray(point, float).reshape(3)
+    if image.ndim != 2 or points.shape[:2] != image.shape or not np.isfinite(point).all():
+        return None
+    sigma = None
+    uv = cal.camera.project(point[None])[0]
+    depth = float(_camera_depth(cal, point[None])[0])
+    if not (np.isfinite(uv).all() and depth > 0):
+        return None
+    px_per_mm = float(_plate_radius_px(cal, depth, 1.0))
+    reach = search_mm * px_per_mm
+    bounds = SIZE_RANGE_MM if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
+    blobs = [b for b in candidate_blobs(image, points, cal, _noise_sigma(image), bounds)
+             if np.hypot(b["centre"][0] - uv[0], b["centre"][1] - uv[1]) <= reach]
+    H, W = image.shape
+    u0, v0 = int(round(uv[0])), int(round(uv[1]))
+    h = max(int(reach), 2)
+    if 0 <= u0 < W and 0 <= v0 < H:
+        win = (slice(max(v0 - h, 0), min(v0 + h + 1, H)), slice(max(u0 - h, 0), min(u0 + h + 1, W)))
+        smooth = cv2.GaussianBlur(image, (0, 0), 0.7)
+        j = np.unravel_index(int(np.argmax(smooth[win])), smooth[win].shape)
+        seed = (win[1].start + j[1], win[0].start + j[0])
+        bg = _ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, bounds[1])
+        if bg is not None:
+            blob = _cut_blob(smooth, seed, bg, int(math.ceil(2.5 * bounds[1] * px_per_mm)))
+            if blob is not None:
+                blobs.append(blob)
+    best = None
+    for blob in blobs:
+        if mark_diameter_mm is None:
+            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds)
+        else:
+            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma)
+        if mark is None:
+            continue
+        d = float(np.linalg.norm(mark.centre - point))
+        if d <= search_mm and (best is None or d < best[0]):
+            best = (d, mark)
+    return None if best is None else best[1]

@@ -84,23 +84,26 @@ def quadric_grad(coef, x, y):
 
 
 def ray_quadric(coef, o, D) -> np.ndarray:
-    """Local points where rays o + t D (o (3,), D (N, 3), in the local frame) meet the quadric:
-    the root nearest the tangent plane's; NaN where they miss."""
+    """Local points where rays o + t D (o (3,), D (N, 3), in the local frame) meet the quadric
+    near the frame's origin: from each ray's hit on the quadric's linear part (the quadric is
+    only valid near the origin, the camera is far outside it), the root nearest; NaN where
+    the ray misses."""
     a, b, c, d, e, g = coef[:6]
+    lin = D[:, 2] - d * D[:, 0] - e * D[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (g + d * o[0] + e * o[1] - o[2]) / lin
+    p0 = o + t0[:, None] * D
     dx, dy, dz = D[:, 0], D[:, 1], D[:, 2]
-    ox, oy, oz = o
+    ox, oy, oz = p0[:, 0], p0[:, 1], p0[:, 2]
     A = a * dx * dx + b * dx * dy + c * dy * dy
     B = 2 * a * ox * dx + b * (ox * dy + oy * dx) + 2 * c * oy * dy + d * dx + e * dy - dz
     C = a * ox * ox + b * ox * oy + c * oy * oy + d * ox + e * oy + g - oz
-    t_lin = -C / np.where(np.abs(B) > 1e-12, B, 1e-12)
     disc = B * B - 4 * A * C
     sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
     q = -0.5 * (B + np.copysign(sq, B))
     with np.errstate(divide="ignore", invalid="ignore"):
-        r1, r2 = q / A, C / q
-    t = np.where(np.abs(r1 - t_lin) < np.abs(r2 - t_lin), r1, r2)
-    t = np.where(np.abs(A) < 1e-12, t_lin, t)
-    return o + t[:, None] * D
+        t = np.where(np.abs(A) > 1e-15, C / q, -C / B)  # the small root (the other is ~B/A away)
+    return p0 + t[:, None] * D
 
 
 def surface_lengths(coef, c, P) -> np.ndarray:

@@ -99,7 +99,12 @@ CREATE INDEX trials_session ON trials(session_id);
 CREATE INDEX sessions_patient ON sessions(patient_id);
 """
 
-MIGRATIONS: list[str] = [_V1, _V2]
+# v3: the marks' diameter kept with the session (NULL: measured from each capture).
+_V3 = """
+ALTER TABLE sessions ADD COLUMN mark_diameter_mm REAL;
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 CONDITIONS = ("barefoot", "shoes")
@@ -150,6 +155,7 @@ class Session:
     condition: str
     calibration_id: int | None
     notes: str
+    mark_diameter_mm: float | None = None  # None: measured from each capture ("auto")
 
 
 @dataclass(frozen=True)
@@ -545,6 +551,18 @@ class Store:
                 "INSERT INTO sessions (patient_id, date, operator, condition, calibration_id,"
                 " notes) VALUES (?, ?, ?, ?, ?, ?)",
                 (pid, day, operator or "", condition, calibration_id, notes or "")).lastrowid
+        return self.get_session(sid)
+
+    def set_session_mark_diameter(self, sid: int, mark_diameter_mm: float | None) -> Session:
+        """Keep the marks' diameter with the session (None: measured from each capture)."""
+        self.get_session(sid)
+        if mark_diameter_mm is not None:
+            d = float(mark_diameter_mm)
+            if not (math.isfinite(d) and 0 < d <= 100):
+                raise AnkleScanError(f"mark diameter must be a positive number of mm, got {mark_diameter_mm!r}")
+            mark_diameter_mm = d
+        with self._write() as c:
+            c.execute("UPDATE sessions SET mark_diameter_mm = ? WHERE id = ?", (mark_diameter_mm, sid))
         return self.get_session(sid)
 
     def get_session(self, sid: int) -> Session:
