@@ -51,6 +51,7 @@ GIVEN_SIZE_TOLERANCE_MM = 0.75  # a given radius this far (or 3 SD) from the mea
 # shadow sliver; fitted on the local quadric); plates are 1-3 mm thick (SPEC §2). The step of
 # a sticker measures 0.0 ± 0.1 mm (docs/marks.md).
 STICKER_MAX_STEP_MM = 0.5
+MAX_EDGE_VIEW_DEG = 80.0  # a sticker's edge point seen more obliquely than this is on the limb
 SURFACE_REACH = 1.25  # x the blob's ellipse: the decoded points a sticker's quadric is fitted to
 LABELS = ("1", "2", "3", "4", "5", "6", "7")
 TABLE_LABELS = ("5", "6", "7")
@@ -236,7 +237,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         result.diameter, result.diameter_given = (float(mark_diameter_mm), 0.0), True
     elif sizes:
         r0, sd0 = sizes[0]["radius"], max(sizes[0]["sd"], RADIUS_PRIOR_SD_MM)
-        result.diameter = (2 * sizes[0]["radius"], 2 * sizes[0]["sd"])
+        result.diameter = (2 * r0, 2 * sd0)
     else:
         label_marks(result)
         return result
@@ -388,7 +389,29 @@ def _camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
     return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
 
 
+SCALE_STEP = 1.6  # candidate searches at radii this factor apart span a size range
+
+
 def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+    """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii SCALE_STEP apart
+    (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
+    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept."""
+    if np.isscalar(radius_mm):
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background)
+    lo, hi = radius_mm
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(SCALE_STEP))), 0) + 1
+    kept, taken = [], np.zeros(image.shape, bool)
+    for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background):
+            u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
+            if taken[v, u]:
+                continue
+            taken[b["slice"]] |= b["region"]
+            kept.append(b)
+    return kept
+
+
+def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -541,7 +564,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     thickness = 0.0 if step is None else float(np.clip(step[0], 0.0, None))
     if step is not None and step[0] < STICKER_MAX_STEP_MM:
         if albedo is not None:
-            pa = edge_profiles(albedo, shape)
+            pa = edge_profiles(albedo, shape, local_level=True)
             profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
         out = _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
         kind = "sticker"
@@ -657,16 +680,24 @@ def _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radiu
         if q is None:
             return f"only {len(P)} decoded 3-D points on the mark"
         coef, surf_rms, keep, _ = q
-        E = ray_quadric(coef, (cam_c - origin) @ F.T, rays_all @ F.T)
-        use = np.isfinite(E[:, 0])
+        D = rays_all @ F.T
+        E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
+        # where the disk wraps round the leg's silhouette, the outline there is the limb, not
+        # the disk's rim: rays grazing the surface are dropped
+        gE = quadric_grad(coef, E[:, 0], E[:, 1])
+        nE = np.column_stack([-gE, np.ones(len(E))])
+        cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
+        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG)))
         if use.sum() < MIN_EDGE_POINTS:
             return "edge points do not form a circle"
         fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
         if fit is None:
             return "edge points do not form a circle"
-        resid = fit[2]
-        bad = np.abs(resid) > max(4 * 1.4826 * np.median(np.abs(resid)), 0.05)
-        if bad.any() and (~bad).sum() >= MIN_EDGE_POINTS:
+        for _ in range(2):
+            resid = fit[2]
+            bad = np.abs(resid) > max(4 * 1.4826 * np.median(np.abs(resid)), 0.05)
+            if not bad.any() or (~bad).sum() < MIN_EDGE_POINTS:
+                break
             use[np.flatnonzero(use)[bad]] = False
             fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
             if fit is None:
@@ -824,11 +855,17 @@ class EdgeProfiles:
         return self.origin + s[:, None] * self.dirs[self.rows]
 
 
-def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
+LEAVE_PLATEAU = 0.85
+
+
+def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False) -> EdgeProfiles:
     """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
     half-way from the plate's interior level to the darkest level within ~2.5 px outside
     the edge. The outside level is re-read at the edge found, because the blob's ellipse
-    (which includes any visible side wall) is only a rough guide to where the rim is."""
+    (which includes any visible side wall) is only a rough guide to where the rim is.
+    ``local_level``: the first outside level is read just past where the profile first falls
+    clearly (LEAVE_PLATEAU) below the disk's level, not at its darkest (in the shading-corrected image a sticker's surround can be half its
+    level, and the darkest is past the leg's silhouette)."""
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
     t = math.radians(shape["angle"])
     ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
@@ -847,6 +884,10 @@ def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
     start = np.argmax(s >= 0.6, axis=1)
     after = np.arange(n_s)[None, :] >= start[:, None]
     level = 0.5 * (inner + np.min(np.where(after, prof, np.inf), axis=1))
+    if local_level:
+        k0 = _first_below(prof, LEAVE_PLATEAU * inner, after)  # the first clear fall off the disk
+        near = after & (np.arange(n_s)[None, :] >= k0[:, None]) & (np.arange(n_s)[None, :] <= k0[:, None] + k_out)
+        level = 0.5 * (inner + np.min(np.where(near, prof, np.inf), axis=1))
     for _ in range(2):
         k = _first_below(prof, level, after)
         window = after & (np.arange(n_s)[None, :] >= k[:, None]) & (np.arange(n_s)[None, :] <= k[:, None] + k_out)
