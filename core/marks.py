@@ -74,6 +74,9 @@ MAX_PLANE_RMS_MM = 0.6  # first plane, on the blob's interior: rim and side wall
 # shadow edge at a grazing-lit plate, 1.6-2.6 mm off, had 0.33-0.46 mm (docs/marks.md).
 MAX_TOP_FACE_RMS_MM = 0.2
 MAX_CIRCLE_RMS_MM = 0.35
+# the free radius's SD: real marks' 0.01-0.3 mm (docs/marks.md); a short arc of something else
+# (8 edge points on a lit patch of the foot) 1.4 mm
+MAX_RADIUS_SD_MM = 0.6
 MIN_INTERIOR_POINTS = 6
 MIN_EDGE_POINTS = 8
 
@@ -226,6 +229,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo)[0]
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
+    steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
+             and m.step_mm > STICKER_MAX_STEP_MM]
+    thick = float(np.median(steps)) if steps else None
     if mark_diameter_mm is not None:
         r0, sd0 = 0.5 * float(mark_diameter_mm), RADIUS_PRIOR_SD_MM
         if sizes and sizes[0]["n"] >= 3 and abs(sizes[0]["radius"] - r0) > max(GIVEN_SIZE_TOLERANCE_MM, 3 * sizes[0]["sd"]):
@@ -242,13 +248,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         label_marks(result)
         return result
     for blob in blobs:
-        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo)
+        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
         else:
             result.marks.append(mark)
     if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, r0, sigma, sd0, albedo)
+        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
@@ -286,7 +292,7 @@ def size_groups(marks) -> list[dict]:
 
 
 def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
-                 albedo=None) -> None:
+                 albedo=None, plate_thickness=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
     A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
@@ -308,7 +314,8 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
             continue
         if decoded[blob["slice"]][blob["region"]].mean() < SECOND_LOOK_MIN_DECODED:
             continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
-        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo)
+        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                           plate_thickness=plate_thickness)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
@@ -520,7 +527,8 @@ def _blob_shape(blob):
 # ---------------------------------------------------------------------------- 3-D fit
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
-             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None):
+             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
+             plate_thickness: float | None = None):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -535,6 +543,8 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     found: on the curved skin the light falls off across the disk (a front sticker lit near the
     terminator was 0.7 mm off with edges from the lit image); with no step in the surface the
     correction is smooth across the disk's rim, which it is not round a plate's side wall.
+    ``plate_thickness``: the step measured on this capture's clear plates, used where this
+    mark's own step is inconclusive (a small blob seen or lit at a grazing angle).
     """
     shape = _blob_shape(blob)
     if shape is None:
@@ -561,20 +571,39 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     if len(profiles.rows) < MIN_EDGE_POINTS:
         return None, "no clear edge"
     step = surface_step(points, sigma, shape, centroid, local_frame(centroid, normal))
-    thickness = 0.0 if step is None else float(np.clip(step[0], 0.0, None))
-    if step is not None and step[0] < STICKER_MAX_STEP_MM:
+    clear = step is not None and (abs(step[0]) + 3 * step[1] < STICKER_MAX_STEP_MM
+                                  or step[0] - 3 * step[1] > STICKER_MAX_STEP_MM)
+    thickness = float(np.clip(step[0], 0.0, None)) if clear else (plate_thickness or 0.0)
+    kinds = ("sticker", "plate") if step is not None and step[0] < STICKER_MAX_STEP_MM else ("plate", "sticker")
+    if clear:
+        kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
+    first_reason = None
+    for kind in kinds:
+        mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
+                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo)
+        if mark is not None:
+            return mark, ""
+        first_reason = first_reason or reason
+    return None, first_reason
+
+
+def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
+              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo):
+    """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
+    cam_c = cal.camera.center
+    n_in0 = n_in
+    if kind == "sticker":
         if albedo is not None:
             pa = edge_profiles(albedo, shape, local_level=True)
             profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
         out = _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
-        kind = "sticker"
     else:
         out = _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
                          px_per_mm, thickness)
-        kind = "plate"
     if isinstance(out, str):
         return None, out
     centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
+    n_in = n_in0
     what = f"{kind}, seen at {_view_deg(cam_c, centre, normal):.0f}°"
     if not (np.isfinite(radius) and radius < 10 * radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
@@ -590,6 +619,8 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
         if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
             return None, (f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
                           f"edge RMS {rms:.2f} mm, {what})")
+    if radius_sd > MAX_RADIUS_SD_MM:
+        return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
     if surf_rms > MAX_TOP_FACE_RMS_MM:
         return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, {what})"
     if prior_sd is not None:
