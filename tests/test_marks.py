@@ -288,7 +288,7 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     origin, uv = cal.camera.project(c[None])[0], cal.camera.project(rim)
     rows = np.arange(len(phi))
     profiles = EdgeProfiles(origin, uv - origin, None, None, None, None, None, rows, np.ones(len(phi)))
-    model = _sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5)
+    model = _sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5, 1.5)
 
     unit = (uv - origin) / np.linalg.norm(uv - origin, axis=1, keepdims=True)
     xs = np.arange(0.01, 3.0, 0.01)
