@@ -812,6 +812,8 @@ def _top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> 
     phi = np.linspace(0, 2 * math.pi, 96, endpoint=False)
     rim = centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1])
     uv = cal.camera.project(rim)
+    if not np.isfinite(uv).all():
+        return np.zeros((0, 2), int)
     x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
     x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 3
     x0, y0 = max(x0, 0), max(y0, 0)

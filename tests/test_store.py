@@ -308,3 +308,16 @@ def test_verification_verdict_and_deleting_marks(db):
     trial = db.get_trial(t.id)
     assert trial.table_inversion is None  # a table needs marks 5, 6 and 7
     assert trial.leg_inversion is not None
+
+
+def test_session_mark_diameter_setting(tmp_path, db):
+    """The marks' size (auto or given) is kept with the session (migration v3) and survives reopening."""
+    _, _, ses, _ = populate(db)
+    assert db.get_session(ses.id).mark_diameter_mm is None  # auto: measured from each capture
+    assert db.set_session_mark_diameter(ses.id, 12.5).mark_diameter_mm == 12.5
+    with pytest.raises(AnkleScanError, match="mark diameter"):
+        db.set_session_mark_diameter(ses.id, -3)
+    db.close()
+    with Store.open(tmp_path / "a.sqlite") as s:
+        assert s.get_session(ses.id).mark_diameter_mm == 12.5
+        assert s.set_session_mark_diameter(ses.id, None).mark_diameter_mm is None
