@@ -164,7 +164,7 @@ def cmd_calibrate_box(args) -> int:
 def cmd_measure(args) -> int:
     from core.measure import run_measure
 
-    result = run_measure(args.capture, args.calibration, args.out)
+    result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter)
     print(result.format_text())
     return 0
 
@@ -254,6 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("measure", help="reconstruct, find and label the 7 marks, compute the angles")
     m.add_argument("capture")
     m.add_argument("--calibration", required=True)
+    m.add_argument("--mark-diameter", type=float, default=None, metavar="MM",
+                   help="the marks' diameter in mm (default: measured from the capture)")
     m.add_argument("--out", required=True)
     m.set_defaults(func=cmd_measure)
 

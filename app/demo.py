@@ -42,12 +42,16 @@ class SimPatient:
     gain_pf: tuple
     noise: float
     shoes_factor: float  # shoes give the ankle a better sense of the angle (the paper's finding)
+    # the clinic's marks for this patient: type, diameter (mm), and whether the session is told
+    # the size (else measured from each capture)
+    marks: tuple = ("plate", 15.0, False)
 
 
 PATIENTS = (
     SimPatient("SIM-01", 3, "2026-08-14", "simulated: recurrent sprains, right ankle", (1.5, -1.0), (0.12, 0.0),
-               (0.05, -0.08), 1.6, 0.55),
-    SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8),
+               (0.05, -0.08), 1.6, 0.55, ("sticker", 12.0, False)),
+    SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
+               ("plate", 15.0, True)),
 )
 CONDITIONS = ("barefoot", "shoes")
 INVERSIONS = (0.0, 10.0, 20.0)
@@ -97,14 +101,15 @@ def _scan_trial(job: dict) -> dict:
     from hardware.simrig import SimRig
 
     t0 = time.perf_counter()
-    scene = leg_scene(*job["table"])
+    mark_type, diameter, _ = job["marks"]
+    scene = leg_scene(*job["table"], mark_type=mark_type, mark_radius=diameter / 2)
     rig = SimRig(scene, scale=job["scale"], seed=job["seed"])
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
     save_capture(job["capture"], pset, [rig.capture(img) for img in render_all(pset)],
                  metadata={"device": "simulated rig", "trial": job["label"]})
     cal = _calibration(job["calibration"])
     capture = load_capture(job["capture"])
-    result = measure_capture(capture, cal)
+    result = measure_capture(capture, cal, job["mark_diameter"])
     write_ply(job["cloud"], result.cloud)
     true_marks = {k: np.asarray(m.centre) for k, m in scene.marks.items()}
     true_angles = angles_from_marks(true_marks)
@@ -117,6 +122,8 @@ def _scan_trial(job: dict) -> dict:
         "marks": {k: [float(x) for x in m.centre] for k, m in found.items()},
         "covariances": {k: np.asarray(c).tolist() for k, c in result.marks.covariances().items()},
         "angles": {k: dict(v) for k, v in result.angles.items()},
+        "mark_type": mark_type,
+        "mark_diameter": result.mark_diameter(),
         "mark_errors_mm": {k: float(np.linalg.norm(np.asarray(m.centre) - true_marks[k])) for k, m in found.items()},
         "angle_errors_deg": {k: float(v["value"] - true_angles[k]) for k, v in result.angles.items()},
         "accuracy": as_dict(evaluate(result.cloud, rig.truth())) if job["accuracy"] else None,
@@ -165,7 +172,9 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list
                           affected_side="right" if p.sprain_count else None, notes=p.notes)
         for condition in (c for code, c in sessions if code == p.code):
             session = store.start_session(p.code, condition=condition, operator="demo",
-                                          calibration_id=cal_id, notes="simulated rig")
+                                          calibration_id=cal_id, notes=f"simulated rig, {p.marks[0]}s {p.marks[1]:g} mm")
+            if p.marks[2]:
+                session = store.set_session_mark_diameter(session.id, p.marks[1])
             for inv in inversions:
                 for pf in pfs:
                     trial = store.add_trial(session.id, ref_inversion=inv, ref_plantar_flexion=pf)
@@ -174,7 +183,8 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list
                     jobs.append(({"label": f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                                   "table": table, "scale": scale, "seed": int(rng.integers(2**31)),
                                   "capture": str(folder / "capture"), "cloud": str(folder / "cloud.ply"),
-                                  "calibration": cal_dict, "accuracy": not jobs}, trial.id))
+                                  "calibration": cal_dict, "accuracy": not jobs, "marks": p.marks,
+                                  "mark_diameter": session.mark_diameter_mm}, trial.id))
     return jobs
 
 
@@ -237,7 +247,13 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
     complete = sum(r["complete"] for r in results)
     summary = {"trials": len(results), "complete": complete,
                "max_mark_error_mm": max(mark_err, default=None), "max_angle_error_deg": max(ang_err, default=None),
-               "scan_accuracy": next((r["accuracy"] for r in results if r["accuracy"]), None)}
+               "scan_accuracy": next((r["accuracy"] for r in results if r["accuracy"]), None),
+               "marks": {t: {"trials": sum(r["mark_type"] == t for r in results),
+                             "max_mark_error_mm": max((e for r in results if r["mark_type"] == t
+                                                       for e in r["mark_errors_mm"].values()), default=None),
+                             "diameters_mm": sorted({round(r["mark_diameter"]["value"], 2) for r in results
+                                                     if r["mark_type"] == t and r["mark_diameter"]})}
+                         for t in sorted({r["mark_type"] for r in results})}}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
              f"table angles and mismatch); against the simulator's truth: "

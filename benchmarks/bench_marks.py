@@ -2,6 +2,10 @@
 
     /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick] [--jobs 2]
         [--postures 20/20,10/20] [--seed N | --seeds i,31,32] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
+        [--types plate,sticker] [--diameters 10,15,20] [--size unknown,given]
+
+Every posture with each mark type and diameter; each rendered capture is measured once per
+``--size`` mode (the diameter measured from the capture, and given as the true one).
 
 Prints, per trial, each labelled mark's centre error (mm), the four angle errors (deg),
 whether all seven were found and labelled, and which true marks were not found (each plate
@@ -32,12 +36,17 @@ SETTINGS = [(inv, pf) for inv in (0, 10, 20) for pf in (-20, -10, 0, 10, 20)]
 QUICK = [(0, 0), (20, 20), (10, -20), (20, -20)]
 
 
-def trial(inv, pf, scale, seed, optics=None):
-    rig = SimRig(leg_scene(inv, pf), scale=scale, seed=seed, optics=optics)
+def trial(inv, pf, scale, seed, optics=None, mark_type="plate", diameter=15.0, modes=("unknown",)):
+    rig = SimRig(leg_scene(inv, pf, mark_type=mark_type, mark_radius=diameter / 2), scale=scale, seed=seed,
+                 optics=optics)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
     cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    return [_measured(rig, cap, None if mode == "unknown" else diameter) for mode in modes]
+
+
+def _measured(rig, cap, given):
     t = time.perf_counter()
-    res = measure_capture(cap, rig.true_calibration())
+    res = measure_capture(cap, rig.true_calibration(), given)
     dt = time.perf_counter() - t
     tr = rig.truth()
     mark_err = {k: float(np.linalg.norm(m.centre - tr.marks[k])) for k, m in res.marks.labelled.items()}
@@ -53,12 +62,17 @@ def trial(inv, pf, scale, seed, optics=None):
 
 def _run(job):
     """One trial in a worker process; only the figures travel back."""
-    inv, pf, scale, seed, optics = job
-    res, me, ae, dt = trial(inv, pf, scale, seed, optics)
-    z = [float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
-         for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
-    return {"inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
-            "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message()}
+    inv, pf, scale, seed, optics, mtype, diam, modes = job
+    out = []
+    for mode, (res, me, ae, dt) in zip(modes, trial(inv, pf, scale, seed, optics, mtype, diam, modes)):
+        z = [float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
+             for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
+        d = res.marks.diameter
+        out.append({"inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
+                    "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
+                    "type": mtype, "diameter": diam, "mode": mode,
+                    "measured": None if d is None or mode == "given" else d})
+    return out
 
 
 def _jobs(a, optics):
@@ -66,7 +80,10 @@ def _jobs(a, optics):
     if a.postures:
         settings = [tuple(int(v) for v in p.split("/")) for p in a.postures.split(",")]
     seeds = a.seeds.split(",") if a.seeds else ["i" if a.seed is None else str(a.seed)]
-    return [(inv, pf, a.scale, i if s == "i" else int(s), optics) for s in seeds for i, (inv, pf) in enumerate(settings)]
+    modes = tuple(a.size.split(","))
+    return [(inv, pf, a.scale, i if s == "i" else int(s), optics, t, float(d), modes)
+            for t in a.types.split(",") for d in a.diameters.split(",")
+            for s in seeds for i, (inv, pf) in enumerate(settings)]
 
 
 def main(argv=None):
@@ -80,14 +97,20 @@ def main(argv=None):
     ap.add_argument("--camera-blur", type=float, help="px (rig default 0.6)")
     ap.add_argument("--projector-blur", type=float, help="projector px (rig default 0.8)")
     ap.add_argument("--noise", type=float, help="read noise, fraction of full scale (rig default 2/255)")
+    ap.add_argument("--types", default="plate", help="mark types: plate,sticker")
+    ap.add_argument("--diameters", default="15", help="mark diameters in mm, e.g. 10,15,20")
+    ap.add_argument("--size", default="unknown", help="unknown (measured), given, or both: unknown,given")
     a = ap.parse_args(argv)
     overrides = {k: v for k, v in (("camera_blur_px", a.camera_blur), ("projector_blur_px", a.projector_blur),
                                    ("noise_sigma", a.noise)) if v is not None}
     optics = Optics(**overrides) if overrides else None
     jobs = _jobs(a, optics)
-    failures, n_found, n_right, errors, angle_errors, z = 0, 0, 0, [], [], []
+    failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
-        for r in pool.imap(_run, jobs) if pool else map(_run, jobs):
+        for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
+            n_trials += 1
+            if r["measured"] is not None:
+                size_err.append((r["measured"][0] - r["diameter"], r["measured"][1]))
             failures += not r["complete"]
             n_found += len(r["found"])
             n_right += sum(k == lab for k, lab in r["found"].items())
@@ -96,7 +119,9 @@ def main(argv=None):
             z += r["z"]
             marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(r["marks"].items()))
             angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
-            print(f"inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE'}  "
+            size = (f"{r['type']:7s} {r['diameter']:4.1f} mm {r['mode']:7s}"
+                    + (f" (measured {r['measured'][0]:.2f} ± {r['measured'][1]:.2f})" if r["measured"] else ""))
+            print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE'}  "
                   f"marks(mm) {marks}  angles(deg) {angles}  [{r['dt']:.1f} s]", flush=True)
             if not r["complete"]:
                 print("    " + r["message"], flush=True)
@@ -105,7 +130,12 @@ def main(argv=None):
     angle_errors = angle_errors or [0.0]
     z = z or [0.0]
     print(f"worst mark error {e.max():.3f} mm, worst angle error {max(angle_errors):.3f} deg, incomplete trials "
-          f"{failures} of {len(jobs)}; plates found {n_found}/{7 * len(jobs)}, correctly labelled {n_right}/{7 * len(jobs)}")
+          f"{failures} of {n_trials}; marks found {n_found}/{7 * n_trials}, correctly labelled {n_right}/{7 * n_trials}")
+    if size_err:
+        de = np.array(size_err)
+        print(f"measured diameter - true: worst {np.abs(de[:, 0]).max():.3f} mm, RMS {np.sqrt(np.mean(de[:, 0] ** 2)):.3f} mm; "
+              f"|error| / SD median {np.median(np.abs(de[:, 0]) / np.maximum(de[:, 1], 1e-9)):.2f}, "
+              f"worst {np.max(np.abs(de[:, 0]) / np.maximum(de[:, 1], 1e-9)):.2f}")
     print(f"centre errors: RMS {np.sqrt(np.mean(e ** 2)):.3f} mm, 95th percentile {np.percentile(e, 95):.3f} mm, "
           f"over 0.25 mm {int((e > 0.25).sum())}; error / SD (Mahalanobis) median {np.median(z):.2f} (1.54 ideal)")
 

@@ -37,9 +37,22 @@ import numpy as np
 import scipy.special
 
 from core.calibration_file import Calibration
+from core.marks_surface import (circle_on_surface, fit_quadric, local_frame, quadric_grad, quadric_z, ray_quadric,
+                                surface_step)
 from core.pointcloud import PointCloud
 
-PLATE_RADIUS_MM = 7.5
+PLATE_RADIUS_MM = 7.5  # the plates of the paper's clinic; no longer assumed (find_marks measures the size)
+# SPEC §2: a mark is 8-25 mm across. The search spans that with a margin (a disk seen at a
+# grazing angle, or blurred, measures a little off); the common size is then measured.
+SIZE_RANGE_MM = (3.5, 13.5)  # radius
+SIZE_CLUSTER_REL = 0.08  # free radii within this fraction (or 3 SD) of each other are one size
+GIVEN_SIZE_TOLERANCE_MM = 0.75  # a given radius this far (or 3 SD) from the measured one fits no mark
+# A face standing less than this over the surface around it is a sticker (no side wall, no
+# shadow sliver; fitted on the local quadric); plates are 1-3 mm thick (SPEC §2). The step of
+# a sticker measures 0.0 ± 0.1 mm (docs/marks.md).
+STICKER_MAX_STEP_MM = 0.5
+MAX_EDGE_VIEW_DEG = 80.0  # a sticker's edge point seen more obliquely than this is on the limb
+SURFACE_REACH = 1.25  # x the blob's ellipse: the decoded points a sticker's quadric is fitted to
 LABELS = ("1", "2", "3", "4", "5", "6", "7")
 TABLE_LABELS = ("5", "6", "7")
 
@@ -61,6 +74,9 @@ MAX_PLANE_RMS_MM = 0.6  # first plane, on the blob's interior: rim and side wall
 # shadow edge at a grazing-lit plate, 1.6-2.6 mm off, had 0.33-0.46 mm (docs/marks.md).
 MAX_TOP_FACE_RMS_MM = 0.2
 MAX_CIRCLE_RMS_MM = 0.35
+# the free radius's SD: real marks' 0.01-0.3 mm (docs/marks.md); a short arc of something else
+# (8 edge points on a lit patch of the foot) 1.4 mm
+MAX_RADIUS_SD_MM = 0.6
 MIN_INTERIOR_POINTS = 6
 MIN_EDGE_POINTS = 8
 
@@ -72,8 +88,7 @@ PLANE_CONVERGED_MM = 0.005  # centre moves less than this
 CONSENSUS_TRIALS = 150  # first plane: the largest consensus among the blob's interior points
 PROFILE_STEP_PX = 0.2
 EDGE_OUTSIDE_PX = 2.5  # the outside level is the darkest within this of the edge (a thin shadow)
-WALL_SLOPE_LIMIT = 0.02  # keep edge points where a side wall would shift them < 0.02 x its height
-PLATE_THICKNESS_MM = 1.5  # height of the plate's top face over the surface (casts the shadow)
+WALL_SHIFT_MAX_MM = 0.03  # a side wall h tall shifts the outline by h |a_c|: keep points below this
 SLIVER_MAX_PX = 0.0  # a projector-shadow sliver beside the rim biases the edge inwards ...
 SLIVER_RESOLVED_PX = 3.0  # ... unless it is resolved, several pixels wide
 SLIVER_PASSES = 2  # re-find the sliver edges with the centre found, refit; once more
@@ -116,6 +131,9 @@ class Mark:
     # past ~70° a plate's centre is less accurate (docs/marks.md), a reason to re-stick it
     view_deg: float | None = None
     light_deg: float | None = None
+    kind: str = "plate"  # "plate" (a face standing step_mm proud) or "sticker" (on the surface)
+    step_mm: float | None = None  # measured height of the face over the surface around it
+    radius_sd: float = float("nan")  # SD of the free fit's radius
 
     @property
     def sd(self) -> float:
@@ -128,6 +146,7 @@ class Mark:
                 "circle_rms_mm": round(self.circle_rms, 4), "plane_rms_mm": round(self.plane_rms, 4),
                 "sd_mm": round(self.sd, 4), "pixel": [round(float(v), 2) for v in self.pixel],
                 "edge_points": self.n_edge, "interior_points": self.n_interior,
+                "kind": self.kind, "step_mm": None if self.step_mm is None else round(self.step_mm, 3),
                 "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
                 "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1)}
 
@@ -139,6 +158,9 @@ class MarkSet:
     marks: list = field(default_factory=list)  # list[Mark], labelled ones first in label order
     rejected: list = field(default_factory=list)  # [{"pixel": (u, v), "reason": str}]
     problems: list = field(default_factory=list)  # labelling / count messages
+    diameter: tuple | None = None  # (mm, sd mm) of the marks: measured, or (given, 0.0)
+    diameter_given: bool = False
+    size_error: str = ""  # a given size that fits no mark: the one-line reason (names the sizes seen)
 
     @property
     def labelled(self) -> dict:
@@ -166,6 +188,8 @@ class MarkSet:
         """One line: what was found and what is missing ('' when all seven are labelled)."""
         if self.complete:
             return ""
+        if self.size_error:
+            return self.size_error
         found = ", ".join(f"{m.label or '?'} at pixel ({m.pixel[0]:.0f}, {m.pixel[1]:.0f})" for m in self.marks)
         parts = [f"found {len(self.marks)} mark plate{'s' if len(self.marks) != 1 else ''}"
                  + (f" ({found})" if found else "")]
@@ -182,31 +206,93 @@ class MarkSet:
 # ---------------------------------------------------------------------------- public entry
 
 def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
-               plate_radius_mm: float = PLATE_RADIUS_MM) -> MarkSet:
-    """Detect, fit and label the mark plates of one scan.
+               mark_diameter_mm: float | None = None) -> MarkSet:
+    """Detect, fit and label the marks of one scan: rigid plates or stickers, of one size.
 
     ``lit``: the projector's light alone per camera pixel (white − black, or better
     ``core.lit_image.averaged_lit`` of the capture, with a third of the noise);
-    ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used.
+    ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used;
+    ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``).
+
+    Two passes: every candidate fitted with its own free radius (the sizes seen), the common
+    size taken from the largest group of agreeing radii, then every candidate fitted again with
+    that size as a prior (a short arc otherwise trades centre against radius).
     """
     image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
     sigma = sigma_image(cloud, image.shape)
     noise = _noise_sigma(image)
     result = MarkSet()
-    for blob in candidate_blobs(image, points, cal, noise, plate_radius_mm):
-        mark, reason = fit_mark(image, points, blob, cal, plate_radius_mm, sigma)
+    bounds = SIZE_RANGE_MM
+    blobs = candidate_blobs(image, points, cal, noise, bounds)
+    albedo = shading_corrected(image, points, cal)
+    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo)[0]
+            for b in blobs]
+    sizes = size_groups([m for m in free if m is not None])
+    steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
+             and m.step_mm > STICKER_MAX_STEP_MM]
+    thick = float(np.median(steps)) if steps else None
+    if mark_diameter_mm is not None:
+        r0, sd0 = 0.5 * float(mark_diameter_mm), RADIUS_PRIOR_SD_MM
+        if sizes and sizes[0]["n"] >= 3 and abs(sizes[0]["radius"] - r0) > max(GIVEN_SIZE_TOLERANCE_MM, 3 * sizes[0]["sd"]):
+            result.size_error = (f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen "
+                                 + ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
+                                             for g in sizes[:3]))
+            result.problems.append(result.size_error)
+            return result
+        result.diameter, result.diameter_given = (float(mark_diameter_mm), 0.0), True
+    elif sizes:
+        r0, sd0 = sizes[0]["radius"], max(sizes[0]["sd"], RADIUS_PRIOR_SD_MM)
+        result.diameter = (2 * r0, 2 * sd0)
+    else:
+        label_marks(result)
+        return result
+    for blob in blobs:
+        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
         else:
             result.marks.append(mark)
     if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, plate_radius_mm, sigma)
+        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick)
+    if mark_diameter_mm is not None and not result.marks:
+        seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
+        result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
+        result.problems.append(result.size_error)
     label_marks(result)
     return result
 
 
-def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma) -> None:
+def size_groups(marks) -> list[dict]:
+    """Groups of marks whose free radii agree (within SIZE_CLUSTER_REL of the radius or 3 SD),
+    largest first: {"radius", "sd", "n"} with the inverse-variance mean and its SD (scaled up by
+    the scatter where the radii disagree more than their SDs say). SPEC §2: all seven are one
+    size, so the largest group is the marks' size."""
+    r = np.array([m.radius for m in marks], float)
+    s = np.array([m.radius_sd for m in marks], float)
+    ok = np.isfinite(r) & np.isfinite(s)
+    r, s = r[ok], np.maximum(s[ok], RADIUS_PRIOR_SD_MM)
+    groups, used = [], np.zeros(len(r), bool)
+    while not used.all():
+        best = None
+        for i in np.flatnonzero(~used):
+            mem = ~used & (np.abs(r - r[i]) <= np.maximum(SIZE_CLUSTER_REL * r[i], 3 * np.hypot(s, s[i])))
+            key = (int(mem.sum()), float(np.sum(1 / s[mem] ** 2)))
+            if best is None or key > best[0]:
+                best = (key, mem)
+        mem = best[1]
+        w = 1.0 / s[mem] ** 2
+        mean = float(w @ r[mem] / w.sum())
+        sd = math.sqrt(1.0 / w.sum())
+        if mem.sum() > 1:
+            sd *= max(1.0, math.sqrt(float(w @ (r[mem] - mean) ** 2) / (mem.sum() - 1)))
+        groups.append({"radius": mean, "sd": sd, "n": int(mem.sum())})
+        used |= mem
+    return sorted(groups, key=lambda g: -g["n"])
+
+
+def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
+                 albedo=None, plate_thickness=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
     A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
@@ -219,15 +305,17 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
     decoded = np.isfinite(points[..., 0])
     if decoded.sum() < 10:
         return
-    albedo = shading_corrected(image, points, cal)
+    if albedo is None:
+        albedo = shading_corrected(image, points, cal)
     found = [m.pixel for m in result.marks]
     r_px = float(_plate_radius_px(cal, np.median(_camera_depth(cal, points[decoded])), radius_mm))
-    for blob in candidate_blobs(albedo, points, cal, _noise_sigma(albedo), radius_mm, ring_background=True):
+    for blob in candidate_blobs(albedo, points, cal, _noise_sigma(albedo), (radius_mm, radius_mm), ring_background=True):
         if any(np.hypot(*(np.asarray(blob["centre"]) - p)) < 2 * r_px for p in found):
             continue
         if decoded[blob["slice"]][blob["region"]].mean() < SECOND_LOOK_MIN_DECODED:
             continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
-        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma)
+        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                           plate_thickness=plate_thickness)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
@@ -308,7 +396,29 @@ def _camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
     return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
 
 
+SCALE_STEP = 1.6  # candidate searches at radii this factor apart span a size range
+
+
 def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+    """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii SCALE_STEP apart
+    (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
+    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept."""
+    if np.isscalar(radius_mm):
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background)
+    lo, hi = radius_mm
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(SCALE_STEP))), 0) + 1
+    kept, taken = [], np.zeros(image.shape, bool)
+    for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background):
+            u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
+            if taken[v, u]:
+                continue
+            taken[b["slice"]] |= b["region"]
+            kept.append(b)
+    return kept
+
+
+def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -324,8 +434,9 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
     if valid.sum() < 10:
         return []
     depth = _camera_depth(cal, points[valid])
-    r_max = float(_plate_radius_px(cal, np.percentile(depth, 1), radius_mm))
-    r_min = float(_plate_radius_px(cal, np.percentile(depth, 99.5), radius_mm))
+    r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
+    r_max = float(_plate_radius_px(cal, np.percentile(depth, 1), r_hi))
+    r_min = float(_plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
     smooth = cv2.GaussianBlur(image, (0, 0), max(0.25 * r_min, 0.7))
     side = int(2 * math.ceil(2.2 * r_max) + 1)
     background = cv2.morphologyEx(smooth, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)))
@@ -343,7 +454,7 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
             continue  # inside a blob already cut from a brighter seed
         blob = _cut_blob(smooth, (u, v), background[v, u], half)
         if blob is None and ring_background:
-            bg = _ring_level(smooth, valid, (u, v), cal, points, radius_mm)
+            bg = _ring_level(smooth, valid, (u, v), cal, points, r_lo)
             # the seed must stand out from that surround as seeds do from the opening
             if bg is not None and smooth[v, u] - bg > max(MIN_RELATIVE_CONTRAST * bg, MIN_CONTRAST_SIGMAS * noise):
                 blob = _cut_blob(smooth, (u, v), bg, half)
@@ -415,15 +526,25 @@ def _blob_shape(blob):
 
 # ---------------------------------------------------------------------------- 3-D fit
 
-def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None):
-    """Plane + far-side edge circle for one candidate; (Mark, '') or (None, reason).
+def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
+             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
+             plate_thickness: float | None = None):
+    """Fit one candidate; (Mark, '') or (None, reason).
 
-    The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
-    holds side-wall and rim pixels), then refitted to the decoded points of the *top face*
-    only — the pixels at least ``TOP_MARGIN_PX`` inside the image of the circle found — and the
-    circle refitted in that plane (``PLANE_PASSES`` times). At the lateral plates' ~70° view a
-    plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
-    7.5 mm·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
+    ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
+    ``prior_sd``: how well it is known (None: no prior, the radius is free); ``radius_bounds``
+    (lo, hi): the size is not known, the blob's size and the free radius must lie in that range
+    instead of near ``radius_mm``.
+
+    Whether the disk is a plate or a sticker is measured: the step of its face over the surface
+    around it (``surface_step``). A sticker is fitted on the local quadric
+    (``_fit_on_surface``); a plate by its plane and the far side of its rim (``_fit_plate``).
+    ``albedo``: the shading-corrected image (``shading_corrected``), where a sticker's edges are
+    found: on the curved skin the light falls off across the disk (a front sticker lit near the
+    terminator was 0.7 mm off with edges from the lit image); with no step in the surface the
+    correction is smooth across the disk's rim, which it is not round a plate's side wall.
+    ``plate_thickness``: the step measured on this capture's clear plates, used where this
+    mark's own step is inconclusive (a small blob seen or lit at a grazing angle).
     """
     shape = _blob_shape(blob)
     if shape is None:
@@ -435,30 +556,110 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
     plane = _plane_from_pixels(points, sigma, interior, cam_c, consensus=True)
     if plane is None:
         n_dec = int(np.isfinite(points[interior[:, 1], interior[:, 0], 0]).sum())
-        return None, f"only {n_dec} decoded 3-D points on the plate"
+        return None, f"only {n_dec} decoded 3-D points on the mark"
     centroid, normal, plane_rms, n_in = plane
     if plane_rms > MAX_PLANE_RMS_MM:
         return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
-    r_px = float(_plate_radius_px(cal, _camera_depth(cal, centroid[None])[0], radius_mm))
-    if not (AREA_RANGE[0] * math.pi * r_px**2 <= shape["area"] <= AREA_RANGE[1] * math.pi * r_px**2):
-        return None, f"wrong size for a plate at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
+    depth = _camera_depth(cal, centroid[None])[0]
+    px_per_mm = float(_plate_radius_px(cal, depth, 1.0))
+    if radius_mm is None:
+        radius_mm = max(shape["axes"]) / px_per_mm  # the ellipse's long axis is not foreshortened
+    lo, hi = radius_bounds or (radius_mm, radius_mm)
+    if not (AREA_RANGE[0] * math.pi * (lo * px_per_mm) ** 2 <= shape["area"] <= AREA_RANGE[1] * math.pi * (hi * px_per_mm) ** 2):
+        return None, f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
     profiles = edge_profiles(image, shape)
-    uv = profiles.points()
-    if len(uv) < MIN_EDGE_POINTS:
+    if len(profiles.rows) < MIN_EDGE_POINTS:
         return None, "no clear edge"
-    rays = cal.camera.rays(uv)
-    px_per_mm = r_px / radius_mm
-    proj_c = cal.projector.center
+    step = surface_step(points, sigma, shape, centroid, local_frame(centroid, normal))
+    clear = step is not None and (abs(step[0]) + 3 * step[1] < STICKER_MAX_STEP_MM
+                                  or step[0] - 3 * step[1] > STICKER_MAX_STEP_MM)
+    thickness = float(np.clip(step[0], 0.0, None)) if clear else (plate_thickness or 0.0)
+    kinds = ("sticker", "plate") if step is not None and step[0] < STICKER_MAX_STEP_MM else ("plate", "sticker")
+    if clear:
+        kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
+    first_reason = None
+    for kind in kinds:
+        mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
+                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo)
+        if mark is not None:
+            return mark, ""
+        first_reason = first_reason or reason
+    return None, first_reason
+
+
+def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
+              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo):
+    """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
+    cam_c = cal.camera.center
+    n_in0 = n_in
+    if kind == "sticker":
+        if albedo is not None:
+            pa = edge_profiles(albedo, shape, local_level=True)
+            profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
+        out = _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
+    else:
+        out = _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
+                         px_per_mm, thickness)
+    if isinstance(out, str):
+        return None, out
+    centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
+    n_in = n_in0
+    what = f"{kind}, seen at {_view_deg(cam_c, centre, normal):.0f}°"
+    if not (np.isfinite(radius) and radius < 10 * radius_mm):
+        # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
+        return None, f"edge points lie on a line, not a circle ({what})"
+    if radius_bounds is not None:
+        if not (lo <= radius <= hi) or rms > MAX_CIRCLE_RMS_MM:
+            return None, f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})"
+    else:
+        # The free radius is a size check; on the short arc of an oblique plate it is itself
+        # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the
+        # fixed one, but not without bound: a straight edge (radius_sd huge) is no mark.
+        tol = min(max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd), MAX_RADIUS_TOLERANCE_MM)
+        if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
+            return None, (f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
+                          f"edge RMS {rms:.2f} mm, {what})")
+    if radius_sd > MAX_RADIUS_SD_MM:
+        return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
+    if surf_rms > MAX_TOP_FACE_RMS_MM:
+        return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, {what})"
+    if prior_sd is not None:
+        # The fit's centre assumes the nominal radius; a free radius off by Δ means the edge
+        # points are biased (side wall, blur at a grazing view) and the centre moves with them:
+        # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
+        B = _plane_basis(normal)
+        cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
+    pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
+    return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
+                view_deg=_view_deg(cam_c, centre, normal), light_deg=_view_deg(cal.projector.center, centre, normal),
+                kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd), ""
+
+
+def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
+               px_per_mm, thickness):
+    """A rigid plate: plane + far-side edge circle; returns the fit tuple or a reason.
+
+    The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
+    holds side-wall and rim pixels), then refitted to the decoded points of the *top face*
+    only — the pixels at least ``TOP_MARGIN_PX`` inside the image of the circle found — and the
+    circle refitted in that plane (``PLANE_PASSES`` times). At the lateral plates' ~70° view a
+    plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
+    r·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
+    ``thickness``: the face's measured height over the surface (side wall, shadow sliver).
+    """
+    cam_c, proj_c = cal.camera.center, cal.projector.center
+    rays = cal.camera.rays(profiles.points())
     fit, last, seen = None, None, set()
     for i in range(PLANE_PASSES + 1):
         E = _ray_plane(cam_c, rays, centroid, normal)
-        fit = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm)
+        fit = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, prior_sd=prior_sd,
+                              thickness=thickness)
         if fit is None:
-            return None, "edge points do not form a circle"
+            return "edge points do not form a circle"
         if i == PLANE_PASSES or (last is not None and np.linalg.norm(fit[0] - last) < PLANE_CONVERGED_MM):
             break
         last = fit[0]
-        top = _top_face_pixels(cal, fit[0], normal, radius_mm, image.shape)
+        top = _top_face_pixels(cal, fit[0], normal, fit[1] if prior_sd is None else radius_mm, image.shape)
         key = top.tobytes()
         if key in seen:
             break  # the same pixels as a pass before: converged (or a 2-cycle of a pixel)
@@ -467,42 +668,94 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float, sigma=None
         if plane is None:
             break  # keep the plane we have: too few decoded top-face points to do better
         centroid, normal, plane_rms, n_in = plane
-    for _ in range(SLIVER_PASSES):
+    for _ in range(SLIVER_PASSES if thickness > 0 else 0):
         # re-find the edges that have a shadow sliver beside them (dropped so far), now that
         # the plate's plane and centre say how wide each sliver is
         E = _ray_plane(cam_c, rays, centroid, normal)
-        s_new, relocated = sliver_edges(profiles, cal, E, fit[0], normal, proj_c, radius_mm)
+        r_now = fit[1] if prior_sd is None else radius_mm
+        s_new, relocated = sliver_edges(profiles, cal, E, fit[0], normal, proj_c, r_now, thickness)
         if not relocated.any():
             break
         rays = cal.camera.rays(profiles.points(s_new))
         E = _ray_plane(cam_c, rays, centroid, normal)
-        better = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated)
+        better = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated,
+                                 prior_sd=prior_sd, thickness=thickness)
         if better is None:
             break
         fit = better
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
-    # The free radius is a size check; on the short arc of an oblique plate it is itself
-    # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the fixed
-    # one, but not without bound: a straight edge (radius_sd huge) is no plate.
-    tol = min(max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd), MAX_RADIUS_TOLERANCE_MM)
-    if not (np.isfinite(radius) and radius < 10 * radius_mm):
-        # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
-        return None, (f"edge points lie on a line, not a {radius_mm:g} mm circle "
-                      f"(seen at {_view_deg(cam_c, centre, normal):.0f}°)")
-    if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
-        return None, (f"not a {radius_mm:g} mm plate (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, "
-                      f"seen at {_view_deg(cam_c, centre, normal):.0f}°)")
-    if plane_rms > MAX_TOP_FACE_RMS_MM:
-        return None, f"top face not flat (plane RMS {plane_rms:.2f} mm)"
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
-    # The fit's centre assumes the nominal radius; a free radius off by Δ means the edge
-    # points are biased (side wall, blur at a grazing view) and the centre moves with them:
-    # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
-    cov += (0.5 * (radius - radius_mm)) ** 2 * (basis.T @ basis)
-    pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
-    return Mark(centre, normal, radius, rms, plane_rms, cov, pixel, n_edge, n_in,
-                view_deg=_view_deg(cam_c, centre, normal),
-                light_deg=_view_deg(proj_c, centre, normal)), ""
+    return centre, normal, radius, radius_sd, rms, plane_rms, cov, n_edge
+
+
+def _fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd):
+    """A sticker: the circle of equal length *along the surface* from its centre, the surface a
+    quadric fitted to the decoded points of the disk and just around it (a sticker has no
+    edge of its own in 3-D), its edge points the camera rays of the image outline cut with that
+    quadric. Every edge point is usable: there is no side wall and no shadow. The frame is
+    re-centred on the centre found until it moves < PLANE_CONVERGED_MM."""
+    cam_c = cal.camera.center
+    rays_all = cal.camera.rays(profiles.points())
+    uv = _ellipse_pixels(shape, SURFACE_REACH, points.shape[:2])
+    P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
+    ok = np.isfinite(P[:, 0])
+    P = P[ok]
+    s = sigma[uv[ok, 1], uv[ok, 0]] if sigma is not None else np.full(len(P), 0.05)
+    w = 1.0 / np.maximum(np.nan_to_num(s, nan=0.5), 0.01) ** 2
+    origin, n = centroid, normal
+    c2, r = np.zeros(2), radius_mm
+    prior = None if prior_sd is None else (radius_mm, prior_sd)
+    for _ in range(4):
+        F = local_frame(origin, n)
+        q = fit_quadric((P - origin) @ F.T, w)
+        if q is None:
+            return f"only {len(P)} decoded 3-D points on the mark"
+        coef, surf_rms, keep, _ = q
+        D = rays_all @ F.T
+        E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
+        # where the disk wraps round the leg's silhouette, the outline there is the limb, not
+        # the disk's rim: rays grazing the surface are dropped
+        gE = quadric_grad(coef, E[:, 0], E[:, 1])
+        nE = np.column_stack([-gE, np.ones(len(E))])
+        cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
+        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG)))
+        if use.sum() < MIN_EDGE_POINTS:
+            return "edge points do not form a circle"
+        fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
+        if fit is None:
+            return "edge points do not form a circle"
+        for _ in range(2):
+            resid = fit[2]
+            bad = np.abs(resid) > max(4 * 1.4826 * np.median(np.abs(resid)), 0.05)
+            if not bad.any() or (~bad).sum() < MIN_EDGE_POINTS:
+                break
+            use[np.flatnonzero(use)[bad]] = False
+            fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
+            if fit is None:
+                return "edge points do not form a circle"
+        c2, r, resid, cov2, _ = fit
+        g = quadric_grad(coef, c2[0], c2[1])
+        centre = origin + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
+        n_new = np.array([-g[0], -g[1], 1.0]) @ F
+        n_new /= np.linalg.norm(n_new)
+        moved = float(np.linalg.norm(centre - origin))
+        origin, n = centre, n_new
+        c2 = np.zeros(2)
+        if moved < PLANE_CONVERGED_MM:
+            break
+    free = circle_on_surface(coef, E[use, :2], fit[0], fit[1]) if prior is not None else fit
+    radius, radius_sd = (free[1], free[4]) if free is not None else (float("nan"), float("inf"))
+    rms = float(np.sqrt(np.mean(resid**2)))
+    # centre's covariance: the in-surface fit, carried to 3-D along the surface's slope; the
+    # surface's height error at the centre carried along the edge rays; the systematic floor
+    Jm = np.array([[1.0, 0.0], [0.0, 1.0], [g[0], g[1]]])
+    in_surface = F.T @ (Jm @ cov2 @ Jm.T) @ F
+    rays_used = rays_all[use]
+    gv = (rays_used / (rays_used @ n)[:, None]).mean(axis=0)
+    var_offset = surf_rms**2 * 6.0 / max(int(keep.sum()), 1)
+    cov = in_surface + var_offset * np.outer(gv, gv) + SD_FLOOR_MM**2 * np.eye(3)
+    n = n if n @ (cam_c - centre) >= 0 else -n
+    return centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum())
 
 
 def _view_deg(cam_c, centre, normal) -> float:
@@ -559,6 +812,8 @@ def _top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> 
     phi = np.linspace(0, 2 * math.pi, 96, endpoint=False)
     rim = centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1])
     uv = cal.camera.project(rim)
+    if not np.isfinite(uv).all():
+        return np.zeros((0, 2), int)
     x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
     x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 3
     x0, y0 = max(x0, 0), max(y0, 0)
@@ -633,11 +888,17 @@ class EdgeProfiles:
         return self.origin + s[:, None] * self.dirs[self.rows]
 
 
-def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
+LEAVE_PLATEAU = 0.85
+
+
+def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False) -> EdgeProfiles:
     """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
     half-way from the plate's interior level to the darkest level within ~2.5 px outside
     the edge. The outside level is re-read at the edge found, because the blob's ellipse
-    (which includes any visible side wall) is only a rough guide to where the rim is."""
+    (which includes any visible side wall) is only a rough guide to where the rim is.
+    ``local_level``: the first outside level is read just past where the profile first falls
+    clearly (LEAVE_PLATEAU) below the disk's level, not at its darkest (in the shading-corrected image a sticker's surround can be half its
+    level, and the darkest is past the leg's silhouette)."""
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
     t = math.radians(shape["angle"])
     ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
@@ -656,6 +917,10 @@ def edge_profiles(image: np.ndarray, shape: dict) -> EdgeProfiles:
     start = np.argmax(s >= 0.6, axis=1)
     after = np.arange(n_s)[None, :] >= start[:, None]
     level = 0.5 * (inner + np.min(np.where(after, prof, np.inf), axis=1))
+    if local_level:
+        k0 = _first_below(prof, LEAVE_PLATEAU * inner, after)  # the first clear fall off the disk
+        near = after & (np.arange(n_s)[None, :] >= k0[:, None]) & (np.arange(n_s)[None, :] <= k0[:, None] + k_out)
+        level = 0.5 * (inner + np.min(np.where(near, prof, np.inf), axis=1))
     for _ in range(2):
         k = _first_below(prof, level, after)
         window = after & (np.arange(n_s)[None, :] >= k[:, None]) & (np.arange(n_s)[None, :] <= k[:, None] + k_out)
@@ -705,7 +970,7 @@ def _rim_geometry(E, rays, centre, normal, proj_c):
     return m, a_c, a_p
 
 
-def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated=None) -> np.ndarray:
+def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated=None, *, thickness) -> np.ndarray:
     """Edge points whose image outline is the top face's rim against a cleanly lit surround.
 
     With ``m`` the outward rim direction and ``d`` a ray (n towards the camera):
@@ -720,14 +985,14 @@ def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated
     _, a_c, a_p = _rim_geometry(E, rays, centre, normal, proj_c)
     # first order, and not foreshortened: "resolved" keeps more of the outline for the first
     # fit (foreshortened, a grazing plate was left with 8 points and one fit 2 mm off)
-    sliver_px = PLATE_THICKNESS_MM * (a_p - a_c) * px_per_mm
+    sliver_px = thickness * (a_p - a_c) * px_per_mm
     ok = (sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX)
     if relocated is not None:
         ok |= relocated
-    return (a_c >= -WALL_SLOPE_LIMIT) & ok
+    return (thickness * -a_c <= WALL_SHIFT_MAX_MM) & ok
 
 
-def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, radius_mm):
+def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, radius_mm, thickness):
     """Edges re-found on the profiles where a projector-shadow sliver lies beside the rim.
 
     Across the rim the image is the plate's level A falling at the rim, a shadow (no projector
@@ -743,7 +1008,7 @@ def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, 
     rays = cal.camera.rays(pr.points())
     m, a_c, _ = _rim_geometry(E, rays, centre, normal, proj_c)
     cos_b = _profile_across_outline(pr, cal, E, normal, m)
-    w_prof = _sliver_along_profile(pr, rays, cal, centre, normal, proj_c, radius_mm)
+    w_prof = _sliver_along_profile(pr, rays, cal, centre, normal, proj_c, radius_mm, thickness)
     sliver = w_prof > 0
     blur_prof = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b) / cos_b  # along the profile, px
     k_edge = pr.s_edge / pr.step[rows]
@@ -780,10 +1045,10 @@ def _level_beyond(vals, first, length) -> np.ndarray:
         return np.nanmedian(np.where(window, vals, np.nan), axis=1)
 
 
-def _sliver_along_profile(pr: EdgeProfiles, rays, cal: Calibration, centre, normal, proj_c, radius_mm):
+def _sliver_along_profile(pr: EdgeProfiles, rays, cal: Calibration, centre, normal, proj_c, radius_mm, thickness):
     """Width (px along each profile, 0 where none) of the projector shadow seen beyond the rim.
 
-    The plate's top disc casts its shadow on the surface PLATE_THICKNESS_MM below it (taken as
+    The plate's top disc casts its shadow on the surface ``thickness`` (measured) below it (taken as
     a plane; the reconstructed surface beside the plates changed nothing measurable) as the
     same disc shifted along the projector's rays; the camera ray through the rim meets that
     surface at Q0, and the rays further out along the profile move from there by ``g`` per px.
@@ -798,12 +1063,12 @@ def _sliver_along_profile(pr: EdgeProfiles, rays, cal: Calibration, centre, norm
     x_rim = _line_leaves_circle(p0 - centre, _ray_plane(cam_c, cal.camera.rays(uv + unit), centre, normal) - p0,
                                 radius_mm, nearest=True)
     uv = uv + np.nan_to_num(x_rim)[:, None] * unit
-    base = centre - PLATE_THICKNESS_MM * normal  # the surface plane's point under the centre
+    base = centre - thickness * normal  # the surface plane's point under the centre
     q0 = _ray_plane(cam_c, cal.camera.rays(uv), base, normal)
     g = _ray_plane(cam_c, cal.camera.rays(uv + unit), base, normal) - q0
     rim_to_proj = (centre + (q0 - base)) - proj_c
     dp = rim_to_proj / np.linalg.norm(rim_to_proj, axis=1, keepdims=True)
-    shadow_centre = base + PLATE_THICKNESS_MM * (dp - np.outer(dp @ normal, normal)) / -(dp @ normal)[:, None]
+    shadow_centre = base + thickness * (dp - np.outer(dp @ normal, normal)) / -(dp @ normal)[:, None]
     inside = np.einsum("ij,ij->i", q0 - shadow_centre, q0 - shadow_centre) < radius_mm**2
     width = _line_leaves_circle(q0 - shadow_centre, g, radius_mm)
     return np.where(inside & np.isfinite(width), width, 0.0)
@@ -840,7 +1105,8 @@ def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
     return float(np.median((x25 - x75) * PROFILE_STEP_PX * cos_b[clean][good]) / 1.349)
 
 
-def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated=None):
+def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated=None, *,
+                    prior_sd=RADIUS_PRIOR_SD_MM, thickness):
     """Circle through the clean edge points (``clean_edge_mask``), in the plate's plane.
 
     Returns the centre from a fit with the radius prior, and the free fit's radius (a check
@@ -851,11 +1117,12 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
     B = _plane_basis(normal)
     q = (E - origin_pt) @ B.T
     centre2 = _circle_kasa(q)
-    prior = (radius_mm, RADIUS_PRIOR_SD_MM)
+    prior = None if prior_sd is None else (radius_mm, prior_sd)
     for _ in range(3):
-        use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm, relocated)
+        use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm, relocated,
+                              thickness=thickness)
         if use.sum() < MIN_EDGE_POINTS:
-            use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, 0.0)
+            use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, 0.0, thickness=thickness)
         if use.sum() < MIN_EDGE_POINTS:
             return None
         res = _circle_geometric(q[use], centre2, radius_mm, prior)
@@ -1110,3 +1377,56 @@ def _azimuth_about(n, axis) -> float:
 
 def _wrap_deg(a: float) -> float:
     return (a + 180.0) % 360.0 - 180.0
+
+
+# ---------------------------------------------------------------------------- manual placement
+
+def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0,
+                   mark_diameter_mm: float | None = None):
+    """The white disk nearest ``point`` (a clicked world point, mm) within ``search_mm``: a
+    fitted ``Mark`` (centre of the face; the skin under a sticker's centre), or None.
+
+    Candidates are the automatic search's blobs near the click, plus one cut at the brightest
+    pixel near the click over the surface around it (a disk the automatic search missed, e.g.
+    one lit at a grazing angle). Each is fitted with the given size as a prior, or with its own
+    free radius. ``core.marks_surface.snap_to_disk`` is the public name.
+    """
+    image = np.asarray(lit, np.float32)
+    point = np.asarray(point, float).reshape(3)
+    if image.ndim != 2 or points.shape[:2] != image.shape or not np.isfinite(point).all():
+        return None
+    sigma = None
+    uv = cal.camera.project(point[None])[0]
+    depth = float(_camera_depth(cal, point[None])[0])
+    if not (np.isfinite(uv).all() and depth > 0):
+        return None
+    px_per_mm = float(_plate_radius_px(cal, depth, 1.0))
+    reach = search_mm * px_per_mm
+    bounds = SIZE_RANGE_MM if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
+    blobs = [b for b in candidate_blobs(image, points, cal, _noise_sigma(image), bounds)
+             if np.hypot(b["centre"][0] - uv[0], b["centre"][1] - uv[1]) <= reach]
+    H, W = image.shape
+    u0, v0 = int(round(uv[0])), int(round(uv[1]))
+    h = max(int(reach), 2)
+    if 0 <= u0 < W and 0 <= v0 < H:
+        win = (slice(max(v0 - h, 0), min(v0 + h + 1, H)), slice(max(u0 - h, 0), min(u0 + h + 1, W)))
+        smooth = cv2.GaussianBlur(image, (0, 0), 0.7)
+        j = np.unravel_index(int(np.argmax(smooth[win])), smooth[win].shape)
+        seed = (win[1].start + j[1], win[0].start + j[0])
+        bg = _ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, bounds[1])
+        if bg is not None:
+            blob = _cut_blob(smooth, seed, bg, int(math.ceil(2.5 * bounds[1] * px_per_mm)))
+            if blob is not None:
+                blobs.append(blob)
+    best = None
+    for blob in blobs:
+        if mark_diameter_mm is None:
+            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds)
+        else:
+            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma)
+        if mark is None:
+            continue
+        d = float(np.linalg.norm(mark.centre - point))
+        if d <= search_mm and (best is None or d < best[0]):
+            best = (d, mark)
+    return None if best is None else best[1]

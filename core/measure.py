@@ -42,10 +42,18 @@ class MeasureResult:
         return {
             "marks": {k: [float(v) for v in lab[k].centre] for k in sorted(lab)},
             "angles": {k: dict(self.angles[k]) for k in ANGLE_ORDER if k in self.angles},
+            "mark_diameter_mm": self.mark_diameter(),
             "mark_details": {k: lab[k].to_dict() for k in sorted(lab)},
             "unlabelled_marks": [m.to_dict() for m in self.marks.unlabelled],
             "reconstruction": self.reconstruction,
         }
+
+    def mark_diameter(self) -> dict | None:
+        """The marks' diameter: measured from the capture ({"value", "sd"} mm), or as given."""
+        d = self.marks.diameter
+        if d is None:
+            return None
+        return {"value": round(d[0], 3), "sd": round(d[1], 3), "given": self.marks.diameter_given}
 
     def format_text(self) -> str:
         lines = ["mark        x          y          z      radius   sd (mm)   seen / lit at"]
@@ -58,28 +66,36 @@ class MeasureResult:
             if name in self.angles:
                 a = self.angles[name]
                 lines.append(f"{name:24s} {a['value']:8.2f}° ± {a['sd']:.2f}°")
+        d = self.mark_diameter()
+        if d is not None:
+            lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
 
 
-def measure_capture(capture: Capture, calibration: Calibration) -> MeasureResult:
+def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm: float | None = None) -> MeasureResult:
     """Reconstruct, find and label the marks, compute the angles; no file I/O, no raising for
-    missing marks (see ``result.complete`` and ``result.marks.message()``)."""
+    missing marks (see ``result.complete`` and ``result.marks.message()``).
+    ``mark_diameter_mm``: the marks' size if known, else measured (``result.mark_diameter()``)."""
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
-    marks = find_marks(averaged_lit(capture), cloud, calibration)
+    marks = find_marks(averaged_lit(capture), cloud, calibration, mark_diameter_mm=mark_diameter_mm)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     return MeasureResult(marks, angles, _jsonable(summary), cloud)
 
 
-def run_measure(capture_dir, calibration_path, out_path) -> MeasureResult:
+def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None) -> MeasureResult:
     """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError."""
+    if mark_diameter_mm is not None and not (np.isfinite(mark_diameter_mm) and mark_diameter_mm > 0):
+        raise AnkleScanError(f"--mark-diameter must be a positive number of mm, not {mark_diameter_mm}")
     cal = load_calibration(calibration_path)
     capture = load_capture(capture_dir)
-    result = measure_capture(capture, cal)
+    result = measure_capture(capture, cal, mark_diameter_mm)
+    if result.marks.size_error:
+        raise AnkleScanError(f"{capture_dir}: {result.marks.size_error}; nothing written")
     if not result.complete:
         raise AnkleScanError(f"{capture_dir}: marks not found: {result.marks.message()}; nothing written")
     write_json_atomic(Path(out_path), result.to_dict())  # refuses NaN/inf: never a nonsense result

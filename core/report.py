@@ -470,6 +470,12 @@ def _error_range_pages(pages: _Pages, rows: list[dict], label: str) -> None:
         pages.save(fig)
 
 
+def _mark_diameter_text(session) -> str:
+    """The session's mark-size setting: a given diameter, or measured from each capture."""
+    d = getattr(session, "mark_diameter_mm", None)
+    return "measured from each capture (auto)" if d is None else f"{d:g} mm (given)"
+
+
 def _calibration_text(cal) -> str:
     rms = "RMS unknown" if cal.rms is None else f"reprojection RMS {cal.rms:.3f} px"
     return (f"#{cal.id}, {rms}, {'verified' if cal.verified else 'not verified'}"
@@ -554,7 +560,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
                + (f", {p.affected_side} side" if p.affected_side else ""))
     items = [("Patient", p.code), ("Sprain history", history), ("Condition", s.condition),
              ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator.strip() or "not recorded"),
-             *_calibration_items(store, s, rows),
+             *_calibration_items(store, s, rows), ("Mark diameter", _mark_diameter_text(s)),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
     for axis in st.AXES:
         a = getattr(summ, axis)

@@ -140,7 +140,12 @@ CREATE TABLE events (
 );
 """
 
-MIGRATIONS: list[str] = [_V1, _V2, _V3]
+# v4: the marks' diameter kept with the session (NULL: measured from each capture).
+_V4 = """
+ALTER TABLE sessions ADD COLUMN mark_diameter_mm REAL;
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 CONDITIONS = ("barefoot", "shoes")
@@ -204,6 +209,7 @@ class Session:
     calibration_id: int | None
     notes: str
     archived: str | None = None
+    mark_diameter_mm: float | None = None  # None: measured from each capture ("auto")
 
 
 @dataclass(frozen=True)
@@ -807,6 +813,18 @@ class Store:
                 "INSERT INTO sessions (patient_id, date, operator, condition, calibration_id,"
                 " notes) VALUES (?, ?, ?, ?, ?, ?)",
                 (pid, day, operator or "", condition, calibration_id, notes or "")).lastrowid
+        return self.get_session(sid)
+
+    def set_session_mark_diameter(self, sid: int, mark_diameter_mm: float | None) -> Session:
+        """Keep the marks' diameter with the session (None: measured from each capture)."""
+        self.get_session(sid)
+        if mark_diameter_mm is not None:
+            d = float(mark_diameter_mm)
+            if not (math.isfinite(d) and 0 < d <= 100):
+                raise AnkleScanError(f"mark diameter must be a positive number of mm, got {mark_diameter_mm!r}")
+            mark_diameter_mm = d
+        with self._write() as c:
+            c.execute("UPDATE sessions SET mark_diameter_mm = ? WHERE id = ?", (mark_diameter_mm, sid))
         return self.get_session(sid)
 
     def get_session(self, sid: int) -> Session:

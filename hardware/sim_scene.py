@@ -373,11 +373,41 @@ class TexturedQuad(SceneObject):
 
 
 @dataclass(eq=False)
+class Sticker:
+    """A white adhesive disk following the skin (SPEC §2): no thickness, no solid of its own,
+    it changes the albedo of its host object where the skin lies within ``radius`` of its
+    centre *along the skin*.
+
+    The distance along the skin is that of the normal section through both points, taken as a
+    circular arc: with the chord c and the angle θ between the host's normals at the two points,
+    s = c (θ/2) / sin(θ/2). It is exact on a cylinder across and along its axis, and follows
+    any host shape (the leg's tapered elliptic section, the flat table) without a mesh; a disk
+    wrapped round a leg of 32-48 mm radius is not a flat-plate rim model's circle.
+    """
+
+    host: SceneObject
+    centre: np.ndarray  # the skin point under the disk's centre (the truth)
+    normal: np.ndarray  # the host's outward normal there
+    radius: float
+    albedo: float = 0.9
+    label: str | None = None
+
+    def covers(self, X: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        d = X - self.centre
+        c = np.sqrt(np.einsum("ij,ij->i", d, d))
+        half = 0.5 * np.arccos(np.clip(normals @ self.normal, -1.0, 1.0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = c * np.where(half > 1e-9, half / np.sin(half), 1.0)
+        return s <= self.radius
+
+
+@dataclass(eq=False)
 class Mark:
     label: str
-    centre: np.ndarray  # centre of the plate's top face (the truth)
+    centre: np.ndarray  # centre of the plate's top face, or the skin under a sticker's (the truth)
     normal: np.ndarray
-    plate: Cylinder
+    plate: Cylinder | None  # None for a sticker
+    sticker: Sticker | None = None
 
 
 @dataclass(eq=False)
@@ -388,8 +418,11 @@ class Scene:
     marks: dict = field(default_factory=dict)  # label -> Mark
     info: dict = field(default_factory=dict)
 
+    stickers: list = field(default_factory=list)  # Sticker decals on objects of ``objects``
+
     def __post_init__(self):
         self.objects = list(self.objects)
+        self._host = [next(i for i, o in enumerate(self.objects) if o is st.host) for st in self.stickers]
         self._kinds = np.array([int(o.kind) for o in self.objects] or [0], dtype=np.int16)
         bounds = [o.bound() for o in self.objects]
         self._bounds = bounds
@@ -436,13 +469,24 @@ class Scene:
             if getattr(self.objects[i], "two_sided", False) and viewer is not None:
                 n = np.where((np.einsum("ij,ij->i", n, np.asarray(viewer) - X[rows]) < 0)[:, None], -n, n)
             normals[rows] = n
+        for st, h in zip(self.stickers, self._host):
+            rows = np.flatnonzero(index == h)
+            if rows.size:
+                albedo[rows[st.covers(X[rows], normals[rows])]] = st.albedo
         return normals, albedo
 
-    def mark_labels(self, index: np.ndarray) -> np.ndarray:
-        """Mark label (1..7) per object index, 0 where the object is not a mark."""
+    def mark_labels(self, index: np.ndarray, X: np.ndarray | None = None, normals=None) -> np.ndarray:
+        """Mark label (1..7) per object index, 0 where the object is not a mark; with the hit
+        points ``X`` and their ``normals``, stickers' pixels carry their label too."""
         lut = np.array([int(o.label) if o.kind == ObjectId.MARK and str(o.label).isdigit() else 0
                         for o in self.objects] or [0], dtype=np.int8)
-        return np.where(index >= 0, lut[np.maximum(index, 0)], 0).astype(np.int8)
+        out = np.where(index >= 0, lut[np.maximum(index, 0)], 0).astype(np.int8)
+        if X is not None and normals is not None:
+            for st, h in zip(self.stickers, self._host):
+                rows = np.flatnonzero(index == h)
+                if rows.size and str(st.label).isdigit():
+                    out[rows[st.covers(X[rows], normals[rows])]] = int(st.label)
+        return out
 
 
 def _may_hit(o, d, bound):
@@ -464,6 +508,11 @@ def _may_hit(o, d, bound):
 def table_normal(inversion_deg: float, plantar_flexion_deg: float) -> np.ndarray:
     """Top normal ∝ (tan inv, tan pf, 1): SPEC §3's table angles of it are exactly the set ones."""
     return _unit([math.tan(math.radians(inversion_deg)), math.tan(math.radians(plantar_flexion_deg)), 1.0])
+
+
+def _sticker(label, host, X, n, radius, albedo=0.9) -> Mark:
+    st = Sticker(host, np.asarray(X, float), _unit(n), float(radius), albedo, label)
+    return Mark(label, st.centre, st.normal, None, st)
 
 
 def _plate(label, foot, n, radius=7.5, thickness=1.5, albedo=0.9) -> Mark:
@@ -490,7 +539,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               foot_semi_axes=(47.5, 120.0, 35.0), foot_sink=13.0, foot_shift=-10.0,
               ankle_back=55.0, ankle_height=20.0,
               knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG, table_marks=None,
-              mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9,
+              mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type="plate",
               floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
 
@@ -499,8 +548,12 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     table). Semi-axes: ankle (mediolateral, anteroposterior); the knee section is
     ``knee_scale`` times it. Table marks are (across, along) the top in mm from its centre;
     ``lateral_mark_deg`` is how far round from straight lateral towards the front marks 3 and 4
-    sit (0: straight lateral).
+    sit (0: straight lateral). ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick)
+    or "sticker" (white disks on the skin and the table top, no thickness); ``mark_radius`` is
+    either's radius (SPEC §2: 4-12.5 mm).
     """
+    if mark_type not in ("plate", "sticker"):
+        raise ValueError(f"mark_type must be 'plate' or 'sticker', not {mark_type!r}")
     if leg_inversion is None:
         leg_inversion = table_inversion + leg_offset_deg[0]
     if leg_plantar_flexion is None:
@@ -528,14 +581,18 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
                           ("3", math.radians(lateral_mark_deg), knee_mark_height),
                           ("4", math.radians(lateral_mark_deg), ankle_mark_height)):
         X, nrm = leg.point(ang, z)
-        marks[label] = _plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo)
+        marks[label] = (_plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo) if mark_type == "plate"
+                        else _sticker(label, leg, X, nrm, mark_radius, mark_albedo))
     for label, (a, b) in (table_marks or DEFAULT_TABLE_MARKS).items():
-        marks[label] = _plate(label, top_c + T @ np.array([a, b, 0.0]), n, mark_radius, mark_thickness, mark_albedo)
-    objs.extend(m.plate for m in marks.values())
-    info = {"kind": "leg", "table_angles": (float(table_inversion), float(table_plantar_flexion)),
+        X = top_c + T @ np.array([a, b, 0.0])
+        marks[label] = (_plate(label, X, n, mark_radius, mark_thickness, mark_albedo) if mark_type == "plate"
+                        else _sticker(label, table, X, n, mark_radius, mark_albedo))
+    objs.extend(m.plate for m in marks.values() if m.plate is not None)
+    stickers = [m.sticker for m in marks.values() if m.sticker is not None]
+    info = {"kind": "leg", "mark_type": mark_type, "mark_radius": float(mark_radius), "table_angles": (float(table_inversion), float(table_plantar_flexion)),
             "leg_axis_angles": (float(leg_inversion), float(leg_plantar_flexion)),
             "table_normal": n, "table_top_centre": top_c}
-    return Scene(objs, marks, info)
+    return Scene(objs, marks, info, stickers)
 
 
 def quad_scene(objects, floor: bool = True, floor_albedo: float = 0.35) -> Scene:

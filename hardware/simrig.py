@@ -423,7 +423,7 @@ class SimRig:
         angles = angles_from_marks(marks) if all(str(i) in marks for i in range(1, 8)) else {}
         return Truth(points=cat["X"].reshape(H, W, 3), normals=cat["normals"].reshape(H, W, 3),
                      object_id=self.scene.object_kinds(index).reshape(H, W),
-                     mark_label=self.scene.mark_labels(index).reshape(H, W),
+                     mark_label=self.scene.mark_labels(index, cat["X"], cat["normals"]).reshape(H, W),
                      seen=cat["seen"].reshape(H, W), lit=cat["lit"].reshape(H, W),
                      proj_uv=cat["proj_uv"].reshape(H, W, 2), marks=marks,
                      mark_normals={k: m.normal.copy() for k, m in sorted(self.scene.marks.items())},

@@ -32,6 +32,13 @@ def test_quick_demo_writes_a_whole_study(tmp_path):
     assert len(rows) == 8
     summary = json.loads((out / "summary.json").read_text())
     assert summary["trials"] == 8 and summary["max_angle_error_deg"] < 0.5
+    # one patient with skin stickers (size measured), the other with plates (size set on the session)
+    assert summary["marks"]["sticker"]["trials"] == 4 and summary["marks"]["plate"]["trials"] == 4
+    assert all(abs(d - 12.0) < 0.5 for d in summary["marks"]["sticker"]["diameters_mm"])
+    assert summary["marks"]["plate"]["diameters_mm"] == [15.0]
+    with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        sizes = {store.get_patient(s.patient_id).code: s.mark_diameter_mm for s in store.list_sessions()}
+        assert sizes == {"SIM-01": None, "SIM-02": 15.0}
     assert any("scanner accuracy" in line for line in lines)
 
 

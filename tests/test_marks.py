@@ -288,7 +288,7 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     origin, uv = cal.camera.project(c[None])[0], cal.camera.project(rim)
     rows = np.arange(len(phi))
     profiles = EdgeProfiles(origin, uv - origin, None, None, None, None, None, rows, np.ones(len(phi)))
-    model = _sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5)
+    model = _sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5, 1.5)
 
     unit = (uv - origin) / np.linalg.norm(uv - origin, axis=1, keepdims=True)
     xs = np.arange(0.01, 3.0, 0.01)
@@ -319,3 +319,102 @@ def test_profiles_that_end_on_the_plate_give_no_edge():
     whole = edge_profiles(image, {"centre": (60.0, 60.0), "axes": (14.0, 14.0), "angle": 0.0})
     assert len(whole.rows) > 40
     assert np.abs(np.hypot(*(whole.points() - 60.0).T) - 20.0).max() < 0.1
+
+
+# ---------------------------------------------------------------------------- any size, plates or stickers
+
+_SIZED = {}
+
+
+def _sized_scan(mark_type, diameter, inv=10, pf=0):
+    """A scale-0.5 scan with marks of one type and size (cached: a few renders serve several tests)."""
+    key = (mark_type, diameter, inv, pf)
+    if key not in _SIZED:
+        from core.capture import capture_from_images
+        from core.patterns import make_pattern_set, render_all
+        from hardware.simrig import SimRig
+
+        rig = SimRig(leg_scene(inv, pf, mark_type=mark_type, mark_radius=diameter / 2), scale=0.5, seed=5)
+        pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+        _SIZED[key] = rig, capture_from_images(pset, rig.capture_many(render_all(pset)))
+    return _SIZED[key]
+
+
+@pytest.mark.parametrize("mark_type,diameter,given", [("sticker", 12.0, False), ("sticker", 20.0, True),
+                                                      ("plate", 15.0, False), ("plate", 20.0, True)])
+def test_marks_of_any_size_plates_and_stickers(mark_type, diameter, given):
+    """Stickers on the curved skin and plates, 10-20 mm, size measured or given: all seven,
+    labelled, centres (the skin under a sticker's centre) well within the targets, the measured
+    diameter within its SD band, each mark's model told from the data (its step)."""
+    from core.measure import measure_capture
+
+    rig, cap = _sized_scan(mark_type, diameter)
+    res = measure_capture(cap, rig.true_calibration(), diameter if given else None)
+    truth = rig.truth()
+    assert res.complete, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, (k, m.centre - truth.marks[k])
+        assert m.kind == mark_type, (k, m.kind, m.step_mm)
+    for name, a in res.angles.items():
+        assert abs(a["value"] - truth.angles[name]) < 0.2
+    d = res.to_dict()["mark_diameter_mm"]
+    if given:
+        assert d == {"value": diameter, "sd": 0.0, "given": True}
+    else:
+        assert abs(d["value"] - diameter) < max(0.4, 4 * d["sd"]) and 0 < d["sd"] < 0.5
+
+
+def test_a_given_size_that_fits_no_mark_names_the_sizes_seen():
+    from core.measure import measure_capture
+
+    rig, cap = _sized_scan("sticker", 12.0)
+    res = measure_capture(cap, rig.true_calibration(), 20.0)
+    msg = res.marks.message()
+    assert not res.complete and "given diameter 20 mm" in msg and "sizes seen 12." in msg and "\n" not in msg
+
+
+def test_click_snaps_to_the_sticker_centre():
+    """Manual placement: a click 4 mm off a sticker's centre snaps to it; a click on bare skin
+    far from any disk gives None (the click is kept as it is)."""
+    from core.decode import decode
+    from core.lit_image import averaged_lit
+    from core.marks import points_image
+    from core.marks_surface import snap_to_disk
+    from core.reconstruct import cloud_from_decoded
+
+    rig, cap = _sized_scan("sticker", 12.0)
+    cal = rig.true_calibration()
+    lit = averaged_lit(cap)
+    pts = points_image(cloud_from_decoded(cap, cal, decode(cap)), lit.shape)
+    truth = rig.truth()
+    for k in ("1", "6"):
+        n = truth.mark_normals[k]
+        off = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+        click = truth.marks[k] + 4.0 * off / np.linalg.norm(off)
+        m = snap_to_disk(click, lit, pts, cal)
+        assert m is not None and np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
+    away = truth.marks["1"] + np.array([0.0, 0.0, -120.0])  # bare shin, 120 mm below the knee mark
+    assert snap_to_disk(away, lit, pts, cal, search_mm=15.0) is None
+
+
+def test_simulated_stickers_follow_the_skin():
+    """A sticker changes the skin's albedo out to its radius measured along the skin (the truth
+    mask labels its pixels), and has no solid: nothing sticks out of the leg."""
+    from hardware.simrig import SimRig
+
+    scene = leg_scene(0, 0, mark_type="sticker", mark_radius=10.0)
+    st = scene.marks["1"].sticker
+    assert scene.marks["1"].plate is None and st.radius == 10.0
+    leg = st.host
+    # along the section round the leg: arc length = radius exactly at the rim
+    a0, b0 = leg.semi_axes
+    z = (st.centre - leg.centre) @ leg.axes[:, 2]
+    s = 1.0 + leg.taper * z
+    phi = np.linspace(math.pi / 2, math.pi / 2 + 0.6, 4001)
+    P = np.stack([a0 * s * np.cos(phi), b0 * s * np.sin(phi), np.full_like(phi, z)], axis=1) @ leg.axes.T + leg.centre
+    arc = np.r_[0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+    n, _ = leg.surface(P)
+    inside = st.covers(P, n)
+    assert abs(arc[inside].max() - 10.0) < 0.05
+    truth = SimRig(scene, scale=0.25, seed=1).truth()
+    assert all((truth.mark_label == int(k)).sum() > 5 for k in "1234567")

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.angles import compute_angles
+from core.angles import AngleResult, compute_angles
 from core.marks import Mark, MarkSet, label_marks
 from core.measure import MeasureResult
 from hardware.sim_scene import leg_scene
@@ -75,3 +75,19 @@ def test_cli_capture_without_marks_exits_2_and_writes_nothing(plain_plane_captur
 def test_cli_missing_capture_exits_2(tmp_path):
     p = _cli("-q", "measure", tmp_path / "nope", "--calibration", tmp_path / "cal.json", "--out", tmp_path / "r.json")
     assert p.returncode == 2 and not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("value", ["0", "-12", "nan"])
+def test_cli_bad_mark_diameter_exits_2_with_one_line(plain_plane_capture, value):
+    d = plain_plane_capture
+    out = d / "RESULT.json"
+    p = _cli("-q", "measure", d / "cap", "--calibration", d / "cal.json", f"--mark-diameter={value}", "--out", out)
+    assert p.returncode == 2 and "--mark-diameter" in p.stderr and "Traceback" not in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_result_reports_the_mark_diameter():
+    ms = MarkSet(diameter=(12.04, 0.06))
+    res = MeasureResult(ms, AngleResult())
+    assert res.to_dict()["mark_diameter_mm"] == {"value": 12.04, "sd": 0.06, "given": False}
+    assert "mark diameter" in res.format_text() and "12.04 mm ± 0.06" in res.format_text()

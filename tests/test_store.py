@@ -346,3 +346,16 @@ def test_trial_lifecycle_exclusion_archive_and_events(tmp_path):
         assert [e.who for e in db.events("trial", good.id) if e.kind == "excluded"] == ["dr-a"]
         with pytest.raises(AnkleScanError, match="trial state"):
             db.set_trial_status(good.id, "done")
+
+
+def test_session_mark_diameter_setting(tmp_path, db):
+    """The marks' size (auto or given) is kept with the session (migration v4) and survives reopening."""
+    _, _, ses, _ = populate(db)
+    assert db.get_session(ses.id).mark_diameter_mm is None  # auto: measured from each capture
+    assert db.set_session_mark_diameter(ses.id, 12.5).mark_diameter_mm == 12.5
+    with pytest.raises(AnkleScanError, match="mark diameter"):
+        db.set_session_mark_diameter(ses.id, -3)
+    db.close()
+    with Store.open(tmp_path / "a.sqlite") as s:
+        assert s.get_session(ses.id).mark_diameter_mm == 12.5
+        assert s.set_session_mark_diameter(ses.id, None).mark_diameter_mm is None
