@@ -91,6 +91,7 @@ def _scan_trial(job: dict) -> dict:
     from core.measure import measure_capture
     from core.patterns import make_pattern_set, render_all
     from core.pointcloud import write_ply
+    from core.triangulate import scan_axes
     from hardware.sim_accuracy import as_dict, evaluate
     from hardware.sim_scene import angles_from_marks, leg_scene
     from hardware.simrig import SimRig
@@ -98,10 +99,10 @@ def _scan_trial(job: dict) -> dict:
     t0 = time.perf_counter()
     scene = leg_scene(*job["table"])
     rig = SimRig(scene, scale=job["scale"], seed=job["seed"])
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    cal = _calibration(job["calibration"])
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal))
     save_capture(job["capture"], pset, [rig.capture(img) for img in render_all(pset)],
                  metadata={"device": "simulated rig", "trial": job["label"]})
-    cal = _calibration(job["calibration"])
     capture = load_capture(job["capture"])
     result = measure_capture(capture, cal)
     write_ply(job["cloud"], result.cloud)

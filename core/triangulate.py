@@ -29,10 +29,13 @@ pixel, fitted at first use). ``x_u`` and ``y_u`` come from tables over the proje
 sampled bilinearly (cv2.remap's float path is exact bilinear); at 3-px spacing (full
 resolution) their interpolation error is ~1e-4 px.
 
-Cost. Everything that depends on the calibration only (unit camera rays per pixel, the tables,
-the epipolar curves) is built on first use in ~0.1 s at 1600x1200 (camera rays: exact
-undistortion on a 4-px grid at full resolution, interpolated: 3e-4 px) and kept on the calibration object; per scan
-the work is a handful of float32 array operations per point.
+Cost. What depends on the calibration only is small and built on first use in a few tens of
+milliseconds, then kept on the calibration object: the camera's undistorted normalised
+coordinates on a grid of nodes (exact there, bilinear between: 3e-4 px at 4-px spacing for a
+1600x1200 camera), the projector's tables and, only when one axis is decoded alone, the
+epipolar curves' coefficients on a 16-px grid (at full resolution). Per scan, each decoded pixel's ray and curve are
+interpolated from these grids (cv2.remap) and the rest is a handful of float32 array
+operations per point. Nothing is computed for the pixels that decoded nothing.
 """
 
 from __future__ import annotations
@@ -62,7 +65,13 @@ def grid_step(device: Device) -> int:
     return max(1, int(min(device.fx, device.fy) * GRID_NORMALISED_STEP))
 
 
-EPIPOLAR_GRID_STEP = 8  # camera pixels between fitted epipolar curves; coefficients are smooth
+def epipolar_step(camera: Device) -> int:
+    """Camera pixels between fitted epipolar curves."""
+    return EPIPOLAR_GRID_FACTOR * grid_step(camera)
+
+
+EPIPOLAR_GRID_FACTOR = 4  # epipolar curves are fitted on a grid this much coarser than the rays' (16 px at
+# full resolution): their coefficients are smooth, and a column read off them to ~0.03 px is plenty
 EPIPOLAR_SAMPLES = 24  # points per epipolar curve fitted
 MIN_TRIANGULATION_ANGLE_DEG = 2.0  # rays meeting planes more obliquely than this are unreliable
 # Two axes disagreeing by more than this many standard deviations, plus this many projector
@@ -79,7 +88,9 @@ class TriangulationCache:
     calibration: Calibration
     cam_center: np.ndarray  # (3,)
     shape: tuple  # camera (H, W)
-    rays: np.ndarray  # (3, H*W) float32 unit world rays, field-major
+    ray_grid: tuple  # (x_u, y_u) float32 camera normalised coordinates at nodes every ray_step px
+    ray_step: int
+    R_c: np.ndarray  # camera rotation (3, 3)
     R_p: np.ndarray  # projector rotation (3, 3)
     D: np.ndarray  # (3,) R_p (Cp - Cc): the baseline in the projector's frame
     f: dict  # axis -> projector focal length (px) along it
@@ -97,7 +108,8 @@ class TriangulationCache:
         return self._tables
 
     def epipolar(self, axis: str) -> np.ndarray:
-        """(3, H*W) float32: per pixel, the other coordinate as a quadratic of ``axis``'s."""
+        """(Hc, Wc, 3) float32 on a grid of nodes every ``epipolar_step`` camera px: the other
+        coordinate as a quadratic of ``axis``'s."""
         if axis not in self._epipolar:
             self._epipolar[axis] = _epipolar_curves(self.calibration, axis)
         return self._epipolar[axis]
@@ -117,44 +129,62 @@ def projector_xu_table(projector: Device, margin: int = TABLE_MARGIN) -> np.ndar
     return projector_tables(projector, margin, 1)[0]
 
 
-def camera_ray_field(cam: Device, step: int | None = None) -> np.ndarray:
-    """(3, H*W) float32 unit world rays of every camera pixel centre.
-
-    The undistorted normalised coordinates are exact on a ``step``-px grid and bilinear between
-    (their curvature is that of the lens distortion: 3e-4 px at 4 px for a real lens), which is
-    ~20x faster than undistorting every pixel."""
+def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[np.ndarray, int]:
+    """The camera's undistorted normalised coordinates (Hc, Wc, 2: x_u, y_u), float32, exact at the pixels
+    ``step * k`` (one node past the last pixel on each side). Their curvature is that of the lens
+    distortion, so bilinear interpolation between nodes errs by ~3e-4 px at 4-px spacing for a
+    real lens: undistorting only the nodes is ~16x cheaper than every pixel."""
     step = grid_step(cam) if step is None else step
-    H, W = cam.height, cam.width
-    gu = np.arange(0, W + step, step, dtype=np.float64)
-    gv = np.arange(0, H + step, step, dtype=np.float64)
+    gu = np.arange(0, cam.width + step, step, dtype=np.float64)
+    gv = np.arange(0, cam.height + step, step, dtype=np.float64)
     xg, yg = cam.normalized_from_pixels(np.stack(np.meshgrid(gu, gv), axis=-1))
-    mx, my = np.meshgrid(np.arange(W, dtype=np.float32) / step, np.arange(H, dtype=np.float32) / step)
-    x = cv2.remap(xg.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    y = cv2.remap(yg.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    inv = 1.0 / np.sqrt(x * x + y * y + np.float32(1.0))
-    R = cam.R.astype(np.float32)
-    rays = np.empty((3, H * W), np.float32)
-    for k in range(3):  # world ray = R.T @ (x, y, 1) / |.|
-        r = x * R[0, k]
-        r += y * R[1, k]
-        r += R[2, k]
-        r *= inv
-        rays[k] = r.ravel()
-    return rays
+    return np.stack([xg, yg], axis=-1).astype(np.float32), step
+
+
+def _pixel_coords(cache: "TriangulationCache", idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (u, v), float32, of flat camera pixel indices."""
+    v, u = np.divmod(idx, cache.shape[1])
+    return u.astype(np.float32), v.astype(np.float32)
+
+
+def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame rays (x_u, y_u, 1) / |.| of flat pixel indices: 3 float32 arrays."""
+    u, v = _pixel_coords(cache, idx) if uv is None else uv
+    scale = np.float32(1.0 / cache.ray_step)
+    xy = sample_bilinear(cache.ray_grid, u * scale, v * scale)
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    inv = x * x
+    inv += y * y
+    inv += np.float32(1.0)
+    np.sqrt(inv, out=inv)
+    np.divide(np.float32(1.0), inv, out=inv)
+    x *= inv
+    y *= inv
+    return x, y, inv
+
+
+def camera_ray_field(cam: Device, step: int | None = None) -> np.ndarray:
+    """(3, H*W) float32 unit world rays of every camera pixel centre (interpolated as above)."""
+    cal = Calibration(cam, cam)
+    grid, step = camera_ray_grid(cam, step)
+    cache = TriangulationCache(cal, cam.center, (cam.height, cam.width), grid, step, cam.R.copy(), cam.R.copy(),
+                               np.zeros(3), {}, (), 0.0)
+    x, y, z = camera_rays(cache, np.arange(cam.width * cam.height))  # noqa: E501
+    return cam.R.T.astype(np.float32) @ np.stack([x, y, z])
 
 
 def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
-    """Per camera pixel, its epipolar curve in the projector image as a quadratic: the row as a
+    """Per node of a camera grid, its epipolar curve in the projector image as a quadratic: the row as a
     function of the column (``axis="column"``) or the column of the row (``"row"``).
 
     Each ray of a coarse camera grid is a straight line in the projector's undistorted plane;
     ``EPIPOLAR_SAMPLES`` points of it spread across the image are distorted and fitted by least
-    squares, and the coefficients are interpolated to every pixel. The residual is the quartic
+    squares; a pixel's coefficients are interpolated between nodes. The residual is the quartic
     part of the lens distortion, far below a projector pixel. A ray whose curve runs nearly
     along ``axis``'s stripes (the axis cannot triangulate it anyway) gets the image's centre line.
     """
     cam, proj = cal.camera, cal.projector
-    step = EPIPOLAR_GRID_STEP
+    step = epipolar_step(cam)
     gu = np.arange(0, cam.width + step, step, dtype=np.float64)
     gv = np.arange(0, cam.height + step, step, dtype=np.float64)
     d = cam.rays(np.stack(np.meshgrid(gu, gv), axis=-1)).reshape(-1, 3)
@@ -196,15 +226,8 @@ def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
     q[:, 0] = proj.cy if k == 0 else proj.cx
     if good.any():
         q[good] = np.linalg.solve(AtA[good] + 1e-12 * np.eye(3), Atv[good][..., None])[..., 0]
-    coarse = q.reshape(gv.size, gu.size, 3).astype(np.float32)
-    # Pixel (i, j) sits at coarse coordinate (i / step, j / step): a remap, not a resize, so the
-    # grid nodes map exactly onto their pixels.
-    mx, my = np.meshgrid(np.arange(cam.width, dtype=np.float32) / step, np.arange(cam.height, dtype=np.float32) / step)
-    out = np.empty((3, cam.width * cam.height), np.float32)
-    for c in range(3):
-        out[c] = cv2.remap(coarse[..., c], mx, my, interpolation=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE).ravel()
-    return out
+    # node (i, j) is camera pixel (i * step, j * step); pixels sample the grid bilinearly
+    return q.reshape(gv.size, gu.size, 3).astype(np.float32)
 
 
 def calibrated_axes(cal: Calibration) -> tuple[str, ...]:
@@ -218,11 +241,14 @@ def build_cache(cal: Calibration) -> TriangulationCache:
     delta = proj.center - cam.center
     if np.linalg.norm(delta) < 1e-6:
         raise GeometryError("calibration: camera and projector centres coincide; no baseline to triangulate")
+    grid, step = camera_ray_grid(cam)
     return TriangulationCache(
         calibration=cal,
         cam_center=cam.center,
         shape=(cam.height, cam.width),
-        rays=camera_ray_field(cam),
+        ray_grid=grid,
+        ray_step=step,
+        R_c=cam.R.copy(),
         R_p=proj.R.copy(),
         D=proj.R @ delta,
         f={"column": proj.fx, "row": proj.fy},
@@ -245,7 +271,8 @@ REMAP_WIDTH = 4096  # cv2.remap takes 2-D maps below 32767 a side; N points are 
 
 
 def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``table`` at N arbitrary points (NaN outside), via cv2.remap."""
+    """Bilinear samples of ``table`` (H, W) or (H, W, C) at N arbitrary points (NaN outside), via
+    cv2.remap: (N,) or (N, C)."""
     n = x.size
     rows = -(-n // REMAP_WIDTH) or 1
     mx = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
@@ -253,7 +280,7 @@ def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     mx[:n], my[:n] = x, y
     out = cv2.remap(table, mx.reshape(rows, REMAP_WIDTH), my.reshape(rows, REMAP_WIDTH),
                     interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    return out.ravel()[:n]
+    return out.reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
 
 
 def _undistorted(cache: TriangulationCache, axis: str, value: np.ndarray, other: np.ndarray) -> np.ndarray:
@@ -267,16 +294,19 @@ def _undistorted(cache: TriangulationCache, axis: str, value: np.ndarray, other:
     return sample_bilinear(yt, other * scale + off, value * scale + off)
 
 
-def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, idx: np.ndarray) -> np.ndarray:
+def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, idx: np.ndarray,
+                      uv=None) -> np.ndarray:
     """The other projector coordinate on pixel ``idx``'s epipolar curve at ``value`` of ``axis``."""
-    q = cache.epipolar(axis)
+    u, v = _pixel_coords(cache, idx) if uv is None else uv
+    scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
+    q = sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
     half = np.float32((cache.calibration.projector.width if axis == "column" else
                        cache.calibration.projector.height) - 1) / np.float32(2.0)
     w = (value - half) * (np.float32(1.0) / half)
-    out = w * q[2][idx]
-    out += q[1][idx]
+    out = w * q[:, 2]
+    out += q[:, 1]
     out *= w
-    out += q[0][idx]
+    out += q[:, 0]
     return out
 
 
@@ -336,6 +366,12 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
     if valid is not None:
         finite &= np.asarray(valid, bool)
     idx = np.flatnonzero(finite)
+    for a in use:  # lazy parts of the cache, built here once rather than racing in the threads
+        o = flat["row" if a == "column" else "column"]
+        if o is None or not np.isfinite(o[idx]).all():
+            cache.epipolar(a)
+    if idx.size:
+        cache.tables  # noqa: B018
     chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
     work = lambda i: _triangulate_chunk(cache, i, flat, sig, use, has_noise, max_sigma_mm)  # noqa: E731
     parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
@@ -378,11 +414,11 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL[0]
 
 
-def _axis_depth(cache, axis, e, value, other, idx):
+def _axis_depth(cache, axis, e, value, other, idx, uv):
     """s along the ray, ds/d(projector px) and the grazing test for one axis."""
     k = 0 if axis == "column" else 1
     if other is None:
-        other = _other_coordinate(cache, axis, value, idx)
+        other = _other_coordinate(cache, axis, value, idx, uv)
     xu = _undistorted(cache, axis, value, other)
     Dk, Dz = np.float32(cache.D[k]), np.float32(cache.D[2])
     den = e[k] - xu * e[2]
@@ -403,13 +439,14 @@ def _axis_depth(cache, axis, e, value, other, idx):
 
 def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, sig: dict, use: tuple,
                        has_noise: bool, max_sigma_mm):
-    R = cache.R_p.astype(np.float32)
-    d = [cache.rays[k][idx] for k in range(3)]
+    uv = _pixel_coords(cache, idx)
+    r = camera_rays(cache, idx, uv)  # unit rays in the camera's frame
+    M = (cache.R_p @ cache.R_c.T).astype(np.float32)  # camera frame -> projector frame
     e = []
     for k in range(3):  # the rays in the projector's frame
-        v = d[0] * R[k, 0]
-        v += d[1] * R[k, 1]
-        v += d[2] * R[k, 2]
+        v = r[0] * M[k, 0]
+        v += r[1] * M[k, 1]
+        v += r[2] * M[k, 2]
         e.append(v)
     s_all = None
     var_all = None
@@ -423,9 +460,9 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
         if flat[o] is not None:
             other = flat[o][idx]
             if not np.isfinite(other).all():
-                fill = _other_coordinate(cache, a, value, idx)
+                fill = _other_coordinate(cache, a, value, idx, uv)
                 other = np.where(np.isfinite(other), other, fill)
-        s, g, ok = _axis_depth(cache, a, e, value, other, idx)
+        s, g, ok = _axis_depth(cache, a, e, value, other, idx, uv)
         ok &= np.isfinite(value)
         sd = g * (sig[a][idx] if sig[a] is not None else np.float32(DEFAULT_SIGMA_PX))
         est[a] = (s, sd, g, ok)
@@ -458,9 +495,15 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
         rejected["noisy_geometry"] = noisy
     keep = np.flatnonzero(ok)
     s = s_all[keep]
+    r = [c[keep] * s for c in r]  # camera-frame point minus the centre
+    Rt = cache.R_c.T.astype(np.float32)
     pts = np.empty((keep.size, 3), np.float32)
-    for k in range(3):
-        pts[:, k] = d[k][keep] * s + np.float32(cache.cam_center[k])
+    for k in range(3):  # world = Cc + R_c^T (camera-frame offset)
+        col = r[0] * Rt[k, 0]
+        col += r[1] * Rt[k, 1]
+        col += r[2] * Rt[k, 2]
+        col += np.float32(cache.cam_center[k])
+        pts[:, k] = col
     return pts, idx[keep], (None if sigma is None else sigma[keep]), axes_code[keep], rejected
 
 
@@ -475,11 +518,14 @@ class AxisGeometry:
 
 
 def working_point(cal: Calibration) -> np.ndarray:
-    """Where the rig looks: the midpoint of the closest approach of the two optical axes, or,
-    if they do not converge in front of both, the camera's axis at twice the baseline."""
+    """Where the rig looks: the midpoint of the closest approach of the rays through the centres
+    of the camera's and the projector's images (a projector's optical axis is usually far off its
+    image's centre), or, if they do not converge in front of both, the camera's central ray at
+    twice the baseline."""
     cam, proj = cal.camera, cal.projector
     c1, c2 = cam.center, proj.center
-    d1, d2 = cam.R[2], proj.R[2]
+    d1 = cam.rays(np.array([(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]))
+    d2 = proj.rays(np.array([(proj.width - 1) / 2.0, (proj.height - 1) / 2.0]))
     b = float(d1 @ d2)
     w = c1 - c2
     den = 1.0 - b * b
