@@ -41,15 +41,16 @@ assert all(im is not None for im in images)
 
 
 def make_capture(work: Path, layout: str, axes: tuple[str, ...] | None, scale: float) -> tuple[Path, Path]:
+    tag = layout + ("" if axes is None else "_" + "_".join(axes))
+    folder, cal_path = work / f"capture_{tag}", work / f"calibration_{layout}.json"
+    if (folder / "manifest.json").exists() and cal_path.exists():
+        return folder, cal_path
     from core.calibration_file import save_calibration
     from core.capture import save_capture
     from core.patterns import make_pattern_set, render_all
     from core.triangulate import scan_axes
     from hardware.simrig import SimRig
 
-    folder, cal_path = work / f"capture_{layout}", work / f"calibration_{layout}.json"
-    if (folder / "manifest.json").exists() and cal_path.exists():
-        return folder, cal_path
     rig = SimRig(scale=scale, layout=layout)
     cal = rig.true_calibration()
     axes = axes or scan_axes(cal)

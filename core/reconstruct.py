@@ -150,7 +150,7 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     if n_decoded > n_valid:
         rejected["depth_edge"] = n_decoded - n_valid
     rejected.update({k: v for k, v in tri.rejected.items() if v})
-    per_axis = np.bincount(tri.axes, minlength=4)
+    per_axis = cv2.calcHist([tri.axes.reshape(1, -1)], [0], None, [4], [0, 4]).ravel().astype(np.int64)
     cloud.meta = {
         "decoded_pixels": n_decoded,
         "points": len(cloud),

@@ -99,6 +99,24 @@ class TriangulationCache:
     table_step: int = 1
     _tables: tuple | None = None
     _epipolar: dict = field(default_factory=dict)
+    # Per-pixel fields, built at the second scan with this calibration (an application scanning
+    # again and again): then a scan gathers instead of interpolating. A one-off command never
+    # pays for them.
+    scans: int = 0
+    ray_field: np.ndarray | None = None  # (6, H*W) float32: unit world ray, the same in the projector's frame
+    epipolar_field: dict = field(default_factory=dict)  # axis -> (3, H*W) float32 coefficients
+
+    def build_fields(self, axes) -> None:
+        """The per-pixel fields of the rays and of ``axes``' epipolar curves."""
+        if self.ray_field is not None and all(a in self.epipolar_field for a in axes):
+            return
+        everything = np.arange(self.shape[0] * self.shape[1])
+        uv = _pixel_coords(self, everything)
+        if self.ray_field is None:
+            self.ray_field = np.stack(_interpolated_rays(self, everything, uv))
+        for axis in axes:
+            if axis not in self.epipolar_field:
+                self.epipolar_field[axis] = np.ascontiguousarray(_interpolated_curves(self, axis, uv).T)
 
     @property
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
@@ -147,6 +165,26 @@ def _pixel_coords(cache: "TriangulationCache", idx: np.ndarray) -> tuple[np.ndar
     return u.astype(np.float32), v.astype(np.float32)
 
 
+def _rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
+    """Unit rays of flat pixel indices: world x, y, z, then the same in the projector's frame."""
+    if cache.ray_field is not None:
+        return [f[idx] for f in cache.ray_field]
+    return _interpolated_rays(cache, idx, uv)
+
+
+def _interpolated_rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
+    r = camera_rays(cache, idx, uv)
+    out = []
+    for R in (cache.R_c.T, cache.R_p @ cache.R_c.T):  # camera frame -> world, -> projector frame
+        R = R.astype(np.float32)
+        for k in range(3):
+            v = r[0] * R[k, 0]
+            v += r[1] * R[k, 1]
+            v += r[2] * R[k, 2]
+            out.append(v)
+    return out
+
+
 def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera-frame rays (x_u, y_u, 1) / |.| of flat pixel indices: 3 float32 arrays."""
     u, v = _pixel_coords(cache, idx) if uv is None else uv
@@ -161,16 +199,6 @@ def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[
     x *= inv
     y *= inv
     return x, y, inv
-
-
-def camera_ray_field(cam: Device, step: int | None = None) -> np.ndarray:
-    """(3, H*W) float32 unit world rays of every camera pixel centre (interpolated as above)."""
-    cal = Calibration(cam, cam)
-    grid, step = camera_ray_grid(cam, step)
-    cache = TriangulationCache(cal, cam.center, (cam.height, cam.width), grid, step, cam.R.copy(), cam.R.copy(),
-                               np.zeros(3), {}, (), 0.0)
-    x, y, z = camera_rays(cache, np.arange(cam.width * cam.height))  # noqa: E501
-    return cam.R.T.astype(np.float32) @ np.stack([x, y, z])
 
 
 def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
@@ -297,17 +325,25 @@ def _undistorted(cache: TriangulationCache, axis: str, value: np.ndarray, other:
 def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, idx: np.ndarray,
                       uv=None) -> np.ndarray:
     """The other projector coordinate on pixel ``idx``'s epipolar curve at ``value`` of ``axis``."""
-    u, v = _pixel_coords(cache, idx) if uv is None else uv
-    scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
-    q = sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
+    field_ = cache.epipolar_field.get(axis)
+    if field_ is not None:
+        q = [f[idx] for f in field_]
+    else:
+        q = _interpolated_curves(cache, axis, _pixel_coords(cache, idx) if uv is None else uv).T
     half = np.float32((cache.calibration.projector.width if axis == "column" else
                        cache.calibration.projector.height) - 1) / np.float32(2.0)
     w = (value - half) * (np.float32(1.0) / half)
-    out = w * q[:, 2]
-    out += q[:, 1]
+    out = w * q[2]
+    out += q[1]
     out *= w
-    out += q[:, 0]
+    out += q[0]
     return out
+
+
+def _interpolated_curves(cache: TriangulationCache, axis: str, uv) -> np.ndarray:
+    u, v = uv
+    scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
+    return sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
 
 
 # ------------------------------------------------------------------------------ whole images
@@ -359,19 +395,25 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
     flat = {a: None if m is None else np.asarray(m, dtype=np.float32).ravel() for a, m in maps.items()}
     sig = {a: None if s is None else np.asarray(s, dtype=np.float32).ravel() for a, s in sigmas.items()}
     has_noise = all(sig[a] is not None for a in use)
-    finite = None
-    for a in use:
-        f = np.isfinite(maps[a]) if maps[a].dtype.kind == "f" else np.ones((H, W), bool)
-        finite = f if finite is None else (finite | f)
-    if valid is not None:
-        finite &= np.asarray(valid, bool)
-    idx = np.flatnonzero(finite)
+    if valid is not None:  # (a NaN on every axis fails the geometric test below anyway)
+        idx = np.flatnonzero(np.asarray(valid, bool))
+    else:
+        finite = None
+        for a in use:
+            f = np.isfinite(maps[a])
+            finite = f if finite is None else (finite | f)
+        idx = np.flatnonzero(finite)
+    alone = []  # axes decoded without the other somewhere: they need the epipolar curves
     for a in use:  # lazy parts of the cache, built here once rather than racing in the threads
         o = flat["row" if a == "column" else "column"]
         if o is None or not np.isfinite(o[idx]).all():
             cache.epipolar(a)
+            alone.append(a)
     if idx.size:
         cache.tables  # noqa: B018
+        cache.scans += 1
+        if cache.scans >= 2:
+            cache.build_fields(alone)
     chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
     work = lambda i: _triangulate_chunk(cache, i, flat, sig, use, has_noise, max_sigma_mm)  # noqa: E731
     parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
@@ -418,6 +460,8 @@ def _axis_depth(cache, axis, e, value, other, idx, uv):
     """s along the ray, ds/d(projector px) and the grazing test for one axis."""
     k = 0 if axis == "column" else 1
     if other is None:
+        if uv is None and cache.epipolar_field.get(axis) is None:
+            uv = _pixel_coords(cache, idx)
         other = _other_coordinate(cache, axis, value, idx, uv)
     xu = _undistorted(cache, axis, value, other)
     Dk, Dz = np.float32(cache.D[k]), np.float32(cache.D[2])
@@ -439,18 +483,9 @@ def _axis_depth(cache, axis, e, value, other, idx, uv):
 
 def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, sig: dict, use: tuple,
                        has_noise: bool, max_sigma_mm):
-    uv = _pixel_coords(cache, idx)
-    r = camera_rays(cache, idx, uv)  # unit rays in the camera's frame
-    M = (cache.R_p @ cache.R_c.T).astype(np.float32)  # camera frame -> projector frame
-    e = []
-    for k in range(3):  # the rays in the projector's frame
-        v = r[0] * M[k, 0]
-        v += r[1] * M[k, 1]
-        v += r[2] * M[k, 2]
-        e.append(v)
-    s_all = None
-    var_all = None
-    axes_code = np.zeros(idx.size, np.uint8)
+    uv = None if cache.ray_field is not None else _pixel_coords(cache, idx)
+    rays = _rays(cache, idx, uv)
+    d, e = rays[:3], rays[3:]  # unit rays in the world and in the projector's frame
     rejected = {}
     est = {}
     for a in use:
@@ -460,16 +495,20 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
         if flat[o] is not None:
             other = flat[o][idx]
             if not np.isfinite(other).all():
+                if uv is None and cache.epipolar_field.get(a) is None:
+                    uv = _pixel_coords(cache, idx)
                 fill = _other_coordinate(cache, a, value, idx, uv)
                 other = np.where(np.isfinite(other), other, fill)
-        s, g, ok = _axis_depth(cache, a, e, value, other, idx, uv)
-        ok &= np.isfinite(value)
-        sd = g * (sig[a][idx] if sig[a] is not None else np.float32(DEFAULT_SIGMA_PX))
+        s, g, ok = _axis_depth(cache, a, e, value, other, idx, uv)  # a NaN value fails ok
+        if sig[a] is not None:
+            sd = sig[a][idx]
+            sd *= g
+        else:
+            sd = g * np.float32(DEFAULT_SIGMA_PX)
         est[a] = (s, sd, g, ok)
     if len(est) == 1:
-        (a, (s_all, sd, _, ok)), = est.items()
-        var_all = sd * sd
-        axes_code[ok] = AXIS_BITS[a]
+        (a, (s_all, sigma, _, ok)), = est.items()
+        axes_code = None
     else:
         (s1, sd1, g1, ok1), (s2, sd2, g2, ok2) = est["column"], est["row"]
         v1, v2 = sd1 * sd1 + np.float32(1e-20), sd2 * sd2 + np.float32(1e-20)
@@ -487,24 +526,21 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
         var_all = np.where(both, combined_var, np.where(ok1, v1, v2))
         ok = (ok1 | ok2) & ~disagree
         axes_code = np.where(both, np.uint8(3), np.where(ok1, np.uint8(1), np.uint8(2)))
-    sigma = np.sqrt(var_all) if has_noise else None
+        sigma = np.sqrt(var_all)
+    if not has_noise:
+        sigma = None
     if sigma is not None and max_sigma_mm is not None:
-        ok = ok & (sigma <= np.float32(max_sigma_mm))
-    noisy = int(np.count_nonzero(~ok)) - rejected.get("axes_disagree", 0)
+        ok &= sigma <= np.float32(max_sigma_mm)
+    keep = np.flatnonzero(ok)
+    noisy = idx.size - keep.size - rejected.get("axes_disagree", 0)
     if noisy:
         rejected["noisy_geometry"] = noisy
-    keep = np.flatnonzero(ok)
     s = s_all[keep]
-    r = [c[keep] * s for c in r]  # camera-frame point minus the centre
-    Rt = cache.R_c.T.astype(np.float32)
     pts = np.empty((keep.size, 3), np.float32)
-    for k in range(3):  # world = Cc + R_c^T (camera-frame offset)
-        col = r[0] * Rt[k, 0]
-        col += r[1] * Rt[k, 1]
-        col += r[2] * Rt[k, 2]
-        col += np.float32(cache.cam_center[k])
-        pts[:, k] = col
-    return pts, idx[keep], (None if sigma is None else sigma[keep]), axes_code[keep], rejected
+    for k in range(3):
+        pts[:, k] = d[k][keep] * s + np.float32(cache.cam_center[k])
+    code = np.full(keep.size, AXIS_BITS[use[0]], np.uint8) if axes_code is None else axes_code[keep]
+    return pts, idx[keep], (None if sigma is None else sigma[keep]), code, rejected
 
 
 # ------------------------------------------------------------------------------ rig geometry
