@@ -143,14 +143,18 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
                        point_quality(decoded, idx, capture.max_value), sigma=sigma)
     n_pix = decoded.valid.size
     n_reasons = len(REASON_NAMES)
-    # why the pixels without any decoded axis failed
-    counts = cv2.calcHist([decoded.reason], [0], cv2.bitwise_not(decoded_any) & 1, [n_reasons],
-                          [0, n_reasons]).ravel().astype(np.int64)
+    # why the pixels without any decoded axis failed (with one axis: every pixel whose reason is not 0)
+    undecoded = None if len(capture.pattern_set.axes) == 1 else cv2.bitwise_not(decoded_any) & 1
+    counts = cv2.calcHist([decoded.reason], [0], undecoded, [n_reasons], [0, n_reasons]).ravel().astype(np.int64)
     rejected = {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if i and c}
     if n_decoded > n_valid:
         rejected["depth_edge"] = n_decoded - n_valid
     rejected.update({k: v for k, v in tri.rejected.items() if v})
-    per_axis = cv2.calcHist([tri.axes.reshape(1, -1)], [0], None, [4], [0, 4]).ravel().astype(np.int64)
+    if len(axes) == 1:
+        per_axis = np.zeros(4, np.int64)
+        per_axis[AXIS_BITS[axes[0]]] = idx.size
+    else:
+        per_axis = cv2.calcHist([tri.axes.reshape(1, -1)], [0], None, [4], [0, 4]).ravel().astype(np.int64)
     cloud.meta = {
         "decoded_pixels": n_decoded,
         "points": len(cloud),

@@ -165,11 +165,32 @@ def _pixel_coords(cache: "TriangulationCache", idx: np.ndarray) -> tuple[np.ndar
     return u.astype(np.float32), v.astype(np.float32)
 
 
-def _rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
-    """Unit rays of flat pixel indices: world x, y, z, then the same in the projector's frame."""
-    if cache.ray_field is not None:
-        return [f[idx] for f in cache.ray_field]
-    return _interpolated_rays(cache, idx, uv)
+class _Rays:
+    """Unit rays of flat pixel indices, components on demand: ``world(k)`` (x, y, z) and
+    ``projector(k)`` (the same in the projector's frame). With the per-pixel field each is one
+    gather, made only if asked for; otherwise all are interpolated at once."""
+
+    def __init__(self, cache: "TriangulationCache", idx: np.ndarray, uv):
+        self.field = cache.ray_field
+        self.idx = idx
+        self.all = None if self.field is not None else _interpolated_rays(cache, idx, uv)
+        self.got: dict = {}
+
+    def _get(self, k: int) -> np.ndarray:
+        if self.all is not None:
+            return self.all[k]
+        if k not in self.got:
+            self.got[k] = self.field[k][self.idx]
+        return self.got[k]
+
+    def projector(self, k: int) -> np.ndarray:
+        return self._get(3 + k)
+
+    def world_at(self, k: int, keep: np.ndarray, idx_keep: np.ndarray) -> np.ndarray:
+        """World component k at the points ``keep`` (indices into idx; ``idx_keep = idx[keep]``)."""
+        if self.all is not None:
+            return self.all[k][keep]
+        return self.field[k][idx_keep]
 
 
 def _interpolated_rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
@@ -456,7 +477,7 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL[0]
 
 
-def _axis_depth(cache, axis, e, value, other, idx, uv):
+def _axis_depth(cache, axis, rays, value, other, idx, uv):
     """s along the ray, ds/d(projector px) and the grazing test for one axis."""
     k = 0 if axis == "column" else 1
     if other is None:
@@ -465,7 +486,9 @@ def _axis_depth(cache, axis, e, value, other, idx, uv):
         other = _other_coordinate(cache, axis, value, idx, uv)
     xu = _undistorted(cache, axis, value, other)
     Dk, Dz = np.float32(cache.D[k]), np.float32(cache.D[2])
-    den = e[k] - xu * e[2]
+    ek, ez = rays.projector(k), rays.projector(2)
+    den = xu * ez
+    np.subtract(ek, den, out=den)
     s = xu * (-Dz)
     s += Dk
     s /= den
@@ -473,7 +496,7 @@ def _axis_depth(cache, axis, e, value, other, idx, uv):
     ok = np.abs(den) > np.float32(cache.cos_limit) * np.sqrt(xu * xu + np.float32(1.0))
     ok &= s > 0
     # ds/dx_u = (s e_z - D_z) / den, and dx_u/d(px) ~ 1/f (distortion is a small change)
-    g = s * e[2]
+    g = s * ez
     g -= Dz
     g /= den
     np.abs(g, out=g)
@@ -484,8 +507,7 @@ def _axis_depth(cache, axis, e, value, other, idx, uv):
 def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, sig: dict, use: tuple,
                        has_noise: bool, max_sigma_mm):
     uv = None if cache.ray_field is not None else _pixel_coords(cache, idx)
-    rays = _rays(cache, idx, uv)
-    d, e = rays[:3], rays[3:]  # unit rays in the world and in the projector's frame
+    rays = _Rays(cache, idx, uv)
     rejected = {}
     est = {}
     for a in use:
@@ -499,7 +521,7 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
                     uv = _pixel_coords(cache, idx)
                 fill = _other_coordinate(cache, a, value, idx, uv)
                 other = np.where(np.isfinite(other), other, fill)
-        s, g, ok = _axis_depth(cache, a, e, value, other, idx, uv)  # a NaN value fails ok
+        s, g, ok = _axis_depth(cache, a, rays, value, other, idx, uv)  # a NaN value fails ok
         if sig[a] is not None:
             sd = sig[a][idx]
             sd *= g
@@ -536,11 +558,12 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
     if noisy:
         rejected["noisy_geometry"] = noisy
     s = s_all[keep]
+    idx_keep = idx[keep]
     pts = np.empty((keep.size, 3), np.float32)
     for k in range(3):
-        pts[:, k] = d[k][keep] * s + np.float32(cache.cam_center[k])
+        pts[:, k] = rays.world_at(k, keep, idx_keep) * s + np.float32(cache.cam_center[k])
     code = np.full(keep.size, AXIS_BITS[use[0]], np.uint8) if axes_code is None else axes_code[keep]
-    return pts, idx[keep], (None if sigma is None else sigma[keep]), code, rejected
+    return pts, idx_keep, (None if sigma is None else sigma[keep]), code, rejected
 
 
 # ------------------------------------------------------------------------------ rig geometry
