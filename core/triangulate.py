@@ -343,9 +343,10 @@ def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     cv2.remap: (N,) or (N, C)."""
     n = x.size
     rows = -(-n // REMAP_WIDTH) or 1
-    mx = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
-    my = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
+    mx = np.empty(rows * REMAP_WIDTH, np.float32)
+    my = np.empty(rows * REMAP_WIDTH, np.float32)
     mx[:n], my[:n] = x, y
+    mx[n:] = my[n:] = -1.0
     out = cv2.remap(table, mx.reshape(rows, REMAP_WIDTH), my.reshape(rows, REMAP_WIDTH),
                     interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return out.reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
