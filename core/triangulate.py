@@ -88,7 +88,7 @@ class TriangulationCache:
     calibration: Calibration
     cam_center: np.ndarray  # (3,)
     shape: tuple  # camera (H, W)
-    ray_grid: tuple  # (x_u, y_u) float32 camera normalised coordinates at nodes every ray_step px
+    ray_grid: np.ndarray  # (Hc, Wc, 2) float32 camera normalised (x_u, y_u) at nodes every ray_step px
     ray_step: int
     R_c: np.ndarray  # camera rotation (3, 3)
     R_p: np.ndarray  # projector rotation (3, 3)
