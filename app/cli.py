@@ -81,12 +81,20 @@ def cmd_reconstruct(args) -> int:
     from core.calibration_file import load_calibration
     from core.capture import load_capture
     from core.pointcloud import write_ply
+    from concurrent.futures import ThreadPoolExecutor
+
     from core.reconstruct import reconstruct
+    from core.triangulate import prepare
 
     progress = Progress(args.quiet)
     cal = load_calibration(args.calibration)
     progress(f"loading capture {args.capture}")
-    capture = load_capture(args.capture)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # the calibration's grids are built while the frames are read (PNG decoding leaves
+        # the cores part idle)
+        ready = pool.submit(prepare, cal)
+        capture = load_capture(args.capture)
+        ready.result()
     progress("decoding and triangulating")
     cloud = reconstruct(capture, cal)
     progress(f"writing {len(cloud)} points")

@@ -50,7 +50,7 @@ import numpy as np
 
 from core.calibration_file import Calibration
 from core.device_model import Device
-from core.errors import GeometryError
+from core.errors import AnkleScanError, GeometryError
 
 AXES = ("column", "row")
 TABLE_MARGIN = 64  # projector pixels of table beyond the image, for coordinates decoded at its edge
@@ -333,6 +333,21 @@ def cache_for(cal: Calibration) -> TriangulationCache:
         cache = build_cache(cal)
         cal._triangulation_cache = cache
     return cache
+
+
+def prepare(cal: Calibration) -> None:
+    """Build what the first scan with ``cal`` will need (the grids, the projector's tables and,
+    for a rig that needs one stripe axis, its epipolar curves) ahead of it: the command does this
+    on a thread while it reads the frames. A calibration that cannot triangulate is left for the
+    scan to report."""
+    try:
+        cache = cache_for(cal)
+        cache.tables  # noqa: B018
+        axes = scan_axes(cal)
+        if len(axes) == 1:
+            cache.epipolar(axes[0])
+    except AnkleScanError:
+        pass
 
 
 REMAP_WIDTH = 4096  # cv2.remap takes 2-D maps below 32767 a side; N points are laid out in rows
