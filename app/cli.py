@@ -110,10 +110,29 @@ def cmd_gui(args) -> int:
 def cmd_patterns(args) -> int:
     from core.patterns import make_pattern_set, write_patterns
 
-    width, height = args.projector
-    pset = make_pattern_set(args.preset, width, height, axes=tuple(args.axes.split(",")))
+    args.projector_default = args.projector is None
+    width, height = args.projector or (1024, 768)
+    if args.axes:
+        axes, why = tuple(a.strip() for a in args.axes.split(",")), "as asked"
+    elif args.calibration:
+        from core.calibration_file import load_calibration
+        from core.triangulate import scan_axes
+
+        cal = load_calibration(args.calibration)
+        if (cal.projector.width, cal.projector.height) != (width, height) and args.projector_default:
+            width, height = cal.projector.width, cal.projector.height
+        from core.triangulate import check_geometry
+
+        axes, why = scan_axes(cal), f"what the rig of {Path(args.calibration).name} needs"
+        check_geometry(cal, axes)
+    elif args.preset == "paper":
+        axes, why = ("column",), "the paper's 18 sheets; --axes column,row for a projector above the camera"
+    else:
+        axes, why = ("column", "row"), "for a projector on any side of the camera; --calibration picks fewer"
+    pset = make_pattern_set(args.preset, width, height, axes=axes)
     out = write_patterns(pset, args.out)
-    print(f"wrote {len(pset.frames)} frames ({args.preset}, {width}x{height}) and manifest.json to {out}")
+    print(f"wrote {len(pset.frames)} frames ({args.preset}, {width}x{height}, {' + '.join(axes)} stripes: {why}) "
+          f"and manifest.json to {out}")
     return 0
 
 
@@ -121,12 +140,20 @@ def cmd_reconstruct(args) -> int:
     from core.calibration_file import load_calibration
     from core.capture import load_capture
     from core.pointcloud import write_ply
+    from concurrent.futures import ThreadPoolExecutor
+
     from core.reconstruct import reconstruct
+    from core.triangulate import prepare
 
     progress = Progress(args.quiet)
     cal = load_calibration(args.calibration)
     progress(f"loading capture {args.capture}")
-    capture = load_capture(args.capture)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # the calibration's grids are built while the frames are read (PNG decoding leaves
+        # the cores part idle)
+        ready = pool.submit(prepare, cal)
+        capture = load_capture(args.capture)
+        ready.result()
     progress("decoding and triangulating")
     cloud = reconstruct(capture, cal)
     if len(cloud) == 0:
@@ -226,9 +253,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     pt = sub.add_parser("patterns", help="write the projector patterns and manifest.json")
     pt.add_argument("--out", required=True)
-    pt.add_argument("--projector", type=_size, default=(1024, 768), help="projector resolution WxH")
+    pt.add_argument("--projector", type=_size, default=None,
+                    help="projector resolution WxH (default: the calibration's, else 1024x768)")
     pt.add_argument("--preset", default="default", choices=["default", "paper"])
-    pt.add_argument("--axes", default="column", help="column, or column,row for calibration scans")
+    pt.add_argument("--axes", default=None,
+                    help="column, row or column,row (default: both, which work whatever side of the camera the "
+                         "projector stands on; with --calibration, what that rig needs; the paper preset: column)")
+    pt.add_argument("--calibration", help="pick the stripe axes this rig needs: columns for a projector beside "
+                                          "the camera, rows above or below it, both diagonal")
     pt.set_defaults(func=cmd_patterns)
 
     r = sub.add_parser("reconstruct", help="decode + triangulate a capture to a PLY point cloud")

@@ -96,6 +96,7 @@ def _scan_trial(job: dict) -> dict:
     from core.measure import measure_capture
     from core.patterns import make_pattern_set, render_all
     from core.pointcloud import write_ply
+    from core.triangulate import scan_axes
     from hardware.sim_accuracy import as_dict, evaluate
     from hardware.sim_scene import angles_from_marks, leg_scene
     from hardware.simrig import SimRig
@@ -104,10 +105,10 @@ def _scan_trial(job: dict) -> dict:
     mark_type, diameter, _ = job["marks"]
     scene = leg_scene(*job["table"], mark_type=mark_type, mark_radius=diameter / 2)
     rig = SimRig(scene, scale=job["scale"], seed=job["seed"])
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    cal = _calibration(job["calibration"])
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal))
     save_capture(job["capture"], pset, [rig.capture(img) for img in render_all(pset)],
                  metadata={"device": "simulated rig", "trial": job["label"]})
-    cal = _calibration(job["calibration"])
     capture = load_capture(job["capture"])
     result = measure_capture(capture, cal, job["mark_diameter"])
     write_ply(job["cloud"], result.cloud)

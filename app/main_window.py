@@ -906,9 +906,12 @@ class MainWindow(QMainWindow):
 
     def _scan_job(self, folder: Path):
         from core.patterns import make_pattern_set
+        from core.triangulate import scan_axes
         from app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
-        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h)
+        # the stripes this rig's geometry needs (columns beside the camera, rows above, both
+        # diagonal); without a calibration both, which work wherever the projector stands
+        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h, axes=scan_axes(self.rig.calibration))
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
                        calibration=self.calibration, reconstruct=measure_folder,
                        cloud_path=Path(folder).parent / "cloud.ply",

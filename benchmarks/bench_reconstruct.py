@@ -3,10 +3,13 @@
 decode + triangulate, and peak memory of the whole ``anklescan reconstruct`` command.
 
     python benchmarks/bench_reconstruct.py [--runs 7] [--scale 1.0] [--keep DIR] [--calibration true|box]
+                                           [--layout side|above|diagonal] [--axes column,row] [--presets default,paper]
 
 ``--calibration box`` first calibrates from a simulated scan of the calibration box (column and
 row patterns) and reconstructs with that instead of the rig's true calibration: the whole
-calibrate-then-scan path.
+calibrate-then-scan path. ``--layout`` places the projector beside the camera (default), above it
+or diagonal to it; the scan projects the stripe axes that rig needs (``scan_axes``) unless
+``--axes`` says otherwise.
 """
 
 from __future__ import annotations
@@ -29,13 +32,13 @@ from core.capture import load_capture, save_capture  # noqa: E402
 from core.decode import decode  # noqa: E402
 from core.patterns import make_pattern_set, render_all  # noqa: E402
 from core.reconstruct import cloud_from_decoded  # noqa: E402
-from core.triangulate import cache_for  # noqa: E402
+from core.triangulate import cache_for, scan_axes  # noqa: E402
 from hardware.sim_accuracy import evaluate  # noqa: E402
 from hardware.simrig import SimRig  # noqa: E402
 
 
-def simulate(rig: SimRig, preset: str, folder: Path) -> Path:
-    pset = make_pattern_set(preset, rig.projector.width, rig.projector.height)
+def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
+    pset = make_pattern_set(preset, rig.projector.width, rig.projector.height, axes=axes)
     return save_capture(folder, pset, [rig.capture(img) for img in render_all(pset)])
 
 
@@ -83,19 +86,26 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--keep", type=Path, help="keep the simulated captures here")
     ap.add_argument("--calibration", choices=("true", "box"), default="true")
+    ap.add_argument("--layout", default="side", help="side, above, diagonal (or an angle in degrees)")
+    ap.add_argument("--axes", help="stripe axes to project (default: what the rig needs)")
+    ap.add_argument("--presets", default="default,paper")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-"))
-    rig = SimRig(scale=args.scale)
+    layout = args.layout if args.layout in ("side", "above", "diagonal", "below") else float(args.layout)
+    rig = SimRig(scale=args.scale, layout=layout)
     cal = rig.true_calibration() if args.calibration == "true" else box_calibration(rig, work)
     cal_path = work / "calibration.json"
     save_calibration(cal, cal_path)
-    print(f"rig: camera {rig.camera.width}x{rig.camera.height}, projector {rig.projector.width}x{rig.projector.height}")
+    axes = tuple(args.axes.split(",")) if args.axes else scan_axes(cal)
+    print(f"rig: camera {rig.camera.width}x{rig.camera.height}, projector {rig.projector.width}x{rig.projector.height}, "
+          f"layout {args.layout}, stripes {'+'.join(axes)}")
     t0 = time.perf_counter()
     cache_for(cal)
-    print(f"calibration cache build: {time.perf_counter() - t0:.2f} s (once per calibration)")
+    print(f"calibration cache build: {time.perf_counter() - t0:.3f} s (once per calibration; the rest is built at "
+          f"the first scan)")
     truth = rig.truth()
-    for preset in ("default", "paper"):
-        folder = simulate(rig, preset, work / f"capture_{preset}")
+    for preset in args.presets.split(","):
+        folder = simulate(rig, preset, work / f"capture_{preset}", axes)
         capture = load_capture(folder)
         med, best, cloud = time_reconstruct(capture, cal, args.runs)
         acc = evaluate(cloud, truth)
@@ -103,7 +113,7 @@ def main() -> None:
         print(f"  decode + triangulate: median {med:.1f} ms, min {best:.1f} ms ({args.runs} runs)")
         print(f"  subject (leg, foot, table, marks): {acc['subject'].format()}")
         print(f"  whole frame (incl. floor):         {acc['frame'].format()}")
-        print(f"  rejected pixels: {cloud.meta['rejected']}")
+        print(f"  rejected pixels: {cloud.meta['rejected']}; points by axes: {cloud.meta['points_by_axes']}")
         if preset == "default":
             peak, wall = command_peak_mb(folder, cal_path, work / "cloud.ply")
             print(f"  `anklescan reconstruct` command: peak RSS {peak:.0f} MB, wall {wall:.1f} s")

@@ -57,6 +57,14 @@ class DecodeResult:
     # predicted standard deviation of the decoded column (projector px) from the sensor noise
     # and the local pattern modulation; lets triangulation reject points that are too noisy
     column_sigma: np.ndarray | None = field(repr=False, default=None)
+    row_sigma: np.ndarray | None = field(repr=False, default=None)  # the same for rows
+
+    def axis_map(self, axis: str) -> np.ndarray | None:
+        """The decoded map of ``axis`` ("column" or "row"), None if the set has no such axis."""
+        return self.column if axis == "column" else self.row
+
+    def axis_sigma(self, axis: str) -> np.ndarray | None:
+        return self.column_sigma if axis == "column" else self.row_sigma
 
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
@@ -166,6 +174,7 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
     h, w = frames.shape[1:]
     coords = {axis: np.empty((h, w), np.float32) for axis in pset.axes}
     sigmas = {axis: np.empty((h, w), np.float32) for axis in pset.axes}
+    axis_flags = {axis: np.empty((h, w), np.uint8) for axis in pset.axes}
     flags = np.empty((h, w), np.uint8)
     # Every step is per pixel, so the image is decoded in strips of ~64k pixels: the
     # dozens of temporaries of one strip stay in cache instead of streaming ~30 full
@@ -173,20 +182,23 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
     rows = max(8, strip_pixels // w) if strip_pixels else h
     for r0 in range(0, h, rows):
         block = frames[:, r0:r0 + rows]
-        block_coords, block_sigmas, block_flags, info = _decode_block(
+        block_coords, block_sigmas, block_flags, block_axis_flags, info = _decode_block(
             block, pset, thr, k_phase, phase_tolerance, min_coarse_run, saturation, full)
         flags[r0:r0 + rows] = block_flags
         for axis, c in block_coords.items():
             coords[axis][r0:r0 + rows] = c
             sigmas[axis][r0:r0 + rows] = block_sigmas[axis]
+            axis_flags[axis][r0:r0 + rows] = block_axis_flags[axis]
     thr.update(info)
 
     reason = cv2.LUT(flags, _FLAGS_TO_REASON)
     nan = np.full(flags.shape, np.nan, np.float32)
-    for coord in coords.values():
-        cv2.copyTo(nan, flags, coord)  # flags != 0 exactly where the pixel is invalid
+    for axis, coord in coords.items():
+        # each axis is NaN where its own tests (or the shared shadow / white tests) fail: a pixel
+        # whose rows are washed out keeps its column; ``valid`` is every axis valid
+        cv2.copyTo(nan, axis_flags[axis], coord)
     return DecodeResult(coords.get("column"), coords.get("row"), flags == 0, reason, thr,
-                        white, black, sigmas.get("column"))
+                        white, black, sigmas.get("column"), sigmas.get("row"))
 
 
 def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
@@ -201,20 +213,24 @@ def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
         sat = np.zeros_like(shadow)
     else:
         sat = _cmp(white, saturation, cv2.CMP_GE)
-    coords, sigmas, info = {}, {}, {}
+    cv2.bitwise_or(flags, _FLAG[SATURATED], dst=flags, mask=sat)  # shared tests
+    coords, sigmas, axis_flags, info = {}, {}, {}, {}
     for axis in pset.axes:
         ac = pset.axis_code(axis)
         coord, coord_sigma, masks, sat_axis, axis_info = _decode_axis(frames, ac, thr, k_phase, tol,
                                                                       min_run, saturation, full)
         sigmas[axis] = coord_sigma
         info.update({f"{axis}_{k}": v for k, v in axis_info.items()})
+        own = flags.copy()
         if sat_axis is not None:
-            cv2.max(sat, sat_axis, dst=sat)
+            cv2.bitwise_or(own, _FLAG[SATURATED], dst=own, mask=sat_axis)
         for reason, m in masks.items():
-            cv2.bitwise_or(flags, _FLAG[reason], dst=flags, mask=m)
-        coords[axis] = coord
-    cv2.bitwise_or(flags, _FLAG[SATURATED], dst=flags, mask=sat)
-    return coords, sigmas, flags, info
+            cv2.bitwise_or(own, _FLAG[reason], dst=own, mask=m)
+        coords[axis], axis_flags[axis] = coord, own
+    flags = axis_flags[pset.axes[0]].copy()
+    for axis in pset.axes[1:]:
+        cv2.bitwise_or(flags, axis_flags[axis], dst=flags)
+    return coords, sigmas, flags, axis_flags, info
 
 
 def _frames_and_set(obj, pattern_set):

@@ -8,9 +8,9 @@ import numpy as np
 from core.calibration_file import Calibration
 from core.capture import Capture
 from core.decode import REASON_NAMES, DecodeResult, decode
-from core.errors import CaptureError
+from core.errors import CaptureError, GeometryError
 from core.pointcloud import PointCloud
-from core.triangulate import triangulate_columns
+from core.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
 
 # A phase-decoded point is kept when its predicted noise along the camera ray (from the local
 # pattern modulation, the sensor noise and the ray/plane geometry) is at most this: Gaussian
@@ -29,8 +29,23 @@ def check_compatible(capture: Capture, cal: Calibration) -> None:
     if (pw, ph) != (proj.width, proj.height):
         raise CaptureError(f"patterns are for a {pw}x{ph} projector but the calibrated projector is "
                            f"{proj.width}x{proj.height}")
-    if "column" not in capture.pattern_set.axes:
-        raise CaptureError("the capture has no column (vertical stripe) patterns to triangulate")
+    triangulation_axes(capture, cal)
+
+
+def triangulation_axes(capture: Capture, cal: Calibration) -> tuple[str, ...]:
+    """The capture's stripe axes the calibration knows and the rig's geometry can triangulate
+    with; a one-line error when there is none (stripes along the baseline, rows with a
+    column-only calibration)."""
+    have = tuple(a for a in capture.pattern_set.axes if a in calibrated_axes(cal))
+    if not have:
+        raise GeometryError(f"the capture has only {'/'.join(capture.pattern_set.axes)} patterns but the calibration "
+                            f"knows only the projector's columns (\"axis\": \"column\"): nothing to triangulate with")
+    geo = check_geometry(cal, have)
+    # an axis whose stripes run along the baseline adds nothing but its noise: leave it out
+    return tuple(a for a in have if geo[a].angle_deg >= MIN_AXIS_ANGLE_DEG) or have
+
+
+MIN_AXIS_ANGLE_DEG = 2.0  # an axis triangulating the working point more obliquely is not used
 
 
 def point_colors(capture: Capture, idx: np.ndarray, white: np.ndarray) -> np.ndarray:
@@ -66,10 +81,13 @@ def depth_edges(column: np.ndarray, column_sigma: np.ndarray, stripe: float | No
     second difference is only noise; at a depth edge it jumps. A mixed pixel can sit on a ramp
     between the two surfaces (zero second difference of its own), so every pixel within one
     pixel of a kink is flagged. For Gray-code-only decoding the map is a staircase of
-    ``stripe`` px, which sets the tolerance instead of the noise.
+    ``stripe`` px, which sets the tolerance instead of the noise: its second differences are
+    0 or ± one stripe, and a code read one stripe off beside a stripe boundary (blur and noise
+    on a real camera do that) makes them two stripes, which must not count as an edge (on the
+    procam-calibration photographs a one-stripe tolerance flagged 12 % of the flat board).
     """
     if stripe:
-        tol = np.full(column.shape, stripe + EDGE_BASE_TOL_PX, np.float32)
+        tol = np.full(column.shape, 2 * stripe + EDGE_BASE_TOL_PX, np.float32)
     else:
         tol = EDGE_BASE_TOL_PX + EDGE_K_SIGMA * np.sqrt(6.0, dtype=np.float32) * column_sigma
     kink = None
@@ -85,16 +103,39 @@ _D2_H = np.array([[1.0, -2.0, 1.0]], np.float32)
 _D2_V = _D2_H.T.copy()
 
 
-def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult) -> PointCloud:
-    code = capture.pattern_set.axis_code("column")
-    edges = depth_edges(decoded.column, decoded.column_sigma, None if code.phase else code.stripe)
-    decoded_valid = decoded.valid.view(np.uint8)
-    valid = cv2.bitwise_and(decoded_valid, cv2.bitwise_not(edges.view(np.uint8)) & 1).view(bool)
-    n_decoded, n_valid = cv2.countNonZero(decoded_valid), cv2.countNonZero(valid.view(np.uint8))
-    has_phase = bool(code.phase)
-    points, idx, sigma = triangulate_columns(cal, decoded.column, valid, column_sigma=decoded.column_sigma,
-                                             max_sigma_mm=MAX_POINT_SIGMA_MM if has_phase else None)
-    noisy = n_valid - idx.size  # dropped for predicted noise (or, rarely, grazing rays)
+def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult, *,
+                       axes: tuple[str, ...] | None = None) -> PointCloud:
+    """Triangulate a decoded capture with every stripe axis it has that the rig can use (or
+    ``axes``); raises a one-line error instead of returning an empty cloud."""
+    if axes is None:
+        axes = triangulation_axes(capture, cal)
+    else:
+        axes = tuple(axes)
+        check_geometry(cal, axes)
+    codes = {a: capture.pattern_set.axis_code(a) for a in axes}
+    # a pixel is decoded when any axis used is; a mixed pixel at a depth edge shows as a kink in
+    # any map that changes with depth, so a kink in either drops it
+    decoded_any = None
+    edges = None
+    for a, code in codes.items():
+        m = decoded.axis_map(a)
+        fin = cv2.compare(m, m, cv2.CMP_EQ)  # not NaN
+        decoded_any = fin if decoded_any is None else cv2.bitwise_or(decoded_any, fin)
+        e = depth_edges(m, decoded.axis_sigma(a), None if code.phase else code.stripe).view(np.uint8)
+        edges = e if edges is None else cv2.bitwise_or(edges, e)
+    decoded_any &= 1
+    valid = cv2.bitwise_and(decoded_any, cv2.bitwise_not(edges) & 1).view(bool)
+    n_decoded, n_valid = cv2.countNonZero(decoded_any), cv2.countNonZero(valid.view(np.uint8))
+    if n_decoded == 0:
+        raise CaptureError(f"nothing decodable in {capture.folder}: {_undecodable_reason(decoded)}")
+    has_phase = all(code.phase for code in codes.values())
+    tri = triangulate_maps(cal, decoded.column, decoded.row, valid, column_sigma=decoded.column_sigma,
+                           row_sigma=decoded.row_sigma, max_sigma_mm=MAX_POINT_SIGMA_MM if has_phase else None,
+                           axes=axes)
+    points, idx, sigma = tri.points, tri.index, tri.sigma
+    if not idx.size:
+        raise GeometryError(f"no point of {capture.folder} could be triangulated: the {n_valid} decoded pixels' "
+                            f"rays meet the {'/'.join(axes)} stripe planes too obliquely or too noisily")
     row, col = np.divmod(idx, capture.shape[1])
     pixels = np.empty((idx.size, 2), np.uint16)
     pixels[:, 0], pixels[:, 1] = col, row
@@ -102,15 +143,24 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
                        point_quality(decoded, idx, capture.max_value), sigma=sigma)
     n_pix = decoded.valid.size
     n_reasons = len(REASON_NAMES)
-    counts = cv2.calcHist([decoded.reason], [0], None, [n_reasons], [0, n_reasons]).ravel().astype(np.int64)
+    # why the pixels without any decoded axis failed (with one axis: every pixel whose reason is not 0)
+    undecoded = None if len(capture.pattern_set.axes) == 1 else cv2.bitwise_not(decoded_any) & 1
+    counts = cv2.calcHist([decoded.reason], [0], undecoded, [n_reasons], [0, n_reasons]).ravel().astype(np.int64)
     rejected = {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if i and c}
     if n_decoded > n_valid:
         rejected["depth_edge"] = n_decoded - n_valid
-    if noisy:
-        rejected["noisy_geometry"] = noisy
+    rejected.update({k: v for k, v in tri.rejected.items() if v})
+    if len(axes) == 1:
+        per_axis = np.zeros(4, np.int64)
+        per_axis[AXIS_BITS[axes[0]]] = idx.size
+    else:
+        per_axis = cv2.calcHist([tri.axes.reshape(1, -1)], [0], None, [4], [0, 4]).ravel().astype(np.int64)
     cloud.meta = {
         "decoded_pixels": n_decoded,
         "points": len(cloud),
+        "axes": list(axes),
+        "points_by_axes": {name: int(per_axis[code]) for name, code in
+                           (("column", 1), ("row", 2), ("both", 3)) if per_axis[code]},
         "sigma_limit_mm": MAX_POINT_SIGMA_MM if has_phase else None,
         "rejected": rejected,
         "thresholds": decoded.thresholds,
@@ -119,6 +169,20 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     return cloud
 
 
-def reconstruct(capture: Capture, cal: Calibration) -> PointCloud:
+def _undecodable_reason(decoded: DecodeResult) -> str:
+    counts = np.bincount(decoded.reason.ravel(), minlength=len(REASON_NAMES))
+    worst = int(np.argmax(counts[1:])) + 1
+    share = 100.0 * counts[worst] / max(1, decoded.reason.size)
+    what = {"shadow": "the projector's light does not reach the camera (an all-black or unlit capture?)",
+            "low_contrast": "the stripes are washed out",
+            "saturated": "the images are overexposed",
+            "inconsistent": "the codes are inconsistent (movement, or frames out of order)",
+            "outside_projector": "the codes lie outside the projector"}[REASON_NAMES[worst]]
+    return f"{share:.0f} % of the pixels are {REASON_NAMES[worst].replace('_', ' ')}: {what}"
+
+
+def reconstruct(capture: Capture, cal: Calibration, *, axes: tuple[str, ...] | None = None) -> PointCloud:
+    """Decode and triangulate with every stripe axis the capture has and the rig can use (or
+    ``axes``)."""
     check_compatible(capture, cal)
-    return cloud_from_decoded(capture, cal, decode(capture))
+    return cloud_from_decoded(capture, cal, decode(capture), axes=axes)

@@ -1,141 +1,328 @@
-"""Camera ray ∩ projector column plane, vectorised, with per-calibration work cached.
+"""Camera ray ∩ projector stripe planes (columns, rows or both), vectorised.
 
-Geometry: a projector column with undistorted normalised coordinate ``x_u`` is the plane through
-the projector centre ``Cp`` with world normal ``n = a - x_u b`` where ``a``, ``b`` are the
-projector's first and third rotation rows. A camera ray ``X = Cc + s d`` meets it at
+Geometry. In the projector's frame (``x_p = R_p X + t_p``) a camera ray ``X = Cc + s d`` is
+``o + s e`` with ``e = R_p d``; ``Δ = Cp − Cc`` is ``D = R_p Δ``. The projector column with
+undistorted normalised coordinate ``x_u`` is the plane ``x_p − x_u z_p = 0`` through the
+projector centre, the row ``y_u`` the plane ``y_p − y_u z_p = 0``; the ray meets them at
 
-    s = (a·Δ - x_u b·Δ) / (a·d - x_u b·d),   Δ = Cp - Cc.
+    s_col = (D_x − x_u D_z) / (e_x − x_u e_z),   s_row = (D_y − y_u D_z) / (e_y − y_u e_z).
 
-``a·d`` and ``b·d`` are per camera pixel and depend only on the calibration, so they are cached;
-per scan the work is a handful of array operations.
+Conditioning. How well an axis fixes the point is ``ds/dx_u = (s e_z − D_z) / (e_x − x_u e_z)``
+(rows alike): a stripe plane that holds the baseline holds the whole camera ray too, and then
+tells nothing. With the predicted noise σ of the decoded coordinate (projector px) the point's
+noise along its ray is ``σ_s = |ds/dx_u| σ / f``. A pixel decoded on both axes is the
+least-squares point on its camera ray under both planes, each weighted by its noise:
 
-Projector distortion: the decoded column is a *distorted* coordinate; its undistorted ``x_u``
-depends (for 2-D distortion) also on the projector row. The row is only needed roughly (an error
-of a whole projector row moves ``x_u`` by ~1e-6 px for real lenses), so it is read off the
-camera pixel's epipolar curve, fitted by a quadratic per pixel at calibration time. ``x_u`` itself comes from a table over the projector
-image sampled bilinearly (cv2.remap); with 1-px spacing the interpolation error is ~1e-5 px.
+    s = (s_col / σ_col² + s_row / σ_row²) / (1 / σ_col² + 1 / σ_row²),   σ_s⁻² = σ_col⁻² + σ_row⁻²
+
+(the camera pixel is exact, so this is the maximum-likelihood point to first order). A projector
+beside the camera gets its depth from the columns, one above it from the rows, a diagonal one
+from both; whichever the rig, each pixel gets what its own geometry supports, and the predicted
+noise says how well. Where the two axes disagree by far more than their noise (a wrong Gray bit
+on one of them) the pixel is dropped.
+
+Projector distortion. A decoded column is a *distorted* coordinate; its undistorted ``x_u``
+depends (for 2-D distortion) also on the projector row, but only weakly (a whole row moves it by
+~0.01 px at the corners of a real lens). With both axes decoded the other coordinate is the
+decoded one; with one axis only it is read off the camera pixel's epipolar curve (a quadratic per
+pixel, fitted at first use). ``x_u`` and ``y_u`` come from tables over the projector image
+sampled bilinearly (cv2.remap's float path is exact bilinear); at 3-px spacing (full
+resolution) their interpolation error is ~1e-4 px.
+
+Cost. What depends on the calibration only is small and built on first use in a few tens of
+milliseconds, then kept on the calibration object: the camera's undistorted normalised
+coordinates on a grid of nodes (exact there, bilinear between: 3e-4 px at 4-px spacing for a
+1600x1200 camera), the projector's tables and, only when one axis is decoded alone, the
+epipolar curves' coefficients on a 16-px grid (at full resolution). Per scan, each decoded pixel's ray and curve are
+interpolated from these grids (cv2.remap) and the rest is a handful of float32 array
+operations per point. Nothing is computed for the pixels that decoded nothing.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from core.calibration_file import Calibration
 from core.device_model import Device
-from core.errors import GeometryError
+from core.errors import AnkleScanError, GeometryError
 
-TABLE_MARGIN = 64  # projector pixels of table beyond the image, for columns decoded at its edge
+AXES = ("column", "row")
+TABLE_MARGIN = 64  # projector pixels of table beyond the image, for coordinates decoded at its edge
+# Interpolated lens maps: nodes every GRID_NORMALISED_STEP of normalised image coordinate (4 px of
+# a 1600-px camera with f = 1750 px, 3 px of the 1024-px projector; 1 px at quarter scale): the
+# bilinear error is then ~3e-4 px, the float32 rounding's order.
+GRID_NORMALISED_STEP = 1.0 / 400.0
+
+
+def grid_step(device: Device) -> int:
+    """Pixels between a device's exactly computed lens-map nodes."""
+    return max(1, int(min(device.fx, device.fy) * GRID_NORMALISED_STEP))
+
+
+def epipolar_step(camera: Device) -> int:
+    """Camera pixels between fitted epipolar curves."""
+    return EPIPOLAR_GRID_FACTOR * grid_step(camera)
+
+
+EPIPOLAR_GRID_FACTOR = 4  # epipolar curves are fitted on a grid this much coarser than the rays' (16 px at
+# full resolution): their coefficients are smooth, and a column read off them to ~0.03 px is plenty
+EPIPOLAR_SAMPLES = 12  # points per epipolar curve fitted (a quadratic: its error is the lens's quartic part)
 MIN_TRIANGULATION_ANGLE_DEG = 2.0  # rays meeting planes more obliquely than this are unreliable
+# Two axes disagreeing by more than this many standard deviations, plus this many projector
+# pixels on each (calibration error, blur), mean a wrong code on one of them.
+AXIS_AGREEMENT_K = 5.0
+AXIS_AGREEMENT_PX = 2.0
+DEFAULT_SIGMA_PX = 1.0  # weights when no noise model is given: equal noise on both axes
 
 
-# Fields of the per-pixel table; field-major so each gather and each operation is contiguous.
-RAY_X, RAY_Y, RAY_Z, AD, BD, EPI_Q0, EPI_Q1, EPI_Q2 = range(8)
-ROW_CHUNK = 128  # camera rows per chunk when building the cache: bounds its float64 temporaries
-
-
-@dataclass
+@dataclass(eq=False)
 class TriangulationCache:
-    """Everything that depends on the calibration only."""
+    """Everything that depends on the calibration only; parts are built on first use."""
 
+    calibration: Calibration
     cam_center: np.ndarray  # (3,)
     shape: tuple  # camera (H, W)
-    pixel: np.ndarray  # (8, H*W) float32, field-major: unit world ray, a·d, b·d, epipolar q0..q2
-    a_delta: float
-    b_delta: float
-    xu_table: np.ndarray  # (Hp + 2m, Wp + 2m) float32  x_u at distorted projector pixel (u, v)
-    epi_half: float  # epipolar row = q0 + w (q1 + w q2), w = (u - epi_half) / epi_half
+    ray_grid: np.ndarray  # (Hc, Wc, 2) float32 camera normalised (x_u, y_u) at nodes every ray_step px
+    ray_step: int
+    R_c: np.ndarray  # camera rotation (3, 3)
+    R_p: np.ndarray  # projector rotation (3, 3)
+    D: np.ndarray  # (3,) R_p (Cp - Cc): the baseline in the projector's frame
+    f: dict  # axis -> projector focal length (px) along it
+    axes: tuple  # the axes the projector's calibration knows
     cos_limit: float
-    fx_projector: float
+    table_step: int = 1
+    _tables: tuple | None = None
+    _epipolar: dict = field(default_factory=dict)
+    # Per-pixel fields, built at the second scan with this calibration (an application scanning
+    # again and again): then a scan gathers instead of interpolating. A one-off command never
+    # pays for them.
+    scans: int = 0
+    ray_field: np.ndarray | None = None  # (6, H*W) float32: unit world ray, the same in the projector's frame
+    epipolar_field: dict = field(default_factory=dict)  # axis -> (3, H*W) float32 coefficients
+
+    def build_fields(self, axes) -> None:
+        """The per-pixel fields of the rays and of ``axes``' epipolar curves."""
+        if self.ray_field is not None and all(a in self.epipolar_field for a in axes):
+            return
+        everything = np.arange(self.shape[0] * self.shape[1])
+        uv = _pixel_coords(self, everything)
+        if self.ray_field is None:
+            self.ray_field = np.stack(_interpolated_rays(self, everything, uv))
+        for axis in axes:
+            if axis not in self.epipolar_field:
+                self.epipolar_field[axis] = np.ascontiguousarray(_interpolated_curves(self, axis, uv).T)
+
+    @property
+    def tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x_u, y_u) float32 tables over the projector image every ``table_step`` px."""
+        if self._tables is None:
+            self._tables = projector_tables(self.calibration.projector, step=self.table_step)
+        return self._tables
+
+    def epipolar(self, axis: str) -> np.ndarray:
+        """(Hc, Wc, 3) float32 on a grid of nodes every ``epipolar_step`` camera px: the other
+        coordinate as a quadratic of ``axis``'s."""
+        if axis not in self._epipolar:
+            self._epipolar[axis] = _epipolar_curves(self.calibration, axis)
+        return self._epipolar[axis]
+
+
+def projector_tables(projector: Device, margin: int = TABLE_MARGIN, step: int = 1):
+    """Undistorted normalised x and y at distorted projector pixels ``-margin + step * k``."""
+    u = np.arange(-margin, projector.width + margin + step, step, dtype=np.float64)
+    v = np.arange(-margin, projector.height + margin + step, step, dtype=np.float64)
+    uu, vv = np.meshgrid(u, v)
+    xu, yu = projector.normalized_from_pixels(np.stack([uu, vv], axis=-1))
+    return xu.astype(np.float32), yu.astype(np.float32)
 
 
 def projector_xu_table(projector: Device, margin: int = TABLE_MARGIN) -> np.ndarray:
-    """Undistorted normalised x for every distorted projector pixel (with margin)."""
-    u = np.arange(-margin, projector.width + margin, dtype=np.float64)
-    v = np.arange(-margin, projector.height + margin, dtype=np.float64)
-    uu, vv = np.meshgrid(u, v)
-    xu, _ = projector.normalized_from_pixels(np.stack([uu, vv], axis=-1))
-    return xu.astype(np.float32)
+    """Undistorted normalised x for every distorted projector pixel (1-px spacing, with margin)."""
+    return projector_tables(projector, margin, 1)[0]
 
 
-EPIPOLAR_GRID_STEP = 8  # camera pixels between fitted epipolar curves; coefficients are smooth
-
-
-def _epipolar_curves(cal: Calibration) -> list[np.ndarray]:
-    """Per camera pixel, the quadratic v(w) of its epipolar curve in the projector image.
-
-    Each ray of a coarse camera grid is sampled at many depths; the samples that land on (or
-    just beside) the projector image are fitted by least squares, and the coefficients are
-    interpolated to every pixel. The residual is the quartic part of the lens distortion, far
-    below a projector row. Rays that never reach the projector image get its centre row: they
-    cannot be decoded anyway.
-    """
-    cam, proj = cal.camera, cal.projector
-    step = EPIPOLAR_GRID_STEP
+def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[np.ndarray, int]:
+    """The camera's undistorted normalised coordinates (Hc, Wc, 2: x_u, y_u), float32, exact at the pixels
+    ``step * k`` (one node past the last pixel on each side). Their curvature is that of the lens
+    distortion, so bilinear interpolation between nodes errs by ~3e-4 px at 4-px spacing for a
+    real lens: undistorting only the nodes is ~16x cheaper than every pixel."""
+    step = grid_step(cam) if step is None else step
     gu = np.arange(0, cam.width + step, step, dtype=np.float64)
     gv = np.arange(0, cam.height + step, step, dtype=np.float64)
-    uu, vv = np.meshgrid(gu, gv)
-    rays = cam.rays(np.stack([uu, vv], axis=-1)).reshape(-1, 3)
-    baseline = float(np.linalg.norm(proj.center - cam.center))
-    depths = baseline * np.geomspace(0.05, 200.0, 64)
-    uv = proj.project((cam.center + rays[:, None, :] * depths[None, :, None]).reshape(-1, 3))
-    uv = uv.reshape(rays.shape[0], depths.size, 2)
-    half = (proj.width - 1) / 2.0
-    w = (uv[..., 0] - half) / half  # in [-1, 1]: keeps the float32 coefficients well scaled
-    v = uv[..., 1]
+    xg, yg = cam.normalized_from_pixels(np.stack(np.meshgrid(gu, gv), axis=-1))
+    return np.stack([xg, yg], axis=-1).astype(np.float32), step
+
+
+def _pixel_coords(cache: "TriangulationCache", idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (u, v), float32, of flat camera pixel indices.
+
+    In float32, ~3x faster than an int64 divmod: below 2**24 pixels every index and coordinate
+    is exact, and (i + 0.5) / W rounds by far less than the 0.5 / W its floor needs."""
+    W = cache.shape[1]
+    if cache.shape[0] * W >= 1 << 24:
+        v, u = np.divmod(idx, W)
+        return u.astype(np.float32), v.astype(np.float32)
+    f = idx.astype(np.float32)
+    v = f + np.float32(0.5)
+    v *= np.float32(1.0 / W)
+    np.floor(v, out=v)
+    f -= v * np.float32(W)
+    return f, v
+
+
+class _Rays:
+    """Unit rays of flat pixel indices, components on demand: ``projector(k)`` (in the
+    projector's frame) and ``world_at(k, keep)`` (world, at the kept points only). With the
+    per-pixel field each is one gather; otherwise each is rotated from the interpolated
+    camera-frame rays, only when asked for."""
+
+    def __init__(self, cache: "TriangulationCache", idx: np.ndarray, uv):
+        self.field = cache.ray_field
+        self.idx = idx
+        self.cam = None if self.field is not None else camera_rays(cache, idx, uv)
+        self.M = (cache.R_p @ cache.R_c.T).astype(np.float32)  # camera frame -> projector frame
+        self.Rt = cache.R_c.T.astype(np.float32)  # camera frame -> world
+        self.got: dict = {}
+        self.cam_kept = None
+
+    @staticmethod
+    def _rotate(r, row) -> np.ndarray:
+        v = r[0] * row[0]
+        v += r[1] * row[1]
+        v += r[2] * row[2]
+        return v
+
+    def projector(self, k: int) -> np.ndarray:
+        if k not in self.got:
+            self.got[k] = self.field[3 + k][self.idx] if self.field is not None else self._rotate(self.cam, self.M[k])
+        return self.got[k]
+
+    def world_at(self, k: int, keep: np.ndarray, idx_keep: np.ndarray) -> np.ndarray:
+        """World component k at the points ``keep`` (indices into idx; ``idx_keep = idx[keep]``)."""
+        if self.field is not None:
+            return self.field[k][idx_keep]
+        if self.cam_kept is None:
+            self.cam_kept = [c[keep] for c in self.cam]
+        return self._rotate(self.cam_kept, self.Rt[k])
+
+
+def _interpolated_rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
+    r = camera_rays(cache, idx, uv)
+    out = []
+    for R in (cache.R_c.T, cache.R_p @ cache.R_c.T):  # camera frame -> world, -> projector frame
+        R = R.astype(np.float32)
+        for k in range(3):
+            v = r[0] * R[k, 0]
+            v += r[1] * R[k, 1]
+            v += r[2] * R[k, 2]
+            out.append(v)
+    return out
+
+
+def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame rays (x_u, y_u, 1) / |.| of flat pixel indices: 3 float32 arrays."""
+    u, v = _pixel_coords(cache, idx) if uv is None else uv
+    scale = np.float32(1.0 / cache.ray_step)
+    xy = sample_bilinear(cache.ray_grid, u * scale, v * scale)
+    x, y = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    inv = x * x
+    inv += y * y
+    inv += np.float32(1.0)
+    np.sqrt(inv, out=inv)
+    np.divide(np.float32(1.0), inv, out=inv)
+    x *= inv
+    y *= inv
+    return x, y, inv
+
+
+def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
+    """Per node of a camera grid, its epipolar curve in the projector image as a quadratic: the row as a
+    function of the column (``axis="column"``) or the column of the row (``"row"``).
+
+    Each ray of a coarse camera grid is a straight line in the projector's undistorted plane;
+    ``EPIPOLAR_SAMPLES`` points of it spread across the image are distorted and fitted by least
+    squares; a pixel's coefficients are interpolated between nodes. The residual is the quartic
+    part of the lens distortion, far below a projector pixel. A ray whose curve runs nearly
+    along ``axis``'s stripes (the axis cannot triangulate it anyway) gets the image's centre line.
+    """
+    cam, proj = cal.camera, cal.projector
+    step = epipolar_step(cam)
+    gu = np.arange(0, cam.width + step, step, dtype=np.float64)
+    gv = np.arange(0, cam.height + step, step, dtype=np.float64)
+    d = cam.rays(np.stack(np.meshgrid(gu, gv), axis=-1)).reshape(-1, 3)
+    o = proj.to_device(cam.center)  # camera centre in the projector's frame
+    e = d @ proj.R.T
+    k = 0 if axis == "column" else 1  # the coordinate sampled, and the one fitted
+    j = 1 - k
     m = TABLE_MARGIN
-    use = np.isfinite(w) & (np.abs(w) <= 1 + m / half) & (v > -m) & (v < proj.height + m)
+    size_k = proj.width if k == 0 else proj.height
+    size_j = proj.height if k == 0 else proj.width
+    # undistorted range of the sampled coordinate across the image (plus margin)
+    corners = np.array([[-m, -m], [proj.width + m, -m], [-m, proj.height + m], [proj.width + m, proj.height + m]], float)
+    und = np.stack(proj.normalized_from_pixels(corners), axis=-1)
+    lo, hi = und[:, k].min(), und[:, k].max()
+    t = np.linspace(lo, hi, EPIPOLAR_SAMPLES)
+    # point of the line with coordinate k = t:  t (o_z + s e_z) = o_k + s e_k
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (o[k] - t[None, :] * o[2]) / (t[None, :] * e[:, 2:3] - e[:, k:k + 1])
+        z = o[2] + s * e[:, 2:3]
+        other = (o[j] + s * e[:, j:j + 1]) / z
+    ok = np.isfinite(other) & (s > 0) & (z > 0)
+    xy = np.empty(other.shape + (2,))
+    xy[..., k] = t[None, :]
+    xy[..., j] = np.where(ok, other, 0.0)
+    xd, yd = proj.distort(xy[..., 0], xy[..., 1])
+    uv = np.stack([proj.K[0, 0] * xd + proj.K[0, 1] * yd + proj.K[0, 2], proj.K[1, 1] * yd + proj.K[1, 2]], axis=-1)
+    half = (size_k - 1) / 2.0
+    w = (uv[..., k] - half) / half  # in [-1, 1]: keeps the float32 coefficients well scaled
+    val = uv[..., j]
+    use = ok & np.isfinite(w) & np.isfinite(val) & (np.abs(w) <= 1 + m / half) & (val > -m) & (val < size_j + m)
     A = np.stack([np.ones_like(w), w, w * w], axis=-1) * use[..., None]
-    AtA = np.einsum("rki,rkj->rij", np.nan_to_num(A), np.nan_to_num(A))
-    Atv = np.einsum("rki,rk->ri", np.nan_to_num(A), np.where(use, v, 0.0))
-    spread = np.where(use, w, np.nan)
-    good = (use.sum(axis=1) >= 3) & (np.nanmax(spread, axis=1, initial=-9) - np.nanmin(spread, axis=1, initial=9) > 1e-3)
-    q = np.zeros((rays.shape[0], 3))
-    q[:, 0] = proj.cy
+    A = np.nan_to_num(A)
+    AtA = np.einsum("rki,rkj->rij", A, A)
+    Atv = np.einsum("rki,rk->ri", A, np.where(use, val, 0.0))
+    wmin = np.where(use, w, np.inf).min(axis=1)
+    wmax = np.where(use, w, -np.inf).max(axis=1)
+    good = (use.sum(axis=1) >= 3) & (wmax - wmin > 0.05)
+    q = np.zeros((d.shape[0], 3))
+    q[:, 0] = proj.cy if k == 0 else proj.cx
     if good.any():
         q[good] = np.linalg.solve(AtA[good] + 1e-12 * np.eye(3), Atv[good][..., None])[..., 0]
-    coarse = q.reshape(gv.size, gu.size, 3).astype(np.float32)
-    # Pixel (i, j) sits at coarse coordinate (i / step, j / step): a remap, not a resize, so the
-    # grid nodes map exactly onto their pixels.
-    mx, my = np.meshgrid(np.arange(cam.width, dtype=np.float32) / step, np.arange(cam.height, dtype=np.float32) / step)
-    return [cv2.remap(coarse[..., k], mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            for k in range(3)]
+    # node (i, j) is camera pixel (i * step, j * step); pixels sample the grid bilinearly
+    return q.reshape(gv.size, gu.size, 3).astype(np.float32)
+
+
+def calibrated_axes(cal: Calibration) -> tuple[str, ...]:
+    """The projector axes the calibration can triangulate with: rows need the projector's row
+    intrinsics, which a column-only calibration (SPEC §4, ``"axis": "column"``) lacks."""
+    return ("column", "row") if cal.projector.axis == "both" else ("column",)
 
 
 def build_cache(cal: Calibration) -> TriangulationCache:
     cam, proj = cal.camera, cal.projector
-    a, b = proj.R[0], proj.R[2]
     delta = proj.center - cam.center
     if np.linalg.norm(delta) < 1e-6:
         raise GeometryError("calibration: camera and projector centres coincide; no baseline to triangulate")
-    H, W = cam.height, cam.width
-    pixel = np.empty((8, H * W), np.float32)
-    q = _epipolar_curves(cal)
-    u = np.arange(W, dtype=np.float64)
-    for r0 in range(0, H, ROW_CHUNK):
-        r1 = min(H, r0 + ROW_CHUNK)
-        uu, vv = np.meshgrid(u, np.arange(r0, r1, dtype=np.float64))
-        rays = cam.rays(np.stack([uu, vv], axis=-1)).reshape(-1, 3)
-        block = pixel[:, r0 * W:r1 * W]
-        block[RAY_X:RAY_Z + 1] = rays.T
-        block[AD] = rays @ a
-        block[BD] = rays @ b
-        for k in range(3):
-            block[EPI_Q0 + k] = q[k][r0:r1].ravel()
+    grid, step = camera_ray_grid(cam)
     return TriangulationCache(
+        calibration=cal,
         cam_center=cam.center,
-        shape=(H, W),
-        pixel=pixel,
-        a_delta=float(a @ delta),
-        b_delta=float(b @ delta),
-        xu_table=projector_xu_table(proj),
-        epi_half=(proj.width - 1) / 2.0,
+        shape=(cam.height, cam.width),
+        ray_grid=grid,
+        ray_step=step,
+        R_c=cam.R.copy(),
+        R_p=proj.R.copy(),
+        D=proj.R @ delta,
+        f={"column": proj.fx, "row": proj.fy},
+        axes=calibrated_axes(cal),
         cos_limit=float(np.sin(np.radians(MIN_TRIANGULATION_ANGLE_DEG))),
-        fx_projector=proj.fx,
+        table_step=grid_step(proj),
     )
 
 
@@ -148,63 +335,170 @@ def cache_for(cal: Calibration) -> TriangulationCache:
     return cache
 
 
-def undistorted_projector_x(cache: TriangulationCache, column: np.ndarray, idx: np.ndarray,
-                            row: np.ndarray | None = None) -> np.ndarray:
-    """x_u for decoded projector columns (N,) of the camera pixels ``idx`` (flat indices)."""
-    if row is None:
-        q = cache.pixel
-        w = (column - np.float32(cache.epi_half)) * np.float32(1.0 / cache.epi_half)
-        row = w * q[EPI_Q2][idx]
-        row += q[EPI_Q1][idx]
-        row *= w
-        row += q[EPI_Q0][idx]
-    return sample_bilinear(cache.xu_table, column + np.float32(TABLE_MARGIN), row + np.float32(TABLE_MARGIN))
+def prepare(cal: Calibration) -> None:
+    """Build what the first scan with ``cal`` will need (the grids, the projector's tables and,
+    for a rig that needs one stripe axis, its epipolar curves) ahead of it: the command does this
+    on a thread while it reads the frames. A calibration that cannot triangulate is left for the
+    scan to report."""
+    try:
+        cache = cache_for(cal)
+        cache.tables  # noqa: B018
+        axes = scan_axes(cal)
+        if len(axes) == 1:
+            cache.epipolar(axes[0])
+    except AnkleScanError:
+        pass
 
 
 REMAP_WIDTH = 4096  # cv2.remap takes 2-D maps below 32767 a side; N points are laid out in rows
 
 
 def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``table`` at N arbitrary points (NaN outside), via cv2.remap."""
+    """Bilinear samples of ``table`` (H, W) or (H, W, C) at N arbitrary points (NaN outside), via
+    cv2.remap: (N,) or (N, C)."""
     n = x.size
     rows = -(-n // REMAP_WIDTH) or 1
-    mx = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
-    my = np.full(rows * REMAP_WIDTH, -1.0, np.float32)
+    mx = np.empty(rows * REMAP_WIDTH, np.float32)
+    my = np.empty(rows * REMAP_WIDTH, np.float32)
     mx[:n], my[:n] = x, y
+    mx[n:] = my[n:] = -1.0
     out = cv2.remap(table, mx.reshape(rows, REMAP_WIDTH), my.reshape(rows, REMAP_WIDTH),
                     interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    return out.ravel()[:n]
+    return out.reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
+
+
+def _undistorted(cache: TriangulationCache, axis: str, value: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """x_u (``axis="column"``: value = column, other = row) or y_u (rows) at distorted projector
+    coordinates, from the table."""
+    xt, yt = cache.tables
+    scale = np.float32(1.0 / cache.table_step)
+    off = np.float32(TABLE_MARGIN / cache.table_step)
+    if axis == "column":
+        return sample_bilinear(xt, value * scale + off, other * scale + off)
+    return sample_bilinear(yt, other * scale + off, value * scale + off)
+
+
+def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, idx: np.ndarray,
+                      uv=None) -> np.ndarray:
+    """The other projector coordinate on pixel ``idx``'s epipolar curve at ``value`` of ``axis``."""
+    field_ = cache.epipolar_field.get(axis)
+    if field_ is not None:
+        q = [f[idx] for f in field_]
+    else:
+        q = _interpolated_curves(cache, axis, _pixel_coords(cache, idx) if uv is None else uv).T
+    half = np.float32((cache.calibration.projector.width if axis == "column" else
+                       cache.calibration.projector.height) - 1) / np.float32(2.0)
+    w = (value - half) * (np.float32(1.0) / half)
+    out = w * q[2]
+    out += q[1]
+    out *= w
+    out += q[0]
+    return out
+
+
+def _interpolated_curves(cache: TriangulationCache, axis: str, uv) -> np.ndarray:
+    u, v = uv
+    scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
+    return sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
+
+
+# ------------------------------------------------------------------------------ whole images
+@dataclass
+class Triangulated:
+    """Points from decoded maps, with what made each."""
+
+    points: np.ndarray  # (N, 3) float32 world mm
+    index: np.ndarray  # (N,) int64 flat camera pixel index
+    sigma: np.ndarray | None  # (N,) float32 predicted noise along the camera ray, mm (None without a noise model)
+    axes: np.ndarray  # (N,) uint8: 1 column, 2 row, 3 both
+    rejected: dict  # reason -> pixels: "noisy_geometry" (grazing or above the noise limit), "axes_disagree"
+
+    def __iter__(self):  # (points, index, sigma), as triangulate_columns returns
+        return iter((self.points, self.index, self.sigma))
+
+
+AXIS_BITS = {"column": 1, "row": 2}
+
+
+def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np.ndarray | None = None,
+                     valid: np.ndarray | None = None, *, column_sigma: np.ndarray | None = None,
+                     row_sigma: np.ndarray | None = None, max_sigma_mm: float | None = None,
+                     axes=("column", "row")) -> Triangulated:
+    """World points for camera pixels with decoded projector columns and/or rows.
+
+    ``column``, ``row``: (H, W) float32 decoded maps (NaN where undecoded), either may be None.
+    ``axes``: which of them to triangulate with (a map not listed still serves as the other
+    coordinate for the distortion); rows need a projector calibrated along rows.
+    ``valid``: optional (H, W) bool restricting the pixels.
+    ``column_sigma``, ``row_sigma``: predicted noise of the maps (projector px); with them the
+    predicted noise of each point along its camera ray (mm) is returned, points above
+    ``max_sigma_mm`` are dropped, and two axes are weighted by them (without, by geometry alone).
+    """
+    cache = cache_for(cal)
+    H, W = cache.shape
+    maps = {"column": column, "row": row}
+    sigmas = {"column": column_sigma, "row": row_sigma}
+    for name, m in list(maps.items()) + [(f"{k} sigma", v) for k, v in sigmas.items()]:
+        if m is not None and np.shape(m) != (H, W):
+            raise GeometryError(f"decoded map is {np.shape(m)[1]}x{np.shape(m)[0]} but the calibrated camera is {W}x{H}")
+    use = tuple(a for a in AXES if a in axes and maps[a] is not None)
+    for a in use:
+        if a not in cache.axes:
+            raise GeometryError(f"the calibration knows only the projector's {cache.axes[0]}s; "
+                                f"it cannot triangulate {a}s")
+    if not use:
+        raise GeometryError("nothing to triangulate: no decoded map of an axis the calibration knows")
+    flat = {a: None if m is None else np.asarray(m, dtype=np.float32).ravel() for a, m in maps.items()}
+    sig = {a: None if s is None else np.asarray(s, dtype=np.float32).ravel() for a, s in sigmas.items()}
+    has_noise = all(sig[a] is not None for a in use)
+    if valid is not None:  # (a NaN on every axis fails the geometric test below anyway)
+        idx = np.flatnonzero(np.asarray(valid, bool))
+    else:
+        finite = None
+        for a in use:
+            f = np.isfinite(maps[a])
+            finite = f if finite is None else (finite | f)
+        idx = np.flatnonzero(finite)
+    alone = []  # axes decoded without the other somewhere: they need the epipolar curves
+    for a in use:  # lazy parts of the cache, built here once rather than racing in the threads
+        o = flat["row" if a == "column" else "column"]
+        if o is None or not np.isfinite(o[idx]).all():
+            cache.epipolar(a)
+            alone.append(a)
+    if idx.size:
+        cache.tables  # noqa: B018
+        cache.scans += 1
+        if cache.scans >= 2:
+            cache.build_fields(alone)
+    chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
+    work = lambda i: _triangulate_chunk(cache, i, flat, sig, use, has_noise, max_sigma_mm)  # noqa: E731
+    parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
+    rejected: dict = {}
+    for p in parts:
+        for k, v in p[4].items():
+            rejected[k] = rejected.get(k, 0) + v
+    return Triangulated(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                        np.concatenate([p[2] for p in parts]) if has_noise else None,
+                        np.concatenate([p[3] for p in parts]), rejected)
 
 
 def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray | None = None,
                         row: np.ndarray | None = None, column_sigma: np.ndarray | None = None,
                         max_sigma_mm: float | None = None):
-    """World points for camera pixels with decoded projector columns.
+    """World points for camera pixels with decoded projector columns (camera ray ∩ column plane).
 
     ``column``: (H, W) float32 projector column per camera pixel, NaN where undecoded.
-    ``row``: optional decoded projector row (H, W); by default it is read off the epipolar curve.
+    ``row``: optional decoded projector row (H, W), for the distortion only; by default it is
+    read off the epipolar curve.
     ``column_sigma``: optional (H, W) predicted column noise (projector px); when given, the
     predicted noise of each point along its camera ray (mm) is returned as well, and points
     above ``max_sigma_mm`` are dropped.
     Returns ``(points (N, 3) float32, pixel_index (N,) int64 into the flattened image,
-    sigma_mm (N,) float32 or None)``.
+    sigma_mm (N,) float32 or None)``. :func:`triangulate_maps` takes rows as well.
     """
-    cache = cache_for(cal)
-    H, W = cache.shape
-    if column.shape != (H, W):
-        raise GeometryError(f"decoded map is {column.shape[1]}x{column.shape[0]} but the calibrated camera is {W}x{H}")
-    flat = np.asarray(column, dtype=np.float32).ravel()
-    idx = np.flatnonzero(valid.ravel() if valid is not None else np.isfinite(flat))
-    rows = None if row is None else np.asarray(row, dtype=np.float32).ravel()
-    sig = None if column_sigma is None else np.asarray(column_sigma, dtype=np.float32).ravel()
-    # numpy releases the GIL on large arrays: chunks of points run in parallel threads
-    chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
-    work = lambda i: _triangulate_chunk(cache, flat, i, rows, sig, max_sigma_mm)  # noqa: E731
-    parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
-    pts = np.concatenate([p[0] for p in parts])
-    idx = np.concatenate([p[1] for p in parts])
-    sigma = None if sig is None else np.concatenate([p[2] for p in parts])
-    return pts, idx, sigma
+    res = triangulate_maps(cal, column, row, valid, column_sigma=column_sigma, max_sigma_mm=max_sigma_mm,
+                           axes=("column",))
+    return res.points, res.index, res.sigma
 
 
 _WORKERS = max(1, min(4, os.cpu_count() or 1))
@@ -218,48 +512,220 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL[0]
 
 
-def _triangulate_chunk(cache: TriangulationCache, flat: np.ndarray, idx: np.ndarray, rows, sig, max_sigma_mm):
-    col = flat[idx]
-    q = cache.pixel
-    xu = undistorted_projector_x(cache, col, idx, None if rows is None else rows[idx])
-    bd = q[BD][idx]
-    den = q[AD][idx]
-    den -= xu * bd
-    s = xu * np.float32(-cache.b_delta)
-    s += np.float32(cache.a_delta)
+def _axis_depth(cache, axis, rays, value, other, idx, uv):
+    """s along the ray, ds/d(projector px) and the grazing test for one axis."""
+    k = 0 if axis == "column" else 1
+    if other is None:
+        if uv is None and cache.epipolar_field.get(axis) is None:
+            uv = _pixel_coords(cache, idx)
+        other = _other_coordinate(cache, axis, value, idx, uv)
+    xu = _undistorted(cache, axis, value, other)
+    Dk, Dz = np.float32(cache.D[k]), np.float32(cache.D[2])
+    ek, ez = rays.projector(k), rays.projector(2)
+    den = xu * ez
+    np.subtract(ek, den, out=den)
+    s = xu * (-Dz)
+    s += Dk
     s /= den
-    # |den| / |n| is the sine of the angle between ray and plane; grazing rays are unreliable.
+    # |den| / |n| is the sine of the angle between the ray and the plane; grazing rays are unreliable
     ok = np.abs(den) > np.float32(cache.cos_limit) * np.sqrt(xu * xu + np.float32(1.0))
     ok &= s > 0
-    sigma = None
-    if sig is not None:
-        # ds/dx_u = (s b·d - b·Δ) / den, and dx_u/dcolumn ~ 1/fx (distortion is a small change)
-        sigma = s * bd
-        sigma -= np.float32(cache.b_delta)
-        sigma /= den
-        np.abs(sigma, out=sigma)
-        sigma *= sig[idx]
-        sigma *= np.float32(1.0 / cache.fx_projector)
-        if max_sigma_mm is not None:
-            ok &= sigma <= np.float32(max_sigma_mm)
+    # ds/dx_u = (s e_z - D_z) / den, and dx_u/d(px) ~ 1/f (distortion is a small change)
+    g = s * ez
+    g -= Dz
+    g /= den
+    np.abs(g, out=g)
+    g *= np.float32(1.0 / cache.f[axis])
+    return s, g, ok
+
+
+def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, sig: dict, use: tuple,
+                       has_noise: bool, max_sigma_mm):
+    uv = None if cache.ray_field is not None else _pixel_coords(cache, idx)
+    rays = _Rays(cache, idx, uv)
+    rejected = {}
+    est = {}
+    for a in use:
+        value = flat[a][idx]
+        o = "row" if a == "column" else "column"
+        other = None
+        if flat[o] is not None:
+            other = flat[o][idx]
+            if not np.isfinite(other).all():
+                if uv is None and cache.epipolar_field.get(a) is None:
+                    uv = _pixel_coords(cache, idx)
+                fill = _other_coordinate(cache, a, value, idx, uv)
+                other = np.where(np.isfinite(other), other, fill)
+        s, g, ok = _axis_depth(cache, a, rays, value, other, idx, uv)  # a NaN value fails ok
+        if sig[a] is not None:
+            sd = sig[a][idx]
+            sd *= g
+        else:
+            sd = g * np.float32(DEFAULT_SIGMA_PX)
+        est[a] = (s, sd, g, ok)
+    if len(est) == 1:
+        (a, (s_all, sigma, _, ok)), = est.items()
+        axes_code = None
+    else:
+        (s1, sd1, g1, ok1), (s2, sd2, g2, ok2) = est["column"], est["row"]
+        v1, v2 = sd1 * sd1 + np.float32(1e-20), sd2 * sd2 + np.float32(1e-20)
+        both = ok1 & ok2
+        # a wrong code on one axis: the two depths disagree far beyond their noise
+        tol = np.sqrt(v1 + v2) * np.float32(AXIS_AGREEMENT_K) + np.float32(AXIS_AGREEMENT_PX) * np.sqrt(g1 * g1 + g2 * g2)
+        disagree = both & ~(np.abs(s1 - s2) <= tol)
+        if disagree.any():
+            rejected["axes_disagree"] = int(np.count_nonzero(disagree))
+        both &= ~disagree
+        w1, w2 = np.float32(1.0) / v1, np.float32(1.0) / v2
+        combined_var = np.float32(1.0) / (w1 + w2)
+        s_both = (s1 * w1 + s2 * w2) * combined_var
+        s_all = np.where(both, s_both, np.where(ok1, s1, s2))
+        var_all = np.where(both, combined_var, np.where(ok1, v1, v2))
+        ok = (ok1 | ok2) & ~disagree
+        axes_code = np.where(both, np.uint8(3), np.where(ok1, np.uint8(1), np.uint8(2)))
+        sigma = np.sqrt(var_all)
+    if not has_noise:
+        sigma = None
+    if sigma is not None and max_sigma_mm is not None:
+        ok &= sigma <= np.float32(max_sigma_mm)
     keep = np.flatnonzero(ok)
-    idx, s = idx[keep], s[keep]
-    pts = np.empty((idx.size, 3), np.float32)
+    noisy = idx.size - keep.size - rejected.get("axes_disagree", 0)
+    if noisy:
+        rejected["noisy_geometry"] = noisy
+    s = s_all[keep]
+    idx_keep = idx[keep]
+    pts = np.empty((keep.size, 3), np.float32)
     for k in range(3):
-        pts[:, k] = q[RAY_X + k][idx] * s + np.float32(cache.cam_center[k])
-    return pts, idx, (None if sigma is None else sigma[keep])
+        pts[:, k] = rays.world_at(k, keep, idx_keep) * s + np.float32(cache.cam_center[k])
+    code = np.full(keep.size, AXIS_BITS[use[0]], np.uint8) if axes_code is None else axes_code[keep]
+    return pts, idx_keep, (None if sigma is None else sigma[keep]), code, rejected
 
 
+# ------------------------------------------------------------------------------ rig geometry
+@dataclass(frozen=True)
+class AxisGeometry:
+    """How well one stripe axis triangulates at the rig's working point."""
+
+    axis: str
+    angle_deg: float  # between the camera ray and the stripe plane through the working point
+    mm_per_px: float  # depth along the ray per projector pixel of that axis
+
+
+def working_point(cal: Calibration) -> np.ndarray:
+    """Where the rig looks: the midpoint of the closest approach of the rays through the centres
+    of the camera's and the projector's images (a projector's optical axis is usually far off its
+    image's centre), or, if they do not converge in front of both, the camera's central ray at
+    twice the baseline."""
+    cam, proj = cal.camera, cal.projector
+    c1, c2 = cam.center, proj.center
+    d1 = cam.rays(np.array([(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]))
+    d2 = proj.rays(np.array([(proj.width - 1) / 2.0, (proj.height - 1) / 2.0]))
+    b = float(d1 @ d2)
+    w = c1 - c2
+    den = 1.0 - b * b
+    base = float(np.linalg.norm(c2 - c1))
+    if den > 1e-9:
+        s = (b * (d2 @ w) - (d1 @ w)) / den
+        t = ((d2 @ w) - b * (d1 @ w)) / den
+        if s > 0.1 * base and t > 0.1 * base:
+            return 0.5 * ((c1 + s * d1) + (c2 + t * d2))
+    return c1 + 2.0 * base * d1
+
+
+def axis_geometry(cal: Calibration, point: np.ndarray | None = None) -> dict[str, AxisGeometry]:
+    """Per axis the projector knows: the triangulation angle and depth per projector pixel at
+    ``point`` (default :func:`working_point`). A stripe plane holding the baseline gives 0°."""
+    cam, proj = cal.camera, cal.projector
+    X = working_point(cal) if point is None else np.asarray(point, float)
+    d = X - cam.center
+    dist = float(np.linalg.norm(d))
+    d = d / dist
+    Xp = proj.to_device(X)
+    e = proj.R @ d
+    D = proj.R @ (proj.center - cam.center)
+    out = {}
+    for axis in calibrated_axes(cal):
+        k = 0 if axis == "column" else 1
+        xu = Xp[k] / Xp[2]
+        n = np.zeros(3)
+        n[k], n[2] = 1.0, -xu
+        den = float(n @ e)
+        sin = abs(den) / float(np.linalg.norm(n))
+        f = proj.fx if axis == "column" else proj.fy
+        g = abs((dist * e[2] - D[2]) / den) / f if abs(den) > 1e-12 else math.inf
+        out[axis] = AxisGeometry(axis, math.degrees(math.asin(min(1.0, sin))), g)
+    return out
+
+
+# A single axis is enough when it carries this share of the information both would (its noise is
+# then at most 1/sqrt(0.85) = 8 % above both combined); otherwise both are projected.
+SINGLE_AXIS_SHARE = 0.85
+
+
+def scan_axes(cal: Calibration | None) -> tuple[str, ...]:
+    """The stripe axes a scan with this rig needs: columns for a projector beside the camera,
+    rows for one above or below it, both for a diagonal one (or with no calibration at all)."""
+    if cal is None:
+        return AXES
+    geo = axis_geometry(cal)
+    if len(geo) == 1:
+        return tuple(geo)
+    info = {a: 1.0 / g.mm_per_px ** 2 if g.mm_per_px > 0 else 0.0 for a, g in geo.items()}
+    total = sum(info.values())
+    for a, i in info.items():
+        if total > 0 and i >= SINGLE_AXIS_SHARE * total:
+            return (a,)
+    return AXES
+
+
+def check_geometry(cal: Calibration, axes) -> dict[str, AxisGeometry]:
+    """Raise a one-line GeometryError when none of ``axes`` can triangulate on this rig."""
+    geo = axis_geometry(cal)
+    usable = [a for a in axes if a in geo]
+    if not usable:
+        have = ", ".join(axes) or "no"
+        raise GeometryError(f"the capture has {have} stripes but the calibration knows only the projector's "
+                            f"{'/'.join(geo)}s (\"axis\": \"{cal.projector.axis}\"): nothing to triangulate with")
+    if max(geo[a].angle_deg for a in usable) < MIN_TRIANGULATION_ANGLE_DEG:
+        names = " and ".join(f"{a}s ({geo[a].angle_deg:.1f}°)" for a in usable)
+        missing = [a for a in geo if a not in usable]
+        hint = f"; project {missing[0]} patterns too (anklescan patterns --axes column,row)" if missing else ""
+        raise GeometryError(f"the camera-projector baseline runs along the projector's {names}: they cannot "
+                            f"triangulate (need ≥ {MIN_TRIANGULATION_ANGLE_DEG:g}°){hint}")
+    return geo
+
+
+# ------------------------------------------------------------------------------ single points
 def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -> np.ndarray:
-    """(N, 3) world mm for single sub-pixel observations, in float64: each camera ray ∩ the plane
-    of its projector column. ``proj`` is (N,) columns or (N, 2) columns and rows (then exact for
-    a 2-D-distorted projector). For whole decoded images use :func:`triangulate_columns`."""
-    cam = cal.camera
+    """(N, 3) world mm for single sub-pixel observations, in float64.
+
+    ``proj`` is (N,) projector columns (camera ray ∩ column plane) or (N, 2) columns and rows:
+    then, for a projector calibrated along both axes, the least-squares point on the camera ray
+    under both planes, each weighted by its conditioning (equal noise in projector pixels), so a
+    projector above the camera works as well as one beside it. For whole decoded images use
+    :func:`triangulate_maps`."""
+    cam, p = cal.camera, cal.projector
     d = cam.rays(np.asarray(cam_uv, dtype=np.float64).reshape(-1, 2))
     proj = np.asarray(proj, dtype=np.float64)
-    planes = cal.projector.column_plane(proj, None) if proj.ndim == 1 else cal.projector.column_plane(
-        proj[:, 0], proj[:, 1])
-    n, off = planes[:, :3], planes[:, 3]
+    C = cam.center
+    if proj.ndim == 1 or p.axis != "both":
+        cols = proj if proj.ndim == 1 else proj[:, 0]
+        planes = p.column_plane(cols, None if proj.ndim == 1 else proj[:, 1])
+        n, off = planes[:, :3], planes[:, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -(n @ C + off) / np.einsum("ij,ij->i", n, d)
+        return C + s[:, None] * d
+    xu, yu = p.normalized_from_pixels(proj[:, :2])
+    e = d @ p.R.T
+    D = p.R @ (p.center - C)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(n @ cam.center + off) / np.einsum("ij,ij->i", n, d)
-    return cam.center + s[:, None] * d
+        est = []
+        for k, (u, f) in enumerate(((xu, p.fx), (yu, p.fy))):
+            den = e[:, k] - u * e[:, 2]
+            s = (D[k] - u * D[2]) / den
+            g = (s * e[:, 2] - D[2]) / den / f
+            est.append((s, 1.0 / (g * g)))
+        (s1, w1), (s2, w2) = est
+        s = (s1 * w1 + s2 * w2) / (w1 + w2)
+        s = np.where(np.isfinite(s), s, np.where(np.isfinite(s1), s1, s2))
+    return C + s[:, None] * d

@@ -5,7 +5,8 @@ Definitions (used by the tests, the demo and the benchmarks alike):
   that same ray. Its *distance to the true surface* is the component along the true surface
   normal; its *3-D error* is the full distance to the true hit (never smaller).
 - outlier: 3-D error > 2 mm (the conservative one of the two).
-- RMS: distance to the true surface over the inliers.
+- RMS: distance to the true surface over the inliers; median: the median of its magnitude over
+  the inliers.
 - coverage: reconstructed pixels / pixels that are both seen by the camera and lit by the
   projector (``Truth.lit``).
 Figures are given for the measured subject (leg, foot, table, marks) and for the whole frame;
@@ -31,12 +32,13 @@ class Accuracy:
     points: int
     rms_mm: float
     mean_abs_mm: float
+    median_mm: float
     p99_mm: float
     outlier_fraction: float
     coverage: float
 
     def format(self) -> str:
-        return (f"RMS {self.rms_mm:.3f} mm, 99th pct {self.p99_mm:.3f} mm, outliers (>2 mm) "
+        return (f"RMS {self.rms_mm:.3f} mm, median {self.median_mm:.3f} mm, 99th pct {self.p99_mm:.3f} mm, outliers (>2 mm) "
                 f"{100 * self.outlier_fraction:.3f} %, coverage {100 * self.coverage:.1f} % "
                 f"({self.points} points)")
 
@@ -49,6 +51,7 @@ def _accuracy(surface: np.ndarray, err3d: np.ndarray, covered: int, lit: int) ->
         points=n,
         rms_mm=float(np.sqrt(np.mean(d**2))) if d.size else float("nan"),
         mean_abs_mm=float(d.mean()) if d.size else float("nan"),
+        median_mm=float(np.median(d)) if d.size else float("nan"),
         p99_mm=float(np.percentile(d, 99)) if d.size else float("nan"),
         outlier_fraction=float((~inlier).mean()) if n else 0.0,
         coverage=covered / lit if lit else 0.0,

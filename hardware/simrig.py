@@ -25,7 +25,7 @@ from core.device_model import Device, look_at
 from hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
 
-__all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "SimulatedCamera",
+__all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
 
 RIG_TARGET = np.array([0.0, 0.0, 260.0])  # where both devices aim: above the table, between leg and box
@@ -129,15 +129,37 @@ def default_camera(scale: float = 1.0, *, eye=None, target=None, f=CAMERA_F_PX, 
     return Device(W, H, K, np.asarray(dist, float), R, t, "both")
 
 
+# Where the projector stands round the camera, as the angle of the baseline from the camera's
+# left towards up, in the plane square to the camera's view: "side" (beside it, the baseline
+# across the projector's columns), "above" (across its rows), "diagonal" (across both).
+RIG_LAYOUTS = {"side": 0.0, "diagonal": 45.0, "above": 90.0, "below": -90.0}
+
+
+def layout_angle(layout: str | float) -> float:
+    """Degrees from the camera's left towards up for a layout name (or an angle in degrees)."""
+    if isinstance(layout, str):
+        if layout not in RIG_LAYOUTS:
+            raise ValueError(f"unknown rig layout {layout!r}; expected one of {', '.join(RIG_LAYOUTS)} or an angle")
+        return RIG_LAYOUTS[layout]
+    return float(layout)
+
+
 def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=BASELINE_MM, target=None, f=PROJECTOR_F_PX,
-                      dist=(-0.03, 0.004, 3e-4, -2e-4, 0.0)) -> Device:
-    """1024x768 projector ``baseline`` mm to the camera's left (lateral), level with it, so the
-    baseline runs across projector columns (vertical stripes encode columns)."""
+                      dist=(-0.03, 0.004, 3e-4, -2e-4, 0.0), layout: str | float = "side") -> Device:
+    """1024x768 projector ``baseline`` mm from the camera, aimed at the same target with its image
+    rows level. ``layout`` "side" (default): to the camera's left (lateral), level with it, so the
+    baseline runs across projector columns (vertical stripes encode columns); "above": above the
+    camera (across the rows); "diagonal": up and to the left at 45°; or an angle in degrees from
+    the camera's left towards up."""
     cam_eye = CAMERA_EYE if camera_eye is None else np.asarray(camera_eye, float)
     tgt = RIG_TARGET if target is None else np.asarray(target, float)
     view = tgt - cam_eye
     left = np.cross([0.0, 0.0, 1.0], view)
-    eye = cam_eye + baseline * left / np.linalg.norm(left)
+    left /= np.linalg.norm(left)
+    up = np.cross(view, left)
+    up /= np.linalg.norm(up)
+    a = math.radians(layout_angle(layout))
+    eye = cam_eye + baseline * (math.cos(a) * left + math.sin(a) * up)
     W, H = round(1024 * scale), round(768 * scale)
     K = _scaled_K(f, f, 511.5 + 3.0, 0.8 * 768, scale)
     R, t = _aim(eye, tgt, K, W, H)
@@ -185,15 +207,19 @@ class SimRig:
     """Virtual camera + projector looking at ``scene``.
 
     ``scale`` shrinks the default devices' resolutions and intrinsics (0.25 for fast tests);
-    explicit ``camera`` / ``projector`` Devices override the defaults (their scale is theirs).
+    ``layout`` places the default projector round the camera ("side", "above", "diagonal", see
+    :func:`default_projector`); explicit ``camera`` / ``projector`` Devices override the
+    defaults (their scale is theirs).
     """
 
     def __init__(self, scene: Scene | None = None, camera: Device | None = None, projector: Device | None = None,
-                 *, scale: float = 1.0, optics: Optics | None = None, seed: int | None = 0):
+                 *, scale: float = 1.0, optics: Optics | None = None, seed: int | None = 0,
+                 layout: str | float = "side"):
         self.scene = scene if scene is not None else leg_scene()
         self.scale = float(scale)
+        self.layout = layout
         self.camera = camera if camera is not None else default_camera(scale)
-        self.projector = projector if projector is not None else default_projector(scale)
+        self.projector = projector if projector is not None else default_projector(scale, layout=layout)
         self.optics = optics or Optics()
         self.rng = np.random.default_rng(seed)
         self.d0 = float(np.linalg.norm(RIG_TARGET - self.projector.center))
@@ -209,7 +235,7 @@ class SimRig:
     def with_scene(self, scene: Scene) -> "SimRig":
         """Same devices and optics looking at another scene (e.g. calibration box, then leg)."""
         return SimRig(scene, self.camera, self.projector, scale=self.scale, optics=self.optics,
-                      seed=int(self.rng.integers(2**31)))
+                      seed=int(self.rng.integers(2**31)), layout=self.layout)
 
     def reseed(self, seed: int | None) -> None:
         self.rng = np.random.default_rng(seed)

@@ -162,3 +162,73 @@ def test_calibrate_box_without_a_box(tmp_path, scan):
     done = run("calibrate", "box", capture, "--out", tmp_path / "cal.json")
     assert_user_error(done, "markers")
     assert not (tmp_path / "cal.json").exists()
+
+
+# ---- any projector placement (SPEC §5, §6) ---------------------------------------------------
+@pytest.fixture(scope="module")
+def above(tmp_path_factory):
+    """The projector ABOVE the camera: the baseline runs along the projector's columns."""
+    work = tmp_path_factory.mktemp("above")
+    rig = SimRig(scale=0.25, layout="above")
+    cal = work / "calibration.json"
+    save_calibration(rig.true_calibration(), cal)
+    return rig, work, cal
+
+
+def _simulate(rig, folder, axes):
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=axes)
+    return save_capture(folder, pset, [rig.capture(img) for img in render_all(pset)])
+
+
+def test_default_patterns_reconstruct_a_projector_above_the_camera(tmp_path, above):
+    rig, _, cal = above
+    patterns = tmp_path / "patterns"
+    assert run("patterns", "--out", patterns, "--projector", f"{rig.projector.width}x{rig.projector.height}").returncode == 0
+    manifest = json.loads((patterns / "manifest.json").read_text())
+    assert manifest["axes"] == ["column", "row"]  # the default works whatever side the projector is on
+    capture = tmp_path / "capture"
+    shutil.copytree(patterns, capture)
+    for f in manifest["frames"]:
+        cv2.imwrite(str(capture / f["file"]), rig.capture(cv2.imread(str(patterns / f["file"]), cv2.IMREAD_UNCHANGED)))
+    done = run("reconstruct", capture, "--calibration", cal, "--out", tmp_path / "cloud.ply")
+    assert done.returncode == 0, done.stderr
+    acc = evaluate(read_ply(tmp_path / "cloud.ply"), rig.truth())["subject"]
+    assert acc.median_mm < 0.15 and acc.outlier_fraction < 0.004 and acc.coverage > 0.7, acc
+    # with the calibration, the patterns command asks for the rows alone
+    done = run("patterns", "--out", tmp_path / "p2", "--calibration", cal)
+    assert done.returncode == 0 and "row stripes" in done.stdout, done.stdout
+    assert json.loads((tmp_path / "p2" / "manifest.json").read_text())["axes"] == ["row"]
+
+
+def test_stripes_along_the_baseline_are_exit_2_and_no_file(tmp_path, above):
+    rig, work, cal = above
+    capture = _simulate(rig, tmp_path / "columns", ("column",))
+    out = tmp_path / "cloud.ply"
+    assert_user_error(run("reconstruct", capture, "--calibration", cal, "--out", out), "baseline", "columns", "row")
+    assert not out.exists() and not list(tmp_path.glob(".cloud.ply*"))
+
+
+def test_rows_with_a_column_only_calibration_are_exit_2(tmp_path, above):
+    rig, _, _ = above
+    obj = calibration_to_dict(rig.true_calibration())
+    obj["projector"]["axis"] = "column"
+    obj["projector"]["K"][1] = None  # SPEC §4: row intrinsics unknown
+    (tmp_path / "col.json").write_text(json.dumps(obj))
+    capture = _simulate(rig, tmp_path / "rows", ("row",))
+    out = tmp_path / "cloud.ply"
+    assert_user_error(run("reconstruct", capture, "--calibration", tmp_path / "col.json", "--out", out),
+                      "knows only the projector's columns")
+    assert not out.exists()
+    # and the patterns command, asked for this rig, says the calibration cannot serve it
+    assert_user_error(run("patterns", "--out", tmp_path / "p", "--calibration", tmp_path / "col.json"), "baseline")
+
+
+def test_an_all_black_capture_is_exit_2_and_no_file(tmp_path, scan):
+    _, capture, cal = scan
+    black = _copy(capture, tmp_path / "black")
+    for f in json.loads((black / "manifest.json").read_text())["frames"]:
+        img = cv2.imread(str(black / f["file"]), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(black / f["file"]), np.zeros_like(img))
+    out = tmp_path / "cloud.ply"
+    assert_user_error(run("reconstruct", black, "--calibration", cal, "--out", out), "nothing decodable", "shadow")
+    assert not out.exists() and not list(tmp_path.glob(".cloud.ply*"))
