@@ -230,5 +230,6 @@ def test_an_all_black_capture_is_exit_2_and_no_file(tmp_path, scan):
         img = cv2.imread(str(black / f["file"]), cv2.IMREAD_UNCHANGED)
         cv2.imwrite(str(black / f["file"]), np.zeros_like(img))
     out = tmp_path / "cloud.ply"
-    assert_user_error(run("reconstruct", black, "--calibration", cal, "--out", out), "nothing decodable", "shadow")
+    # refused where the capture is read (an unlit capture), before decoding finds nothing
+    assert_user_error(run("reconstruct", black, "--calibration", cal, "--out", out), "white frame is no brighter")
     assert not out.exists() and not list(tmp_path.glob(".cloud.ply*"))
