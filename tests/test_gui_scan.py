@@ -7,38 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PySide6.QtCore import QElapsedTimer, QTimer
+
 
 from app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
-from gui_actions import use_true_calibration
+from gui_actions import GapMeter, use_true_calibration
 
 pytestmark = pytest.mark.gui
 REPO = Path(__file__).resolve().parent.parent
-
-
-class GapMeter:
-    """A 10 ms timer on the UI thread; the longest gap between ticks is how long it was blocked."""
-
-    def __init__(self):
-        self.clock = QElapsedTimer()
-        self.timer = QTimer()
-        self.timer.setInterval(10)
-        self.timer.timeout.connect(self._tick)
-        self.last = None
-        self.max_gap_ms = 0
-
-    def _tick(self):
-        now = self.clock.elapsed()
-        if self.last is not None:
-            self.max_gap_ms = max(self.max_gap_ms, now - self.last)
-        self.last = now
-
-    def start(self):
-        self.clock.start()
-        self.timer.start()
-
-    def stop(self):
-        self.timer.stop()
 
 
 @pytest.fixture
