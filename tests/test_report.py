@@ -193,3 +193,12 @@ def test_report_stats_reflect_synthetic_effect(study):
         assert t.n_a == t.n_b == 3 and t.mean_diff > 0
     assert s.condition_tests[("all", "inversion")].n == 6
     assert s.condition_tests[("all", "inversion")].mean_diff > 0
+
+
+def test_session_report_states_the_mark_diameter_setting():
+    from types import SimpleNamespace
+
+    from core.report import _mark_diameter_text
+
+    assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=None)) == "measured from each capture (auto)"
+    assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=12.5)) == "12.5 mm (given)"
