@@ -325,3 +325,12 @@ def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path
     assert res.pages == 2
     assert "Group comparison" in [t.get_text() for t in figs[0].texts]
     assert figs[1]._suptitle.get_text().endswith("sprain history") and any(t.get_text().startswith("1 patient;") for t in figs[1].texts)
+
+
+def test_session_report_states_the_mark_diameter_setting():
+    from types import SimpleNamespace
+
+    from core.report import _mark_diameter_text
+
+    assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=None)) == "measured from each capture (auto)"
+    assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=12.5)) == "12.5 mm (given)"
