@@ -13,6 +13,7 @@ import os
 import sys
 import time
 import traceback
+from functools import partial
 from pathlib import Path
 
 from PySide6.QtCore import Qt, QTimer, Signal
@@ -259,6 +260,7 @@ class MainWindow(QMainWindow):
         self.scan_page.scan_button.clicked.connect(_no_args(self.start_scan))
         self.scan_page.cancel_button.clicked.connect(_no_args(self.cancel_scan))
         self.scan_page.calibrate_button.clicked.connect(_no_args(self.open_calibration))
+        self.scan_page.form.mark_diameter.edit.editingFinished.connect(_no_args(self._save_mark_diameter))
         self.result_page.new_trial.clicked.connect(lambda: self.tabs.setCurrentIndex(PAGE_SCAN))
         centre = QWidget()
         cv = QVBoxLayout(centre)
@@ -459,6 +461,7 @@ class MainWindow(QMainWindow):
             self._refresh_session_view()
         session = self.store.get_session(sid)
         self.scan_page.form.set_condition(session.condition)
+        self.scan_page.form.mark_diameter.setValue(session.mark_diameter_mm)
         self.trials.blockSignals(True)
         for t in self.store.list_trials(sid):
             item = QListWidgetItem(f"Trial {t.id}   {_deg(t.ref_inversion)} / {_deg(t.ref_plantar_flexion)}"
@@ -875,6 +878,8 @@ class MainWindow(QMainWindow):
             return False
         try:
             entry = self.scan_page.form.entry()
+            if not self._save_mark_diameter():
+                raise ValueError(self.scan_page.form.mark_diameter.problem() or "the mark diameter was not saved")
         except ValueError as exc:  # the field shows the same message
             self.banner.show_message("warning", f"The scan did not start: {exc}")
             return False
@@ -889,6 +894,22 @@ class MainWindow(QMainWindow):
         if not self.projector.isVisible():
             self.show_projector()
         self.controller.start(job)
+        return True
+
+    def _save_mark_diameter(self) -> bool:
+        """Keep the mark diameter typed on the Scan page with the session (empty: measured)."""
+        field, sid = self.scan_page.form.mark_diameter, self.current_session_id()
+        if not field.check():
+            return False
+        if sid is None or self.store is None or self.read_only:
+            return True
+        value = field.value()
+        if self.store.get_session(sid).mark_diameter_mm != value:
+            try:
+                self.store.set_session_mark_diameter(sid, value)
+            except Exception as exc:
+                self.banner.show_message("error", f"The mark diameter could not be saved: {exc}")
+                return False
         return True
 
     def _new_trial_folder(self, entry) -> Path:
@@ -911,9 +932,10 @@ class MainWindow(QMainWindow):
         w, h = self.rig.projector_size
         # the stripes this rig's geometry needs (columns beside the camera, rows above, both
         # diagonal); without a calibration both, which work wherever the projector stands
-        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h, axes=scan_axes(self.rig.calibration))
+        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h, axes=scan_axes(self.calibration))
+        diameter = self.store.get_session(self.current_session_id()).mark_diameter_mm
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
-                       calibration=self.calibration, reconstruct=measure_folder,
+                       calibration=self.calibration, reconstruct=partial(measure_folder, mark_diameter_mm=diameter),
                        cloud_path=Path(folder).parent / "cloud.ply",
                        metadata={"device": self.rig.description, "trial": self._trial_id,
                                  "calibration_id": self.calibration_id})

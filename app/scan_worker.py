@@ -314,11 +314,12 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else np.ascontiguousarray(img[..., ::-1])
 
 
-def measure_folder(folder, calibration):
-    """Reconstruct the saved frames and find the seven marks on them (``anklescan measure``)."""
+def measure_folder(folder, calibration, mark_diameter_mm: float | None = None):
+    """Reconstruct the saved frames and find the seven marks on them (``anklescan measure``);
+    the marks' size is the session's setting, or measured from the capture when None."""
     from core.capture import load_capture
     from core.measure import measure_capture
-    return measure_capture(load_capture(folder), calibration)
+    return measure_capture(load_capture(folder), calibration, mark_diameter_mm)
 
 
 def reconstruct_folder(folder, calibration):

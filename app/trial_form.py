@@ -44,7 +44,8 @@ class AngleField(QWidget):
         row = QHBoxLayout()
         row.setContentsMargins(0, 0, 0, 0)
         row.addWidget(self.edit)
-        row.addWidget(QLabel("°"))
+        self.unit = QLabel("°")
+        row.addWidget(self.unit)
         row.addStretch(1)
         outer = QVBoxLayout(self)
         outer.setContentsMargins(0, 0, 0, 0)
@@ -82,6 +83,44 @@ class AngleField(QWidget):
         self.check()
 
 
+MARK_DIAMETER_RANGE = (8.0, 25.0)  # SPEC §2: marks are 8-25 mm across
+
+
+class MarkSizeField(AngleField):
+    """The session's mark diameter in mm; empty means "measured from each scan"."""
+
+    def __init__(self, parent=None):
+        super().__init__("The marks' diameter, when known (all seven are one size); leave empty to have it "
+                         "measured from each scan.", parent)
+        self.edit.setText("")
+        self.edit.setPlaceholderText("measured")
+        self.unit.setText("mm")
+
+    def problem(self) -> str:
+        text = self.edit.text().strip().replace(",", ".")
+        if not text:
+            return ""
+        try:
+            v = float(text)
+        except ValueError:
+            return f"'{self.edit.text()}' is not a diameter in mm (leave empty to measure it)."
+        lo, hi = MARK_DIAMETER_RANGE
+        if not (math.isfinite(v) and lo <= v <= hi):
+            return f"{text} mm is outside the marks' sizes ({lo:g}–{hi:g} mm); leave empty to measure it."
+        return ""
+
+    def value(self) -> float | None:
+        text = self.problem()
+        if text:
+            raise ValueError(text)
+        t = self.edit.text().strip().replace(",", ".")
+        return float(t) if t else None
+
+    def setValue(self, value: float | None) -> None:
+        self.edit.setText("" if value is None else f"{float(value):g}")
+        self.check()
+
+
 class TrialForm(QGroupBox):
     def __init__(self, parent=None):
         super().__init__("Trial", parent)
@@ -99,6 +138,8 @@ class TrialForm(QGroupBox):
         form.addRow("Reference plantar flexion", self.plantar_flexion)
         form.addRow("Condition", self.condition)
         form.addRow("Notes", self.notes)
+        self.mark_diameter = MarkSizeField()
+        form.addRow("Mark diameter (session)", self.mark_diameter)
         layout = QVBoxLayout(self)
         layout.addLayout(form)
 

@@ -47,7 +47,7 @@ def _no_error(win):
 def _type(field: QLineEdit, text: str) -> None:
     click(field)
     field.selectAll()
-    QTest.keyClicks(field, text)
+    QTest.keyClicks(field, text) if text else QTest.keyClick(field, Qt.Key.Key_Backspace)
     QTest.keyClick(field, Qt.Key.Key_Return)
 
 
@@ -232,6 +232,14 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     assert "not a number" in form.inversion.message.text()
     _type(form.inversion.edit, "-7.5")
     assert not form.inversion.message.isVisible() and form.inversion.value() == -7.5
+    # the session's mark diameter: refused outside 8-25 mm, kept with the session, empty = measured
+    sid = win.current_session_id()
+    _type(form.mark_diameter.edit, "30")
+    assert "outside" in form.mark_diameter.message.text() and win.store.get_session(sid).mark_diameter_mm is None
+    _type(form.mark_diameter.edit, "12")
+    assert win.store.get_session(sid).mark_diameter_mm == 12.0
+    _type(form.mark_diameter.edit, "")
+    assert win.store.get_session(sid).mark_diameter_mm is None
 
 
 def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
