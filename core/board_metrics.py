@@ -71,7 +71,10 @@ def corners_on_plane(cal: Calibration, corners: np.ndarray, n: np.ndarray, d: fl
 
 def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigma: np.ndarray | None,
                   corners: np.ndarray, shape, cols: int, rows: int, square: float) -> BoardMetrics:
-    """``points`` (N, 3) world mm seen at camera ``pixels`` (N, 2: column, row); ``sigma`` per point (mm) or None."""
+    """``points`` (N, 3) world mm seen at camera ``pixels`` (N, 2: column, row).
+
+    ``sigma``: each point's predicted noise, None, (N,) mm taken as along the plane's normal,
+    or (N, k, 3) independent 1-sigma displacement vectors (their normal components add up)."""
     inside = board_mask(shape, corners, cols, rows)[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
     X = points[inside]
     if len(X) < 100:
@@ -79,7 +82,12 @@ def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigm
     n, d, keep = fit_plane(X)
     dist = X @ n + d
     flat = float(np.sqrt(np.mean(dist**2)))
-    pred = float(np.sqrt(np.mean(sigma[inside] ** 2))) if sigma is not None else float("nan")
+    if sigma is None:
+        pred = float("nan")
+    elif np.ndim(sigma) == 3:
+        pred = float(np.sqrt(np.mean(np.sum((sigma[inside] @ n) ** 2, axis=1))))
+    else:
+        pred = float(np.sqrt(np.mean(sigma[inside] ** 2)))
     P = corners_on_plane(cal, corners, n, d).reshape(rows, cols, 3)
     steps = np.concatenate([np.linalg.norm(np.diff(P, axis=0), axis=2).ravel(),
                             np.linalg.norm(np.diff(P, axis=1), axis=2).ravel()])
@@ -91,7 +99,7 @@ def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigm
 
 def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray, proj_sigma: float):
     """Camera ray against projector ray, least squares (the midpoint), with each point's predicted
-    noise along the ray from the projector coordinates' sigma (projector px).  A stand-in for
+    noise as two displacement vectors (N, 2, 3): one projector coordinate's sigma (px) each.  A stand-in for
     measurements until core.reconstruct triangulates rows."""
     cc, pc = cal.camera.center, cal.projector.center
 
@@ -107,10 +115,9 @@ def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray, 
         return 0.5 * ((cc + s[:, None] * a) + (pc + t[:, None] * b))
 
     X = tri(proj_uv)
-    var = np.zeros(len(X))
+    vec = np.empty((len(X), 2, 3))
     for j in range(2):
         dp = np.zeros(2)
         dp[j] = 1.0
-        dX = tri(proj_uv + dp) - X
-        var += np.sum(dX**2, axis=1) * proj_sigma**2
-    return X, np.sqrt(var)
+        vec[:, j] = (tri(proj_uv + dp) - X) * proj_sigma
+    return X, vec

@@ -81,6 +81,7 @@ def find_corners(white: np.ndarray, cols: int, rows: int) -> tuple[np.ndarray, f
         raise CalibrationError(f"no {cols}x{rows} chessboard (inner corners) found in the white frame")
     c = c.reshape(-1, 2).astype(np.float32)
     grid = c.reshape(rows, cols, 2)
+    _check_no_larger_board(g, grid.astype(np.float64), cols, rows)
     steps = np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel(),
                             np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel()])
     spacing = float(np.median(steps))
@@ -88,6 +89,48 @@ def find_corners(white: np.ndarray, cols: int, rows: int) -> tuple[np.ndarray, f
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
     c = cv2.cornerSubPix(g, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
     return c.astype(np.float64), spacing
+
+
+def _saddle_scores(img: np.ndarray, pts: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
+    """How much an X-corner each point is: diagonal squares alike, neighbouring ones opposite."""
+    h, w = img.shape
+
+    def at(q):
+        q = np.round(q).astype(int)
+        ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+        out = np.zeros(len(q))
+        out[ok] = img[q[ok, 1], q[ok, 0]]
+        return out
+
+    a, b = at(pts + 0.3 * (ex + ey)), at(pts + 0.3 * (ex - ey))
+    c, d = at(pts - 0.3 * (ex + ey)), at(pts - 0.3 * (ex - ey))
+    # at an X-corner the diagonal pairs agree; at a board's edge (squares on one side, margin on
+    # the other) one pair disagrees by the full contrast
+    return np.abs((a + c) - (b + d)) / 2 - (np.abs(a - c) + np.abs(b - d)) / 2
+
+
+def _check_no_larger_board(g: np.ndarray, grid: np.ndarray, cols: int, rows: int) -> None:
+    """OpenCV happily finds an 8x7 corner grid inside a 9x7 board; a wrong --board must not pass.
+    One spacing beyond each side of the grid there must be no row of X-corners."""
+    img = cv2.GaussianBlur(g, (0, 0), 1.5).astype(np.float64)
+    ex = np.median(np.diff(grid, axis=1).reshape(-1, 2), axis=0)
+    ey = np.median(np.diff(grid, axis=0).reshape(-1, 2), axis=0)
+    sq = min(np.linalg.norm(ex), np.linalg.norm(ey))  # sample within one square whatever the grid's steps
+    ux, uy = ex * sq / np.linalg.norm(ex), ey * sq / np.linalg.norm(ey)
+    inner = np.median(_saddle_scores(img, grid.reshape(-1, 2), ux, uy))
+    # a grid that skips every other corner has X-corners half-way between its neighbours
+    steps = [np.linalg.norm(np.diff(grid, axis=1), axis=2), np.linalg.norm(np.diff(grid, axis=0), axis=2).T]
+    irregular = any((np.abs(np.diff(st, axis=1)) > 0.25 * st[:, 1:]).any() for st in steps if st.shape[1] > 1)
+    mids = [(0.5 * (grid[:, 1:] + grid[:, :-1])).reshape(-1, 2), (0.5 * (grid[1:] + grid[:-1])).reshape(-1, 2)]
+    if irregular or max(np.median(_saddle_scores(img, m, ux, uy)) for m in mids) > 0.5 * inner:
+        raise CalibrationError(f"the chessboard found does not match --board {cols}x{rows}: count the inner corners "
+                               f"(where four squares meet) along each side")
+    for side, step in ((grid[:, 0], -ex), (grid[:, -1], ex), (grid[0], -ey), (grid[-1], ey)):
+        # the edge's corners stepped outwards, by their own local spacing
+        out = _saddle_scores(img, side + step, ux, uy)
+        if np.median(out) > 0.5 * inner:
+            raise CalibrationError(f"the board has more inner corners than --board {cols}x{rows} says: count the "
+                                   f"inner corners (where four squares meet) along each side")
 
 
 def local_homography_point(corner: np.ndarray, column: np.ndarray, row: np.ndarray, half: int,
@@ -135,17 +178,22 @@ def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
         raise CalibrationError("board calibration needs a capture with both column and row patterns "
                                "(anklescan patterns --axes column,row)")
     d = decode(capture) if decoded is None else decoded
-    corners, spacing = find_corners(d._white_raw, cols, rows)
     stripe = float(min(pset.axis_code("column").stripe, pset.axis_code("row").stripe))
+    name = capture.folder.name if capture.folder is not None else "capture"
+    return observe_board_maps(d._white_raw, d.column, d.row, cols, rows, stripe, name)
+
+
+def observe_board_maps(white, column, row, cols: int, rows: int, stripe: float, name: str) -> BoardView:
+    """The same from a white frame and decoded projector maps (NaN where undecoded)."""
+    corners, spacing = find_corners(white, cols, rows)
     half = int(np.clip(round(WINDOW_OF_SQUARE * spacing), 6, 80))
     proj = np.full((len(corners), 2), np.nan)
     se = np.full(len(corners), np.nan)
     for k, c in enumerate(corners):
-        r = local_homography_point(c, d.column, d.row, half, stripe)
+        r = local_homography_point(c, column, row, half, stripe)
         if r is not None:
             proj[k], se[k] = r
-    h, w = capture.shape
-    name = capture.folder.name if capture.folder is not None else "capture"
+    h, w = column.shape
     return BoardView(name, (w, h), corners, proj, se, spacing)
 
 
@@ -458,6 +506,9 @@ def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: fl
         raise CalibrationError(f"--board needs at least 2x2 inner corners, got {cols}x{rows}")
     if not (math.isfinite(square) and square > 0):
         raise CalibrationError(f"--square must be a positive length in mm, not {square}")
+    resolved = [Path(d).resolve() for d in capture_dirs]
+    if len(set(resolved)) != len(resolved):
+        raise CalibrationError("the same capture is given twice: each board view must be its own capture")
     views, psize = [], None
     for d in capture_dirs:
         cap = load_capture(d)
