@@ -32,7 +32,10 @@ PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cl
 MIN_PEAK_SHARE = 0.2  # a level surface's height bin holds >= this share of the largest one
 EDGE_BAND_MM = 8.0  # points this close to a long side of the rectangle take part in its line fit
 RANSAC_ITERATIONS = 300
-GRID_MM = 4.0  # in-plane raster for the connected-patch test
+GRID_MM = 4.0
+DROP_MM = 10.0  # what lies this far below the top's plane, past its edge, is "something lower"
+EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's length: a floor seen past
+# the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)  # in-plane raster for the connected-patch test
 
 
 @dataclass
@@ -136,6 +139,7 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
         d = np.array([-d[1], d[0]])
         w, hgt = hgt, w
     d, centre_uv = _refine_long_sides(uv, np.array([cx, cy]), d, w, hgt)
+    _check_edges(X, c, nt, e1, e2, centre_uv, d, w, hgt)
     long_axis = d[0] * e1 + d[1] * e2
     long_axis -= (long_axis @ nt) * nt
     long_axis /= np.linalg.norm(long_axis)
@@ -145,6 +149,26 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
     if abs(w - hgt) < 0.05 * w:
         raise GeometryError(f"the table top looks square ({w:.0f} x {hgt:.0f} mm): its long side is undefined")
     return TableTop(nt, centre, long_axis, (float(w), float(hgt)), rms, int(len(top)))
+
+
+def _check_edges(X, c, nt, e1, e2, centre_uv, d, length, width) -> None:
+    """A table top ends in drops: past at least two of its sides something lower is seen (the floor;
+    the others may be hidden or outside the lit field).  A surface cut off by the camera's or the
+    projector's frame (a floor) has nothing beyond its cuts."""
+    rel = X - c
+    h = rel @ nt
+    uv = np.stack([rel @ e1, rel @ e2], axis=1) - centre_uv
+    a = uv @ d
+    b = uv @ np.array([-d[1], d[0]])
+    lower = h < -DROP_MM
+    sides = 0
+    for along, across, half, other in ((a, b, length / 2, width / 2), (-a, b, length / 2, width / 2),
+                                       (b, a, width / 2, length / 2), (-b, a, width / 2, length / 2)):
+        beyond = (along > half + 5) & (along < half + max(EDGE_LOOK_MM, length)) & (np.abs(across) < 0.8 * other)
+        sides += int(np.count_nonzero(beyond & lower) >= 20)
+    if sides < 2:
+        raise GeometryError("no whole table top in the scan (its edges must show the floor or something lower "
+                            "beyond them): scan the level reference table with all of its top in view")
 
 
 def _refine_long_sides(uv, centre, d, length, width):

@@ -47,7 +47,7 @@ def _read_storage(path: Path) -> cv2.FileStorage:
         raise CalibrationError(f"calibration file not found: {path}")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_AUTO)
-    except cv2.error:
+    except (cv2.error, SystemError):  # a parse error surfaces as either, depending on the build
         fs = None
     if fs is None or not fs.isOpened():
         raise CalibrationError(f"{path}: not an OpenCV FileStorage file (XML/YAML)")
