@@ -435,8 +435,11 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
     # standard errors: weighted Jacobian, the weights are 1/sigma per device (unit variance)
     J = sol.jac
     n_par = J.shape[1]
+    # the residuals were weighted by each device's noise estimate of the previous round: scale by
+    # what the weighted residuals say now (1 when the estimates were right)
+    s2 = float(sol.fun @ sol.fun) / max(sol.fun.size - n_par, 1)
     try:
-        cov = np.linalg.inv(J.T @ J)
+        cov = s2 * np.linalg.inv(J.T @ J)
         se = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         se = np.full(n_par, np.nan)
