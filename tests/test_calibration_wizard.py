@@ -225,3 +225,32 @@ def test_spot_refinement_without_the_projector_window_keeps_the_steered_spot(set
     wiz.record_spot()
     assert wiz._manual_proj[5] == (300.2, 250.4)
     assert "could not be taken" in wiz.status.text() and "projector window" in wiz.status.text()
+
+
+def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
+    """The chessboard beside the box: two views scanned by clicking (the simulated person lays the
+    board flat, then tilts it), calibrated, reported and accepted like the box."""
+    from PySide6.QtCore import Qt
+
+    from app.calibration_wizard import PAGE_PLACE, PAGE_REPORT, PAGE_VERIFY, current_calibration_info
+
+    rig, projector, store, wiz = setup
+    assert not wiz.calibrate_board_button.isEnabled()
+    for n in (1, 2):
+        qtbot.mouseClick(wiz.scan_board_button, Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: len(wiz.board_captures) == n and wiz.pages.currentIndex() == PAGE_PLACE,
+                        timeout=120000)
+        assert f"Board view {n} scanned" in wiz.status.text()
+    assert wiz.calibrate_board_button.isEnabled() and wiz.board_count.text().startswith("2 view")
+    qtbot.mouseClick(wiz.calibrate_board_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT, timeout=120000)
+    rep = wiz.report
+    assert rep.camera.rms_px < 0.3 and rep.projector.rms_px < 0.3
+    true = rig.camera.rig.true_calibration()
+    base = np.linalg.norm(wiz.calibration.projector.center - wiz.calibration.camera.center)
+    assert abs(base - np.linalg.norm(true.projector.center - true.camera.center)) < 0.02 * base
+    assert "RMS" in wiz.report_summary.text() and "worst points" in wiz.report_text.toPlainText()
+    qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
+    assert wiz.pages.currentIndex() == PAGE_VERIFY
+    info = current_calibration_info()
+    assert Path(info["path"]).exists() and "chessboard" in store.get_calibration(info["id"]).source
