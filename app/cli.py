@@ -272,8 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     cbo.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders (column and row patterns)")
     cbo.add_argument("--board", type=_size, required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x7")
     cbo.add_argument("--square", type=_positive_float, required=True, metavar="MM", help="square side, mm")
-    cbo.add_argument("--distortion", default="k1k2", choices=["k1", "k1k2", "k1k2p", "full"],
-                     help="free lens distortion terms of both devices (default k1k2)")
+    cbo.add_argument("--distortion", default="k1k2",
+                     help="free lens distortion terms: k1, k1k2 (default), k1k2p (+ tangential), full (+ k3), "
+                          "for both devices or CAMERA/PROJECTOR such as k1/k1k2")
     cbo.add_argument("--out", required=True)
     cbo.set_defaults(func=cmd_calibrate_board)
     cl = csub.add_parser("level", help="the same calibration in the clinic's frame, from a scan of the level table")

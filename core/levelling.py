@@ -29,7 +29,8 @@ from core.device_model import Device
 from core.errors import GeometryError
 
 PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cloud's own noise)
-MIN_PEAK_SHARE = 0.2  # a level surface's height bin holds >= this share of the largest one
+MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the largest one
+MIN_TOP_POINTS = 500  # and at least this many points
 EDGE_BAND_MM = 8.0  # points this close to a long side of the rectangle take part in its line fit
 RANSAC_ITERATIONS = 300
 GRID_MM = 4.0
@@ -89,11 +90,25 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
     if len(bins) < 2:
         bins = np.array([h.min() - tol, h.max() + tol])
     counts, edges = np.histogram(h, bins)
-    peaks = np.flatnonzero(counts >= MIN_PEAK_SHARE * counts.max())
-    top_bin = peaks.max()
-    h_top = 0.5 * (edges[top_bin] + edges[top_bin + 1])
+    # level surfaces make peaks; the top is the highest one that is a whole, bounded table top
+    # (the floor is usually the biggest peak, and a mark plate or a shelf may sit higher)
+    peaks = [b for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
+             if counts[b] >= counts[max(b - 1, 0)] and counts[b] >= counts[min(b + 1, len(counts) - 1)]]
+    error = GeometryError("no level surface in the table scan")
+    for b in sorted(peaks, reverse=True):
+        h_top = 0.5 * (edges[b] + edges[b + 1])
+        try:
+            return _top_at(X, h, h_top, n, tol, camera_centre)
+        except GeometryError as e:
+            error = e
+    raise error
+
+
+def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
     near = np.abs(h - h_top) < 2 * tol
     cand = X[near]
+    if len(cand) < MIN_TOP_POINTS:
+        raise GeometryError(f"the table top shows only {len(cand)} points: scan the whole top")
     # the top's own plane (it need not be exactly parallel to the floor)
     nt, c = _svd_plane(cand)
     for _ in range(3):
@@ -117,7 +132,7 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
     sizes = np.bincount(lab.ravel())[1:]
     keep = lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))
     top, uv = top[keep], uv[keep]
-    if len(top) < 500:
+    if len(top) < MIN_TOP_POINTS:
         raise GeometryError(f"the table top shows only {len(top)} points: scan the whole top")
     # the final plane from the top's interior only: within ``tol`` of the top lie slivers of its
     # side faces and mixed edge pixels, which would tilt the normal
