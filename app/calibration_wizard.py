@@ -11,7 +11,9 @@ Steps (one dialog, a step list on the left):
    then steer the projector spot onto it and record the spot's projector position, refined
    (unless switched off) to the clicked corner by eight local edge frames (core.projector_spot).
 5. Verify — a scan of the box reconstructed at the marker corners; distances between marker
-   centres against the box drawing (core.verification).
+   centres against the box drawing (core.verification). Beside it, Level: a scan of the reference
+   table set level brings the current calibration into the clinic's frame (core.levelling, SPEC §1)
+   and saves it as a new version — for imported calibrations and boards not laid square.
 
 Accepting saves the file atomically in ``<data>/calibrations/``, adds a versioned row to the
 sessions database and makes it the current calibration (QSettings), which the main window uses
@@ -517,8 +519,14 @@ class CalibrationWizard(QDialog):
         split.addWidget(self.verify_view)
         split.addWidget(self.verify_table)
         split.setSizes([560, 420])
+        self.level_button = QPushButton("Level from the reference table")
+        self.level_button.setToolTip("Set the reference table level (0°, 0°), its whole top in view, then scan it: "
+                                     "the current calibration is re-expressed in the clinic's frame (SPEC §1) "
+                                     "and saved as a new version.")
+        self.level_button.clicked.connect(lambda: self.start_scan("level"))
         row = QHBoxLayout()
         row.addWidget(self.verify_verdict, 1)
+        row.addWidget(self.level_button)
         row.addWidget(self.verify_button)
         v.addLayout(row)
         v.addWidget(split, 1)
@@ -574,10 +582,10 @@ class CalibrationWizard(QDialog):
         from core.patterns import make_pattern_set
         if self.controller.busy or self._job is not None:
             return False
-        if purpose == "verify" and self.calibration is None:
+        if purpose in ("verify", "level") and self.calibration is None:
             self.calibration, _ = load_current_calibration()
             if self.calibration is None:
-                self.status.setText("There is no calibration to verify yet.")
+                self.status.setText(f"There is no calibration to {purpose} yet.")
                 return False
         self._timer.stop()
         self._scan_purpose = purpose
@@ -597,6 +605,8 @@ class CalibrationWizard(QDialog):
         if purpose == "board":
             cols, rows, square = self._board_spec()
             camera, what = board_camera(self.rig, len(self.board_captures), cols, rows, square), "chessboard"
+        elif purpose == "level":
+            camera, what = self.rig.camera, "reference table"
         if purpose in ("calibrate", "board"):
             self.go(PAGE_SCAN)
         self.status.setText(f"Scanning the {what}…")
@@ -618,6 +628,11 @@ class CalibrationWizard(QDialog):
         if self._scan_purpose == "board":
             cols, rows = self.board_cols.value(), self.board_rows.value()
             self._run(lambda: self._check_board_folder(folder, cols, rows), self._board_view_scanned)
+            return
+        if self._scan_purpose == "level":
+            cal = self.calibration
+            self.status.setText("Finding the table top…")
+            self._run(lambda: self._level_folder(folder, cal), self._levelled)
             return
         self.status.setText("Finding the control points…")
         if self._scan_purpose == "calibrate":
@@ -643,6 +658,23 @@ class CalibrationWizard(QDialog):
         cal.extra["box"] = {"markers_found": sorted(pts.found), "camera_points": len(pts.cam_xyz),
                             "projector_points": len(pts.proj_xyz), "capture": str(folder)}
         return pts, cal, report
+
+    @staticmethod
+    def _level_folder(folder, cal):
+        from core.capture import load_capture
+        from core.levelling import level_calibration
+        return level_calibration(cal, load_capture(folder))
+
+    def _levelled(self, result) -> None:
+        cal, top = result
+        cal.extra["source"] = f"{cal.extra.get('source', 'calibration')}, levelled"
+        self.calibration = cal
+        self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store,
+                                                     source="levelled")
+        self.status.setText(f"Levelled on the table top ({top.size_mm[0]:.0f} × {top.size_mm[1]:.0f} mm, "
+                            f"{top.rms_mm:.2f} mm RMS): saved as {self.accepted_path.name}"
+                            + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
+        self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
 
     @staticmethod
     def _check_board_folder(folder, cols, rows):

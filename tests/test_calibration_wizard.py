@@ -254,3 +254,38 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     assert wiz.pages.currentIndex() == PAGE_VERIFY
     info = current_calibration_info()
     assert Path(info["path"]).exists() and "chessboard" in store.get_calibration(info["id"]).source
+
+
+def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(setup, qtbot):
+    """An imported-style calibration (turned and tilted frame) made current; Verify page, click
+    Level: the simulated rig's leg stands on the level table, which is what gets scanned."""
+    from PySide6.QtCore import Qt
+    from scipy.spatial.transform import Rotation
+
+    from app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
+    from core.angles import compute_angles
+    from core.calibration_file import Calibration
+    from hardware.sim_scene import leg_scene
+
+    rig, projector, store, wiz = setup
+    true = rig.camera.rig.true_calibration()
+    Q = Rotation.from_euler("zyx", [-50.0, 6.0, 9.0], degrees=True).as_matrix()
+    q = np.array([-30.0, 200.0, 15.0])
+
+    def moved(d):
+        return d.with_pose(d.R @ Q.T, d.t - d.R @ Q.T @ q)
+    accept_calibration(Calibration(moved(true.camera), moved(true.projector), {"source": "imported"}), None,
+                       wiz.data_folder, store)
+    wiz.steps.setCurrentRow(PAGE_VERIFY)
+    assert wiz.level_button.isVisible()
+    qtbot.mouseClick(wiz.level_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "Levelled" in wiz.status.text() or "failed" in wiz.status.text(), timeout=180000)
+    assert "Levelled" in wiz.status.text(), wiz.status.text()
+    cal, cid = load_current_calibration()
+    assert cid is not None and cal.extra["source"] == "imported, levelled" and "levelled" in cal.extra
+    M = cal.camera.R.T @ true.camera.R
+    m = cal.camera.R.T @ (true.camera.t - cal.camera.t)
+    marks = {k: mk.centre for k, mk in leg_scene(15, -10).marks.items()}
+    want, got = compute_angles(marks), compute_angles({k: M @ v + m for k, v in marks.items()})
+    for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
+        assert abs(got[name]["value"] - want[name]["value"]) < 0.05, name
