@@ -363,7 +363,7 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
                 idx = j if dev == "c" else np.flatnonzero(masks[k])[j]
                 if keeps[k][idx]:
                     keeps[k][idx] = False
-                    excl.append((views[k].name, int(idx)))
+                    excl.append((k, int(idx)))
                     changed = True
         if not changed:
             break
@@ -478,15 +478,16 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
         notes = [f"worst points (capture, corner index, px): " + ", ".join(
             f"{point_names[i][0]}#{point_names[i][1]} {np.linalg.norm(res[i]):.3f}" for i in worst)]
         if excl:
-            notes.append("left out as mis-read: " + ", ".join(f"{n}#{j}" for n, j in excl))
+            notes.append("left out as mis-read: " + ", ".join(f"{views[k].name}#{j}" for k, j in excl))
         warnings = []
         if dof < 10:
             warnings.append(f"only {dof} degrees of freedom: the standard errors are unreliable")
         if len(views) < 3:
             warnings.append(f"{len(views)} board views: intrinsics rest on few tilts; add views for a sturdier calibration")
         q = DeviceQuality(dev, f"OpenCV pinhole, free distortion {_models(model)[dev == 'projector']}", params, stds, res, dof,
-                          sig,
-                          robust, flagged, warnings, notes, int(sol.nfev))
+                          sig, robust, flagged, warnings, notes, int(sol.nfev))
+        # left-out points as flat indices over the views' corners (capture k, corner j -> k * N + j)
+        q.excluded = sorted(k * len(views[0].corners) + j for k, j in excl)
         qualities.append(q)
     report = CalibrationReport(*qualities)
     extra = {"source": "chessboard calibration (core.calibration_board)",
