@@ -177,6 +177,8 @@ def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
     if "row" not in pset.axes or "column" not in pset.axes:
         raise CalibrationError("board calibration needs a capture with both column and row patterns "
                                "(anklescan patterns --axes column,row)")
+    if decoded is None:  # a board that is not there fails before the (slower) decoding
+        find_corners(capture.frames[pset.index("white")], cols, rows)
     d = decode(capture) if decoded is None else decoded
     stripe = float(min(pset.axis_code("column").stripe, pset.axis_code("row").stripe))
     name = capture.folder.name if capture.folder is not None else "capture"
