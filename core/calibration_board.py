@@ -42,7 +42,6 @@ DIST_MODELS = {  # which of k1, k2, p1, p2, k3 are free
     "k1": (0,), "k1k2": (0, 1), "k1k2p": (0, 1, 2, 3), "full": (0, 1, 2, 3, 4)}
 DEFAULT_DIST = "k1k2"  # two views of a flat board rarely pin down tangential terms or k3
 MIN_WINDOW_PIXELS = 30  # decoded pixels a local homography needs
-LOSS, F_SCALE = "linear", 1.0
 WINDOW_OF_SQUARE = 0.8  # half-window as a fraction of the corner spacing: stays on the board
 
 
@@ -341,11 +340,11 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
     sig_c = sig_p = 1.0
     excluded_c: list = []
     excluded_p: list = []
-    for _ in range(max_rounds):  # weight by each device's noise, drop flagged points, refit
+    for round_ in range(max_rounds):  # weight by each device's noise, drop flagged points, refit
         w_c = [kc / sig_c for kc in keep_c]
         w_p = [np.where(kp, 1.0 / sig_p, 0.0) for kp in keep_p]
-        sol = least_squares(_residuals, v0, method="lm" if LOSS == "linear" else "trf", x_scale="jac",
-                            loss=LOSS, f_scale=F_SCALE, args=(lay, obj, cam, proj, masks, [w.astype(float) for w in w_c], w_p))
+        sol = least_squares(_residuals, v0, method="lm", x_scale="jac",
+                            args=(lay, obj, cam, proj, masks, [w.astype(float) for w in w_c], w_p))
         v0 = sol.x
         ones = [np.ones(len(X)) for _ in views]
         r = _residuals(sol.x, lay, obj, cam, proj, masks, ones, [m.astype(float) for m in masks])
@@ -354,6 +353,8 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
         ep = np.concatenate([a[kp[m]] for a, kp, m in zip(rp, keep_p, masks)])
         sig_c = max(float(np.sqrt(np.mean(ec**2))), 1e-3)
         sig_p = max(float(np.sqrt(np.mean(ep**2))), 1e-3)
+        if round_ == max_rounds - 1:
+            break  # no refit would follow: what is flagged now is reported, not left out
         changed = False
         for dev, rr, keeps, excl, sig in (("c", rc, keep_c, excluded_c, sig_c), ("p", rp, keep_p, excluded_p, sig_p)):
             allr = np.concatenate(rr)
