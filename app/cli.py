@@ -180,6 +180,8 @@ def cmd_calibrate_board(args) -> int:
     result = calibrate_from_board_captures(args.captures, cols, rows, args.square, args.distortion)
     save_calibration(result.calibration, args.out)
     print(result.report.format_text())
+    print(f"world frame: the board of {Path(args.captures[0]).name} (z its normal, origin its corner grid's centre); "
+          f"unless it lay flat on the level table, run 'anklescan calibrate level' before measuring angles")
     print(f"wrote calibration to {args.out}")
     return 0
 
