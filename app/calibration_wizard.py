@@ -1,7 +1,9 @@
 """Calibration in the app: the guided box calibration, the paper's manual fallback, verification.
 
 Steps (one dialog, a step list on the left):
-1. Place the box — live preview with the detected markers outlined.
+1. Place the box — live preview with the detected markers outlined. Beside it, a printed chessboard:
+   scan it in two or more poses (the first laid flat on the level table), then calibrate from the
+   board views (core.calibration_board); the report and the rest of the flow are the box's.
 2. Scan the box — column AND row patterns through app.scan_worker (the same show → painted →
    settle → capture loop as a patient scan), so the projector gets the full 2-D model.
 3. Quality report — RMS, residual arrows on the image, standard errors, flagged points; Accept.
@@ -9,7 +11,9 @@ Steps (one dialog, a step list on the left):
    then steer the projector spot onto it and record the spot's projector position, refined
    (unless switched off) to the clicked corner by eight local edge frames (core.projector_spot).
 5. Verify — a scan of the box reconstructed at the marker corners; distances between marker
-   centres against the box drawing (core.verification).
+   centres against the box drawing (core.verification). Beside it, Level: a scan of the reference
+   table set level brings the current calibration into the clinic's frame (core.levelling, SPEC §1)
+   and saves it as a new version — for imported calibrations and boards not laid square.
 
 Accepting saves the file atomically in ``<data>/calibrations/``, adds a versioned row to the
 sessions database and makes it the current calibration (QSettings), which the main window uses
@@ -33,9 +37,9 @@ import cv2
 import numpy as np
 from PySide6.QtCore import QCoreApplication, QEventLoop, QObject, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QKeySequence, QShortcut
-from PySide6.QtWidgets import (QCheckBox, QDialog, QHBoxLayout, QLabel, QListWidget, QPlainTextEdit,
-                               QProgressBar, QPushButton, QSplitter, QStackedWidget, QTableWidget,
-                               QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QCheckBox, QDialog, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel, QListWidget,
+                               QPlainTextEdit, QProgressBar, QPushButton, QSpinBox, QSplitter, QStackedWidget,
+                               QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from app.calibration_views import ZoomView, arrow_gain, draw_outlines, gray_rgb, residual_overlay
 
@@ -225,6 +229,23 @@ def manual_points() -> list[tuple[str, np.ndarray]]:
             for mid, X in sorted(marker_corners_world().items()) for k in range(4)]
 
 
+def board_camera(rig, view: int, cols: int, rows: int, square: float):
+    """The camera that photographs the chessboard: on the simulated rig a simulated camera on board
+    pose ``view`` (hardware.sim_board: the first flat on the table, then tilted; a person moves the
+    board between scans); on real hardware the rig's own camera."""
+    cam = rig.camera
+    if not rig.simulated or not hasattr(cam, "rig"):
+        return cam
+    from hardware.sim_board import board_views
+    from hardware.simrig import SimulatedCamera
+    views = board_views(cols, rows, square)
+    board = SimulatedCamera(cam.rig.with_scene(views[view % len(views)][0]), cam.projector, "Simulated camera (board)")
+    for name, c in cam.controls().items():
+        board.set_control(name, c.value)
+    board.open()
+    return board
+
+
 # ==== background work ======================================================================
 class Job(QObject):
     """Runs a function on a thread and delivers its result (or error text) on the UI thread."""
@@ -266,6 +287,8 @@ class CalibrationWizard(QDialog):
         self.settle_s = settle_s
         self.camera = box_camera(rig)
         self.points: BoxPoints | None = None
+        self.board_captures: list[Path] = []  # chessboard views scanned so far
+        self.board_result = None
         self.calibration = self.report = None
         self.verification = None
         self.accepted_path: Path | None = None
@@ -341,7 +364,67 @@ class CalibrationWizard(QDialog):
         row.addWidget(self.scan_box_button)
         v.addWidget(self.place_view, 1)
         v.addLayout(row)
+        v.addWidget(self._build_board_box())
         return w
+
+    def _build_board_box(self) -> QGroupBox:
+        box = QGroupBox("Or a printed chessboard (docs/calibration.md)")
+        h = QHBoxLayout(box)
+        self.board_cols, self.board_rows = QSpinBox(), QSpinBox()
+        for spin, value in ((self.board_cols, 9), (self.board_rows, 7)):
+            spin.setRange(3, 40)
+            spin.setValue(value)
+        self.board_square = QDoubleSpinBox()
+        self.board_square.setRange(1.0, 500.0)
+        self.board_square.setDecimals(2)
+        self.board_square.setSuffix(" mm")
+        self.board_square.setValue(40.0)
+        self.scan_board_button = QPushButton("Scan board view")
+        self.scan_board_button.clicked.connect(lambda: self.start_scan("board"))
+        self.board_count = QLabel("")
+        self.calibrate_board_button = QPushButton("Calibrate from board views")
+        self.calibrate_board_button.clicked.connect(self.calibrate_board)
+        for widget in (QLabel("inner corners"), self.board_cols, QLabel("×"), self.board_rows, QLabel("square"),
+                       self.board_square, self.scan_board_button, self.board_count):
+            h.addWidget(widget)
+        h.addStretch(1)
+        h.addWidget(self.calibrate_board_button)
+        self._update_board_count()
+        return box
+
+    def _board_spec(self) -> tuple[int, int, float]:
+        return self.board_cols.value(), self.board_rows.value(), self.board_square.value()
+
+    def _update_board_count(self) -> None:
+        n = len(self.board_captures)
+        self.board_count.setText(f"{n} view(s)" + ("" if n >= 2 else ": first flat on the level table, "
+                                                    "then tilted (2 or more)"))
+        self.calibrate_board_button.setEnabled(n >= 2)
+
+    def calibrate_board(self) -> bool:
+        if len(self.board_captures) < 2 or self.busy():
+            return False
+        cols, rows, square = self._board_spec()
+        folders = list(self.board_captures)
+        self.status.setText(f"Calibrating from {len(folders)} board views…")
+        self._run(lambda: self._calibrate_board_folders(folders, cols, rows, square), self._board_calibrated)
+        return True
+
+    @staticmethod
+    def _calibrate_board_folders(folders, cols, rows, square):
+        from core.calibration_board import calibrate_from_board_captures
+        from core.capture import load_capture
+        result = calibrate_from_board_captures(folders, cols, rows, square)
+        white = load_capture(folders[0])
+        return result, white.frame(white.pattern_set.files[white.pattern_set.index("white")])
+
+    def _board_calibrated(self, result) -> None:
+        self.board_result, white = result
+        self.points = None
+        self.calibration, self.report = self.board_result.calibration, self.board_result.report
+        self.show_report(white)
+        self.go(PAGE_REPORT)
+        self.status.setText("Check the report, then accept.")
 
     def _build_scan(self) -> QWidget:
         w, v = self._page("Scanning the box", "The projector shows column and row stripes; keep the box and the "
@@ -436,8 +519,14 @@ class CalibrationWizard(QDialog):
         split.addWidget(self.verify_view)
         split.addWidget(self.verify_table)
         split.setSizes([560, 420])
+        self.level_button = QPushButton("Level from the reference table")
+        self.level_button.setToolTip("Set the reference table level (0°, 0°), its whole top in view, then scan it: "
+                                     "the current calibration is re-expressed in the clinic's frame (SPEC §1) "
+                                     "and saved as a new version.")
+        self.level_button.clicked.connect(lambda: self.start_scan("level"))
         row = QHBoxLayout()
         row.addWidget(self.verify_verdict, 1)
+        row.addWidget(self.level_button)
         row.addWidget(self.verify_button)
         v.addLayout(row)
         v.addWidget(split, 1)
@@ -493,10 +582,10 @@ class CalibrationWizard(QDialog):
         from core.patterns import make_pattern_set
         if self.controller.busy or self._job is not None:
             return False
-        if purpose == "verify" and self.calibration is None:
+        if purpose in ("verify", "level") and self.calibration is None:
             self.calibration, _ = load_current_calibration()
             if self.calibration is None:
-                self.status.setText("There is no calibration to verify yet.")
+                self.status.setText(f"There is no calibration to {purpose} yet.")
                 return False
         self._timer.stop()
         self._scan_purpose = purpose
@@ -513,11 +602,17 @@ class CalibrationWizard(QDialog):
         if not self.projector.isVisible():
             self._show_on_projector("white")
         self.scan_progress.setRange(0, len(pset.frames))
-        if purpose == "calibrate":
+        camera, what = self.camera, "box"
+        if purpose == "board":
+            cols, rows, square = self._board_spec()
+            camera, what = board_camera(self.rig, len(self.board_captures), cols, rows, square), "chessboard"
+        elif purpose == "level":
+            camera, what = self.rig.camera, "reference table"
+        if purpose in ("calibrate", "board"):
             self.go(PAGE_SCAN)
-        self.status.setText("Scanning the box…")
-        self.controller.start(ScanJob(pset, self.camera, folder, settle_s=self.settle_s,
-                                      metadata={"purpose": f"calibration box ({purpose})"}))
+        self.status.setText(f"Scanning the {what}…")
+        self.controller.start(ScanJob(pset, camera, folder, settle_s=self.settle_s,
+                                      metadata={"purpose": f"calibration {what} ({purpose})"}))
         return True
 
     def _scan_progress(self, done: int, total: int, text: str) -> None:
@@ -526,11 +621,20 @@ class CalibrationWizard(QDialog):
         self.status.setText(text)
 
     def _scan_failed(self, message: str) -> None:
-        self.status.setText(f"The box scan stopped: {message}")
-        self.go(PAGE_PLACE if self._scan_purpose == "calibrate" else self.pages.currentIndex())
+        self.status.setText(f"The scan stopped: {message}")
+        self.go(PAGE_PLACE if self._scan_purpose in ("calibrate", "board") else self.pages.currentIndex())
 
     def _scan_finished(self, result) -> None:
         folder = result.folder
+        if self._scan_purpose == "board":
+            cols, rows = self.board_cols.value(), self.board_rows.value()
+            self._run(lambda: self._check_board_folder(folder, cols, rows), self._board_view_scanned)
+            return
+        if self._scan_purpose == "level":
+            cal = self.calibration
+            self.status.setText("Finding the table top…")
+            self._run(lambda: self._level_folder(folder, cal), self._levelled)
+            return
         self.status.setText("Finding the control points…")
         if self._scan_purpose == "calibrate":
             size_c, size_p = self._sizes()
@@ -557,6 +661,38 @@ class CalibrationWizard(QDialog):
         return pts, cal, report
 
     @staticmethod
+    def _level_folder(folder, cal):
+        from core.capture import load_capture
+        from core.levelling import level_calibration
+        return level_calibration(cal, load_capture(folder))
+
+    def _levelled(self, result) -> None:
+        cal, top = result
+        cal.extra["source"] = f"{cal.extra.get('source', 'calibration')}, levelled"
+        self.calibration = cal
+        self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store,
+                                                     source="levelled")
+        self.status.setText(f"Levelled on the table top ({top.size_mm[0]:.0f} × {top.size_mm[1]:.0f} mm, "
+                            f"{top.rms_mm:.2f} mm RMS): saved as {self.accepted_path.name}"
+                            + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
+        self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
+
+    @staticmethod
+    def _check_board_folder(folder, cols, rows):
+        from core.calibration_board import find_corners
+        from core.capture import load_capture
+        cap = load_capture(folder)
+        find_corners(cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")]), cols, rows)
+        return Path(folder)
+
+    def _board_view_scanned(self, folder) -> None:
+        self.board_captures.append(folder)
+        self._update_board_count()
+        self.go(PAGE_PLACE)
+        self.status.setText(f"Board view {len(self.board_captures)} scanned: tilt or move the board and scan "
+                            "again, or calibrate.")
+
+    @staticmethod
     def _verify_folder(folder, cal):
         from core.verification import compare_distances, measure_centres
         decoded = decode_folder(folder)
@@ -571,6 +707,8 @@ class CalibrationWizard(QDialog):
         self._job = None
         if error:
             self.status.setText(f"Calibration failed: {error}")
+            if self._scan_purpose == "board":
+                self.go(PAGE_PLACE)
             return
         on_done(result)
 
@@ -584,8 +722,16 @@ class CalibrationWizard(QDialog):
         self.go(PAGE_REPORT)
         self.status.setText("Check the report, then accept.")
 
-    def show_report(self) -> None:
+    def show_report(self, board_white=None) -> None:
         pts, rep = self.points, self.report
+        if pts is None:  # a chessboard calibration: the first view with its corners, the report as text
+            img = gray_rgb(board_white)
+            for v in self.board_result.views[:1]:
+                for c in v.corners:
+                    cv2.circle(img, tuple(np.round(c).astype(int)), 4, (60, 200, 60), 1, cv2.LINE_AA)
+            self.report_view.set_image(img, fit=True)
+            self._report_summary_text(rep)
+            return
         cam_keep = kept(len(pts.cam_uv), rep.camera.excluded)
         proj_keep = kept(len(pts.proj_cam_uv), rep.projector.excluded)
         gain = arrow_gain([rep.camera.residuals_px, rep.projector.residuals_px], pts.white.shape[1])
@@ -596,6 +742,9 @@ class CalibrationWizard(QDialog):
             for i in excluded:  # left out as mis-read: ringed where they were
                 cv2.circle(img, tuple(np.round(pts_uv[i]).astype(int)), 8, (255, 220, 0), 1, cv2.LINE_AA)
         self.report_view.set_image(img, fit=True)
+        self._report_summary_text(rep)
+
+    def _report_summary_text(self, rep) -> None:
         ok = rep.camera.rms_px < 1.0 and rep.projector.rms_px < 1.0 and not rep.warnings
         self.report_summary.setText(
             f"<b>Camera</b> RMS {rep.camera.rms_px:.3f} px ({rep.camera.n_points} points) · "

@@ -188,6 +188,111 @@ def cmd_calibrate_box(args) -> int:
     return 0
 
 
+def _refuse_output_naming_input(out, *inputs) -> None:
+    """SPEC §6: an output path that names one of the command's inputs (or lies inside an input
+    folder) is refused before anything is read or written."""
+    from core.errors import AnkleScanError
+
+    o = Path(out).resolve()
+    for i in inputs:
+        p = Path(i).resolve()
+        if o == p or p in o.parents:
+            raise AnkleScanError(f"output {out} names the input {i}; choose another --out")
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (v > 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
+    return v
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
+    return v
+
+
+def cmd_import_opencv_graycode(args) -> int:
+    from core.opencv_graycode import import_opencv_graycode
+
+    _refuse_output_naming_input(args.out, args.src)
+    width, height = args.projector
+    pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
+    ac, ar = pset.axis_code("column"), pset.axis_code("row")
+    print(f"imported {len(pset.frames)} frames ({ac.bits} column bits, {ar.bits} row bits, step {args.step}) "
+          f"as a capture in {args.out}")
+    return 0
+
+
+def cmd_calibrate_import(args) -> int:
+    import numpy as np
+
+    from core.calibration_file import save_calibration
+    from core.opencv_calibration import import_opencv_calibration
+
+    _refuse_output_naming_input(args.out, args.file)
+    cal = import_opencv_calibration(args.file, args.projector, args.camera, args.unit)
+    save_calibration(cal, args.out)
+    b = cal.projector.center - cal.camera.center
+    print(f"imported {args.file}: camera {cal.camera.width}x{cal.camera.height}, projector "
+          f"{cal.projector.width}x{cal.projector.height}, baseline {np.linalg.norm(b):.1f} mm "
+          f"(projector at {b[0]:+.1f}, {b[1]:+.1f}, {b[2]:+.1f} mm in the camera's frame)")
+    print("world frame = the camera's: run 'anklescan calibrate level' before measuring angles")
+    print(f"wrote calibration to {args.out}")
+    return 0
+
+
+def cmd_calibrate_export(args) -> int:
+    from core.calibration_file import load_calibration
+    from core.opencv_calibration import export_opencv_calibration
+
+    _refuse_output_naming_input(args.out, args.calibration)
+    export_opencv_calibration(load_calibration(args.calibration), args.out)
+    print(f"wrote OpenCV FileStorage {args.out} (K1 D1 camera, K2 D2 projector, R T camera -> projector, mm)")
+    return 0
+
+
+def cmd_calibrate_board(args) -> int:
+    from core.calibration_board import calibrate_from_board_captures
+    from core.calibration_file import save_calibration
+
+    _refuse_output_naming_input(args.out, *args.captures)
+    cols, rows = args.board
+    progress = Progress(args.quiet)
+    progress(f"reading {len(args.captures)} board capture(s)")
+    result = calibrate_from_board_captures(args.captures, cols, rows, args.square, args.distortion)
+    save_calibration(result.calibration, args.out)
+    print(result.report.format_text())
+    print(f"world frame: the board of {Path(args.captures[0]).name} (z its normal, origin its corner grid's centre); "
+          f"unless it lay flat on the level table, run 'anklescan calibrate level' before measuring angles")
+    print(f"wrote calibration to {args.out}")
+    return 0
+
+
+def cmd_calibrate_level(args) -> int:
+    from core.calibration_file import load_calibration, save_calibration
+    from core.capture import load_capture
+    from core.levelling import level_calibration
+
+    _refuse_output_naming_input(args.out, args.calibration, args.capture)
+    cal = load_calibration(args.calibration)
+    capture = load_capture(args.capture)
+    new, top = level_calibration(cal, capture)
+    save_calibration(new, args.out)
+    print(f"table top {top.size_mm[0]:.0f} x {top.size_mm[1]:.0f} mm, {top.n_points} points, "
+          f"{top.rms_mm:.2f} mm RMS about its plane")
+    print(f"wrote levelled calibration to {args.out}")
+    return 0
+
+
 def cmd_measure(args) -> int:
     from core.measure import run_measure
 
@@ -282,6 +387,40 @@ def build_parser() -> argparse.ArgumentParser:
     cb.add_argument("capture")
     cb.add_argument("--out", required=True)
     cb.set_defaults(func=cmd_calibrate_box)
+    cbo = csub.add_parser("board", help="camera and projector from Gray-code captures of a printed chessboard")
+    cbo.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders (column and row patterns)")
+    cbo.add_argument("--board", type=_size, required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x7")
+    cbo.add_argument("--square", type=_positive_float, required=True, metavar="MM", help="square side, mm")
+    cbo.add_argument("--distortion", default="k1k2",
+                     help="free lens distortion terms: k1, k1k2 (default), k1k2p (+ tangential), full (+ k3), "
+                          "for both devices or CAMERA/PROJECTOR such as k1/k1k2")
+    cbo.add_argument("--out", required=True)
+    cbo.set_defaults(func=cmd_calibrate_board)
+    cl = csub.add_parser("level", help="the same calibration in the clinic's frame, from a scan of the level table")
+    cl.add_argument("calibration", metavar="CAL.json")
+    cl.add_argument("capture", metavar="TABLE_CAPTURE")
+    cl.add_argument("--out", required=True)
+    cl.set_defaults(func=cmd_calibrate_level)
+    ci = csub.add_parser("import", help="an OpenCV FileStorage (XML/YAML) projector-camera calibration")
+    ci.add_argument("file")
+    ci.add_argument("--projector", type=_size, required=True, help="projector resolution WxH")
+    ci.add_argument("--camera", type=_size, default=None, help="camera resolution WxH (if not in the file)")
+    ci.add_argument("--unit", default="mm", choices=["mm", "cm", "m", "in"], help="the file's length unit")
+    ci.add_argument("--out", required=True)
+    ci.set_defaults(func=cmd_calibrate_import)
+    ce = csub.add_parser("export", help="our calibration as an OpenCV FileStorage (.yml, .xml or .json)")
+    ce.add_argument("calibration", metavar="CAL.json")
+    ce.add_argument("--out", required=True)
+    ce.set_defaults(func=cmd_calibrate_export)
+
+    im = sub.add_parser("import", help="bring another tool's capture in as a capture")
+    isub = im.add_subparsers(dest="import_command", required=True)
+    io = isub.add_parser("opencv-graycode", help="OpenCV GrayCodePattern frames (procam-calibration's step)")
+    io.add_argument("src", metavar="SRC", help="folder of the frames, in OpenCV's order by name")
+    io.add_argument("--projector", type=_size, required=True, help="projector resolution WxH")
+    io.add_argument("--step", type=_positive_int, default=1, help="projector pixels per code (graycode_step)")
+    io.add_argument("--out", required=True)
+    io.set_defaults(func=cmd_import_opencv_graycode)
 
     m = sub.add_parser("measure", help="reconstruct, find and label the 7 marks, compute the angles")
     m.add_argument("capture")

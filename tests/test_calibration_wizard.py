@@ -225,3 +225,67 @@ def test_spot_refinement_without_the_projector_window_keeps_the_steered_spot(set
     wiz.record_spot()
     assert wiz._manual_proj[5] == (300.2, 250.4)
     assert "could not be taken" in wiz.status.text() and "projector window" in wiz.status.text()
+
+
+def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
+    """The chessboard beside the box: two views scanned by clicking (the simulated person lays the
+    board flat, then tilts it), calibrated, reported and accepted like the box."""
+    from PySide6.QtCore import Qt
+
+    from app.calibration_wizard import PAGE_PLACE, PAGE_REPORT, PAGE_VERIFY, current_calibration_info
+
+    rig, projector, store, wiz = setup
+    assert not wiz.calibrate_board_button.isEnabled()
+    for n in (1, 2):
+        qtbot.mouseClick(wiz.scan_board_button, Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: len(wiz.board_captures) == n and wiz.pages.currentIndex() == PAGE_PLACE,
+                        timeout=120000)
+        assert f"Board view {n} scanned" in wiz.status.text()
+    assert wiz.calibrate_board_button.isEnabled() and wiz.board_count.text().startswith("2 view")
+    qtbot.mouseClick(wiz.calibrate_board_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT, timeout=120000)
+    rep = wiz.report
+    assert rep.camera.rms_px < 0.3 and rep.projector.rms_px < 0.3
+    true = rig.camera.rig.true_calibration()
+    base = np.linalg.norm(wiz.calibration.projector.center - wiz.calibration.camera.center)
+    assert abs(base - np.linalg.norm(true.projector.center - true.camera.center)) < 0.02 * base
+    assert "RMS" in wiz.report_summary.text() and "worst points" in wiz.report_text.toPlainText()
+    qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
+    assert wiz.pages.currentIndex() == PAGE_VERIFY
+    info = current_calibration_info()
+    assert Path(info["path"]).exists() and "chessboard" in store.get_calibration(info["id"]).source
+
+
+def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(setup, qtbot):
+    """An imported-style calibration (turned and tilted frame) made current; Verify page, click
+    Level: the simulated rig's leg stands on the level table, which is what gets scanned."""
+    from PySide6.QtCore import Qt
+    from scipy.spatial.transform import Rotation
+
+    from app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
+    from core.angles import compute_angles
+    from core.calibration_file import Calibration
+    from hardware.sim_scene import leg_scene
+
+    rig, projector, store, wiz = setup
+    true = rig.camera.rig.true_calibration()
+    Q = Rotation.from_euler("zyx", [-50.0, 6.0, 9.0], degrees=True).as_matrix()
+    q = np.array([-30.0, 200.0, 15.0])
+
+    def moved(d):
+        return d.with_pose(d.R @ Q.T, d.t - d.R @ Q.T @ q)
+    accept_calibration(Calibration(moved(true.camera), moved(true.projector), {"source": "imported"}), None,
+                       wiz.data_folder, store)
+    wiz.steps.setCurrentRow(PAGE_VERIFY)
+    assert wiz.level_button.isVisible()
+    qtbot.mouseClick(wiz.level_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "Levelled" in wiz.status.text() or "failed" in wiz.status.text(), timeout=180000)
+    assert "Levelled" in wiz.status.text(), wiz.status.text()
+    cal, cid = load_current_calibration()
+    assert cid is not None and cal.extra["source"] == "imported, levelled" and "levelled" in cal.extra
+    M = cal.camera.R.T @ true.camera.R
+    m = cal.camera.R.T @ (true.camera.t - cal.camera.t)
+    marks = {k: mk.centre for k, mk in leg_scene(15, -10).marks.items()}
+    want, got = compute_angles(marks), compute_angles({k: M @ v + m for k, v in marks.items()})
+    for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
+        assert abs(got[name]["value"] - want[name]["value"]) < 0.05, name

@@ -1,0 +1,251 @@
+"""The clinic's world frame from a scan of the level reference table (SPEC §1, ``calibrate level``).
+
+A calibration in the camera's frame (imported) or in a board's frame (a board not laid square to
+the tables) measures correct distances but wrong angles.  A scan of the reference table set level
+(0°, 0°) fixes the frame:
+
+* z: the normal of the table top, upwards (towards the camera, which looks down on it);
+* y: along the table top's long side, towards the camera (the patient's front);
+* x = y × z; origin: the centre of the table top.
+
+Finding the top in the cloud: the dominant plane of the scan (RANSAC) gives the "level"
+orientation (the floor and the top of a level table are parallel); along its normal the top is
+the highest level surface holding a substantial share of the points (a leg or foot standing on
+it spreads over many heights and makes no such peak).  The top's own plane is then fitted to its
+points, its largest connected patch kept, and the long sides found by a minimum-area rectangle
+refined by robust line fits to the points along the two long edges.  The scan must show the whole
+table top; nothing level may lie above it in view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from core.calibration_file import Calibration
+from core.device_model import Device
+from core.errors import GeometryError
+
+PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cloud's own noise)
+MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the largest one
+MIN_TOP_POINTS = 500  # and at least this many points
+EDGE_BAND_MM = 8.0  # points this close to a long side of the rectangle take part in its line fit
+RANSAC_ITERATIONS = 300
+GRID_MM = 4.0
+DROP_MM = 10.0  # what lies this far below the top's plane, past its edge, is "something lower"
+EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's length: a floor seen past
+# the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)  # in-plane raster for the connected-patch test
+
+
+@dataclass
+class TableTop:
+    normal: np.ndarray  # unit, towards the camera
+    centre: np.ndarray  # on the plane, current world frame
+    long_axis: np.ndarray  # unit, in the plane, towards the camera
+    size_mm: tuple  # (long, short) sides of the fitted rectangle
+    rms_mm: float  # of the top's points about their plane
+    n_points: int
+
+
+def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> np.ndarray:
+    best, best_n = None, -1
+    for _ in range(RANSAC_ITERATIONS):
+        p = X[rng.choice(len(X), 3, replace=False)]
+        n = np.cross(p[1] - p[0], p[2] - p[0])
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n /= norm
+        cnt = int(np.count_nonzero(np.abs((X - p[0]) @ n) < tol))
+        if cnt > best_n:
+            best, best_n = n, cnt
+    if best is None:
+        raise GeometryError("the table scan holds no plane")
+    return best
+
+
+def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c = X.mean(axis=0)
+    _, _, vt = np.linalg.svd(X - c, full_matrices=False)
+    return vt[2], c
+
+
+def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndarray | None = None,
+                   seed: int = 0) -> TableTop:
+    X = np.asarray(points, np.float64)
+    if len(X) < 1000:
+        raise GeometryError(f"the table scan has only {len(X)} points: is the table in view and lit?")
+    tol = PLANE_TOL_MM
+    if sigma is not None and len(sigma):
+        tol = max(tol, 3.0 * float(np.median(sigma)))
+    rng = np.random.default_rng(seed)
+    sub = X[rng.choice(len(X), min(len(X), 20000), replace=False)]
+    n = _ransac_plane(sub, tol, rng)
+    if n @ (camera_centre - sub.mean(axis=0)) < 0:
+        n = -n
+    h = X @ n
+    bins = np.arange(h.min(), h.max() + tol, tol)
+    if len(bins) < 2:
+        bins = np.array([h.min() - tol, h.max() + tol])
+    counts, edges = np.histogram(h, bins)
+    # level surfaces make peaks; the top is the highest one that is a whole, bounded table top
+    # (the floor is usually the biggest peak, and a mark plate or a shelf may sit higher)
+    peaks = [b for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
+             if counts[b] >= counts[max(b - 1, 0)] and counts[b] >= counts[min(b + 1, len(counts) - 1)]]
+    error = GeometryError("no level surface in the table scan")
+    for b in sorted(peaks, reverse=True):
+        h_top = 0.5 * (edges[b] + edges[b + 1])
+        try:
+            return _top_at(X, h, h_top, n, tol, camera_centre)
+        except GeometryError as e:
+            error = e
+    raise error
+
+
+def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
+    near = np.abs(h - h_top) < 2 * tol
+    cand = X[near]
+    if len(cand) < MIN_TOP_POINTS:
+        raise GeometryError(f"the table top shows only {len(cand)} points: scan the whole top")
+    # the top's own plane (it need not be exactly parallel to the floor)
+    nt, c = _svd_plane(cand)
+    for _ in range(3):
+        on = np.abs((cand - c) @ nt) < tol
+        nt, c = _svd_plane(cand[on])
+    if nt @ n < 0:
+        nt = -nt
+    top = cand[np.abs((cand - c) @ nt) < tol]
+    # in-plane coordinates; the largest connected patch is the top (not a shelf at the same height)
+    e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nt, e1)
+    c_uv = c  # the in-plane coordinates' origin (the plane is refined below)
+    uv = np.stack([(top - c_uv) @ e1, (top - c_uv) @ e2], axis=1)
+    ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64)
+    grid = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
+    grid[ij[:, 1], ij[:, 0]] = 1
+    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    nlab, lab = cv2.connectedComponents(grid, connectivity=8)
+    if nlab < 2:
+        raise GeometryError("no table top found in the scan")
+    sizes = np.bincount(lab.ravel())[1:]
+    keep = lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))
+    top, uv = top[keep], uv[keep]
+    if len(top) < MIN_TOP_POINTS:
+        raise GeometryError(f"the table top shows only {len(top)} points: scan the whole top")
+    # the final plane from the top's interior only: within ``tol`` of the top lie slivers of its
+    # side faces and mixed edge pixels, which would tilt the normal
+    lab_top = (lab == 1 + int(np.argmax(sizes))).astype(np.uint8)
+    interior = cv2.erode(lab_top, np.ones((5, 5), np.uint8))[ij[keep][:, 1], ij[keep][:, 0]].astype(bool)
+    core_pts = top[interior] if interior.sum() >= 500 else top
+    nt, c = _svd_plane(core_pts)
+    for _ in range(3):
+        r = (core_pts - c) @ nt
+        s = 1.4826 * np.median(np.abs(r))
+        nt, c = _svd_plane(core_pts[np.abs(r) < max(4 * s, 1e-6)])
+    if nt @ n < 0:
+        nt = -nt
+    rms = float(np.sqrt(np.mean(((core_pts - c) @ nt) ** 2)))
+    (cx, cy), (w, hgt), ang = cv2.minAreaRect(uv.astype(np.float32))
+    a = np.radians(ang)
+    d = np.array([np.cos(a), np.sin(a)])
+    if hgt > w:
+        d = np.array([-d[1], d[0]])
+        w, hgt = hgt, w
+    d, centre_uv = _refine_long_sides(uv, np.array([cx, cy]), d, w, hgt)
+    _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, w, hgt)
+    long_axis = d[0] * e1 + d[1] * e2
+    long_axis -= (long_axis @ nt) * nt
+    long_axis /= np.linalg.norm(long_axis)
+    centre = c_uv + centre_uv[0] * e1 + centre_uv[1] * e2
+    centre -= ((centre - c) @ nt) * nt  # onto the top's final plane
+    if long_axis @ (camera_centre - centre) < 0:
+        long_axis = -long_axis
+    if abs(w - hgt) < 0.05 * w:
+        raise GeometryError(f"the table top looks square ({w:.0f} x {hgt:.0f} mm): its long side is undefined")
+    return TableTop(nt, centre, long_axis, (float(w), float(hgt)), rms, int(len(top)))
+
+
+def _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, length, width) -> None:
+    """A table top ends in drops: past at least two of its sides something lower is seen (the floor;
+    the others may be hidden or outside the lit field).  A surface cut off by the camera's or the
+    projector's frame (a floor) has nothing beyond its cuts."""
+    h = (X - c) @ nt
+    rel = X - c_uv
+    uv = np.stack([rel @ e1, rel @ e2], axis=1) - centre_uv
+    a = uv @ d
+    b = uv @ np.array([-d[1], d[0]])
+    lower = h < -DROP_MM
+    sides = 0
+    for along, across, half, other in ((a, b, length / 2, width / 2), (-a, b, length / 2, width / 2),
+                                       (b, a, width / 2, length / 2), (-b, a, width / 2, length / 2)):
+        beyond = (along > half + 5) & (along < half + max(EDGE_LOOK_MM, length)) & (np.abs(across) < 0.8 * other)
+        sides += int(np.count_nonzero(beyond & lower) >= 20)
+    if sides < 2:
+        raise GeometryError("no whole table top in the scan (its edges must show the floor or something lower "
+                            "beyond them): scan the level reference table with all of its top in view")
+
+
+def _refine_long_sides(uv, centre, d, length, width):
+    """Direction of the long sides and the centre, from robust lines through each long edge's points."""
+    perp = np.array([-d[1], d[0]])
+    s = (uv - centre) @ perp
+    along = (uv - centre) @ d
+    inner = np.abs(along) < 0.4 * length  # away from the corners
+    dirs, offsets = [], []
+    for side in (+1, -1):
+        band = inner & (np.abs(s - side * width / 2) < EDGE_BAND_MM)
+        # the outermost point per slice along the edge is the edge itself
+        if band.sum() < 20:
+            return d, centre
+        pts = uv[band]
+        key = np.floor(along[band] / GRID_MM).astype(int)
+        order = np.lexsort((-side * s[band], key))
+        first = np.r_[True, key[order][1:] != key[order][:-1]]
+        edge = pts[order][first].astype(np.float32)
+        line = cv2.fitLine(edge, cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
+        v = line[:2] / np.linalg.norm(line[:2])
+        if v @ d < 0:
+            v = -v
+        dirs.append(v)
+        offsets.append(line[2:])
+    v = dirs[0] + dirs[1]
+    v /= np.linalg.norm(v)
+    p = np.array([-v[1], v[0]])
+    mid = 0.5 * ((offsets[0] - centre) @ p + (offsets[1] - centre) @ p)
+    return v, centre + mid * p
+
+
+def level_transform(top: TableTop) -> tuple[np.ndarray, np.ndarray]:
+    """(A, o): old world = A @ new world + o."""
+    z = top.normal
+    y = top.long_axis
+    x = np.cross(y, z)
+    return np.stack([x, y, z], axis=1), top.centre
+
+
+def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> Calibration:
+    def move(dev: Device) -> Device:
+        return dev.with_pose(dev.R @ A, dev.R @ o + dev.t)
+
+    new_extra = dict(cal.extra)
+    new_extra["frame"] = "clinic (levelled from the reference table: SPEC §1)"
+    new_extra["levelled"] = extra
+    return Calibration(move(cal.camera), move(cal.projector), new_extra)
+
+
+def level_calibration(cal: Calibration, capture) -> tuple[Calibration, TableTop]:
+    """``cal`` re-expressed in the clinic's frame from a capture of the level reference table."""
+    from core.reconstruct import reconstruct
+
+    cloud = reconstruct(capture, cal)
+    sigma = getattr(cloud, "sigma", None)
+    top = find_table_top(cloud.points, cal.camera.center, sigma)
+    A, o = level_transform(top)
+    name = capture.folder.name if capture.folder is not None else "capture"
+    info = {"capture": name, "table_top_mm": [round(v, 1) for v in top.size_mm],
+            "top_rms_mm": top.rms_mm, "top_points": top.n_points,
+            "previous_frame_R": A.T.tolist(), "previous_frame_origin": o.tolist()}
+    return apply_level(cal, A, o, info), top
