@@ -87,7 +87,7 @@ def test_level_refuses_an_output_naming_an_input_and_a_scan_without_a_table(tabl
     save_calibration(rig.true_calibration(), tmp_path / "cal.json")
     before = (tmp_path / "cal.json").read_bytes()
     done = run("calibrate", "level", tmp_path / "cal.json", work / "table", "--out", tmp_path / "cal.json")
-    assert done.returncode == 2 and "names the input" in done.stderr
+    assert done.returncode == 2 and "is the input" in done.stderr
     assert (tmp_path / "cal.json").read_bytes() == before
     flat = SimRig(Scene([Plane(kind=ObjectId.FLOOR, albedo=0.5)]), scale=0.25, seed=2)
     pset = make_pattern_set("default", flat.projector.width, flat.projector.height)

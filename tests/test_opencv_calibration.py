@@ -90,7 +90,7 @@ def test_cli_export_and_its_guards(tmp_path, cal):
     done = run("calibrate", "export", tmp_path / "cal.json", "--out", tmp_path / "cal.txt")
     assert done.returncode == 2 and "suffix" in done.stderr
     done = run("calibrate", "export", tmp_path / "cal.json", "--out", tmp_path / "cal.json")
-    assert done.returncode == 2 and "names the input" in done.stderr
+    assert done.returncode == 2 and "is the input" in done.stderr
     done = run("calibrate", "export", tmp_path / "cal.json", "--out", tmp_path / "cal.yml")
     assert done.returncode == 0, done.stderr
     done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--out", tmp_path / "back.json")
