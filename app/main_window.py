@@ -1100,8 +1100,24 @@ class MainWindow(QMainWindow):
             session = self.store.get_session(self.store.get_trial(trial_id).session_id)
             page.editor.operator = session.operator or _os_user()
             page.editor.load_trial(self.store, trial_id)
+            page.editor.set_snapper(self._snapper(trial_id, cloud, session))
         else:
             page.editor.load({})
+            page.editor.set_snapper(None)
+
+    def _snapper(self, trial_id: int, cloud, session):
+        """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
+        from app.mark_snap import TrialSnapper
+        trial = self.store.get_trial(trial_id)
+        cid = trial.calibration_id or session.calibration_id
+        if not trial.capture_path or cid is None:
+            return None
+        try:
+            from core.calibration_file import calibration_from_dict
+            cal = calibration_from_dict(self.store.get_calibration(cid).data)
+        except Exception:
+            return None
+        return TrialSnapper(self.store.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
 
     def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""

@@ -63,6 +63,7 @@ class MarkEditor(QWidget):
     """Side panel next to a CloudViewer. ``store``/``trial_id`` optional: without them the
     editor still works (e.g. on a PLY opened from disk) and nothing is saved."""
 
+    snapped = Signal(int)  # a clicked mark was placed (snapped to its disk, or where clicked)
     marksChanged = Signal(object)   # dict label → (x, y, z) (object: a dict signal tries to convert to a QVariantMap)
     saveFailed = Signal(str)
 
@@ -76,6 +77,7 @@ class MarkEditor(QWidget):
         self.current_label = 1
         self.angles = {}
         self.reference = None  # the trial's reference-table angles: the mismatch is measured against them
+        self.snapper = None    # moves a click to the centre of the disk under it (app.mark_snap)
         self.undo_stack = QUndoStack(self)
         self._build()
         viewer.picked.connect(self.place_at_pick)
@@ -199,11 +201,39 @@ class MarkEditor(QWidget):
         self.current_label = int(label)
         self._refresh(save=False)
 
+    def set_snapper(self, snapper) -> None:
+        """``snapper.snap(xyz) -> xyz | None`` (app.mark_snap.TrialSnapper), or None: clicks are kept as they land."""
+        self.snapper = snapper
+
     def place_at_pick(self, pick) -> None:
         if not self.isEnabled():  # a read-only database: the view still orbits and picks, nothing is placed
             self.show_pick("This database is read-only: marks cannot be changed.")
             return
-        self.place(self.current_label, pick.point)
+        label, raw = self.current_label, tuple(float(v) for v in pick.point)
+        if self.snapper is None:
+            self.place(label, raw)
+            return
+        from app.background import run_in_background
+        snapper, trial = self.snapper, self.trial_id
+        self.show_pick(f"Finding the mark under the click for mark {label}…")
+
+        def done(centre):
+            if self.trial_id != trial:  # the operator moved on to another trial meanwhile
+                return
+            if centre is None:
+                self.show_pick(f"No white disk under the click: mark {label} placed where clicked.")
+            else:
+                shift = sum((a - b) ** 2 for a, b in zip(centre, raw)) ** 0.5
+                self.show_pick(f"Mark {label} placed at the disk's centre ({shift:.1f} mm from the click).")
+            self.place(label, raw if centre is None else centre)
+            self.snapped.emit(label)
+
+        def failed(error):
+            if self.trial_id == trial:
+                self.show_pick(f"Mark {label} placed where clicked (the disk could not be fitted: {error}).")
+                self.place(label, raw)
+                self.snapped.emit(label)
+        run_in_background(lambda: snapper.snap(raw), done, failed)
 
     def place(self, label: int, xyz) -> None:
         verb = "move" if label in self.marks else "place"

@@ -164,14 +164,24 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     qtbot.wait(100)
     viewer.render_now()
     click(button(editor, "1"))
+    # a click a few pixels beside the knee mark lands on its disk's centre, not where it hit
+    truth = np.asarray(win.rig.camera.rig.truth().marks["1"], float)
+    x, y, _ = viewer.widget_pos_of(truth[None])[0]
+    with qtbot.waitSignal(editor.snapped, timeout=60_000):
+        click_at(viewer, int(x) + 3, int(y) + 2)
+    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
+    snapped_error = np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth)
+    print(f"\nmark 1 placed by a click 3 px off: {snapped_error:.2f} mm from the truth ({editor.pick_label.text()})")
+    assert snapped_error < 0.5 and "centre" in editor.pick_label.text()
+    # then moved by a click elsewhere on the leg, where no disk is: kept where clicked
     centre = np.median(viewer.points, axis=0)
     target = viewer.points[np.argmin(np.linalg.norm(viewer.points - centre, axis=1))]
-    for offset in (0, 12):
-        x, y, _ = viewer.widget_pos_of(target[None])[0]
-        with qtbot.waitSignal(viewer.picked, timeout=2000):
-            click_at(viewer, int(x) + offset, int(y))
+    x, y, _ = viewer.widget_pos_of(target[None])[0]
+    with qtbot.waitSignal(editor.snapped, timeout=60_000):
+        click_at(viewer, int(x), int(y))
     mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
     assert mark.source == "manual" and mark.placed_by == "Dr. Ada Test"
+    assert np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth) > 5
     assert "moved" not in win.banner.text
     _no_error(win)
 

@@ -1,0 +1,43 @@
+"""Manual placement snapped to the white disk under the click (issue 16).
+
+A click in the 3-D view lands on whatever point of the cloud is under the cursor; a clinician
+aims at the middle of a mark but rarely hits it within a millimetre. ``TrialSnapper`` finds
+the disk near the click with the same fit as the automatic detector (``core.marks_surface``)
+and returns its centre, or None when no disk is there (the click is then kept as it is).
+
+It needs the trial's capture (for the projector-lit image) and calibration; both are loaded
+once per trial, on first use, in the background job that runs the snap.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+
+class TrialSnapper:
+    def __init__(self, capture_folder: Path, calibration, cloud, mark_diameter_mm: float | None = None):
+        self.capture_folder = Path(capture_folder)
+        self.calibration = calibration
+        self.cloud = cloud
+        self.mark_diameter_mm = mark_diameter_mm
+        self._lit = self._points = None
+        self._lock = threading.Lock()  # two quick clicks: the images are built once
+
+    def _images(self):
+        with self._lock:
+            if self._lit is None:
+                from core.capture import load_capture
+                from core.lit_image import averaged_lit
+                from core.marks import points_image
+                lit = averaged_lit(load_capture(self.capture_folder))
+                self._points = points_image(self.cloud, lit.shape)
+                self._lit = lit
+            return self._lit, self._points
+
+    def snap(self, point) -> tuple[float, float, float] | None:
+        """The centre of the disk nearest ``point`` (world mm), or None."""
+        from core.marks_surface import snap_to_disk
+        lit, points = self._images()
+        mark = snap_to_disk(point, lit, points, self.calibration, mark_diameter_mm=self.mark_diameter_mm)
+        return None if mark is None else tuple(float(v) for v in mark.centre)
