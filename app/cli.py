@@ -52,7 +52,10 @@ def cmd_patterns(args) -> int:
     from core.patterns import make_pattern_set, write_patterns
 
     width, height = args.projector
-    pset = make_pattern_set(args.preset, width, height, axes=tuple(args.axes.split(",")))
+    from core.motion import default_motion_refs
+
+    refs = default_motion_refs(args.preset) if args.motion_refs is None else args.motion_refs
+    pset = make_pattern_set(args.preset, width, height, axes=tuple(args.axes.split(",")), motion_refs=refs)
     out = write_patterns(pset, args.out)
     print(f"wrote {len(pset.frames)} frames ({args.preset}, {width}x{height}) and manifest.json to {out}")
     return 0
@@ -98,9 +101,12 @@ def cmd_calibrate_box(args) -> int:
 
 
 def cmd_measure(args) -> int:
+    from core.errors import AnkleScanError
     from core.measure import run_measure
 
-    result = run_measure(args.capture, args.calibration, args.out)
+    if not (args.motion_threshold > 0 and args.motion_threshold < float("inf")):
+        raise AnkleScanError(f"--motion-threshold must be a positive number of mm, not {args.motion_threshold}")
+    result = run_measure(args.capture, args.calibration, args.out, motion_threshold_mm=args.motion_threshold)
     print(result.format_text())
     return 0
 
@@ -118,8 +124,11 @@ def cmd_demo(args) -> int:
 
     from app.demo import DEMO_SCALE
 
+    if not (0 <= args.sway < 50):
+        from core.errors import AnkleScanError
+        raise AnkleScanError(f"--sway must be 0 to 50 mm, not {args.sway}")
     return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
-                    scale=1.0 if args.full_resolution else DEMO_SCALE)
+                    scale=1.0 if args.full_resolution else DEMO_SCALE, sway_mm=args.sway, camera=args.camera)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -135,6 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="a whole clinical session on the built-in simulated rig")
     d.add_argument("--out", required=True, help="output folder")
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
+    d.add_argument("--sway", type=float, default=0.0, metavar="MM",
+                   help="one trial in three: the patient drifts up to MM mm during the scan (slower: each frame is "
+                        "rendered at its own pose); moved trials are flagged")
+    d.add_argument("--camera", choices=("webcam", "dslr"), default="webcam",
+                   help="frame timing of the simulated camera for --sway (webcam 30 ms, DSLR 2 s a frame)")
     d.add_argument("--full-resolution", action="store_true",
                    help="simulate the 1600x1200 camera and 1024x768 projector (default: 0.75 of it, for speed)")
     d.set_defaults(func=cmd_demo)
@@ -142,7 +156,11 @@ def build_parser() -> argparse.ArgumentParser:
     pt = sub.add_parser("patterns", help="write the projector patterns and manifest.json")
     pt.add_argument("--out", required=True)
     pt.add_argument("--projector", type=_size, default=(1024, 768), help="projector resolution WxH")
-    pt.add_argument("--preset", default="default", choices=["default", "paper"])
+    pt.add_argument("--preset", default="default", choices=["default", "paper", "short"],
+                    help="default; paper (the paper's 18 frames); short (fewer frames, for slow cameras)")
+    pt.add_argument("--motion-refs", type=int, default=None,
+                    help="repeats of a phase-frame pair spread over the scan, to measure how far the subject moved "
+                         "(default: 3 for default, 2 for short, 0 for paper; 0 = none)")
     pt.add_argument("--axes", default="column", help="column, or column,row for calibration scans")
     pt.set_defaults(func=cmd_patterns)
 
@@ -170,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("capture")
     m.add_argument("--calibration", required=True)
     m.add_argument("--out", required=True)
+    m.add_argument("--motion-threshold", type=float, default=0.5,
+                   help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")

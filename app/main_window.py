@@ -579,9 +579,13 @@ class MainWindow(QMainWindow):
         from core.patterns import make_pattern_set
         from app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
-        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h)
+        from functools import partial
+        from core.motion import default_motion_refs
+        preset = self.settings.get("pattern_preset")
+        pset = make_pattern_set(preset, w, h, motion_refs=default_motion_refs(preset))
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
-                       calibration=self.rig.calibration, reconstruct=measure_folder,
+                       calibration=self.rig.calibration,
+                       reconstruct=partial(measure_folder, motion_threshold_mm=self.settings.get("motion_threshold_mm")),
                        metadata={"device": self.rig.description, "trial": self._trial_id})
 
     def cancel_scan(self) -> None:
@@ -613,6 +617,7 @@ class MainWindow(QMainWindow):
         if result.cloud is not None:
             cloud_path = self._save_cloud(result)
         self._record_files(result.folder, cloud_path)
+        self._record_motion(result)
         self._show_result(result)
         if result.cloud is not None and len(result.cloud) > 0 and self._trial_id is not None:
             self._show_cloud(result.cloud, self._trial_id)
@@ -622,8 +627,20 @@ class MainWindow(QMainWindow):
             if result.marks_note:
                 self.banner.show_message("info", "Some marks were not found automatically: place them in the "
                                          f"3-D view ({result.marks_note}).")
+        if result.motion_flagged:  # last, so no other message hides it
+            self.banner.show_message("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again?")
         self.scan_page.form.clear_notes()
         self.scan_page.progress.setFormat("Done")
+
+    def _record_motion(self, result) -> None:
+        """Motion and duration into the trial (flagged over the threshold) and, if it moved, say so."""
+        if self._trial_id is not None and self.store is not None:
+            try:
+                self.store.set_trial_motion(self._trial_id, result.motion_mm, result.motion_sd_mm,
+                                            scan_duration_s=result.duration_s,
+                                            threshold_mm=self.settings.get("motion_threshold_mm"))
+            except Exception as exc:
+                self.banner.show_message("error", f"The trial's motion could not be recorded: {exc}")
 
     def _save_cloud(self, result):
         from core.pointcloud import write_ply

@@ -21,6 +21,7 @@ from core.decode import decode
 from core.errors import AnkleScanError
 from core.lit_image import averaged_lit
 from core.marks import MarkSet, find_marks
+from core.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from core.pointcloud import PointCloud
 from core.reconstruct import check_compatible, cloud_from_decoded
 
@@ -33,6 +34,14 @@ class MeasureResult:
     angles: AngleResult  # only the angles whose marks were labelled
     reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
     cloud: PointCloud | None = field(default=None, repr=False)  # kept for the viewer and the PLY
+    motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/motion.py)
+    motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
+    duration_s: float | None = None  # the capture's duration, from its frame timestamps
+
+    @property
+    def motion_flagged(self) -> bool:
+        """Moved more than the threshold during the scan: scan again (or keep it knowingly)."""
+        return self.motion is not None and self.motion.flagged(self.motion_threshold_mm)
 
     @property
     def complete(self) -> bool:
@@ -46,7 +55,18 @@ class MeasureResult:
             "mark_details": {k: lab[k].to_dict() for k in sorted(lab)},
             "unlabelled_marks": [m.to_dict() for m in self.marks.unlabelled],
             "reconstruction": self.reconstruction,
+            "motion_mm": (self.motion or MotionEstimate(None, None)).to_dict(),
+            "motion": self._motion_details(),
         }
+
+    def _motion_details(self) -> dict:
+        m = self.motion or MotionEstimate(None, None, reason="not estimated")
+        out = {"flagged": self.motion_flagged, "threshold_mm": self.motion_threshold_mm,
+               "scan_duration_s": self.duration_s, "looks": m.looks, "patches": m.patches,
+               "ambiguity_mm": m.ambiguity_mm}
+        if not m.measured:
+            out["reason"] = m.reason
+        return _jsonable(out)
 
     def format_text(self) -> str:
         lines = ["mark        x          y          z      radius   sd (mm)   seen / lit at"]
@@ -59,28 +79,36 @@ class MeasureResult:
             if name in self.angles:
                 a = self.angles[name]
                 lines.append(f"{name:24s} {a['value']:8.2f}° ± {a['sd']:.2f}°")
+        if self.motion is not None:
+            lines.append(self.motion.format_text() + (
+                f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
 
 
-def measure_capture(capture: Capture, calibration: Calibration) -> MeasureResult:
-    """Reconstruct, find and label the marks, compute the angles; no file I/O, no raising for
-    missing marks (see ``result.complete`` and ``result.marks.message()``)."""
+def measure_capture(capture: Capture, calibration: Calibration, *,
+                    motion_threshold_mm: float = DEFAULT_THRESHOLD_MM) -> MeasureResult:
+    """Reconstruct, find and label the marks, compute the angles and how far the subject moved;
+    no file I/O, no raising for missing marks (see ``result.complete`` and
+    ``result.marks.message()``)."""
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
     marks = find_marks(averaged_lit(capture), cloud, calibration)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
-    return MeasureResult(marks, angles, _jsonable(summary), cloud)
+    motion = estimate_motion(capture, calibration, decoded, cloud)
+    return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
+                         scan_duration_s(capture))
 
 
-def run_measure(capture_dir, calibration_path, out_path) -> MeasureResult:
+def run_measure(capture_dir, calibration_path, out_path, *,
+                motion_threshold_mm: float = DEFAULT_THRESHOLD_MM) -> MeasureResult:
     """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError."""
     cal = load_calibration(calibration_path)
     capture = load_capture(capture_dir)
-    result = measure_capture(capture, cal)
+    result = measure_capture(capture, cal, motion_threshold_mm=motion_threshold_mm)
     if not result.complete:
         raise AnkleScanError(f"{capture_dir}: marks not found: {result.marks.message()}; nothing written")
     write_text_atomic(Path(out_path), json.dumps(result.to_dict(), indent=2) + "\n")

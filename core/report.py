@@ -42,11 +42,13 @@ CSV_COLUMNS = (
     "table_inversion", "table_inversion_sd", "table_plantar_flexion",
     "table_plantar_flexion_sd", "mismatch_inversion", "mismatch_inversion_sd",
     "mismatch_plantar_flexion", "mismatch_plantar_flexion_sd",
-    "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes")
+    "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
+    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep")
 _FREE_TEXT = ("operator", "notes")
 
 TABLE_HEAD = ("Trial", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)", "Leg PF\n(°)",
-              "Table inv.\n(°)", "Table PF\n(°)", "Mismatch inv.\n(°)", "Mismatch PF\n(°)")
+              "Table inv.\n(°)", "Table PF\n(°)", "Mismatch inv.\n(°)", "Mismatch PF\n(°)",
+              "Moved (mm)\n/ scan (s)")
 
 
 @dataclass(frozen=True)
@@ -151,7 +153,18 @@ def _trial_cells(i: int, r: dict) -> list[str]:
             _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
             _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"], 2),
             _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"], 2),
-            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2)]
+            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2),
+            _motion_cell(r)]
+
+
+def _motion_cell(r: dict) -> str:
+    """Motion during the scan and the scan's duration; "MOVED" = flagged and left out of the
+    statistics, "kept" = flagged but kept by the clinician."""
+    m, dur = r.get("motion_mm"), r.get("scan_duration_s")
+    text = "–" if m is None else f"{m:.2f}"
+    if r.get("motion_flagged"):
+        text += " kept" if r.get("motion_keep") else " MOVED"
+    return text + ("" if dur is None else f" / {dur:.1f}")
 
 
 def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[str]],
@@ -194,7 +207,7 @@ def _setting(v: float | None) -> float | None:
 
 
 def _measured(rows: list[dict]) -> list[dict]:
-    return [r for r in rows if r["mismatch_inversion"] is not None
+    return [r for r in rows if r["mismatch_inversion"] is not None and not r.get("motion_excluded")
             and r["ref_inversion"] is not None and r["ref_plantar_flexion"] is not None]
 
 
@@ -340,6 +353,9 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
              ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator or "–"),
              ("Calibration", cal_text),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
+    if summ.moved_trials:
+        items.append(("Moved", f"{len(summ.moved_trials)} trial(s) moved during the scan (MOVED below): "
+                               "left out of the statistics and figures"))
     for axis in st.AXES:
         a = getattr(summ, axis)
         items.append((f"Mismatch {axis.replace('_', ' ')}",
@@ -356,7 +372,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
         y = _key_values(fig, y, [("Notes", s.notes[:110])])
     fig.text(0.06, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; "
              "mismatch = adjusted − reference table)", fontsize=8.5, va="top")
-    widths = (0.06, 0.09, 0.09, 0.12, 0.12, 0.12, 0.12, 0.14, 0.14)
+    widths = (0.05, 0.08, 0.08, 0.11, 0.11, 0.11, 0.11, 0.12, 0.12, 0.11)
     _draw_table(fig, y - 0.03, TABLE_HEAD, first, widths)
     pages.save(fig)
     for start in range(0, len(rest), NEXT_PAGE_ROWS):

@@ -165,6 +165,7 @@ def patient_means(rows: Iterable[Mapping]) -> dict[tuple[str, str, str], float]:
 def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
     """All descriptive summaries and tests from ``Store.study_rows()``-shaped rows."""
     out = StudyStats()
+    rows = [r for r in rows if not r.get("motion_excluded")]  # moved during the scan, not kept (core/store.py)
     out.patient_group = {r["patient_code"]: group_of(r, min_sprains) for r in rows}
     out.patient_means = patient_means(rows)
     for g in GROUPS:
