@@ -43,13 +43,15 @@ from core.decode import DecodeResult
 from core.pointcloud import PointCloud
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
-PATCH_MM = 40.0  # cube edge: curved enough on a leg to see two directions, small next to the leg
+PATCH_MM = 60.0  # cube edge: on a leg, wide enough for normals that see two directions, small next to the leg
 MIN_PATCH_POINTS = 40
-NORMAL_WINDOW_PX = 7
+NORMAL_MM = 8.0  # normals from a window this wide on the surface: wider bends them towards the camera near silhouettes
+MIN_COS_INCIDENCE = 0.3  # grazing views: the normal is least certain exactly where it matters most
 MODULATION_RATIO = (0.6, 1.6)  # a look's modulation vs the main frames': else the pixel saw another surface
-RIDGE = 0.05  # of the largest eigenvalue: unseen directions shrink instead of amplifying noise
+RIDGE = 0.01  # of the largest eigenvalue: unseen directions shrink instead of amplifying noise
 MODEL_SD_FRACTION = 0.1  # relative model uncertainty added to the noise (docs/performance.md)
 USE_REFERENCE = False
+CONFIDENCE_Z = 2.0
 
 
 MOTION_REFS = {"default": 3, "short": 2, "paper": 0}  # looks per preset: start, (middle,) end
@@ -203,18 +205,20 @@ def _geometry(cal: Calibration, cloud: PointCloud, shape):
     dc_dl = (col_plus - col_minus) / (2 * eps)
     normal, enough = _normals(X, cloud.pixels, shape)
     ndotr = np.einsum("ij,ij->i", normal, ray)
-    ok = enough & np.isfinite(dc_dl) & (np.abs(dc_dl) > 1e-3) & (np.abs(ndotr) > 0.15)
+    ok = enough & np.isfinite(dc_dl) & (np.abs(dc_dl) > 1e-3) & (np.abs(ndotr) > MIN_COS_INCIDENCE)
     if np.count_nonzero(ok) < MIN_PATCH_POINTS:
         return None
     return ok, normal, ndotr, dc_dl
 
 
-def _normals(X: np.ndarray, pixels: np.ndarray, shape, window: int = NORMAL_WINDOW_PX):
+def _normals(X: np.ndarray, pixels: np.ndarray, shape):
     """Surface normals from the organised point map: the least-squares plane of each pixel's
-    window of reconstructed neighbours (box-filtered moments, one eigen-solve per point)."""
+    window of reconstructed neighbours (box-filtered moments, one eigen-solve per point). The
+    window is ``NORMAL_MM`` wide on the surface, from the measured spacing of neighbours."""
     h, w = shape
     u = pixels[:, 0].astype(np.intp)
     v = pixels[:, 1].astype(np.intp)
+    window = _window_px(X, u, v, shape)
     mask = np.zeros((h, w), np.float32)
     mask[v, u] = 1.0
     ref = X.mean(axis=0)
@@ -236,6 +240,19 @@ def _normals(X: np.ndarray, pixels: np.ndarray, shape, window: int = NORMAL_WIND
     _, vecs = np.linalg.eigh(cov)
     normal = vecs[:, :, 0]
     return normal, n >= max(6, window * window // 3)
+
+
+def _window_px(X, u, v, shape) -> int:
+    """Odd window (pixels) spanning ~NORMAL_MM at the median spacing of horizontal neighbours."""
+    index = np.full(shape, -1, np.int64)
+    index[v, u] = np.arange(len(X))
+    left = index[v, np.maximum(u - 1, 0)]
+    has = (left >= 0) & (u > 0)
+    if not has.any():
+        return 3
+    step = float(np.median(np.linalg.norm(X[has] - X[left[has]], axis=1)))
+    half = int(round(NORMAL_MM / max(step, 1e-6) / 2))
+    return 2 * min(max(half, 1), 7) + 1
 
 
 def _patch_ids(points: np.ndarray, size: float) -> np.ndarray:
@@ -293,7 +310,7 @@ def _largest(fits):
     n = len(D0)
     positions = ([np.zeros_like(D0[0])] if USE_REFERENCE else []) + D0
     pcov = ([np.zeros_like(covs[0])] if USE_REFERENCE else []) + covs
-    best = np.zeros(len(counts))
+    best = np.full(len(counts), -1.0)  # the first pair always sets the variance
     best_var = np.zeros(len(counts))
     for a in range(len(positions)):
         for b in range(a + 1, len(positions)):
@@ -303,14 +320,17 @@ def _largest(fits):
             take = mag > best
             best = np.where(take, mag, best)
             best_var = np.where(take, var, best_var)
-    best = np.where(usable, best, -np.inf)
-    order = np.argsort(best)[::-1]
-    # The second-largest patch: one patch alone (a few hundred points at a silhouette, a mark's
-    # rim) can be an outlier, while the part of the subject that moved most spans several patches.
+    sd_pair = np.sqrt(best_var)
+    # Patches are ranked by their lower confidence bound, so a noisy patch (few points, poorly
+    # conditioned normals, the dim floor far away) cannot win on noise; and the second-ranked
+    # one is taken: one patch alone (a silhouette, a mark's rim) can be an outlier, while the
+    # part of the subject that moved most spans several patches.
+    score = np.where(usable, best - CONFIDENCE_Z * sd_pair, -np.inf)
+    order = np.argsort(score)[::-1]
     k = int(order[min(1, int(usable.sum()) - 1)])
     value = float(best[k])
     top = best[order[:5]]
-    top = top[np.isfinite(top)]
+    top = top[np.isfinite(score[order[:5]])]
     spread = float(np.std(top[:3])) if top.size > 1 else 0.0  # how sharply the maximum is defined
     sd = math.sqrt(float(best_var[k]) + spread**2 + (MODEL_SD_FRACTION * value) ** 2)
     return value, sd, int(usable.sum()), {"patch_values_top": [round(float(x), 4) for x in top],
