@@ -14,7 +14,9 @@ oscillation of half-range ``amplitude_mm`` whose peak speed is ``speed_mm_s``;
 The camera sets the time between frames (``FRAME_S``): a synchronised webcam takes a frame
 every ~30 ms, a DSLR every ~2 s, so the same patient moves ~60 times further during a DSLR
 scan. Each frame is rendered from its own posed scene (the light transport is rebuilt per
-frame: ~0.9 s at scale 0.5, ~3 s at full resolution), so a swaying scan is honest but slow.
+frame, but only for the camera pixels the moving subject can touch: those that see it, or whose
+surface it shades, at rest or at the frame's pose; the rest of the image keeps the still scene's
+transport), so a swaying scan is honest but slower than a still one.
 
 ``SwayClock`` plugs into ``SimRig.motion``: every ``SimRig.capture`` (and so every
 ``SimulatedCamera`` grab in the app) then photographs the subject where it is at that frame's
@@ -138,13 +140,89 @@ class SwayClock:
         t = self.start_s + self.frames_taken * self.frame_s
         self.frames_taken += 1
         self.times.append(t)
-        if self.sway.still:
-            still = rig._still_rig()
-        else:
-            still = SimRig(self.scene_at(rig.scene, t), rig.camera, rig.projector, scale=rig.scale,
+        still = rig._still_rig()
+        if not self.sway.still:
+            posed = SimRig(self.scene_at(rig.scene, t), rig.camera, rig.projector, scale=rig.scale,
                            optics=rig.optics, seed=None)
+            posed._transport = frame_transport(still, posed)
+            still = posed
         kw.setdefault("rng", rig.rng)
         return still.capture(projector_image, **kw)
+
+
+def _subject_scene(scene: Scene) -> Scene:
+    return Scene([o for o in scene.objects if _moves(o)])
+
+
+def affected_pixels(still, posed, dilate_px: int = 2) -> np.ndarray:
+    """(H, W) bool: pixels whose light the subject can change between ``still`` and ``posed``:
+    their ray meets the subject in either scene, or the subject shades the point they see."""
+    import cv2
+
+    cam, prj = still.camera, still.projector
+    truth = still.truth()
+    rays = cam.pixel_grid_rays().reshape(-1, 3)
+    X = truth.points.reshape(-1, 3)
+    seen = truth.seen.ravel()
+    mask = np.zeros(len(rays), bool)
+    for sub in (_subject_scene(still.scene), _subject_scene(posed.scene)):
+        t, _ = sub.intersect(cam.center, rays)
+        mask |= np.isfinite(t)
+        rows = np.flatnonzero(seen & ~mask)
+        to_x = X[rows] - prj.center
+        dist = np.linalg.norm(to_x, axis=1)
+        tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
+        mask[rows[tp < dist - 1e-3]] = True
+    mask = mask.reshape(cam.height, cam.width).astype(np.uint8)
+    if dilate_px:
+        mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
+    return mask.astype(bool)
+
+
+def frame_transport(still, posed):
+    """``posed``'s light transport: ``still``'s, with the rows of the affected pixels recast.
+
+    Every row of the transport holds exactly 4 taps per sub-sample, so a pixel's row is a fixed
+    slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
+    import scipy.sparse
+
+    from hardware.simrig import _single_threaded_blas, _Transport
+
+    still.prepare()
+    tr = still._transport
+    cam, o = still.camera, still.optics
+    W = cam.width
+    with _single_threaded_blas():
+        rows = np.flatnonzero(affected_pixels(still, posed).ravel())
+        offs = posed._subpixel_offsets()
+        S = len(offs)
+        Hp, Wp = tr.padded_shape
+        base = np.stack([rows % W, rows // W], axis=-1).astype(np.float64)
+        uv = (base[None, :, :] + offs[:, None, :]).reshape(-1, 2)
+        c = posed._cast(uv)
+        shade = posed._shading(c) / S
+    x = c["proj_uv"][:, 0] + tr.pad
+    y = c["proj_uv"][:, 1] + tr.pad
+    ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
+    x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
+    y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
+    fx, fy = np.where(ok, x - x0, 0.0), np.where(ok, y - y0, 0.0)
+    sh = np.where(ok, shade, 0.0)
+    n = len(rows)
+    idx = (y0 * Wp + x0).reshape(S, n)
+    w = np.stack([(sh * wk).reshape(S, n) for wk in ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)])
+    taps = np.array([0, 1, Wp, Wp + 1], np.int64)
+    cols = (idx[None, :, :] + taps[:, None, None]).transpose(2, 1, 0).reshape(-1)
+    per_row = 4 * S
+    where = (rows[:, None] * per_row + np.arange(per_row)[None, :]).ravel()
+    data = tr.matrix.data.copy()
+    indices = tr.matrix.indices.copy()
+    data[where] = w.transpose(2, 1, 0).reshape(-1)
+    indices[where] = cols
+    matrix = scipy.sparse.csr_matrix((data, indices, tr.matrix.indptr), shape=tr.matrix.shape)
+    ambient = tr.ambient.copy()
+    ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
+    return _Transport(matrix, ambient, tr.pad, tr.padded_shape)
 
 
 def swaying_capture(rig, images, sway: Sway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:
