@@ -146,7 +146,8 @@ class SwayClock:
                            optics=rig.optics, seed=None)
             posed._transport = frame_transport(still, posed)
             still = posed
-        kw.setdefault("rng", rig.rng)
+        if kw.get("rng") is None:
+            kw["rng"] = rig.rng
         return still.capture(projector_image, **kw)
 
 
