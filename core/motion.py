@@ -7,10 +7,12 @@ the end (manifest ``kind: "repeat"``). The method:
 
 1. Per pixel, the first-harmonic phase of a look is fitted from its samples ``I_j`` at the pattern
    shifts ``d_j``, with the background ``A`` (mean of the main phase frames) known:
-   ``I_j - A = a cos d_j + b sin d_j``. The same fit on the main set's frames of the same shifts
-   gives the reference; comparing like with like cancels the projector gamma's harmonics. The
-   phase change is the projector-column shift ``dc = P/2pi * arg((a'+ib')(a-ib))`` of what the
-   pixel sees between the main frames' time and the look's time.
+   ``I_j - A = a cos d_j + b sin d_j``. Looks are compared with each other (the same shifts, so
+   the projector gamma's harmonics bias them alike), unwrapped look by look from the first: the
+   phase change is the projector-column shift ``dc = P/2pi * dphi`` of what the pixel sees. Not
+   with the main phase frames: the decoder kept each pixel on their values, so their noise is not
+   independent of which pixels are compared (a consistent 0.3 mm on a still scan's dim floor).
+   The main frames' modulation only screens out pixels whose look saw another surface.
 2. A column shift is a shift of the surface along the camera ray, ``dl = dc / (dc/dl)`` (the
    derivative from the calibration at the reconstructed point), and the surface's displacement
    along its normal is ``n . D = dl (n . r)``.
@@ -19,14 +21,14 @@ the end (manifest ``kind: "repeat"``). The method:
    normals of a curved patch span the directions a sway moves it in; a direction no normal sees
    shrinks towards 0 rather than inventing motion). Static surfaces give 0 without being told.
 4. The subject's largest displacement is the largest distance between any two of a patch's
-   positions (the main frames' time and every look), over all patches with enough points,
-   debiased for noise, with its standard deviation from the fit plus the disagreement of the
-   patches nearest to it.
+   positions at the looks, debiased for noise, over the patches with enough points (ranked by
+   their lower confidence bound; the second is taken), with its standard deviation from the fit,
+   the disagreement of the top patches and a model term.
 
 Nothing about the scene is assumed: what moves, where, and in which direction all come from
 the data. Limits: motion along a surface that looks the same after it (sliding along a straight
 cylinder) is not seen; a shift of more than half a phase period along the camera ray between
-two looks (~8 mm at full resolution, ``ambiguity_mm`` in the result) wraps and is not measured.
+two successive looks (~11 mm at full resolution, ``ambiguity_mm`` in the result) wraps.
 """
 
 from __future__ import annotations
@@ -50,7 +52,6 @@ MIN_COS_INCIDENCE = 0.3  # grazing views: the normal is least certain exactly wh
 MODULATION_RATIO = (0.6, 1.6)  # a look's modulation vs the main frames': else the pixel saw another surface
 RIDGE = 0.01  # of the largest eigenvalue: unseen directions shrink instead of amplifying noise
 MODEL_SD_FRACTION = 0.1  # relative model uncertainty added to the noise (docs/performance.md)
-USE_REFERENCE = False
 CONFIDENCE_Z = 2.0
 
 
@@ -153,32 +154,33 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         return MotionEstimate(None, None, len(looks), reason="too few points for surface normals")
     ok_pts, normal, ndotr, dc_dl = geo
     shifts_main = {i: k for k, i in enumerate(code.phase)}
-    t_main = {}
-    dns, weights, looks_used, times = [], [], [], []
+    dns, weights, times = [], [], []
+    phi_prev = acc = chain_ok = None
     for look in looks:
         ks = [_of(pset, i).shift for i in look]
         d = 2 * np.pi * np.asarray(ks, float) / code.steps
-        M = np.stack([np.cos(d), np.sin(d)], axis=1)
-        pinv = np.linalg.pinv(M)  # (2, n)
-        rep = frames[look][:, v, u].astype(np.float32) - A
-        ref = main[[shifts_main[code.phase[k]] for k in ks]] - A
-        ab_rep, ab_ref = pinv @ rep, pinv @ ref
-        z_rep = ab_rep[0] + 1j * ab_rep[1]
-        z_ref = ab_ref[0] + 1j * ab_ref[1]
-        dphi = np.angle(z_rep * np.conj(z_ref))
-        mod = np.abs(z_ref)
-        ratio = np.abs(z_rep) / np.maximum(mod, 1e-6)
+        pinv = np.linalg.pinv(np.stack([np.cos(d), np.sin(d)], axis=1))  # (2, n)
+        ab = pinv @ (frames[look][:, v, u].astype(np.float32) - A)
+        ab_main = pinv @ (main[[shifts_main[code.phase[k]] for k in ks]] - A)
+        z, z_main = ab[0] + 1j * ab[1], ab_main[0] + 1j * ab_main[1]
+        mod = np.abs(z_main)
+        ratio = np.abs(z) / np.maximum(mod, 1e-6)
         good = ok_pts & (ratio > MODULATION_RATIO[0]) & (ratio < MODULATION_RATIO[1]) & (mod > 3 * sigma)
-        dc = dphi * (code.period / (2 * np.pi))
+        phi = np.angle(z)
+        times.append(float(np.mean(look)))
+        if phi_prev is None:  # the first look is the reference
+            phi_prev, acc, chain_ok = phi, np.zeros_like(phi), good
+            continue
+        # unwrapped look by look: each step only needs to stay within half a period
+        acc = acc + np.angle(np.exp(1j * (phi - phi_prev)))
+        phi_prev, chain_ok = phi, chain_ok & good
+        dc = acc * (code.period / (2 * np.pi))
         dn = dc / dc_dl * ndotr  # normal displacement, mm
-        # phase noise of each fit ~ sigma * sqrt(trace(pinv pinv^T) / 2) / |z|, two fits compared
+        # phase noise of a fit ~ sigma * sqrt(trace(pinv pinv^T) / 2) / |z|; two fits compared
         s_phi = sigma * math.sqrt(float(np.trace(pinv @ pinv.T))) / np.maximum(mod, 1e-6)
         s_dn = s_phi * (code.period / (2 * np.pi)) / np.abs(dc_dl) * np.abs(ndotr)
-        dns.append(np.where(good, dn, np.nan))
-        weights.append(np.where(good, 1.0 / np.maximum(s_dn, 1e-4) ** 2, 0.0))
-        looks_used.append(look)
-        times.append(float(np.mean(look)))
-        t_main[len(times) - 1] = float(np.mean([code.phase[k] for k in ks]))
+        dns.append(np.where(chain_ok, dn, np.nan))
+        weights.append(np.where(chain_ok, 1.0 / np.maximum(s_dn, 1e-4) ** 2, 0.0))
     ambiguity = np.nanmedian(np.abs(0.5 * code.period / dc_dl[ok_pts])) if ok_pts.any() else None
     patch = _patch_ids(cloud.points, patch_mm)
     fits = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights)]
@@ -187,8 +189,7 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         return MotionEstimate(None, None, len(looks), reason="no surface patch had enough measured points",
                               ambiguity_mm=ambiguity)
     value, sd, n_patches, details = est
-    details.update(look_frames=[[int(i) for i in lk] for lk in looks_used], look_times_frames=times,
-                   reference_times_frames=[t_main[i] for i in range(len(times))])
+    details.update(look_frames=[[int(i) for i in lk] for lk in looks], look_times_frames=times)
     return MotionEstimate(value, sd, len(looks), n_patches, None if ambiguity is None else float(ambiguity),
                           details=details)
 
@@ -308,8 +309,8 @@ def _largest(fits):
     if not usable.any():
         return None
     n = len(D0)
-    positions = ([np.zeros_like(D0[0])] if USE_REFERENCE else []) + D0
-    pcov = ([np.zeros_like(covs[0])] if USE_REFERENCE else []) + covs
+    positions = [np.zeros_like(D0[0])] + D0  # the first look is the origin
+    pcov = [np.zeros_like(covs[0])] + covs
     best = np.full(len(counts), -1.0)  # the first pair always sets the variance
     best_var = np.zeros(len(counts))
     for a in range(len(positions)):
