@@ -108,7 +108,7 @@ def cost(args, work):
         refs = default_motion_refs(preset)
         pset = make_pattern_set(preset, rig.projector.width, rig.projector.height, motion_refs=refs)
         n = len(pset.frames)
-        for drift in (0.0, 1.0, 5.0):
+        for drift in [float(x) for x in args.sway_drifts.split(",") if x]:
             sway = Sway.drift(drift, n * FRAME_S["webcam"], "sideways")
             _, cloud, m, times = scan(rig, pset, sway, FRAME_S["webcam"], work / f"sway_{preset}_{drift}")
             mid = SimRig(SwayClock(sway).scene_at(rig.scene, times[len(times) // 2]), rig.camera, rig.projector,
@@ -130,6 +130,7 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true")
     ap.add_argument("--cost", action="store_true")
     ap.add_argument("--no-drift", action="store_true")
+    ap.add_argument("--sway-drifts", default="0,1,5", help="--cost: drifts of the swaying scans (\"\" for none)")
     args = ap.parse_args()
     args.refs = default_motion_refs(args.preset) if args.refs is None else args.refs
     args.posture = tuple(float(x) for x in args.posture.split(","))

@@ -137,9 +137,10 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
                     patch_mm: float = PATCH_MM) -> MotionEstimate:
     pset = capture.pattern_set
     looks = motion_looks(pset)
-    if not looks:
-        return MotionEstimate(None, None, reason="the capture has no motion reference frames "
-                                                 "(make patterns with motion references)")
+    if len(looks) < 2:
+        return MotionEstimate(None, None, len(looks), reason="the capture has no motion reference frames "
+                                                             "(make patterns with motion references)" if not looks
+                              else "one motion reference look: nothing to compare it with")
     code = pset.axis_code("column")
     if not code.phase or len(cloud) == 0 or cloud.pixels is None:
         return MotionEstimate(None, None, len(looks), reason="no phase-decoded points to compare")
@@ -257,8 +258,13 @@ def _window_px(X, u, v, shape) -> int:
 
 
 def _patch_ids(points: np.ndarray, size: float) -> np.ndarray:
-    key = np.floor(points / size).astype(np.int64)
-    _, ids = np.unique(key, axis=0, return_inverse=True)
+    """Dense ids of the ``size`` mm cubes the points fall in (one int64 key per cube: a 1-D
+    unique is ~10x faster than a row-wise one at a million points)."""
+    cell = np.floor(points / size).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    _, ids = np.unique(key, return_inverse=True)
     return ids.ravel()
 
 
