@@ -47,6 +47,7 @@ from core.pointcloud import PointCloud
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
 PATCH_MM = 60.0  # cube edge: on a leg, wide enough for normals that see two directions, small next to the leg
 MIN_PATCH_POINTS = 40
+MAX_POINTS = 150_000  # evenly thinned beyond this: ~1000 points a patch is plenty, a million costs seconds
 NORMAL_MM = 8.0  # normals from a window this wide on the surface: wider bends them towards the camera near silhouettes
 MIN_COS_INCIDENCE = 0.3  # grazing views: the normal is least certain exactly where it matters most
 MODULATION_RATIO = (0.6, 1.6)  # a look's modulation vs the main frames': else the pixel saw another surface
@@ -145,12 +146,13 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
     if not code.phase or len(cloud) == 0 or cloud.pixels is None:
         return MotionEstimate(None, None, len(looks), reason="no phase-decoded points to compare")
     frames = capture.frames
-    u = cloud.pixels[:, 0].astype(np.intp)
-    v = cloud.pixels[:, 1].astype(np.intp)
+    sub = np.arange(0, len(cloud), max(1, -(-len(cloud) // MAX_POINTS)))
+    u = cloud.pixels[sub, 0].astype(np.intp)
+    v = cloud.pixels[sub, 1].astype(np.intp)
     main = frames[list(code.phase)][:, v, u].astype(np.float32)  # (N_steps, P)
     A = main.mean(axis=0)
     sigma = float(decoded.thresholds.get("sigma", 1.0))
-    geo = _geometry(calibration, cloud, capture.shape)
+    geo = _geometry(calibration, cloud, capture.shape, sub)
     if geo is None:
         return MotionEstimate(None, None, len(looks), reason="too few points for surface normals")
     ok_pts, normal, ndotr, dc_dl = geo
@@ -183,7 +185,7 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         dns.append(np.where(chain_ok, dn, np.nan))
         weights.append(np.where(chain_ok, 1.0 / np.maximum(s_dn, 1e-4) ** 2, 0.0))
     ambiguity = np.nanmedian(np.abs(0.5 * code.period / dc_dl[ok_pts])) if ok_pts.any() else None
-    patch = _patch_ids(cloud.points, patch_mm)
+    patch = _patch_ids(cloud.points[sub], patch_mm)
     fits = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights)]
     est = _largest(fits)
     if est is None:
@@ -195,9 +197,10 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
                           details=details)
 
 
-def _geometry(cal: Calibration, cloud: PointCloud, shape):
-    """Per point: usable, unit normal, n . r (ray from the camera), d(column)/d(depth along the ray)."""
-    X = cloud.points.astype(np.float64)
+def _geometry(cal: Calibration, cloud: PointCloud, shape, sub: np.ndarray):
+    """Per point of ``sub``: usable, unit normal, n . r (ray from the camera), d(column)/d(depth
+    along the ray)."""
+    X = cloud.points[sub].astype(np.float64)
     C = cal.camera.center
     ray = X - C
     ray /= np.linalg.norm(ray, axis=1, keepdims=True)
@@ -205,7 +208,7 @@ def _geometry(cal: Calibration, cloud: PointCloud, shape):
     col_plus = cal.projector.project(X + eps * ray)[:, 0]
     col_minus = cal.projector.project(X - eps * ray)[:, 0]
     dc_dl = (col_plus - col_minus) / (2 * eps)
-    normal, enough = _normals(X, cloud.pixels, shape)
+    normal, enough = _normals(cloud.points.astype(np.float64), cloud.pixels, shape, sub)
     ndotr = np.einsum("ij,ij->i", normal, ray)
     ok = enough & np.isfinite(dc_dl) & (np.abs(dc_dl) > 1e-3) & (np.abs(ndotr) > MIN_COS_INCIDENCE)
     if np.count_nonzero(ok) < MIN_PATCH_POINTS:
@@ -213,14 +216,16 @@ def _geometry(cal: Calibration, cloud: PointCloud, shape):
     return ok, normal, ndotr, dc_dl
 
 
-def _normals(X: np.ndarray, pixels: np.ndarray, shape):
+def _normals(X: np.ndarray, pixels: np.ndarray, shape, at: np.ndarray):
     """Surface normals from the organised point map: the least-squares plane of each pixel's
     window of reconstructed neighbours (box-filtered moments, one eigen-solve per point). The
-    window is ``NORMAL_MM`` wide on the surface, from the measured spacing of neighbours."""
+    window is ``NORMAL_MM`` wide on the surface, from the measured spacing of neighbours. The
+    maps hold every point; the planes are solved at the points ``at``."""
     h, w = shape
     u = pixels[:, 0].astype(np.intp)
     v = pixels[:, 1].astype(np.intp)
     window = _window_px(X, u, v, shape)
+    ua, va = u[at], v[at]
     mask = np.zeros((h, w), np.float32)
     mask[v, u] = 1.0
     ref = X.mean(axis=0)
@@ -229,14 +234,14 @@ def _normals(X: np.ndarray, pixels: np.ndarray, shape):
     comps = [P[:, 0], P[:, 1], P[:, 2]]
     prods = {(i, j): comps[i] * comps[j] for i in range(3) for j in range(i, 3)}
     box = lambda img: cv2.boxFilter(img, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)  # noqa: E731
-    n = box(mask)[v, u]
+    n = box(mask)[va, ua]
     for key, vals in [((i,), c) for i, c in enumerate(comps)] + list(prods.items()):
         img = np.zeros((h, w), np.float32)
         img[v, u] = vals
-        maps[key] = box(img)[v, u].astype(np.float64)
+        maps[key] = box(img)[va, ua].astype(np.float64)
     nn = np.maximum(n, 1.0).astype(np.float64)
     mean = np.stack([maps[(i,)] / nn for i in range(3)], axis=1)
-    cov = np.empty((len(X), 3, 3))
+    cov = np.empty((len(at), 3, 3))
     for (i, j), m in ((k, maps[k]) for k in prods):
         cov[:, i, j] = cov[:, j, i] = m / nn - mean[:, i] * mean[:, j]
     _, vecs = np.linalg.eigh(cov)
