@@ -16,7 +16,7 @@ the end (manifest ``kind: "repeat"``). The method:
 2. A column shift is a shift of the surface along the camera ray, ``dl = dc / (dc/dl)`` (the
    derivative from the calibration at the reconstructed point), and the surface's displacement
    along its normal is ``n . D = dl (n . r)``.
-3. The reconstructed points are grouped in cubes of ``patch_mm``; in each, the displacement ``D``
+3. The reconstructed points are grouped in boxes of ``patch_mm`` (horizontal slabs); in each, the displacement ``D``
    of every look is fitted to the normal displacements by robust weighted least squares (the
    normals of a curved patch span the directions a sway moves it in; a direction no normal sees
    shrinks towards 0 rather than inventing motion). Static surfaces give 0 without being told.
@@ -45,7 +45,9 @@ from core.decode import DecodeResult
 from core.pointcloud import PointCloud
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
-PATCH_MM = 60.0  # cube edge: on a leg, wide enough for normals that see two directions, small next to the leg
+PATCH_MM = (120.0, 120.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway
+# varies with height (a tilt about the ankle), and a slab holds a whole cross-section of a leg, whose
+# normals see every horizontal direction; 60 mm cubes saw a quarter of it and missed diagonal sway by 29 %
 MIN_PATCH_POINTS = 40
 MAX_POINTS = 150_000  # evenly thinned beyond this: ~1000 points a patch is plenty, a million costs seconds
 NORMAL_MM = 8.0  # normals from a window this wide on the surface: wider bends them towards the camera near silhouettes
@@ -135,7 +137,7 @@ def _of(pset, i):
 
 
 def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeResult, cloud: PointCloud, *,
-                    patch_mm: float = PATCH_MM) -> MotionEstimate:
+                    patch_mm=PATCH_MM) -> MotionEstimate:
     pset = capture.pattern_set
     looks = motion_looks(pset)
     if len(looks) < 2:
@@ -265,7 +267,7 @@ def _window_px(X, u, v, shape) -> int:
 def _patch_ids(points: np.ndarray, size: float) -> np.ndarray:
     """Dense ids of the ``size`` mm cubes the points fall in (one int64 key per cube: a 1-D
     unique is ~10x faster than a row-wise one at a million points)."""
-    cell = np.floor(points / size).astype(np.int64)
+    cell = np.floor(points / np.asarray(size, float)).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 1
     key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
