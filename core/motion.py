@@ -45,9 +45,11 @@ from core.decode import DecodeResult
 from core.pointcloud import PointCloud
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
-PATCH_MM = (120.0, 120.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway
+PATCH_MM = (200.0, 200.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway
 # varies with height (a tilt about the ankle), and a slab holds a whole cross-section of a leg, whose
-# normals see every horizontal direction; 60 mm cubes saw a quarter of it and missed diagonal sway by 29 %
+# normals see every horizontal direction; 60 mm cubes saw a quarter of it and missed diagonal sway by 29 %.
+# Four grids, offset by half a slab in x and y: anything up to half a slab wide is whole in one of them.
+MIN_CONDITION = 0.1  # second / largest eigenvalue of a patch's normal matrix: it must see two directions
 MIN_PATCH_POINTS = 40
 MAX_POINTS = 150_000  # evenly thinned beyond this: ~1000 points a patch is plenty, a million costs seconds
 NORMAL_MM = 8.0  # normals from a window this wide on the surface: wider bends them towards the camera near silhouettes
@@ -187,8 +189,12 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         dns.append(np.where(chain_ok, dn, np.nan))
         weights.append(np.where(chain_ok, 1.0 / np.maximum(s_dn, 1e-4) ** 2, 0.0))
     ambiguity = np.nanmedian(np.abs(0.5 * code.period / dc_dl[ok_pts])) if ok_pts.any() else None
-    patch = _patch_ids(cloud.points[sub], patch_mm)
-    fits = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights)]
+    fits = None
+    for offset in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+        patch = _patch_ids(cloud.points[sub], patch_mm, offset)
+        grid = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights)]
+        fits = grid if fits is None else [tuple(np.concatenate([a, b]) for a, b in zip(f, g))
+                                          for f, g in zip(fits, grid)]
     est = _largest(fits)
     if est is None:
         return MotionEstimate(None, None, len(looks), reason="no surface patch had enough measured points",
@@ -264,10 +270,11 @@ def _window_px(X, u, v, shape) -> int:
     return 2 * min(max(half, 1), 7) + 1
 
 
-def _patch_ids(points: np.ndarray, size: float) -> np.ndarray:
+def _patch_ids(points: np.ndarray, size, offset=(0.0, 0.0)) -> np.ndarray:
     """Dense ids of the ``size`` mm cubes the points fall in (one int64 key per cube: a 1-D
     unique is ~10x faster than a row-wise one at a million points)."""
-    cell = np.floor(points / np.asarray(size, float)).astype(np.int64)
+    shift = np.array([offset[0], offset[1], 0.0])
+    cell = np.floor(points / np.asarray(size, float) + shift).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 1
     key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
@@ -309,6 +316,9 @@ def _fit_patches(patch: np.ndarray, normal: np.ndarray, dn: np.ndarray, w0: np.n
     inv = np.linalg.inv(Areg)
     # covariance of the ridge estimate: directions no normal sees are shrunk, not noisy
     cov = inv @ NtN @ inv * np.maximum(chi2, 1.0)[:, None, None]
+    ev = np.linalg.eigvalsh(NtN)
+    # a patch whose normals see one direction only (a sliver at a silhouette) cannot tell where it went
+    count = np.where(ev[:, -2] >= MIN_CONDITION * np.maximum(ev[:, -1], 1e-12), count, 0)
     return D, cov, count
 
 
