@@ -271,7 +271,7 @@ def _window_px(X, u, v, shape) -> int:
 
 
 def _patch_ids(points: np.ndarray, size, offset=(0.0, 0.0)) -> np.ndarray:
-    """Dense ids of the ``size`` mm cubes the points fall in (one int64 key per cube: a 1-D
+    """Dense ids of the ``size`` mm boxes the points fall in (one int64 key per box: a 1-D
     unique is ~10x faster than a row-wise one at a million points)."""
     shift = np.array([offset[0], offset[1], 0.0])
     cell = np.floor(points / np.asarray(size, float) + shift).astype(np.int64)
@@ -323,8 +323,8 @@ def _fit_patches(patch: np.ndarray, normal: np.ndarray, dn: np.ndarray, w0: np.n
 
 
 def _largest(fits):
-    """Largest pairwise distance among each patch's positions (0 = the main frames' time, and
-    each look), debiased by its noise; the value is the largest over patches."""
+    """Largest pairwise distance among each patch's positions at the looks (the first look at 0),
+    debiased by its noise; the patch is chosen by its lower confidence bound (see step 4)."""
     D0 = [f[0] for f in fits]
     covs = [f[1] for f in fits]
     counts = np.min(np.stack([f[2] for f in fits]), axis=0)
