@@ -191,8 +191,12 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
                     jobs.append(({"label": f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                                   "table": table, "scale": scale, "seed": int(rng.integers(2**31)),
                                   "capture": str(folder / "capture"), "cloud": str(folder / "cloud.ply"),
-                                  "calibration": cal_dict, "accuracy": not jobs,
+                                  "calibration": cal_dict, "accuracy": False,
                                   "sway": _sway(sway_rng, sway_mm), "camera": camera}, trial.id))
+    # the scanner's accuracy against the truth: on the first trial whose patient stood still
+    still = [j for j, _ in jobs if not j["sway"]]
+    if still:
+        still[0]["accuracy"] = True
     return jobs
 
 

@@ -158,12 +158,12 @@ def _trial_cells(i: int, r: dict) -> list[str]:
 
 
 def _motion_cell(r: dict) -> str:
-    """Motion during the scan and the scan's duration; "MOVED" = flagged and left out of the
+    """Motion during the scan and the scan's duration; "out" = flagged and left out of the
     statistics, "kept" = flagged but kept by the clinician."""
     m, dur = r.get("motion_mm"), r.get("scan_duration_s")
     text = "–" if m is None else f"{m:.2f}"
     if r.get("motion_flagged"):
-        text += " kept" if r.get("motion_keep") else " MOVED"
+        text += " kept" if r.get("motion_keep") else " out"
     return text + ("" if dur is None else f" / {dur:.1f}")
 
 
@@ -354,7 +354,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
              ("Calibration", cal_text),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
     if summ.moved_trials:
-        items.append(("Moved", f"{len(summ.moved_trials)} trial(s) moved during the scan (MOVED below): "
+        items.append(("Moved", f"{len(summ.moved_trials)} trial(s) moved during the scan ('out' below): "
                                "left out of the statistics and figures"))
     for axis in st.AXES:
         a = getattr(summ, axis)
@@ -372,7 +372,7 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict])
         y = _key_values(fig, y, [("Notes", s.notes[:110])])
     fig.text(0.06, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; "
              "mismatch = adjusted − reference table)", fontsize=8.5, va="top")
-    widths = (0.05, 0.08, 0.08, 0.11, 0.11, 0.11, 0.11, 0.12, 0.12, 0.11)
+    widths = (0.05, 0.07, 0.07, 0.11, 0.11, 0.11, 0.11, 0.12, 0.12, 0.13)
     _draw_table(fig, y - 0.03, TABLE_HEAD, first, widths)
     pages.save(fig)
     for start in range(0, len(rest), NEXT_PAGE_ROWS):

@@ -167,7 +167,7 @@ def test_report_shows_motion(tmp_path):
         assert rep.pages >= 1 and (tmp_path / "r.pdf").stat().st_size > 0
         from core.report import _motion_cell
         row = s.study_rows()[0]
-        assert _motion_cell(row) == "1.80 MOVED / 1.1"
+        assert _motion_cell(row) == "1.80 out / 1.1"
         write_csv(s.study_rows(), tmp_path / "t.csv")
         text = (tmp_path / "t.csv").read_text()
         assert "motion_mm" in text.splitlines()[0] and "1.8" in text
