@@ -129,7 +129,10 @@ def cmd_patterns(args) -> int:
         axes, why = ("column",), "the paper's 18 sheets; --axes column,row for a projector above the camera"
     else:
         axes, why = ("column", "row"), "for a projector on any side of the camera; --calibration picks fewer"
-    pset = make_pattern_set(args.preset, width, height, axes=axes)
+    from core.motion import default_motion_refs
+
+    refs = default_motion_refs(args.preset) if args.motion_refs is None else args.motion_refs
+    pset = make_pattern_set(args.preset, width, height, axes=axes, motion_refs=refs)
     out = write_patterns(pset, args.out)
     print(f"wrote {len(pset.frames)} frames ({args.preset}, {width}x{height}, {' + '.join(axes)} stripes: {why}) "
           f"and manifest.json to {out}")
@@ -294,9 +297,13 @@ def cmd_calibrate_level(args) -> int:
 
 
 def cmd_measure(args) -> int:
+    from core.errors import AnkleScanError
     from core.measure import run_measure
 
-    result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter)
+    if not (args.motion_threshold > 0 and args.motion_threshold < float("inf")):
+        raise AnkleScanError(f"--motion-threshold must be a positive number of mm, not {args.motion_threshold}")
+    result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter,
+                         motion_threshold_mm=args.motion_threshold)
     print(result.format_text())
     return 0
 
@@ -321,6 +328,9 @@ def cmd_demo(args) -> int:
 
     from app.demo import DEMO_SCALE
 
+    if not (0 <= args.sway < 50):
+        from core.errors import AnkleScanError
+        raise AnkleScanError(f"--sway must be 0 to 50 mm, not {args.sway}")
     if getattr(args, "study", False):
         from app.demo import run_study_demo
         from core.errors import AnkleScanError
@@ -331,7 +341,7 @@ def cmd_demo(args) -> int:
         return run_study_demo(Path(args.out), progress=Progress(args.quiet),
                               scale=1.0 if args.full_resolution else DEMO_SCALE)
     return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
-                    scale=1.0 if args.full_resolution else DEMO_SCALE)
+                    scale=1.0 if args.full_resolution else DEMO_SCALE, sway_mm=args.sway, camera=args.camera)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -352,6 +362,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--study", action="store_true",
                    help="the paper's whole study: 4 patients with a sprain history and 4 without, barefoot and "
                         "in shoes, 3 trials each (48 scans, several minutes)")
+    d.add_argument("--sway", type=float, default=0.0, metavar="MM",
+                   help="one trial in three: the patient drifts up to MM mm during the scan (slower: each frame is "
+                        "rendered at its own pose); moved trials are flagged")
+    d.add_argument("--camera", choices=("webcam", "dslr"), default="webcam",
+                   help="frame timing of the simulated camera for --sway (webcam 30 ms, DSLR 2 s a frame)")
     d.add_argument("--full-resolution", action="store_true",
                    help="simulate the 1600x1200 camera and 1024x768 projector (default: 0.75 of it, for speed)")
     d.set_defaults(func=cmd_demo)
@@ -360,7 +375,11 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--out", required=True)
     pt.add_argument("--projector", type=_size, default=None,
                     help="projector resolution WxH (default: the calibration's, else 1024x768)")
-    pt.add_argument("--preset", default="default", choices=["default", "paper"])
+    pt.add_argument("--preset", default="default", choices=["default", "paper", "short"],
+                    help="default; paper (the paper's 18 frames); short (fewer frames, for slow cameras)")
+    pt.add_argument("--motion-refs", type=int, default=None,
+                    help="repeats of a phase-frame pair spread over the scan, to measure how far the subject moved "
+                         "(default: 3 for default, 2 for short, 0 for paper; 0 = none)")
     pt.add_argument("--axes", default=None,
                     help="column, row or column,row (default: both, which work whatever side of the camera the "
                          "projector stands on; with --calibration, what that rig needs; the paper preset: column)")
@@ -428,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--mark-diameter", type=float, default=None, metavar="MM",
                    help="the marks' diameter in mm (default: measured from the capture)")
     m.add_argument("--out", required=True)
+    m.add_argument("--motion-threshold", type=float, default=0.5,
+                   help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")

@@ -98,7 +98,9 @@ def _scan_trial(job: dict) -> dict:
     from core.pointcloud import write_ply
     from core.triangulate import scan_axes
     from hardware.sim_accuracy import as_dict, evaluate
+    from core.motion import default_motion_refs
     from hardware.sim_scene import angles_from_marks, leg_scene
+    from hardware.sim_sway import FRAME_S, Sway, swaying_capture, true_largest_displacement
     from hardware.simrig import SimRig
 
     t0 = time.perf_counter()
@@ -106,16 +108,24 @@ def _scan_trial(job: dict) -> dict:
     scene = leg_scene(*job["table"], mark_type=mark_type, mark_radius=diameter / 2)
     rig = SimRig(scene, scale=job["scale"], seed=job["seed"])
     cal = _calibration(job["calibration"])
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal))
-    save_capture(job["capture"], pset, [rig.capture(img) for img in render_all(pset)],
-                 metadata={"device": "simulated rig", "trial": job["label"]})
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal),
+                            motion_refs=default_motion_refs("default"))
+    frame_s = FRAME_S[job.get("camera", "webcam")]
+    drift, direction = job.get("sway") or (0.0, (1.0, 0.0, 0.0))
+    sway = Sway.drift(drift, len(pset.frames) * frame_s, direction)
+    frames, times = swaying_capture(rig, render_all(pset), sway, frame_s)
+    save_capture(job["capture"], pset, frames,
+                 metadata={"device": "simulated rig", "trial": job["label"], "duration_s": len(frames) * frame_s})
     capture = load_capture(job["capture"])
     result = measure_capture(capture, cal, job["mark_diameter"])
     write_ply(job["cloud"], result.cloud)
     true_marks = {k: np.asarray(m.centre) for k, m in scene.marks.items()}
     true_angles = angles_from_marks(true_marks)
     found = result.marks.labelled
+    motion = result.motion
     return {
+        "motion": {"mm": motion.value_mm, "sd": motion.sd_mm, "flagged": result.motion_flagged,
+                   "duration_s": result.duration_s, "true_mm": true_largest_displacement(rig, sway, times)},
         "label": job["label"],
         "complete": result.complete,
         "message": "" if result.complete else result.marks.message(),
@@ -162,7 +172,15 @@ def _prepare_out(out: Path) -> None:
     write_text_atomic(out / MARKER, "written by anklescan demo; the folder is replaced by the next demo run\n")
 
 
-def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list[tuple[dict, int]]:
+def _sway(rng, sway_mm: float):
+    """One trial in three drifts, by a random amount up to ``sway_mm`` in a random horizontal direction."""
+    amount, angle, moves = rng.uniform(0.0, sway_mm), rng.uniform(0, 2 * np.pi), rng.uniform() < 1 / 3
+    return (float(amount), (float(np.cos(angle)), float(np.sin(angle)), 0.0)) if (sway_mm > 0 and moves) else None
+
+
+def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm: float = 0.0,
+          camera: str = "webcam") -> list[tuple[dict, int]]:
+    sway_rng = np.random.default_rng(18)
     rng = np.random.default_rng(2026)
     sessions = [s for s in SESSIONS if s[1] == "barefoot"] if quick else SESSIONS
     inversions = (0.0, 20.0) if quick else INVERSIONS
@@ -184,20 +202,28 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict) -> list
                     jobs.append(({"label": f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                                   "table": table, "scale": scale, "seed": int(rng.integers(2**31)),
                                   "capture": str(folder / "capture"), "cloud": str(folder / "cloud.ply"),
-                                  "calibration": cal_dict, "accuracy": not jobs, "marks": p.marks,
-                                  "mark_diameter": session.mark_diameter_mm}, trial.id))
+                                  "calibration": cal_dict, "accuracy": False, "marks": p.marks,
+                                  "mark_diameter": session.mark_diameter_mm,
+                                  "sway": _sway(sway_rng, sway_mm), "camera": camera}, trial.id))
+    # the scanner's accuracy against the truth: on the first trial whose patient stood still
+    still = [j for j, _ in jobs if not j["sway"]]
+    if still:
+        still[0]["accuracy"] = True
     return jobs
 
 
 def _record(store, trial_id: int, job: dict, res: dict) -> None:
     store.set_trial_files(trial_id, capture=job["capture"], cloud=job["cloud"])
+    m = res["motion"]
+    store.set_trial_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
     if res["marks"]:
         # store the measured marks; the store recomputes the angles and mismatch from them
         store.update_marks(trial_id, res["marks"], "auto", "anklescan demo",
                            sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
 
 
-def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE) -> int:
+def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE, sway_mm: float = 0.0,
+             camera: str = "webcam") -> int:
     from core.report import write_session_report, write_study_report
     from core.store import Store
 
@@ -208,7 +234,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     cal = _calibrate(out, scale, progress)
     with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
         cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
-        jobs = _plan(store, cal_id, quick, scale, cal["calibration"])
+        jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
         results = []
         workers = max(1, min(2, os.cpu_count() or 1))
@@ -224,6 +250,10 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                 if res["mark_errors_mm"]:
                     worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
                     status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
+                m = res["motion"]
+                if m["mm"] is not None:
+                    status += (f"; moved {m['mm']:.2f} ± {m['sd']:.2f} mm (truth {m['true_mm']:.2f})"
+                               + (": FLAGGED, out of the statistics" if m["flagged"] else ""))
                 progress(f"{res['label']}: {shown}  {status}")
                 if res["accuracy"]:
                     acc = res["accuracy"]["subject"]

@@ -930,12 +930,17 @@ class MainWindow(QMainWindow):
         from core.triangulate import scan_axes
         from app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
+        from core.motion import default_motion_refs
         # the stripes this rig's geometry needs (columns beside the camera, rows above, both
-        # diagonal); without a calibration both, which work wherever the projector stands
-        pset = make_pattern_set(self.settings.get("pattern_preset"), w, h, axes=scan_axes(self.calibration))
+        # diagonal); without a calibration both, which work wherever the projector stands; and
+        # the repeated looks that measure how far the patient moved
+        preset = self.settings.get("pattern_preset")
+        pset = make_pattern_set(preset, w, h, axes=scan_axes(self.calibration), motion_refs=default_motion_refs(preset))
         diameter = self.store.get_session(self.current_session_id()).mark_diameter_mm
         return ScanJob(pset, self.rig.camera, folder, settle_s=self.settings.get("settle_ms") / 1000.0,
-                       calibration=self.calibration, reconstruct=partial(measure_folder, mark_diameter_mm=diameter),
+                       calibration=self.calibration,
+                       reconstruct=partial(measure_folder, mark_diameter_mm=diameter,
+                                           motion_threshold_mm=self.settings.get("motion_threshold_mm")),
                        cloud_path=Path(folder).parent / "cloud.ply",
                        metadata={"device": self.rig.description, "trial": self._trial_id,
                                  "calibration_id": self.calibration_id})
@@ -967,6 +972,7 @@ class MainWindow(QMainWindow):
         tid = self._trial_id
         has_cloud = result.cloud is not None and len(result.cloud) > 0
         self._record_files(result.folder, result.cloud_path, result.capture_sha256, result.cloud_sha256)
+        self._record_motion(result)
         self._end_trial("complete" if has_cloud else "failed", "" if has_cloud else result.note)
         self._show_result(result)
         if result.save_error:
@@ -979,9 +985,27 @@ class MainWindow(QMainWindow):
             if result.marks_note:
                 self.banner.show_message("info", "Some marks were not found automatically: place them in the "
                                          f"3-D view ({result.marks_note}).")
+        if result.motion_flagged:  # last, so no other message hides it
+            self.banner.show_message("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
+                                     "(The trial is flagged and left out of the statistics unless kept.)",
+                                     ("Scan again", self._scan_again))
         self.scan_page.form.clear_notes()
         self.scan_page.progress.setFormat("Done")
         self._session_changed(select_trial=tid)
+
+    def _scan_again(self) -> None:
+        self.tabs.setCurrentIndex(PAGE_SCAN)
+        self.start_scan()
+
+    def _record_motion(self, result) -> None:
+        """Motion and duration into the trial (flagged over the threshold) and, if it moved, say so."""
+        if self._trial_id is not None and self.store is not None:
+            try:
+                self.store.set_trial_motion(self._trial_id, result.motion_mm, result.motion_sd_mm,
+                                            scan_duration_s=result.duration_s,
+                                            threshold_mm=self.settings.get("motion_threshold_mm"))
+            except Exception as exc:
+                self.banner.show_message("error", f"The trial's motion could not be recorded: {exc}")
 
     def _end_trial(self, status: str, note: str = "") -> None:
         """The scan's trial leaves 'scanning' (complete, cancelled or failed), so no trial is left half-made."""

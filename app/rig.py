@@ -77,6 +77,24 @@ def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
     from hardware import simrig
 
     rig = simrig.SimRig(scale=scale)
+    _sway_from_environment(rig)
     cam, projector = simrig.simulated_devices(rig)
     cam.open()
     return Rig(SIMULATED, cam, tuple(projector.size), True, projector, rig.true_calibration())
+
+
+def _sway_from_environment(rig) -> None:
+    """ANKLESCAN_SIM_SWAY_MM=A: the simulated patient sways sideways, +-A mm at up to A mm/s
+    (hardware/sim_sway.py; every camera grab is a webcam frame, 30 ms, later). Each frame is
+    then rendered at its own pose, so the camera preview and scans are slower."""
+    import os
+
+    try:
+        amplitude = float(os.environ.get("ANKLESCAN_SIM_SWAY_MM", "") or 0.0)
+    except ValueError:
+        return
+    if amplitude > 0 and amplitude < 100:
+        from hardware.sim_sway import FRAME_S, Sway, SwayClock
+
+        rig.motion = SwayClock(Sway((1.0, 0.0, 0.0), amplitude_mm=amplitude, speed_mm_s=amplitude),
+                               FRAME_S["webcam"])

@@ -81,6 +81,12 @@ class ScanResult:
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
     save_error: str = ""                # why the cloud could not be saved, when it could not
+    # how far the subject moved during the capture (core/motion.py), computed in the worker thread
+    motion_mm: float | None = None      # None: not measured (no motion references, or no measurement)
+    motion_sd_mm: float | None = None
+    motion_flagged: bool = False        # moved more than the threshold: "scan again?"
+    motion_note: str = ""               # why there is no motion figure, when there is none
+    duration_s: float = 0.0             # the scan's duration: first frame shown to last frame captured
 
 
 class ScanWorker(QObject):
@@ -134,7 +140,7 @@ class ScanWorker(QObject):
         t0 = time.perf_counter()
         self._capture_all()
         capture_s = time.perf_counter() - t0
-        result = ScanResult(Path(self.job.folder), len(self.job.pattern_set.frames), capture_s)
+        result = ScanResult(Path(self.job.folder), len(self.job.pattern_set.frames), capture_s, duration_s=capture_s)
         if self.job.calibration is None or self.job.reconstruct is None:
             result.note = ("No calibration: the frames are saved but not reconstructed."
                            if self.job.calibration is None else "Capture only: the frames are saved.")
@@ -149,6 +155,11 @@ class ScanWorker(QObject):
             result.cloud = out.cloud
             result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
             result.marks_note = "" if out.complete else out.marks.message()
+            motion = getattr(out, "motion", None)
+            if motion is not None:
+                result.motion_mm, result.motion_sd_mm = motion.value_mm, motion.sd_mm
+                result.motion_flagged = bool(out.motion_flagged)
+                result.motion_note = "" if motion.measured else motion.reason
         else:
             result.cloud = out
         result.process_s = time.perf_counter() - t1
@@ -314,12 +325,15 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else np.ascontiguousarray(img[..., ::-1])
 
 
-def measure_folder(folder, calibration, mark_diameter_mm: float | None = None):
-    """Reconstruct the saved frames and find the seven marks on them (``anklescan measure``);
-    the marks' size is the session's setting, or measured from the capture when None."""
+def measure_folder(folder, calibration, mark_diameter_mm: float | None = None,
+                   motion_threshold_mm: float | None = None):
+    """Reconstruct the saved frames, find the seven marks on them and how far the subject moved
+    (``anklescan measure``); the marks' size is the session's setting, or measured when None."""
     from core.capture import load_capture
     from core.measure import measure_capture
-    return measure_capture(load_capture(folder), calibration, mark_diameter_mm)
+    from core.motion import DEFAULT_THRESHOLD_MM
+    return measure_capture(load_capture(folder), calibration, mark_diameter_mm,
+                           motion_threshold_mm=DEFAULT_THRESHOLD_MM if motion_threshold_mm is None else motion_threshold_mm)
 
 
 def reconstruct_folder(folder, calibration):

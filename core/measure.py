@@ -20,6 +20,7 @@ from core.decode import decode
 from core.errors import AnkleScanError
 from core.lit_image import averaged_lit
 from core.marks import MarkSet, find_marks
+from core.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from core.pointcloud import PointCloud
 from core.reconstruct import check_compatible, cloud_from_decoded
 
@@ -32,6 +33,14 @@ class MeasureResult:
     angles: AngleResult  # only the angles whose marks were labelled
     reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
     cloud: PointCloud | None = field(default=None, repr=False)  # kept for the viewer and the PLY
+    motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/motion.py)
+    motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
+    duration_s: float | None = None  # the capture's duration, from its frame timestamps
+
+    @property
+    def motion_flagged(self) -> bool:
+        """Moved more than the threshold during the scan: scan again (or keep it knowingly)."""
+        return self.motion is not None and self.motion.flagged(self.motion_threshold_mm)
 
     @property
     def complete(self) -> bool:
@@ -46,6 +55,8 @@ class MeasureResult:
             "mark_details": {k: lab[k].to_dict() for k in sorted(lab)},
             "unlabelled_marks": [m.to_dict() for m in self.marks.unlabelled],
             "reconstruction": self.reconstruction,
+            "motion_mm": (self.motion or MotionEstimate(None, None)).to_dict(),
+            "motion": self._motion_details(),
         }
 
     def mark_diameter(self) -> dict | None:
@@ -54,6 +65,14 @@ class MeasureResult:
         if d is None:
             return None
         return {"value": round(d[0], 3), "sd": round(d[1], 3), "given": self.marks.diameter_given}
+    def _motion_details(self) -> dict:
+        m = self.motion or MotionEstimate(None, None, reason="not estimated")
+        out = {"flagged": self.motion_flagged, "threshold_mm": self.motion_threshold_mm,
+               "scan_duration_s": self.duration_s, "looks": m.looks, "patches": m.patches,
+               "ambiguity_mm": m.ambiguity_mm}
+        if not m.measured:
+            out["reason"] = m.reason
+        return _jsonable(out)
 
     def format_text(self) -> str:
         lines = ["mark        x          y          z      radius   sd (mm)   seen / lit at"]
@@ -69,31 +88,39 @@ class MeasureResult:
         d = self.mark_diameter()
         if d is not None:
             lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
+        if self.motion is not None:
+            lines.append(self.motion.format_text() + (
+                f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
 
 
-def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm: float | None = None) -> MeasureResult:
-    """Reconstruct, find and label the marks, compute the angles; no file I/O, no raising for
-    missing marks (see ``result.complete`` and ``result.marks.message()``).
-    ``mark_diameter_mm``: the marks' size if known, else measured (``result.mark_diameter()``)."""
+def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm: float | None = None, *,
+                    motion_threshold_mm: float = DEFAULT_THRESHOLD_MM) -> MeasureResult:
+    """Reconstruct, find and label the marks, compute the angles and how far the subject moved;
+    no file I/O, no raising for missing marks (see ``result.complete`` and
+    ``result.marks.message()``). ``mark_diameter_mm``: the marks' size if known, else measured
+    (``result.mark_diameter()``)."""
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
     marks = find_marks(averaged_lit(capture), cloud, calibration, mark_diameter_mm=mark_diameter_mm)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
-    return MeasureResult(marks, angles, _jsonable(summary), cloud)
+    motion = estimate_motion(capture, calibration, decoded, cloud)
+    return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
+                         scan_duration_s(capture))
 
 
-def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None) -> MeasureResult:
+def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,
+                motion_threshold_mm: float = DEFAULT_THRESHOLD_MM) -> MeasureResult:
     """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError."""
     if mark_diameter_mm is not None and not (np.isfinite(mark_diameter_mm) and mark_diameter_mm > 0):
         raise AnkleScanError(f"--mark-diameter must be a positive number of mm, not {mark_diameter_mm}")
     cal = load_calibration(calibration_path)
     capture = load_capture(capture_dir)
-    result = measure_capture(capture, cal, mark_diameter_mm)
+    result = measure_capture(capture, cal, mark_diameter_mm, motion_threshold_mm=motion_threshold_mm)
     if result.marks.size_error:
         raise AnkleScanError(f"{capture_dir}: {result.marks.size_error}; nothing written")
     if not result.complete:

@@ -32,15 +32,19 @@ from core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_ST
 
 FORMAT = "anklescan-patterns"
 VERSION = 1
-KINDS = ("white", "black", "gray", "phase")
+KINDS = ("white", "black", "gray", "phase", "repeat")
 AXES = ("column", "row")
 AXIS_TAG = {"column": "col", "row": "row"}
-PRESETS = ("default", "paper")
+PRESETS = ("default", "paper", "short")
 PAPER_BITS = 8  # the paper projects 8 Gray sheets (+ inverses, white, black): 18 frames
 DEFAULT_PERIOD = 8  # projector px; column noise scales with the period, and at 8 px projector defocus
 # still leaves ~80 % modulation (measured on the simulated rig: 0.08 mm RMS on the leg vs 0.11 at 16).
 # With 8 steps, projector-gamma harmonics up to order 6 cancel.
 DEFAULT_STEPS = 8
+SHORT_STEPS = 4  # "short" preset, for slow cameras: 4 phase steps, Gray code to 2-px stripes (24 frames)
+# Motion references (core/motion.py): a quadrature pair of phase frames (shifts 0 and steps/4)
+# repeated at evenly spaced times, compared with the same frames of the main set.
+MOTION_REF_SHIFTS_QUARTER = (0, 1)  # in quarters of the steps: shift 0 and shift steps/4
 PHASE_FORMULA = "I_k(c) = 0.5 + 0.5*cos(2*pi*(c - k*period/steps)/period), k = shift"
 
 
@@ -63,6 +67,7 @@ class Frame:
     period: float | None = None
     shift: int | None = None
     steps: int | None = None
+    of: str | None = None  # kind "repeat": the file name of the frame this one shows again
 
     def to_dict(self) -> dict:
         d = {"file": self.file, "kind": self.kind}
@@ -71,6 +76,8 @@ class Frame:
                      inverse=self.inverse)
         elif self.kind == "phase":
             d.update(axis=self.axis, period=self.period, shift=self.shift, steps=self.steps)
+        elif self.kind == "repeat":
+            d.update(of=self.of)
         return d
 
 
@@ -138,6 +145,8 @@ class PatternSet:
                         "white (255) where the bit is 1; inverse frames are 255 - frame",
                 "gray_decoded": "code*stripe + (stripe-1)/2",
                 "phase": PHASE_FORMULA,
+                "repeat": "the same image as the frame named by 'of', shown again later in the "
+                          "capture (motion reference); decoders that do not measure motion skip it",
             },
             "frames": [f.to_dict() for f in self.frames],
         }
@@ -190,6 +199,10 @@ class PatternSet:
             if n != 1:
                 raise CaptureError(f"{source}: expected exactly one {kind} frame, found {n}")
         for f in self.frames:
+            if f.kind == "repeat" and (f.of not in seen or f.of == f.file
+                                       or self.frames[files.index(f.of)].kind == "repeat"):
+                raise CaptureError(f"{source}: repeat frame '{f.file}' must name another, "
+                                   f"non-repeat frame of the set in 'of' (got {f.of!r})")
             if f.kind in ("gray", "phase") and f.axis not in self.axes:
                 raise CaptureError(f"{source}: frame '{f.file}' encodes axis {f.axis!r} "
                                    f"not listed in axes {list(self.axes)}")
@@ -216,6 +229,10 @@ def _frame_from_dict(d, i: int, source: str) -> Frame:
                            f"(expected one of {KINDS})")
     if kind in ("white", "black"):
         return Frame(name, kind)
+    if kind == "repeat":
+        if not isinstance(d.get("of"), str):
+            raise CaptureError(f"{source}: repeat frame '{name}' needs 'of', the file name it repeats")
+        return Frame(name, kind, of=d["of"])
     need = ("axis", "bit", "bits", "stripe", "inverse") if kind == "gray" else \
         ("axis", "period", "shift", "steps")
     for key in need:
@@ -289,10 +306,14 @@ def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> Axis
 # ---------------------------------------------------------------------- building
 def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 768,
                      axes=("column",), period: float = DEFAULT_PERIOD,
-                     steps: int = DEFAULT_STEPS) -> PatternSet:
+                     steps: int = DEFAULT_STEPS, motion_refs: int = 0) -> PatternSet:
     """``paper``: white, black, 8 Gray bits + inverses (18 frames for one axis).
     ``default``: Gray code down to single pixels + inverses, white, black, and
-    ``steps``-step phase shifting of ``period`` pixels per axis."""
+    ``steps``-step phase shifting of ``period`` pixels per axis.
+    ``short`` (slow cameras): Gray code to 2-px stripes, ``SHORT_STEPS`` phase steps.
+    ``motion_refs`` (>= 2, phase presets): that many repeats of a quadrature pair of the first
+    axis' phase frames, the first pair before everything, the last after everything, the rest
+    evenly between (``kind: "repeat"``; core/motion.py measures the subject's motion from them)."""
     if preset not in PRESETS:
         raise CaptureError(f"unknown pattern preset {preset!r} (expected one of {PRESETS})")
     if not (_is_pos_int(width) and _is_pos_int(height)) or width < 2 or height < 2:
@@ -305,29 +326,58 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
     for axis in axes:
         size = width if axis == "column" else height
         full = max(1, math.ceil(math.log2(size)))
-        nbits = min(PAPER_BITS, full) if preset == "paper" else full
+        nbits = min(PAPER_BITS, full) if preset == "paper" else max(1, full - 1) if preset == "short" else full
         # paper: 8 bits whatever the size, so stripes are 2**(full-8) wide (4 for 1024)
         stripe = 2 ** (full - nbits)
         for b in range(nbits):
             for inv in (False, True):
                 specs.append(("gray", dict(axis=axis, bit=b, bits=nbits, stripe=stripe,
                                            inverse=inv)))
-        if preset == "default":
+        if preset == "short" and steps == DEFAULT_STEPS:
+            steps = SHORT_STEPS
+        if preset in ("default", "short"):
             for k in range(steps):
                 specs.append(("phase", dict(axis=axis, period=float(period), shift=k,
                                             steps=steps)))
+    n_refs = int(motion_refs)
+    if n_refs:
+        if n_refs < 2 or preset == "paper" or steps % 4:
+            raise CaptureError(f"motion references need a phase preset with steps a multiple of 4 "
+                               f"and at least 2 of them, got {motion_refs!r} ({preset}, {steps} steps)")
+        specs = _with_motion_refs(specs, axes[0], n_refs, steps)
     digits = max(2, len(str(len(specs) - 1)))
-    frames = [Frame(_file_name(i, digits, kind, kw), kind, **kw)
-              for i, (kind, kw) in enumerate(specs)]
+    names = [_file_name(i, digits, kind, kw) for i, (kind, kw) in enumerate(specs)]
+    by_spec = {(kind, tuple(sorted(kw.items()))): n for n, (kind, kw) in zip(names, specs) if kind != "repeat"}
+    frames = [Frame(n, kind, of=by_spec[kw["of"]]) if kind == "repeat" else Frame(n, kind, **kw)
+              for n, (kind, kw) in zip(names, specs)]
     pset = PatternSet(preset, width, height, frames, axes)
     pset.validate()
     return pset
+
+
+def _with_motion_refs(specs: list, axis: str, n_refs: int, steps: int) -> list:
+    """Insert ``n_refs`` quadrature pairs of ``axis``' phase frames, evenly spread in time."""
+    pair = [s for s in specs if s[0] == "phase" and s[1]["axis"] == axis
+            and s[1]["shift"] in tuple(q * steps // 4 for q in MOTION_REF_SHIFTS_QUARTER)]
+    keys = [("repeat", {"of": ("phase", tuple(sorted(kw.items()))), "ref": j}) for _, kw in pair for j in [0]]
+    n_main = len(specs)
+    out, at = [], [round(j * n_main / (n_refs - 1)) for j in range(n_refs)]
+    for i in range(n_main + 1):
+        for j, pos in enumerate(at):
+            if pos == i:
+                out.extend(("repeat", {"of": k[1]["of"], "ref": j}) for k in keys)
+        if i < n_main:
+            out.append(specs[i])
+    return out
 
 
 def _file_name(i: int, digits: int, kind: str, kw: dict) -> str:
     head = f"{i:0{digits}d}_"
     if kind in ("white", "black"):
         return f"{head}{kind}.png"
+    if kind == "repeat":
+        of = dict(kw["of"][1])
+        return f"{head}ref{kw['ref']}_{AXIS_TAG[of['axis']]}_phase_s{of['shift']}.png"
     tag = AXIS_TAG[kw["axis"]]
     if kind == "gray":
         return f"{head}{tag}_gray_b{kw['bit']:02d}{'_inv' if kw['inverse'] else ''}.png"
@@ -359,6 +409,8 @@ def phase_profile(n: int, period: float, shift: int, steps: int) -> np.ndarray:
 def render_frame(pset: PatternSet, frame: Frame) -> np.ndarray:
     """The projector image (uint8, height x width) of one frame."""
     h, w = pset.height, pset.width
+    if frame.kind == "repeat":
+        return render_frame(pset, pset.frames[pset.files.index(frame.of)])
     if frame.kind == "white":
         return np.full((h, w), 255, np.uint8)
     if frame.kind == "black":
@@ -387,6 +439,8 @@ def pattern_value(frame: Frame, u: np.ndarray) -> np.ndarray:
     Gray stripes switch at pixel boundaries (``c + 0.5``); the phase frames are the
     continuous cosine, which is what a box-pixel projector shows once its optics blur
     the pixel grid (box filtering keeps the phase, only the amplitude drops)."""
+    if frame.kind == "repeat":
+        raise CaptureError("pattern_value: resolve a repeat frame to the frame it repeats first")
     if frame.kind == "white":
         return np.ones_like(u, dtype=np.float32)
     if frame.kind == "black":
@@ -426,6 +480,8 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
     albedo = extend(albedo, mode="edge")
     out = np.empty((len(pset.frames),) + shape, dtype)
     for i, f in enumerate(pset.frames):
+        if f.kind == "repeat":
+            f = pset.frames[pset.files.index(f.of)]
         if f.kind in ("gray", "phase") and f.axis == "row":
             if row_map is None:
                 raise CaptureError("simulate_frames needs a row map for row patterns")

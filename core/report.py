@@ -52,13 +52,14 @@ CSV_COLUMNS = (
     "table_plantar_flexion_sd", "mismatch_inversion", "mismatch_inversion_sd",
     "mismatch_plantar_flexion", "mismatch_plantar_flexion_sd",
     "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
-    "status", "status_note", "excluded_reason", "counted", "marks_confirmed")
+    "status", "status_note", "excluded_reason", "counted", "marks_confirmed",
+    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep")
 _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
               "Leg PF\n(°)", "Table inv.\n(°)", "Table PF\n(°)", "Mismatch\ninv. (°)",
-              "Mismatch\nPF (°)")
-TABLE_WIDTHS = (0.05, 0.09, 0.05, 0.065, 0.065, 0.11, 0.11, 0.11, 0.11, 0.115, 0.115)
+              "Mismatch\nPF (°)", "Moved (mm)\n/ scan (s)")
+TABLE_WIDTHS = (0.05, 0.09, 0.05, 0.065, 0.065, 0.09, 0.09, 0.09, 0.09, 0.1, 0.1, 0.11)
 
 
 @dataclass(frozen=True)
@@ -173,6 +174,8 @@ def _state_cell(r: dict) -> str:
     if r.get("excluded_reason") is not None:
         return "excluded"
     state = r.get("status") or "complete"
+    if state == "complete" and r.get("motion_excluded"):
+        return "moved"
     if state == "complete" and not r.get("marks_confirmed", 1):
         return "complete*"
     return state
@@ -183,6 +186,8 @@ def _left_out_why(r: dict) -> tuple[str, str] | None:
     if r.get("excluded_reason") is not None:
         return "excluded", r["excluded_reason"]
     state = r.get("status") or "complete"
+    if state == "complete" and r.get("motion_excluded"):
+        return "moved", f"{r['motion_mm']:.1f} mm during the scan, not kept"
     return None if state == "complete" else (state, r.get("status_note") or "")
 
 
@@ -196,7 +201,18 @@ def _trial_cells(i: int, r: dict) -> list[str]:
             _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
             _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"], 2),
             _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"], 2),
-            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2)]
+            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2),
+            _motion_cell(r)]
+
+
+def _motion_cell(r: dict) -> str:
+    """Motion during the scan and the scan's duration; "out" = flagged and left out of the
+    statistics, "kept" = flagged but kept by the clinician."""
+    m, dur = r.get("motion_mm"), r.get("scan_duration_s")
+    text = "–" if m is None else f"{m:.2f}"
+    if r.get("motion_flagged"):
+        text += " kept" if r.get("motion_keep") else " out"
+    return text + ("" if dur is None else f" / {dur:.1f}")
 
 
 def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[str]],
@@ -562,6 +578,9 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
              ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator.strip() or "not recorded"),
              *_calibration_items(store, s, rows), ("Mark diameter", _mark_diameter_text(s)),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
+    if summ.moved_trials:
+        items.append(("Moved", f"{len(summ.moved_trials)} trial(s) moved during the scan ('out' below): "
+                               "left out of the statistics and figures"))
     for axis in st.AXES:
         a = getattr(summ, axis)
         items.append((f"Mismatch {axis.replace('_', ' ')}",
@@ -579,6 +598,8 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
     fig.text(0.06, 0.955, "AnkleScan — ankle joint-angle sensing report", fontsize=14,
              weight="bold")
     y = _key_values(fig, 0.925, items)
+    if s.notes:
+        y = _key_values(fig, y, [("Notes", s.notes[:110])])
     fig.text(0.04, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; mismatch = "
              "adjusted − reference table;\nCal. = the calibration the trial was measured with; grey "
              "rows are shown but not counted)", fontsize=8, va="top", linespacing=1.3)

@@ -145,7 +145,20 @@ _V4 = """
 ALTER TABLE sessions ADD COLUMN mark_diameter_mm REAL;
 """
 
-MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4]
+
+# v5: motion during the scan (issue 18, core/motion.py): the subject's largest displacement and its
+# SD, the scan's duration, whether it moved more than the threshold, and the clinician's choice
+# to keep a flagged trial in the statistics anyway.
+_V5 = """
+ALTER TABLE trials ADD COLUMN motion_mm REAL;
+ALTER TABLE trials ADD COLUMN motion_sd_mm REAL;
+ALTER TABLE trials ADD COLUMN scan_duration_s REAL;
+ALTER TABLE trials ADD COLUMN motion_flagged INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE trials ADD COLUMN motion_keep INTEGER NOT NULL DEFAULT 0;
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5]
+MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 SCHEMA_VERSION = len(MIGRATIONS)
 
 CONDITIONS = ("barefoot", "shoes")
@@ -252,17 +265,28 @@ class Trial:
     status_note: str = ""
     excluded_reason: str | None = None
     calibration_id: int | None = None
+    motion_mm: float | None = None  # largest displacement of the subject during the scan
+    motion_sd_mm: float | None = None
+    scan_duration_s: float | None = None
+    motion_flagged: bool = False  # moved more than the threshold: out of the statistics ...
+    motion_keep: bool = False  # ... unless the clinician keeps it
+
+    @property
+    def excluded_for_motion(self) -> bool:
+        return bool(self.motion_flagged) and not self.motion_keep
 
     @property
     def counted(self) -> bool:
         """Whether the trial enters a session's statistics: complete and not excluded."""
-        return self.status == "complete" and self.excluded_reason is None
+        return self.status == "complete" and self.excluded_reason is None and not self.excluded_for_motion
 
     @property
     def state_text(self) -> str:
         """How lists and reports name the trial's state."""
         if self.excluded_reason is not None:
             return f"excluded: {self.excluded_reason}"
+        if self.excluded_for_motion and self.status == "complete":
+            return f"moved {self.motion_mm:.1f} mm during the scan (not kept)"
         return self.status if not self.status_note else f"{self.status}: {self.status_note}"
 
 
@@ -297,6 +321,7 @@ class SessionSummary:
     inversion: AxisSummary
     plantar_flexion: AxisSummary
     incomplete_trials: list[int] = field(default_factory=list)
+    moved_trials: list[int] = field(default_factory=list)  # flagged for motion, not kept: not in the figures
 
 
 # ----------------------------------------------------------------- helpers
@@ -913,11 +938,39 @@ class Store:
         row = self._one("SELECT * FROM trials WHERE id = ?", (tid,))
         if row is None:
             raise AnkleScanError(f"no trial {tid}")
-        return Trial(**dict(row))
+        return _trial(row)
 
     def list_trials(self, session_id: int) -> list[Trial]:
         rows = self._all("SELECT * FROM trials WHERE session_id = ? ORDER BY id", (session_id,))
-        return [Trial(**dict(r)) for r in rows]
+        return [_trial(r) for r in rows]
+
+    def set_trial_motion(self, trial_id: int, motion_mm: float | None, motion_sd_mm: float | None = None, *,
+                         scan_duration_s: float | None = None,
+                         threshold_mm: float = MOTION_THRESHOLD_MM) -> Trial:
+        """Record how far the subject moved during the trial's scan (None: not measured) and the
+        scan's duration; a trial that moved more than ``threshold_mm`` is flagged, which takes it
+        out of the session statistics until ``keep_trial`` says otherwise."""
+        self.get_trial(trial_id)
+        mm = _opt_float(motion_mm, "motion")
+        sd = _opt_float(motion_sd_mm, "motion SD")
+        dur = _opt_float(scan_duration_s, "scan duration")
+        thr = _opt_float(threshold_mm, "motion threshold")
+        if thr is None or thr <= 0:
+            raise AnkleScanError(f"motion threshold must be a positive number of mm, got {threshold_mm!r}")
+        if (mm is not None and mm < 0) or (sd is not None and sd < 0) or (dur is not None and dur < 0):
+            raise AnkleScanError("motion, its SD and the scan duration cannot be negative")
+        flagged = mm is not None and mm > thr
+        with self._write() as c:
+            c.execute("UPDATE trials SET motion_mm = ?, motion_sd_mm = ?, scan_duration_s = ?, motion_flagged = ?"
+                      " WHERE id = ?", (mm, sd, dur, int(flagged), trial_id))
+        return self.get_trial(trial_id)
+
+    def keep_trial(self, trial_id: int, keep: bool = True) -> Trial:
+        """The clinician's override: keep a trial flagged for motion in the statistics (or not)."""
+        self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET motion_keep = ? WHERE id = ?", (int(bool(keep)), trial_id))
+        return self.get_trial(trial_id)
 
     def update_trial_angles(self, trial_id: int, angles: Mapping,
                             reference: Mapping | None = None) -> Trial:
@@ -1057,11 +1110,12 @@ class Store:
         cal = self.get_calibration(s.calibration_id) if s.calibration_id else None
         counted = [t for t in trials if t.counted]
         incomplete = [t.id for t in counted if t.mismatch_inversion is None]
+        moved = [t.id for t in trials if t.excluded_for_motion]
         return SessionSummary(
             session=s, patient=self.get_patient(s.patient_id), calibration=cal, trials=trials,
             inversion=_axis_summary([t.mismatch_inversion for t in counted]),
             plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in counted]),
-            incomplete_trials=incomplete)
+            incomplete_trials=incomplete, moved_trials=moved)
 
     def study_rows(self) -> list[dict]:
         """Every trial joined with its session, patient and calibration (for stats/CSV)."""
@@ -1070,7 +1124,9 @@ class Store:
             " s.id AS session_id, s.date AS session_date, s.operator, s.condition,"
             " c.rms AS calibration_rms, t.id AS trial_id, t.*,"
             " COALESCE(t.calibration_id, s.calibration_id) AS calibration_id,"
-            " (t.status = 'complete' AND t.excluded_reason IS NULL) AS counted,"
+            " (t.motion_flagged AND NOT t.motion_keep) AS motion_excluded,"
+            " (t.status = 'complete' AND t.excluded_reason IS NULL"
+            "  AND NOT (t.motion_flagged AND NOT t.motion_keep)) AS counted,"
             # automatic marks count as confirmed once an operator confirmed them (recorded in
             # placed_by, as app.mark_editor does) or moved them (source 'manual')
             " NOT EXISTS (SELECT 1 FROM marks m WHERE m.trial_id = t.id AND m.source = 'auto'"
@@ -1079,6 +1135,13 @@ class Store:
             " JOIN patients p ON p.id = s.patient_id"
             " LEFT JOIN calibrations c ON c.id = COALESCE(t.calibration_id, s.calibration_id)"
             " ORDER BY p.code, s.date, s.id, t.id")]
+
+
+def _trial(row) -> Trial:
+    d = dict(row)
+    for k in ("motion_flagged", "motion_keep"):
+        d[k] = bool(d.get(k) or 0)
+    return Trial(**d)
 
 
 def _axis_summary(values: list[float | None]) -> AxisSummary:

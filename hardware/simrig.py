@@ -226,6 +226,8 @@ class SimRig:
         self._transport: _Transport | None = None
         self._truth: Truth | None = None
         self._cache: dict = {}
+        # hardware.sim_sway.SwayClock: when set, the subject moves between captured frames
+        self.motion = None
 
     # ---- public ----------------------------------------------------------------------------
     def true_calibration(self) -> Calibration:
@@ -264,6 +266,9 @@ class SimRig:
         Returns a gray uint8 image (uint16 with ``bit_depth=16``). ``gain`` amplifies the
         signal and the read noise alike, ``exposure`` the signal (and its shot noise) only.
         """
+        if self.motion is not None:
+            return self.motion.capture(self, projector_image, exposure=exposure, gain=gain, noise=noise,
+                                       rng=rng, bit_depth=bit_depth)
         o = self.optics
         exposure = o.exposure if exposure is None else float(exposure)
         signal = self.render_linear(projector_image) * np.float32(exposure)
@@ -276,6 +281,14 @@ class SimRig:
         full = 65535.0 if depth == 16 else 255.0
         out = np.clip(np.rint(signal * full), 0, full)
         return out.astype(np.uint16 if depth == 16 else np.uint8)
+
+    def _still_rig(self) -> "SimRig":
+        """This rig without its motion (a swaying capture's frames at rest share its transport)."""
+        if "still" not in self._cache:
+            still = SimRig(self.scene, self.camera, self.projector, scale=self.scale, optics=self.optics, seed=None)
+            still._transport, still._truth = self._transport, self._truth
+            self._cache["still"] = still
+        return self._cache["still"]
 
     def capture_many(self, images, **kw) -> list[np.ndarray]:
         return [self.capture(im, **kw) for im in images]

@@ -1,0 +1,261 @@
+"""A patient who sways: the leg and foot move rigidly while the simulated rig captures.
+
+Quiet standing moves the shank by millimetres a second. Here the subject (leg, foot and the
+marks stuck on them; never the tables, stand or floor) is displaced at time ``t`` by
+
+    X(t) = R(t) (X - ankle) + ankle + s(t) u
+
+a translation ``s(t)`` along the unit direction ``u`` plus a tilt ``R(t)`` about the ankle
+(axis z x u, angle ``tilt_deg_per_mm * s(t)``), so the knee moves further than the ankle, as in
+ankle-strategy sway. ``s(t) = A (sin(w t + phase) - sin(phase))`` with ``w = speed / A``: an
+oscillation of half-range ``amplitude_mm`` whose peak speed is ``speed_mm_s``;
+``amplitude_mm = inf`` is a steady drift ``speed * t``.
+
+The camera sets the time between frames (``FRAME_S``): a synchronised webcam takes a frame
+every ~30 ms, a DSLR every ~2 s, so the same patient moves ~60 times further during a DSLR
+scan. Each frame is rendered from its own posed scene (the light transport is rebuilt per
+frame, but only for the camera pixels the moving subject can touch: those that see it, or whose
+surface it shades, at rest or at the frame's pose; the rest of the image keeps the still scene's
+transport), so a swaying scan is honest but slower than a still one.
+
+``SwayClock`` plugs into ``SimRig.motion``: every ``SimRig.capture`` (and so every
+``SimulatedCamera`` grab in the app) then photographs the subject where it is at that frame's
+time, and the clock advances one frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hardware.sim_scene import Mark, ObjectId, Scene
+
+FRAME_S = {"webcam": 0.030, "dslr": 2.0}  # seconds per frame (issue 18; docs/performance.md)
+SUBJECT_KINDS = (ObjectId.LEG, ObjectId.FOOT)
+LEG_MARKS = ("1", "2", "3", "4")
+AXES = {"sideways": (1.0, 0.0, 0.0), "forward": (0.0, 1.0, 0.0)}
+DEFAULT_TILT_DEG_PER_MM = 0.04  # 5 mm at the ankle tilts the leg by 0.2 deg: +1.3 mm at the knee
+
+
+@dataclass(frozen=True)
+class Sway:
+    direction: tuple = (1.0, 0.0, 0.0)  # world direction of the translation (normalised)
+    amplitude_mm: float = math.inf  # half-range of the oscillation; inf = steady drift
+    speed_mm_s: float = 0.0  # peak speed of the ankle
+    phase_rad: float = 0.0  # where in its cycle the sway is when the scan starts
+    tilt_deg_per_mm: float = DEFAULT_TILT_DEG_PER_MM
+
+    @classmethod
+    def drift(cls, total_mm: float, duration_s: float, axis="sideways", **kw) -> "Sway":
+        """A steady drift of ``total_mm`` over ``duration_s`` along a named axis or a vector."""
+        d = AXES[axis] if isinstance(axis, str) else tuple(axis)
+        return cls(direction=d, amplitude_mm=math.inf, speed_mm_s=float(total_mm) / float(duration_s), **kw)
+
+    @property
+    def still(self) -> bool:
+        return self.speed_mm_s == 0.0
+
+    def offset(self, t: float) -> float:
+        """Translation along ``direction`` at time t (s), mm; 0 at t = 0."""
+        if self.still:
+            return 0.0
+        if not math.isfinite(self.amplitude_mm):
+            return self.speed_mm_s * t
+        A = self.amplitude_mm
+        w = self.speed_mm_s / A
+        return A * (math.sin(w * t + self.phase_rad) - math.sin(self.phase_rad))
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R, T): X -> R (X - ankle) + ankle + T."""
+        u = np.asarray(self.direction, float)
+        u = u / np.linalg.norm(u)
+        s = self.offset(t)
+        k = np.cross([0.0, 0.0, 1.0], u)
+        R = np.eye(3)
+        if np.linalg.norm(k) > 1e-12 and self.tilt_deg_per_mm:
+            R = _rotation(k / np.linalg.norm(k), math.radians(self.tilt_deg_per_mm * s))
+        return R, s * u
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def ankle_of(scene: Scene) -> np.ndarray:
+    """The pivot: the centre of the leg's lower end (its ankle section)."""
+    legs = [o for o in scene.objects if o.kind == ObjectId.LEG]
+    if not legs:
+        raise ValueError("the scene has no leg to sway")
+    return np.asarray(legs[0].centre, float).copy()
+
+
+def _moves(obj) -> bool:
+    return obj.kind in SUBJECT_KINDS or (obj.kind == ObjectId.MARK and str(obj.label) in LEG_MARKS)
+
+
+def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> Scene:
+    """A copy of ``scene`` with the subject moved by (R, T) about ``pivot``; the rest shared."""
+    import copy
+
+    objs = []
+    for o in scene.objects:
+        if _moves(o):
+            o = copy.copy(o)
+            o.centre = R @ (np.asarray(o.centre) - pivot) + pivot + T
+            o.axes = R @ np.asarray(o.axes)
+        objs.append(o)
+    moved = {id(a): b for a, b in zip(scene.objects, objs)}
+    marks = {}
+    for k, m in scene.marks.items():
+        plate = moved[id(m.plate)]
+        marks[k] = Mark(k, plate.top_centre, plate.normal, plate) if plate is not m.plate else m
+    return Scene(objs, marks, dict(scene.info))
+
+
+@dataclass
+class SwayClock:
+    """Simulated time for ``SimRig.motion``: frame n is photographed at ``start_s + n * frame_s``."""
+
+    sway: Sway
+    frame_s: float = FRAME_S["webcam"]
+    start_s: float = 0.0
+    frames_taken: int = 0
+    times: list = field(default_factory=list)  # the time of every frame photographed
+
+    def reset(self) -> None:
+        self.frames_taken, self.times = 0, []
+
+    def scene_at(self, scene: Scene, t: float) -> Scene:
+        R, T = self.sway.pose(t)
+        return posed_scene(scene, R, T, ankle_of(scene))
+
+    def capture(self, rig, projector_image, **kw) -> np.ndarray:
+        """Photograph ``projector_image`` through ``rig``'s devices with the subject at this
+        frame's pose; the rig's own noise generator keeps a seeded run reproducible."""
+        from hardware.simrig import SimRig
+
+        t = self.start_s + self.frames_taken * self.frame_s
+        self.frames_taken += 1
+        self.times.append(t)
+        still = rig._still_rig()
+        if not self.sway.still:
+            posed = SimRig(self.scene_at(rig.scene, t), rig.camera, rig.projector, scale=rig.scale,
+                           optics=rig.optics, seed=None)
+            posed._transport = frame_transport(still, posed)
+            still = posed
+        if kw.get("rng") is None:
+            kw["rng"] = rig.rng
+        return still.capture(projector_image, **kw)
+
+
+def _subject_scene(scene: Scene) -> Scene:
+    return Scene([o for o in scene.objects if _moves(o)])
+
+
+def affected_pixels(still, posed, dilate_px: int = 2) -> np.ndarray:
+    """(H, W) bool: pixels whose light the subject can change between ``still`` and ``posed``:
+    their ray meets the subject in either scene, or the subject shades the point they see."""
+    import cv2
+
+    cam, prj = still.camera, still.projector
+    truth = still.truth()
+    rays = cam.pixel_grid_rays().reshape(-1, 3)
+    X = truth.points.reshape(-1, 3)
+    seen = truth.seen.ravel()
+    mask = np.zeros(len(rays), bool)
+    for sub in (_subject_scene(still.scene), _subject_scene(posed.scene)):
+        t, _ = sub.intersect(cam.center, rays)
+        mask |= np.isfinite(t)
+        rows = np.flatnonzero(seen & ~mask)
+        to_x = X[rows] - prj.center
+        dist = np.linalg.norm(to_x, axis=1)
+        tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
+        mask[rows[tp < dist - 1e-3]] = True
+    mask = mask.reshape(cam.height, cam.width).astype(np.uint8)
+    if dilate_px:
+        mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
+    return mask.astype(bool)
+
+
+def frame_transport(still, posed):
+    """``posed``'s light transport: ``still``'s, with the rows of the affected pixels recast.
+
+    Every row of the transport holds exactly 4 taps per sub-sample, so a pixel's row is a fixed
+    slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
+    import scipy.sparse
+
+    from hardware.simrig import _single_threaded_blas, _Transport
+
+    still.prepare()
+    tr = still._transport
+    cam, o = still.camera, still.optics
+    W = cam.width
+    with _single_threaded_blas():
+        rows = np.flatnonzero(affected_pixels(still, posed).ravel())
+        offs = posed._subpixel_offsets()
+        S = len(offs)
+        Hp, Wp = tr.padded_shape
+        base = np.stack([rows % W, rows // W], axis=-1).astype(np.float64)
+        uv = (base[None, :, :] + offs[:, None, :]).reshape(-1, 2)
+        c = posed._cast(uv)
+        shade = posed._shading(c) / S
+    x = c["proj_uv"][:, 0] + tr.pad
+    y = c["proj_uv"][:, 1] + tr.pad
+    ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
+    x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
+    y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
+    fx, fy = np.where(ok, x - x0, 0.0), np.where(ok, y - y0, 0.0)
+    sh = np.where(ok, shade, 0.0)
+    n = len(rows)
+    idx = (y0 * Wp + x0).reshape(S, n)
+    w = np.stack([(sh * wk).reshape(S, n) for wk in ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)])
+    taps = np.array([0, 1, Wp, Wp + 1], np.int64)
+    cols = (idx[None, :, :] + taps[:, None, None]).transpose(2, 1, 0).reshape(-1)
+    per_row = 4 * S
+    where = (rows[:, None] * per_row + np.arange(per_row)[None, :]).ravel()
+    data = tr.matrix.data.copy()
+    indices = tr.matrix.indices.copy()
+    data[where] = w.transpose(2, 1, 0).reshape(-1)
+    indices[where] = cols
+    matrix = scipy.sparse.csr_matrix((data, indices, tr.matrix.indptr), shape=tr.matrix.shape)
+    ambient = tr.ambient.copy()
+    ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
+    return _Transport(matrix, ambient, tr.pad, tr.padded_shape)
+
+
+def swaying_capture(rig, images, sway: Sway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:
+    """Photograph ``images`` in order with the subject swaying; returns (frames, frame times)."""
+    clock = SwayClock(sway, frame_s, start_s)
+    old = rig.motion
+    rig.motion = clock
+    try:
+        frames = [rig.capture(im) for im in images]
+    finally:
+        rig.motion = old
+    return frames, list(clock.times)
+
+
+def true_largest_displacement(rig, sway: Sway, times) -> float:
+    """The truth the motion estimate is judged against: the largest distance any seen point of
+    the subject (leg, foot, leg marks, as the camera sees them at t = 0) travels between any two
+    frames of the capture, mm."""
+    truth = rig.truth()
+    subject = np.isin(truth.object_id, [int(k) for k in SUBJECT_KINDS]) | np.isin(
+        truth.mark_label, [int(k) for k in LEG_MARKS])
+    X = truth.points[subject & truth.seen]
+    if X.size == 0 or sway.still:
+        return 0.0
+    step = max(1, len(X) // 4000)
+    X = X[::step]
+    pivot = ankle_of(rig.scene)
+    poses = [sway.pose(t) for t in times]
+    P = np.stack([(R @ (X - pivot).T).T + T for R, T in poses])  # (frames, points, 3)
+    best = 0.0
+    for i in range(len(poses)):
+        d = np.linalg.norm(P[i + 1:] - P[i], axis=-1)
+        if d.size:
+            best = max(best, float(d.max()))
+    return best
