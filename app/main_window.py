@@ -466,7 +466,10 @@ class MainWindow(QMainWindow):
         for t in self.store.list_trials(sid):
             item = QListWidgetItem(f"Trial {t.id}   {_deg(t.ref_inversion)} / {_deg(t.ref_plantar_flexion)}"
                                    + ("" if t.counted else f"   [{t.state_text}]"))
-            item.setToolTip(f"Reference inversion / plantar flexion; {t.state_text}"
+            moved = ("" if t.motion_mm is None else f"; moved {t.motion_mm:.1f} ± {t.motion_sd_mm or 0:.1f} mm"
+                     + (f" in a {t.scan_duration_s:.1f} s scan" if t.scan_duration_s else "")
+                     + (" (flagged, kept)" if t.motion_flagged and t.motion_keep else ""))
+            item.setToolTip(f"Reference inversion / plantar flexion; {t.state_text}{moved}"
                             + ("" if t.cloud_path else " (no point cloud)") + ". Click: open in 3-D")
             if not t.counted:
                 item.setForeground(Qt.GlobalColor.gray)
@@ -487,7 +490,9 @@ class MainWindow(QMainWindow):
         trial = self.store.get_trial(tid) if (tid is not None and self.store is not None) else None
         writable = self.store is not None and not getattr(self.store, "read_only", False)
         self.exclude_button.setEnabled(bool(trial and writable and trial.excluded_reason is None))
-        self.restore_button.setEnabled(bool(trial and writable and trial.excluded_reason is not None))
+        # Restore brings back an excluded trial, or keeps one flagged for moving during its scan
+        self.restore_button.setEnabled(bool(trial and writable and (trial.excluded_reason is not None
+                                                                     or trial.excluded_for_motion)))
         for name, on in (("exclude_action", self.exclude_button.isEnabled()),
                          ("restore_action", self.restore_button.isEnabled())):
             if hasattr(self, name):
@@ -569,9 +574,15 @@ class MainWindow(QMainWindow):
         self._change(lambda: self.store.exclude_trial(tid, reason, who=self.settings.get("operator")), tid)
 
     def restore_trial(self) -> None:
+        """Undo an exclusion; for a trial flagged because the patient moved, keep it in the statistics."""
         tid = self.current_trial_id()
-        if tid is not None and self.store is not None:
-            self._change(lambda: self.store.restore_trial(tid, who=self.settings.get("operator")), tid)
+        if tid is None or self.store is None:
+            return
+        who = self.settings.get("operator")
+        if self.store.get_trial(tid).excluded_reason is not None:
+            self._change(lambda: self.store.restore_trial(tid, who=who), tid)
+        else:
+            self._change(lambda: self.store.keep_trial(tid, who=who), tid)
 
     def _change(self, write, tid: int | None = None) -> None:
         try:

@@ -965,11 +965,12 @@ class Store:
                       " WHERE id = ?", (mm, sd, dur, int(flagged), trial_id))
         return self.get_trial(trial_id)
 
-    def keep_trial(self, trial_id: int, keep: bool = True) -> Trial:
+    def keep_trial(self, trial_id: int, keep: bool = True, *, who: str = "") -> Trial:
         """The clinician's override: keep a trial flagged for motion in the statistics (or not)."""
-        self.get_trial(trial_id)
+        t = self.get_trial(trial_id)
         with self._write() as c:
             c.execute("UPDATE trials SET motion_keep = ? WHERE id = ?", (int(bool(keep)), trial_id))
+            _log(c, "kept" if keep else "unkept", "trial", t.id, f"moved {t.motion_mm} mm", who)
         return self.get_trial(trial_id)
 
     def update_trial_angles(self, trial_id: int, angles: Mapping,

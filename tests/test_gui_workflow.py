@@ -416,3 +416,30 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     assert not win.marks_page.editor.isEnabled()
     win.close()
     assert sorted(os.listdir(data)) == sorted(p.name for p in data.iterdir())
+
+
+def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeypatch):
+    """The simulated patient sways 3 mm: the scan says so at once, with Scan again; the trial is
+    flagged (left out of the statistics) until the clinician keeps it with Restore trial."""
+    monkeypatch.setenv("ANKLESCAN_SIM_SWAY_MM", "3")
+    Path(__import__("os").environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
+    win = MainWindow(open_rig_now=True)
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    win.settings.set("settle_ms", 5)
+    win.settings.set("operator", "op")
+    use_true_calibration(win)
+    _add_patient(qtbot, win, "P-080")
+    _new_session(qtbot, win)
+    tid = _scan(qtbot, win, "0", "0")
+    trial = win.store.get_trial(tid)
+    print(f"\nmoved {trial.motion_mm} ± {trial.motion_sd_mm} mm in {trial.scan_duration_s} s")
+    assert trial.motion_flagged and not trial.counted and trial.motion_mm > 1.0
+    assert "during the scan: scan again?" in win.banner.text and win.banner.action.text() == "Scan again"
+    assert "[moved" in win.trials.item(win.trials.count() - 1).text()
+    _click_trial(win, tid)
+    click(win.restore_button)
+    assert win.store.get_trial(tid).counted and win.store.get_trial(tid).motion_keep
+    assert ("trial", "kept") in [(e.entity, e.kind) for e in win.store.events()]
+    win.close()
