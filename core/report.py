@@ -59,7 +59,7 @@ _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
               "Leg PF\n(°)", "Table inv.\n(°)", "Table PF\n(°)", "Mismatch\ninv. (°)",
               "Mismatch\nPF (°)", "Moved (mm)\n/ scan (s)")
-TABLE_WIDTHS = (0.05, 0.09, 0.05, 0.065, 0.065, 0.09, 0.09, 0.09, 0.09, 0.1, 0.1, 0.11)
+TABLE_WIDTHS = (0.04, 0.085, 0.04, 0.06, 0.06, 0.105, 0.105, 0.105, 0.105, 0.1, 0.1, 0.09)
 
 
 @dataclass(frozen=True)
@@ -598,8 +598,6 @@ def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
     fig.text(0.06, 0.955, "AnkleScan — ankle joint-angle sensing report", fontsize=14,
              weight="bold")
     y = _key_values(fig, 0.925, items)
-    if s.notes:
-        y = _key_values(fig, y, [("Notes", s.notes[:110])])
     fig.text(0.04, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; mismatch = "
              "adjusted − reference table;\nCal. = the calibration the trial was measured with; grey "
              "rows are shown but not counted)", fontsize=8, va="top", linespacing=1.3)
