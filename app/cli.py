@@ -191,18 +191,6 @@ def cmd_calibrate_box(args) -> int:
     return 0
 
 
-def _refuse_output_naming_input(out, *inputs) -> None:
-    """SPEC §6: an output path that names one of the command's inputs (or lies inside an input
-    folder) is refused before anything is read or written."""
-    from core.errors import AnkleScanError
-
-    o = Path(out).resolve()
-    for i in inputs:
-        p = Path(i).resolve()
-        if o == p or p in o.parents:
-            raise AnkleScanError(f"output {out} names the input {i}; choose another --out")
-
-
 def _positive_float(text: str) -> float:
     try:
         v = float(text)
@@ -226,7 +214,6 @@ def _positive_int(text: str) -> int:
 def cmd_import_opencv_graycode(args) -> int:
     from core.opencv_graycode import import_opencv_graycode
 
-    _refuse_output_naming_input(args.out, args.src)
     width, height = args.projector
     pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
     ac, ar = pset.axis_code("column"), pset.axis_code("row")
@@ -241,7 +228,6 @@ def cmd_calibrate_import(args) -> int:
     from core.calibration_file import save_calibration
     from core.opencv_calibration import import_opencv_calibration
 
-    _refuse_output_naming_input(args.out, args.file)
     cal = import_opencv_calibration(args.file, args.projector, args.camera, args.unit)
     save_calibration(cal, args.out)
     b = cal.projector.center - cal.camera.center
@@ -257,7 +243,6 @@ def cmd_calibrate_export(args) -> int:
     from core.calibration_file import load_calibration
     from core.opencv_calibration import export_opencv_calibration
 
-    _refuse_output_naming_input(args.out, args.calibration)
     export_opencv_calibration(load_calibration(args.calibration), args.out)
     print(f"wrote OpenCV FileStorage {args.out} (K1 D1 camera, K2 D2 projector, R T camera -> projector, mm)")
     return 0
@@ -267,7 +252,6 @@ def cmd_calibrate_board(args) -> int:
     from core.calibration_board import calibrate_from_board_captures
     from core.calibration_file import save_calibration
 
-    _refuse_output_naming_input(args.out, *args.captures)
     cols, rows = args.board
     progress = Progress(args.quiet)
     progress(f"reading {len(args.captures)} board capture(s)")
@@ -285,7 +269,6 @@ def cmd_calibrate_level(args) -> int:
     from core.capture import load_capture
     from core.levelling import level_calibration
 
-    _refuse_output_naming_input(args.out, args.calibration, args.capture)
     cal = load_calibration(args.calibration)
     capture = load_capture(args.capture)
     new, top = level_calibration(cal, capture)

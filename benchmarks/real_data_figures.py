@@ -22,6 +22,7 @@ from core.board_metrics import measure_board, triangulate_both
 from core.calibration_board import DEFAULT_DIST, calibrate_board_views, observe_board
 from core.capture import load_capture
 from core.decode import decode
+from core.reconstruct import cloud_from_decoded
 from core.opencv_calibration import import_opencv_calibration
 from core.opencv_graycode import import_opencv_graycode
 
@@ -39,7 +40,17 @@ def main(src: Path, model: str = DEFAULT_DIST) -> None:
             d = decode(cap)
             data[k] = (cap, d, observe_board(cap, COLS, ROWS, decoded=d))
 
+    def measure_reconstructed(cal, k):
+        """Through core.reconstruct, the path of 'anklescan reconstruct': each pixel on the axis (or
+        both) the rig supports, with the cloud's own predicted noise (along the camera ray)."""
+        cap, d, view = data[k]
+        cloud = cloud_from_decoded(cap, cal, d)
+        return measure_board(cal, cloud.points.astype(float), cloud.pixels.astype(float), cloud.sigma,
+                             view.corners, cap.shape, COLS, ROWS, SQUARE)
+
     def measure(cal, k):
+        if VIA_RECONSTRUCT:
+            return measure_reconstructed(cal, k)
         cap, d, view = data[k]
         ok = d.valid & np.isfinite(d.row)
         v, u = np.nonzero(ok)
@@ -65,5 +76,9 @@ def main(src: Path, model: str = DEFAULT_DIST) -> None:
               f"{m.pitch_error_pct:+.2f} | {m.pitch_sd_mm:.2f} | {m.flatness_rms_mm:.2f} | {m.predicted_rms_mm:.2f} | |")
 
 
+VIA_RECONSTRUCT = False
+
 if __name__ == "__main__":
-    main(Path(sys.argv[1]), *sys.argv[2:])
+    args = [a for a in sys.argv[1:] if a != "--reconstruct"]
+    VIA_RECONSTRUCT = len(args) < len(sys.argv) - 1  # measure the clouds 'anklescan reconstruct' writes
+    main(Path(args[0]), *args[1:])
