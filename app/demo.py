@@ -358,13 +358,16 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
             if key not in sessions:
                 sessions[key] = store.start_session(p.code, condition=t["condition"], operator="demo",
                                                     calibration_id=cal_id, notes="simulated rig, --study").id
+                if p.marks[2]:  # the clinic gave the marks' size for this patient's sessions
+                    store.set_session_mark_diameter(sessions[key], p.marks[1])
+            mark_diameter = store.get_session(sessions[key]).mark_diameter_mm
             inv, pf = t["ref"]
             trial = store.add_trial(sessions[key], ref_inversion=inv, ref_plantar_flexion=pf, calibration_id=cal_id)
             folder = store.trial_dir(trial.id, create=True)
             jobs.append(({"label": f"{p.code} {t['condition']:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                           "table": t["table"], "scale": scale, "seed": t["seed"], "capture": str(folder / "capture"),
                           "cloud": str(folder / "cloud.ply"), "calibration": cal["calibration"],
-                          "accuracy": False}, trial.id))
+                          "accuracy": False, "marks": p.marks, "mark_diameter": mark_diameter}, trial.id))
         workers = max(1, min(2, os.cpu_count() or 1))
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) as pool:
             for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])), 1):

@@ -73,3 +73,17 @@ def test_study_plan_is_the_papers_cohort():
         return float(np.mean([np.hypot(*np.subtract(t["table"], t["ref"])) for t in plan
                               if (t["patient"].sprain_count > 0) == sprain and t["condition"] == cond]))
     assert err(True, "barefoot") > 2 * err(False, "barefoot") and err(True, "shoes") < err(True, "barefoot")
+
+
+def test_study_demo_runs_end_to_end_on_a_small_plan(tmp_path):
+    """`demo --study` through its real scan path, on two trials (a merge once left its jobs
+    without the marks' type, and only the structure was tested)."""
+    from app.demo import run_study_demo, study_plan
+    from core.store import Store
+    plan = [t for t in study_plan() if t["condition"] == "barefoot" and t["ref"][1] == 0.0][:2]
+    out, lines = tmp_path / "study", []
+    assert run_study_demo(out, progress=lines.append, scale=0.5, plan=plan) == 0
+    assert (out / "report.pdf").exists() and (out / "trials.csv").exists()
+    with Store.open(out / "anklescan.db", data_dir=out / "data") as db:
+        trials = [t for s in db.list_sessions() for t in db.list_trials(s.id)]
+        assert len(trials) == 2 and all(t.cloud_path for t in trials)
