@@ -160,7 +160,7 @@ def box_camera(rig):
     cam = rig.camera
     if not rig.simulated or not hasattr(cam, "rig"):
         return cam
-    from core.calibration_box import box_scene_objects
+    from hardware.sim_scene import box_scene_objects
     from hardware.sim_scene import quad_scene
     from hardware.simrig import SimulatedCamera
     box = SimulatedCamera(cam.rig.with_scene(quad_scene(box_scene_objects())), cam.projector, "Simulated camera (box)")

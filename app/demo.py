@@ -143,7 +143,8 @@ def _scan_trial(job: dict) -> dict:
 
 
 def _calibrate(out: Path, scale: float, progress) -> dict:
-    from core.calibration_box import box_scene_objects, calibrate_from_box_capture
+    from core.calibration_box import calibrate_from_box_capture
+    from hardware.sim_scene import box_scene_objects
     from core.calibration_file import calibration_to_dict, save_calibration
     from core.capture import save_capture
     from core.patterns import make_pattern_set, render_all

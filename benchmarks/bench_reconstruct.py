@@ -43,7 +43,8 @@ def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
 
 
 def box_calibration(rig: SimRig, work: Path):
-    from core.calibration_box import box_scene_objects, calibrate_from_box_capture
+    from core.calibration_box import calibrate_from_box_capture
+    from hardware.sim_scene import box_scene_objects
     from hardware.sim_scene import quad_scene
 
     box = rig.with_scene(quad_scene(box_scene_objects()))

@@ -25,7 +25,7 @@ from core import calibration_box as cb  # noqa: E402
 from core.capture import save_capture  # noqa: E402
 from core.patterns import make_pattern_set, render_all  # noqa: E402
 from core.verification import verify_box_capture  # noqa: E402
-from hardware.sim_scene import quad_scene  # noqa: E402
+from hardware.sim_scene import box_scene_objects, quad_scene  # noqa: E402
 from hardware.simrig import SimRig  # noqa: E402
 
 
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=11)
     args = ap.parse_args()
-    rig = SimRig(quad_scene(cb.box_scene_objects()), scale=args.scale, seed=args.seed)
+    rig = SimRig(quad_scene(box_scene_objects()), scale=args.scale, seed=args.seed)
     true = rig.true_calibration()
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

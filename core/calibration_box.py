@@ -139,15 +139,6 @@ def face_placements(px_per_mm: float = 4.0) -> list[dict]:
              "texture": face_texture(f, px_per_mm)} for f in FACES]
 
 
-def box_scene_objects(px_per_mm: float = 4.0) -> list:
-    """The box as simulator objects (hardware.sim_scene.TexturedQuad), imported lazily so that
-    core does not depend on the simulator."""
-    from hardware.sim_scene import TexturedQuad
-
-    return [TexturedQuad(origin=p["origin"], u_axis=p["u_axis"], v_axis=p["v_axis"], texture=p["texture"])
-            for p in face_placements(px_per_mm)]
-
-
 def box_description() -> dict:
     """resources/calibration_box.json: everything needed to build or check the box."""
     return {"units": "mm", "size": BOX_SIZE_MM, "dictionary": ARUCO_DICTIONARY, "marker_size": MARKER_MM,

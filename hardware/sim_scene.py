@@ -616,3 +616,11 @@ def angles_from_marks(marks: dict) -> dict:
             "leg_plantar_flexion": deg(math.atan2(d34[1], d34[2])),
             "table_inversion": deg(math.atan2(n[0], n[2])),
             "table_plantar_flexion": deg(math.atan2(n[1], n[2]))}
+
+
+def box_scene_objects(px_per_mm: float = 4.0) -> list:
+    """The calibration box (core.calibration_box's faces and markers) as simulator objects."""
+    from core.calibration_box import face_placements
+
+    return [TexturedQuad(origin=p["origin"], u_axis=p["u_axis"], v_axis=p["v_axis"], texture=p["texture"])
+            for p in face_placements(px_per_mm)]

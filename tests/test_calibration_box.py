@@ -77,12 +77,12 @@ def test_local_homography_recovers_a_plane_map():
 @pytest.fixture(scope="module")
 def box_capture(tmp_path_factory):
     sim = pytest.importorskip("hardware.simrig")
-    from hardware.sim_scene import quad_scene
+    from hardware.sim_scene import box_scene_objects, quad_scene
 
     from core.capture import save_capture
     from core.patterns import make_pattern_set, render_all
 
-    rig = sim.SimRig(quad_scene(cb.box_scene_objects(4.0)), scale=0.5)
+    rig = sim.SimRig(quad_scene(box_scene_objects(4.0)), scale=0.5)
     pset = make_pattern_set("default", 512, 384, axes=("column",))
     folder = tmp_path_factory.mktemp("box") / "capture"
     save_capture(folder, pset, rig.capture_many(render_all(pset)))

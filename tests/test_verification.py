@@ -38,12 +38,12 @@ def test_too_few_markers_is_one_line_error():
 def test_verification_scan_of_simulated_box_with_true_calibration(tmp_path):
     """The floor of the method at scale 0.5: the true calibration, a simulated scan of the box."""
     sim = pytest.importorskip("hardware.simrig")
-    from hardware.sim_scene import quad_scene
+    from hardware.sim_scene import box_scene_objects, quad_scene
 
     from core.capture import save_capture
     from core.patterns import make_pattern_set, render_all
 
-    rig = sim.SimRig(quad_scene(cb.box_scene_objects()), scale=0.5)
+    rig = sim.SimRig(quad_scene(box_scene_objects()), scale=0.5)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
     save_capture(tmp_path / "box", pset, rig.capture_many(render_all(pset)))
     res = ver.verify_box_capture(tmp_path / "box", rig.true_calibration())
