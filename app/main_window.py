@@ -685,7 +685,6 @@ class MainWindow(QMainWindow):
         self.switch_backend(backend)
 
     def switch_backend(self, backend: str) -> None:
-        from app.rig import SIMULATED, open_rig
         if self.controller is not None and self.controller.busy:
             return
         old, self.rig = self.rig, None
@@ -1314,22 +1313,17 @@ def _deg(value) -> str:
     return "—" if value is None else f"{value:+.1f}°"
 
 
-def _open_rig_in(backend, scale, device, projector):
-    from app.rig import open_rig
-    return open_rig(backend, scale, device, projector)
-
-
 def _open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False):
     """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
     ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
-    from app.rig import SIMULATED
+    from app.rig import SIMULATED, open_rig
     if warm:
         _warm_imports()
     try:
-        return _open_rig_in(backend, scale, device, projector), ""
+        return open_rig(backend, scale, device, projector), ""
     except Exception as exc:
         problem = f"The camera backend '{backend}' could not be opened ({exc}); using the simulated rig instead."
-        return _open_rig_in(SIMULATED, scale, "", projector), problem
+        return open_rig(SIMULATED, scale, "", projector), problem
 
 
 def _warm_imports() -> None:

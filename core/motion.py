@@ -331,7 +331,6 @@ def _largest(fits):
     usable = counts >= MIN_PATCH_POINTS
     if not usable.any():
         return None
-    n = len(D0)
     positions = [np.zeros_like(D0[0])] + D0  # the first look is the origin
     pcov = [np.zeros_like(covs[0])] + covs
     best = np.full(len(counts), -1.0)  # the first pair always sets the variance

@@ -19,13 +19,12 @@ is not lost: ``x_cam = R_world_camera x_world + t_world_camera``.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from core.atomic import write_text_atomic
 from core.calibration_file import Calibration, calibration_from_dict, calibration_to_dict
 from core.device_model import Device
 from core.errors import CalibrationError
@@ -198,29 +197,22 @@ def export_opencv_calibration(cal: Calibration, out) -> Path:
         raise CalibrationError(f"output folder {out.parent} does not exist")
     R, T = relative_pose(cal)
     c, p = cal.camera, cal.projector
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=suffix, dir=out.parent)
-    os.close(fd)
-    try:
-        fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
-        if not fs.isOpened():
-            raise CalibrationError(f"cannot write {out}")
-        fs.writeComment("AnkleScan calibration: K1/D1 camera, K2/D2 projector, x_proj = R x_cam + T (mm)")
-        fs.write("image_size", np.array([c.width, c.height], np.float64))
-        fs.write("projector_size", np.array([p.width, p.height], np.float64))
-        for k, v in (("K1", c.K), ("D1", c.dist.reshape(1, 5)), ("K2", p.K), ("D2", p.dist.reshape(1, 5)),
-                     ("R", R), ("T", T.reshape(3, 1))):
-            fs.write(k, np.ascontiguousarray(v, np.float64))
-        fs.write("img_shape", np.array([[c.height], [c.width]], np.float64))
-        for k, v in (("cam_int", c.K), ("cam_dist", c.dist.reshape(1, 5)), ("proj_int", p.K),
-                     ("proj_dist", p.dist.reshape(1, 5)), ("rotation", R), ("translation", T.reshape(3, 1)),
-                     ("R_world_camera", c.R), ("t_world_camera", c.t.reshape(3, 1))):
-            fs.write(k, np.ascontiguousarray(v, np.float64))
-        fs.release()
-        os.replace(tmp, out)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    # written in memory, then through the project's atomic, private writer
+    fmt = {".xml": cv2.FILE_STORAGE_FORMAT_XML, ".json": cv2.FILE_STORAGE_FORMAT_JSON}.get(
+        suffix, cv2.FILE_STORAGE_FORMAT_YAML)
+    fs = cv2.FileStorage(suffix, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | fmt)
+    if not fs.isOpened():
+        raise CalibrationError(f"cannot write {out}")
+    fs.writeComment("AnkleScan calibration: K1/D1 camera, K2/D2 projector, x_proj = R x_cam + T (mm)")
+    fs.write("image_size", np.array([c.width, c.height], np.float64))
+    fs.write("projector_size", np.array([p.width, p.height], np.float64))
+    for k, v in (("K1", c.K), ("D1", c.dist.reshape(1, 5)), ("K2", p.K), ("D2", p.dist.reshape(1, 5)),
+                 ("R", R), ("T", T.reshape(3, 1))):
+        fs.write(k, np.ascontiguousarray(v, np.float64))
+    fs.write("img_shape", np.array([[c.height], [c.width]], np.float64))
+    for k, v in (("cam_int", c.K), ("cam_dist", c.dist.reshape(1, 5)), ("proj_int", p.K),
+                 ("proj_dist", p.dist.reshape(1, 5)), ("rotation", R), ("translation", T.reshape(3, 1)),
+                 ("R_world_camera", c.R), ("t_world_camera", c.t.reshape(3, 1))):
+        fs.write(k, np.ascontiguousarray(v, np.float64))
+    write_text_atomic(out, fs.releaseAndGetString())
     return out

@@ -154,3 +154,17 @@ class GapMeter:
 
     def stop(self):
         self.timer.stop()
+
+
+def calibrated_window(qtbot, operator: str = "tester"):
+    """The main window on the simulated rig, shown, with its true calibration accepted and the
+    operator known (for tests about scanning, not about first start or calibration)."""
+    from app.main_window import MainWindow
+    win = MainWindow(open_rig_now=True)
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
+    win.settings.set("operator", operator)
+    use_true_calibration(win)
+    return win

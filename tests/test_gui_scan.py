@@ -10,7 +10,7 @@ import pytest
 
 
 from app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
-from gui_actions import GapMeter, use_true_calibration
+from gui_actions import GapMeter, calibrated_window
 
 pytestmark = pytest.mark.gui
 REPO = Path(__file__).resolve().parent.parent
@@ -18,13 +18,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture
 def window(qtbot):
-    win = MainWindow(open_rig_now=True)
-    qtbot.addWidget(win)
-    win.show()
-    qtbot.waitExposed(win)
-    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
-    win.settings.set("operator", "tester")
-    use_true_calibration(win)
+    win = calibrated_window(qtbot)
     win.add_patient("P-001", 2, "right")
     win.start_session("barefoot")
     yield win
@@ -137,13 +131,7 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     view for confirmation and are saved as automatic, with the angles computed from them."""
     (tmp_path / "scale.ini").write_text("[scan]\nsim_scale=0.75\n")
     monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "scale.ini"))
-    win = MainWindow(open_rig_now=True)
-    qtbot.addWidget(win)
-    win.show()
-    qtbot.waitExposed(win)
-    win.settings.set("settle_ms", 5)
-    win.settings.set("operator", "tester")
-    use_true_calibration(win)
+    win = calibrated_window(qtbot)
     win.add_patient("P-002", 0, None)
     win.start_session("barefoot")
     _run_scan(qtbot, win, timeout=240_000)

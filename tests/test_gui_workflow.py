@@ -14,8 +14,8 @@ from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QLineEdit, QSpinBox
 
 from app.main_window import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION, MainWindow
-from gui_actions import (all_menu_actions, button, click, click_at, dismiss, fill_and_ok, menu_action,
-                         press_accept, save_as, use_true_calibration, with_dialog)
+from gui_actions import (all_menu_actions, button, calibrated_window, click, click_at, dismiss, fill_and_ok,
+                         menu_action, press_accept, save_as, use_true_calibration, with_dialog)
 
 pytestmark = pytest.mark.gui
 
@@ -390,7 +390,6 @@ def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
 
 
 def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_path, monkeypatch):
-    import os
     from core.store import Store
     data = tmp_path / "archive"
     with Store.open(data_dir=data) as db:
@@ -399,6 +398,7 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     for p in data.iterdir():
         if p.is_file():
             p.chmod(0o444)
+    before = {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in data.iterdir()}
     monkeypatch.setenv("ANKLESCAN_DATA", str(data))
     win = MainWindow()
     qtbot.addWidget(win)
@@ -415,7 +415,7 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     assert not menu_action(win, "File/New patient…").isEnabled()
     assert not win.marks_page.editor.isEnabled()
     win.close()
-    assert sorted(os.listdir(data)) == sorted(p.name for p in data.iterdir())
+    assert {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in data.iterdir()} == before  # untouched
 
 
 def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeypatch):
@@ -423,13 +423,7 @@ def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeyp
     flagged (left out of the statistics) until the clinician keeps it with Restore trial."""
     monkeypatch.setenv("ANKLESCAN_SIM_SWAY_MM", "3")
     Path(__import__("os").environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
-    win = MainWindow(open_rig_now=True)
-    qtbot.addWidget(win)
-    win.show()
-    qtbot.waitExposed(win)
-    win.settings.set("settle_ms", 5)
-    win.settings.set("operator", "op")
-    use_true_calibration(win)
+    win = calibrated_window(qtbot, operator="op")
     _add_patient(qtbot, win, "P-080")
     _new_session(qtbot, win)
     tid = _scan(qtbot, win, "0", "0")

@@ -22,7 +22,6 @@ from core.board_metrics import measure_board, triangulate_both
 from core.calibration_board import calibrate_board_views, observe_board, observe_board_maps
 from core.capture import load_capture
 from core.decode import decode
-from core.opencv_calibration import import_opencv_calibration
 from core.opencv_graycode import import_opencv_graycode
 
 ROOT = Path(__file__).resolve().parents[1]
