@@ -12,7 +12,7 @@ from PySide6.QtCore import QPointF, QRectF, Qt, Signal
 from PySide6.QtGui import QBrush, QColor, QPainter, QPen, QPixmap
 from PySide6.QtWidgets import QGraphicsScene, QGraphicsView
 
-from app.camera_panel import to_display
+from anklescan.app.camera_panel import to_display
 
 OUTLINE = (60, 220, 90)
 CAMERA_ARROW = (255, 80, 60)

@@ -3,16 +3,16 @@
 Steps (one dialog, a step list on the left):
 1. Place the box — live preview with the detected markers outlined. Beside it, a printed chessboard:
    scan it in two or more poses (the first laid flat on the level table), then calibrate from the
-   board views (core.calibration_board); the report and the rest of the flow are the box's.
+   board views (anklescan.core.calibration.board); the report and the rest of the flow are the box's.
 2. Scan the box — column AND row patterns through app.scan_worker (the same show → painted →
    settle → capture loop as a patient scan), so the projector gets the full 2-D model.
 3. Quality report — RMS, residual arrows on the image, standard errors, flagged points; Accept.
 4. Manual (paper §3.2-3.3) — click each marker corner (zoom, cornerSubPix refinement, undo),
    then steer the projector spot onto it and record the spot's projector position, refined
-   (unless switched off) to the clicked corner by eight local edge frames (core.projector_spot).
+   (unless switched off) to the clicked corner by eight local edge frames (anklescan.core.calibration.projector_spot).
 5. Verify — a scan of the box reconstructed at the marker corners; distances between marker
-   centres against the box drawing (core.verification). Beside it, Level: a scan of the reference
-   table set level brings the current calibration into the clinic's frame (core.levelling, SPEC §1)
+   centres against the box drawing (anklescan.core.calibration.verification). Beside it, Level: a scan of the reference
+   table set level brings the current calibration into the clinic's frame (anklescan.core.calibration.levelling, SPEC §1)
    and saves it as a new version — for imported calibrations and boards not laid square.
 
 Accepting saves the file atomically in ``<data>/calibrations/``, adds a versioned row to the
@@ -41,7 +41,7 @@ from PySide6.QtWidgets import (QCheckBox, QDialog, QDoubleSpinBox, QGroupBox, QH
                                QPlainTextEdit, QProgressBar, QPushButton, QSpinBox, QSplitter, QStackedWidget,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from app.calibration_views import ZoomView, arrow_gain, draw_outlines, gray_rgb, residual_overlay
+from anklescan.app.calibration_views import ZoomView, arrow_gain, draw_outlines, gray_rgb, residual_overlay
 
 KEY_PATH = "calibration/current_path"
 KEY_ID = "calibration/current_id"
@@ -74,7 +74,7 @@ def current_calibration_info(qs: QSettings | None = None) -> dict:
 
 def load_current_calibration(qs: QSettings | None = None):
     """(Calibration, database id) of the current calibration, or (None, None)."""
-    from core.calibration_file import load_calibration
+    from anklescan.core.calibration.file import load_calibration
     info = current_calibration_info(qs)
     if not info["path"] or not Path(info["path"]).exists():
         return None, None
@@ -117,7 +117,7 @@ def _now_iso() -> str:
 def accept_calibration(cal, report, data_folder: Path, store=None, qs: QSettings | None = None,
                        source: str = "box") -> tuple[Path, int | None]:
     """Save atomically, add to the database (versioned: a new row each time), make current."""
-    from core.calibration_file import calibration_to_dict, save_calibration
+    from anklescan.core.calibration.file import calibration_to_dict, save_calibration
     created = _now_iso()
     cal.extra["created"] = created
     cal.extra.setdefault("source", source)
@@ -142,7 +142,7 @@ def accept_calibration(cal, report, data_folder: Path, store=None, qs: QSettings
 
 def record_verification(result, qs: QSettings | None = None, calibration_path: str | None = None) -> None:
     """Remember the verdict (the banner reads it) and keep the report next to the file."""
-    from core.atomic import write_text_atomic
+    from anklescan.core.atomic import write_text_atomic
     qs = qs or qsettings()
     qs.setValue(KEY_VERIFIED, "pass" if result.passed else "fail")
     qs.setValue(KEY_VERIFIED_AT, _now_iso())
@@ -160,9 +160,9 @@ def box_camera(rig):
     cam = rig.camera
     if not rig.simulated or not hasattr(cam, "rig"):
         return cam
-    from hardware.sim_scene import box_scene_objects
-    from hardware.sim_scene import quad_scene
-    from hardware.simrig import SimulatedCamera
+    from anklescan.hardware.sim_scene import box_scene_objects
+    from anklescan.hardware.sim_scene import quad_scene
+    from anklescan.hardware.simrig import SimulatedCamera
     box = SimulatedCamera(cam.rig.with_scene(quad_scene(box_scene_objects())), cam.projector, "Simulated camera (box)")
     for name, c in cam.controls().items():
         box.set_control(name, c.value)
@@ -184,14 +184,14 @@ class BoxPoints:
 
 
 def observe(white, column, row) -> BoxPoints:
-    from core.calibration_box import observe_box
+    from anklescan.core.calibration.box import observe_box
     obs = observe_box(white, column, row)
     return BoxPoints(np.asarray(white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
                      obs.proj_cam_uv, obs.found)
 
 
 def calibrate_box(points: BoxPoints, camera_size, projector_size, exclude_flagged: bool = True):
-    from core.calibrate import calibrate_points
+    from anklescan.core.calibration.calibrate import calibrate_points
     # radial_terms=2: real lenses (and the simulator's) need k2 beyond the paper's k1.
     return calibrate_points(points.cam_xyz, points.cam_uv, points.proj_xyz, points.proj_uv, camera_size=camera_size,
                             projector_size=projector_size, radial_terms=2, exclude_flagged=exclude_flagged)
@@ -202,14 +202,14 @@ def kept(n: int, excluded) -> np.ndarray:
 
 
 def decode_folder(folder):
-    from core.capture import load_capture
-    from core.decode import decode
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.decode import decode
     return decode(load_capture(folder))
 
 
 def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tuple[float, float]:
     """The marker corner nearest a click, to sub-pixel (cv2.cornerSubPix on the stretched image)."""
-    from core.calibration_box import _to_8bit
+    from anklescan.core.calibration.box import _to_8bit
     g = _to_8bit(image)
     h, w = g.shape
     if not (half_window <= x < w - half_window and half_window <= y < h - half_window):
@@ -223,7 +223,7 @@ def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tup
 
 def manual_points() -> list[tuple[str, np.ndarray]]:
     """(label, world mm) of every marker corner, in the order the operator is asked for them."""
-    from core.calibration_box import marker_corners_world, marker_layout
+    from anklescan.core.calibration.box import marker_corners_world, marker_layout
     layout = marker_layout()
     return [(f"marker {mid} ({layout[mid][0].name} face), {CORNER_NAMES[k]} corner", X[k])
             for mid, X in sorted(marker_corners_world().items()) for k in range(4)]
@@ -236,8 +236,8 @@ def board_camera(rig, view: int, cols: int, rows: int, square: float):
     cam = rig.camera
     if not rig.simulated or not hasattr(cam, "rig"):
         return cam
-    from hardware.sim_board import board_views
-    from hardware.simrig import SimulatedCamera
+    from anklescan.hardware.sim_board import board_views
+    from anklescan.hardware.simrig import SimulatedCamera
     views = board_views(cols, rows, square)
     board = SimulatedCamera(cam.rig.with_scene(views[view % len(views)][0]), cam.projector, "Simulated camera (board)")
     for name, c in cam.controls().items():
@@ -275,7 +275,7 @@ class CalibrationWizard(QDialog):
     """The calibration dialog. ``rig`` is app.rig.Rig, ``projector`` the ProjectorWindow."""
 
     calibrationAccepted = Signal(object, object, str)  # Calibration, database id or None, file path
-    verificationDone = Signal(object)  # core.verification.VerificationResult
+    verificationDone = Signal(object)  # anklescan.core.calibration.verification.VerificationResult
 
     def __init__(self, rig, projector, *, store=None, data_folder: Path | None = None, settle_s: float = 0.03,
                  parent=None):
@@ -303,7 +303,7 @@ class CalibrationWizard(QDialog):
         self._refining = False
         self._manual_history: list = []  # ("cam" | "proj", index) for undo
         self._manual_list = manual_points()
-        from app.scan_worker import ScanController
+        from anklescan.app.scan_worker import ScanController
         self.controller = ScanController(projector, self)
         self.controller.progress.connect(self._scan_progress)
         self.controller.frameCaptured.connect(lambda _i, frame: self.scan_view.set_image(gray_rgb(frame)))
@@ -412,8 +412,8 @@ class CalibrationWizard(QDialog):
 
     @staticmethod
     def _calibrate_board_folders(folders, cols, rows, square):
-        from core.calibration_board import calibrate_from_board_captures
-        from core.capture import load_capture
+        from anklescan.core.calibration.board import calibrate_from_board_captures
+        from anklescan.core.scan.capture import load_capture
         result = calibrate_from_board_captures(folders, cols, rows, square)
         white = load_capture(folders[0])
         return result, white.frame(white.pattern_set.files[white.pattern_set.index("white")])
@@ -502,7 +502,7 @@ class CalibrationWizard(QDialog):
         return w
 
     def _build_verify(self) -> QWidget:
-        from core.verification import PASS_MAX_MM, PASS_RMS_MM
+        from anklescan.core.calibration.verification import PASS_MAX_MM, PASS_RMS_MM
         w, v = self._page("Verify the calibration", "One scan of the box, reconstructed at its marker corners with "
                           "the current calibration. Distances between marker centres are compared with the box "
                           f"drawing. Pass: RMS error ≤ {PASS_RMS_MM:g} mm and every distance within "
@@ -568,7 +568,7 @@ class CalibrationWizard(QDialog):
             self._show_manual_frame(frame)
 
     def show_place_frame(self, frame) -> int:
-        from core.calibration_box import detect_markers
+        from anklescan.core.calibration.box import detect_markers
         found = detect_markers(frame, refine_edges=False)  # outlines only: no need for edge-fitted corners
         self.place_view.set_image(draw_outlines(frame, found))
         n = len(found)
@@ -578,8 +578,8 @@ class CalibrationWizard(QDialog):
 
     # ---- scanning ------------------------------------------------------------------------
     def start_scan(self, purpose: str) -> bool:
-        from app.scan_worker import ScanJob
-        from core.patterns import make_pattern_set
+        from anklescan.app.scan_worker import ScanJob
+        from anklescan.core.scan.patterns import make_pattern_set
         if self.controller.busy or self._job is not None:
             return False
         if purpose in ("verify", "level") and self.calibration is None:
@@ -597,7 +597,7 @@ class CalibrationWizard(QDialog):
         while folder.exists():
             folder = folder.with_name(f"{purpose}_{stamp}_{n}")
             n += 1
-        from core.atomic import make_private_dir
+        from anklescan.core.atomic import make_private_dir
         make_private_dir(folder.parent, tighten=False)  # 0700: the data folder is private
         if not self.projector.isVisible():
             self._show_on_projector("white")
@@ -662,8 +662,8 @@ class CalibrationWizard(QDialog):
 
     @staticmethod
     def _level_folder(folder, cal):
-        from core.capture import load_capture
-        from core.levelling import level_calibration
+        from anklescan.core.scan.capture import load_capture
+        from anklescan.core.calibration.levelling import level_calibration
         return level_calibration(cal, load_capture(folder))
 
     def _levelled(self, result) -> None:
@@ -679,8 +679,8 @@ class CalibrationWizard(QDialog):
 
     @staticmethod
     def _check_board_folder(folder, cols, rows):
-        from core.calibration_board import find_corners
-        from core.capture import load_capture
+        from anklescan.core.calibration.board import find_corners
+        from anklescan.core.scan.capture import load_capture
         cap = load_capture(folder)
         find_corners(cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")]), cols, rows)
         return Path(folder)
@@ -694,7 +694,7 @@ class CalibrationWizard(QDialog):
 
     @staticmethod
     def _verify_folder(folder, cal):
-        from core.verification import compare_distances, measure_centres
+        from anklescan.core.calibration.verification import compare_distances, measure_centres
         decoded = decode_folder(folder)
         return decoded.white, compare_distances(measure_centres(cal, decoded.white, decoded.column, decoded.row))
 
@@ -851,8 +851,8 @@ class CalibrationWizard(QDialog):
 
     def refine_projector_spot(self, corner_uv, steered):
         """Show the eight edge frames around the spot, photograph each, read the projector
-        coordinate at the corner (core.projector_spot); then show the spot where it was read."""
-        from core.projector_spot import SpotRefinement, refine_spot, refinement_frames
+        coordinate at the corner (anklescan.core.calibration.projector_spot); then show the spot where it was read."""
+        from anklescan.core.calibration.projector_spot import SpotRefinement, refine_spot, refinement_frames
         self._refining = True
         live = self._timer.isActive()
         self._timer.stop()  # the preview would photograph the edge frames as if they were the spot
@@ -904,7 +904,7 @@ class CalibrationWizard(QDialog):
                 X[proj], np.array([self._manual_proj[i] for i in proj]).reshape(-1, 2))
 
     def calibrate_manual(self) -> bool:
-        from core.calibrate import calibrate_points
+        from anklescan.core.calibration.calibrate import calibrate_points
         cam_xyz, cam_uv, proj_xyz, proj_uv = self.manual_observations()
         size_c, size_p = self._sizes()
         try:

@@ -314,7 +314,7 @@ class CameraPanel(QWidget):
 
     # ---- devices and USB ----------------------------------------------------------------
     def _fill_devices(self, current_label: str = "") -> None:
-        from app.rig import backend_problem, list_devices
+        from anklescan.app.rig import backend_problem, list_devices
         self.device.clear()
         try:
             devices = list_devices(self._backend_key)
@@ -342,7 +342,7 @@ class CameraPanel(QWidget):
 
     def start_usb_watch(self, watcher=None) -> None:
         """Poll USB every 2 s for cameras coming and going (``watcher`` for tests)."""
-        from hardware.usb_discovery import UsbWatcher
+        from anklescan.hardware.usb_discovery import UsbWatcher
         self._watcher = watcher or UsbWatcher()
         self.poll_usb()
         if not self._watcher.unavailable:
@@ -381,13 +381,13 @@ class CameraPanel(QWidget):
         self.settle.blockSignals(False)
 
     def _settle_typed(self, ms: int) -> None:
-        from hardware.sync import Settle, remember
+        from anklescan.hardware.sync import Settle, remember
         if self._camera is not None:
             remember(self._camera, Settle(ms / 1000.0, "manual"))
         self.settleChanged.emit(float(ms))
 
     def _show_settle_of(self, camera) -> None:
-        from hardware.sync import settle_for
+        from anklescan.hardware.sync import settle_for
         settle = settle_for(camera, self.settle.value() / 1000.0)
         self.set_settle_ms(settle.seconds * 1000)
         self.latency_result.setText(settle.result.summary() if settle.result else
@@ -423,7 +423,7 @@ class CameraPanel(QWidget):
         return True
 
     def _latency_done(self, result, message: str) -> None:
-        from hardware.sync import Settle, remember
+        from anklescan.hardware.sync import Settle, remember
         self._runner.detach()
         self._runner = None
         self.latency_button.setEnabled(True)
@@ -465,7 +465,7 @@ class LatencyRunner(QObject):
             self._thread.join(timeout)
 
     def _run(self) -> None:
-        from hardware.sync import run_latency_test
+        from anklescan.hardware.sync import run_latency_test
         try:
             result = run_latency_test(self.camera, self._show_and_wait, **self.test_kw)
         except Exception as exc:

@@ -6,7 +6,7 @@ a partly written output file (outputs are written to a temporary sibling and ren
 Guards every command gets from ``main`` (so a new sub-command is covered without doing
 anything): argument errors are one line and exit 2 (``_Parser.error``); ``--out`` may not
 name, resolve to, sit inside or contain any existing path given as another argument
-(``core.atomic.guard_output`` over every path-like argument, before the command runs);
+(``anklescan.core.atomic.guard_output`` over every path-like argument, before the command runs);
 SIGTERM takes the same clean-up path as Ctrl-C (temporaries removed), exit 143; every error
 message is folded onto one line, and library warnings (numpy, OpenCV) never reach stderr.
 A command with inputs that are not plain arguments (a folder named in a file) calls
@@ -30,7 +30,7 @@ EXIT_INTERNAL = 1
 EXIT_TERMINATED = 128 + signal.SIGTERM
 # Signals that end a command the way Ctrl-C does: temporaries removed, exit 128 + signal.
 _CLEAN_EXIT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
-# Largest projector / camera side accepted on the command line (same as core.limits, which
+# Largest projector / camera side accepted on the command line (same as anklescan.core.limits, which
 # is not imported here so that --help stays instant).
 MAX_SIDE = 16384
 
@@ -102,26 +102,26 @@ def _positive(text: str) -> float:
 
 # ---------------------------------------------------------------------------- commands
 def cmd_gui(args) -> int:
-    from app.main_window import run_gui
+    from anklescan.app.main_window import run_gui
 
     return run_gui(args.qt_args)
 
 
 def cmd_patterns(args) -> int:
-    from core.patterns import make_pattern_set, write_patterns
+    from anklescan.core.scan.patterns import make_pattern_set, write_patterns
 
     args.projector_default = args.projector is None
     width, height = args.projector or (1024, 768)
     if args.axes:
         axes, why = tuple(a.strip() for a in args.axes.split(",")), "as asked"
     elif args.calibration:
-        from core.calibration_file import load_calibration
-        from core.triangulate import scan_axes
+        from anklescan.core.calibration.file import load_calibration
+        from anklescan.core.scan.triangulate import scan_axes
 
         cal = load_calibration(args.calibration)
         if (cal.projector.width, cal.projector.height) != (width, height) and args.projector_default:
             width, height = cal.projector.width, cal.projector.height
-        from core.triangulate import check_geometry
+        from anklescan.core.scan.triangulate import check_geometry
 
         axes, why = scan_axes(cal), f"what the rig of {Path(args.calibration).name} needs"
         check_geometry(cal, axes)
@@ -129,7 +129,7 @@ def cmd_patterns(args) -> int:
         axes, why = ("column",), "the paper's 18 sheets; --axes column,row for a projector above the camera"
     else:
         axes, why = ("column", "row"), "for a projector on any side of the camera; --calibration picks fewer"
-    from core.motion import default_motion_refs
+    from anklescan.core.scan.motion import default_motion_refs
 
     refs = default_motion_refs(args.preset) if args.motion_refs is None else args.motion_refs
     pset = make_pattern_set(args.preset, width, height, axes=axes, motion_refs=refs)
@@ -140,13 +140,13 @@ def cmd_patterns(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from core.calibration_file import load_calibration
-    from core.capture import load_capture
-    from core.pointcloud import write_ply
+    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.pointcloud import write_ply
     from concurrent.futures import ThreadPoolExecutor
 
-    from core.reconstruct import reconstruct
-    from core.triangulate import prepare
+    from anklescan.core.scan.reconstruct import reconstruct
+    from anklescan.core.scan.triangulate import prepare
 
     progress = Progress(args.quiet)
     cal = load_calibration(args.calibration)
@@ -160,7 +160,7 @@ def cmd_reconstruct(args) -> int:
     progress("decoding and triangulating")
     cloud = reconstruct(capture, cal)
     if len(cloud) == 0:
-        from core.errors import AnkleScanError
+        from anklescan.core.errors import AnkleScanError
 
         raise AnkleScanError(f"no surface points could be decoded from {args.capture} "
                              f"({cloud.meta.get('summary', 'nothing decoded')}); nothing written")
@@ -171,7 +171,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_calibrate_points(args) -> int:
-    from core.calibrate import run_calibrate_points
+    from anklescan.core.calibration.calibrate import run_calibrate_points
 
     report = run_calibrate_points(args.camera, args.projector, args.out,
                                   camera_size=args.camera_size, projector_size=args.projector_size)
@@ -181,8 +181,8 @@ def cmd_calibrate_points(args) -> int:
 
 
 def cmd_calibrate_box(args) -> int:
-    from core.calibration_box import calibrate_from_box_capture
-    from core.calibration_file import save_calibration
+    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.core.calibration.file import save_calibration
 
     cal, report = calibrate_from_box_capture(args.capture)
     save_calibration(cal, args.out)
@@ -212,7 +212,7 @@ def _positive_int(text: str) -> int:
 
 
 def cmd_import_opencv_graycode(args) -> int:
-    from core.opencv_graycode import import_opencv_graycode
+    from anklescan.core.scan.opencv_graycode import import_opencv_graycode
 
     width, height = args.projector
     pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
@@ -225,8 +225,8 @@ def cmd_import_opencv_graycode(args) -> int:
 def cmd_calibrate_import(args) -> int:
     import numpy as np
 
-    from core.calibration_file import save_calibration
-    from core.opencv_calibration import import_opencv_calibration
+    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
 
     cal = import_opencv_calibration(args.file, args.projector, args.camera, args.unit)
     save_calibration(cal, args.out)
@@ -240,8 +240,8 @@ def cmd_calibrate_import(args) -> int:
 
 
 def cmd_calibrate_export(args) -> int:
-    from core.calibration_file import load_calibration
-    from core.opencv_calibration import export_opencv_calibration
+    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.opencv_calibration import export_opencv_calibration
 
     export_opencv_calibration(load_calibration(args.calibration), args.out)
     print(f"wrote OpenCV FileStorage {args.out} (K1 D1 camera, K2 D2 projector, R T camera -> projector, mm)")
@@ -249,8 +249,8 @@ def cmd_calibrate_export(args) -> int:
 
 
 def cmd_calibrate_board(args) -> int:
-    from core.calibration_board import calibrate_from_board_captures
-    from core.calibration_file import save_calibration
+    from anklescan.core.calibration.board import calibrate_from_board_captures
+    from anklescan.core.calibration.file import save_calibration
 
     cols, rows = args.board
     progress = Progress(args.quiet)
@@ -265,9 +265,9 @@ def cmd_calibrate_board(args) -> int:
 
 
 def cmd_calibrate_level(args) -> int:
-    from core.calibration_file import load_calibration, save_calibration
-    from core.capture import load_capture
-    from core.levelling import level_calibration
+    from anklescan.core.calibration.file import load_calibration, save_calibration
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.calibration.levelling import level_calibration
 
     cal = load_calibration(args.calibration)
     capture = load_capture(args.capture)
@@ -280,8 +280,8 @@ def cmd_calibrate_level(args) -> int:
 
 
 def cmd_measure(args) -> int:
-    from core.errors import AnkleScanError
-    from core.measure import run_measure
+    from anklescan.core.errors import AnkleScanError
+    from anklescan.core.measure.pipeline import run_measure
 
     if not (args.motion_threshold > 0 and args.motion_threshold < float("inf")):
         raise AnkleScanError(f"--motion-threshold must be a positive number of mm, not {args.motion_threshold}")
@@ -292,13 +292,13 @@ def cmd_measure(args) -> int:
 
 
 def cmd_angles(args) -> int:
-    from core.angles import compute_angles, format_angles, read_marks_csv
-    from core.limits import require_finite
+    from anklescan.core.measure.angles import compute_angles, format_angles, read_marks_csv
+    from anklescan.core.limits import require_finite
 
     marks = read_marks_csv(args.marks)
     angles = compute_angles(marks, sigma_mm=args.sigma)
     if not angles:  # SPEC: never an empty result with exit 0
-        from core.errors import AnkleScanError
+        from anklescan.core.errors import AnkleScanError
 
         raise AnkleScanError(f"{args.marks}: no angle can be computed; {angles.missing_message()}")
     require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
@@ -307,16 +307,16 @@ def cmd_angles(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from app.demo import run_demo
+    from anklescan.app.demo import run_demo
 
-    from app.demo import DEMO_SCALE
+    from anklescan.app.demo import DEMO_SCALE
 
     if not (0 <= args.sway < 50):
-        from core.errors import AnkleScanError
+        from anklescan.core.errors import AnkleScanError
         raise AnkleScanError(f"--sway must be 0 to 50 mm, not {args.sway}")
     if getattr(args, "study", False):
-        from app.demo import run_study_demo
-        from core.errors import AnkleScanError
+        from anklescan.app.demo import run_study_demo
+        from anklescan.core.errors import AnkleScanError
 
         if args.quick:
             raise AnkleScanError("--quick and --study cannot be combined: --study is the whole cohort")
@@ -471,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv or ["gui"])
     if args.func is cmd_gui:
         return args.func(args)
-    from core.errors import AnkleScanError
+    from anklescan.core.errors import AnkleScanError
 
     global _VERBOSE
     _VERBOSE = bool(getattr(args, "verbose", False))
@@ -490,12 +490,12 @@ def main(argv: list[str] | None = None) -> int:
             warnings.simplefilter("ignore")
             inputs = _path_arguments(args)
             if inputs:
-                from core.limits import check_input_file
+                from anklescan.core.limits import check_input_file
 
                 for path in inputs:  # no /dev/zero, FIFO or 10 GB "CSV" read whole
                     check_input_file(path, "input")
             if getattr(args, "out", None) is not None:
-                from core.atomic import guard_output
+                from anklescan.core.atomic import guard_output
 
                 guard_output(args.out, inputs, what="--out")
             return args.func(args)

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.atomic import make_private_dir, make_tree_private, write_text_atomic
-from core.errors import AnkleScanError
+from anklescan.core.atomic import make_private_dir, make_tree_private, write_text_atomic
+from anklescan.core.errors import AnkleScanError
 
 MARKER = ".anklescan-demo"
 
@@ -82,7 +82,7 @@ _CALIBRATIONS: dict = {}
 
 def _calibration(obj: dict):
     """One Calibration object per worker, so its triangulation cache is built once, not per trial."""
-    from core.calibration_file import calibration_from_dict
+    from anklescan.core.calibration.file import calibration_from_dict
 
     key = json.dumps(obj, sort_keys=True)
     if key not in _CALIBRATIONS:
@@ -92,16 +92,16 @@ def _calibration(obj: dict):
 
 def _scan_trial(job: dict) -> dict:
     """Simulate one trial's scan, save it, measure it; compare with the truth (demo only)."""
-    from core.capture import load_capture, save_capture
-    from core.measure import measure_capture
-    from core.patterns import make_pattern_set, render_all
-    from core.pointcloud import write_ply
-    from core.triangulate import scan_axes
-    from hardware.sim_accuracy import as_dict, evaluate
-    from core.motion import default_motion_refs
-    from hardware.sim_scene import angles_from_marks, leg_scene
-    from hardware.sim_sway import FRAME_S, Sway, swaying_capture, true_largest_displacement
-    from hardware.simrig import SimRig
+    from anklescan.core.scan.capture import load_capture, save_capture
+    from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.core.scan.pointcloud import write_ply
+    from anklescan.core.scan.triangulate import scan_axes
+    from anklescan.hardware.sim_accuracy import as_dict, evaluate
+    from anklescan.core.scan.motion import default_motion_refs
+    from anklescan.hardware.sim_scene import angles_from_marks, leg_scene
+    from anklescan.hardware.sim_sway import FRAME_S, Sway, swaying_capture, true_largest_displacement
+    from anklescan.hardware.simrig import SimRig
 
     t0 = time.perf_counter()
     mark_type, diameter, _ = job["marks"]
@@ -143,13 +143,13 @@ def _scan_trial(job: dict) -> dict:
 
 
 def _calibrate(out: Path, scale: float, progress) -> dict:
-    from core.calibration_box import calibrate_from_box_capture
-    from hardware.sim_scene import box_scene_objects
-    from core.calibration_file import calibration_to_dict, save_calibration
-    from core.capture import save_capture
-    from core.patterns import make_pattern_set, render_all
-    from hardware.sim_scene import quad_scene
-    from hardware.simrig import SimRig
+    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.hardware.sim_scene import box_scene_objects
+    from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.sim_scene import quad_scene
+    from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
@@ -225,8 +225,8 @@ def _record(store, trial_id: int, job: dict, res: dict) -> None:
 
 def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE, sway_mm: float = 0.0,
              camera: str = "webcam") -> int:
-    from core.report import write_session_report, write_study_report
-    from core.store import Store
+    from anklescan.core.records.report import write_session_report, write_study_report
+    from anklescan.core.records.store import Store
 
     t_start = time.perf_counter()
     _prepare_out(out)
@@ -313,7 +313,7 @@ STUDY_PATIENTS = PATIENTS + (
 # Per session one inversion setting and three plantar flexions (the issue's range): 8 patients ×
 # 2 conditions × 3 trials = 48 scans. The paper's whole grid (3 × 3 per session, 144 scans) would
 # take three times as long; three trials per patient and condition already give each patient's
-# mean |mismatch|, which is what the tests compare (core/study_stats.py).
+# mean |mismatch|, which is what the tests compare (core/records/study_stats.py).
 STUDY_INVERSIONS = (0.0,)
 STUDY_PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
 
@@ -337,8 +337,8 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     """The whole simulated study: box calibration, every trial of ``study_plan()`` scanned and
     measured by the product's pipeline, the study report (with the group page's tests), the CSV and
     one session report per patient (barefoot and shoes)."""
-    from core.report import write_session_report, write_study_report
-    from core.store import Store
+    from anklescan.core.records.report import write_session_report, write_study_report
+    from anklescan.core.records.store import Store
 
     t_start = time.perf_counter()
     plan = study_plan() if plan is None else plan
@@ -393,7 +393,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
 
 def _study_summary(store, progress) -> None:
     """The group page's two questions, one line each (the PDF has every test)."""
-    from core import study_stats as st
+    from anklescan.core.records import study_stats as st
 
     s = st.study_stats(store.study_rows())
     for c in CONDITIONS:

@@ -24,9 +24,9 @@ from PySide6.QtWidgets import (QApplication, QCheckBox, QComboBox, QDialog, QDia
                                QPushButton, QSpinBox, QSplitter, QStackedWidget, QTabWidget,
                                QVBoxLayout, QWidget)
 
-from app import resources
-from app.settings import Settings
-from app.trial_form import CONDITIONS, TrialForm
+from anklescan.app import resources
+from anklescan.app.settings import Settings
+from anklescan.app.trial_form import CONDITIONS, TrialForm
 
 
 log = logging.getLogger("anklescan.gui")
@@ -88,7 +88,7 @@ class NewPatientDialog(QDialog):
 
     def __init__(self, parent=None, exists=lambda code: False):
         super().__init__(parent)
-        from core.store import PATIENT_CODE_RULE
+        from anklescan.core.records.store import PATIENT_CODE_RULE
         self.setWindowTitle("New patient")
         self._exists = exists
         self.code = QLineEdit()
@@ -114,7 +114,7 @@ class NewPatientDialog(QDialog):
         self.setMinimumWidth(440)
 
     def accept(self) -> None:
-        from core.store import patient_code_problem
+        from anklescan.core.records.store import patient_code_problem
         code = self.code.text().strip()
         problem = patient_code_problem(code) or (f"Patient {code} already exists: choose another code."
                                                  if self._exists(code) else "")
@@ -153,7 +153,7 @@ class ScanPage(QWidget):
         self.progress.setValue(0)
         self.progress.setFormat("Ready")
         self.progress.setTextVisible(True)
-        from app.camera_panel import ImageView  # light: Qt only
+        from anklescan.app.camera_panel import ImageView  # light: Qt only
         self.live = ImageView("The last captured frame appears here during a scan")
         buttons = QHBoxLayout()
         buttons.addWidget(self.scan_button)
@@ -183,7 +183,7 @@ class ResultPage(QWidget):
         super().__init__(parent)
         heading = QLabel("Result")
         heading.setObjectName("heading")
-        from app.camera_panel import ImageView
+        from anklescan.app.camera_panel import ImageView
         self.image = ImageView("No scan yet")
         self.summary = QLabel("")
         self.summary.setObjectName("hint")
@@ -372,7 +372,7 @@ class MainWindow(QMainWindow):
         return Path(env) if env else self.settings.data_folder
 
     def _open_store(self) -> None:
-        from core.store import Store
+        from anklescan.core.records.store import Store
         try:
             self.store = Store.open(data_dir=self.data_folder())
             if self.store.read_only:
@@ -651,7 +651,7 @@ class MainWindow(QMainWindow):
             self._rig_opened(_open_rig_safely(backend, scale, device, projector))
             self.ensure_marks_page()
             return
-        from app.background import run_in_background
+        from anklescan.app.background import run_in_background
         run_in_background(lambda: _open_rig_safely(backend, scale, device, projector, warm=True), self._rig_opened,
                           lambda error: self.banner.show_message("error", f"The camera could not be opened: {error}"))
 
@@ -669,8 +669,8 @@ class MainWindow(QMainWindow):
         QTimer.singleShot(100, _settle_memory)
 
     def _build_camera_panel(self) -> None:
-        from app.camera_panel import CameraPanel
-        from app.rig import available_backends
+        from anklescan.app.camera_panel import CameraPanel
+        from anklescan.app.rig import available_backends
         self.camera_panel = CameraPanel(available_backends(), self.settings.get("saturation_level"))
         self.camera_panel.backendChanged.connect(self.switch_backend)
         self.camera_panel.controlChanged.connect(self._remember_control)
@@ -698,7 +698,7 @@ class MainWindow(QMainWindow):
         self._rig_ready()
 
     def _rig_ready(self) -> None:
-        from app.rig import camera_name
+        from anklescan.app.rig import camera_name
         self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
         self._apply_stored_controls()
         self.rig_label.setText(self.rig.description)
@@ -714,7 +714,7 @@ class MainWindow(QMainWindow):
 
     def _load_calibration(self) -> None:
         """The accepted calibration (never a simulator's hidden truth): scans are blocked without one."""
-        from app.calibration_wizard import load_current_calibration
+        from anklescan.app.calibration_wizard import load_current_calibration
         try:
             cal, cid = load_current_calibration()
         except Exception as exc:
@@ -728,7 +728,7 @@ class MainWindow(QMainWindow):
         """The calibration's id in THIS data folder's database (adding it when it was accepted in another)."""
         if cal is None or self.store is None:
             return None
-        from core.calibration_file import calibration_to_dict
+        from anklescan.core.calibration.file import calibration_to_dict
         data = calibration_to_dict(cal)
         try:
             if cid is not None and self.store.get_calibration(cid).data == data:
@@ -757,7 +757,7 @@ class MainWindow(QMainWindow):
             self.scan_action.setEnabled(ready and not busy)
 
     def open_calibration(self) -> None:
-        from app.calibration_wizard import CalibrationWizard
+        from anklescan.app.calibration_wizard import CalibrationWizard
         if self.rig is None or self.projector is None or (self.controller and self.controller.busy):
             if self.rig is None:
                 self.banner.show_message("info", "The camera is still connecting; try again in a moment.")
@@ -783,7 +783,7 @@ class MainWindow(QMainWindow):
         self._update_scan_enabled()
 
     def check_calibration_age(self) -> None:
-        from app.calibration_wizard import calibration_warning
+        from anklescan.app.calibration_wizard import calibration_warning
         text = calibration_warning()
         if self.read_only:  # review only: nothing will be scanned, the read-only notice stays
             return
@@ -807,8 +807,8 @@ class MainWindow(QMainWindow):
             self.settings.set("camera_gain", value)
 
     def _ensure_projector(self) -> None:
-        from app.projector_window import ProjectorWindow
-        from app.scan_worker import ScanController
+        from anklescan.app.projector_window import ProjectorWindow
+        from anklescan.app.scan_worker import ScanController
         if self.projector is None:
             self.projector = ProjectorWindow(self.rig.projector_size)
             self.projector.screenLost.connect(self._projector_lost)
@@ -936,11 +936,11 @@ class MainWindow(QMainWindow):
         return self.store.trial_dir(trial.id, create=True) / "capture"
 
     def _scan_job(self, folder: Path):
-        from core.patterns import make_pattern_set
-        from core.triangulate import scan_axes
-        from app.scan_worker import ScanJob, measure_folder
+        from anklescan.core.scan.patterns import make_pattern_set
+        from anklescan.core.scan.triangulate import scan_axes
+        from anklescan.app.scan_worker import ScanJob, measure_folder
         w, h = self.rig.projector_size
-        from core.motion import default_motion_refs
+        from anklescan.core.scan.motion import default_motion_refs
         # the stripes this rig's geometry needs (columns beside the camera, rows above, both
         # diagonal); without a calibration both, which work wherever the projector stands; and
         # the repeated looks that measure how far the patient moved
@@ -974,7 +974,7 @@ class MainWindow(QMainWindow):
         self.scan_page.progress.setFormat(text)
 
     def _frame_captured(self, index: int, image) -> None:
-        from app.camera_panel import to_display
+        from anklescan.app.camera_panel import to_display
         self.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
 
     def _scan_finished(self, result) -> None:
@@ -1039,7 +1039,7 @@ class MainWindow(QMainWindow):
             self.banner.show_message("error", f"The trial's files could not be recorded: {exc}")
 
     def _show_result(self, result) -> None:
-        from app.projector_window import array_to_qimage
+        from anklescan.app.projector_window import array_to_qimage
         page = self.result_page
         if result.preview is not None:
             page.image.set_image(array_to_qimage(result.preview))
@@ -1074,7 +1074,7 @@ class MainWindow(QMainWindow):
     # ---- the 3-D viewer, marks and session plots ----------------------------------------
     def ensure_marks_page(self):
         if self.marks_page is None:
-            from app.mark_editor import MarksPage
+            from anklescan.app.mark_editor import MarksPage
             self.marks_page = MarksPage(operator=self.settings.get("operator") or _os_user())
             self.marks_page.editor.saveFailed.connect(lambda text: self.banner.show_message("error", text))
             self.marks_page.editor.marksChanged.connect(lambda _: self._marks_edited())
@@ -1089,7 +1089,7 @@ class MainWindow(QMainWindow):
         if self.session_view is None:
             QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
             try:
-                from app.session_view import SessionView
+                from anklescan.app.session_view import SessionView
                 self.session_view = SessionView()
             finally:
                 QApplication.restoreOverrideCursor()
@@ -1141,13 +1141,13 @@ class MainWindow(QMainWindow):
 
     def _snapper(self, trial_id: int, cloud, session):
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
-        from app.mark_snap import TrialSnapper
+        from anklescan.app.mark_snap import TrialSnapper
         trial = self.store.get_trial(trial_id)
         cid = trial.calibration_id or session.calibration_id
         if not trial.capture_path or cid is None:
             return None
         try:
-            from core.calibration_file import calibration_from_dict
+            from anklescan.core.calibration.file import calibration_from_dict
             cal = calibration_from_dict(self.store.get_calibration(cid).data)
         except Exception:
             return None
@@ -1157,7 +1157,7 @@ class MainWindow(QMainWindow):
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
         if trial_id is None or self.store is None:
             return False
-        from core.pointcloud import read_ply
+        from anklescan.core.scan.pointcloud import read_ply
         trial = self.store.get_trial(int(trial_id))
         self._select_trial_item(trial.id)
         if not trial.cloud_path:
@@ -1191,7 +1191,7 @@ class MainWindow(QMainWindow):
 
     def open_cloud_path(self, path: str) -> bool:
         """A PLY from disk, viewed and marked without saving to any trial."""
-        from core.pointcloud import read_ply
+        from anklescan.core.scan.pointcloud import read_ply
         try:
             cloud = read_ply(path)
         except Exception as exc:
@@ -1229,7 +1229,7 @@ class MainWindow(QMainWindow):
 
     def write_session_report_to(self, pdf_path: str):
         """Render the selected session's PDF + CSV in the background; the banner says when it is saved."""
-        from app.background import run_in_background
+        from anklescan.app.background import run_in_background
         sid = self.current_session_id()
         if self.store is None or sid is None:
             self.banner.show_message("warning", "Select a session first.")
@@ -1238,8 +1238,8 @@ class MainWindow(QMainWindow):
         db_path, data_dir = self.store.path, self.store.data_dir
 
         def render():  # its own connection: a Store is not shared between threads
-            from core.report import write_session_report
-            from core.store import Store
+            from anklescan.core.records.report import write_session_report
+            from anklescan.core.records.store import Store
             with Store.open(db_path, data_dir=data_dir) as store:
                 return write_session_report(store, [sid], pdf, pdf.with_suffix(".csv"))
 
@@ -1316,7 +1316,7 @@ def _deg(value) -> str:
 def _open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False):
     """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
     ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
-    from app.rig import SIMULATED, open_rig
+    from anklescan.app.rig import SIMULATED, open_rig
     if warm:
         _warm_imports()
     try:
@@ -1334,10 +1334,10 @@ def _warm_imports() -> None:
     import OpenGL.GLU  # noqa: F401
     import scipy.spatial  # noqa: F401
 
-    import app.picking  # noqa: F401  (numpy and SciPy only: the viewer's Qt part is built on the UI thread)
-    import app.splat  # noqa: F401
-    import core.measure  # noqa: F401
-    import core.pointcloud  # noqa: F401
+    import anklescan.app.picking  # noqa: F401  (numpy and SciPy only: the viewer's Qt part is built on the UI thread)
+    import anklescan.app.splat  # noqa: F401
+    import anklescan.core.measure.pipeline  # noqa: F401
+    import anklescan.core.scan.pointcloud  # noqa: F401
 
 
 def _os_user() -> str:
@@ -1365,7 +1365,7 @@ def _settle_memory() -> None:
     """
     import gc
 
-    import core.measure  # noqa: F401  (its objects, too, are frozen rather than left to scan)
+    import anklescan.core.measure.pipeline  # noqa: F401  (its objects, too, are frozen rather than left to scan)
     gc.freeze()  # no collect first: a full collection here was itself a 0.5 s stall
 
 # ---------------------------------------------------------------------------- entry point

@@ -18,7 +18,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGr
                                QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
 
-from core.angles import LABELS, compute_angles
+from anklescan.core.measure.angles import LABELS, compute_angles
 
 MARK_NAMES = {1: "front of the knee", 2: "front of the ankle", 3: "lateral knee", 4: "lateral ankle",
               5: "table", 6: "table", 7: "table"}
@@ -213,7 +213,7 @@ class MarkEditor(QWidget):
         if self.snapper is None:
             self.place(label, raw)
             return
-        from app.background import run_in_background
+        from anklescan.app.background import run_in_background
         snapper, trial = self.snapper, self.trial_id
         self.show_pick(f"Finding the mark under the click for mark {label}…")
 
@@ -333,7 +333,7 @@ class MarkEditor(QWidget):
             return
         shown = dict(self.angles)
         if self.reference and self.angles.get("table_inversion") and self.angles.get("table_plantar_flexion"):
-            from core.angles import mismatch
+            from anklescan.core.measure.angles import mismatch
             for axis, v in mismatch(self.angles, self.reference).items():
                 shown[f"mismatch_{axis}"] = v
         for name, lab in self.angle_labels.items():
@@ -348,7 +348,7 @@ class MarkEditor(QWidget):
 # ---------------------------------------------------------------------------- store glue
 
 def marks_from_store(rows) -> MarkSet:
-    """core.store.Mark rows → MarkSet. An auto mark counts as confirmed once an operator has
+    """anklescan.core.records.store.Mark rows → MarkSet. An auto mark counts as confirmed once an operator has
     confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
     return {r.label: Mark((r.x, r.y, r.z), r.source,
                           r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
@@ -381,7 +381,7 @@ class MarksPage(QWidget):
     def __init__(self, operator: str = "", parent=None):
         super().__init__(parent)
         from PySide6.QtWidgets import QComboBox, QSplitter
-        from app.viewer import COLOR_DEPTH, COLOR_WHITE, CloudViewer
+        from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, CloudViewer
         self.viewer = CloudViewer()
         self.editor = MarkEditor(self.viewer, operator)
         self.title = QLabel("3-D view and marks")

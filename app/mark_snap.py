@@ -2,7 +2,7 @@
 
 A click in the 3-D view lands on whatever point of the cloud is under the cursor; a clinician
 aims at the middle of a mark but rarely hits it within a millimetre. ``TrialSnapper`` finds
-the disk near the click with the same fit as the automatic detector (``core.marks_surface``)
+the disk near the click with the same fit as the automatic detector (``anklescan.core.measure.marks_surface``)
 and returns its centre, or None when no disk is there (the click is then kept as it is).
 
 It needs the trial's capture (for the projector-lit image) and calibration; both are loaded
@@ -27,9 +27,9 @@ class TrialSnapper:
     def _images(self):
         with self._lock:
             if self._lit is None:
-                from core.capture import load_capture
-                from core.lit_image import averaged_lit
-                from core.marks import points_image
+                from anklescan.core.scan.capture import load_capture
+                from anklescan.core.scan.lit_image import averaged_lit
+                from anklescan.core.measure.marks import points_image
                 lit = averaged_lit(load_capture(self.capture_folder))
                 self._points = points_image(self.cloud, lit.shape)
                 self._lit = lit
@@ -37,7 +37,7 @@ class TrialSnapper:
 
     def snap(self, point) -> tuple[float, float, float] | None:
         """The centre of the disk nearest ``point`` (world mm), or None."""
-        from core.marks_surface import snap_to_disk
+        from anklescan.core.measure.marks_surface import snap_to_disk
         lit, points = self._images()
         mark = snap_to_disk(point, lit, points, self.calibration, mark_diameter_mm=self.mark_diameter_mm)
         return None if mark is None else tuple(float(v) for v in mark.centre)

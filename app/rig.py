@@ -20,7 +20,7 @@ class Rig:
     projector_size: tuple[int, int]
     simulated: bool
     sim_projector: object = None     # has show(array); fed with what the projector window paints
-    calibration: object = None       # core.calibration_file.Calibration, when known
+    calibration: object = None       # anklescan.core.calibration.file.Calibration, when known
 
     @property
     def description(self) -> str:
@@ -44,7 +44,7 @@ def camera_name(camera) -> str:
 
 def available_backends() -> list[tuple[str, str]]:
     """(key, label) of camera backends; the simulated rig is always present and first."""
-    from hardware import camera
+    from anklescan.hardware import camera
 
     return [(SIMULATED, "Simulated rig")] + camera.available_backends()
 
@@ -53,7 +53,7 @@ def list_devices(backend: str) -> list[tuple[str, str]]:
     """(device id, label) for ``backend``; the simulated rig has exactly one camera."""
     if backend == SIMULATED:
         return [("", "Simulated camera")]
-    from hardware import camera
+    from anklescan.hardware import camera
 
     return [(d.id, d.label) for d in camera.list_devices(backend)]
 
@@ -62,7 +62,7 @@ def backend_problem(backend: str) -> str:
     """Why ``backend`` cannot be used on this computer ("" when it can)."""
     if backend == SIMULATED:
         return ""
-    from hardware import camera
+    from anklescan.hardware import camera
 
     return camera.backend_problem(backend)
 
@@ -71,10 +71,10 @@ def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
              projector_size: tuple[int, int] = (1024, 768)) -> Rig:
     """``projector_size`` is the real projector's resolution (the setting); the simulated rig has its own."""
     if backend != SIMULATED:
-        from hardware import camera
+        from anklescan.hardware import camera
 
         return Rig(backend, camera.open_camera(backend, device), tuple(projector_size), simulated=False)
-    from hardware import simrig
+    from anklescan.hardware import simrig
 
     rig = simrig.SimRig(scale=scale)
     _sway_from_environment(rig)
@@ -94,7 +94,7 @@ def _sway_from_environment(rig) -> None:
     except ValueError:
         return
     if amplitude > 0 and amplitude < 100:
-        from hardware.sim_sway import FRAME_S, Sway, SwayClock
+        from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock
 
         rig.motion = SwayClock(Sway((1.0, 0.0, 0.0), amplitude_mm=amplitude, speed_mm_s=amplitude),
                                FRAME_S["webcam"])

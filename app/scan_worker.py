@@ -36,8 +36,8 @@ from typing import Callable
 import numpy as np
 from PySide6.QtCore import QObject, QThread, Signal, Slot
 
-from core.errors import AnkleScanError
-from hardware.camera import CameraDisconnected
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware.camera import CameraDisconnected
 
 
 SLICE_S = 0.05
@@ -54,14 +54,14 @@ class ScanError(AnkleScanError):
 
 @dataclass
 class ScanJob:
-    pattern_set: object                 # core.patterns.PatternSet
+    pattern_set: object                 # anklescan.core.scan.patterns.PatternSet
     camera: object                      # hardware.camera.Camera
     folder: Path                        # the capture folder (created; must not hold a capture)
     settle_s: float = 0.03
-    calibration: object = None          # core.calibration_file.Calibration or None: capture only
+    calibration: object = None          # anklescan.core.calibration.file.Calibration or None: capture only
     metadata: dict = field(default_factory=dict)
-    render: Callable | None = None      # (pattern_set, frame) -> uint8 array; core.patterns.render_frame
-    reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud, or a core.measure result
+    render: Callable | None = None      # (pattern_set, frame) -> uint8 array; anklescan.core.scan.patterns.render_frame
+    reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud, or a anklescan.core.measure.pipeline result
     cloud_path: Path | None = None      # where to write the cloud (PLY), in the worker thread
 
 
@@ -81,7 +81,7 @@ class ScanResult:
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
     save_error: str = ""                # why the cloud could not be saved, when it could not
-    # how far the subject moved during the capture (core/motion.py), computed in the worker thread
+    # how far the subject moved during the capture (core/scan/motion.py), computed in the worker thread
     motion_mm: float | None = None      # None: not measured (no motion references, or no measurement)
     motion_sd_mm: float | None = None
     motion_flagged: bool = False        # moved more than the threshold: "scan again?"
@@ -175,9 +175,9 @@ class ScanWorker(QObject):
 
     def _save(self, result: ScanResult) -> None:
         """Write the cloud and hash the files here: both touch every byte of the trial."""
-        from core.store import sha256_path
+        from anklescan.core.records.store import sha256_path
         if self.job.cloud_path is not None and result.cloud is not None and len(result.cloud) > 0:
-            from core.pointcloud import write_ply
+            from anklescan.core.scan.pointcloud import write_ply
             try:
                 write_ply(self.job.cloud_path, result.cloud)
                 result.cloud_path = Path(self.job.cloud_path)
@@ -187,9 +187,9 @@ class ScanWorker(QObject):
         result.capture_sha256 = sha256_path(self.job.folder)
 
     def _capture_all(self) -> None:
-        from core.capture import CaptureWriter  # imported here: the worker module loads fast
+        from anklescan.core.scan.capture import CaptureWriter  # imported here: the worker module loads fast
 
-        from hardware.sync import settle_for
+        from anklescan.hardware.sync import settle_for
 
         pset = self.job.pattern_set
         render = self.job.render or _default_render()
@@ -254,7 +254,7 @@ def _device_metadata(camera, settle) -> dict:
     try:
         meta = dict(camera.metadata())
     except Exception:
-        from app.rig import camera_name
+        from anklescan.app.rig import camera_name
         meta = {"device": camera_name(camera)}
     meta["settle_ms"] = round(settle.seconds * 1000, 1)
     meta["settle_source"] = settle.source
@@ -274,7 +274,7 @@ def _frame_timing(camera, t0: float, shown: float, start: float) -> dict:
 
 
 def _default_render():
-    from core.patterns import render_frame
+    from anklescan.core.scan.patterns import render_frame
     return render_frame
 
 
@@ -311,8 +311,8 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     white = [f.file for f in pattern_set.frames if f.kind == "white"]
     if not white:
         return None
-    from core.capture import read_image  # any path, even one that is not valid UTF-8
-    from core.errors import CaptureError
+    from anklescan.core.scan.capture import read_image  # any path, even one that is not valid UTF-8
+    from anklescan.core.errors import CaptureError
 
     try:
         img = read_image(Path(folder) / white[0])
@@ -329,17 +329,17 @@ def measure_folder(folder, calibration, mark_diameter_mm: float | None = None,
                    motion_threshold_mm: float | None = None):
     """Reconstruct the saved frames, find the seven marks on them and how far the subject moved
     (``anklescan measure``); the marks' size is the session's setting, or measured when None."""
-    from core.capture import load_capture
-    from core.measure import measure_capture
-    from core.motion import DEFAULT_THRESHOLD_MM
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM
     return measure_capture(load_capture(folder), calibration, mark_diameter_mm,
                            motion_threshold_mm=DEFAULT_THRESHOLD_MM if motion_threshold_mm is None else motion_threshold_mm)
 
 
 def reconstruct_folder(folder, calibration):
     """What ``anklescan reconstruct`` does: load the saved frames, decode, triangulate."""
-    from core.capture import load_capture
-    from core.reconstruct import reconstruct
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.reconstruct import reconstruct
     return reconstruct(load_capture(folder), calibration)
 
 

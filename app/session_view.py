@@ -6,10 +6,10 @@ emits ``trialActivated`` so the main window opens that trial in the 3-D viewer. 
 error range per plantar-flexion setting for one inversion setting (mean, ±1 SD, min–max),
 with the single trials beside each bar.
 
-As in the PDF (core.report): only counted trials (complete, not excluded) are plotted; a trial
+As in the PDF (anklescan.core.records.report): only counted trials (complete, not excluded) are plotted; a trial
 whose automatic marks nobody has confirmed is a hollow point ("automatic marks, not
 confirmed"); the mismatch axes span at least ±MIN_HALF_SPAN_DEG with no SI-prefix scaling, so
-hundredths of a degree never look like a spread. The grouping is core.report's (settings
+hundredths of a degree never look like a spread. The grouping is anklescan.core.records.report's (settings
 rounded to 0.1°), so screen and PDF agree.
 """
 
@@ -23,8 +23,8 @@ import pyqtgraph as pg
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
-from core.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL, span_limits, x_limits
-from core.study_stats import is_counted
+from anklescan.core.records.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL, span_limits, x_limits
+from anklescan.core.records.study_stats import is_counted
 
 AXES = {"inversion": "Mismatch of inversion (°)", "plantar_flexion": "Mismatch of plantar flexion (°)"}
 PF_LABEL = "Reference plantar flexion (°)"
@@ -109,7 +109,7 @@ class SessionView(QWidget):
 
     # ---- data ----------------------------------------------------------------------------
     def set_rows(self, rows: list[dict], title: str = "") -> None:
-        """Rows as core.store.Store.study_rows() gives them (one session's or several)."""
+        """Rows as anklescan.core.records.store.Store.study_rows() gives them (one session's or several)."""
         self.rows, self.title = list(rows), title
         settings = sorted(group(self.rows, "inversion"))
         self.inversion_box.blockSignals(True)

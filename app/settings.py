@@ -34,7 +34,7 @@ KEYS = {
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),
     "pattern_preset": Key("scan/pattern_preset", "default", str),
-    # a trial whose subject moved more than this during the scan is flagged (core/motion.py)
+    # a trial whose subject moved more than this during the scan is flagged (core/scan/motion.py)
     "motion_threshold_mm": Key("scan/motion_threshold_mm", 0.5, float),
     "saturation_level": Key("thresholds/saturation_level", 250, int),
     "data_folder": Key("data/folder", str(Path.home() / "AnkleScan"), str),

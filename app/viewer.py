@@ -39,7 +39,9 @@ from PySide6.QtGui import QColor, QFont, QPainter, QPen, QSurfaceFormat
 from PySide6.QtOpenGLWidgets import QOpenGLWidget
 from PySide6.QtWidgets import QWidget
 
-from app import picking, splat
+from anklescan.app import picking
+
+from anklescan.app import splat
 
 log = logging.getLogger(__name__)
 

@@ -45,11 +45,11 @@ def make_capture(work: Path, layout: str, axes: tuple[str, ...] | None, scale: f
     folder, cal_path = work / f"capture_{tag}", work / f"calibration_{layout}.json"
     if (folder / "manifest.json").exists() and cal_path.exists():
         return folder, cal_path
-    from core.calibration_file import save_calibration
-    from core.capture import save_capture
-    from core.patterns import make_pattern_set, render_all
-    from core.triangulate import scan_axes
-    from hardware.simrig import SimRig
+    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.core.scan.triangulate import scan_axes
+    from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(scale=scale, layout=layout)
     cal = rig.true_calibration()
@@ -88,7 +88,7 @@ def main() -> None:
     folder, cal_path = make_capture(work, args.layout, axes, args.scale)
     out = work / "cloud.ply"
     n_frames = sum(1 for p in folder.iterdir() if p.suffix == ".png")
-    command = [sys.executable, "-m", "app.cli", "-q", "reconstruct", str(folder), "--calibration", str(cal_path),
+    command = [sys.executable, "-m", "anklescan.app.cli", "-q", "reconstruct", str(folder), "--calibration", str(cal_path),
                "--out", str(out)]
     bare = [sys.executable, "-c", BARE, str(folder), "1" if args.bare_serial else "2"]
     timed(bare), timed(command)  # warm the page cache and the interpreter's bytecode
@@ -107,7 +107,7 @@ def main() -> None:
           f"{statistics.median(cc) / statistics.median(cb):.2f} (target <= 2)   [{args.runs} alternating runs each]")
     if args.profile:
         prof = work / "reconstruct.prof"
-        subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "app.cli", "-q", "reconstruct",
+        subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "anklescan.app.cli", "-q", "reconstruct",
                         str(folder), "--calibration", str(cal_path), "--out", str(out)], check=True, cwd=ROOT)
         import pstats
 

@@ -23,9 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from core.decode import decode  # noqa: E402
-from core.lit_image import lit_from_frames  # noqa: E402
-from core.patterns import make_pattern_set, simulate_frames  # noqa: E402
+from anklescan.core.scan.decode import decode  # noqa: E402
+from anklescan.core.scan.lit_image import lit_from_frames  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, simulate_frames  # noqa: E402
 
 
 def column_map(h: int, w: int, proj_width: int) -> np.ndarray:
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
               f"median {r['median_ms']:6.1f} ms (min {r['min_ms']:.1f})  "
               f"decode peak {r['decode_peak_mb']:.0f} MB (input {r['input_mb']:.0f} MB)  "
               f"valid {100 * r['valid']:.1f}%  rms {r['rms_px']:.4f} px  "
-              f"lit image (core.lit_image) {r['lit_ms']:.1f} ms")
+              f"lit image (anklescan.core.scan.lit_image) {r['lit_ms']:.1f} ms")
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"process peak RSS {rss:.0f} MB")
     return 0

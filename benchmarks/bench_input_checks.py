@@ -21,10 +21,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.calibration_file import save_calibration  # noqa: E402
-from core.capture import load_capture, save_capture  # noqa: E402
-from core.patterns import make_pattern_set, render_all  # noqa: E402
-from hardware.simrig import SimRig  # noqa: E402
+from anklescan.core.calibration.file import save_calibration  # noqa: E402
+from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
+from anklescan.hardware.simrig import SimRig  # noqa: E402
 from tests.test_reliability import _png_header_only  # noqa: E402
 
 
@@ -47,7 +47,7 @@ def main() -> None:
               f"median {statistics.median(times):.3f} s, min {min(times):.3f} s over {args.runs} runs")
         for f in pset.files:
             (work / "capture" / f).write_bytes(_png_header_only(20000, 20000))
-        cli = [sys.executable, "-m", "app.cli", "-q"]
+        cli = [sys.executable, "-m", "anklescan.app.cli", "-q"]
         for label, argv in (("reconstruct, 20000x20000 frames", ["reconstruct", str(work / "capture"),
                                                                  "--calibration", str(work / "cal.json"),
                                                                  "--out", str(work / "x.ply")]),

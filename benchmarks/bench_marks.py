@@ -25,12 +25,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from core.capture import capture_from_images  # noqa: E402
-from core.marks import LABELS  # noqa: E402
-from core.measure import measure_capture  # noqa: E402
-from core.patterns import make_pattern_set, render_all  # noqa: E402
-from hardware.sim_scene import leg_scene  # noqa: E402
-from hardware.simrig import Optics, SimRig  # noqa: E402
+from anklescan.core.scan.capture import capture_from_images  # noqa: E402
+from anklescan.core.measure.marks import LABELS  # noqa: E402
+from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
+from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
+from anklescan.hardware.simrig import Optics, SimRig  # noqa: E402
 
 SETTINGS = [(inv, pf) for inv in (0, 10, 20) for pf in (-20, -10, 0, 10, 20)]
 QUICK = [(0, 0), (20, 20), (10, -20), (20, -20)]

@@ -26,15 +26,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.capture import load_capture, save_capture  # noqa: E402
-from core.decode import decode  # noqa: E402
-from core.motion import DEFAULT_THRESHOLD_MM, default_motion_refs, estimate_motion  # noqa: E402
-from core.patterns import make_pattern_set, render_all  # noqa: E402
-from core.reconstruct import cloud_from_decoded  # noqa: E402
-from hardware.sim_accuracy import evaluate  # noqa: E402
-from hardware.sim_scene import leg_scene  # noqa: E402
-from hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement  # noqa: E402
-from hardware.simrig import SimRig  # noqa: E402
+from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
+from anklescan.core.scan.decode import decode  # noqa: E402
+from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, default_motion_refs, estimate_motion  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
+from anklescan.core.scan.reconstruct import cloud_from_decoded  # noqa: E402
+from anklescan.hardware.sim_accuracy import evaluate  # noqa: E402
+from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
+from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement  # noqa: E402
+from anklescan.hardware.simrig import SimRig  # noqa: E402
 
 
 def scan(rig, pset, sway, frame_s, folder):

@@ -27,14 +27,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from core.calibration_file import save_calibration  # noqa: E402
-from core.capture import load_capture, save_capture  # noqa: E402
-from core.decode import decode  # noqa: E402
-from core.patterns import make_pattern_set, render_all  # noqa: E402
-from core.reconstruct import cloud_from_decoded  # noqa: E402
-from core.triangulate import cache_for, scan_axes  # noqa: E402
-from hardware.sim_accuracy import evaluate  # noqa: E402
-from hardware.simrig import SimRig  # noqa: E402
+from anklescan.core.calibration.file import save_calibration  # noqa: E402
+from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
+from anklescan.core.scan.decode import decode  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
+from anklescan.core.scan.reconstruct import cloud_from_decoded  # noqa: E402
+from anklescan.core.scan.triangulate import cache_for, scan_axes  # noqa: E402
+from anklescan.hardware.sim_accuracy import evaluate  # noqa: E402
+from anklescan.hardware.simrig import SimRig  # noqa: E402
 
 
 def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
@@ -43,9 +43,9 @@ def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
 
 
 def box_calibration(rig: SimRig, work: Path):
-    from core.calibration_box import calibrate_from_box_capture
-    from hardware.sim_scene import box_scene_objects
-    from hardware.sim_scene import quad_scene
+    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.hardware.sim_scene import box_scene_objects
+    from anklescan.hardware.sim_scene import quad_scene
 
     box = rig.with_scene(quad_scene(box_scene_objects()))
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
@@ -69,7 +69,7 @@ def time_reconstruct(capture, cal, runs: int) -> tuple[float, float, object]:
 def command_peak_mb(capture_dir: Path, cal_path: Path, out: Path) -> tuple[float, float]:
     """Peak RSS of the command by GNU time: the rusage of a child forked from this (large)
     process would count pages it inherited before exec."""
-    cmd = [sys.executable, "-m", "app.cli", "-q", "reconstruct", str(capture_dir), "--calibration", str(cal_path),
+    cmd = [sys.executable, "-m", "anklescan.app.cli", "-q", "reconstruct", str(capture_dir), "--calibration", str(cal_path),
            "--out", str(out)]
     gnu_time = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
     t0 = time.perf_counter()

@@ -3,7 +3,7 @@
     python benchmarks/bench_verification.py [--scale 1.0] [--seed 11]
 
 One simulated scan of the calibration box (column and row patterns) is calibrated as the app's
-guided flow does (``core.calibration_box.calibrate_from_box_capture``: the same corners, the
+guided flow does (``anklescan.core.calibration.box.calibrate_from_box_capture``: the same corners, the
 same windows); a second scan of the box, with fresh noise, is verified with that calibration
 and with the rig's true one. Prints the focal-length errors, the corner error against the
 simulator's truth, and the verification's RMS and worst distance error (target ≤ 0.2 mm).
@@ -21,12 +21,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from core import calibration_box as cb  # noqa: E402
-from core.capture import save_capture  # noqa: E402
-from core.patterns import make_pattern_set, render_all  # noqa: E402
-from core.verification import verify_box_capture  # noqa: E402
-from hardware.sim_scene import box_scene_objects, quad_scene  # noqa: E402
-from hardware.simrig import SimRig  # noqa: E402
+from anklescan.core.calibration import box as cb
+from anklescan.core.scan.capture import save_capture  # noqa: E402
+from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
+from anklescan.core.calibration.verification import verify_box_capture  # noqa: E402
+from anklescan.hardware.sim_scene import box_scene_objects, quad_scene  # noqa: E402
+from anklescan.hardware.simrig import SimRig  # noqa: E402
 
 
 def box_capture(rig: SimRig, folder: Path) -> Path:
@@ -48,8 +48,8 @@ def main() -> None:
         print(f"two box scans simulated: {time.perf_counter() - t0:.1f} s "
               f"(camera {true.camera.width}x{true.camera.height})")
 
-        from core.capture import load_capture
-        from core.decode import decode
+        from anklescan.core.scan.capture import load_capture
+        from anklescan.core.scan.decode import decode
         white = decode(load_capture(cal_scan)).white
         found = cb.detect_markers(white)
         world = cb.marker_corners_world()

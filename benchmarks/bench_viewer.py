@@ -35,11 +35,11 @@ os.environ.setdefault("QT_QPA_PLATFORM", "xcb")
 
 from PySide6.QtWidgets import QApplication  # noqa: E402
 
-from core.pointcloud import PointCloud  # noqa: E402
+from anklescan.core.scan.pointcloud import PointCloud  # noqa: E402
 
 
 def make_cloud(n: int) -> tuple[PointCloud, np.ndarray]:
-    from hardware.simrig import SimRig
+    from anklescan.hardware.simrig import SimRig
     rig = SimRig(scale=1.0)
     truth = rig.truth()
     seen = truth.seen.reshape(-1)
@@ -100,7 +100,7 @@ def main() -> None:
 
 def bench(app, cloud, eye, w, h, args, path) -> None:
     from OpenGL import GL
-    from app.viewer import RENDER_CLASSIC, CloudViewer
+    from anklescan.app.viewer import RENDER_CLASSIC, CloudViewer
 
     load_before = load_average()
     viewer = CloudViewer(render_path=path)

@@ -2,11 +2,11 @@
 
     PYTHONPATH=. python benchmarks/real_data_figures.py ../shared/realdata/procam-calibration
 
-For every pair of captures: a chessboard calibration from the pair (core.calibration_board), then
-the third capture measured (core.board_metrics): the pitch of its corners in 3-D and the flatness of
+For every pair of captures: a chessboard calibration from the pair (anklescan.core.calibration.board), then
+the third capture measured (anklescan.core.calibration.board_metrics): the pitch of its corners in 3-D and the flatness of
 its board against the cloud's predicted noise.  Then the author's calibration_result.xml, imported,
 on each capture.  The clouds triangulate the camera ray against the projector ray of both decoded
-codes (core.board_metrics.triangulate_both).
+codes (anklescan.core.calibration.board_metrics.triangulate_both).
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.board_metrics import measure_board, triangulate_both
-from core.calibration_board import DEFAULT_DIST, calibrate_board_views, observe_board
-from core.capture import load_capture
-from core.decode import decode
-from core.reconstruct import cloud_from_decoded
-from core.opencv_calibration import import_opencv_calibration
-from core.opencv_graycode import import_opencv_graycode
+from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
+from anklescan.core.calibration.board import DEFAULT_DIST, calibrate_board_views, observe_board
+from anklescan.core.scan.capture import load_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.scan.reconstruct import cloud_from_decoded
+from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
+from anklescan.core.scan.opencv_graycode import import_opencv_graycode
 
 COLS, ROWS, SQUARE, STEP = 9, 7, 75.0, 2
 PROJECTOR = (2048, 1536)
@@ -41,7 +41,7 @@ def main(src: Path, model: str = DEFAULT_DIST) -> None:
             data[k] = (cap, d, observe_board(cap, COLS, ROWS, decoded=d))
 
     def measure_reconstructed(cal, k):
-        """Through core.reconstruct, the path of 'anklescan reconstruct': each pixel on the axis (or
+        """Through anklescan.core.scan.reconstruct, the path of 'anklescan reconstruct': each pixel on the axis (or
         both) the rig supports, with the cloud's own predicted noise (along the camera ray)."""
         cap, d, view = data[k]
         cloud = cloud_from_decoded(cap, cal, d)

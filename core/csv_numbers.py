@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from core.errors import AnkleScanError
+from anklescan.core.errors import AnkleScanError
 
 
 def finite_number(text: str, where: str, error: type[AnkleScanError] = AnkleScanError) -> float:

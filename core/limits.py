@@ -14,8 +14,8 @@ refuse a real input; each is a documented constant here so the other modules sha
 - ``check_input_file``: an input read whole is a regular file of sane size (the CLI applies
   it to every path argument; not /dev/zero, a FIFO or a 10 GB "CSV").
 
-Related helpers elsewhere: ``core.atomic.guard_output`` (an output never replaces an input),
-``core.capture.read_image`` (decode any path, including names that are not valid UTF-8,
+Related helpers elsewhere: ``anklescan.core.atomic.guard_output`` (an output never replaces an input),
+``anklescan.core.scan.capture.read_image`` (decode any path, including names that are not valid UTF-8,
 on which ``cv2.imread`` crashes).
 """
 
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import AnkleScanError
+from anklescan.core.errors import AnkleScanError
 
 # Largest camera or projector side we accept, px. The largest sensors sold (~150 MP medium
 # format) are ~14200 px wide and projectors stop at 8K (7680): 16384 leaves room.

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import AnkleScanError
+from anklescan.core.errors import AnkleScanError
 
 
 class CameraDisconnected(AnkleScanError):
@@ -171,8 +171,8 @@ def register_backend(key: str, label: str, module: str) -> None:
     _BACKENDS[key] = _Backend(key, label, module)
 
 
-register_backend("opencv", "USB video camera (UVC, OpenCV)", "hardware.opencv_camera")
-register_backend("gphoto2", "Tethered still camera (gphoto2)", "hardware.gphoto_camera")
+register_backend("opencv", "USB video camera (UVC, OpenCV)", "anklescan.hardware.opencv_camera")
+register_backend("gphoto2", "Tethered still camera (gphoto2)", "anklescan.hardware.gphoto_camera")
 
 
 def _backend_module(key: str):

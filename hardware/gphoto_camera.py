@@ -18,8 +18,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from core.errors import AnkleScanError
-from hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
 
 BACKEND = "gphoto2"
 MISSING = "the gphoto2 package is not installed (pip install 'anklescan[cameras]')"

@@ -29,8 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.errors import AnkleScanError
-from hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
 
 BACKEND = "opencv"
 DEFAULT_API = cv2.CAP_V4L2 if sys.platform.startswith("linux") else cv2.CAP_ANY

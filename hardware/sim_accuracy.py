@@ -19,9 +19,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from core.pointcloud import PointCloud
-from hardware.sim_scene import ObjectId
-from hardware.simrig import Truth
+from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.hardware.sim_scene import ObjectId
+from anklescan.hardware.simrig import Truth
 
 OUTLIER_MM = 2.0
 SUBJECT = (ObjectId.LEG, ObjectId.FOOT, ObjectId.TABLE, ObjectId.MARK)

@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from hardware.sim_scene import ObjectId, Plane, Scene, TexturedQuad
-from hardware.simrig import RIG_TARGET
+from anklescan.hardware.sim_scene import ObjectId, Plane, Scene, TexturedQuad
+from anklescan.hardware.simrig import RIG_TARGET
 
 BLACK, WHITE = 0.06, 0.85
 TEXELS_PER_MM = 2.0

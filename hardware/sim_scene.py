@@ -605,7 +605,7 @@ def angles_from_marks(marks: dict) -> dict:
     """SPEC §3 angles (degrees) from mark centres {"1": (x, y, z), ...}.
 
     Kept local on purpose: the ground truth must not depend on the code under test
-    (core.angles).
+    (anklescan.core.measure.angles).
     """
     P = {k: np.asarray(v, float) for k, v in marks.items()}
     d12, d34 = P["1"] - P["2"], P["3"] - P["4"]
@@ -619,8 +619,8 @@ def angles_from_marks(marks: dict) -> dict:
 
 
 def box_scene_objects(px_per_mm: float = 4.0) -> list:
-    """The calibration box (core.calibration_box's faces and markers) as simulator objects."""
-    from core.calibration_box import face_placements
+    """The calibration box (anklescan.core.calibration.box's faces and markers) as simulator objects."""
+    from anklescan.core.calibration.box import face_placements
 
     return [TexturedQuad(origin=p["origin"], u_axis=p["u_axis"], v_axis=p["v_axis"], texture=p["texture"])
             for p in face_placements(px_per_mm)]

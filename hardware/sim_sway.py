@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hardware.sim_scene import Mark, ObjectId, Scene
+from anklescan.hardware.sim_scene import Mark, ObjectId, Scene
 
 FRAME_S = {"webcam": 0.030, "dslr": 2.0}  # seconds per frame (issue 18; docs/performance.md)
 SUBJECT_KINDS = (ObjectId.LEG, ObjectId.FOOT)
@@ -135,7 +135,7 @@ class SwayClock:
     def capture(self, rig, projector_image, **kw) -> np.ndarray:
         """Photograph ``projector_image`` through ``rig``'s devices with the subject at this
         frame's pose; the rig's own noise generator keeps a seeded run reproducible."""
-        from hardware.simrig import SimRig
+        from anklescan.hardware.simrig import SimRig
 
         t = self.start_s + self.frames_taken * self.frame_s
         self.frames_taken += 1
@@ -187,7 +187,7 @@ def frame_transport(still, posed):
     slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
     import scipy.sparse
 
-    from hardware.simrig import _single_threaded_blas, _Transport
+    from anklescan.hardware.simrig import _single_threaded_blas, _Transport
 
     still.prepare()
     tr = still._transport

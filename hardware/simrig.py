@@ -20,10 +20,10 @@ import numpy as np
 import scipy.sparse
 from threadpoolctl import threadpool_limits
 
-from core.calibration_file import Calibration
-from core.device_model import Device, look_at
-from hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
-from hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
+from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
 
 __all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]

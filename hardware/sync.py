@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import AnkleScanError
+from anklescan.core.errors import AnkleScanError
 
 MIN_CONTRAST = 8.0  # 8-bit levels between black and white frames below which nothing is measurable
 

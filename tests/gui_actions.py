@@ -125,7 +125,7 @@ def click_at(widget: QWidget, x: int, y: int) -> None:
 def use_true_calibration(win) -> None:
     """Make the simulated rig's exact calibration the current one, as if a clinician had
     calibrated (for tests about something else than calibration)."""
-    from app.calibration_wizard import accept_calibration
+    from anklescan.app.calibration_wizard import accept_calibration
     accept_calibration(win.rig.calibration, None, win.data_folder(), win.store, source="simulator truth (test)")
     win._load_calibration()
 
@@ -159,7 +159,7 @@ class GapMeter:
 def calibrated_window(qtbot, operator: str = "tester"):
     """The main window on the simulated rig, shown, with its true calibration accepted and the
     operator known (for tests about scanning, not about first start or calibration)."""
-    from app.main_window import MainWindow
+    from anklescan.app.main_window import MainWindow
     win = MainWindow(open_rig_now=True)
     qtbot.addWidget(win)
     win.show()

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from core.angles import (
+from anklescan.core.measure.angles import (
     compute_angles, leg_inversion, leg_plantar_flexion, mismatch, read_marks_csv,
     table_angles, table_normal,
 )
-from core.errors import AnkleScanError, GeometryError
+from anklescan.core.errors import AnkleScanError, GeometryError
 
 
 def rot_y(deg):

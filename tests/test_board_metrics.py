@@ -1,12 +1,12 @@
-"""core.board_metrics on exact synthetic geometry: the pitch and flatness measures themselves."""
+"""anklescan.core.calibration.board_metrics on exact synthetic geometry: the pitch and flatness measures themselves."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.board_metrics import fit_plane, measure_board, triangulate_both
-from hardware.sim_board import inner_corners_world, rotation
-from hardware.simrig import SimRig
+from anklescan.core.calibration.board_metrics import fit_plane, measure_board, triangulate_both
+from anklescan.hardware.sim_board import inner_corners_world, rotation
+from anklescan.hardware.simrig import SimRig
 
 COLS, ROWS, SQUARE = 9, 7, 40.0
 

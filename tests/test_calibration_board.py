@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.calibration_board import board_world_frame, calibrate_from_board_captures
-from core.capture import save_capture
-from core.patterns import make_pattern_set, render_all
-from hardware.sim_board import board_views
-from hardware.simrig import SimRig
+from anklescan.core.calibration.board import board_world_frame, calibrate_from_board_captures
+from anklescan.core.scan.capture import save_capture
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.hardware.sim_board import board_views
+from anklescan.hardware.simrig import SimRig
 
 COLS, ROWS, SQUARE = 9, 7, 40.0
 

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core import calibration_box as cb
+from anklescan.core.calibration import box as cb
 
 
 def test_corners_lie_on_their_faces_and_ids_are_unique():
@@ -76,11 +76,11 @@ def test_local_homography_recovers_a_plane_map():
 
 @pytest.fixture(scope="module")
 def box_capture(tmp_path_factory):
-    sim = pytest.importorskip("hardware.simrig")
-    from hardware.sim_scene import box_scene_objects, quad_scene
+    sim = pytest.importorskip("anklescan.hardware.simrig")
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
-    from core.capture import save_capture
-    from core.patterns import make_pattern_set, render_all
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
 
     rig = sim.SimRig(quad_scene(box_scene_objects(4.0)), scale=0.5)
     pset = make_pattern_set("default", 512, 384, axes=("column",))
@@ -90,7 +90,7 @@ def box_capture(tmp_path_factory):
 
 
 def test_detection_on_simulated_capture(box_capture):
-    from core.capture import load_capture
+    from anklescan.core.scan.capture import load_capture
 
     folder, true = box_capture
     cap = load_capture(folder)

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from core.calibration_file import calibration_from_dict, calibration_to_dict, load_calibration, save_calibration
-from core.errors import CalibrationError
-from hardware.simrig import SimRig
+from anklescan.core.calibration.file import calibration_from_dict, calibration_to_dict, load_calibration, save_calibration
+from anklescan.core.errors import CalibrationError
+from anklescan.hardware.simrig import SimRig
 
 
 @pytest.fixture(scope="module")

@@ -22,10 +22,10 @@ def _shot(widget, name):
 
 @pytest.fixture
 def setup(qtbot, tmp_path):
-    from app.calibration_wizard import CalibrationWizard
-    from app.projector_window import ProjectorWindow
-    from app.rig import SIMULATED, open_rig
-    from core.store import Store
+    from anklescan.app.calibration_wizard import CalibrationWizard
+    from anklescan.app.projector_window import ProjectorWindow
+    from anklescan.app.rig import SIMULATED, open_rig
+    from anklescan.core.records.store import Store
 
     rig = open_rig(SIMULATED, scale=SCALE)
     projector = ProjectorWindow(rig.projector_size)
@@ -41,10 +41,10 @@ def setup(qtbot, tmp_path):
 
 
 def _leg_rms(rig, cal, folder):
-    from core.capture import load_capture, save_capture
-    from core.patterns import make_pattern_set, render_all
-    from core.reconstruct import reconstruct
-    from hardware.sim_accuracy import evaluate
+    from anklescan.core.scan.capture import load_capture, save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.core.scan.reconstruct import reconstruct
+    from anklescan.hardware.sim_accuracy import evaluate
 
     sim = rig.camera.rig  # the leg scene, same devices as the box scene
     pset = make_pattern_set("default", sim.projector.width, sim.projector.height)
@@ -55,7 +55,7 @@ def _leg_rms(rig, cal, folder):
 def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     from PySide6.QtCore import Qt
 
-    from app.calibration_wizard import (PAGE_REPORT, PAGE_VERIFY, calibration_warning, current_calibration_info,
+    from anklescan.app.calibration_wizard import (PAGE_REPORT, PAGE_VERIFY, calibration_warning, current_calibration_info,
                                         load_current_calibration)
 
     rig, projector, store, wiz = setup
@@ -106,7 +106,7 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
 
 def _visible_corners(sim_box, cal):
     """Manual points the camera really sees (not hidden by the box itself)."""
-    from app.calibration_wizard import manual_points
+    from anklescan.app.calibration_wizard import manual_points
 
     truth = sim_box.truth()
     out = []
@@ -121,7 +121,7 @@ def _visible_corners(sim_box, cal):
 def test_manual_flow_reaches_focal_length(setup, qtbot):
     from PySide6.QtCore import Qt
 
-    from app.calibration_wizard import PAGE_MANUAL, PAGE_REPORT, manual_points
+    from anklescan.app.calibration_wizard import PAGE_MANUAL, PAGE_REPORT, manual_points
 
     rig, projector, store, wiz = setup
     true = rig.calibration
@@ -177,7 +177,7 @@ def test_manual_flow_reaches_focal_length(setup, qtbot):
 
 def test_spot_refinement_falls_back_to_the_steered_spot(setup, qtbot):
     """No camera click for the point: the spot is recorded as steered, and the operator is told."""
-    from app.calibration_wizard import PAGE_MANUAL
+    from anklescan.app.calibration_wizard import PAGE_MANUAL
 
     rig, projector, store, wiz = setup
     wiz.go(PAGE_MANUAL)
@@ -192,7 +192,7 @@ def test_spot_refinement_falls_back_to_the_steered_spot(setup, qtbot):
 
 
 def test_warning_banner_hook(tmp_path):
-    from app.calibration_wizard import (KEY_CREATED, KEY_MAX_AGE, KEY_PATH, KEY_VERIFIED, calibration_warning,
+    from anklescan.app.calibration_wizard import (KEY_CREATED, KEY_MAX_AGE, KEY_PATH, KEY_VERIFIED, calibration_warning,
                                         qsettings)
 
     qs = qsettings()
@@ -211,7 +211,7 @@ def test_warning_banner_hook(tmp_path):
 
 def test_spot_refinement_without_the_projector_window_keeps_the_steered_spot(setup, qtbot, monkeypatch):
     """The projector window closed mid-way: a clear message, the spot recorded as steered."""
-    import app.calibration_wizard as cw
+    import anklescan.app.calibration_wizard as cw
 
     rig, projector, store, wiz = setup
     wiz.go(cw.PAGE_MANUAL)
@@ -232,7 +232,7 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     board flat, then tilts it), calibrated, reported and accepted like the box."""
     from PySide6.QtCore import Qt
 
-    from app.calibration_wizard import PAGE_PLACE, PAGE_REPORT, PAGE_VERIFY, current_calibration_info
+    from anklescan.app.calibration_wizard import PAGE_PLACE, PAGE_REPORT, PAGE_VERIFY, current_calibration_info
 
     rig, projector, store, wiz = setup
     assert not wiz.calibrate_board_button.isEnabled()
@@ -262,10 +262,10 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     from PySide6.QtCore import Qt
     from scipy.spatial.transform import Rotation
 
-    from app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
-    from core.angles import compute_angles
-    from core.calibration_file import Calibration
-    from hardware.sim_scene import leg_scene
+    from anklescan.app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
+    from anklescan.core.measure.angles import compute_angles
+    from anklescan.core.calibration.file import Calibration
+    from anklescan.hardware.sim_scene import leg_scene
 
     rig, projector, store, wiz = setup
     true = rig.camera.rig.true_calibration()

@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
-import core.capture as capture_mod
-from core.capture import CaptureWriter, capture_from_images, load_capture, save_capture
-from core.errors import CaptureError
-from core.patterns import make_pattern_set, render_all
+import anklescan.core.scan.capture as capture_mod
+from anklescan.core.scan.capture import CaptureWriter, capture_from_images, load_capture, save_capture
+from anklescan.core.errors import CaptureError
+from anklescan.core.scan.patterns import make_pattern_set, render_all
 
 H, W = 30, 40
 
@@ -219,7 +219,7 @@ def test_writer_rejects_size_change(tmp_path, pset):
 
 def test_pattern_folder_photographed_is_a_capture(tmp_path):
     """SPEC 5: a camera that photographs the pattern folder file by file makes a capture."""
-    from core.patterns import write_patterns
+    from anklescan.core.scan.patterns import write_patterns
     ps = make_pattern_set("default", 64, 16)
     folder = write_patterns(ps, tmp_path / "pat")
     cap = load_capture(folder)

@@ -10,18 +10,18 @@ import cv2
 import numpy as np
 import pytest
 
-from core.calibration_file import calibration_to_dict, save_calibration
-from core.capture import save_capture
-from core.patterns import make_pattern_set, render_all
-from core.pointcloud import read_ply
-from hardware.sim_accuracy import evaluate
-from hardware.simrig import SimRig
+from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+from anklescan.core.scan.capture import save_capture
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.core.scan.pointcloud import read_ply
+from anklescan.hardware.sim_accuracy import evaluate
+from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(*args, cwd=ROOT):
-    return subprocess.run([sys.executable, "-m", "app.cli", "-q", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=300)
 
 

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from core.capture import capture_from_images
-from core.decode import (INCONSISTENT, LOW_CONTRAST, OUTSIDE, SATURATED, SHADOW, VALID,
+from anklescan.core.scan.capture import capture_from_images
+from anklescan.core.scan.decode import (INCONSISTENT, LOW_CONTRAST, OUTSIDE, SATURATED, SHADOW, VALID,
                          decode, estimate_sigma)
-from core.errors import CaptureError
-from core.patterns import make_pattern_set, render_all, simulate_frames
+from anklescan.core.errors import CaptureError
+from anklescan.core.scan.patterns import make_pattern_set, render_all, simulate_frames
 
 H, W = 120, 160
 NOISE = 2 / 255

@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from app.demo import MARKER, run_demo
-from core.errors import AnkleScanError
-from core.store import Store
+from anklescan.app.demo import MARKER, run_demo
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.records.store import Store
 
 
 @pytest.mark.slow
@@ -58,7 +58,7 @@ def test_study_plan_is_the_papers_cohort():
     sprain history and less in shoes (structure only: no scanning here, the study takes minutes)."""
     import numpy as np
 
-    from app.demo import STUDY_PLANTAR_FLEXIONS, study_plan
+    from anklescan.app.demo import STUDY_PLANTAR_FLEXIONS, study_plan
 
     plan = study_plan()
     codes = {t["patient"].code: t["patient"].sprain_count for t in plan}
@@ -78,8 +78,8 @@ def test_study_plan_is_the_papers_cohort():
 def test_study_demo_runs_end_to_end_on_a_small_plan(tmp_path):
     """`demo --study` through its real scan path, on two trials (a merge once left its jobs
     without the marks' type, and only the structure was tested)."""
-    from app.demo import run_study_demo, study_plan
-    from core.store import Store
+    from anklescan.app.demo import run_study_demo, study_plan
+    from anklescan.core.records.store import Store
     plan = [t for t in study_plan() if t["condition"] == "barefoot" and t["ref"][1] == 0.0][:2]
     out, lines = tmp_path / "study", []
     assert run_study_demo(out, progress=lines.append, scale=0.5, plan=plan) == 0

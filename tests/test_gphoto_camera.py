@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import AnkleScanError
-from hardware import camera as camera_mod
-from hardware import gphoto_camera as gpc
-from hardware.camera import CameraDisconnected
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware import camera as camera_mod
+from anklescan.hardware import gphoto_camera as gpc
+from anklescan.hardware.camera import CameraDisconnected
 
 
 class GPhoto2Error(Exception):

@@ -5,7 +5,7 @@ import pytest
 from PySide6.QtCore import QPoint, Qt
 from PySide6.QtGui import QGuiApplication
 
-from app.projector_window import ProjectorWindow, choose_screen
+from anklescan.app.projector_window import ProjectorWindow, choose_screen
 
 pytestmark = pytest.mark.gui
 

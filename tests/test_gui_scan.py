@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 
-from app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
+from anklescan.app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
 from gui_actions import GapMeter, calibrated_window
 
 pytestmark = pytest.mark.gui
@@ -50,7 +50,7 @@ def test_full_scan_matches_offline_reconstruction(qtbot, window):
     trial = window.store.get_trial(window._trial_id)
     assert (trial.ref_inversion, trial.ref_plantar_flexion) == (10.0, -5.0)
     assert trial.capture_path and window.store.verify_trial_files(trial.id) == []
-    from app.scan_worker import reconstruct_folder
+    from anklescan.app.scan_worker import reconstruct_folder
     offline = reconstruct_folder(result.folder, window.rig.calibration)
     assert np.array_equal(offline.points, result.cloud.points)
     assert trial.cloud_path
@@ -60,7 +60,7 @@ def test_each_frame_shows_its_own_pattern(qtbot, window):
     """The camera never photographs the previous pattern: compare with the rig's noise-free image."""
     _run_scan(qtbot, window)
     import cv2
-    from core.patterns import render_frame
+    from anklescan.core.scan.patterns import render_frame
     folder = window.last_result.folder
     pset = window._scan_job(folder).pattern_set
     rig = window.rig.camera.rig
@@ -116,7 +116,7 @@ def test_projector_screen_gone_stops_scan(qtbot, window):
 
 def test_gui_starts_quickly():
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", "import sys; from app.main_window import run_gui; "
+    out = subprocess.run([sys.executable, "-c", "import sys; from anklescan.app.main_window import run_gui; "
                           "sys.exit(run_gui(['anklescan', '--quit-when-shown']))"],
                          cwd=REPO, capture_output=True, text=True, timeout=60)
     wall = time.perf_counter() - t0

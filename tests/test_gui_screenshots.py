@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from app import resources
-from app.main_window import PAGE_CAMERA, PAGE_SCAN, MainWindow
+from anklescan.app import resources
+from anklescan.app.main_window import PAGE_CAMERA, PAGE_SCAN, MainWindow
 from gui_actions import use_true_calibration
 
 pytestmark = pytest.mark.gui
@@ -50,7 +50,7 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     qtbot.wait(100)
     win.grab().save(str(OUT / "camera_panel.png"))
     win.tabs.setCurrentIndex(PAGE_SCAN)
-    from core.patterns import render_frame
+    from anklescan.core.scan.patterns import render_frame
     pset = win._scan_job(win.last_result.folder).pattern_set
     win.projector.show_frame(render_frame(pset, pset.frames[10]))
     win.projector.resize(640, 480)

@@ -13,7 +13,7 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QLineEdit, QSpinBox
 
-from app.main_window import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION, MainWindow
+from anklescan.app.main_window import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION, MainWindow
 from gui_actions import (all_menu_actions, button, calibrated_window, click, click_at, dismiss, fill_and_ok,
                          menu_action, press_accept, save_as, use_true_calibration, with_dialog)
 
@@ -82,7 +82,7 @@ def _scan(qtbot, win, inversion: str, plantar_flexion: str, timeout=180_000) -> 
 
 
 def _calibrate_with_wizard(qtbot, win, open_it):
-    from app.calibration_wizard import PAGE_REPORT, PAGE_VERIFY
+    from anklescan.app.calibration_wizard import PAGE_REPORT, PAGE_VERIFY
 
     def drive(wiz):
         qtbot.waitUntil(lambda: "markers found" in wiz.place_count.text(), timeout=30_000)
@@ -336,7 +336,7 @@ def test_quitting_during_a_scan_asks_then_stops_cleanly(qtbot, fresh, caplog):
     sid = win.current_session_id()
     with_dialog(qtbot, menu_action(win, "File/Quit").trigger, press_accept)
     assert not win.isVisible() and not win.controller.busy
-    from core.store import Store
+    from anklescan.core.records.store import Store
     with Store.open(store.path) as db:
         (trial,) = db.list_trials(sid)
         assert trial.status == "cancelled" and "closed" in trial.status_note
@@ -344,7 +344,7 @@ def test_quitting_during_a_scan_asks_then_stops_cleanly(qtbot, fresh, caplog):
 
 
 def test_undo_stops_at_the_automatic_marks(qtbot):
-    from app.mark_editor import MarksPage
+    from anklescan.app.mark_editor import MarksPage
     page = MarksPage(operator="op")
     qtbot.addWidget(page)
     page.show()
@@ -390,7 +390,7 @@ def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
 
 
 def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_path, monkeypatch):
-    from core.store import Store
+    from anklescan.core.records.store import Store
     data = tmp_path / "archive"
     with Store.open(data_dir=data) as db:
         db.add_patient("P-070", sprain_count=1)

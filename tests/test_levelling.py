@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from core.angles import compute_angles
-from core.calibration_file import Calibration, load_calibration, save_calibration
-from core.capture import save_capture
-from core.patterns import make_pattern_set, render_all
-from hardware.sim_scene import Box, ObjectId, Plane, Scene, leg_scene
-from hardware.simrig import SimRig
+from anklescan.core.measure.angles import compute_angles
+from anklescan.core.calibration.file import Calibration, load_calibration, save_calibration
+from anklescan.core.scan.capture import save_capture
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.hardware.sim_scene import Box, ObjectId, Plane, Scene, leg_scene
+from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE_TOP_Z = 120.0
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
                           text=True, timeout=300)
 
 

@@ -1,13 +1,13 @@
-"""The projector-lit image averaged over the Gray-code pairs (core.lit_image)."""
+"""The projector-lit image averaged over the Gray-code pairs (anklescan.core.scan.lit_image)."""
 
 import numpy as np
 import pytest
 
-from core.capture import capture_from_images
-from core.lit_image import averaged_lit, lit_from_frames
-from core.patterns import make_pattern_set, render_all
-from hardware.sim_scene import leg_scene
-from hardware.simrig import SimRig
+from anklescan.core.scan.capture import capture_from_images
+from anklescan.core.scan.lit_image import averaged_lit, lit_from_frames
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.hardware.sim_scene import leg_scene
+from anklescan.hardware.simrig import SimRig
 
 
 @pytest.fixture(scope="module")

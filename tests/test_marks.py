@@ -1,12 +1,12 @@
-"""Mark detection, 3-D centre fit and labelling (core.marks)."""
+"""Mark detection, 3-D centre fit and labelling (anklescan.core.measure.marks)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from core.marks import Mark, MarkSet, _circle_geometric, _plane_from_pixels, fit_plane, label_marks
-from hardware.sim_scene import leg_scene
+from anklescan.core.measure.marks import Mark, MarkSet, _circle_geometric, _plane_from_pixels, fit_plane, label_marks
+from anklescan.hardware.sim_scene import leg_scene
 
 
 def _truth_marks(scene, drop=()):
@@ -112,9 +112,9 @@ def test_no_marks_message():
 def test_nothing_decoded_is_a_clear_empty_result(recwarn):
     """A scan with no points (lens cap on): no plates, a message, no numpy warnings on the way
     (the second look must not take the median of nothing)."""
-    from core.marks import find_marks
-    from core.pointcloud import PointCloud
-    from hardware.simrig import SimRig
+    from anklescan.core.measure.marks import find_marks
+    from anklescan.core.scan.pointcloud import PointCloud
+    from anklescan.hardware.simrig import SimRig
 
     cal = SimRig(scale=0.25).true_calibration()
     dark = np.zeros((cal.camera.height, cal.camera.width), np.uint8)
@@ -145,9 +145,9 @@ def test_plane_fit_rejects_stray_points():
 # ------------------------------------------------------------------ on the simulated rig
 
 def _scan(inv, pf, scale, seed=1):
-    from core.capture import capture_from_images
-    from core.patterns import make_pattern_set, render_all
-    from hardware.simrig import SimRig
+    from anklescan.core.scan.capture import capture_from_images
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(leg_scene(inv, pf), scale=scale, seed=seed)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
@@ -157,7 +157,7 @@ def _scan(inv, pf, scale, seed=1):
 @pytest.mark.parametrize("inv,pf", [(0, 0), (20, -20)])
 def test_reduced_scale_table_marks_and_angles(inv, pf):
     """Scale 0.5 (plates ~6 px across their radius): looser than the full-resolution targets."""
-    from core.measure import measure_capture
+    from anklescan.core.measure.pipeline import measure_capture
 
     rig, cap = _scan(inv, pf, 0.5)
     res = measure_capture(cap, rig.true_calibration())
@@ -184,7 +184,7 @@ def test_full_resolution_targets():
     < 0.3 mm, angles < 0.2°, at 20° inversion, where straight-lateral plates were lost (82-83°
     from the camera) and the lateral knee plate clipped; marks 3, 4 sit 35° forward of lateral
     and their clipped white keeps its phase."""
-    from core.measure import measure_capture
+    from anklescan.core.measure.pipeline import measure_capture
 
     rig, cap = _scan(20, 0, 1.0)
     res = measure_capture(cap, rig.true_calibration())
@@ -204,7 +204,7 @@ def test_grazing_lit_front_plates_are_found_by_the_second_look():
     (before: only its lit side wall was seen, a crescent fitted as a line). Its far-side edge
     has a shadow sliver narrower than the blur beside it, which pulled the half-contrast edge
     0.2–0.5 mm inwards (0.32 mm off before ``sliver_edges``; 0.10 mm now)."""
-    from core.measure import measure_capture
+    from anklescan.core.measure.pipeline import measure_capture
 
     rig, cap = _scan(20, 20, 1.0)
     res = measure_capture(cap, rig.true_calibration())
@@ -235,9 +235,9 @@ def test_leg_marks_labelled_without_the_table_triple(inv, pf, drop):
 def test_shading_correction_recovers_albedo_on_a_curved_surface():
     """A cylinder lit from the side: the lit image falls with cos(incidence) / d², the
     corrected one is flat (∝ albedo) wherever the light reaches at a usable angle."""
-    from core.calibration_file import Calibration
-    from core.device_model import Device, look_at
-    from core.marks import shading_corrected
+    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.device_model import Device, look_at
+    from anklescan.core.measure.marks import shading_corrected
 
     R, t = look_at([0.0, 1000.0, 0.0], [0.0, 0.0, 0.0])
     cam = Device(200, 150, [[400.0, 0, 99.5], [0, 400.0, 74.5], [0, 0, 1]], [], R, t)
@@ -276,8 +276,8 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     at the rim (``sliver_edges``), against rays cast in the simulated scene, on the far side
     where the sliver is narrow enough to matter (< 1.5 px; wider ones leave the level at A/2).
     The first-order width h·(a_p − a_c) was twice the true one at the grazing 10/20."""
-    from core.marks import EdgeProfiles, _plane_basis, _rim_geometry, _sliver_along_profile
-    from hardware.simrig import SimRig
+    from anklescan.core.measure.marks import EdgeProfiles, _plane_basis, _rim_geometry, _sliver_along_profile
+    from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(leg_scene(inv, pf))
     cal, plate = rig.true_calibration(), rig.scene.marks[label]
@@ -309,7 +309,7 @@ def test_profiles_that_end_on_the_plate_give_no_edge():
     """A blob smaller than its plate: profiles run to twice the blob's ellipse, which can end
     on the plate's own falling edge; an "edge" read there lies inside the plate (a front knee
     plate was 0.59 mm off), so such profiles give none. Long enough profiles find the rim."""
-    from core.marks import edge_profiles
+    from anklescan.core.measure.marks import edge_profiles
 
     yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
     r = np.hypot(xx - 60, yy - 60)
@@ -330,9 +330,9 @@ def _sized_scan(mark_type, diameter, inv=10, pf=0):
     """A scale-0.5 scan with marks of one type and size (cached: a few renders serve several tests)."""
     key = (mark_type, diameter, inv, pf)
     if key not in _SIZED:
-        from core.capture import capture_from_images
-        from core.patterns import make_pattern_set, render_all
-        from hardware.simrig import SimRig
+        from anklescan.core.scan.capture import capture_from_images
+        from anklescan.core.scan.patterns import make_pattern_set, render_all
+        from anklescan.hardware.simrig import SimRig
 
         rig = SimRig(leg_scene(inv, pf, mark_type=mark_type, mark_radius=diameter / 2), scale=0.5, seed=5)
         pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
@@ -346,7 +346,7 @@ def test_marks_of_any_size_plates_and_stickers(mark_type, diameter, given):
     """Stickers on the curved skin and plates, 10-20 mm, size measured or given: all seven,
     labelled, centres (the skin under a sticker's centre) well within the targets, the measured
     diameter within its SD band, each mark's model told from the data (its step)."""
-    from core.measure import measure_capture
+    from anklescan.core.measure.pipeline import measure_capture
 
     rig, cap = _sized_scan(mark_type, diameter)
     res = measure_capture(cap, rig.true_calibration(), diameter if given else None)
@@ -365,7 +365,7 @@ def test_marks_of_any_size_plates_and_stickers(mark_type, diameter, given):
 
 
 def test_a_given_size_that_fits_no_mark_names_the_sizes_seen():
-    from core.measure import measure_capture
+    from anklescan.core.measure.pipeline import measure_capture
 
     rig, cap = _sized_scan("sticker", 12.0)
     res = measure_capture(cap, rig.true_calibration(), 20.0)
@@ -376,11 +376,11 @@ def test_a_given_size_that_fits_no_mark_names_the_sizes_seen():
 def test_click_snaps_to_the_sticker_centre():
     """Manual placement: a click 4 mm off a sticker's centre snaps to it; a click on bare skin
     far from any disk gives None (the click is kept as it is)."""
-    from core.decode import decode
-    from core.lit_image import averaged_lit
-    from core.marks import points_image
-    from core.marks_surface import snap_to_disk
-    from core.reconstruct import cloud_from_decoded
+    from anklescan.core.scan.decode import decode
+    from anklescan.core.scan.lit_image import averaged_lit
+    from anklescan.core.measure.marks import points_image
+    from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.scan.reconstruct import cloud_from_decoded
 
     rig, cap = _sized_scan("sticker", 12.0)
     cal = rig.true_calibration()
@@ -400,7 +400,7 @@ def test_click_snaps_to_the_sticker_centre():
 def test_simulated_stickers_follow_the_skin():
     """A sticker changes the skin's albedo out to its radius measured along the skin (the truth
     mask labels its pixels), and has no solid: nothing sticks out of the leg."""
-    from hardware.simrig import SimRig
+    from anklescan.hardware.simrig import SimRig
 
     scene = leg_scene(0, 0, mark_type="sticker", mark_radius=10.0)
     st = scene.marks["1"].sticker

@@ -1,4 +1,4 @@
-"""core.measure and ``anklescan measure``: RESULT.json, and bad input → exit 2, nothing written."""
+"""anklescan.core.measure.pipeline and ``anklescan measure``: RESULT.json, and bad input → exit 2, nothing written."""
 
 import json
 import subprocess
@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.angles import AngleResult, compute_angles
-from core.marks import Mark, MarkSet, label_marks
-from core.measure import MeasureResult
-from hardware.sim_scene import leg_scene
+from anklescan.core.measure.angles import AngleResult, compute_angles
+from anklescan.core.measure.marks import Mark, MarkSet, label_marks
+from anklescan.core.measure.pipeline import MeasureResult
+from anklescan.hardware.sim_scene import leg_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,11 +42,11 @@ def test_format_text_lists_marks_and_angles():
 def plain_plane_capture(tmp_path_factory, request):
     """A scan of a bare board on the floor: no marks at all (with row patterns too, as the
     calibration box's capture has: measuring that one once failed with an internal error)."""
-    from core.calibration_file import save_calibration
-    from core.capture import save_capture
-    from core.patterns import make_pattern_set, render_all
-    from hardware.sim_scene import Box, ObjectId, quad_scene
-    from hardware.simrig import SimRig
+    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.sim_scene import Box, ObjectId, quad_scene
+    from anklescan.hardware.simrig import SimRig
 
     d = tmp_path_factory.mktemp("plain")
     board = Box(kind=ObjectId.TABLE, centre=(0.0, 0.0, 200.0), half=(200.0, 200.0, 10.0))
@@ -58,7 +58,7 @@ def plain_plane_capture(tmp_path_factory, request):
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "app.cli", *map(str, args)], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "anklescan.app.cli", *map(str, args)], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
 
 

@@ -8,17 +8,17 @@ import math
 import numpy as np
 import pytest
 
-from core.capture import load_capture, save_capture
-from core.decode import decode
-from core.errors import CaptureError
-from core.measure import measure_capture
-from core.motion import estimate_motion, motion_looks, scan_duration_s
-from core.patterns import PatternSet, make_pattern_set, render_all
-from core.reconstruct import cloud_from_decoded
-from core.store import Store
-from hardware.sim_scene import leg_scene
-from hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement
-from hardware.simrig import SimRig
+from anklescan.core.scan.capture import load_capture, save_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.errors import CaptureError
+from anklescan.core.measure.pipeline import measure_capture
+from anklescan.core.scan.motion import estimate_motion, motion_looks, scan_duration_s
+from anklescan.core.scan.patterns import PatternSet, make_pattern_set, render_all
+from anklescan.core.scan.reconstruct import cloud_from_decoded
+from anklescan.core.records.store import Store
+from anklescan.hardware.sim_scene import leg_scene
+from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement
+from anklescan.hardware.simrig import SimRig
 
 SCALE = 0.25
 
@@ -149,7 +149,7 @@ def test_store_flags_excludes_and_keeps(tmp_path):
         assert s.get_trial(trials[2].id).motion_keep
         # a stricter threshold flags the small one too
         assert s.set_trial_motion(trials[0].id, 0.1, 0.05, threshold_mm=0.05).motion_flagged
-        from core.errors import AnkleScanError
+        from anklescan.core.errors import AnkleScanError
         with pytest.raises(AnkleScanError):
             s.set_trial_motion(trials[0].id, float("nan"))
         with pytest.raises(AnkleScanError):
@@ -157,7 +157,7 @@ def test_store_flags_excludes_and_keeps(tmp_path):
 
 
 def test_report_shows_motion(tmp_path):
-    from core.report import write_csv, write_session_report
+    from anklescan.core.records.report import write_csv, write_session_report
     with Store.open(tmp_path / "db.sqlite") as s:
         s.add_patient("P1")
         ses = s.start_session("P1", condition="barefoot")
@@ -165,7 +165,7 @@ def test_report_shows_motion(tmp_path):
         s.set_trial_motion(t.id, 1.8, 0.2, scan_duration_s=1.1)
         rep = write_session_report(s, [ses.id], tmp_path / "r.pdf")
         assert rep.pages >= 1 and (tmp_path / "r.pdf").stat().st_size > 0
-        from core.report import _motion_cell
+        from anklescan.core.records.report import _motion_cell
         row = s.study_rows()[0]
         assert _motion_cell(row) == "1.80 out / 1.1"
         write_csv(s.study_rows(), tmp_path / "t.csv")

@@ -10,16 +10,16 @@ import cv2
 import numpy as np
 import pytest
 
-from core.calibration_file import load_calibration, save_calibration
-from core.errors import CalibrationError
-from core.opencv_calibration import export_opencv_calibration, import_opencv_calibration, relative_pose
-from hardware.simrig import SimRig
+from anklescan.core.calibration.file import load_calibration, save_calibration
+from anklescan.core.errors import CalibrationError
+from anklescan.core.calibration.opencv_calibration import export_opencv_calibration, import_opencv_calibration, relative_pose
+from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
 
 

@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import AnkleScanError
-from hardware import camera as camera_mod
-from hardware import opencv_camera as oc
-from hardware.camera import CameraDisconnected
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware import camera as camera_mod
+from anklescan.hardware import opencv_camera as oc
+from anklescan.hardware.camera import CameraDisconnected
 
 W, H, N = 64, 48, 12
 

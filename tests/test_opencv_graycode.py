@@ -1,5 +1,5 @@
 """`anklescan import opencv-graycode` on the simulated rig: OpenCV's GrayCodePattern order and bit
-convention written out here independently of core.patterns, photographed, imported, decoded."""
+convention written out here independently of anklescan.core.scan.patterns, photographed, imported, decoded."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from core.capture import load_capture
-from core.decode import decode
-from core.errors import CaptureError
-from core.opencv_graycode import import_opencv_graycode
-from hardware.simrig import SimRig
+from anklescan.core.scan.capture import load_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.errors import CaptureError
+from anklescan.core.scan.opencv_graycode import import_opencv_graycode
+from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def test_imported_opencv_capture_decodes_to_the_true_projector_pixels(tmp_path, 
     src.mkdir()
     for i, img in enumerate(opencv_frames(W, H, step)):
         cv2.imwrite(str(src / f"graycode_{i:02d}.png"), rig.capture(img))
-    done = subprocess.run([sys.executable, "-m", "app.cli", "-q", "import", "opencv-graycode", src, "--projector",
+    done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "import", "opencv-graycode", src, "--projector",
                            f"{W}x{H}", "--step", str(step), "--out", tmp_path / "cap"], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from core import paper_model as pm
-from core.device_model import Device, look_at
-from core.errors import CalibrationError
+from anklescan.core.calibration import paper_model as pm
+from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.core.errors import CalibrationError
 
 R_CAM, T_CAM = look_at([650.0, 1050.0, 750.0], [0.0, 0.0, 140.0])
 

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-import core.patterns as patterns
-from core.errors import AnkleScanError, CaptureError
-from core.patterns import (PatternSet, gray_profile, make_pattern_set, render_all, render_frame,
+import anklescan.core.scan.patterns as patterns
+from anklescan.core.errors import AnkleScanError, CaptureError
+from anklescan.core.scan.patterns import (PatternSet, gray_profile, make_pattern_set, render_all, render_frame,
                            write_patterns)
 
 

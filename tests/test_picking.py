@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from app import picking
+from anklescan.app import picking
 
 
 def _setup(aspect=4 / 3):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from core.errors import AnkleScanError
-from core.pointcloud import PointCloud, read_ply, write_ply
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.scan.pointcloud import PointCloud, read_ply, write_ply
 
 
 def _cloud(n=1000, seed=0):

@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 import pytest
 
-from core.board_metrics import measure_board, triangulate_both
-from core.calibration_board import calibrate_board_views, observe_board, observe_board_maps
-from core.capture import load_capture
-from core.decode import decode
-from core.opencv_graycode import import_opencv_graycode
+from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
+from anklescan.core.calibration.board import calibrate_board_views, observe_board, observe_board_maps
+from anklescan.core.scan.capture import load_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.scan.opencv_graycode import import_opencv_graycode
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "procam-calibration"
@@ -34,7 +34,7 @@ PROJECTOR = (2048, 1536)  # covers every code at graycode_step 2 (the README)
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", *map(str, args)], cwd=ROOT, capture_output=True,
                           text=True, timeout=300)
 
 
@@ -122,7 +122,7 @@ def test_author_calibration_imported_measures_the_board(capture_1, tmp_path):
     done = run("calibrate", "import", DATA / "calibration_result.xml", "--projector", "2048x1536",
                "--out", tmp_path / "author.json")
     assert done.returncode == 0, done.stderr
-    from core.calibration_file import load_calibration
+    from anklescan.core.calibration.file import load_calibration
 
     cal = load_calibration(tmp_path / "author.json")
     assert np.allclose(cal.camera.R, np.eye(3)) and np.allclose(cal.camera.t, 0)  # world = camera

@@ -20,16 +20,16 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from core.atomic import guard_output, temp_affixes
-from core.calibration_file import save_calibration
-from core.capture import CaptureWriter, save_capture
-from core.errors import AnkleScanError
-from core.limits import MAX_IMAGE_SIDE, load_json
-from core.patterns import make_pattern_set, render_all
-from core.pointcloud import read_ply
-from core.store import APPLICATION_ID, Store
-from hardware.simrig import SimRig
+from anklescan.app.cli import main
+from anklescan.core.atomic import guard_output, temp_affixes
+from anklescan.core.calibration.file import save_calibration
+from anklescan.core.scan.capture import CaptureWriter, save_capture
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.limits import MAX_IMAGE_SIDE, load_json
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.core.scan.pointcloud import read_ply
+from anklescan.core.records.store import APPLICATION_ID, Store
+from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -163,7 +163,7 @@ def test_patterns_never_deletes_files_it_did_not_write(capfd, tmp_path):
 
 
 def test_sigterm_during_patterns_leaves_no_temporary(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "-q", "patterns", "--out", str(tmp_path / "big"),
+    proc = subprocess.Popen([sys.executable, "-m", "anklescan.app.cli", "-q", "patterns", "--out", str(tmp_path / "big"),
                              "--projector", "8000x6000"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60
@@ -345,7 +345,7 @@ def test_argument_errors_are_one_line(capfd, tmp_path, args):
 
 
 def test_cli_size_limit_is_the_documented_constant():
-    from app.cli import MAX_SIDE
+    from anklescan.app.cli import MAX_SIDE
 
     assert MAX_SIDE == MAX_IMAGE_SIDE
 
@@ -353,7 +353,7 @@ def test_cli_size_limit_is_the_documented_constant():
 def test_truncated_png_is_one_line_without_libpng_noise(work):
     frame = _frames(work)[3]
     frame.write_bytes(frame.read_bytes()[:300])
-    done = subprocess.run([sys.executable, "-m", "app.cli", "-q", "reconstruct", str(work / "capture"),
+    done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "reconstruct", str(work / "capture"),
                            "--calibration", str(work / "cal.json"), "--out", str(work / "x.ply")],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert done.returncode == 2
@@ -516,7 +516,7 @@ def test_damaged_database_is_one_line(tmp_path):
 
 
 def test_a_dim_12_bit_capture_in_16_bit_files_is_not_called_unlit(tmp_path):
-    from core.capture import check_lit, capture_from_images
+    from anklescan.core.scan.capture import check_lit, capture_from_images
 
     pset = make_pattern_set("paper", 64, 48)
     frames = [(img.astype(np.uint16) * 4 + 40) for img in render_all(pset)]  # 12-bit range, dim
@@ -543,7 +543,7 @@ def test_damaged_ply_is_one_clear_error(tmp_path, header, fmt):
 
 
 def test_capture_metadata_with_nan_still_reads_back(tmp_path):
-    from core.capture import load_capture
+    from anklescan.core.scan.capture import load_capture
 
     pset = make_pattern_set("paper", 16, 8)
     with CaptureWriter(tmp_path / "cap", pset, {"gain": float("nan"), "exposure": np.float32(2.5)}) as w:
@@ -576,7 +576,7 @@ def test_database_on_a_read_only_mount_opens_for_reading(read_only_mount, monkey
         s.add_patient("P1")
     make_read_only()
     if not detected:  # a mount the statvfs flag does not reveal: SQLite's refusal decides
-        monkeypatch.setattr("core.store._read_only_reason", lambda path, exists: "")
+        monkeypatch.setattr("anklescan.core.records.store._read_only_reason", lambda path, exists: "")
     with Store.open(mnt / "anklescan.sqlite") as s:
         assert s.read_only and s.read_only_reason
         assert [p.code for p in s.list_patients()] == ["P1"]

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core import report
-from core import study_stats as st
-from core.errors import AnkleScanError
-from core.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
-from core.store import Store
+from anklescan.core.records import report
+from anklescan.core.records import study_stats as st
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.records.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
+from anklescan.core.records.store import Store
 
 INV_SETTINGS = (0.0, 20.0)
 PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
@@ -330,7 +330,7 @@ def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path
 def test_session_report_states_the_mark_diameter_setting():
     from types import SimpleNamespace
 
-    from core.report import _mark_diameter_text
+    from anklescan.core.records.report import _mark_diameter_text
 
     assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=None)) == "measured from each capture (auto)"
     assert _mark_diameter_text(SimpleNamespace(mark_diameter_mm=12.5)) == "12.5 mm (given)"

@@ -9,13 +9,13 @@ Quarter scale keeps this fast; at full resolution the same rigs give a subject m
 import numpy as np
 import pytest
 
-from core.capture import capture_from_images
-from core.decode import decode
-from core.patterns import make_pattern_set, render_all
-from core.reconstruct import cloud_from_decoded
-from core.triangulate import axis_geometry, scan_axes
-from hardware.sim_accuracy import evaluate
-from hardware.simrig import RIG_LAYOUTS, SimRig
+from anklescan.core.scan.capture import capture_from_images
+from anklescan.core.scan.decode import decode
+from anklescan.core.scan.patterns import make_pattern_set, render_all
+from anklescan.core.scan.reconstruct import cloud_from_decoded
+from anklescan.core.scan.triangulate import axis_geometry, scan_axes
+from anklescan.hardware.sim_accuracy import evaluate
+from anklescan.hardware.simrig import RIG_LAYOUTS, SimRig
 
 SCALE = 0.25
 

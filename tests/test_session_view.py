@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QPoint, QPointF, Qt
 
-from app.mark_editor import Mark, MarkEditor, marks_from_store
-from app.session_view import SessionView, group, trial_tip
-from app.viewer import CloudViewer
-from core.angles import compute_angles
-from core.store import Store
+from anklescan.app.mark_editor import Mark, MarkEditor, marks_from_store
+from anklescan.app.session_view import SessionView, group, trial_tip
+from anklescan.app.viewer import CloudViewer
+from anklescan.core.measure.angles import compute_angles
+from anklescan.core.records.store import Store
 
 pytestmark = pytest.mark.gui
 
@@ -150,8 +150,8 @@ def test_session_view_plots_hover_click_and_export(qtbot, store, tmp_path):
 
 
 def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
-    from app.main_window import PAGE_MARKS, PAGE_SESSION, MainWindow
-    from core.pointcloud import PointCloud, write_ply
+    from anklescan.app.main_window import PAGE_MARKS, PAGE_SESSION, MainWindow
+    from anklescan.core.scan.pointcloud import PointCloud, write_ply
     win = MainWindow()
     qtbot.addWidget(win)
     win.resize(1200, 760)
@@ -196,7 +196,7 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
 def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
     """Cancelled and excluded trials stay off the plots; unconfirmed automatic marks are hollow
     with a legend entry; thousandths of a degree sit on an axis of at least ±1°, unprefixed."""
-    from core.report import MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL
+    from anklescan.core.records.report import MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL
     sess = store.start_session("P-001", condition="barefoot")
     ids = []
     for pf, d in ((-10.0, 0.0015), (0.0, -0.001), (10.0, 0.0005), (0.0, 25.0), (10.0, -25.0)):

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from core.calibration_file import calibration_from_dict, calibration_to_dict
-from core.errors import AnkleScanError
-from hardware.camera import CameraDisconnected
-from hardware.sim_scene import ObjectId, Scene, TexturedQuad, angles_from_marks, leg_scene, quad_scene, table_normal
-from hardware.simrig import Optics, SimRig, default_camera, default_projector, simulated_devices
+from anklescan.core.calibration.file import calibration_from_dict, calibration_to_dict
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware.camera import CameraDisconnected
+from anklescan.hardware.sim_scene import ObjectId, Scene, TexturedQuad, angles_from_marks, leg_scene, quad_scene, table_normal
+from anklescan.hardware.simrig import Optics, SimRig, default_camera, default_projector, simulated_devices
 
 SCALE = 0.25
 

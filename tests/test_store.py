@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from core import store as store_mod
-from core.errors import AnkleScanError
-from core.store import SCHEMA_VERSION, Store, sha256_path
+from anklescan.core.records import store as store_mod
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.records.store import SCHEMA_VERSION, Store, sha256_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,7 +124,7 @@ def test_killed_process_mid_transaction_keeps_last_commit(tmp_path):
         s.add_patient("P-1")
     code = (
         "import os, sys\n"
-        "from core.store import Store\n"
+        "from anklescan.core.records.store import Store\n"
         f"s = Store.open({str(path)!r})\n"
         "with s._write() as c:\n"
         "    c.execute(\"INSERT INTO patients (code, created) VALUES ('P-2', 'x')\")\n"

@@ -4,9 +4,9 @@ fake clock (instant and deterministic), must give back that delay; plus the sett
 import numpy as np
 import pytest
 
-from core.errors import AnkleScanError
-from hardware import sync
-from hardware.simrig import SimRig, simulated_devices
+from anklescan.core.errors import AnkleScanError
+from anklescan.hardware import sync
+from anklescan.hardware.simrig import SimRig, simulated_devices
 from gui_actions import use_true_calibration
 
 
@@ -120,7 +120,7 @@ def test_panel_self_test_sets_the_settle_time_the_scan_records(qtbot, tmp_path):
     simulated camera, then a scan whose manifest carries the measured settle time and timings."""
     import json
 
-    from app.main_window import MainWindow
+    from anklescan.app.main_window import MainWindow
 
     win = MainWindow(open_rig_now=True)
     qtbot.addWidget(win)

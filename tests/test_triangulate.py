@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from core.calibration_file import Calibration
-from core.device_model import Device, look_at
-from core.errors import GeometryError
-from core.triangulate import triangulate_columns
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.core.errors import GeometryError
+from anklescan.core.scan.triangulate import triangulate_columns
 
 
 def _rig(scale=0.25, proj_dist=(-0.03, 0.01, 2e-4, 1e-4, 0.0), axis="both"):
@@ -83,7 +83,7 @@ def test_coincident_centres_refused():
 
 
 # ---- rows, both axes, any projector placement ------------------------------------------------
-from core.triangulate import (axis_geometry, check_geometry, scan_axes, triangulate_maps,  # noqa: E402
+from anklescan.core.scan.triangulate import (axis_geometry, check_geometry, scan_axes, triangulate_maps,  # noqa: E402
                               triangulate_points)
 
 

@@ -9,7 +9,7 @@ import pytest
 import usb.backend
 import usb.core
 
-from hardware import usb_discovery as ud
+from anklescan.hardware import usb_discovery as ud
 
 IAD_CLASS = 0xEF  # "miscellaneous": what webcams report at device level; the class is per interface
 
@@ -129,7 +129,7 @@ def test_missing_libusb_disables_discovery_with_a_reason(monkeypatch):
 
 @pytest.mark.gui
 def test_panel_shows_plug_unplug_and_the_permission_message(qtbot):
-    from app.camera_panel import CameraPanel
+    from anklescan.app.camera_panel import CameraPanel
 
     panel = CameraPanel([("simulated", "Simulated rig")])
     qtbot.addWidget(panel)

@@ -1,14 +1,14 @@
 import numpy as np
 import pytest
 
-from core import calibration_box as cb
-from core import verification as ver
-from core.errors import CalibrationError
-from core.triangulate import triangulate_points
+from anklescan.core.calibration import box as cb
+from anklescan.core.calibration import verification as ver
+from anklescan.core.errors import CalibrationError
+from anklescan.core.scan.triangulate import triangulate_points
 
 
 def _true_cal(scale=0.25):
-    sim = pytest.importorskip("hardware.simrig")
+    sim = pytest.importorskip("anklescan.hardware.simrig")
     return sim.SimRig(scale=scale).true_calibration()
 
 
@@ -37,11 +37,11 @@ def test_too_few_markers_is_one_line_error():
 
 def test_verification_scan_of_simulated_box_with_true_calibration(tmp_path):
     """The floor of the method at scale 0.5: the true calibration, a simulated scan of the box."""
-    sim = pytest.importorskip("hardware.simrig")
-    from hardware.sim_scene import box_scene_objects, quad_scene
+    sim = pytest.importorskip("anklescan.hardware.simrig")
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
-    from core.capture import save_capture
-    from core.patterns import make_pattern_set, render_all
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
 
     rig = sim.SimRig(quad_scene(box_scene_objects()), scale=0.5)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))

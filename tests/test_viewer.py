@@ -6,9 +6,11 @@ import pytest
 from OpenGL import GL
 from PySide6.QtCore import QPoint, Qt
 
-from app import picking, splat
-from app.viewer import COLOR_DEPTH, COLOR_WHITE, RENDER_CLASSIC, RENDER_SPLAT, CloudViewer
-from core.pointcloud import PointCloud
+from anklescan.app import picking
+
+from anklescan.app import splat
+from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, RENDER_CLASSIC, RENDER_SPLAT, CloudViewer
+from anklescan.core.scan.pointcloud import PointCloud
 
 pytestmark = pytest.mark.gui
 
@@ -17,7 +19,7 @@ pytestmark = pytest.mark.gui
 def scan():
     """The simulated rig's exact surface points at scale 0.25 (~2 mm apart), cropped to the
     leg and table, with normals and the scanner camera's position."""
-    from hardware.simrig import SimRig
+    from anklescan.hardware.simrig import SimRig
     rig = SimRig(scale=0.25)
     truth = rig.truth()
     P = truth.points.reshape(-1, 3)
@@ -147,14 +149,14 @@ def test_views_and_drag_orbit(viewer, qtbot):
 def test_screenshots(qtbot, qapp, tmp_path):
     """docs/screenshots/viewer_marks.png and session_plots.png."""
     from pathlib import Path
-    from app import resources
-    from app.mark_editor import MarksPage
-    from app.session_view import SessionView
-    from hardware.simrig import SimRig
-    from core.store import Store
+    from anklescan.app import resources
+    from anklescan.app.mark_editor import MarksPage
+    from anklescan.app.session_view import SessionView
+    from anklescan.hardware.simrig import SimRig
+    from anklescan.core.records.store import Store
     out = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
     qapp.setStyleSheet(resources.STYLE)
-    from hardware.sim_scene import leg_scene
+    from anklescan.hardware.sim_scene import leg_scene
     rig = SimRig(leg_scene(table_inversion=10, table_plantar_flexion=-6), scale=0.5)
     truth = rig.truth()
     white = rig.capture(np.full((rig.projector.height, rig.projector.width), 255, np.uint8))

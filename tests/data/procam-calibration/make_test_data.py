@@ -24,10 +24,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[2]))
 
-from core.calibration_board import find_corners  # noqa: E402
-from core.capture import load_capture  # noqa: E402
-from core.decode import decode  # noqa: E402
-from core.opencv_graycode import import_opencv_graycode  # noqa: E402
+from anklescan.core.calibration.board import find_corners  # noqa: E402
+from anklescan.core.scan.capture import load_capture  # noqa: E402
+from anklescan.core.scan.decode import decode  # noqa: E402
+from anklescan.core.scan.opencv_graycode import import_opencv_graycode  # noqa: E402
 
 GROW = 1.6  # squares beyond the outer inner corners: the whole printed board and a margin
 COLS, ROWS = 9, 7

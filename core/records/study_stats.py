@@ -178,7 +178,7 @@ def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
     counted trials enter them; see ``is_counted``)."""
     rows = counted_rows(rows)
     out = StudyStats()
-    rows = [r for r in rows if not r.get("motion_excluded")]  # moved during the scan, not kept (core/store.py)
+    rows = [r for r in rows if not r.get("motion_excluded")]  # moved during the scan, not kept (core/records/store.py)
     out.patient_group = {r["patient_code"]: group_of(r, min_sprains) for r in rows}
     out.patient_means = patient_means(rows)
     for g in GROUPS:

@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from core.capture import Capture
-from core.errors import CaptureError
-from core.patterns import AxisCode, PatternSet
+from anklescan.core.scan.capture import Capture
+from anklescan.core.errors import CaptureError
+from anklescan.core.scan.patterns import AxisCode, PatternSet
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
 REASON_NAMES = ("valid", "shadow", "low_contrast", "saturated", "inconsistent",

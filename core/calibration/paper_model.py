@@ -28,7 +28,7 @@ Conventions, all fixed here and used everywhere in the project:
 * Pixels: the centre of pixel (i, j) is (i, j), as in SPEC §4.
 * The projector (paper §3.3) is one-dimensional: only u is modelled, and its distortion is
   evaluated on the row-independent section y_d = 0, so that a projector column is an exact
-  plane (as core.device_model does for ``axis == "column"``).
+  plane (as anklescan.core.calibration.device_model does for ``axis == "column"``).
 
 The optional ``k2`` exists because a single inverse coefficient cannot represent a lens that
 OpenCV describes with k1 alone to better than a few tenths of a pixel at the corners (see
@@ -44,8 +44,8 @@ import math
 
 import numpy as np
 
-from core.device_model import Device
-from core.errors import CalibrationError
+from anklescan.core.calibration.device_model import Device
+from anklescan.core.errors import CalibrationError
 
 PAPER_FOCAL_MM = 1.0
 FLIP = np.diag([-1.0, -1.0, 1.0])  # paper device frame <-> OpenCV device frame (its own inverse)

@@ -39,10 +39,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from core.calibration_file import Calibration
-from core.capture import Capture
-from core.decode import DecodeResult
-from core.pointcloud import PointCloud
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.scan.capture import Capture
+from anklescan.core.scan.decode import DecodeResult
+from anklescan.core.scan.pointcloud import PointCloud
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
 PATCH_MM = (200.0, 200.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway

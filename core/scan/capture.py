@@ -28,10 +28,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.atomic import check_replaceable_dir, make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
-from core.errors import CaptureError
-from core.limits import capture_memory_limit, check_image_side, image_size, load_json
-from core.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
+from anklescan.core.atomic import check_replaceable_dir, make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
+from anklescan.core.errors import CaptureError
+from anklescan.core.limits import capture_memory_limit, check_image_side, image_size, load_json
+from anklescan.core.scan.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
 
 MANIFEST = "manifest.json"
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",

@@ -3,7 +3,7 @@
 Pipeline (docs/marks.md has the reasoning and the measured accuracy):
 
 1. **Candidates** in the projector-lit image ``white − black`` (ambient cancels; averaged
-   over the capture's Gray-code pairs, ``core.lit_image``, for a third of the noise): a white
+   over the capture's Gray-code pairs, ``anklescan.core.scan.lit_image``, for a third of the noise): a white
    top-hat (grey opening with a square larger than any plate) gives the brightness relative
    to the surrounding surface, so plates are found by local contrast, then by size (the
    expected plate radius at the blob's reconstructed depth) and shape (ellipse fill, solidity).
@@ -22,7 +22,7 @@ Pipeline (docs/marks.md has the reasoning and the measured accuracy):
    centres), knee above ankle, front vs lateral by the normal's direction about the leg axis.
 
 Nothing here raises for "wrong number of marks": the ``MarkSet`` keeps what was found and
-says what is missing, so an operator can correct it; ``core.measure`` turns that into an error.
+says what is missing, so an operator can correct it; ``anklescan.core.measure.pipeline`` turns that into an error.
 """
 
 from __future__ import annotations
@@ -36,10 +36,10 @@ import cv2
 import numpy as np
 import scipy.special
 
-from core.calibration_file import Calibration
-from core.marks_surface import (circle_on_surface, fit_quadric, local_frame, quadric_grad, quadric_z, ray_quadric,
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.measure.marks_surface import (circle_on_surface, fit_quadric, local_frame, quadric_grad, quadric_z, ray_quadric,
                                 surface_step)
-from core.pointcloud import PointCloud
+from anklescan.core.scan.pointcloud import PointCloud
 
 PLATE_RADIUS_MM = 7.5  # the plates of the paper's clinic; no longer assumed (find_marks measures the size)
 # SPEC §2: a mark is 8-25 mm across. The search spans that with a margin (a disk seen at a
@@ -210,7 +210,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     """Detect, fit and label the marks of one scan: rigid plates or stickers, of one size.
 
     ``lit``: the projector's light alone per camera pixel (white − black, or better
-    ``core.lit_image.averaged_lit`` of the capture, with a third of the noise);
+    ``anklescan.core.scan.lit_image.averaged_lit`` of the capture, with a third of the noise);
     ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used;
     ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``).
 
@@ -1389,7 +1389,7 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     Candidates are the automatic search's blobs near the click, plus one cut at the brightest
     pixel near the click over the surface around it (a disk the automatic search missed, e.g.
     one lit at a grazing angle). Each is fitted with the given size as a prior, or with its own
-    free radius. ``core.marks_surface.snap_to_disk`` is the public name.
+    free radius. ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
     """
     image = np.asarray(lit, np.float32)
     point = np.asarray(point, float).reshape(3)

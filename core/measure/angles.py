@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.csv_numbers import finite_number
-from core.errors import AnkleScanError, GeometryError
+from anklescan.core.csv_numbers import finite_number
+from anklescan.core.errors import AnkleScanError, GeometryError
 
 LABELS = (1, 2, 3, 4, 5, 6, 7)
 

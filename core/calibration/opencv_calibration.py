@@ -24,10 +24,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.atomic import write_text_atomic
-from core.calibration_file import Calibration, calibration_from_dict, calibration_to_dict
-from core.device_model import Device
-from core.errors import CalibrationError
+from anklescan.core.atomic import write_text_atomic
+from anklescan.core.calibration.file import Calibration, calibration_from_dict, calibration_to_dict
+from anklescan.core.calibration.device_model import Device
+from anklescan.core.errors import CalibrationError
 
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 NAMES = {  # role -> accepted keys, first found wins

@@ -25,10 +25,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from core import study_stats as st
-from core.atomic import temp_affixes
-from core.errors import AnkleScanError
-from core.store import Store
+from anklescan.core.records import study_stats as st
+from anklescan.core.atomic import temp_affixes
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.records.store import Store
 
 A4 = (8.27, 11.69)
 FOOT_SIZE = 7

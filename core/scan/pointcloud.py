@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.atomic import atomic_file
-from core.errors import AnkleScanError
+from anklescan.core.atomic import atomic_file
+from anklescan.core.errors import AnkleScanError
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",

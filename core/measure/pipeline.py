@@ -12,17 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
-from core.angles import AngleResult, compute_angles
-from core.atomic import write_json_atomic
-from core.calibration_file import Calibration, load_calibration
-from core.capture import Capture, load_capture
-from core.decode import decode
-from core.errors import AnkleScanError
-from core.lit_image import averaged_lit
-from core.marks import MarkSet, find_marks
-from core.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
-from core.pointcloud import PointCloud
-from core.reconstruct import check_compatible, cloud_from_decoded
+from anklescan.core.measure.angles import AngleResult, compute_angles
+from anklescan.core.atomic import write_json_atomic
+from anklescan.core.calibration.file import Calibration, load_calibration
+from anklescan.core.scan.capture import Capture, load_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.errors import AnkleScanError
+from anklescan.core.scan.lit_image import averaged_lit
+from anklescan.core.measure.marks import MarkSet, find_marks
+from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
+from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -33,7 +33,7 @@ class MeasureResult:
     angles: AngleResult  # only the angles whose marks were labelled
     reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
     cloud: PointCloud | None = field(default=None, repr=False)  # kept for the viewer and the PLY
-    motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/motion.py)
+    motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/scan/motion.py)
     motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
     duration_s: float | None = None  # the capture's duration, from its frame timestamps
 

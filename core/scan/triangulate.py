@@ -48,9 +48,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from core.calibration_file import Calibration
-from core.device_model import Device
-from core.errors import AnkleScanError, GeometryError
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.device_model import Device
+from anklescan.core.errors import AnkleScanError, GeometryError
 
 AXES = ("column", "row")
 TABLE_MARGIN = 64  # projector pixels of table beyond the image, for coordinates decoded at its edge

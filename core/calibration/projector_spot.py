@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.calibration_box import fit_line
+from anklescan.core.calibration.box import fit_line
 
 EDGE_OFFSET_PX = 3      # the two edges sit this far either side of the spot (projector px)
 WINDOW_HALF_PX = 14     # the frames light only this square around the spot

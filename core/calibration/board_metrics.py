@@ -8,7 +8,7 @@ Two figures, both from the scan's own 3-D points, neither using the calibration'
 * pitch: the chessboard corners found in the white frame, their camera rays met with that fitted
   plane, and the mean distance between neighbouring corners, against the printed square.
 
-The cloud comes from ``points_fn`` (by default ``core.reconstruct``), so the figures measure the
+The cloud comes from ``points_fn`` (by default ``anklescan.core.scan.reconstruct``), so the figures measure the
 whole pipeline a user runs.
 """
 
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.calibration_file import Calibration
-from core.errors import GeometryError
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.errors import GeometryError
 
 
 @dataclass
@@ -100,7 +100,7 @@ def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigm
 def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray, proj_sigma: float):
     """Camera ray against projector ray, least squares (the midpoint), with each point's predicted
     noise as two displacement vectors (N, 2, 3): one projector coordinate's sigma (px) each.  A stand-in for
-    measurements until core.reconstruct triangulates rows."""
+    measurements until anklescan.core.scan.reconstruct triangulates rows."""
     cc, pc = cal.camera.center, cal.projector.center
 
     def tri(puv):

@@ -37,9 +37,9 @@ from pathlib import Path
 
 import platformdirs
 
-from core.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
-from core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
-from core.errors import AnkleScanError
+from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
+from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
+from anklescan.core.errors import AnkleScanError
 
 DB_FILENAME = "anklescan.sqlite"
 DEFAULT_TIMEOUT_S = 10.0
@@ -146,7 +146,7 @@ ALTER TABLE sessions ADD COLUMN mark_diameter_mm REAL;
 """
 
 
-# v5: motion during the scan (issue 18, core/motion.py): the subject's largest displacement and its
+# v5: motion during the scan (issue 18, core/scan/motion.py): the subject's largest displacement and its
 # SD, the scan's duration, whether it moved more than the threshold, and the clinician's choice
 # to keep a flagged trial in the statistics anyway.
 _V5 = """

@@ -3,7 +3,7 @@
 Step 1 is linear: a Hartley-normalised DLT (3×4 for the camera; the 1-D analogue 2×4,
 u = a·X̃ / c·X̃, for a stripes-only projector) decomposed into pinhole parameters with k1 = 0.
 Step 2 is non-linear least squares on the reprojection error in pixels over every parameter
-of the paper's vectors (core.paper_model), optionally with a robust loss.
+of the paper's vectors (anklescan.core.calibration.paper_model), optionally with a robust loss.
 
 A stripes-only projector has a gauge freedom the paper does not mention: the column planes
 all contain one line (through the centre, along the projector's y axis) and nothing observable
@@ -11,7 +11,7 @@ changes when the centre slides along it. We fix it by putting the centre at the 
 line level with the control points' centroid (the centroid has projector y = 0); triangulation
 uses only the planes, so the choice cannot affect a scan. The optimiser holds ``ty`` fixed.
 
-Errors are one line (core.errors): bad input is a CalibrationError, degenerate geometry a
+Errors are one line (anklescan.core.errors): bad input is a CalibrationError, degenerate geometry a
 GeometryError.
 """
 
@@ -29,10 +29,10 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
-from core import paper_model as pm
-from core.calibration_file import Calibration, save_calibration
-from core.csv_numbers import finite_number
-from core.errors import CalibrationError, GeometryError
+from anklescan.core.calibration import paper_model as pm
+from anklescan.core.calibration.file import Calibration, save_calibration
+from anklescan.core.csv_numbers import finite_number
+from anklescan.core.errors import CalibrationError, GeometryError
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
 DEFAULT_PROJECTOR_SIZE = (1024, 768)  # the paper's ELP-70
@@ -475,7 +475,7 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     camera = pm.camera_to_device(Cn, *camera_size)
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
     report = CalibrationReport(cam_q, proj_q)
-    extra = {"source": "paper two-step calibration (core.calibrate)",
+    extra = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
              "quality": report.to_dict()}
@@ -517,7 +517,7 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
 def _check_csv_range(path: Path, data: np.ndarray, lines: list[int]) -> None:
     """World points within MAX_TRANSLATION_MM of the origin and pixels within ten sensor
     sizes: anything else is a unit mix-up or a damaged file (limits in core/limits.py)."""
-    from core.limits import MAX_IMAGE_SIDE, MAX_TRANSLATION_MM
+    from anklescan.core.limits import MAX_IMAGE_SIDE, MAX_TRANSLATION_MM
 
     for cols, limit, what in ((slice(0, 3), MAX_TRANSLATION_MM, "mm from the world origin"),
                               (slice(3, None), 10 * MAX_IMAGE_SIDE, "px")):

@@ -5,12 +5,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from core.calibration_file import Calibration
-from core.capture import Capture
-from core.decode import REASON_NAMES, DecodeResult, decode
-from core.errors import CaptureError, GeometryError
-from core.pointcloud import PointCloud
-from core.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.scan.capture import Capture
+from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, decode
+from anklescan.core.errors import CaptureError, GeometryError
+from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.scan.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
 
 # A phase-decoded point is kept when its predicted noise along the camera ray (from the local
 # pattern modulation, the sensor noise and the ray/plane geometry) is at most this: Gaussian

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.errors import CalibrationError
+from anklescan.core.errors import CalibrationError
 
 AXES = ("both", "column")
 

@@ -2,7 +2,7 @@
 
 A scan of the calibration box is reconstructed at the box's marker corners only: each
 detected corner's camera ray meets the projector plane of the column (and row) decoded there
-(read by core.calibration_box.projector_at's local homography). The control point that is
+(read by anklescan.core.calibration.box.projector_at's local homography). The control point that is
 compared is the marker *centre*, the mean of its four triangulated corners: optical blur pulls
 each corner of a black square inwards along its diagonal, and the four pulls cancel in the
 mean, while they add up in a corner-to-corner distance (docs/calibration_app.md has figures).
@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core import calibration_box as cb
-from core.calibration_file import Calibration
-from core.errors import CalibrationError
-from core.triangulate import triangulate_points
+from anklescan.core.calibration import box as cb
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.errors import CalibrationError
+from anklescan.core.scan.triangulate import triangulate_points
 
 # Pass rule (docs/calibration_app.md): the RMS of the distance errors says whether the scale and
 # shape of the reconstruction are right; the maximum catches one region gone wrong.
@@ -115,8 +115,8 @@ def verify_decoded(cal: Calibration, white, column, row=None) -> VerificationRes
 
 def verify_box_capture(capture_dir, cal: Calibration) -> VerificationResult:
     """Verification from a capture folder of the box (SPEC §5)."""
-    from core.capture import load_capture
-    from core.decode import decode
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.decode import decode
 
     result = decode(load_capture(capture_dir))
     return verify_decoded(cal, result.white, result.column, result.row)

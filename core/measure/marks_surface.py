@@ -19,7 +19,7 @@ import math
 import numpy as np
 import scipy.optimize
 
-from core.calibration_file import Calibration
+from anklescan.core.calibration.file import Calibration
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
@@ -119,7 +119,7 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
     """(centre (2,), radius, residuals, cov of centre (2, 2), radius SD) of the circle of
     points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
-    as ``core.marks._circle_geometric`` does). None if it fails."""
+    as ``anklescan.core.measure.marks._circle_geometric`` does). None if it fails."""
     floor = 0.03
 
     def fun(p, scale):
@@ -153,7 +153,7 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple[float
     """Height (mm) of a disk's face over the surface around it, and its SD: one quadric through
     the face's points (within STEP_FACE_FRACTION of the blob's ellipse) and the ring's (STEP_RING),
     with a free offset for the face. A rigid plate stands its thickness proud; a sticker ~0."""
-    from core.marks import _ellipse_pixels  # noqa: PLC0415 (no cycle at import time)
+    from anklescan.core.measure.marks import _ellipse_pixels  # noqa: PLC0415 (no cycle at import time)
 
     H, W = points.shape[:2]
     face = _ellipse_pixels(shape, STEP_FACE_FRACTION, (H, W))
@@ -184,11 +184,11 @@ def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20
     """The centre of the white disk nearest a clicked 3-D point (manual placement).
 
     ``point``: the clicked world point (mm); ``lit``: the capture's projector-lit image
-    (``core.lit_image.averaged_lit``); ``points_img``: (H, W, 3) world points per camera pixel
-    (``core.marks.points_image``). The disks found by the automatic search within
+    (``anklescan.core.scan.lit_image.averaged_lit``); ``points_img``: (H, W, 3) world points per camera pixel
+    (``anklescan.core.measure.marks.points_image``). The disks found by the automatic search within
     ``search_mm`` of the click (any size, or ``mark_diameter_mm``) are candidates; the nearest
-    one's ``core.marks.Mark`` is returned, or None when no disk is there (keep the click).
+    one's ``anklescan.core.measure.marks.Mark`` is returned, or None when no disk is there (keep the click).
     """
-    from core.marks import fit_marks_near  # noqa: PLC0415
+    from anklescan.core.measure.marks import fit_marks_near  # noqa: PLC0415
 
     return fit_marks_near(np.asarray(point, float), lit, points_img, cal, search_mm, mark_diameter_mm)

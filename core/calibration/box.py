@@ -27,7 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.errors import CalibrationError
+from anklescan.core.errors import CalibrationError
 
 BOX_SIZE_MM = 400.0
 MARKER_MM = 90.0
@@ -402,9 +402,9 @@ def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str 
 
     Uses the projector rows too when the capture has row patterns (2-D projector model).
     """
-    from core.calibrate import calibrate_points
-    from core.capture import load_capture
-    from core.decode import decode
+    from anklescan.core.calibration.calibrate import calibrate_points
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.decode import decode
 
     capture = load_capture(capture_dir)
     result = decode(capture)

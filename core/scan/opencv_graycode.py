@@ -23,10 +23,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from core.atomic import write_json_atomic
-from core.capture import IMAGE_EXTS, MANIFEST, load_capture
-from core.errors import CaptureError
-from core.patterns import Frame, PatternSet, replace_dir
+from anklescan.core.atomic import write_json_atomic
+from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
+from anklescan.core.errors import CaptureError
+from anklescan.core.scan.patterns import Frame, PatternSet, replace_dir
 
 PRESET = "opencv-graycode"
 

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.calibration_file import Calibration
-from core.device_model import Device
-from core.errors import GeometryError
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.device_model import Device
+from anklescan.core.errors import GeometryError
 
 PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cloud's own noise)
 MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the largest one
@@ -238,7 +238,7 @@ def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> 
 
 def level_calibration(cal: Calibration, capture) -> tuple[Calibration, TableTop]:
     """``cal`` re-expressed in the clinic's frame from a capture of the level reference table."""
-    from core.reconstruct import reconstruct
+    from anklescan.core.scan.reconstruct import reconstruct
 
     cloud = reconstruct(capture, cal)
     sigma = getattr(cloud, "sigma", None)

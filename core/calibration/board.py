@@ -12,7 +12,7 @@
 3. Initial values from OpenCV (``calibrateCamera`` per device, relative pose from the views),
    then one joint least-squares adjustment of both devices, the relative pose and every
    board pose, each device's residuals weighted by its own noise estimated from the data;
-   points the robust test flags (core.calibrate's rule) are left out and the fit repeated.
+   points the robust test flags (anklescan.core.calibration.calibrate's rule) are left out and the fit repeated.
    Standard errors come from the Jacobian at the solution.
 
 World frame (SPEC §1): from the first capture's board.  ``z`` is the board's normal on the
@@ -33,10 +33,10 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from core.calibrate import CalibrationReport, DeviceQuality, _flag_outliers
-from core.calibration_file import Calibration
-from core.device_model import Device
-from core.errors import CalibrationError, GeometryError
+from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, _flag_outliers
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.device_model import Device
+from anklescan.core.errors import CalibrationError, GeometryError
 
 DIST_MODELS = {  # which of k1, k2, p1, p2, k3 are free
     "k1": (0,), "k1k2": (0, 1), "k1k2p": (0, 1, 2, 3), "full": (0, 1, 2, 3, 4)}
@@ -170,7 +170,7 @@ def local_homography_point(corner: np.ndarray, column: np.ndarray, row: np.ndarr
 
 def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
     """Camera corners and their projector positions in one Gray-code capture of the board."""
-    from core.decode import decode
+    from anklescan.core.scan.decode import decode
 
     pset = capture.pattern_set
     if "row" not in pset.axes or "column" not in pset.axes:
@@ -382,7 +382,7 @@ def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
     on its principal point (projectors are built far off-axis, and OpenCV's planar start from the
     image centre can settle in the wrong minimum with few views).  One view (coplanar corners)
     falls back on OpenCV's planar calibration."""
-    from core.calibrate import dlt_camera
+    from anklescan.core.calibration.calibrate import dlt_camera
 
     P3 = np.concatenate([(cv2.Rodrigues(r)[0] @ X[m].T).T + t for r, t, m in zip(rvs, tvs, masks)])
     uv = np.concatenate([v.proj[m] for v, m in zip(views, masks)])
@@ -493,7 +493,7 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
         q.excluded = sorted(k * len(views[0].corners) + j for k, j in excl)
         qualities.append(q)
     report = CalibrationReport(*qualities)
-    extra = {"source": "chessboard calibration (core.calibration_board)",
+    extra = {"source": "chessboard calibration (anklescan.core.calibration.board)",
              "frame": "first capture's board: z board normal on the camera side, y board axis down the "
                       "camera image, origin at the corner grid's centre",
              "board": {"cols": cols, "rows": rows, "square_mm": square, "captures": [v.name for v in views],
@@ -507,7 +507,7 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
 
 def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: float,
                                   model: str = DEFAULT_DIST) -> BoardCalibration:
-    from core.capture import load_capture
+    from anklescan.core.scan.capture import load_capture
 
     if cols < 2 or rows < 2:
         raise CalibrationError(f"--board needs at least 2x2 inner corners, got {cols}x{rows}")

@@ -25,9 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, write_json_atomic
-from core.errors import CaptureError
-from core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_STEPS,
+from anklescan.core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, write_json_atomic
+from anklescan.core.errors import CaptureError
+from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_STEPS,
                          check_image_side, load_json)
 
 FORMAT = "anklescan-patterns"
@@ -42,7 +42,7 @@ DEFAULT_PERIOD = 8  # projector px; column noise scales with the period, and at 
 # With 8 steps, projector-gamma harmonics up to order 6 cancel.
 DEFAULT_STEPS = 8
 SHORT_STEPS = 4  # "short" preset, for slow cameras: 4 phase steps, Gray code to 2-px stripes (24 frames)
-# Motion references (core/motion.py): a quadrature pair of phase frames (shifts 0 and steps/4)
+# Motion references (core/scan/motion.py): a quadrature pair of phase frames (shifts 0 and steps/4)
 # repeated at evenly spaced times, compared with the same frames of the main set.
 MOTION_REF_SHIFTS_QUARTER = (0, 1)  # in quarters of the steps: shift 0 and shift steps/4
 PHASE_FORMULA = "I_k(c) = 0.5 + 0.5*cos(2*pi*(c - k*period/steps)/period), k = shift"
@@ -313,7 +313,7 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
     ``short`` (slow cameras): Gray code to 2-px stripes, ``SHORT_STEPS`` phase steps.
     ``motion_refs`` (>= 2, phase presets): that many repeats of a quadrature pair of the first
     axis' phase frames, the first pair before everything, the last after everything, the rest
-    evenly between (``kind: "repeat"``; core/motion.py measures the subject's motion from them)."""
+    evenly between (``kind: "repeat"``; core/scan/motion.py measures the subject's motion from them)."""
     if preset not in PRESETS:
         raise CaptureError(f"unknown pattern preset {preset!r} (expected one of {PRESETS})")
     if not (_is_pos_int(width) and _is_pos_int(height)) or width < 2 or height < 2:

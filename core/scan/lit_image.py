@@ -1,6 +1,6 @@
 """The projector's light alone (white − black), averaged over the capture's Gray-code pairs.
 
-The marks are found and their rims located in this image (core/marks.py). White − black is
+The marks are found and their rims located in this image (core/measure/marks.py). White − black is
 one frame pair, so each pixel carries the sensor noise of two frames, and on an obliquely seen
 plate that noise moves every rim point by ~0.2 mm (docs/marks.md). The capture holds many more
 looks at the same light: wherever a Gray bit's stripe edge is far from a pixel, one of the
@@ -22,8 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from core.capture import Capture
-from core.patterns import PatternSet
+from anklescan.core.scan.capture import Capture
+from anklescan.core.scan.patterns import PatternSet
 
 DECISIVE_FRACTION = 0.85  # lower lets stripe-edge pixels in; higher selects pairs by their noise
 REFERENCE_BITS = 5  # the coarsest bits per axis: stripes of >= 1/32 of the projector

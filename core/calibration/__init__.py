@@ -1,0 +1,1 @@
+"""Calibration: the camera and projector models, the box and the board, the calibration file, checks."""

@@ -1,0 +1,1 @@
+"""Measuring: the marks in a scan and the posture angles from them."""

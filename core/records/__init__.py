@@ -1,0 +1,1 @@
+"""Records: the sessions database, reports and the study statistics."""

@@ -1,0 +1,1 @@
+"""Scanning: patterns shown, frames captured, decoded to projector coordinates, triangulated to a cloud."""
