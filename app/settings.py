@@ -37,7 +37,7 @@ KEYS = {
     # a trial whose subject moved more than this during the scan is flagged (core/scan/motion.py)
     "motion_threshold_mm": Key("scan/motion_threshold_mm", 0.5, float),
     "saturation_level": Key("thresholds/saturation_level", 250, int),
-    "data_folder": Key("data/folder", str(Path.home() / "AnkleScan"), str),
+    "data_folder": Key("data/folder", "", str),  # "" = the one default, see Settings.data_folder
     "window_geometry": Key("window/geometry", b"", bytes),
     "operator": Key("clinic/operator", "", str),  # asked once, then signs sessions and marks
 }
@@ -69,7 +69,15 @@ class Settings:
 
     @property
     def data_folder(self) -> Path:
-        return Path(self.get("data_folder"))
+        """The one answer to "where are the patients' data": ANKLESCAN_DATA, else the folder chosen
+        in File ▸ Data folder, else the command line's default (core.records.store.default_data_dir).
+        Releases before this one defaulted to ~/AnkleScan in the app: a database there is kept."""
+        from anklescan.core.records.store import DB_FILENAME, default_data_dir
+        env, chosen = os.environ.get("ANKLESCAN_DATA"), self.get("data_folder")
+        if env or not chosen:
+            legacy = Path.home() / "AnkleScan"
+            return legacy if not env and (legacy / DB_FILENAME).exists() else default_data_dir()
+        return Path(chosen).expanduser()
 
     @property
     def projector_size(self) -> tuple[int, int]:

@@ -127,7 +127,7 @@ def use_true_calibration(win) -> None:
     calibrated (for tests about something else than calibration)."""
     from anklescan.app.calibration_wizard import accept_calibration
     accept_calibration(win.rig.calibration, None, win.data_folder(), win.store, source="simulator truth (test)")
-    win._load_calibration()
+    win.rig_setup.load_calibration()
 
 
 class GapMeter:

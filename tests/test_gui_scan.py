@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
+from PySide6.QtCore import Qt
+from PySide6.QtTest import QTest
 
 from anklescan.app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
 from gui_actions import GapMeter, calibrated_window
@@ -19,8 +20,8 @@ REPO = Path(__file__).resolve().parent.parent
 @pytest.fixture
 def window(qtbot):
     win = calibrated_window(qtbot)
-    win.add_patient("P-001", 2, "right")
-    win.start_session("barefoot")
+    win.records.add_patient("P-001", 2, "right")
+    win.records.start_session("barefoot")
     yield win
     if win.controller.busy:
         win.controller.cancel()
@@ -29,10 +30,17 @@ def window(qtbot):
 
 
 def _run_scan(qtbot, win, timeout=120_000):
+    """Click Start; the UI thread's longest gap from the click until the trial is listed in its
+    final state (saving, recording and showing the cloud included), and a moment after."""
     meter = GapMeter()
     meter.start()
     with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
-        assert win.start_scan()
+        QTest.mouseClick(win.scan_page.scan_button, Qt.MouseButton.LeftButton)
+        assert win.controller.busy, win.banner.text
+    qtbot.waitUntil(lambda: win.records.trials.count() > 0 and win.store.get_trial(
+        win.records.trials.item(win.records.trials.count() - 1).data(Qt.ItemDataRole.UserRole)).status != "scanning",
+        timeout=10_000)
+    qtbot.wait(300)  # whatever the finished scan queued on the UI thread has run
     meter.stop()
     return meter.max_gap_ms
 
@@ -45,9 +53,9 @@ def test_full_scan_matches_offline_reconstruction(qtbot, window):
     assert max_gap < 100
     result = window.last_result
     assert result is not None, window.banner.text
-    pset_files = [f.file for f in window._scan_job(result.folder).pattern_set.frames]
+    pset_files = [f.file for f in window.scan_flow.logic.pattern_set(window.rig.projector_size).frames]
     assert sorted(p.name for p in result.folder.iterdir() if not p.name.startswith(".")) == sorted(pset_files + ["manifest.json"])
-    trial = window.store.get_trial(window._trial_id)
+    trial = window.store.get_trial(window.scan_flow.logic.trial_id)
     assert (trial.ref_inversion, trial.ref_plantar_flexion) == (10.0, -5.0)
     assert trial.capture_path and window.store.verify_trial_files(trial.id) == []
     from anklescan.app.scan_worker import reconstruct_folder
@@ -62,7 +70,7 @@ def test_each_frame_shows_its_own_pattern(qtbot, window):
     import cv2
     from anklescan.core.scan.patterns import render_frame
     folder = window.last_result.folder
-    pset = window._scan_job(folder).pattern_set
+    pset = window.scan_flow.logic.pattern_set(window.rig.projector_size)
     rig = window.rig.camera.rig
     gray = [i for i, f in enumerate(pset.frames) if f.kind == "gray"][:6]
     for i in gray:
@@ -75,37 +83,37 @@ def test_each_frame_shows_its_own_pattern(qtbot, window):
 def test_cancel_stops_within_a_second(qtbot, window):
     captured = []
     window.controller.frameCaptured.connect(lambda i, _: captured.append(i))
-    assert window.start_scan()
+    assert window.scan_flow.start_scan()
     qtbot.waitUntil(lambda: len(captured) >= 3, timeout=30_000)
     t0 = time.perf_counter()
     with qtbot.waitSignal(window.controller.cancelled, timeout=1000):
-        window.cancel_scan()
+        window.scan_flow.cancel_scan()
     elapsed = time.perf_counter() - t0
     print(f"\ncancel took {elapsed * 1000:.0f} ms")
     assert elapsed < 1.0
     assert window.banner.kind == "info" and "cancelled" in window.banner.text
     assert window.scan_page.scan_button.isEnabled()
-    trial = window.store.list_trials(window.current_session_id())[-1]
+    trial = window.store.list_trials(window.records.current_session_id())[-1]
     assert trial.status == "cancelled" and not trial.counted
-    assert "[cancelled" in window.trials.item(window.trials.count() - 1).text()
+    assert "[cancelled" in window.records.trials.item(window.records.trials.count() - 1).text()
 
 
 def test_camera_unplugged_mid_scan_keeps_frames_and_app(qtbot, window):
     window.rig.camera.fail_after(5)
     with qtbot.waitSignal(window.controller.failed, timeout=60_000):
-        assert window.start_scan()
+        assert window.scan_flow.start_scan()
     assert window.banner.kind == "error" and "disconnected" in window.banner.text
-    trial = window.store.list_trials(window.current_session_id())[-1]
+    trial = window.store.list_trials(window.records.current_session_id())[-1]
     assert trial.status == "failed" and "disconnected" in trial.status_note
     kept = [p for p in window.store.resolve(trial.capture_path).iterdir() if p.suffix == ".png"]
     assert len(kept) == 5
-    assert window.scan_page.scan_button.isEnabled() and window.current_session_id() is not None
+    assert window.scan_page.scan_button.isEnabled() and window.records.current_session_id() is not None
 
 
 def test_projector_screen_gone_stops_scan(qtbot, window):
     captured = []
     window.controller.frameCaptured.connect(lambda i, _: captured.append(i))
-    assert window.start_scan()
+    assert window.scan_flow.start_scan()
     qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
     with qtbot.waitSignal(window.controller.failed, timeout=2000):
         window.projector._screen_name = "HDMI-1"
@@ -132,15 +140,15 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     (tmp_path / "scale.ini").write_text("[scan]\nsim_scale=0.75\n")
     monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "scale.ini"))
     win = calibrated_window(qtbot)
-    win.add_patient("P-002", 0, None)
-    win.start_session("barefoot")
+    win.records.add_patient("P-002", 0, None)
+    win.records.start_session("barefoot")
     _run_scan(qtbot, win, timeout=240_000)
     result = win.last_result
     assert result is not None and result.cloud is not None, win.banner.text
     assert set(result.marks) == set(range(1, 8)), result.marks_note
-    stored = win.store.get_marks(win._trial_id)
+    stored = win.store.get_marks(win.scan_flow.logic.trial_id)
     assert {m.label for m in stored} == set(range(1, 8)) and {m.source for m in stored} == {"auto"}
-    trial = win.store.get_trial(win._trial_id)
+    trial = win.store.get_trial(win.scan_flow.logic.trial_id)
     assert trial.table_inversion is not None and trial.leg_inversion is not None
     assert set(win.marks_page.editor.marks) == set(range(1, 8))
     win.close()

@@ -6,7 +6,8 @@ from pathlib import Path
 import pytest
 
 from anklescan.app import resources
-from anklescan.app.main_window import PAGE_CAMERA, PAGE_SCAN, MainWindow
+from anklescan.app.main_parts import PAGE_CAMERA, PAGE_SCAN
+from anklescan.app.main_window import MainWindow
 from gui_actions import use_true_calibration
 
 pytestmark = pytest.mark.gui
@@ -29,13 +30,13 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     win.settings.set("operator", "Dr. A. Clinician")
     use_true_calibration(win)
     for code, n in (("P-014", 0), ("P-017", 3), ("P-021", 1)):
-        win.add_patient(code, n, "right")
-    win.start_session("barefoot")
+        win.records.add_patient(code, n, "right")
+    win.records.start_session("barefoot")
     form = win.scan_page.form
     form.inversion.setValue(15.0)
     form.plantar_flexion.setValue(10.0)
     with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: not b):
-        win.start_scan()
+        win.scan_flow.start_scan()
     win.banner.hide()
     win.tabs.setCurrentIndex(PAGE_SCAN)
     form.notes.setPlainText("Second trial after rest.")
@@ -51,7 +52,7 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     win.grab().save(str(OUT / "camera_panel.png"))
     win.tabs.setCurrentIndex(PAGE_SCAN)
     from anklescan.core.scan.patterns import render_frame
-    pset = win._scan_job(win.last_result.folder).pattern_set
+    pset = win.scan_flow.logic.pattern_set(win.rig.projector_size)
     win.projector.show_frame(render_frame(pset, pset.frames[10]))
     win.projector.resize(640, 480)
     qtbot.wait(100)

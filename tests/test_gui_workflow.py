@@ -13,7 +13,8 @@ from PySide6.QtCore import Qt, QTimer
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QLineEdit, QSpinBox
 
-from anklescan.app.main_window import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION, MainWindow
+from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION
+from anklescan.app.main_window import MainWindow
 from gui_actions import (all_menu_actions, button, calibrated_window, click, click_at, dismiss, fill_and_ok,
                          menu_action, press_accept, save_as, use_true_calibration, with_dialog)
 
@@ -73,10 +74,10 @@ def _scan(qtbot, win, inversion: str, plantar_flexion: str, timeout=180_000) -> 
     form = win.scan_page.form
     _type(form.inversion.edit, inversion)
     _type(form.plantar_flexion.edit, plantar_flexion)
-    before = len(win.store.list_trials(win.current_session_id()))
+    before = len(win.store.list_trials(win.records.current_session_id()))
     with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
         click(win.scan_page.scan_button)
-    trials = win.store.list_trials(win.current_session_id())
+    trials = win.store.list_trials(win.records.current_session_id())
     assert len(trials) == before + 1
     return trials[-1].id
 
@@ -100,11 +101,11 @@ def _click_tab(win, index: int) -> None:
 
 
 def _click_trial(win, trial_id: int) -> None:
-    for row in range(win.trials.count()):
-        item = win.trials.item(row)
+    for row in range(win.records.trials.count()):
+        item = win.records.trials.item(row)
         if item.data(Qt.ItemDataRole.UserRole) == trial_id:
-            QTest.mouseClick(win.trials.viewport(), Qt.MouseButton.LeftButton,
-                             pos=win.trials.visualItemRect(item).center())
+            QTest.mouseClick(win.records.trials.viewport(), Qt.MouseButton.LeftButton,
+                             pos=win.records.trials.visualItemRect(item).center())
             return
     raise AssertionError(f"trial {trial_id} not in the list")
 
@@ -136,7 +137,7 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
         QTest.keyClicks(dialog.code, "P-001")
         press_accept(dialog)
     with_dialog(qtbot, lambda: click(button(win, "New patient…")), bad_then_good)
-    assert win.patients.count() == 1 and win.patients.currentItem().text().startswith("P-001")
+    assert win.records.patients.count() == 1 and win.records.patients.currentItem().text().startswith("P-001")
     _no_error(win)
 
     # 2. calibration through the wizard, from the Scan page's own button
@@ -147,7 +148,7 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
 
     # 3. a session; the operator is asked for once
     _new_session(qtbot, win, operator="Dr. Ada Test")
-    assert win.store.get_session(win.current_session_id()).operator == "Dr. Ada Test"
+    assert win.store.get_session(win.records.current_session_id()).operator == "Dr. Ada Test"
 
     # 4. three trials at different reference angles
     trials = [_scan(qtbot, win, "5", pf) for pf in ("-10", "0", "10")]
@@ -159,7 +160,7 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     # 5. one mark placed and moved by clicks in the 3-D view, on a trial opened by one click
     _click_trial(win, trials[1])
     assert win.tabs.currentIndex() == PAGE_MARKS and f"Trial {trials[1]}" in win.marks_page.title.text()
-    assert win.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[1]
+    assert win.records.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[1]
     viewer, editor = win.marks_page.viewer, win.marks_page.editor
     qtbot.wait(100)
     viewer.render_now()
@@ -209,9 +210,9 @@ def test_new_patient_from_button_menu_and_shortcut(qtbot, fresh):
     with_dialog(qtbot, menu_action(win, "File/New patient…").trigger, fill_and_ok({"": "P-011"}))
     win.activateWindow()
     qtbot.waitUntil(lambda: QApplication.activeWindow() is win, timeout=5000)
-    with_dialog(qtbot, lambda: QTest.keyClick(win.patients, Qt.Key.Key_N, Qt.KeyboardModifier.ControlModifier),
+    with_dialog(qtbot, lambda: QTest.keyClick(win.records.patients, Qt.Key.Key_N, Qt.KeyboardModifier.ControlModifier),
                 fill_and_ok({"": "P-012"}))
-    codes = [win.patients.item(i).text().split()[0] for i in range(win.patients.count())]
+    codes = [win.records.patients.item(i).text().split()[0] for i in range(win.records.patients.count())]
     assert codes == ["P-010", "P-011", "P-012"]
     assert win.store.get_patient("P-010").sprain_count == 2
     # a duplicate is refused inside the dialog, which keeps its input
@@ -229,7 +230,7 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     _add_patient(qtbot, win, "P-020")
     _new_session(qtbot, win, operator="op")
     menu_action(win, "Scan/Start scan").trigger()  # F5 with no calibration: blocked, the way out shown
-    assert not win.controller.busy and win.store.list_trials(win.current_session_id()) == []
+    assert not win.controller.busy and win.store.list_trials(win.records.current_session_id()) == []
     assert "No calibration" in win.banner.text and win.banner.action.text() == "Calibrate…"
     use_true_calibration(win)
     form = win.scan_page.form
@@ -243,7 +244,7 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     _type(form.inversion.edit, "-7.5")
     assert not form.inversion.message.isVisible() and form.inversion.value() == -7.5
     # the session's mark diameter: refused outside 8-25 mm, kept with the session, empty = measured
-    sid = win.current_session_id()
+    sid = win.records.current_session_id()
     _type(form.mark_diameter.edit, "30")
     assert "outside" in form.mark_diameter.message.text() and win.store.get_session(sid).mark_diameter_mm is None
     _type(form.mark_diameter.edit, "12")
@@ -266,24 +267,24 @@ def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
     qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
     with qtbot.waitSignal(win.controller.cancelled, timeout=5000):
         click(win.scan_page.cancel_button)
-    cancelled = win.store.list_trials(win.current_session_id())[-1]
+    cancelled = win.store.list_trials(win.records.current_session_id())[-1]
     assert cancelled.status == "cancelled"
-    assert "[cancelled" in win.trials.item(win.trials.count() - 1).text()
+    assert "[cancelled" in win.records.trials.item(win.records.trials.count() - 1).text()
     # exclude the good trial with a reason, through its button and dialog, then restore it
     _click_trial(win, good)
-    with_dialog(qtbot, lambda: click(win.exclude_button), fill_and_ok({"": "patient stepped off"}))
+    with_dialog(qtbot, lambda: click(win.records.exclude_button), fill_and_ok({"": "patient stepped off"}))
     assert win.store.get_trial(good).excluded_reason == "patient stepped off"
-    assert win.store.session_summary(win.current_session_id()).inversion.n == 0
+    assert win.store.session_summary(win.records.current_session_id()).inversion.n == 0
     _click_trial(win, good)
-    click(win.restore_button)
+    click(win.records.restore_button)
     assert win.store.get_trial(good).counted
     # archiving asks first; "No" changes nothing, "Yes" hides the patient (nothing is deleted)
     with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, dismiss)
-    assert win.patients.count() == 1
+    assert win.records.patients.count() == 1
     with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, press_accept)
-    assert win.patients.count() == 0
-    click(win.show_archived)
-    assert win.patients.count() == 1 and "(archived)" in win.patients.item(0).text()
+    assert win.records.patients.count() == 0
+    click(win.records.show_archived)
+    assert win.records.patients.count() == 1 and "(archived)" in win.records.patients.item(0).text()
     assert [e.kind for e in win.store.events("patient")] == ["archived"]
     _no_error(win)
 
@@ -333,7 +334,7 @@ def test_quitting_during_a_scan_asks_then_stops_cleanly(qtbot, fresh, caplog):
     with_dialog(qtbot, menu_action(win, "File/Quit").trigger, dismiss)  # "No": keep scanning
     assert win.isVisible() and win.controller.busy
     store = win.store
-    sid = win.current_session_id()
+    sid = win.records.current_session_id()
     with_dialog(qtbot, menu_action(win, "File/Quit").trigger, press_accept)
     assert not win.isVisible() and not win.controller.busy
     from anklescan.core.records.store import Store
@@ -406,9 +407,9 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     qtbot.waitExposed(win)
     qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
     assert win.read_only and "read-only" in win.banner.text
-    item = win.patients.item(0)
-    QTest.mouseClick(win.patients.viewport(), Qt.MouseButton.LeftButton, pos=win.patients.visualItemRect(item).center())
-    assert win.patients.count() == 1 and win.sessions.count() == 1
+    item = win.records.patients.item(0)
+    QTest.mouseClick(win.records.patients.viewport(), Qt.MouseButton.LeftButton, pos=win.records.patients.visualItemRect(item).center())
+    assert win.records.patients.count() == 1 and win.records.sessions.count() == 1
     new_patient = button(win, "New patient…")
     assert not new_patient.isEnabled() and "Read-only" in new_patient.toolTip()
     assert not button(win, "New session").isEnabled() and not win.scan_page.scan_button.isEnabled()
@@ -431,9 +432,9 @@ def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeyp
     print(f"\nmoved {trial.motion_mm} ± {trial.motion_sd_mm} mm in {trial.scan_duration_s} s")
     assert trial.motion_flagged and not trial.counted and trial.motion_mm > 1.0
     assert "during the scan: scan again?" in win.banner.text and win.banner.action.text() == "Scan again"
-    assert "[moved" in win.trials.item(win.trials.count() - 1).text()
+    assert "[moved" in win.records.trials.item(win.records.trials.count() - 1).text()
     _click_trial(win, tid)
-    click(win.restore_button)
+    click(win.records.restore_button)
     assert win.store.get_trial(tid).counted and win.store.get_trial(tid).motion_keep
     assert ("trial", "kept") in [(e.entity, e.kind) for e in win.store.events()]
     win.close()

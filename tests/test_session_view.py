@@ -150,7 +150,8 @@ def test_session_view_plots_hover_click_and_export(qtbot, store, tmp_path):
 
 
 def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
-    from anklescan.app.main_window import PAGE_MARKS, PAGE_SESSION, MainWindow
+    from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION
+    from anklescan.app.main_window import MainWindow
     from anklescan.core.scan.pointcloud import PointCloud, write_ply
     win = MainWindow()
     qtbot.addWidget(win)
@@ -158,9 +159,9 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     win.show()
     qtbot.waitExposed(win)
     win.settings.set("operator", "tester")
-    win.add_patient("P-100", 1, "right")
-    win.start_session("barefoot")
-    sid = win.current_session_id()
+    win.records.add_patient("P-100", 1, "right")
+    win.records.start_session("barefoot")
+    sid = win.records.current_session_id()
     trial = win.store.add_trial(sid, ref_inversion=10.0, ref_plantar_flexion=0.0)
     g = np.linspace(-100, 100, 201)
     xx, yy = np.meshgrid(g, g)
@@ -168,8 +169,8 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     path = win.store.trial_dir(trial.id, create=True) / "cloud.ply"
     write_ply(path, PointCloud(pts, np.full((len(pts), 3), 200, np.uint8)))
     win.store.set_trial_files(trial.id, cloud=path)
-    win._session_changed()
-    assert win.open_trial(trial.id) and win.tabs.currentIndex() == PAGE_MARKS
+    win.records.show_session()
+    assert win.review.open_trial(trial.id) and win.tabs.currentIndex() == PAGE_MARKS
     viewer, editor = win.marks_page.viewer, win.marks_page.editor
     assert len(viewer.points) == len(pts)
     qtbot.wait(50)
@@ -186,9 +187,9 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     assert t.table_inversion == pytest.approx(np.degrees(np.arctan(-0.2)), abs=1.0)  # n ∝ (−0.2, 0, 1)
     win.tabs.setCurrentIndex(PAGE_SESSION)
     assert "1 measured trial of 1" in win.session_view.info.text()
-    assert win.export_plots_to(str(tmp_path / "p.svg")).exists()
+    assert win.review.export_plots_to(str(tmp_path / "p.svg")).exists()
     with qtbot.waitSignal(win.reportWritten, timeout=60_000):
-        assert win.write_session_report_to(str(tmp_path / "r.pdf")) is not None
+        assert win.review.write_session_report_to(str(tmp_path / "r.pdf")) is not None
     assert (tmp_path / "r.pdf").exists() and (tmp_path / "r.csv").exists()
     win.close()
 

@@ -138,10 +138,10 @@ def test_panel_self_test_sets_the_settle_time_the_scan_records(qtbot, tmp_path):
 
         win.settings.set("operator", "tester")
         use_true_calibration(win)
-        win.add_patient("P-002", 2, "right")
-        win.start_session("barefoot")
+        win.records.add_patient("P-002", 2, "right")
+        win.records.start_session("barefoot")
         with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: b is False):
-            assert win.start_scan()
+            assert win.scan_flow.start_scan()
         folder = win.last_result.folder
         capture = json.loads((folder / "manifest.json").read_text())["capture"]
         assert capture["settle_source"] == "self-test" and capture["backend"] == "simulated"

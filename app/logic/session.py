@@ -1,0 +1,189 @@
+"""Patients, sessions and trials, the accepted calibration, and who is measuring.
+
+``SessionLogic`` owns the sessions database of the data folder and every write the windows ask
+for. A write that fails leaves the database as it was and is reported through ``notice``
+(kind, text) — the windows show it in their banner; nothing here raises into the UI.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from anklescan.app.logic.events import Event
+
+
+class SessionLogic:
+    def __init__(self, settings):
+        self.settings = settings          # get(key) / set(key, value): app.settings.Settings or a dict-like
+        self.store = None
+        self.folder: Path | None = None
+        self.calibration = None           # the accepted calibration scans are measured with (None: blocked)
+        self.calibration_id = None        # its row in this data folder's database
+        self.notice = Event()             # (kind, text): "info" | "warning" | "error"
+        self.storeOpened = Event()        # () after a (re)open, the lists must be rebuilt
+
+    # ---- the database -----------------------------------------------------------------
+    def open_store(self, folder: Path) -> None:
+        from anklescan.core.records.store import Store
+        if self.store is not None:
+            self.store.close()
+        self.folder = Path(folder)
+        try:
+            self.store = Store.open(data_dir=self.folder)
+            if self.store.read_only:
+                self.notice.emit("warning", f"The sessions database is read-only ({self.store.read_only_reason}): "
+                                 "you can review it, but changes cannot be saved.")
+        except Exception as exc:
+            self.store = None
+            self.notice.emit("error", f"The sessions database could not be opened: {exc}")
+        self.storeOpened.emit()
+
+    def close(self) -> None:
+        if self.store is not None:
+            self.store.close()
+            self.store = None
+
+    @property
+    def read_only(self) -> bool:
+        return self.store is not None and self.store.read_only
+
+    @property
+    def read_only_reason(self) -> str:
+        return self.store.read_only_reason if self.read_only else ""
+
+    @property
+    def writable(self) -> bool:
+        return self.store is not None and not self.store.read_only
+
+    def _write(self, what: str, write):
+        """Run one database write; on failure say so (``what`` begins the message) and return None."""
+        try:
+            return write()
+        except Exception as exc:
+            self.notice.emit("error", f"{what}: {exc}" if what else str(exc))
+            return None
+
+    # ---- reading ----------------------------------------------------------------------
+    def patients(self, include_archived: bool = False) -> list:
+        return [] if self.store is None else self.store.list_patients(include_archived=include_archived)
+
+    def sessions(self, patient_id: int | None, include_archived: bool = False) -> list:
+        if self.store is None or patient_id is None:
+            return []
+        return self.store.list_sessions(patient_id, include_archived=include_archived)
+
+    def trials(self, session_id: int | None) -> list:
+        return [] if self.store is None or session_id is None else self.store.list_trials(session_id)
+
+    def trial(self, trial_id: int | None):
+        return None if self.store is None or trial_id is None else self.store.get_trial(int(trial_id))
+
+    def session(self, session_id: int | None):
+        return None if self.store is None or session_id is None else self.store.get_session(session_id)
+
+    def patient_exists(self, code: str) -> bool:
+        try:
+            self.store.get_patient(code)
+            return True
+        except Exception:
+            return False
+
+    def session_title(self, session_id: int) -> str:
+        s = self.store.get_session(session_id)
+        return f"{self.store.get_patient(s.patient_id).code}, {s.condition}, {s.date}"
+
+    def session_rows(self, session_id: int | None) -> list[dict]:
+        if self.store is None or session_id is None:
+            return []
+        return [r for r in self.store.study_rows() if r["session_id"] == session_id]
+
+    # ---- patients and sessions --------------------------------------------------------
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None):
+        if self.store is None:
+            self.notice.emit("error", "No sessions database: choose a data folder first (File ▸ Data folder).")
+            return None
+        return self._write("", lambda: self.store.add_patient(code, sprain_count=sprain_count, affected_side=side))
+
+    def start_session(self, patient_id: int | None, condition: str):
+        if patient_id is None or self.store is None:
+            self.notice.emit("warning", "Select or add a patient first (File ▸ New patient…).")
+            return None
+        return self._write("The session could not be started", lambda: self.store.start_session(
+            patient_id, condition=condition, calibration_id=self.calibration_id, operator=self.operator))
+
+    def set_mark_diameter(self, session_id: int | None, value: float | None) -> bool:
+        """Keep the marks' diameter with the session (None: measured from each scan)."""
+        if session_id is None or not self.writable:
+            return True
+        if self.store.get_session(session_id).mark_diameter_mm == value:
+            return True
+        done = self._write("The mark diameter could not be saved",
+                           lambda: self.store.set_session_mark_diameter(session_id, value) or True)
+        return bool(done)
+
+    @property
+    def operator(self) -> str:
+        return self.settings.get("operator")
+
+    def set_operator(self, name: str) -> None:
+        if name.strip():
+            self.settings.set("operator", name.strip())
+
+    # ---- trial states -----------------------------------------------------------------
+    def exclude_trial(self, trial_id: int, reason: str) -> bool:
+        if not reason.strip():
+            self.notice.emit("warning", "A trial is excluded only with a reason; nothing was changed.")
+            return False
+        return self._write("", lambda: self.store.exclude_trial(trial_id, reason, who=self.operator) or True) is not None
+
+    def restore_trial(self, trial_id: int) -> bool:
+        """Undo an exclusion; for a trial flagged because the patient moved, keep it in the statistics."""
+        if self.store.get_trial(trial_id).excluded_reason is not None:
+            write = lambda: self.store.restore_trial(trial_id, who=self.operator)  # noqa: E731
+        else:
+            write = lambda: self.store.keep_trial(trial_id, who=self.operator)  # noqa: E731
+        return self._write("", lambda: write() or True) is not None
+
+    def can_exclude(self, trial) -> bool:
+        return bool(trial and self.writable and trial.excluded_reason is None)
+
+    def can_restore(self, trial) -> bool:
+        return bool(trial and self.writable and (trial.excluded_reason is not None or trial.excluded_for_motion))
+
+    def archive_session(self, session_id: int) -> bool:
+        return self._write("", lambda: self.store.archive_session(session_id, who=self.operator) or True) is not None
+
+    def archive_patient(self, patient_id: int) -> bool:
+        return self._write("", lambda: self.store.archive_patient(patient_id, who=self.operator) or True) is not None
+
+    # ---- the calibration --------------------------------------------------------------
+    def use_calibration(self, cal, cid) -> None:
+        """Make ``cal`` the one scans are measured with; ``cid`` is its id where it was accepted,
+        which may be another data folder's database: it is added to this one when it is not there."""
+        self.calibration, self.calibration_id = cal, self._calibration_in_store(cal, cid)
+
+    def _calibration_in_store(self, cal, cid):
+        if cal is None or self.store is None:
+            return None
+        from anklescan.core.calibration.file import calibration_to_dict
+        data = calibration_to_dict(cal)
+        try:
+            if cid is not None and self.store.get_calibration(cid).data == data:
+                return cid
+        except Exception:
+            pass
+        try:
+            return self.store.add_calibration(data, source="current calibration").id
+        except Exception:
+            return None
+
+    def trial_calibration(self, trial, session):
+        """The calibration a trial was measured with (None when unknown or unreadable)."""
+        cid = trial.calibration_id or session.calibration_id
+        if cid is None:
+            return None
+        try:
+            from anklescan.core.calibration.file import calibration_from_dict
+            return calibration_from_dict(self.store.get_calibration(cid).data)
+        except Exception:
+            return None

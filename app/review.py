@@ -1,0 +1,202 @@
+"""Looking back at what was scanned: the 3-D marks page (a trial's cloud and its marks), the
+session plots, and what leaves the app (plots, the session report). Both pages are built when
+first needed: the OpenGL viewer and pyqtgraph are slow to load."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from PySide6.QtCore import QObject, Qt
+from PySide6.QtWidgets import QApplication, QFileDialog
+
+from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION, deg
+
+
+class Review(QObject):
+    def __init__(self, win):
+        super().__init__(win)
+        self.win = win
+        self.marks_page = None
+        self.session_view = None
+        self.viewer_trial = None  # the trial whose cloud the viewer shows
+        self.jobs = []            # background jobs (reports) still running
+        self.last_report = None
+        win.tabs.currentChanged.connect(self._tab_changed)
+
+    def ensure_marks_page(self):
+        if self.marks_page is None:
+            from anklescan.app.mark_editor import MarksPage
+            win = self.win
+            self.marks_page = MarksPage(operator=win.session.operator or os_user())
+            self.marks_page.editor.saveFailed.connect(lambda text: win.banner.show_message("error", text))
+            self.marks_page.editor.marksChanged.connect(lambda _: self.refresh_plots_if_shown())
+            win.marks_holder.addWidget(self.marks_page)
+            win.marks_holder.setCurrentWidget(self.marks_page)
+            self.marks_page.editor.setEnabled(not win.session.read_only)
+        return self.marks_page
+
+    def ensure_session_view(self):
+        """Built when first needed: importing pyqtgraph takes ~0.6 s on the UI thread (it cannot be
+        imported in another thread), so start-up does not pay for it."""
+        if self.session_view is None:
+            QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
+            try:
+                from anklescan.app.session_view import SessionView
+                self.session_view = SessionView()
+            finally:
+                QApplication.restoreOverrideCursor()
+            self.session_view.trialActivated.connect(self.open_trial)
+            self.win.session_holder.addWidget(self.session_view)
+            self.win.session_holder.setCurrentWidget(self.session_view)
+        return self.session_view
+
+    def _tab_changed(self, index: int) -> None:
+        if index == PAGE_MARKS:
+            self.ensure_marks_page()
+        if index == PAGE_SESSION:
+            self.ensure_session_view()
+            self.refresh_plots()
+
+    def refresh_plots_if_shown(self) -> None:
+        # The store recomputed the trial's angles; the trial list and plots show them.
+        if self.session_view is not None and self.win.tabs.currentIndex() == PAGE_SESSION:
+            self.refresh_plots()
+
+    def refresh_plots(self) -> None:
+        sid, logic = self.win.records.current_session_id(), self.win.session
+        if self.session_view is None or logic.store is None:
+            return
+        self.session_view.set_rows(logic.session_rows(sid), title=logic.session_title(sid) if sid is not None else None)
+
+    # ---- the 3-D view ---------------------------------------------------------------------
+    def show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:
+        page, logic = self.ensure_marks_page(), self.win.session
+        self.viewer_trial = trial_id
+        rig_cal = getattr(self.win.rig, "calibration", None) if self.win.rig is not None else None
+        page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or f"Trial {trial_id}")
+        if trial_id is not None and logic.store is not None:
+            # Marks are signed by the session's operator, or the logged-in user when none was entered.
+            trial = logic.trial(trial_id)
+            session = logic.session(trial.session_id)
+            page.editor.operator = session.operator or os_user()
+            page.editor.load_trial(logic.store, trial_id)
+            page.editor.set_snapper(self._snapper(trial, cloud, session))
+        else:
+            page.editor.load({})
+            page.editor.set_snapper(None)
+
+    def _snapper(self, trial, cloud, session):
+        """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
+        from anklescan.app.mark_snap import TrialSnapper
+        cal = self.win.session.trial_calibration(trial, session)
+        if not trial.capture_path or cal is None:
+            return None
+        return TrialSnapper(self.win.session.store.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
+
+    def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
+        """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
+        from anklescan.core.scan.pointcloud import read_ply
+        win, logic = self.win, self.win.session
+        trial = logic.trial(trial_id)
+        if trial is None:
+            return False
+        win.records.select_trial_item(trial.id)
+        if not trial.cloud_path:
+            win.banner.show_message("info", f"Trial {trial.id} has no point cloud ({trial.state_text}).")
+            return False
+        try:
+            cloud = read_ply(logic.store.resolve(trial.cloud_path))
+        except Exception as exc:
+            win.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
+            return False
+        ref = f"reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
+        state = "" if trial.counted else f" · {trial.state_text}"
+        self.show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}{state}")
+        if switch_tab:
+            win.tabs.setCurrentIndex(PAGE_MARKS)
+        return True
+
+    def open_cloud_file(self) -> bool:
+        path, _ = QFileDialog.getOpenFileName(self.win, "Open point cloud", str(self.win.data_folder()), "PLY (*.ply)")
+        return bool(path) and self.open_cloud_path(path)
+
+    def open_cloud_path(self, path: str) -> bool:
+        """A PLY from disk, viewed and marked without saving to any trial."""
+        from anklescan.core.scan.pointcloud import read_ply
+        try:
+            cloud = read_ply(path)
+        except Exception as exc:
+            self.win.banner.show_message("error", str(exc))
+            return False
+        self.show_cloud(cloud, None, f"{Path(path).name} (not part of a trial: marks are not saved)")
+        self.win.tabs.setCurrentIndex(PAGE_MARKS)
+        return True
+
+    # ---- what leaves the app ----------------------------------------------------------------
+    def export_plots(self) -> Path | None:
+        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots",
+                                              str(self.win.data_folder() / "session_plots.png"),
+                                              "PNG image (*.png);;SVG vector (*.svg)")
+        return self.export_plots_to(path) if path else None
+
+    def export_plots_to(self, path: str) -> Path | None:
+        self.ensure_session_view()
+        self.refresh_plots()
+        try:
+            out = self.session_view.export(path)
+        except Exception as exc:
+            self.win.banner.show_message("error", f"The plots could not be exported: {exc}")
+            return None
+        self.win.banner.show_message("info", f"Session plots saved to {out}")
+        return out
+
+    def export_session_report(self) -> None:
+        sid = self.win.records.current_session_id()
+        if self.win.session.store is None or sid is None:
+            self.win.banner.show_message("warning", "Select a session first.")
+            return
+        path, _ = QFileDialog.getSaveFileName(self.win, "Session report",
+                                              str(self.win.data_folder() / f"session-{sid}.pdf"), "PDF (*.pdf)")
+        if path:
+            self.write_session_report_to(path)
+
+    def write_session_report_to(self, pdf_path: str):
+        """Render the selected session's PDF + CSV in the background; the banner says when it is saved."""
+        from anklescan.app.background import run_in_background
+        win, store = self.win, self.win.session.store
+        sid = win.records.current_session_id()
+        if store is None or sid is None:
+            win.banner.show_message("warning", "Select a session first.")
+            return None
+        pdf = Path(pdf_path).with_suffix(".pdf")
+        db_path, data_dir = store.path, store.data_dir
+
+        def render():  # its own connection: a Store is not shared between threads
+            from anklescan.core.records.report import write_session_report
+            from anklescan.core.records.store import Store
+            with Store.open(db_path, data_dir=data_dir) as own:
+                return write_session_report(own, [sid], pdf, pdf.with_suffix(".csv"))
+
+        win.banner.show_message("info", f"Writing the session report to {pdf}…")
+        job = run_in_background(render, lambda result: self._report_written(pdf, result),
+                                lambda error: win.banner.show_message(
+                                    "error", f"The session report could not be written: {error}"))
+        self.jobs = [j for j in self.jobs if j.thread.is_alive()] + [job]
+        return job
+
+    def _report_written(self, pdf: Path, result) -> None:
+        self.last_report = result
+        self.win.banner.show_message("info", f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
+        self.win.reportWritten.emit(str(pdf))
+
+    def wait_for_jobs(self) -> None:
+        for job in self.jobs:
+            job.wait(30)  # a report being written finishes: no half-written file is left
+
+
+def os_user() -> str:
+    import getpass
+    try:
+        return getpass.getuser()
+    except Exception:
+        return ""

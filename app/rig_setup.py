@@ -1,0 +1,273 @@
+"""The rig at the window's side: opening the camera (or the simulated rig) after the window
+shows, the camera panel, the projector window and its monitor, and the calibration the scans
+are measured with (loading it, the wizard, its age)."""
+
+from __future__ import annotations
+
+from PySide6.QtCore import QObject, QTimer
+from PySide6.QtGui import QAction, QActionGroup, QGuiApplication
+
+from anklescan.app.main_parts import PAGE_SCAN
+
+
+class RigSetup(QObject):
+    def __init__(self, win):
+        super().__init__(win)
+        self.win = win
+        self.settings = win.settings
+        self.rig = None
+        self.projector = None
+        self.camera_panel = None
+        self._starting = False     # the rig is being opened in the background
+
+    # ---- start-up -----------------------------------------------------------------------
+    def finish_startup(self, in_background: bool = True) -> None:
+        """Open the rig and build what depends on it, after the window first shows.
+
+        The slow part (importing numpy, OpenCV, SciPy and OpenGL, and opening the camera or building
+        the simulated scene) runs in a background job; the UI thread only builds widgets, one
+        step per event-loop turn, so the window keeps painting while the app starts."""
+        if self.rig is not None or self._starting:
+            return
+        self._starting = True
+        s = self.settings
+        backend, scale, device, size = s.get("camera_backend"), s.get("sim_scale"), s.get("camera_device"), s.projector_size
+        if not in_background:
+            self._rig_opened(open_rig_safely(backend, scale, device, size))
+            self.win.review.ensure_marks_page()
+            return
+        from anklescan.app.background import run_in_background
+        run_in_background(lambda: open_rig_safely(backend, scale, device, size, warm=True), self._rig_opened,
+                          lambda error: self.win.banner.show_message("error", f"The camera could not be opened: {error}"))
+
+    def _rig_opened(self, opened) -> None:
+        rig, problem = opened
+        self._starting = False
+        if problem:
+            self.win.banner.show_message("warning", problem)
+        self._build_camera_panel()
+        self.rig = rig
+        self.settings.set("camera_backend", rig.backend)
+        self._rig_ready()
+        # one widget-building step per event-loop turn, with room for paints in between
+        QTimer.singleShot(50, self.win.review.ensure_marks_page)
+        QTimer.singleShot(100, settle_memory)
+
+    def _build_camera_panel(self) -> None:
+        from anklescan.app.camera_panel import CameraPanel
+        from anklescan.app.rig import available_backends
+        panel = self.camera_panel = CameraPanel(available_backends(), self.settings.get("saturation_level"))
+        panel.backendChanged.connect(self.switch_backend)
+        panel.controlChanged.connect(self._remember_control)
+        panel.set_settle_ms(self.settings.get("settle_ms"))
+        panel.settleChanged.connect(lambda ms: self.settings.set("settle_ms", round(ms)))
+        panel.deviceChanged.connect(self._choose_device)
+        self.win.camera_holder.addWidget(panel)
+        self.win.camera_holder.setCurrentWidget(panel)
+
+    def _choose_device(self, backend: str, device: str) -> None:
+        self.settings.set("camera_device", device)
+        self.switch_backend(backend)
+
+    def switch_backend(self, backend: str) -> None:
+        if self.win.scan_flow.busy:
+            return
+        old, self.rig = self.rig, None
+        if old is not None:
+            old.close()
+        s = self.settings
+        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"), s.projector_size)
+        if problem:
+            self.win.banner.show_message("warning", problem)
+        self.settings.set("camera_backend", self.rig.backend)
+        self._rig_ready()
+
+    def _rig_ready(self) -> None:
+        from anklescan.app.rig import camera_name
+        win = self.win
+        self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
+        self._apply_stored_controls()
+        win.rig_label.setText(self.rig.description)
+        win.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
+        win.rig_label.setStyle(win.rig_label.style())  # re-polish: the object name picks the style
+        self._ensure_projector()
+        if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
+            self.show_projector()
+        self._update_projector_label()
+        self.load_calibration()
+        if win.session.calibration is None:  # first start: lead to calibration before anything is measured
+            win.tabs.setCurrentIndex(PAGE_SCAN)
+
+    def _apply_stored_controls(self) -> None:
+        stored = {"exposure": "camera_exposure_ms", "gain": "camera_gain"}
+        for name in self.camera_panel.control_names:
+            key = next((k for n, k in stored.items() if n in name.lower()), None)
+            if key and self.settings.get(key):
+                self.camera_panel.set_control_value(name, self.settings.get(key))
+
+    def _remember_control(self, name: str, value: float) -> None:
+        key = "camera_exposure_ms" if "exposure" in name.lower() else "camera_gain" if "gain" in name.lower() else None
+        if key:
+            self.settings.set(key, value)
+
+    # ---- the calibration ------------------------------------------------------------------
+    def load_calibration(self) -> None:
+        """The accepted calibration (never a simulator's hidden truth): scans are blocked without one."""
+        from anklescan.app.calibration_wizard import load_current_calibration
+        try:
+            cal, cid = load_current_calibration()
+        except Exception as exc:
+            cal, cid = None, None
+            self.win.banner.show_message("error", f"The current calibration could not be read: {exc}")
+        self.win.session.use_calibration(cal, cid)
+        self.win.scan_flow.update_enabled()
+        self.check_calibration_age()
+
+    def open_calibration(self) -> None:
+        from anklescan.app.calibration_wizard import CalibrationWizard
+        win = self.win
+        if self.rig is None or self.projector is None or win.scan_flow.busy:
+            if self.rig is None:
+                win.banner.show_message("info", "The camera is still connecting; try again in a moment.")
+            return
+        dlg = CalibrationWizard(self.rig, self.projector, store=win.session.store, data_folder=win.data_folder(),
+                                settle_s=self.settings.get("settle_ms") / 1000.0, parent=win)
+        dlg.calibrationAccepted.connect(self._calibration_accepted)
+        dlg.verificationDone.connect(lambda _r: self.check_calibration_age())
+        dlg.exec()
+        self._restore_projector()
+        self.check_calibration_age()
+
+    def _calibration_accepted(self, cal, cid, path) -> None:
+        self.win.session.use_calibration(cal, cid)
+        self.win.banner.clear("warning")
+        self.win.scan_flow.update_enabled()
+
+    def check_calibration_age(self) -> None:
+        from anklescan.app.calibration_wizard import calibration_warning
+        win = self.win
+        text = calibration_warning()
+        if win.session.read_only:  # review only: nothing will be scanned, the read-only notice stays
+            return
+        if win.session.calibration is None:
+            win.banner.show_message("warning", "No calibration yet: calibrate the scanner before measuring patients.",
+                                    ("Calibrate…", self.open_calibration))
+        elif text:
+            win.banner.show_message("warning", text, ("Calibrate…", self.open_calibration))
+
+    # ---- the projector window -------------------------------------------------------------
+    def _ensure_projector(self) -> None:
+        from anklescan.app.projector_window import ProjectorWindow
+        from anklescan.app.scan_worker import ScanController
+        if self.projector is None:
+            self.projector = ProjectorWindow(self.rig.projector_size)
+            self.projector.screenLost.connect(self._projector_lost)
+            self.win.scan_flow.attach(ScanController(self.projector, self.win))
+            self.projector.frameShown.connect(self._feed_simulated_projector)
+            if self.camera_panel is not None:
+                self.camera_panel.set_projector(self.projector)
+        elif self.projector.projector_size != self.rig.projector_size:
+            self.projector.set_projector_size(self.rig.projector_size)
+
+    def _feed_simulated_projector(self, frame) -> None:
+        # The simulated camera must photograph exactly what the window painted, when it painted.
+        if self.rig is not None and self.rig.sim_projector is not None:
+            self.rig.sim_projector.show(frame)
+
+    def _restore_projector(self) -> None:
+        """After the wizard: white while the camera panel's live preview runs, black otherwise."""
+        if self.projector is None:
+            return
+        live = self.camera_panel is not None and self.camera_panel.live.isChecked()
+        (self.projector.show_white if live else self.projector.show_black)()
+
+    def show_projector(self) -> None:
+        if self.projector is not None:
+            self.projector.place(self.settings.get("projector_screen"))
+            self._update_projector_label()
+
+    def _update_projector_label(self) -> None:
+        if self.projector is None:
+            return
+        w, h = self.projector.projector_size
+        where = "own monitor, 1:1" if self.projector.is_native else "preview window (one monitor)"
+        self.win.projector_label.setText(f"Projector {w}×{h} · {where}")
+
+    def fill_screen_menu(self, menu) -> None:
+        menu.clear()
+        group = QActionGroup(menu)
+        chosen = self.settings.get("projector_screen")
+        for name, label in [("", "Automatic (second monitor)")] + [
+                (s.name(), f"{s.name()}  {s.size().width()}×{s.size().height()}") for s in QGuiApplication.screens()]:
+            a = QAction(label, menu, checkable=True, checked=(name == chosen))
+            a.triggered.connect(lambda _=False, n=name: self._choose_screen(n))
+            group.addAction(a)
+            menu.addAction(a)
+
+    def _choose_screen(self, name: str) -> None:
+        self.settings.set("projector_screen", name)
+        self.show_projector()
+
+    def projector_show(self, what: str) -> None:
+        if self.projector is None or self.win.scan_flow.busy:
+            return
+        self.show_projector()
+        {"white": self.projector.show_white, "black": self.projector.show_black,
+         "crosshair": self.projector.show_crosshair, "spot": self.projector.show_spot}[what]()
+        self.projector.activateWindow()
+
+    def _projector_lost(self, name: str) -> None:
+        message = f"The projector monitor ({name}) was disconnected."
+        if self.win.scan_flow.busy:
+            self.win.scan_flow.controller.abort(message + " The scan stopped; the frames captured so far are kept.")
+        else:
+            self.win.banner.show_message("warning", message + " The projector window moved to a preview.")
+        QTimer.singleShot(0, self._update_projector_label)
+
+    def close(self) -> None:
+        if self.projector is not None:
+            self.projector.close()
+        if self.rig is not None:
+            self.rig.close()
+
+
+def open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False):
+    """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
+    ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
+    from anklescan.app.rig import SIMULATED, open_rig
+    if warm:
+        warm_imports()
+    try:
+        return open_rig(backend, scale, device, projector), ""
+    except Exception as exc:
+        problem = f"The camera backend '{backend}' could not be opened ({exc}); using the simulated rig instead."
+        return open_rig(SIMULATED, scale, "", projector), problem
+
+
+def warm_imports() -> None:
+    """Import the heavy non-Qt modules off the UI thread, so that building the widgets that use
+    them is quick later. Nothing that touches Qt here: pyqtgraph's import, for one, crashes in a
+    thread other than the GUI's."""
+    import OpenGL.GL  # noqa: F401
+    import OpenGL.GLU  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
+    import anklescan.app.picking  # noqa: F401  (numpy and SciPy only: the viewer's Qt part is built on the UI thread)
+    import anklescan.app.splat  # noqa: F401
+    import anklescan.core.measure.pipeline  # noqa: F401
+    import anklescan.core.scan.pointcloud  # noqa: F401
+
+
+def settle_memory() -> None:
+    """Load the measurement stack and move everything alive after start-up out of the garbage
+    collector's reach (gc.freeze).
+
+    A full collection runs in whichever thread allocates, holding the GIL, and takes time in
+    proportion to every object alive: with Qt, OpenGL, numpy, OpenCV and SciPy loaded it
+    stalled the UI for over 100 ms when it fell inside a scan's processing. Start-up objects
+    live as long as the app, so freezing them loses nothing and keeps collections short.
+    """
+    import gc
+
+    import anklescan.core.measure.pipeline  # noqa: F401  (its objects, too, are frozen rather than left to scan)
+    gc.freeze()  # no collect first: a full collection here was itself a 0.5 s stall

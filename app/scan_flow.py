@@ -1,0 +1,186 @@
+"""The Scan and Result pages at work: Start → the acquisition worker → the trial recorded → the
+result, the cloud and the automatic marks shown. The trial's rules are app.logic.scan's; the
+projecting and capturing are app.scan_worker's (off the UI thread); this object connects them
+to the pages and the banner."""
+
+from __future__ import annotations
+
+from functools import partial
+
+from PySide6.QtCore import QObject
+
+from anklescan.app.logic.scan import ScanLogic, ScanRefused, frames_in
+from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, no_args
+
+
+class ScanFlow(QObject):
+    def __init__(self, win, logic: ScanLogic):
+        super().__init__(win)
+        self.win, self.logic = win, logic
+        self.controller = None
+        self.last_result = None
+        page = win.scan_page
+        page.scan_button.clicked.connect(no_args(self.start_scan))
+        page.cancel_button.clicked.connect(no_args(self.cancel_scan))
+        page.form.mark_diameter.edit.editingFinished.connect(no_args(self.save_mark_diameter))
+        win.result_page.new_trial.clicked.connect(lambda: win.tabs.setCurrentIndex(PAGE_SCAN))
+
+    @property
+    def busy(self) -> bool:
+        return self.controller is not None and self.controller.busy
+
+    def attach(self, controller) -> None:
+        """The acquisition worker's controller, created with the projector window."""
+        self.controller = controller
+        controller.progress.connect(self._progress)
+        controller.frameCaptured.connect(self._frame_captured)
+        controller.finished.connect(self._finished)
+        controller.failed.connect(self._failed)
+        controller.cancelled.connect(self._cancelled)
+        controller.busyChanged.connect(self._busy)
+
+    def update_enabled(self) -> None:
+        win, page = self.win, self.win.scan_page
+        ready = win.session.calibration is not None and not win.session.read_only
+        page.needs_calibration.setVisible(not ready)
+        page.calibrate_button.setVisible(not ready)
+        page.scan_button.setEnabled(ready and not self.busy)
+        page.scan_button.setToolTip("" if ready else "Calibrate the scanner first (Scan ▸ Calibration…)")
+        win.scan_action.setEnabled(ready and not self.busy)
+
+    def save_mark_diameter(self) -> bool:
+        """Keep the mark diameter typed on the Scan page with the session (empty: measured)."""
+        field = self.win.scan_page.form.mark_diameter
+        return field.check() and self.win.session.set_mark_diameter(self.win.records.current_session_id(), field.value())
+
+    # ---- start and stop ---------------------------------------------------------------
+    def start_scan(self) -> bool:
+        """Create the trial, then project and capture in the worker. False if it cannot start."""
+        win = self.win
+        if win.rig is None or self.controller is None or self.busy:
+            return False
+        if win.session.calibration is None:
+            win.rig_setup.check_calibration_age()
+            return False
+        form = win.scan_page.form
+        try:
+            entry = form.entry()
+            if not form.mark_diameter.check():
+                raise ValueError(form.mark_diameter.problem())
+            session_id = self.logic.begin(win.records.current_session_id(), entry, form.mark_diameter.value())
+        except (ValueError, ScanRefused) as exc:  # a field shows the same message
+            win.banner.show_message("warning", f"The scan did not start: {exc}")
+            return False
+        win.records.show_patient(select_session=session_id)
+        try:
+            job = self.scan_job(self.logic.plan(win.rig.projector_size, win.rig.description))
+        except Exception as exc:
+            self.logic.end_unstarted(str(exc))
+            win.banner.show_message("error", f"The scan could not start: {exc}")
+            return False
+        win.banner.hide()
+        if not win.projector.isVisible():
+            win.rig_setup.show_projector()
+        self.controller.start(job)
+        return True
+
+    def scan_job(self, plan):
+        from anklescan.app.scan_worker import ScanJob, measure_folder
+        return ScanJob(plan.pattern_set, self.win.rig.camera, plan.folder, settle_s=plan.settle_s,
+                       calibration=plan.calibration,
+                       reconstruct=partial(measure_folder, mark_diameter_mm=plan.mark_diameter_mm,
+                                           motion_threshold_mm=plan.motion_threshold_mm),
+                       cloud_path=plan.cloud_path, metadata=plan.metadata)
+
+    def cancel_scan(self) -> None:
+        if self.busy:
+            self.win.scan_page.progress.setFormat("Cancelling…")
+            self.controller.cancel()
+
+    def stop_for_exit(self) -> None:
+        """Cancel the scan, wait for the worker to leave, and close its trial as cancelled, before
+        the database closes (its signals are cut first: nothing may arrive after)."""
+        for signal in (self.controller.finished, self.controller.failed, self.controller.cancelled):
+            try:
+                signal.disconnect()
+            except (RuntimeError, TypeError):
+                pass
+        self.controller.stop()
+        self.logic.abandon("the application was closed during the scan")
+
+    # ---- the worker's reports -----------------------------------------------------------
+    def _busy(self, busy: bool) -> None:
+        self.update_enabled()
+        self.win.scan_page.cancel_button.setEnabled(busy)
+        self.win.cancel_action.setEnabled(busy)
+        if self.win.camera_panel is not None:
+            self.win.camera_panel.set_busy(busy)
+        if busy:
+            self.win.tabs.setCurrentIndex(PAGE_SCAN)
+
+    def _progress(self, done: int, total: int, text: str) -> None:
+        bar = self.win.scan_page.progress
+        bar.setMaximum(total)
+        bar.setValue(done)
+        bar.setFormat(text)
+
+    def _frame_captured(self, index: int, image) -> None:
+        from anklescan.app.camera_panel import to_display
+        self.win.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
+
+    def _finished(self, result) -> None:
+        win = self.win
+        self.last_result = result
+        tid = self.logic.trial_id
+        has_cloud = self.logic.finished(result)
+        self._show_result(result)
+        if result.save_error:
+            win.banner.show_message("error", result.save_error)
+        if has_cloud and tid is not None:
+            win.review.show_cloud(result.cloud, tid)
+            if result.marks:
+                # shown for confirmation in the 3-D view and saved as automatic; undo stops here
+                win.review.marks_page.editor.propose_auto(result.marks)
+            if result.marks_note:
+                win.banner.show_message("info", "Some marks were not found automatically: place them in the "
+                                        f"3-D view ({result.marks_note}).")
+        if result.motion_flagged:  # last, so no other message hides it
+            win.banner.show_message("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
+                                    "(The trial is flagged and left out of the statistics unless kept.)",
+                                    ("Scan again", self._scan_again))
+        win.scan_page.form.clear_notes()
+        win.scan_page.progress.setFormat("Done")
+        win.records.show_session(select_trial=tid)
+
+    def _scan_again(self) -> None:
+        self.win.tabs.setCurrentIndex(PAGE_SCAN)
+        self.start_scan()
+
+    def _show_result(self, result) -> None:
+        from anklescan.app.projector_window import array_to_qimage
+        page = self.win.result_page
+        if result.preview is not None:
+            page.image.set_image(array_to_qimage(result.preview))
+        if result.cloud is not None and len(result.cloud) > 0:
+            lo, hi = result.depth_range
+            page.summary.setText(f"{len(result.cloud):,} points · {lo:.0f}–{hi:.0f} mm from the camera "
+                                 f"(near = red, far = blue) · capture {result.capture_s:.1f} s, "
+                                 f"reconstruction {result.process_s:.1f} s")
+        else:
+            page.summary.setText(result.note)
+            self.win.banner.show_message("warning", f"{result.note} The trial is marked failed. Frames: {result.folder}")
+        self.win.tabs.setCurrentIndex(PAGE_RESULT)
+
+    def _failed(self, message: str, folder: str) -> None:
+        self.logic.failed(message, folder)
+        self.win.records.show_session()
+        self.win.scan_page.progress.setFormat("Stopped")
+        self.win.banner.show_message("error", f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial "
+                                     "is marked failed. The session is intact; check the device and scan again.")
+
+    def _cancelled(self, folder: str) -> None:
+        self.logic.cancelled(folder)
+        self.win.records.show_session()
+        self.win.scan_page.progress.setFormat("Cancelled")
+        self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
+                                     f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")

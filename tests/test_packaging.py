@@ -1,0 +1,63 @@
+"""The installed package, as a user gets it from a plain ``pip install .`` (not editable).
+
+One top-level name, ``anklescan`` (the folders core/, hardware/ and app/ are mapped to
+anklescan.core/.hardware/.app), every subpackage shipped, the icons as package data, and the
+GUI starting from the installed copy with its icon.
+"""
+
+import os
+import subprocess
+import sys
+import tomllib
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_subpackage_is_listed_in_pyproject():
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"anklescan." + ".".join(p.parent.relative_to(ROOT).parts)
+             for top in ("core", "hardware", "app") for p in (ROOT / top).rglob("__init__.py")}
+    assert found == listed
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory):
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(ROOT)],
+                   check=True, capture_output=True, timeout=300)
+    (whl,) = out.glob("anklescan-*.whl")
+    return whl
+
+
+def test_the_wheel_holds_only_anklescan_and_its_icon(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    assert {n.split("/")[0] for n in names} == {"anklescan", wheel.name.split("-py")[0] + ".dist-info"}
+    assert "anklescan/app/icons/anklescan.svg" in names
+    sources = {str(p.relative_to(ROOT)) for top in ("core", "hardware", "app") for p in (ROOT / top).rglob("*.py")}
+    assert {"anklescan/" + s for s in sources} <= set(names)
+
+
+@pytest.mark.gui  # the GUI check needs the X server pytest-xvfb starts
+def test_a_plain_install_runs_the_gui_with_its_icon(wheel, tmp_path):
+    env_dir = tmp_path / "venv"
+    venv.create(env_dir, system_site_packages=True, with_pip=True)  # dependencies from this environment
+    py = env_dir / "bin" / "python"
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True,
+                   capture_output=True, timeout=300)
+    env = {**os.environ, "ANKLESCAN_SETTINGS": str(tmp_path / "s.ini"), "ANKLESCAN_DATA": str(tmp_path / "data"),
+           "QT_QPA_PLATFORM": "xcb", "PYTHONPATH": ""}
+    where = subprocess.run([str(py), "-c", "import anklescan.app.resources as r; print(r.ICONS)"], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(where).is_relative_to(env_dir) and (Path(where) / "anklescan.svg").is_file()
+    assert (env_dir / "bin" / "anklescan").is_file()  # the console script
+    gui = subprocess.run([str(py), "-c", "import sys; from anklescan.app.main_window import run_gui; "
+                          "sys.exit(run_gui(['anklescan', '--quit-when-shown']))"], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert gui.returncode == 0, gui.stderr
+    assert "first window shown" in gui.stdout
+    assert "Cannot open file" not in gui.stderr and "anklescan.svg" not in gui.stderr
