@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 from PySide6.QtGui import QIcon
 
-ICONS = Path(__file__).resolve().parent / "icons"  # package data, so installed copies have it
+ICONS = Path(str(files("anklescan.resources")))  # package data (resources/), so installed copies have it
 
 ACCENT = "#1f5f8b"
 WARN_BG = "#fff4d6"

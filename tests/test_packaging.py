@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_every_subpackage_is_listed_in_pyproject():
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {"anklescan." + ".".join(p.parent.relative_to(ROOT).parts)
-             for top in ("core", "hardware", "app") for p in (ROOT / top).rglob("__init__.py")}
+             for top in ("core", "hardware", "app", "resources") for p in (ROOT / top).rglob("__init__.py")}
     assert found == listed
 
 
@@ -37,7 +37,8 @@ def wheel(tmp_path_factory):
 def test_the_wheel_holds_only_anklescan_and_its_icon(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     assert {n.split("/")[0] for n in names} == {"anklescan", wheel.name.split("-py")[0] + ".dist-info"}
-    assert "anklescan/app/icons/anklescan.svg" in names
+    assert "anklescan/resources/anklescan.svg" in names
+    assert "anklescan/resources/calibration_box.json" in names
     sources = {str(p.relative_to(ROOT)) for top in ("core", "hardware", "app") for p in (ROOT / top).rglob("*.py")}
     assert {"anklescan/" + s for s in sources} <= set(names)
 
