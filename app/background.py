@@ -1,10 +1,18 @@
-"""Work off the UI thread: one small helper for everything slow that is not the scan itself
-(report rendering, file hashing, detection previews).
+"""Work off the UI thread: the one helper for everything slow — scans and other acquisitions,
+report rendering, file hashing, detection previews.
 
 ``run_in_background(fn, on_done, on_error)`` runs ``fn()`` in a Python thread and delivers its
 result, or its exception's message, to the callbacks on the UI thread through a queued Qt
 signal. Numpy, OpenCV and matplotlib release the GIL for their heavy parts, so the UI keeps
 painting while the job runs.
+
+Long work takes the job itself (``pass_job=True``: ``fn(job)``) and then has
+
+- ``job.progress(done, total, text)``: delivered to ``on_progress`` on the UI thread;
+- ``job.post(callback, *args)``: any other call delivered on the UI thread (a live thumbnail);
+- cancel: the UI calls ``job.cancel()``; the work checks ``job.cancelled`` (a threading.Event,
+  so it can also wait on it) or calls ``job.check_cancel()``, which raises ``Cancelled``; a job
+  that ends with ``Cancelled`` reports to ``on_cancelled`` instead of ``on_error``.
 """
 
 from __future__ import annotations
@@ -18,31 +26,70 @@ from PySide6.QtCore import QObject, Signal, Slot
 _running: set["BackgroundJob"] = set()  # keeps each job (and its signal) alive until delivered
 
 
+class Cancelled(Exception):
+    """Raised inside a job whose ``cancel()`` was called."""
+
+
 class BackgroundJob(QObject):
-    """Created on the UI thread, so its slot runs there: ``done`` emitted from the worker
-    thread is queued to the UI thread (a bare function would be called in the worker)."""
+    """Created on the UI thread, so its slots run there: signals emitted from the worker
+    thread are queued to the UI thread (a bare function would be called in the worker)."""
 
-    done = Signal(object, str)  # result, error message ("" when it worked)
+    done = Signal(object, str, bool)  # result, error message ("" when it worked), cancelled
+    _posted = Signal(object, object)  # callback, args
 
-    def __init__(self, fn: Callable[[], object], on_done: Callable[[object], None],
-                 on_error: Callable[[str], None]):
+    def __init__(self, fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
+                 on_progress: Callable[[int, int, str], None] | None = None,
+                 on_cancelled: Callable[[], None] | None = None, pass_job: bool = False, name: str = "anklescan-job"):
         super().__init__()
         self._fn, self._on_done, self._on_error = fn, on_done, on_error
-        self.thread = threading.Thread(target=self._run, name="anklescan-job", daemon=True)
+        self._on_progress, self._on_cancelled, self._pass_job = on_progress, on_cancelled, pass_job
+        self.cancelled = threading.Event()
+        self.finished = False  # set on the UI thread once the callbacks have been called
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.done.connect(self._deliver)
+        self._posted.connect(self._call)
 
+    # ---- in the worker thread -----------------------------------------------------------
     def _run(self) -> None:
+        cancelled = False
         try:
-            result, error = self._fn(), ""
+            result, error = (self._fn(self) if self._pass_job else self._fn()), ""
+        except Cancelled:
+            result, error, cancelled = None, "", True
         except Exception as exc:  # delivered as a message: a job never takes the app down
             traceback.print_exc()
             result, error = None, str(exc) or type(exc).__name__
-        self.done.emit(result, error)
+        self.done.emit(result, error, cancelled)
 
-    @Slot(object, str)
-    def _deliver(self, result, error: str) -> None:
+    def progress(self, done: int, total: int, text: str = "") -> None:
+        if self._on_progress is not None:
+            self._posted.emit(self._on_progress, (done, total, text))
+
+    def post(self, callback: Callable, *args) -> None:
+        """Call ``callback(*args)`` on the UI thread (queued, in order with progress and done)."""
+        self._posted.emit(callback, args)
+
+    def check_cancel(self) -> None:
+        if self.cancelled.is_set():
+            raise Cancelled
+
+    # ---- on the UI thread ---------------------------------------------------------------
+    def cancel(self) -> None:
+        self.cancelled.set()
+
+    @Slot(object, object)
+    def _call(self, callback, args) -> None:
+        if not self.finished:
+            callback(*args)
+
+    @Slot(object, str, bool)
+    def _deliver(self, result, error: str, cancelled: bool) -> None:
         _running.discard(self)
-        if error:
+        self.finished = True
+        if cancelled:
+            if self._on_cancelled is not None:
+                self._on_cancelled()
+        elif error:
             self._on_error(error)
         else:
             self._on_done(result)
@@ -51,10 +98,17 @@ class BackgroundJob(QObject):
         self.thread.join(timeout_s)
         return not self.thread.is_alive()
 
+    @property
+    def running(self) -> bool:
+        return self.thread.is_alive()
 
-def run_in_background(fn: Callable[[], object], on_done: Callable[[object], None],
-                      on_error: Callable[[str], None]) -> BackgroundJob:
-    job = BackgroundJob(fn, on_done, on_error)
+
+def run_in_background(fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
+                      on_progress: Callable[[int, int, str], None] | None = None,
+                      on_cancelled: Callable[[], None] | None = None, pass_job: bool = False,
+                      name: str = "anklescan-job") -> BackgroundJob:
+    job = BackgroundJob(fn, on_done, on_error, on_progress=on_progress, on_cancelled=on_cancelled,
+                        pass_job=pass_job, name=name)
     _running.add(job)
     job.thread.start()
     return job

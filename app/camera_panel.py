@@ -9,11 +9,8 @@ indicator is the one number the clinician must watch while setting exposure.
 
 from __future__ import annotations
 
-import threading
-import time
-
 import numpy as np
-from PySide6.QtCore import QObject, Qt, QTimer, Signal, Slot
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QImage, QPixmap
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGroupBox,
                                QHBoxLayout, QLabel, QPushButton, QSizePolicy, QSpinBox, QVBoxLayout,
@@ -22,7 +19,6 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
 
 PREVIEW_MS = 100
 USB_POLL_MS = 2000  # plug/unplug shows within 2 s; one enumeration costs well under a millisecond
-SHOW_TIMEOUT_S = 5.0
 WARN_PERCENT = 0.5  # above this share of saturated pixels the stripes start to be lost
 
 
@@ -135,7 +131,10 @@ class CameraPanel(QWidget):
         self.latency_result = QLabel("Not measured: the settle time is the stored one.")
         self.latency_result.setWordWrap(True)
         self._projector = None
-        self._runner = None
+        self._output = None   # the projector window behind app.acquisition's ProjectorOutput
+        self._runner = None   # the latency self-test's background job
+        self._preview_job = None
+        self._shot_job = None
         self._backend_key = ""
         self._watcher = None
         self._usb_timer = QTimer(self)
@@ -285,25 +284,48 @@ class CameraPanel(QWidget):
     def _live_toggled(self, on: bool) -> None:
         self._timer.start() if on else self._timer.stop()
 
-    def _pull_preview(self) -> None:
-        if self._camera is None:
-            return
-        try:
-            self.show_image(self._camera.preview())
-        except Exception as exc:
-            self.live.setChecked(False)
-            self.saturation.setText(f"Preview stopped: {exc}")
+    def _acquisition(self):
+        from anklescan.app.acquisition import Acquisition
+        return Acquisition(self._camera, self._output, self.settle.value() / 1000.0)
 
-    def test_capture(self) -> None:
-        if self._camera is None:
+    def _pull_preview(self) -> None:
+        """One preview frame, grabbed in the background; the next tick waits for it."""
+        if self._camera is None or self._preview_job is not None:
             return
-        try:
-            image = self._camera.capture()
-        except Exception as exc:
-            self.saturation.setText(f"Test capture failed: {exc}")
+        camera = self._camera
+        self._preview_job = self._acquisition().run(
+            lambda acq: acq.preview(), lambda image: self._preview_done(camera, image),
+            lambda message: self._preview_done(camera, None, message))
+
+    def _preview_done(self, camera, image, message: str = "") -> None:
+        self._preview_job = None
+        if camera is not self._camera:
+            return  # the camera was switched meanwhile
+        if image is not None:
+            if self._timer.isActive():  # not stopped by a scan or the self-test meanwhile
+                self.show_image(image)
             return
+        self.live.setChecked(False)
+        self.saturation.setText(f"Preview stopped: {message}")
+
+    def test_capture(self):
+        """A full frame, captured in the background; ``testCaptured`` carries it. Returns the job."""
+        if self._camera is None or self._shot_job is not None:
+            return None
+        self.test_button.setEnabled(False)
+        self._shot_job = self._acquisition().run(lambda acq: acq.capture(), self._test_captured, self._test_failed)
+        return self._shot_job
+
+    def _test_captured(self, image) -> None:
+        self._shot_job = None
+        self.test_button.setEnabled(self._runner is None and self.backend.isEnabled())
         self.show_image(image)
         self.testCaptured.emit(image)
+
+    def _test_failed(self, message: str) -> None:
+        self._shot_job = None
+        self.test_button.setEnabled(self._runner is None and self.backend.isEnabled())
+        self.saturation.setText(f"Test capture failed: {message}")
 
     def show_image(self, image: np.ndarray) -> None:
         pct = saturation_percent(image, self._level)
@@ -370,9 +392,13 @@ class CameraPanel(QWidget):
 
     # ---- synchronisation ----------------------------------------------------------------
     def set_projector(self, projector) -> None:
-        """The projector window (``show_frame(array) -> token``, ``painted(token)``,
-        ``projector_size``) the latency self-test shows black and white on."""
-        self._projector = projector
+        """The projector window (or any ProjectorOutput) the latency self-test shows black and
+        white on, through app.acquisition."""
+        from anklescan.app.acquisition import as_output
+        if projector is not self._projector:
+            if self._output is not None and self._output is not self._projector:
+                self._output.close()
+            self._projector, self._output = projector, as_output(projector)
 
     def set_settle_ms(self, ms: float) -> None:
         """The stored settle time (settings), shown until a self-test measures one."""
@@ -395,7 +421,9 @@ class CameraPanel(QWidget):
 
     def _find_projector(self):
         # The main window owns the projector window; until it hands it over explicitly, use its.
-        return self._projector or getattr(self.window(), "projector", None)
+        if self._projector is None and getattr(self.window(), "projector", None) is not None:
+            self.set_projector(self.window().projector)
+        return self._projector
 
     def _show_projector(self) -> bool:
         # As the main window does before a scan: the window paints nothing while hidden.
@@ -406,6 +434,7 @@ class CameraPanel(QWidget):
         return bool(projector is not None and projector.isVisible())
 
     def run_latency_test(self, **kw) -> bool:
+        """hardware.sync's self-test, in the background, on the acquisition's show and capture."""
         projector = self._find_projector()
         if self._camera is None or projector is None or self._runner is not None:
             self.latency_result.setText("Open the camera and the projector window first.")
@@ -417,14 +446,14 @@ class CameraPanel(QWidget):
         self.latency_button.setEnabled(False)
         self.test_button.setEnabled(False)
         self.latency_result.setText("Measuring… keep the camera pointed at the projected area.")
-        self._runner = LatencyRunner(self._camera, projector, self, **kw)
-        self._runner.done.connect(self._latency_done)
-        self._runner.start()
+        camera = self._camera
+        self._runner = self._acquisition().run(lambda acq: latency_test(acq, **kw),
+                                               lambda result: self._latency_done(camera, result, ""),
+                                               lambda message: self._latency_done(camera, None, message))
         return True
 
-    def _latency_done(self, result, message: str) -> None:
+    def _latency_done(self, camera, result, message: str) -> None:
         from anklescan.hardware.sync import Settle, remember
-        self._runner.detach()
         self._runner = None
         self.latency_button.setEnabled(True)
         self.test_button.setEnabled(True)
@@ -433,67 +462,21 @@ class CameraPanel(QWidget):
         if result is None:
             self.latency_result.setText(f"Latency test failed: {message}")
             return
-        remember(self._camera, Settle(result.settle_s, "self-test", result))
+        remember(camera, Settle(result.settle_s, "self-test", result))
+        if camera is not self._camera:
+            return
         self.set_settle_ms(result.settle_s * 1000)
         self.latency_result.setText(result.summary())
         self.settleChanged.emit(result.settle_s * 1000)
 
 
-class LatencyRunner(QObject):
-    """Runs hardware.sync.run_latency_test on its own thread; projector frames are shown on
-    the UI thread, and the worker waits for each to be painted, as the scan does."""
+def latency_test(acquisition, **test_kw):
+    """hardware.sync.run_latency_test with the acquisition's show (black or white, returning
+    when presented) and capture; in a worker thread."""
+    from anklescan.hardware.sync import run_latency_test
+    w, h = acquisition.output.size
 
-    done = Signal(object, str)  # LatencyResult or None, error message
-    _show = Signal(bool)
+    def show(bright: bool) -> float:
+        return acquisition.present(np.full((h, w), 255 if bright else 0, np.uint8))
 
-    def __init__(self, camera, projector, parent=None, **test_kw):
-        super().__init__(parent)
-        self.camera, self.projector, self.test_kw = camera, projector, test_kw
-        self._painted = threading.Event()
-        self._token = None
-        self._presented = 0.0
-        self._show.connect(self._show_on_ui)  # queued: emitted from the worker thread
-        projector.painted.connect(self._on_painted)
-        self._thread = None
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="latency-test", daemon=True)
-        self._thread.start()
-
-    def wait(self, timeout: float = 10.0) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
-
-    def _run(self) -> None:
-        from anklescan.hardware.sync import run_latency_test
-        try:
-            result = run_latency_test(self.camera, self._show_and_wait, **self.test_kw)
-        except Exception as exc:
-            self._finish(None, str(exc))
-        else:
-            self._finish(result, "")
-
-    def _finish(self, result, message: str) -> None:
-        self.done.emit(result, message)
-
-    def detach(self) -> None:
-        """On the UI thread, once done: stop listening to the projector."""
-        self.projector.painted.disconnect(self._on_painted)
-
-    def _show_and_wait(self, bright: bool) -> float:
-        self._painted.clear()
-        self._show.emit(bright)
-        if not self._painted.wait(SHOW_TIMEOUT_S):
-            raise RuntimeError("the projector window did not show the test frame")
-        return self._presented
-
-    @Slot(bool)
-    def _show_on_ui(self, bright: bool) -> None:
-        w, h = self.projector.projector_size
-        self._token = self.projector.show_frame(np.full((h, w), 255 if bright else 0, np.uint8))
-
-    @Slot(int)
-    def _on_painted(self, token: int) -> None:
-        if token == self._token:
-            self._presented = time.monotonic()
-            self._painted.set()
+    return run_latency_test(acquisition, show, **test_kw)

@@ -10,6 +10,10 @@ On a monitor of its own the window is frameless and full screen, and the array i
 high-DPI screens). With one monitor it becomes a movable preview window that scales the image
 to fit, and says so in its title, because a scaled image must never be mistaken for the
 projector output.
+
+The window is a widget and lives on the UI thread. Scans and other captures reach it as a
+``ProjectorOutput`` (hardware.camera) through app.acquisition.WindowOutput, which asks the UI
+thread to paint a frame and waits, in the worker, for ``painted``.
 """
 
 from __future__ import annotations
@@ -74,7 +78,7 @@ class ProjectorWindow(QWidget):
     spotMoved = Signal(float, float)  # projector coordinate of the calibration spot's centre
     screenLost = Signal(str)         # the monitor we were on went away
 
-    def __init__(self, size: tuple[int, int] = (1024, 768), parent=None):
+    def __init__(self, size: tuple[int, int], parent=None):
         super().__init__(parent, Qt.WindowType.Window)
         self.setAttribute(Qt.WidgetAttribute.WA_OpaquePaintEvent)  # we paint every pixel ourselves
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)

@@ -19,7 +19,7 @@ class Rig:
     camera: object
     projector_size: tuple[int, int]
     simulated: bool
-    sim_projector: object = None     # has show(array); fed with what the projector window paints
+    sim_projector: object = None     # a ProjectorOutput (hardware.simrig); fed with what the window paints
     calibration: object = None       # anklescan.core.calibration.file.Calibration, when known
 
     @property
@@ -67,13 +67,43 @@ def backend_problem(backend: str) -> str:
     return camera.backend_problem(backend)
 
 
+def projector_resolution(settings=None) -> tuple[int, int]:
+    """The real projector's resolution: the ``projector_size`` setting when it is set, else that
+    of the monitor the projector window goes to (the ``projector_screen`` setting, else the
+    second monitor; asked only on the UI thread, where Qt allows it), else the setting's fallback."""
+    from anklescan.app.settings import Settings
+
+    settings = settings or Settings()
+    if str(settings.get("projector_size")).strip():
+        return settings.projector_size
+    return _display_size(settings.get("projector_screen")) or settings.projector_size
+
+
+def _display_size(preferred: str) -> tuple[int, int] | None:
+    from PySide6.QtCore import QThread
+    from PySide6.QtGui import QGuiApplication
+
+    app = QGuiApplication.instance()
+    if app is None or QThread.currentThread() is not app.thread():
+        return None
+    from anklescan.app.projector_window import choose_screen
+
+    screen = choose_screen(QGuiApplication.screens(), QGuiApplication.primaryScreen(), preferred)
+    if screen is None:
+        return None
+    size, ratio = screen.geometry().size(), screen.devicePixelRatio()
+    return round(size.width() * ratio), round(size.height() * ratio)
+
+
 def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
-             projector_size: tuple[int, int] = (1024, 768)) -> Rig:
-    """``projector_size`` is the real projector's resolution (the setting); the simulated rig has its own."""
+             projector_size: tuple[int, int] | None = None) -> Rig:
+    """``projector_size`` is the real projector's resolution (``projector_resolution()`` when not
+    given: the setting or the connected monitor); the simulated rig has its own."""
     if backend != SIMULATED:
         from anklescan.hardware import camera
 
-        return Rig(backend, camera.open_camera(backend, device), tuple(projector_size), simulated=False)
+        size = tuple(projector_size) if projector_size else projector_resolution()
+        return Rig(backend, camera.open_camera(backend, device), size, simulated=False)
     from anklescan.hardware import simrig
 
     rig = simrig.SimRig(scale=scale)

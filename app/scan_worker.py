@@ -2,31 +2,21 @@
 
 Threading model
 ---------------
-The worker runs in its own QThread and owns the camera for the scan; the projector window is a
-widget and lives on the UI thread. For each frame the worker
+``ScanController`` lives on the UI thread and runs one scan as a background job
+(app.background). The job acquires the frames through app.acquisition — the one show →
+presented → settle → capture sequence, whose docstring says how a frame is known to be on
+screen before the camera fires — and hands each image to ``CaptureWriter`` at once, so a crash
+loses nothing already captured. The manifest's "capture" key records the device, its settings,
+the settle time and, per frame, when it was shown and captured. Then it decodes, reconstructs,
+makes the preview, writes the cloud and hashes the files, all in the job.
 
-1. emits ``showRequested(index, pattern)``; the UI thread shows it on the projector window;
-2. waits until the UI thread calls ``confirm_shown(index)``, which it does only after the window
-   has painted that frame *and* one event-loop round trip has passed (the backing store has
-   been flushed to the window system), so the camera can never see the previous pattern;
-3. waits the settle time (projector LCD response, camera exposure start): the camera's
-   latency self-test result when one was run (hardware.sync), else ``ScanJob.settle_s``;
-4. captures, and hands the image to ``CaptureWriter`` at once, so a crash loses nothing
-   already captured. The manifest's "capture" key records the device, its settings, the
-   settle time and, per frame, when it was shown and captured.
-
-Every wait is sliced into short steps that check the cancel flag, so cancel takes effect within
-one slice (50 ms) plus, at worst, one camera exposure. Decode and reconstruct are single calls
-that cannot be interrupted; cancel during them only drops the result.
-
-All communication with the UI is by queued signals, except the two thread-safe entry points
-``confirm_shown`` and ``cancel`` (threading.Event), which the UI calls directly: the worker's
-own event loop is busy running the scan, so a queued slot would never be delivered to it.
+Cancel takes effect within one wait slice (50 ms) plus, at worst, one camera exposure. Decode
+and reconstruct are single calls that cannot be interrupted; cancel during them only drops the
+result. Everything reaches the UI by queued delivery on the UI thread.
 """
 
 from __future__ import annotations
 
-import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -34,18 +24,14 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from PySide6.QtCore import QObject, QThread, Signal, Slot
+from PySide6.QtCore import QObject, Signal
 
+from anklescan.app.acquisition import Acquisition, as_output
+from anklescan.app.background import Cancelled, run_in_background
 from anklescan.core.errors import AnkleScanError
 from anklescan.hardware.camera import CameraDisconnected
 
-
-SLICE_S = 0.05
-SHOW_TIMEOUT_S = 5.0
-
-
-class Cancelled(Exception):
-    pass
+__all__ = ["Cancelled", "ScanController", "ScanError", "ScanJob", "ScanResult", "run_scan"]
 
 
 class ScanError(AnkleScanError):
@@ -89,54 +75,27 @@ class ScanResult:
     duration_s: float = 0.0             # the scan's duration: first frame shown to last frame captured
 
 
-class ScanWorker(QObject):
-    showRequested = Signal(int, object)      # frame index, uint8 pattern array
-    progress = Signal(int, int, str)         # done, total, what is happening
-    frameCaptured = Signal(int, object)      # frame index, camera image (for a live thumbnail)
-    finished = Signal(object)                # ScanResult
-    failed = Signal(str, str)                # one-line message, capture folder (frames kept)
-    cancelled = Signal(str)                  # capture folder
+def run_scan(job: ScanJob, acquisition: Acquisition, bg, on_frame: Callable | None = None) -> ScanResult:
+    """The whole scan, in a background job ``bg`` (app.background.BackgroundJob): acquire and
+    store every frame, then reconstruct, preview, save and hash. ``bg.post`` carries each
+    captured frame to ``on_frame(index, image)`` on the UI thread."""
+    work = _Scan(job, acquisition, bg)
+    work.on_frame = on_frame
+    try:
+        return work.run()
+    except (Cancelled, AnkleScanError):
+        raise
+    except Exception as exc:  # a bug or a device error: still a message, never a crash
+        traceback.print_exc()
+        raise ScanError(f"{type(exc).__name__}: {exc}") from exc
 
-    def __init__(self, job: ScanJob):
-        super().__init__()
-        self.job = job
-        self._cancel = threading.Event()
-        self._shown = threading.Event()
-        self._shown_index = -1
-        self._lock = threading.Lock()
-        self._abort_message = ""
 
-    # ---- called from the UI thread ------------------------------------------------------
-    def cancel(self) -> None:
-        self._cancel.set()
+class _Scan:
+    def __init__(self, job: ScanJob, acquisition: Acquisition, bg):
+        self.job, self.acquisition, self.bg = job, acquisition, bg
+        self.on_frame: Callable | None = None  # (index, image) on the UI thread
 
-    def abort(self, message: str) -> None:
-        """Stop because something outside the worker went wrong (e.g. the projector screen left)."""
-        self._abort_message = message
-        self._cancel.set()
-
-    def confirm_shown(self, index: int) -> None:
-        with self._lock:
-            self._shown_index = index
-        self._shown.set()
-
-    # ---- the worker thread --------------------------------------------------------------
-    @Slot()
-    def run(self) -> None:
-        folder = str(self.job.folder)
-        try:
-            result = self._scan()
-        except Cancelled:
-            self.cancelled.emit(folder)
-        except AnkleScanError as exc:
-            self.failed.emit(str(exc), folder)
-        except Exception as exc:  # a bug or a device error: still a message, never a crash
-            traceback.print_exc()
-            self.failed.emit(f"{type(exc).__name__}: {exc}", folder)
-        else:
-            self.finished.emit(result)
-
-    def _scan(self) -> ScanResult:
+    def run(self) -> ScanResult:
         t0 = time.perf_counter()
         self._capture_all()
         capture_s = time.perf_counter() - t0
@@ -146,11 +105,11 @@ class ScanWorker(QObject):
                            if self.job.calibration is None else "Capture only: the frames are saved.")
             result.preview = white_preview(self.job.folder, self.job.pattern_set)
             return result
-        self._check_cancel()
+        self.bg.check_cancel()
         n = len(self.job.pattern_set.frames)
-        self.progress.emit(n, n, "Decoding and reconstructing…")
+        self.bg.progress(n, n, "Decoding and reconstructing…")
         t1 = time.perf_counter()
-        out = self._reconstruct()
+        out = self.job.reconstruct(self.job.folder, self.job.calibration)
         if hasattr(out, "marks"):  # a measurement: the cloud plus the marks found on it
             result.cloud = out.cloud
             result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
@@ -163,7 +122,7 @@ class ScanWorker(QObject):
         else:
             result.cloud = out
         result.process_s = time.perf_counter() - t1
-        self._check_cancel()
+        self.bg.check_cancel()
         if result.cloud is not None and len(result.cloud) > 0:
             # Made here, not on the UI thread: it touches every point.
             result.preview, result.depth_range = depth_preview(result.cloud, self.job.calibration)
@@ -187,65 +146,27 @@ class ScanWorker(QObject):
         result.capture_sha256 = sha256_path(self.job.folder)
 
     def _capture_all(self) -> None:
-        from anklescan.core.scan.capture import CaptureWriter  # imported here: the worker module loads fast
-
-        from anklescan.hardware.sync import settle_for
+        from anklescan.core.scan.capture import CaptureWriter  # imported here: the module loads fast
 
         pset = self.job.pattern_set
         render = self.job.render or _default_render()
-        settle = settle_for(self.job.camera, self.job.settle_s)
+        settle = self.acquisition.settle()
         writer = CaptureWriter(self.job.folder, pset, {**_device_metadata(self.job.camera, settle), **self.job.metadata})
         timing = writer.metadata.setdefault("frames", {})
-        t0 = time.monotonic()
-        total = len(pset.frames)
-        for i, frame in enumerate(pset.frames):
-            self._check_cancel()
-            self.progress.emit(i, total, f"Frame {i + 1} of {total}")
-            self._show_and_wait(i, render(pset, frame))
-            shown = time.monotonic()
-            self._sleep(settle.seconds)
-            start = time.monotonic()
-            image = self._capture()
-            timing[frame.file] = _frame_timing(self.job.camera, t0, shown, start)
-            writer.add(frame.file, image)
-            self.frameCaptured.emit(i, image)
-        writer.finish()
-        self.progress.emit(total, total, "Capture complete")
 
-    def _show_and_wait(self, index: int, pattern: np.ndarray) -> None:
-        self._shown.clear()
-        self.showRequested.emit(index, pattern)
-        deadline = time.monotonic() + SHOW_TIMEOUT_S
-        while True:
-            self._check_cancel()
-            if self._shown.wait(SLICE_S):
-                with self._lock:
-                    if self._shown_index == index:
-                        return
-                self._shown.clear()
-            if time.monotonic() > deadline:
-                raise ScanError("The projector window did not show the pattern; is the projector screen still connected?")
+        def store(i, image, frame_timing):
+            timing[pset.frames[i].file] = frame_timing
+            writer.add(pset.frames[i].file, image)
+            if self.on_frame is not None:
+                self.bg.post(self.on_frame, i, image)
 
-    def _capture(self) -> np.ndarray:
         try:
-            return self.job.camera.capture()
+            self.acquisition.acquire(pset.frames, render=lambda frame: render(pset, frame), settle_s=settle.seconds,
+                                     on_frame=store, progress=self.bg.progress, cancelled=self.bg.cancelled,
+                                     keep=False)
         except CameraDisconnected as exc:
             raise ScanError(f"The camera was disconnected during the scan ({exc}).") from None
-
-    def _reconstruct(self):
-        return self.job.reconstruct(self.job.folder, self.job.calibration)
-
-    def _sleep(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while (left := end - time.monotonic()) > 0:
-            if self._cancel.wait(min(left, SLICE_S)):
-                self._check_cancel()
-
-    def _check_cancel(self) -> None:
-        if self._cancel.is_set():
-            if self._abort_message:
-                raise ScanError(self._abort_message)
-            raise Cancelled
+        writer.finish()
 
 
 def _device_metadata(camera, settle) -> dict:
@@ -261,16 +182,6 @@ def _device_metadata(camera, settle) -> dict:
     if settle.result is not None:
         meta["latency_test"] = settle.result.as_dict()
     return meta
-
-
-def _frame_timing(camera, t0: float, shown: float, start: float) -> dict:
-    """Seconds since the first frame's start; "started" is the wall-clock start of the scan."""
-    out = {"shown_s": round(shown - t0, 4), "capture_start_s": round(start - t0, 4),
-           "capture_end_s": round(time.monotonic() - t0, 4)}
-    info = getattr(camera, "frame_info", None)
-    if callable(info):
-        out.update({k: v for k, v in info().items() if k not in ("requested", "returned")})
-    return out
 
 
 def _default_render():
@@ -344,10 +255,11 @@ def reconstruct_folder(folder, calibration):
 
 
 class ScanController(QObject):
-    """Lives on the UI thread: runs one ScanWorker in a QThread and feeds it the projector.
+    """Lives on the UI thread: runs one scan at a time as a background job, through the
+    projector's acquisition (app.acquisition).
 
-    The projector is any object with ``show_frame(array) -> token`` and a ``painted(token)``
-    signal (app.projector_window.ProjectorWindow).
+    ``projector`` is a ProjectorOutput (hardware.camera), or the ProjectorWindow, which is then
+    put behind one (app.acquisition.WindowOutput).
     """
 
     progress = Signal(int, int, str)
@@ -360,100 +272,73 @@ class ScanController(QObject):
     def __init__(self, projector, parent=None):
         super().__init__(parent)
         self.projector = projector
-        self.projector.painted.connect(self._painted)
-        self._thread = None
-        self._worker = None
-        self._pending = None  # (token, frame index) waiting to be painted
+        self.output = as_output(projector)
+        self._job = None       # the running background job
+        self._scan = None      # its ScanJob
+        self._abort_message = ""
 
     @property
     def busy(self) -> bool:
-        return self._worker is not None
+        return self._job is not None
 
     def start(self, job: ScanJob) -> None:
         if self.busy:
             raise ScanError("A scan is already running.")
-        thread = QThread()
-        thread.setObjectName("scan")
-        worker = ScanWorker(job)
-        worker.moveToThread(thread)
-        thread.started.connect(worker.run)
-        worker.showRequested.connect(self._show)  # queued: runs on the UI thread
-        # Bound slots of this UI-thread object, so every delivery is queued onto the UI thread.
-        worker.progress.connect(self._progress)
-        worker.frameCaptured.connect(self._frame_captured)
-        worker.finished.connect(self._finished)
-        worker.failed.connect(self._failed)
-        worker.cancelled.connect(self._cancelled)
-        self._thread, self._worker = thread, worker
+        acquisition = Acquisition(job.camera, self.output, job.settle_s)
+        self._abort_message = ""
+        self._scan = job
+        self._job = run_in_background(
+            lambda bg: run_scan(job, acquisition, bg, lambda i, image: self._frame_captured(bg, i, image)),
+            lambda result: self._done(bg_job, self.finished, result),
+            lambda message: self._done(bg_job, self.failed, message, str(job.folder)),
+            on_progress=lambda done, total, text: self._progress(bg_job, done, total, text),
+            on_cancelled=lambda: self._ended_by_cancel(bg_job), pass_job=True, name="scan")
+        bg_job = self._job
         self.busyChanged.emit(True)
-        thread.start()
 
     def cancel(self) -> None:
-        if self._worker is not None:
-            self._worker.cancel()
+        if self._job is not None:
+            self._job.cancel()
 
     def abort(self, message: str) -> None:
-        if self._worker is not None:
-            self._worker.abort(message)
+        """Stop because something outside the scan went wrong (e.g. the projector screen left)."""
+        if self._job is not None:
+            self._abort_message = message
+            self._job.cancel()
 
     def wait(self, timeout_ms: int = 5000) -> bool:
-        return self._thread.wait(timeout_ms) if self._thread is not None else True
+        return self._job.wait(timeout_ms / 1000) if self._job is not None else True
 
     def stop(self, timeout_ms: int = 10_000) -> bool:
-        """Cancel and wait for the worker to return (for quitting). The thread's event loop is
-        told to exit once run() returns, so this does not wait on the UI thread's own queue."""
-        if self._thread is None:
+        """Cancel and wait for the job to return (for quitting); its own report, still queued,
+        then finds nothing left to finish."""
+        if self._job is None:
             return True
         self.cancel()
-        self._thread.quit()
-        stopped = self._thread.wait(timeout_ms)
-        if stopped:  # the worker's own 'cancelled' is still queued: it finds nothing left to finish
-            self._thread, self._worker, self._pending = None, None, None
+        stopped = self._job.wait(timeout_ms / 1000)
+        if stopped:
+            self._job = self._scan = None
             self.busyChanged.emit(False)
         return stopped
 
-    @Slot(int, object)
-    def _show(self, index: int, pattern) -> None:
-        if self._worker is None:
+    def _progress(self, bg, done, total, text) -> None:
+        if bg is self._job:
+            self.progress.emit(done, total, text)
+
+    def _frame_captured(self, bg, index, image) -> None:
+        if bg is self._job:
+            self.frameCaptured.emit(index, image)
+
+    def _ended_by_cancel(self, bg) -> None:
+        folder = str(self._scan.folder) if self._scan is not None else ""
+        if self._abort_message:
+            self._done(bg, self.failed, self._abort_message, folder)
+        else:
+            self._done(bg, self.cancelled, folder)
+
+    def _done(self, bg, signal, *args) -> None:
+        if bg is not self._job:  # already stopped (quitting): nothing more to report
             return
-        try:
-            token = self.projector.show_frame(pattern)
-        except Exception as exc:
-            self._worker.abort(f"The projector window cannot show the pattern: {exc}")
-            return
-        self._pending = (token, index)
-
-    @Slot(int)
-    def _painted(self, token: int) -> None:
-        if self._pending and self._pending[0] == token and self._worker is not None:
-            self._worker.confirm_shown(self._pending[1])
-            self._pending = None
-
-    @Slot(int, int, str)
-    def _progress(self, done, total, text):
-        self.progress.emit(done, total, text)
-
-    @Slot(int, object)
-    def _frame_captured(self, index, image):
-        self.frameCaptured.emit(index, image)
-
-    @Slot(object)
-    def _finished(self, result):
-        self._done(self.finished, result)
-
-    @Slot(str, str)
-    def _failed(self, message, folder):
-        self._done(self.failed, message, folder)
-
-    @Slot(str)
-    def _cancelled(self, folder):
-        self._done(self.cancelled, folder)
-
-    def _done(self, signal, *args) -> None:
-        if self._thread is None:  # already stopped (quitting): nothing more to report
-            return
-        thread, self._thread, self._worker, self._pending = self._thread, None, None, None
-        thread.quit()
-        thread.wait()  # the worker has returned from run(); this is immediate
+        self._job = self._scan = None
         self.busyChanged.emit(False)
         signal.emit(*args)

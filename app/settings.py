@@ -23,13 +23,19 @@ class Key:
 
 KEYS = {
     "projector_screen": Key("projector/screen", "", str),       # QScreen.name(); "" = automatic
-    "projector_size": Key("projector/size", "1024x768", str),
+    "projector_size": Key("projector/size", "", str),  # "WxH"; "": the projector monitor's (app.rig)
     "camera_backend": Key("camera/backend", "simulated", str),
     "camera_device": Key("camera/device", "", str),
     "camera_exposure_ms": Key("camera/exposure_ms", 0.0, float),  # 0 = the device's default
     "camera_gain": Key("camera/gain", 0.0, float),
     "settle_ms": Key("scan/settle_ms", 30, int),
-    "calibration_max_age_days": Key("calibration/max_age_days", 30, int),  # read by app.calibration_wizard
+    # the current calibration (app.calibration_logic): its file, database id, when made, last verification
+    "calibration_path": Key("calibration/current_path", "", str),
+    "calibration_id": Key("calibration/current_id", "", str),     # "" when not in a database
+    "calibration_created": Key("calibration/current_created", "", str),  # ISO 8601
+    "calibration_verified": Key("calibration/verified", "", str),  # "", "pass" or "fail"
+    "calibration_verified_at": Key("calibration/verified_at", "", str),
+    "calibration_max_age_days": Key("calibration/max_age_days", 30.0, float),  # older: the banner warns
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),

@@ -474,7 +474,9 @@ class SimRig:
 
 
 class SimulatedProjector(ProjectorOutput):
-    """Remembers the image shown; a black frame until something is shown."""
+    """Remembers the image shown; a black frame until something is shown. ``show`` presents at
+    once: when it returns, the simulated camera photographs the new image (app.acquisition uses
+    it directly, or feeds it what the real projector window paints)."""
 
     def __init__(self, width: int, height: int):
         self._size = (int(width), int(height))

@@ -84,3 +84,18 @@ def test_choose_screen_prefers_second_monitor():
     assert choose_screen([a], a) is None            # one monitor: preview window
     assert choose_screen([a, b], a) is b            # the second one by default
     assert choose_screen([a, b], a, "HDMI-1") is a  # the user's choice wins
+
+
+def test_projector_resolution_from_settings_or_the_display(qtbot, monkeypatch):
+    """The real projector's resolution: the setting when set; else the projector monitor's own
+    (the second monitor, or the named one); with one monitor, the settings' fallback."""
+    import anklescan.app.rig as rig
+    from anklescan.app.settings import Settings
+
+    settings = Settings()
+    settings.set("projector_size", "1280x800")
+    assert rig.projector_resolution(settings) == (1280, 800)
+    settings.set("projector_size", "")
+    assert rig.projector_resolution(settings) == settings.projector_size  # Xvfb: one monitor
+    monkeypatch.setattr(rig, "_display_size", lambda preferred: (1920, 1080))
+    assert rig.projector_resolution(settings) == (1920, 1080)

@@ -47,7 +47,8 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     win.camera_panel.zebra.setChecked(True)
     win.projector.show_white()
     qtbot.wait(50)
-    win.camera_panel.test_capture()
+    with qtbot.waitSignal(win.camera_panel.testCaptured, timeout=10_000):  # captured in the background
+        win.camera_panel.test_capture()
     qtbot.wait(100)
     win.grab().save(str(OUT / "camera_panel.png"))
     win.tabs.setCurrentIndex(PAGE_SCAN)

@@ -1,0 +1,259 @@
+"""The calibration dialog's logic, without widgets: the current calibration (kept in
+app.settings), accepting and verifying, the cameras that photograph the box and the chessboard,
+and the work done on a capture folder (run in background jobs by app.calibration_wizard).
+
+The dialog is app.calibration_wizard (its pages: app.calibration_pages, the paper's manual
+method: app.calibration_manual).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from anklescan.app.settings import Settings
+
+CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
+
+
+# ==== the current calibration =============================================================
+def current_calibration_info(settings: Settings | None = None) -> dict:
+    s = settings or Settings()
+    cid = s.get("calibration_id")
+    return {"path": s.get("calibration_path"), "id": int(cid) if str(cid).isdigit() else None,
+            "created": s.get("calibration_created"), "verified": s.get("calibration_verified"),
+            "verified_at": s.get("calibration_verified_at")}
+
+
+def load_current_calibration(settings: Settings | None = None):
+    """(Calibration, database id) of the current calibration, or (None, None)."""
+    from anklescan.core.calibration.file import load_calibration
+    info = current_calibration_info(settings)
+    if not info["path"] or not Path(info["path"]).exists():
+        return None, None
+    return load_calibration(info["path"]), info["id"]
+
+
+def calibration_warning(settings: Settings | None = None, now: _dt.datetime | None = None) -> str:
+    """The main window's banner text: "" when the current calibration is fine.
+
+    Warns when there is none, when it is older than the ``calibration_max_age_days`` setting
+    (default 30), or when its last verification failed.
+    """
+    s = settings or Settings()
+    info = current_calibration_info(s)
+    if not info["path"]:
+        return "No calibration yet: run Calibration… (Scan menu) before measuring patients."
+    max_age = s.get("calibration_max_age_days")
+    now = now or _dt.datetime.now(_dt.timezone.utc)
+    problems = []
+    if info["verified"] == "fail":
+        problems.append(f"its last verification failed ({info['verified_at'][:10]})")
+    try:
+        age = (now - _dt.datetime.fromisoformat(info["created"])).total_seconds() / 86400
+    except ValueError:
+        age = None
+    if age is not None and age > max_age:
+        problems.append(f"it is {age:.0f} days old (limit {max_age:g})")
+    if not problems:
+        return ""
+    return "The calibration should be renewed: " + " and ".join(problems) + ". Use Calibration… (Scan menu)."
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def accept_calibration(cal, report, data_folder: Path, store=None, settings: Settings | None = None,
+                       source: str = "box") -> tuple[Path, int | None]:
+    """Save atomically, add to the database (versioned: a new row each time), make current."""
+    from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+    created = _now_iso()
+    cal.extra["created"] = created
+    cal.extra.setdefault("source", source)
+    folder = Path(data_folder) / "calibrations"
+    path = folder / f"calibration_{created.replace(':', '').replace('+0000', 'Z')[:17]}.json"
+    n = 1
+    while path.exists():  # two accepted within a second keep both versions
+        path = folder / f"calibration_{created.replace(':', '')[:17]}_{n}.json"
+        n += 1
+    save_calibration(cal, path)
+    cid = None
+    if store is not None:
+        rms = float(report.camera.rms_px) if report is not None else None
+        cid = store.add_calibration(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
+    s = settings or Settings()
+    for key, value in (("calibration_path", str(path)), ("calibration_id", "" if cid is None else str(cid)),
+                       ("calibration_created", created), ("calibration_verified", ""),
+                       ("calibration_verified_at", "")):
+        s.set(key, value)
+    s.sync()
+    return path, cid
+
+
+def record_verification(result, settings: Settings | None = None, calibration_path: str | None = None) -> None:
+    """Remember the verdict (the banner reads it) and keep the report next to the file."""
+    from anklescan.core.atomic import write_text_atomic
+    s = settings or Settings()
+    s.set("calibration_verified", "pass" if result.passed else "fail")
+    s.set("calibration_verified_at", _now_iso())
+    s.sync()
+    path = calibration_path or current_calibration_info(s)["path"]
+    if path:
+        write_text_atomic(Path(path).with_suffix(".verification.json"),
+                          json.dumps({"verified_at": _now_iso(), **result.to_dict()}, indent=1) + "\n")
+
+
+# ==== what is in front of the camera ========================================================
+def _scene_camera(rig, scene, name: str):
+    from anklescan.hardware.simrig import SimulatedCamera
+    cam = rig.camera
+    sim = SimulatedCamera(cam.rig.with_scene(scene), cam.projector, name)
+    for control, c in cam.controls().items():
+        sim.set_control(control, c.value)
+    sim.open()
+    return sim
+
+
+def box_camera(rig):
+    """The camera that photographs the box: on the simulated rig a simulated camera on the box
+    scene (same devices, same projector image); on real hardware the rig's own camera."""
+    if not rig.simulated or not hasattr(rig.camera, "rig"):
+        return rig.camera
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
+    return _scene_camera(rig, quad_scene(box_scene_objects()), "Simulated camera (box)")
+
+
+def board_camera(rig, view: int, cols: int, rows: int, square: float):
+    """The camera that photographs the chessboard: on the simulated rig a simulated camera on board
+    pose ``view`` (hardware.sim_board: the first flat on the table, then tilted; a person moves the
+    board between scans); on real hardware the rig's own camera."""
+    if not rig.simulated or not hasattr(rig.camera, "rig"):
+        return rig.camera
+    from anklescan.hardware.sim_board import board_views
+    views = board_views(cols, rows, square)
+    return _scene_camera(rig, views[view % len(views)][0], "Simulated camera (board)")
+
+
+def camera_size(camera) -> tuple[int, int]:
+    info = camera.info() if callable(getattr(camera, "info", None)) else camera.info
+    return int(info.width), int(info.height)
+
+
+# ==== control points ========================================================================
+@dataclass
+class BoxPoints:
+    """Control points of one box scan, with the camera pixel of every projector point (for arrows)."""
+
+    white: np.ndarray
+    cam_xyz: np.ndarray
+    cam_uv: np.ndarray
+    proj_xyz: np.ndarray
+    proj_uv: np.ndarray  # (N, 2) column, row
+    proj_cam_uv: np.ndarray  # (N, 2) camera pixel where each projector point was read
+    found: dict = field(default_factory=dict)
+
+
+def observe(white, column, row) -> BoxPoints:
+    from anklescan.core.calibration.box import observe_box
+    obs = observe_box(white, column, row)
+    return BoxPoints(np.asarray(white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
+                     obs.proj_cam_uv, obs.found)
+
+
+def calibrate_box(points: BoxPoints, camera_size, projector_size, exclude_flagged: bool = True):
+    from anklescan.core.calibration.calibrate import calibrate_points
+    # radial_terms=2: real lenses (and the simulator's) need k2 beyond the paper's k1.
+    return calibrate_points(points.cam_xyz, points.cam_uv, points.proj_xyz, points.proj_uv, camera_size=camera_size,
+                            projector_size=projector_size, radial_terms=2, exclude_flagged=exclude_flagged)
+
+
+def kept(n: int, excluded) -> np.ndarray:
+    return np.setdiff1d(np.arange(n), np.asarray(list(excluded), int))
+
+
+def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tuple[float, float]:
+    """The marker corner nearest a click, to sub-pixel (cv2.cornerSubPix on the stretched image)."""
+    import cv2
+
+    from anklescan.core.calibration.box import _to_8bit
+    g = _to_8bit(image)
+    h, w = g.shape
+    if not (half_window <= x < w - half_window and half_window <= y < h - half_window):
+        return x, y
+    p = np.array([[[x, y]]], np.float32)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+    r = cv2.cornerSubPix(g, p, (half_window, half_window), (-1, -1), crit).reshape(2)
+    # a click on a flat area converges nowhere useful: keep the click itself
+    return (float(r[0]), float(r[1])) if np.hypot(*(r - [x, y])) <= half_window else (x, y)
+
+
+def manual_points() -> list[tuple[str, np.ndarray]]:
+    """(label, world mm) of every marker corner, in the order the operator is asked for them."""
+    from anklescan.core.calibration.box import marker_corners_world, marker_layout
+    layout = marker_layout()
+    return [(f"marker {mid} ({layout[mid][0].name} face), {CORNER_NAMES[k]} corner", X[k])
+            for mid, X in sorted(marker_corners_world().items()) for k in range(4)]
+
+
+def cam_pixels_of(proj_xyz, cam_xyz, cam_uv) -> np.ndarray:
+    """Where to draw each projector residual: its point's camera click, else nowhere (NaN)."""
+    out = []
+    for X in proj_xyz:
+        hit = np.flatnonzero(np.all(np.isclose(cam_xyz, X), axis=1))
+        out.append(cam_uv[hit[0]] if hit.size else (np.nan, np.nan))
+    return np.array(out).reshape(-1, 2)
+
+
+# ==== work on a capture folder (background jobs) =================================================
+def decode_folder(folder):
+    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.decode import decode
+    return decode(load_capture(folder))
+
+
+def white_frame(folder):
+    from anklescan.core.scan.capture import load_capture
+    cap = load_capture(folder)
+    return cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")])
+
+
+def calibrate_folder(folder, camera_size, projector_size):
+    """(BoxPoints, Calibration, report) from a box scan."""
+    decoded = decode_folder(folder)
+    pts = observe(decoded.white, decoded.column, decoded.row)
+    cal, report = calibrate_box(pts, camera_size, projector_size)
+    cal.extra["source"] = f"calibration box scan {Path(folder).name}"
+    cal.extra["box"] = {"markers_found": sorted(pts.found), "camera_points": len(pts.cam_xyz),
+                        "projector_points": len(pts.proj_xyz), "capture": str(folder)}
+    return pts, cal, report
+
+
+def calibrate_board_folders(folders, cols, rows, square):
+    """(board calibration result, the first view's white frame)."""
+    from anklescan.core.calibration.board import calibrate_from_board_captures
+    return calibrate_from_board_captures(folders, cols, rows, square), white_frame(folders[0])
+
+
+def check_board_folder(folder, cols, rows) -> Path:
+    """The folder, once the chessboard's corners are found in its white frame (raises otherwise)."""
+    from anklescan.core.calibration.board import find_corners
+    find_corners(white_frame(folder), cols, rows)
+    return Path(folder)
+
+
+def level_folder(folder, cal):
+    from anklescan.core.calibration.levelling import level_calibration
+    from anklescan.core.scan.capture import load_capture
+    return level_calibration(cal, load_capture(folder))
+
+
+def verify_folder(folder, cal):
+    """(white frame, VerificationResult) of a verification scan of the box."""
+    from anklescan.core.calibration.verification import compare_distances, measure_centres
+    decoded = decode_folder(folder)
+    return decoded.white, compare_distances(measure_centres(cal, decoded.white, decoded.column, decoded.row))

@@ -1,0 +1,263 @@
+"""The calibration dialog's pages: the widgets of each step, and the pictures of the quality
+report and of the verification. A mixin of app.calibration_wizard.CalibrationWizard, which holds
+the flow (scans, background jobs, accepting); the logic without widgets is app.calibration_logic.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QKeySequence, QShortcut
+from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel, QListWidget, QPlainTextEdit,
+                               QProgressBar, QPushButton, QSpinBox, QSplitter, QStackedWidget, QTableWidget,
+                               QTableWidgetItem, QVBoxLayout, QWidget)
+
+from anklescan.app.calibration_logic import kept
+from anklescan.app.calibration_views import ZoomView, arrow_gain, gray_rgb, residual_overlay
+
+STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")
+PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)
+
+
+class WizardPages:
+    """Builds the pages (attributes of the dialog) and draws the report and the verification."""
+
+    def _build(self) -> None:
+        self.steps = QListWidget()
+        self.steps.addItems(STEPS)
+        self.steps.setFixedWidth(190)
+        self.steps.currentRowChanged.connect(self.go)
+        self.pages = QStackedWidget()
+        for build in (self._build_place, self._build_scan, self._build_report, self._build_manual, self._build_verify):
+            self.pages.addWidget(build())
+        self.status = QLabel("")
+        self.status.setWordWrap(True)
+        close = QPushButton("Close")
+        close.clicked.connect(self.reject)
+        bottom = QHBoxLayout()
+        bottom.addWidget(self.status, 1)
+        bottom.addWidget(close)
+        right = QVBoxLayout()
+        right.addWidget(self.pages, 1)
+        right.addLayout(bottom)
+        outer = QHBoxLayout(self)
+        outer.addWidget(self.steps)
+        outer.addLayout(right, 1)
+
+    def _page(self, title: str, text: str) -> tuple[QWidget, QVBoxLayout]:
+        w = QWidget()
+        v = QVBoxLayout(w)
+        head = QLabel(f"<h3>{title}</h3>{text}")
+        head.setWordWrap(True)
+        v.addWidget(head)
+        return w, v
+
+    def _build_place(self) -> QWidget:
+        w, v = self._page("Place the calibration box", "Stand the 400 mm box on the floor where the foot will be, "
+                          "front face towards the scanner, so the camera sees its top, front and right faces. "
+                          "Markers found are outlined in green; aim for at least 18 of 27.")
+        self.place_view = ZoomView()
+        self.place_count = QLabel("")
+        self.scan_box_button = QPushButton("Scan the box")
+        self.scan_box_button.clicked.connect(lambda: self.start_scan("calibrate"))
+        row = QHBoxLayout()
+        row.addWidget(self.place_count, 1)
+        row.addWidget(self.scan_box_button)
+        v.addWidget(self.place_view, 1)
+        v.addLayout(row)
+        v.addWidget(self._build_board_box())
+        return w
+
+    def _build_board_box(self) -> QGroupBox:
+        box = QGroupBox("Or a printed chessboard (docs/calibration.md)")
+        h = QHBoxLayout(box)
+        self.board_cols, self.board_rows = QSpinBox(), QSpinBox()
+        for spin, value in ((self.board_cols, 9), (self.board_rows, 7)):
+            spin.setRange(3, 40)
+            spin.setValue(value)
+        self.board_square = QDoubleSpinBox()
+        self.board_square.setRange(1.0, 500.0)
+        self.board_square.setDecimals(2)
+        self.board_square.setSuffix(" mm")
+        self.board_square.setValue(40.0)
+        self.scan_board_button = QPushButton("Scan board view")
+        self.scan_board_button.clicked.connect(lambda: self.start_scan("board"))
+        self.board_count = QLabel("")
+        self.calibrate_board_button = QPushButton("Calibrate from board views")
+        self.calibrate_board_button.clicked.connect(self.calibrate_board)
+        for widget in (QLabel("inner corners"), self.board_cols, QLabel("×"), self.board_rows, QLabel("square"),
+                       self.board_square, self.scan_board_button, self.board_count):
+            h.addWidget(widget)
+        h.addStretch(1)
+        h.addWidget(self.calibrate_board_button)
+        self._update_board_count()
+        return box
+
+    def _build_scan(self) -> QWidget:
+        w, v = self._page("Scanning the box", "The projector shows column and row stripes; keep the box and the "
+                          "rig still. The control points are then found in the camera and projector images.")
+        self.scan_view = ZoomView()
+        self.scan_progress = QProgressBar()
+        self.scan_cancel = QPushButton("Cancel")
+        self.scan_cancel.clicked.connect(self.controller.cancel)
+        row = QHBoxLayout()
+        row.addWidget(self.scan_progress, 1)
+        row.addWidget(self.scan_cancel)
+        v.addWidget(self.scan_view, 1)
+        v.addLayout(row)
+        return w
+
+    def _build_report(self) -> QWidget:
+        w, v = self._page("Quality report", "Arrows: reprojection residuals, magnified (see the legend). "
+                          "Long or ringed arrows are points the fit distrusts.")
+        self.report_view = ZoomView()
+        self.report_summary = QLabel("")
+        self.report_summary.setWordWrap(True)
+        self.report_text = QPlainTextEdit()
+        self.report_text.setReadOnly(True)
+        self.report_text.setStyleSheet("font-family: monospace; font-size: 11px;")
+        side = QWidget()
+        sv = QVBoxLayout(side)
+        sv.setContentsMargins(0, 0, 0, 0)
+        sv.addWidget(self.report_summary)
+        sv.addWidget(self.report_text, 1)
+        split = QSplitter()
+        split.addWidget(self.report_view)
+        split.addWidget(side)
+        split.setSizes([620, 360])
+        self.accept_button = QPushButton("Accept and save")
+        self.accept_button.clicked.connect(self.accept_current)
+        manual = QPushButton("Use the manual method instead…")
+        manual.clicked.connect(lambda: self.go(PAGE_MANUAL))
+        row = QHBoxLayout()
+        row.addWidget(manual)
+        row.addStretch(1)
+        row.addWidget(self.accept_button)
+        v.addWidget(split, 1)
+        v.addLayout(row)
+        return w
+
+    def _build_manual(self) -> QWidget:
+        w, v = self._page("Manual calibration (the paper's method)",
+                          "<b>Camera:</b> click the named corner on the image (wheel zooms, right-drag pans); the "
+                          "click snaps to the corner. <b>Projector:</b> steer the spot onto the same corner with the "
+                          "arrow keys (Shift = 10 px, Ctrl = 0.25 px) while watching the camera, then Record spot: "
+                          "the spot is then refined to the clicked corner by eight short edge frames.")
+        self.manual_view = ZoomView()
+        self.manual_view.picked.connect(self.pick_camera)
+        self.manual_prompt = QLabel("")
+        self.manual_prompt.setStyleSheet("font-weight: 600;")
+        self.manual_counts = QLabel("")
+        buttons = QHBoxLayout()
+        for text, slot in (("◀ Previous", lambda: self.manual_goto(self._manual_index - 1)),
+                           ("Skip (not visible) ▶", lambda: self.manual_goto(self._manual_index + 1)),
+                           ("Undo", self.manual_undo), ("Show white", self._manual_white),
+                           ("Show spot", self._manual_spot), ("Record spot", self.record_spot),
+                           ("Calibrate from these points", self.calibrate_manual)):
+            b = QPushButton(text)
+            b.clicked.connect(lambda _checked=False, slot=slot: slot())  # clicked passes "checked"
+            buttons.addWidget(b)
+        QShortcut(QKeySequence.StandardKey.Undo, w, self.manual_undo)
+        self.refine_spot_box = QCheckBox("Refine the recorded spot to the clicked corner (the paper records it as "
+                                         "steered: about ½ projector pixel)")
+        self.refine_spot_box.setChecked(True)
+        v.addWidget(self.manual_prompt)
+        v.addWidget(self.manual_view, 1)
+        v.addWidget(self.manual_counts)
+        v.addWidget(self.refine_spot_box)
+        v.addLayout(buttons)
+        return w
+
+    def _build_verify(self) -> QWidget:
+        from anklescan.core.calibration.verification import PASS_MAX_MM, PASS_RMS_MM
+        w, v = self._page("Verify the calibration", "One scan of the box, reconstructed at its marker corners with "
+                          "the current calibration. Distances between marker centres are compared with the box "
+                          f"drawing. Pass: RMS error ≤ {PASS_RMS_MM:g} mm and every distance within "
+                          f"{PASS_MAX_MM:g} mm.")
+        self.verify_button = QPushButton("Run verification scan")
+        self.verify_button.clicked.connect(lambda: self.start_scan("verify"))
+        self.verify_verdict = QLabel("Not verified yet.")
+        self.verify_verdict.setWordWrap(True)
+        self.verify_table = QTableWidget(0, 5)
+        self.verify_table.setHorizontalHeaderLabels(["Markers", "True (mm)", "Measured (mm)", "Error (mm)", "Check"])
+        self.verify_table.horizontalHeader().setStretchLastSection(True)
+        self.verify_view = ZoomView()
+        split = QSplitter()
+        split.addWidget(self.verify_view)
+        split.addWidget(self.verify_table)
+        split.setSizes([560, 420])
+        self.level_button = QPushButton("Level from the reference table")
+        self.level_button.setToolTip("Set the reference table level (0°, 0°), its whole top in view, then scan it: "
+                                     "the current calibration is re-expressed in the clinic's frame (SPEC §1) "
+                                     "and saved as a new version.")
+        self.level_button.clicked.connect(lambda: self.start_scan("level"))
+        row = QHBoxLayout()
+        row.addWidget(self.verify_verdict, 1)
+        row.addWidget(self.level_button)
+        row.addWidget(self.verify_button)
+        v.addLayout(row)
+        v.addWidget(split, 1)
+        return w
+
+    # ---- pictures ------------------------------------------------------------------------
+
+    def show_report(self, board_white=None) -> None:
+        pts, rep = self.points, self.report
+        if pts is None:  # a chessboard calibration: the first view with its corners, the report as text
+            img = gray_rgb(board_white)
+            for v in self.board_result.views[:1]:
+                for c in v.corners:
+                    cv2.circle(img, tuple(np.round(c).astype(int)), 4, (60, 200, 60), 1, cv2.LINE_AA)
+            self.report_view.set_image(img, fit=True)
+            self._report_summary_text(rep)
+            return
+        cam_keep = kept(len(pts.cam_uv), rep.camera.excluded)
+        proj_keep = kept(len(pts.proj_cam_uv), rep.projector.excluded)
+        gain = arrow_gain([rep.camera.residuals_px, rep.projector.residuals_px], pts.white.shape[1])
+        img = residual_overlay(pts.white, pts.cam_uv[cam_keep], rep.camera.residuals_px,
+                               pts.proj_cam_uv[proj_keep], rep.projector.residuals_px, gain=gain,
+                               cam_flagged=rep.camera.flagged, proj_flagged=rep.projector.flagged)
+        for pts_uv, excluded in ((pts.cam_uv, rep.camera.excluded), (pts.proj_cam_uv, rep.projector.excluded)):
+            for i in excluded:  # left out as mis-read: ringed where they were
+                cv2.circle(img, tuple(np.round(pts_uv[i]).astype(int)), 8, (255, 220, 0), 1, cv2.LINE_AA)
+        self.report_view.set_image(img, fit=True)
+        self._report_summary_text(rep)
+
+    def _report_summary_text(self, rep) -> None:
+        ok = rep.camera.rms_px < 1.0 and rep.projector.rms_px < 1.0 and not rep.warnings
+        self.report_summary.setText(
+            f"<b>Camera</b> RMS {rep.camera.rms_px:.3f} px ({rep.camera.n_points} points) · "
+            f"<b>Projector</b> RMS {rep.projector.rms_px:.3f} px ({rep.projector.n_points} points)<br>"
+            f"Left out as mis-read: {len(rep.camera.excluded)} camera, {len(rep.projector.excluded)} projector · "
+            + ("<span style='color:#2e6b3a'>no warnings</span>" if ok else
+               f"<span style='color:#b3261e'>{len(rep.warnings)} warning(s), see below</span>"))
+        self.report_text.setPlainText(rep.format_text())
+
+    def show_verification(self, white, res) -> None:
+        cal = self.calibration
+        img = gray_rgb(white)
+        uv = {mid: cal.camera.project(X[None])[0] for mid, X in res.centres.items()}
+        for mid, p in uv.items():
+            cv2.circle(img, tuple(np.round(p).astype(int)), 5, (60, 220, 90), 2, cv2.LINE_AA)
+            cv2.putText(img, str(mid), tuple(np.round(p + [7, -7]).astype(int)), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                        (60, 220, 90), 1, cv2.LINE_AA)
+        for p in res.worst(3):
+            cv2.line(img, tuple(np.round(uv[p.a]).astype(int)), tuple(np.round(uv[p.b]).astype(int)),
+                     (255, 150, 40), 1, cv2.LINE_AA)
+        self.verify_view.set_image(img, fit=True)
+        colour = "#2e6b3a" if res.passed else "#b3261e"
+        self.verify_verdict.setText(
+            f"<b style='color:{colour}'>{'PASS' if res.passed else 'FAIL'}</b> — {len(res.pairs)} distances between "
+            f"{len(res.centres)} marker centres: error RMS <b>{res.rms_mm:.3f} mm</b>, max {res.max_abs_mm:.3f} mm, "
+            f"mean {res.mean_mm:+.3f} mm. Orange lines: the three worst distances.")
+        rows = res.worst(40)
+        self.verify_table.setRowCount(len(rows))
+        for r, p in enumerate(rows):
+            bad = abs(p.error_mm) > res.limits["max_mm"]
+            for c, text in enumerate((f"{p.a} – {p.b}", f"{p.true_mm:.2f}", f"{p.measured_mm:.2f}",
+                                      f"{p.error_mm:+.3f}", "over limit" if bad else "ok")):
+                item = QTableWidgetItem(text)
+                item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                self.verify_table.setItem(r, c, item)
+        self.verify_table.resizeColumnsToContents()
