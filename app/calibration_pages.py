@@ -1,6 +1,6 @@
 """The calibration dialog's pages: the widgets of each step, and the pictures of the quality
 report and of the verification. A mixin of app.calibration_wizard.CalibrationWizard, which holds
-the flow (scans, background jobs, accepting); the logic without widgets is app.calibration_logic.
+the flow (scans, background jobs, accepting); the logic without widgets is app.logic.calibration.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QGroupBox, QHBoxLayout
                                QProgressBar, QPushButton, QSpinBox, QSplitter, QStackedWidget, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
-from anklescan.app.calibration_logic import kept
+from anklescan.app.logic.calibration import kept
 from anklescan.app.calibration_views import ZoomView, arrow_gain, gray_rgb, residual_overlay
 
 STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")

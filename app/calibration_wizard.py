@@ -24,7 +24,7 @@ Nothing slow runs on the UI thread: the live preview (a capture and, on the firs
 detection every 300 ms), the scans, the spot refinement's edge frames and the work on each
 capture are background jobs (app.background). Modules: the pages' widgets in
 app.calibration_pages, the manual method in app.calibration_manual, the logic without widgets
-(current calibration, accepting, verification, the work on a capture) in app.calibration_logic.
+(current calibration, accepting, verification, the work on a capture) in app.logic.calibration.
 
 On the simulated rig the box is part of the virtual scene: the dialog photographs it with a
 simulated camera that shares the rig's devices and projector (``box_camera``).
@@ -40,7 +40,7 @@ from PySide6.QtWidgets import QDialog
 
 from anklescan.app.acquisition import Acquisition, WindowOutput
 from anklescan.app.background import run_in_background
-from anklescan.app.calibration_logic import (BoxPoints, accept_calibration, board_camera, box_camera,
+from anklescan.app.logic.calibration import (BoxPoints, accept_calibration, board_camera, box_camera,
                                              calibrate_board_folders, calibrate_folder, calibration_warning,
                                              camera_size, check_board_folder, current_calibration_info, level_folder,
                                              load_current_calibration, manual_points, record_verification,
@@ -50,7 +50,7 @@ from anklescan.app.calibration_pages import PAGE_MANUAL, PAGE_PLACE, PAGE_REPORT
 from anklescan.app.calibration_views import draw_outlines, gray_rgb
 from anklescan.app.settings import Settings
 
-# The current calibration's functions (app.calibration_logic) and the page numbers are also
+# The current calibration's functions (app.logic.calibration) and the page numbers are also
 # reached through this module: the main window and the tests import them from here.
 __all__ = ["CalibrationWizard", "PAGE_MANUAL", "PAGE_PLACE", "PAGE_REPORT", "PAGE_SCAN", "PAGE_VERIFY",
            "accept_calibration", "calibration_warning", "current_calibration_info", "load_current_calibration",
@@ -207,7 +207,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         if self.controller.busy or self._job is not None:
             return False
         if purpose in ("verify", "level") and self.calibration is None:
-            self.calibration, _ = load_current_calibration()
+            self.calibration, _ = load_current_calibration(self.settings)
             if self.calibration is None:
                 self.status.setText(f"There is no calibration to {purpose} yet.")
                 return False
@@ -271,7 +271,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         cal, top = result
         cal.extra["source"] = f"{cal.extra.get('source', 'calibration')}, levelled"
         self.calibration = cal
-        self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store,
+        self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store, self.settings,
                                                      source="levelled")
         self.status.setText(f"Levelled on the table top ({top.size_mm[0]:.0f} × {top.size_mm[1]:.0f} mm, "
                             f"{top.rms_mm:.2f} mm RMS): saved as {self.accepted_path.name}"
@@ -312,7 +312,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     def accept_current(self) -> bool:
         if self.calibration is None:
             return False
-        self.accepted_path, cid = accept_calibration(self.calibration, self.report, self.data_folder, self.store,
+        self.accepted_path, cid = accept_calibration(self.calibration, self.report, self.data_folder, self.store, self.settings,
                                                      source=self.calibration.extra.get("source", "box"))
         self.status.setText(f"Saved as {self.accepted_path.name}" + (f" (calibration #{cid})" if cid else "")
                             + ". It is now the current calibration; verify it next.")
@@ -325,8 +325,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     def _verified(self, result) -> None:
         white, res = result
         self.verification = res
-        record_verification(res, calibration_path=str(self.accepted_path) if self.accepted_path else None)
-        cid = current_calibration_info()["id"]
+        record_verification(res, self.settings, calibration_path=str(self.accepted_path) if self.accepted_path else None)
+        cid = current_calibration_info(self.settings)["id"]
         if self.store is not None and cid is not None:
             self.store.set_calibration_verified(cid, res.passed)  # the database keeps the verdict too
         self.show_verification(white, res)

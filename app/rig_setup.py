@@ -113,9 +113,9 @@ class RigSetup(QObject):
     # ---- the calibration ------------------------------------------------------------------
     def load_calibration(self) -> None:
         """The accepted calibration (never a simulator's hidden truth): scans are blocked without one."""
-        from anklescan.app.calibration_wizard import load_current_calibration
+        from anklescan.app.logic.calibration import load_current_calibration
         try:
-            cal, cid = load_current_calibration()
+            cal, cid = load_current_calibration(self.settings)
         except Exception as exc:
             cal, cid = None, None
             self.win.banner.show_message("error", f"The current calibration could not be read: {exc}")
@@ -144,9 +144,9 @@ class RigSetup(QObject):
         self.win.scan_flow.update_enabled()
 
     def check_calibration_age(self) -> None:
-        from anklescan.app.calibration_wizard import calibration_warning
+        from anklescan.app.logic.calibration import calibration_warning
         win = self.win
-        text = calibration_warning()
+        text = calibration_warning(self.settings)
         if win.session.read_only:  # review only: nothing will be scanned, the read-only notice stays
             return
         if win.session.calibration is None:

@@ -29,7 +29,7 @@ KEYS = {
     "camera_exposure_ms": Key("camera/exposure_ms", 0.0, float),  # 0 = the device's default
     "camera_gain": Key("camera/gain", 0.0, float),
     "settle_ms": Key("scan/settle_ms", 30, int),
-    # the current calibration (app.calibration_logic): its file, database id, when made, last verification
+    # the current calibration (app.logic.calibration): its file, database id, when made, last verification
     "calibration_path": Key("calibration/current_path", "", str),
     "calibration_id": Key("calibration/current_id", "", str),     # "" when not in a database
     "calibration_created": Key("calibration/current_created", "", str),  # ISO 8601

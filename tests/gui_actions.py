@@ -126,7 +126,8 @@ def use_true_calibration(win) -> None:
     """Make the simulated rig's exact calibration the current one, as if a clinician had
     calibrated (for tests about something else than calibration)."""
     from anklescan.app.calibration_wizard import accept_calibration
-    accept_calibration(win.rig.calibration, None, win.data_folder(), win.store, source="simulator truth (test)")
+    accept_calibration(win.rig.calibration, None, win.data_folder(), win.store, win.settings,
+                       source="simulator truth (test)")
     win.rig_setup.load_calibration()
 
 

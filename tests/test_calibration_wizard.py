@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from anklescan.app.settings import Settings
+
 pytestmark = pytest.mark.gui
 
 SCALE = 0.5
@@ -74,14 +76,14 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
 
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
-    info = current_calibration_info()
+    info = current_calibration_info(Settings())
     assert Path(info["path"]).exists() and info["id"] is not None
     assert store.get_calibration(info["id"]).rms == pytest.approx(rep.camera.rms_px)
-    cal, cid = load_current_calibration()
+    cal, cid = load_current_calibration(Settings())
     assert cid == info["id"] and np.allclose(cal.camera.K, wiz.calibration.camera.K)
     session = store.start_session(store.add_patient("P1").id, condition="barefoot", calibration_id=cid)
     assert store.session_summary(session.id).calibration.id == cid
-    assert calibration_warning() == ""
+    assert calibration_warning(Settings()) == ""
 
     leg = _leg_rms(rig, cal, tmp_path / "leg")
     print(f"leg scan with the wizard's calibration: RMS {leg:.3f} mm (scale {SCALE})")
@@ -94,13 +96,13 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     # issue #8: every control-point distance within 0.2 mm of the drawing (measured: 0.063 mm)
     assert res.passed and res.rms_mm <= 0.06 and res.max_abs_mm <= 0.2 and len(res.centres) >= 18
     assert "PASS" in wiz.verify_verdict.text() and wiz.verify_table.rowCount() > 0
-    assert current_calibration_info()["verified"] == "pass"
+    assert current_calibration_info(Settings())["verified"] == "pass"
     assert Path(info["path"]).with_suffix(".verification.json").exists()
     _shot(wiz, "calib_verify.png")
 
     # a second accepted calibration is a new version; sessions keep theirs
     wiz.accept_current()
-    assert current_calibration_info()["id"] != cid
+    assert current_calibration_info(Settings())["id"] != cid
     assert store.get_session(session.id).calibration_id == cid
 
 
@@ -303,7 +305,7 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     assert "RMS" in wiz.report_summary.text() and "worst points" in wiz.report_text.toPlainText()
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
-    info = current_calibration_info()
+    info = current_calibration_info(Settings())
     assert Path(info["path"]).exists() and "chessboard" in store.get_calibration(info["id"]).source
 
 
@@ -326,13 +328,13 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     def moved(d):
         return d.with_pose(d.R @ Q.T, d.t - d.R @ Q.T @ q)
     accept_calibration(Calibration(moved(true.camera), moved(true.projector), {"source": "imported"}), None,
-                       wiz.data_folder, store)
+                       wiz.data_folder, store, Settings())
     wiz.steps.setCurrentRow(PAGE_VERIFY)
     assert wiz.level_button.isVisible()
     qtbot.mouseClick(wiz.level_button, Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: "Levelled" in wiz.status.text() or "failed" in wiz.status.text(), timeout=180000)
     assert "Levelled" in wiz.status.text(), wiz.status.text()
-    cal, cid = load_current_calibration()
+    cal, cid = load_current_calibration(Settings())
     assert cid is not None and cal.extra["source"] == "imported, levelled" and "levelled" in cal.extra
     M = cal.camera.R.T @ true.camera.R
     m = cal.camera.R.T @ (true.camera.t - cal.camera.t)

@@ -1,5 +1,5 @@
-"""The calibration dialog's logic, without widgets: the current calibration (kept in
-app.settings), accepting and verifying, the cameras that photograph the box and the chessboard,
+"""The calibration's logic, without Qt: the current calibration (kept in the app's settings,
+passed in as ``settings``: get/set/sync), accepting and verifying, the cameras that photograph the box and the chessboard,
 and the work done on a capture folder (run in background jobs by app.calibration_wizard).
 
 The dialog is app.calibration_wizard (its pages: app.calibration_pages, the paper's manual
@@ -15,21 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.app.settings import Settings
 
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
 
 # ==== the current calibration =============================================================
-def current_calibration_info(settings: Settings | None = None) -> dict:
-    s = settings or Settings()
+def current_calibration_info(settings) -> dict:
+    s = settings
     cid = s.get("calibration_id")
     return {"path": s.get("calibration_path"), "id": int(cid) if str(cid).isdigit() else None,
             "created": s.get("calibration_created"), "verified": s.get("calibration_verified"),
             "verified_at": s.get("calibration_verified_at")}
 
 
-def load_current_calibration(settings: Settings | None = None):
+def load_current_calibration(settings):
     """(Calibration, database id) of the current calibration, or (None, None)."""
     from anklescan.core.calibration.file import load_calibration
     info = current_calibration_info(settings)
@@ -38,13 +37,13 @@ def load_current_calibration(settings: Settings | None = None):
     return load_calibration(info["path"]), info["id"]
 
 
-def calibration_warning(settings: Settings | None = None, now: _dt.datetime | None = None) -> str:
+def calibration_warning(settings, now: _dt.datetime | None = None) -> str:
     """The main window's banner text: "" when the current calibration is fine.
 
     Warns when there is none, when it is older than the ``calibration_max_age_days`` setting
     (default 30), or when its last verification failed.
     """
-    s = settings or Settings()
+    s = settings
     info = current_calibration_info(s)
     if not info["path"]:
         return "No calibration yet: run Calibration… (Scan menu) before measuring patients."
@@ -68,7 +67,7 @@ def _now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def accept_calibration(cal, report, data_folder: Path, store=None, settings: Settings | None = None,
+def accept_calibration(cal, report, data_folder: Path, store, settings,
                        source: str = "box") -> tuple[Path, int | None]:
     """Save atomically, add to the database (versioned: a new row each time), make current."""
     from anklescan.core.calibration.file import calibration_to_dict, save_calibration
@@ -86,7 +85,7 @@ def accept_calibration(cal, report, data_folder: Path, store=None, settings: Set
     if store is not None:
         rms = float(report.camera.rms_px) if report is not None else None
         cid = store.add_calibration(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
-    s = settings or Settings()
+    s = settings
     for key, value in (("calibration_path", str(path)), ("calibration_id", "" if cid is None else str(cid)),
                        ("calibration_created", created), ("calibration_verified", ""),
                        ("calibration_verified_at", "")):
@@ -95,10 +94,10 @@ def accept_calibration(cal, report, data_folder: Path, store=None, settings: Set
     return path, cid
 
 
-def record_verification(result, settings: Settings | None = None, calibration_path: str | None = None) -> None:
+def record_verification(result, settings, calibration_path: str | None = None) -> None:
     """Remember the verdict (the banner reads it) and keep the report next to the file."""
     from anklescan.core.atomic import write_text_atomic
-    s = settings or Settings()
+    s = settings
     s.set("calibration_verified", "pass" if result.passed else "fail")
     s.set("calibration_verified_at", _now_iso())
     s.sync()
