@@ -26,6 +26,7 @@ import numpy as np
 
 from anklescan.core.atomic import make_private_dir, make_tree_private, write_text_atomic
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
 
 MARKER = ".anklescan-demo"
 
@@ -53,7 +54,6 @@ PATIENTS = (
     SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
                ("plate", 15.0, True)),
 )
-CONDITIONS = ("barefoot", "shoes")
 INVERSIONS = (0.0, 10.0, 20.0)
 # the whole range in three steps (the benchmark has all five: docs/marks.md)
 PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
@@ -129,7 +129,7 @@ def _scan_trial(job: dict) -> dict:
         "label": job["label"],
         "complete": result.complete,
         "message": "" if result.complete else result.marks.message(),
-        "missing": [k for k in "1234567" if k not in result.marks.labelled],
+        "missing": [k for k in LABEL_KEYS if k not in result.marks.labelled],
         "marks": {k: [float(x) for x in m.centre] for k, m in found.items()},
         "covariances": {k: np.asarray(c).tolist() for k, c in result.marks.covariances().items()},
         "angles": {k: dict(v) for k, v in result.angles.items()},

@@ -26,7 +26,8 @@ from PySide6.QtWidgets import (QApplication, QCheckBox, QComboBox, QDialog, QDia
 
 from anklescan.app import resources
 from anklescan.app.settings import Settings
-from anklescan.app.trial_form import CONDITIONS, TrialForm
+from anklescan.app.trial_form import TrialForm
+from anklescan.core.vocabulary import CONDITION_TITLES
 
 
 log = logging.getLogger("anklescan.gui")
@@ -285,7 +286,7 @@ class MainWindow(QMainWindow):
         new_patient = self.new_patient_button = QPushButton("New patient…")
         new_patient.clicked.connect(_no_args(self.new_patient))
         self.new_session_condition = QComboBox()
-        for key, label in CONDITIONS:
+        for key, label in CONDITION_TITLES.items():
             self.new_session_condition.addItem(label, key)
         new_session = self.new_session_button = QPushButton("New session")
         new_session.clicked.connect(_no_args(self.new_session))
@@ -440,7 +441,7 @@ class MainWindow(QMainWindow):
             return
         sessions = self.store.list_sessions(pid, include_archived=self.show_archived.isChecked())
         for s in sessions:
-            label = dict(CONDITIONS).get(s.condition, s.condition)
+            label = CONDITION_TITLES.get(s.condition, s.condition)
             item = QListWidgetItem(f"{s.date}  ·  {label}" + ("   (archived)" if s.archived else ""))
             item.setData(Qt.ItemDataRole.UserRole, s.id)
             self.sessions.addItem(item)

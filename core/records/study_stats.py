@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from anklescan.core.vocabulary import CONDITIONS
+
 AXES = ("inversion", "plantar_flexion")
-CONDITIONS = ("barefoot", "shoes")
 GROUPS = ("sprain history", "no sprain history")
 MIN_N = 2
 TOO_SMALL = "n too small for a test"
