@@ -30,7 +30,7 @@ import re
 import sqlite3
 import stat
 import urllib.parse
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -40,7 +40,7 @@ from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, compute_angles, mism
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, MARK_SOURCES, SIDES, TRIAL_STATES, AxisSummary,
-                                       CalibrationRecord, Event, MarkRecord, Patient, Session, SessionSummary, Trial,
+                                       CalibrationRecord, Event, MarkRecord, Patient, ReportInput, Session, SessionSummary, Trial,
                                        parse_label)
 
 DB_FILENAME = "anklescan.sqlite"
@@ -964,6 +964,16 @@ class Store:
             inversion=_axis_summary([t.mismatch_inversion for t in counted]),
             plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in counted]),
             incomplete_trials=incomplete, moved_trials=moved)
+
+    def report_input(self, session_ids: Sequence[int] | None = None) -> ReportInput:
+        """The records a report prints (core.records.report takes these, never the Store): every
+        trial row, the patients, the calibrations the rows and sessions name, and the summaries of
+        ``session_ids`` (a session report's; none for the study report)."""
+        sessions = [self.session_summary(int(i)) for i in (session_ids or ())]
+        rows = self.study_rows()
+        cids = {r["calibration_id"] for r in rows} | {s.session.calibration_id for s in sessions}
+        calibrations = {cid: self.get_calibration(cid) for cid in sorted(c for c in cids if c is not None)}
+        return ReportInput(rows, self.list_patients(), calibrations, sessions)
 
     def study_rows(self) -> list[dict]:
         """Every trial joined with its session, patient and calibration (for stats/CSV)."""
