@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.errors import CalibrationError
+from anklescan.core.robust import robust_sigma
 
 BOX_SIZE_MM = 400.0
 MARKER_MM = 90.0
@@ -237,7 +238,7 @@ def fit_line(points: np.ndarray, min_points: int = 4, floor_px: float = 1e-3) ->
         c = points[keep].mean(axis=0)
         n = np.linalg.svd(points[keep] - c, full_matrices=False)[2][1]
         r = np.abs((points - c) @ n)
-        keep = r <= 3 * (1.4826 * float(np.median(r[keep])) + floor_px)
+        keep = r <= 3 * (robust_sigma(r[keep], centre=0.0) + floor_px)
     return c, n
 
 
@@ -352,7 +353,7 @@ def projector_at(point: np.ndarray, maps: list, white: np.ndarray, quad: np.ndar
             return None
         pred, centre = _fit_local(xy[keep], q[keep])
         res = np.abs(pred - q[keep]).max(axis=1)
-        sigma = 1.4826 * float(np.median(res)) + 1e-3
+        sigma = robust_sigma(res, centre=0.0) + 1e-3
         new_keep = keep.copy()
         new_keep[np.flatnonzero(keep)[res > 3 * sigma]] = False
         if new_keep.sum() == keep.sum():

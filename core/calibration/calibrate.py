@@ -33,6 +33,7 @@ from anklescan.core.calibration import paper_model as pm
 from anklescan.core.calibration.file import Calibration, save_calibration
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
+from anklescan.core.robust import robust_sigma
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
 DEFAULT_PROJECTOR_SIZE = (1024, 768)  # the paper's ELP-70
@@ -338,7 +339,7 @@ def _vector_jacobian(problem: _Problem, v: np.ndarray, idx: np.ndarray) -> np.nd
 def _flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
     """Points whose error exceeds both a robust family-wise threshold and 3 sigma (docs/calibration.md)."""
     comp = r.ravel()
-    robust = 1.4826 * float(np.median(np.abs(comp - np.median(comp))))
+    robust = robust_sigma(comp)
     n, k = r.shape
     if k == 1:
         factor = norm.isf(FLAG_FAMILY_ALPHA / (2 * n))

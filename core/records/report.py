@@ -11,12 +11,9 @@ from __future__ import annotations
 import csv
 import datetime as _dt
 import math
-import os
-import tempfile
 import textwrap
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +23,7 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from anklescan.core.records import study_stats as st
-from anklescan.core.atomic import temp_affixes
+from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary
 
@@ -70,39 +67,6 @@ class ReportResult:
 
 
 # ------------------------------------------------------------------ output
-
-@contextmanager
-def _atomic_outputs(*targets: Path | None) -> Iterator[list[Path | None]]:
-    """Temp files in each target's folder, renamed over the targets only on success."""
-    tmps: list[Path | None] = []
-    try:
-        for t in targets:
-            if t is None:
-                tmps.append(None)
-                continue
-            if not t.parent.is_dir():
-                raise AnkleScanError(f"output folder {t.parent} does not exist")
-            prefix, suffix = temp_affixes(t.name)  # within NAME_MAX for long report names
-            fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=t.parent)  # 0600
-            os.close(fd)
-            tmps.append(Path(name))
-        yield tmps
-        for tmp, t in zip(tmps, targets):
-            if tmp is not None:
-                _fsync(tmp)
-                os.replace(tmp, t)
-    except OSError as e:
-        raise AnkleScanError(f"cannot write report: {e.strerror or e}") from None
-    finally:
-        for tmp in tmps:
-            if tmp is not None and tmp.exists():
-                tmp.unlink()
-
-
-def _fsync(p: Path) -> None:
-    with open(p, "rb") as fh:
-        os.fsync(fh.fileno())
-
 
 class _Pages:
     """PdfPages that counts pages and stamps a footer on each."""
@@ -757,7 +721,7 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
     with_group = st.has_tests(st.study_stats(all_rows))
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
-    with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
+    with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             pages = _Pages(pdf, f"AnkleScan session report — {', '.join(sorted(codes))} — "
                                 f"generated {stamp}")
@@ -784,7 +748,7 @@ def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResu
     rows = data.rows
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
-    with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
+    with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             pages = _Pages(pdf, f"AnkleScan study report — generated {stamp}")
             stats_, lim = st.study_stats(rows), _sym_limit(rows)

@@ -24,6 +24,7 @@ import numpy as np
 from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import AxisCode, PatternSet
+from anklescan.core.robust import robust_sigma
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
 REASON_NAMES = ("valid", "shadow", "low_contrast", "saturated", "inconsistent",
@@ -133,8 +134,7 @@ def estimate_sigma(white, black, frame, inverse, full_scale: float) -> float:
         lit = wb > 0.5 * np.partition(wb, int(0.9 * (wb.size - 1)))[int(0.9 * (wb.size - 1))]
         if np.count_nonzero(lit) >= 64:
             r = r[lit]
-    med = np.median(r)
-    sigma = 1.4826 * float(np.median(np.abs(r - med))) / 2.0
+    sigma = robust_sigma(r) / 2.0
     return max(sigma, SIGMA_FLOOR * full_scale)
 
 
