@@ -150,7 +150,8 @@ def box_description() -> dict:
 
 
 # ==== detection =============================================================================
-def _to_8bit(image: np.ndarray) -> np.ndarray:
+def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
+    """A grey 8-bit view of a frame for detectors, scaled so its 99.5th percentile is white."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -158,6 +159,9 @@ def _to_8bit(image: np.ndarray) -> np.ndarray:
     img = img.astype(np.float32)
     hi = float(np.nanpercentile(img, 99.5)) or 1.0
     return np.clip(np.nan_to_num(img) * (255.0 / hi), 0, 255).astype(np.uint8)
+
+
+_to_8bit = stretch_to_8bit  # old private name, still imported by app/calibration_wizard.py (another helper's file): drop once it imports stretch_to_8bit
 
 
 def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np.ndarray]:
@@ -172,7 +176,7 @@ def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np
     params.cornerRefinementMaxIterations = 100
     params.cornerRefinementMinAccuracy = 0.001
     detector = cv2.aruco.ArucoDetector(aruco_dictionary(), params)
-    corners, ids, _ = detector.detectMarkers(_to_8bit(white))
+    corners, ids, _ = detector.detectMarkers(stretch_to_8bit(white))
     known = marker_layout()
     gray = _gray_float(white) if refine_edges else None
     out = {}
@@ -380,7 +384,7 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
     world = marker_corners_world()
     maps = [column] if row is None else [column, row]
     cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam = [], [], [], [], []
-    w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else _to_8bit(white).astype(np.float32)
+    w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else stretch_to_8bit(white).astype(np.float32)
     for mid in sorted(found):
         for corner, X in zip(found[mid], world[mid]):
             cam_xyz.append(X)

@@ -635,7 +635,7 @@ def _desc_cells(s: st.StudyStats) -> list[list[str]]:
             for c in st.CONDITIONS:
                 p, t = s.patient_summary[(g, c, axis)], s.trial_summary[(g, c, axis)]
                 cells.append([g, c, _axis_name(axis), str(p.n), str(t.n),
-                              st._f(p.mean_abs), st._f(p.sd),
+                              st.format_or_dash(p.mean_abs), st.format_or_dash(p.sd),
                               "–" if p.n == 0 else f"{p.min:.2f} – {p.max:.2f}",
                               "–" if t.n == 0 else f"{t.mean_signed:+.2f}"])
     return cells

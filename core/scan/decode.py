@@ -53,8 +53,8 @@ class DecodeResult:
     valid: np.ndarray  # bool HxW
     reason: np.ndarray  # uint8 HxW, see REASON_NAMES
     thresholds: dict
-    _white_raw: np.ndarray = field(repr=False, default=None)
-    _black_raw: np.ndarray = field(repr=False, default=None)
+    white_raw: np.ndarray = field(repr=False, default=None)  # the white frame as captured (its dtype)
+    black_raw: np.ndarray = field(repr=False, default=None)  # the black frame as captured
     # predicted standard deviation of the decoded column (projector px) from the sensor noise
     # and the local pattern modulation; lets triangulation reject points that are too noisy
     column_sigma: np.ndarray | None = field(repr=False, default=None)
@@ -70,11 +70,11 @@ class DecodeResult:
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
     def white(self) -> np.ndarray:
-        return self._white_raw.astype(np.float32)
+        return self.white_raw.astype(np.float32)
 
     @property
     def black(self) -> np.ndarray:
-        return self._black_raw.astype(np.float32)
+        return self.black_raw.astype(np.float32)
 
     def stats(self) -> dict:
         counts = np.bincount(self.reason.ravel(), minlength=len(REASON_NAMES))
