@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, _flag_outliers
+from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, flag_outliers
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError, GeometryError
@@ -359,7 +359,7 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
         changed = False
         for dev, rr, keeps, excl, sig in (("c", rc, keep_c, excluded_c, sig_c), ("p", rp, keep_p, excluded_p, sig_p)):
             allr = np.concatenate(rr)
-            flagged, _ = _flag_outliers(allr, sig)
+            flagged, _ = flag_outliers(allr, sig)
             offs = np.cumsum([0] + [len(a) for a in rr])
             for f in flagged:
                 k = int(np.searchsorted(offs, f, side="right") - 1)
@@ -474,7 +474,7 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
         if dev == "projector":
             params.update({n: float(val[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
             stds.update({n: float(sev[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
-        flagged, robust = _flag_outliers(res, sig)
+        flagged, robust = flag_outliers(res, sig)
         worst = np.argsort(-np.linalg.norm(res, axis=1))[:5]
         point_names = [(v.name, int(j)) for v, k in zip(views, keeps) for j in np.flatnonzero(k)] \
             if dev == "camera" else \

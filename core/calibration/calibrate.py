@@ -336,7 +336,7 @@ def _vector_jacobian(problem: _Problem, v: np.ndarray, idx: np.ndarray) -> np.nd
     return np.stack(cols, axis=1)
 
 
-def _flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
+def flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
     """Points whose error exceeds both a robust family-wise threshold and 3 sigma (docs/calibration.md)."""
     comp = r.ravel()
     robust = robust_sigma(comp)
@@ -377,7 +377,7 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
         warnings += _correlation_warnings(cov, [names[i] for i in idx])
     except np.linalg.LinAlgError:
         warnings.append("the parameters are not all determined by these points (singular normal matrix)")
-    flagged, robust = _flag_outliers(r, sigma if dof > 0 else 0.0)
+    flagged, robust = flag_outliers(r, sigma if dof > 0 else 0.0)
     params = {n: float(np.degrees(v[i]) if i < 3 else v[i]) for i, n in enumerate(names)}
     params = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(params.items())}
     std = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(std.items())}
