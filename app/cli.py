@@ -11,8 +11,8 @@ SIGTERM takes the same clean-up path as Ctrl-C (temporaries removed), exit 143; 
 message is folded onto one line, and library warnings (numpy, OpenCV) never reach stderr.
 A command with inputs that are not plain arguments (a folder named in a file) calls
 ``guard_output(out, inputs)`` itself.
-Imports are made inside the commands so that ``anklescan gui`` starts without loading the
-reconstruction stack and ``--help`` is instant.
+The commands themselves are in app/cli_commands.py; their imports are made inside each command
+so that ``anklescan gui`` starts without loading the reconstruction stack and ``--help`` is instant.
 """
 
 from __future__ import annotations
@@ -21,9 +21,12 @@ import argparse
 import os
 import signal
 import sys
-import time
 import warnings
-from pathlib import Path
+
+from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_calibrate_box, cmd_calibrate_export,
+                                        cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_demo,
+                                        cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
+                                        cmd_reconstruct, set_verbose)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
@@ -57,23 +60,6 @@ def _on_sigterm(signum, frame):
     raise Terminated(signum)
 
 
-_VERBOSE = False  # set by main from -v
-
-
-class Progress:
-    """Step messages: on stderr when it is a terminal (or with -v), else on stdout, so that a
-    script or log capturing stderr sees exactly one line when a command fails."""
-
-    def __init__(self, quiet: bool = False):
-        self.quiet = quiet
-        self.stream = sys.stderr if (_VERBOSE or sys.stderr.isatty()) else sys.stdout
-        self.t0 = time.perf_counter()
-
-    def __call__(self, message: str) -> None:
-        if not self.quiet:
-            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=self.stream, flush=True)
-
-
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = text.lower().split("x")
@@ -100,97 +86,6 @@ def _positive(text: str) -> float:
     return v
 
 
-# ---------------------------------------------------------------------------- commands
-def cmd_gui(args) -> int:
-    from anklescan.app.main_window import run_gui
-
-    return run_gui(args.qt_args)
-
-
-def cmd_patterns(args) -> int:
-    from anklescan.core.scan.patterns import make_pattern_set, write_patterns
-
-    args.projector_default = args.projector is None
-    width, height = args.projector or (1024, 768)
-    if args.axes:
-        axes, why = tuple(a.strip() for a in args.axes.split(",")), "as asked"
-    elif args.calibration:
-        from anklescan.core.calibration.file import load_calibration
-        from anklescan.core.scan.triangulate import scan_axes
-
-        cal = load_calibration(args.calibration)
-        if (cal.projector.width, cal.projector.height) != (width, height) and args.projector_default:
-            width, height = cal.projector.width, cal.projector.height
-        from anklescan.core.scan.triangulate import check_geometry
-
-        axes, why = scan_axes(cal), f"what the rig of {Path(args.calibration).name} needs"
-        check_geometry(cal, axes)
-    elif args.preset == "paper":
-        axes, why = ("column",), "the paper's 18 sheets; --axes column,row for a projector above the camera"
-    else:
-        axes, why = ("column", "row"), "for a projector on any side of the camera; --calibration picks fewer"
-    from anklescan.core.scan.motion import default_motion_refs
-
-    refs = default_motion_refs(args.preset) if args.motion_refs is None else args.motion_refs
-    pset = make_pattern_set(args.preset, width, height, axes=axes, motion_refs=refs)
-    out = write_patterns(pset, args.out)
-    print(f"wrote {len(pset.frames)} frames ({args.preset}, {width}x{height}, {' + '.join(axes)} stripes: {why}) "
-          f"and manifest.json to {out}")
-    return 0
-
-
-def cmd_reconstruct(args) -> int:
-    from anklescan.core.calibration.file import load_calibration
-    from anklescan.core.scan.capture import load_capture
-    from anklescan.core.scan.pointcloud import write_ply
-    from concurrent.futures import ThreadPoolExecutor
-
-    from anklescan.core.scan.reconstruct import reconstruct
-    from anklescan.core.scan.triangulate import prepare
-
-    progress = Progress(args.quiet)
-    cal = load_calibration(args.calibration)
-    progress(f"loading capture {args.capture}")
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        # the calibration's grids are built while the frames are read (PNG decoding leaves
-        # the cores part idle)
-        ready = pool.submit(prepare, cal)
-        capture = load_capture(args.capture)
-        ready.result()
-    progress("decoding and triangulating")
-    cloud = reconstruct(capture, cal)
-    if len(cloud) == 0:
-        from anklescan.core.errors import AnkleScanError
-
-        raise AnkleScanError(f"no surface points could be decoded from {args.capture} "
-                             f"({cloud.meta.get('summary', 'nothing decoded')}); nothing written")
-    progress(f"writing {len(cloud)} points")
-    write_ply(args.out, cloud, comments=[f"capture {Path(args.capture).name}"])
-    print(f"wrote {len(cloud)} points to {args.out} ({cloud.meta.get('summary', '')})")
-    return 0
-
-
-def cmd_calibrate_points(args) -> int:
-    from anklescan.core.calibration.calibrate import run_calibrate_points
-
-    report = run_calibrate_points(args.camera, args.projector, args.out,
-                                  camera_size=args.camera_size, projector_size=args.projector_size)
-    print(report.format_text())
-    print(f"wrote calibration to {args.out}")
-    return 0
-
-
-def cmd_calibrate_box(args) -> int:
-    from anklescan.core.calibration.box import calibrate_from_box_capture
-    from anklescan.core.calibration.file import save_calibration
-
-    cal, report = calibrate_from_box_capture(args.capture)
-    save_calibration(cal, args.out)
-    print(report.format_text())
-    print(f"wrote calibration to {args.out}")
-    return 0
-
-
 def _positive_float(text: str) -> float:
     try:
         v = float(text)
@@ -209,122 +104,6 @@ def _positive_int(text: str) -> int:
     if v <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
     return v
-
-
-def cmd_import_opencv_graycode(args) -> int:
-    from anklescan.core.scan.opencv_graycode import import_opencv_graycode
-
-    width, height = args.projector
-    pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
-    ac, ar = pset.axis_code("column"), pset.axis_code("row")
-    print(f"imported {len(pset.frames)} frames ({ac.bits} column bits, {ar.bits} row bits, step {args.step}) "
-          f"as a capture in {args.out}")
-    return 0
-
-
-def cmd_calibrate_import(args) -> int:
-    import numpy as np
-
-    from anklescan.core.calibration.file import save_calibration
-    from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
-
-    cal = import_opencv_calibration(args.file, args.projector, args.camera, args.unit)
-    save_calibration(cal, args.out)
-    b = cal.projector.center - cal.camera.center
-    print(f"imported {args.file}: camera {cal.camera.width}x{cal.camera.height}, projector "
-          f"{cal.projector.width}x{cal.projector.height}, baseline {np.linalg.norm(b):.1f} mm "
-          f"(projector at {b[0]:+.1f}, {b[1]:+.1f}, {b[2]:+.1f} mm in the camera's frame)")
-    print("world frame = the camera's: run 'anklescan calibrate level' before measuring angles")
-    print(f"wrote calibration to {args.out}")
-    return 0
-
-
-def cmd_calibrate_export(args) -> int:
-    from anklescan.core.calibration.file import load_calibration
-    from anklescan.core.calibration.opencv_calibration import export_opencv_calibration
-
-    export_opencv_calibration(load_calibration(args.calibration), args.out)
-    print(f"wrote OpenCV FileStorage {args.out} (K1 D1 camera, K2 D2 projector, R T camera -> projector, mm)")
-    return 0
-
-
-def cmd_calibrate_board(args) -> int:
-    from anklescan.core.calibration.board import calibrate_from_board_captures
-    from anklescan.core.calibration.file import save_calibration
-
-    cols, rows = args.board
-    progress = Progress(args.quiet)
-    progress(f"reading {len(args.captures)} board capture(s)")
-    result = calibrate_from_board_captures(args.captures, cols, rows, args.square, args.distortion)
-    save_calibration(result.calibration, args.out)
-    print(result.report.format_text())
-    print(f"world frame: the board of {Path(args.captures[0]).name} (z its normal, origin its corner grid's centre); "
-          f"unless it lay flat on the level table, run 'anklescan calibrate level' before measuring angles")
-    print(f"wrote calibration to {args.out}")
-    return 0
-
-
-def cmd_calibrate_level(args) -> int:
-    from anklescan.core.calibration.file import load_calibration, save_calibration
-    from anklescan.core.scan.capture import load_capture
-    from anklescan.core.calibration.levelling import level_calibration
-
-    cal = load_calibration(args.calibration)
-    capture = load_capture(args.capture)
-    new, top = level_calibration(cal, capture)
-    save_calibration(new, args.out)
-    print(f"table top {top.size_mm[0]:.0f} x {top.size_mm[1]:.0f} mm, {top.n_points} points, "
-          f"{top.rms_mm:.2f} mm RMS about its plane")
-    print(f"wrote levelled calibration to {args.out}")
-    return 0
-
-
-def cmd_measure(args) -> int:
-    from anklescan.core.errors import AnkleScanError
-    from anklescan.core.measure.pipeline import run_measure
-
-    if not (args.motion_threshold > 0 and args.motion_threshold < float("inf")):
-        raise AnkleScanError(f"--motion-threshold must be a positive number of mm, not {args.motion_threshold}")
-    result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter,
-                         motion_threshold_mm=args.motion_threshold)
-    print(result.format_text())
-    return 0
-
-
-def cmd_angles(args) -> int:
-    from anklescan.core.measure.angles import compute_angles, format_angles, read_marks_csv
-    from anklescan.core.limits import require_finite
-
-    marks = read_marks_csv(args.marks)
-    angles = compute_angles(marks, sigma_mm=args.sigma)
-    if not angles:  # SPEC: never an empty result with exit 0
-        from anklescan.core.errors import AnkleScanError
-
-        raise AnkleScanError(f"{args.marks}: no angle can be computed; {angles.missing_message()}")
-    require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
-    print(format_angles(angles))
-    return 0
-
-
-def cmd_demo(args) -> int:
-    from anklescan.app.demo import run_demo
-
-    from anklescan.app.demo import DEMO_SCALE
-
-    if not (0 <= args.sway < 50):
-        from anklescan.core.errors import AnkleScanError
-        raise AnkleScanError(f"--sway must be 0 to 50 mm, not {args.sway}")
-    if getattr(args, "study", False):
-        from anklescan.app.demo import run_study_demo
-        from anklescan.core.errors import AnkleScanError
-
-        if args.quick:
-            raise AnkleScanError("--quick and --study cannot be combined: --study is the whole cohort")
-
-        return run_study_demo(Path(args.out), progress=Progress(args.quiet),
-                              scale=1.0 if args.full_resolution else DEMO_SCALE)
-    return run_demo(Path(args.out), quick=args.quick, progress=Progress(args.quiet),
-                    scale=1.0 if args.full_resolution else DEMO_SCALE, sway_mm=args.sway, camera=args.camera)
 
 
 # ---------------------------------------------------------------------------- parser
@@ -473,8 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     from anklescan.core.errors import AnkleScanError
 
-    global _VERBOSE
-    _VERBOSE = bool(getattr(args, "verbose", False))
+    set_verbose(getattr(args, "verbose", False))
     # OpenCV's own log lines ("[ WARN:0@...]") would add to the one error line; read when
     # cv2 is first imported, which the commands do lazily after this point
     os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")

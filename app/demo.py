@@ -26,6 +26,7 @@ import numpy as np
 
 from anklescan.core.atomic import make_private_dir, make_tree_private, write_text_atomic
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
 
 MARKER = ".anklescan-demo"
 
@@ -53,7 +54,6 @@ PATIENTS = (
     SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
                ("plate", 15.0, True)),
 )
-CONDITIONS = ("barefoot", "shoes")
 INVERSIONS = (0.0, 10.0, 20.0)
 # the whole range in three steps (the benchmark has all five: docs/marks.md)
 PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
@@ -129,7 +129,7 @@ def _scan_trial(job: dict) -> dict:
         "label": job["label"],
         "complete": result.complete,
         "message": "" if result.complete else result.marks.message(),
-        "missing": [k for k in "1234567" if k not in result.marks.labelled],
+        "missing": [k for k in LABEL_KEYS if k not in result.marks.labelled],
         "marks": {k: [float(x) for x in m.centre] for k, m in found.items()},
         "covariances": {k: np.asarray(c).tolist() for k, c in result.marks.covariances().items()},
         "angles": {k: dict(v) for k, v in result.angles.items()},
@@ -262,10 +262,10 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                     progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                              f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                              f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
-        report = write_study_report(store, out / "report.pdf", out / "trials.csv")
+        report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
         for session in store.list_sessions():
             patient = store.get_patient(session.patient_id).code
-            write_session_report(store, [session.id], out / f"session_{patient}_{session.condition}.pdf")
+            write_session_report(store.report_input([session.id]), out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
     make_tree_private(out)  # a clinic's layout, so patient-data rules: files 0600, folders 0700
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
@@ -379,9 +379,9 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
                       f"mismatch inv {m.mismatch_inversion:+5.2f}° pf {m.mismatch_plantar_flexion:+5.2f}°")
                 progress(f"[{k}/{len(jobs)}] {res['label']}: {mm}"
                          + ("" if res["complete"] else f"  marks {', '.join(res['missing'])} not found"))
-        report = write_study_report(store, out / "report.pdf", out / "trials.csv")
+        report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
         for code in dict.fromkeys(c for c, _ in sessions):
-            write_session_report(store, [sid for (c, _), sid in sessions.items() if c == code],
+            write_session_report(store.report_input([sid for (c, _), sid in sessions.items() if c == code]),
                                  out / f"session_{code}.pdf")
         _study_summary(store, progress)
     _summarise(results, out, progress)

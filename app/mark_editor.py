@@ -1,6 +1,6 @@
 """Mark editing on the 3-D viewer: place, move, relabel, delete and confirm marks 1–7.
 
-Model: ``MarkSet`` (label → position + provenance), changed only through ``QUndoCommand``s,
+Model: ``PlacedMarks`` (label → position + provenance), changed only through ``QUndoCommand``s,
 so undo/redo and saving share one path: every command's redo/undo ends in
 ``MarkEditor._apply``, which redraws the viewer, recomputes the angles panel and writes the
 changed labels to the trial. Provenance per mark: ``auto`` (found by the detector, shown with
@@ -18,10 +18,9 @@ from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGr
                                QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
 
-from anklescan.core.measure.angles import LABELS, compute_angles
+from anklescan.core.measure.angles import compute_angles
+from anklescan.core.vocabulary import LABELS, MARK_NAMES
 
-MARK_NAMES = {1: "front of the knee", 2: "front of the ankle", 3: "lateral knee", 4: "lateral ankle",
-              5: "table", 6: "table", 7: "table"}
 ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Leg plantar flexion θ2",
                 "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion",
                 "mismatch_inversion": "Mismatch, inversion", "mismatch_plantar_flexion": "Mismatch, plantar flexion"}
@@ -29,14 +28,15 @@ CONFIRMED_PREFIX = "confirmed by "
 
 
 @dataclass(frozen=True)
-class Mark:
+class PlacedMark:
+    """A mark as the editor holds it: position and provenance (not yet or already saved)."""
     xyz: tuple[float, float, float]
     source: str = "manual"   # 'auto' | 'manual' (the store's vocabulary)
     confirmed: bool = True   # auto marks start unconfirmed
     placed_by: str = ""
 
 
-MarkSet = dict[int, Mark]
+PlacedMarks = dict[int, PlacedMark]
 
 
 # ---------------------------------------------------------------------------- undo commands
@@ -44,7 +44,7 @@ MarkSet = dict[int, Mark]
 class _SetMarks(QUndoCommand):
     """Replace some labels' marks (None = absent). Every edit is one of these."""
 
-    def __init__(self, editor: "MarkEditor", text: str, after: dict[int, Mark | None]):
+    def __init__(self, editor: "MarkEditor", text: str, after: dict[int, PlacedMark | None]):
         super().__init__(text)
         self.editor = editor
         self.after = after
@@ -73,7 +73,7 @@ class MarkEditor(QWidget):
         self.operator = operator
         self.store = None
         self.trial_id: int | None = None
-        self.marks: MarkSet = {}
+        self.marks: PlacedMarks = {}
         self.current_label = 1
         self.angles = {}
         self.reference = None  # the trial's reference-table angles: the mismatch is measured against them
@@ -173,7 +173,7 @@ class MarkEditor(QWidget):
                   context=Qt.ShortcutContext.WindowShortcut)
 
     # ---- loading -------------------------------------------------------------------------
-    def load(self, marks: MarkSet, store=None, trial_id: int | None = None) -> None:
+    def load(self, marks: PlacedMarks, store=None, trial_id: int | None = None) -> None:
         """Start editing a trial's marks (a fresh undo history)."""
         self.store, self.trial_id = store, trial_id
         self.reference = None
@@ -192,7 +192,7 @@ class MarkEditor(QWidget):
     def propose_auto(self, detected: dict) -> None:
         """Detected marks (label → xyz) to confirm, saved as 'auto'. They are where the undo
         history starts: Undo goes back to them, never past them to an empty trial."""
-        after = {int(k): Mark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
+        after = {int(k): PlacedMark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
         self._apply(after)
         self.undo_stack.clear()
 
@@ -237,7 +237,7 @@ class MarkEditor(QWidget):
 
     def place(self, label: int, xyz) -> None:
         verb = "move" if label in self.marks else "place"
-        mark = Mark(tuple(float(v) for v in xyz), "manual", True, self.operator)
+        mark = PlacedMark(tuple(float(v) for v in xyz), "manual", True, self.operator)
         self.undo_stack.push(_SetMarks(self, f"{verb} mark {label}", {label: mark}))
         if verb == "place":  # the operator usually places marks in order
             self.current_label = next((lab for lab in LABELS if lab not in self.marks), label)
@@ -266,7 +266,7 @@ class MarkEditor(QWidget):
             self.undo_stack.push(_SetMarks(self, "confirm automatic marks", pending))
 
     # ---- the one place state changes -----------------------------------------------------
-    def _apply(self, changes: dict[int, Mark | None]) -> None:
+    def _apply(self, changes: dict[int, PlacedMark | None]) -> None:
         for lab, m in changes.items():
             if m is None:
                 self.marks.pop(lab, None)
@@ -275,7 +275,7 @@ class MarkEditor(QWidget):
         self._save(changes)
         self._refresh()
 
-    def _save(self, changes: dict[int, Mark | None]) -> None:
+    def _save(self, changes: dict[int, PlacedMark | None]) -> None:
         if self.store is None or self.trial_id is None:
             return
         try:
@@ -347,15 +347,15 @@ class MarkEditor(QWidget):
 
 # ---------------------------------------------------------------------------- store glue
 
-def marks_from_store(rows) -> MarkSet:
-    """anklescan.core.records.store.Mark rows → MarkSet. An auto mark counts as confirmed once an operator has
+def marks_from_store(rows) -> PlacedMarks:
+    """anklescan.core.vocabulary.MarkRecord rows → PlacedMarks. An auto mark counts as confirmed once an operator has
     confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
-    return {r.label: Mark((r.x, r.y, r.z), r.source,
+    return {r.label: PlacedMark((r.x, r.y, r.z), r.source,
                           r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
             for r in rows}
 
 
-def save_marks(store, trial_id: int, changes: dict[int, Mark | None]) -> None:
+def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None]) -> None:
     """Write changed marks (grouped by provenance, as update_marks takes one source per call),
     delete removed ones, and let the store recompute the trial's angles."""
     groups: dict[tuple[str, str], dict[int, tuple]] = {}
@@ -369,7 +369,7 @@ def save_marks(store, trial_id: int, changes: dict[int, Mark | None]) -> None:
         store.delete_marks(trial_id, removed)
 
 
-def as_array(marks: MarkSet) -> dict[int, np.ndarray]:
+def as_array(marks: PlacedMarks) -> dict[int, np.ndarray]:
     return {lab: np.asarray(m.xyz) for lab, m in marks.items()}
 
 

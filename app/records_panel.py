@@ -10,7 +10,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDialog, QHBoxLayout, QInpu
                                QListWidgetItem, QMessageBox, QPushButton, QVBoxLayout, QWidget)
 
 from anklescan.app.main_parts import NewPatientDialog, deg, no_args
-from anklescan.app.trial_form import CONDITIONS
+from anklescan.core.vocabulary import CONDITION_TITLES
 
 ID = Qt.ItemDataRole.UserRole
 
@@ -30,7 +30,7 @@ class RecordsPanel(QWidget):
         self.trials.currentItemChanged.connect(lambda item, _prev: self._trial_clicked(item))
         self.new_patient_button = QPushButton("New patient…")
         self.new_session_condition = QComboBox()
-        for key, label in CONDITIONS:
+        for key, label in CONDITION_TITLES.items():
             self.new_session_condition.addItem(label, key)
         self.new_session_button = QPushButton("New session")
         self.show_archived = QCheckBox("Show archived")
@@ -112,7 +112,7 @@ class RecordsPanel(QWidget):
     def show_patient(self, select_session: int | None = None) -> None:
         self.sessions.clear()
         sessions = self.logic.sessions(self.current_patient_id(), self.show_archived.isChecked())
-        labels = dict(CONDITIONS)
+        labels = CONDITION_TITLES
         for s in sessions:
             item = QListWidgetItem(f"{s.date}  ·  {labels.get(s.condition, s.condition)}"
                                    + ("   (archived)" if s.archived else ""))

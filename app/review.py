@@ -175,7 +175,7 @@ class Review(QObject):
             from anklescan.core.records.report import write_session_report
             from anklescan.core.records.store import Store
             with Store.open(db_path, data_dir=data_dir) as own:
-                return write_session_report(own, [sid], pdf, pdf.with_suffix(".csv"))
+                return write_session_report(own.report_input([sid]), pdf, pdf.with_suffix(".csv"))
 
         win.banner.show_message("info", f"Writing the session report to {pdf}…")
         job = run_in_background(render, lambda result: self._report_written(pdf, result),

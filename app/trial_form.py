@@ -15,7 +15,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QComboBox, QFormLayout, QGroupBox, QHBoxLayout, QLabel, QLineEdit,
                                QPlainTextEdit, QVBoxLayout, QWidget)
 
-CONDITIONS = (("barefoot", "Barefoot"), ("shoes", "Shoes"))
+from anklescan.core.vocabulary import CONDITION_TITLES
+
 ANGLE_RANGE = 45.0  # the inclined tables of the paper tilt well within ±45°
 
 
@@ -127,7 +128,7 @@ class TrialForm(QGroupBox):
         self.inversion = AngleField("Inversion set on the reference (left) table; lateral edge down is positive.")
         self.plantar_flexion = AngleField("Plantar flexion set on the reference (left) table; toes down is positive.")
         self.condition = QComboBox()
-        for key, label in CONDITIONS:
+        for key, label in CONDITION_TITLES.items():
             self.condition.addItem(label, key)
         self.notes = QPlainTextEdit()
         self.notes.setPlaceholderText("Notes for this trial (optional)")

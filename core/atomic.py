@@ -1,6 +1,7 @@
 """Writing files safely: atomically, privately, and never over the command's own inputs.
 
-- ``atomic_file`` / ``write_text_atomic`` / ``write_json_atomic``: the content goes to a
+- ``atomic_paths`` (the one mechanism; several targets at once, any writer) and
+  ``atomic_file`` / ``write_text_atomic`` / ``write_json_atomic`` on it: the content goes to a
   temporary sibling (same folder, so the rename cannot cross file systems), is flushed to
   disk, and is renamed over the target; on any error the temporary is removed and the target
   is untouched. Temporary names are shortened so that they never exceed NAME_MAX even when
@@ -110,27 +111,63 @@ class WriteError(OSError, AnkleScanError):
 
 
 @contextmanager
+def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, keep_suffix: bool = False,
+                 fsync: bool = True):
+    """The one atomic-write mechanism: yields a private (0600) temporary sibling per target
+    (``None`` for a ``None`` target), to be written by any means (an encoder, a PDF backend);
+    when the block ends without error each is flushed to disk (``fsync``) and renamed over its
+    target, else every temporary is removed and no target is touched. The targets' folders
+    must exist. An OSError becomes a WriteError "cannot write WHAT: ..." (``what`` defaults to
+    the first target); ``keep_suffix`` ends the temporary with the target's extension, for
+    writers that choose the format by it."""
+    paths = [None if t is None else Path(t) for t in targets]
+    what = what or str(next((p for p in paths if p is not None), ""))
+    tmps: list[Path | None] = []
+    try:
+        for t in paths:
+            if t is None:
+                tmps.append(None)
+                continue
+            if not t.parent.is_dir():
+                raise AnkleScanError(f"output folder {t.parent} does not exist")
+            prefix, suffix = temp_affixes(t.name, keep_suffix=t.suffix if keep_suffix else "")
+            fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=t.parent)  # 0600
+            os.close(fd)
+            tmps.append(Path(name))
+        yield tmps
+        for tmp, t in zip(tmps, paths):
+            if tmp is not None:
+                if fsync:
+                    _fsync(tmp)
+                os.replace(tmp, t)
+    except OSError as e:
+        if isinstance(e, WriteError):
+            raise
+        raise WriteError(f"cannot write {what}: {e.strerror or e}") from None
+    finally:
+        for tmp in tmps:
+            if tmp is not None:
+                tmp.unlink(missing_ok=True)
+
+
+def _fsync(p: Path) -> None:
+    with open(p, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+@contextmanager
 def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None):
-    """A private (0600) temporary sibling renamed over ``path`` once fully written."""
+    """A file object on a private (0600) temporary sibling renamed over ``path`` once fully
+    written (``atomic_paths``); a missing folder is created private."""
     path = Path(path)
     try:
         if not path.parent.is_dir():
             make_private_dir(path.parent, tighten=False)
-        prefix, suffix = temp_affixes(path.name)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=suffix)  # mode 0600
     except OSError as e:
         raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
-    try:
-        with os.fdopen(fd, mode, encoding=encoding) as f:
+    with atomic_paths(path) as (tmp,):
+        with open(tmp, mode, encoding=encoding) as f:
             yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        Path(tmp).unlink(missing_ok=True)
-        if isinstance(exc, OSError) and not isinstance(exc, WriteError):
-            raise WriteError(f"cannot write {path}: {exc.strerror or exc}") from None
-        raise
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -402,7 +402,8 @@ class Sticker:
 
 
 @dataclass(eq=False)
-class Mark:
+class SimMark:
+    """A mark of the simulated scene with its true position (the ground truth the tests compare with)."""
     label: str
     centre: np.ndarray  # centre of the plate's top face, or the skin under a sticker's (the truth)
     normal: np.ndarray
@@ -415,7 +416,7 @@ class Scene:
     """A set of objects; ``marks`` and ``info`` carry the ground truth of a built scene."""
 
     objects: list
-    marks: dict = field(default_factory=dict)  # label -> Mark
+    marks: dict = field(default_factory=dict)  # label -> SimMark
     info: dict = field(default_factory=dict)
 
     stickers: list = field(default_factory=list)  # Sticker decals on objects of ``objects``
@@ -510,16 +511,16 @@ def table_normal(inversion_deg: float, plantar_flexion_deg: float) -> np.ndarray
     return _unit([math.tan(math.radians(inversion_deg)), math.tan(math.radians(plantar_flexion_deg)), 1.0])
 
 
-def _sticker(label, host, X, n, radius, albedo=0.9) -> Mark:
+def _sticker(label, host, X, n, radius, albedo=0.9) -> SimMark:
     st = Sticker(host, np.asarray(X, float), _unit(n), float(radius), albedo, label)
-    return Mark(label, st.centre, st.normal, None, st)
+    return SimMark(label, st.centre, st.normal, None, st)
 
 
-def _plate(label, foot, n, radius=7.5, thickness=1.5, albedo=0.9) -> Mark:
+def _plate(label, foot, n, radius=7.5, thickness=1.5, albedo=0.9) -> SimMark:
     axes = frame_from_normal(n)
     plate = Cylinder(kind=ObjectId.MARK, label=label, centre=foot, axes=axes,
                      radius=radius, z0=-3.0, z1=thickness, albedo=albedo)
-    return Mark(label, plate.top_centre, plate.normal, plate)
+    return SimMark(label, plate.top_centre, plate.normal, plate)
 
 
 DEFAULT_TABLE_MARKS = {"5": (80.0, -100.0), "6": (80.0, 95.0), "7": (-48.0, 135.0)}

@@ -30,11 +30,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from anklescan.hardware.sim_scene import Mark, ObjectId, Scene
+from anklescan.core.vocabulary import LEG_LABEL_KEYS, LEG_LABELS
+from anklescan.hardware.sim_scene import ObjectId, Scene, SimMark
 
 FRAME_S = {"webcam": 0.030, "dslr": 2.0}  # seconds per frame (issue 18; docs/performance.md)
 SUBJECT_KINDS = (ObjectId.LEG, ObjectId.FOOT)
-LEG_MARKS = ("1", "2", "3", "4")
 AXES = {"sideways": (1.0, 0.0, 0.0), "forward": (0.0, 1.0, 0.0)}
 DEFAULT_TILT_DEG_PER_MM = 0.04  # 5 mm at the ankle tilts the leg by 0.2 deg: +1.3 mm at the knee
 
@@ -93,7 +93,7 @@ def ankle_of(scene: Scene) -> np.ndarray:
 
 
 def _moves(obj) -> bool:
-    return obj.kind in SUBJECT_KINDS or (obj.kind == ObjectId.MARK and str(obj.label) in LEG_MARKS)
+    return obj.kind in SUBJECT_KINDS or (obj.kind == ObjectId.MARK and str(obj.label) in LEG_LABEL_KEYS)
 
 
 def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> Scene:
@@ -111,7 +111,7 @@ def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -
     marks = {}
     for k, m in scene.marks.items():
         plate = moved[id(m.plate)]
-        marks[k] = Mark(k, plate.top_centre, plate.normal, plate) if plate is not m.plate else m
+        marks[k] = SimMark(k, plate.top_centre, plate.normal, plate) if plate is not m.plate else m
     return Scene(objs, marks, dict(scene.info))
 
 
@@ -244,7 +244,7 @@ def true_largest_displacement(rig, sway: Sway, times) -> float:
     frames of the capture, mm."""
     truth = rig.truth()
     subject = np.isin(truth.object_id, [int(k) for k in SUBJECT_KINDS]) | np.isin(
-        truth.mark_label, [int(k) for k in LEG_MARKS])
+        truth.mark_label, list(LEG_LABELS))
     X = truth.points[subject & truth.seen]
     if X.size == 0 or sway.still:
         return 0.0

@@ -22,6 +22,7 @@ from threadpoolctl import threadpool_limits
 
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.core.vocabulary import LABEL_KEYS
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
 
@@ -459,7 +460,7 @@ class SimRig:
         index = cat["index"]
         marks = {k: m.centre.copy() for k, m in sorted(self.scene.marks.items())}
         info = self.scene.info
-        angles = angles_from_marks(marks) if all(str(i) in marks for i in range(1, 8)) else {}
+        angles = angles_from_marks(marks) if all(k in marks for k in LABEL_KEYS) else {}
         return Truth(points=cat["X"].reshape(H, W, 3), normals=cat["normals"].reshape(H, W, 3),
                      object_id=self.scene.object_kinds(index).reshape(H, W),
                      mark_label=self.scene.mark_labels(index, cat["X"], cat["normals"]).reshape(H, W),

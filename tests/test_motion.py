@@ -163,7 +163,7 @@ def test_report_shows_motion(tmp_path):
         ses = s.start_session("P1", condition="barefoot")
         t = s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
         s.set_trial_motion(t.id, 1.8, 0.2, scan_duration_s=1.1)
-        rep = write_session_report(s, [ses.id], tmp_path / "r.pdf")
+        rep = write_session_report(s.report_input([ses.id]), tmp_path / "r.pdf")
         assert rep.pages >= 1 and (tmp_path / "r.pdf").stat().st_size > 0
         from anklescan.core.records.report import _motion_cell
         row = s.study_rows()[0]

@@ -70,7 +70,7 @@ def pdf_pages(path: Path) -> int:
 def test_session_report_pdf_and_csv(study, tmp_path):
     store, sessions = study
     pdf, out_csv = tmp_path / "r.pdf", tmp_path / "r.csv"
-    res = write_session_report(store, sessions[:1], pdf, out_csv)
+    res = write_session_report(store.report_input(sessions[:1]), pdf, out_csv)
     # header/table page (16 trials fit) + Fig. 10 + one error-range page per inversion
     # setting + the group page
     assert res.pages == 1 + 1 + len(INV_SETTINGS) + 1
@@ -95,7 +95,7 @@ def test_session_report_pdf_and_csv(study, tmp_path):
 
 def test_multi_session_report_pages(study, tmp_path):
     store, sessions = study
-    res = write_session_report(store, sessions[:2], tmp_path / "r.pdf")
+    res = write_session_report(store.report_input(sessions[:2]), tmp_path / "r.pdf")
     assert res.pages == 2 * (2 + len(INV_SETTINGS)) + 1 and res.csv_path is None
 
 
@@ -105,7 +105,7 @@ def test_long_session_table_continues(tmp_path):
         ses = s.start_session("L-1", condition="shoes")
         for i in range(30):
             s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=i)   # none measured
-        res = write_session_report(s, [ses.id], tmp_path / "l.pdf", tmp_path / "l.csv")
+        res = write_session_report(s.report_input([ses.id]), tmp_path / "l.pdf", tmp_path / "l.csv")
     # 24 rows + continuation page, Fig. 10 page ("no measured trials"); no group page: one
     # patient has nothing to compare
     assert res.pages == 2 + 1
@@ -115,7 +115,7 @@ def test_long_session_table_continues(tmp_path):
 
 def test_study_report(study, tmp_path):
     store, _ = study
-    res = write_study_report(store, tmp_path / "s.pdf", tmp_path / "s.csv")
+    res = write_study_report(store.report_input(), tmp_path / "s.pdf", tmp_path / "s.csv")
     assert res.pages == 1 + 2 + 1 and pdf_pages(tmp_path / "s.pdf") == 4
     rows = list(csv.DictReader((tmp_path / "s.csv").open()))
     assert len(rows) == 12 * len(INV_SETTINGS) * len(PF_SETTINGS) * 2
@@ -124,12 +124,12 @@ def test_study_report(study, tmp_path):
 def test_report_errors_leave_nothing(study, tmp_path):
     store, sessions = study
     with pytest.raises(AnkleScanError, match="does not exist"):
-        write_session_report(store, sessions[:1], tmp_path / "nope" / "r.pdf")
+        write_session_report(store.report_input(sessions[:1]), tmp_path / "nope" / "r.pdf")
     with pytest.raises(AnkleScanError, match="no session"):
-        write_session_report(store, [99999], tmp_path / "r.pdf", tmp_path / "r.csv")
+        write_session_report(store.report_input([99999]), tmp_path / "r.pdf", tmp_path / "r.csv")
     (tmp_path / "r.pdf").write_bytes(b"old")
     with pytest.raises(AnkleScanError, match="no sessions"):
-        write_session_report(store, [], tmp_path / "r.pdf")
+        write_session_report(store.report_input([]), tmp_path / "r.pdf")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.pdf"]
     assert (tmp_path / "r.pdf").read_bytes() == b"old"
 
@@ -139,7 +139,7 @@ def test_csv_neutralises_formulas(tmp_path):
         s.add_patient("F-1")
         ses = s.start_session("F-1", condition="shoes", operator="=HYPERLINK(1)")
         s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=0, notes="-2 felt odd")
-        write_study_report(s, tmp_path / "f.pdf", tmp_path / "f.csv")
+        write_study_report(s.report_input(), tmp_path / "f.pdf", tmp_path / "f.csv")
     r = next(csv.DictReader((tmp_path / "f.csv").open()))
     assert r["operator"] == "'=HYPERLINK(1)" and r["notes"] == "'-2 felt odd"
 
@@ -257,7 +257,7 @@ def test_study_rows_carry_state_and_mark_confirmation(states_session):
 def test_states_shown_in_table_but_only_counted_trials_plotted(states_session, tmp_path, monkeypatch):
     store, sid, ids, (c1, c2) = states_session
     figs = _capture_figures(monkeypatch)
-    res = write_session_report(store, [sid], tmp_path / "r.pdf", tmp_path / "r.csv")
+    res = write_session_report(store.report_input([sid]), tmp_path / "r.pdf", tmp_path / "r.csv")
     # header + Fig. 10 + one error-range page; no group page (one patient: nothing to compare)
     assert res.pages == 3 == len(figs)
     texts = [t.get_text() for t in figs[0].texts]
@@ -312,7 +312,7 @@ def test_stats_use_counted_trials_only(states_session):
 def test_group_page_only_with_something_to_compare(study, tmp_path, monkeypatch):
     store, sessions = study
     figs = _capture_figures(monkeypatch)
-    write_session_report(store, sessions[:1], tmp_path / "r.pdf")
+    write_session_report(store.report_input(sessions[:1]), tmp_path / "r.pdf")
     assert figs[-1]._suptitle.get_text().startswith("Group comparison")
     assert st.has_tests(st.study_stats(store.study_rows()))
 
@@ -320,7 +320,7 @@ def test_group_page_only_with_something_to_compare(study, tmp_path, monkeypatch)
 def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path, monkeypatch):
     store, *_ = states_session
     figs = _capture_figures(monkeypatch)
-    res = write_study_report(store, tmp_path / "s.pdf")
+    res = write_study_report(store.report_input(), tmp_path / "s.pdf")
     # the overview (saying why there is no group comparison) and the one group that has a patient
     assert res.pages == 2
     assert "Group comparison" in [t.get_text() for t in figs[0].texts]

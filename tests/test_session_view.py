@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from PySide6.QtCore import QPoint, QPointF, Qt
 
-from anklescan.app.mark_editor import Mark, MarkEditor, marks_from_store
+from anklescan.app.mark_editor import MarkEditor, marks_from_store
 from anklescan.app.session_view import SessionView, group, trial_tip
 from anklescan.app.viewer import CloudViewer
 from anklescan.core.measure.angles import compute_angles

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, _flag_outliers
+from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, flag_outliers
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError, GeometryError
@@ -61,7 +61,8 @@ def board_points(cols: int, rows: int, square: float) -> np.ndarray:
     return np.stack([i.ravel() * square, j.ravel() * square, np.zeros(i.size)], axis=1).astype(np.float64)
 
 
-def _to_8bit(img: np.ndarray) -> np.ndarray:
+def _to_8bit_percentiles(img: np.ndarray) -> np.ndarray:
+    """8-bit as is, else the 0.5-99.5 percentile range stretched to 0-255 (chessboard finding)."""
     img = np.asarray(img)
     if img.dtype == np.uint8:
         return img
@@ -71,7 +72,7 @@ def _to_8bit(img: np.ndarray) -> np.ndarray:
 
 def find_corners(white: np.ndarray, cols: int, rows: int) -> tuple[np.ndarray, float]:
     """Sub-pixel inner corners (N, 2) of a cols x rows board in the white frame, and their spacing (px)."""
-    g = _to_8bit(white)
+    g = _to_8bit_percentiles(white)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     ok, c = cv2.findChessboardCorners(g, (cols, rows), flags=flags)
     if not ok:
@@ -181,7 +182,7 @@ def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
     d = decode(capture) if decoded is None else decoded
     stripe = float(min(pset.axis_code("column").stripe, pset.axis_code("row").stripe))
     name = capture.folder.name if capture.folder is not None else "capture"
-    return observe_board_maps(d._white_raw, d.column, d.row, cols, rows, stripe, name)
+    return observe_board_maps(d.white_raw, d.column, d.row, cols, rows, stripe, name)
 
 
 def observe_board_maps(white, column, row, cols: int, rows: int, stripe: float, name: str) -> BoardView:
@@ -358,7 +359,7 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
         changed = False
         for dev, rr, keeps, excl, sig in (("c", rc, keep_c, excluded_c, sig_c), ("p", rp, keep_p, excluded_p, sig_p)):
             allr = np.concatenate(rr)
-            flagged, _ = _flag_outliers(allr, sig)
+            flagged, _ = flag_outliers(allr, sig)
             offs = np.cumsum([0] + [len(a) for a in rr])
             for f in flagged:
                 k = int(np.searchsorted(offs, f, side="right") - 1)
@@ -473,7 +474,7 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
         if dev == "projector":
             params.update({n: float(val[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
             stds.update({n: float(sev[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
-        flagged, robust = _flag_outliers(res, sig)
+        flagged, robust = flag_outliers(res, sig)
         worst = np.argsort(-np.linalg.norm(res, axis=1))[:5]
         point_names = [(v.name, int(j)) for v, k in zip(views, keeps) for j in np.flatnonzero(k)] \
             if dev == "camera" else \

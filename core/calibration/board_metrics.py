@@ -21,6 +21,7 @@ import numpy as np
 
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.errors import GeometryError
+from anklescan.core.robust import robust_sigma
 
 
 @dataclass
@@ -46,7 +47,7 @@ def fit_plane(X: np.ndarray, rounds: int = 3, k: float = 5.0) -> tuple[np.ndarra
         _, _, vt = np.linalg.svd(X[keep] - c, full_matrices=False)
         n = vt[2]
         dist = (X - c) @ n
-        s = 1.4826 * np.median(np.abs(dist[keep]))
+        s = robust_sigma(dist[keep], centre=0.0)
         new = np.abs(dist) <= k * max(s, 1e-9)
         if (new == keep).all():
             break

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.errors import CalibrationError
+from anklescan.core.robust import robust_sigma
 
 BOX_SIZE_MM = 400.0
 MARKER_MM = 90.0
@@ -149,7 +150,8 @@ def box_description() -> dict:
 
 
 # ==== detection =============================================================================
-def _to_8bit(image: np.ndarray) -> np.ndarray:
+def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
+    """A grey 8-bit view of a frame for detectors, scaled so its 99.5th percentile is white."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -157,6 +159,9 @@ def _to_8bit(image: np.ndarray) -> np.ndarray:
     img = img.astype(np.float32)
     hi = float(np.nanpercentile(img, 99.5)) or 1.0
     return np.clip(np.nan_to_num(img) * (255.0 / hi), 0, 255).astype(np.uint8)
+
+
+_to_8bit = stretch_to_8bit  # old private name, still imported by app/calibration_wizard.py (another helper's file): drop once it imports stretch_to_8bit
 
 
 def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np.ndarray]:
@@ -171,7 +176,7 @@ def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np
     params.cornerRefinementMaxIterations = 100
     params.cornerRefinementMinAccuracy = 0.001
     detector = cv2.aruco.ArucoDetector(aruco_dictionary(), params)
-    corners, ids, _ = detector.detectMarkers(_to_8bit(white))
+    corners, ids, _ = detector.detectMarkers(stretch_to_8bit(white))
     known = marker_layout()
     gray = _gray_float(white) if refine_edges else None
     out = {}
@@ -237,7 +242,7 @@ def fit_line(points: np.ndarray, min_points: int = 4, floor_px: float = 1e-3) ->
         c = points[keep].mean(axis=0)
         n = np.linalg.svd(points[keep] - c, full_matrices=False)[2][1]
         r = np.abs((points - c) @ n)
-        keep = r <= 3 * (1.4826 * float(np.median(r[keep])) + floor_px)
+        keep = r <= 3 * (robust_sigma(r[keep], centre=0.0) + floor_px)
     return c, n
 
 
@@ -352,7 +357,7 @@ def projector_at(point: np.ndarray, maps: list, white: np.ndarray, quad: np.ndar
             return None
         pred, centre = _fit_local(xy[keep], q[keep])
         res = np.abs(pred - q[keep]).max(axis=1)
-        sigma = 1.4826 * float(np.median(res)) + 1e-3
+        sigma = robust_sigma(res, centre=0.0) + 1e-3
         new_keep = keep.copy()
         new_keep[np.flatnonzero(keep)[res > 3 * sigma]] = False
         if new_keep.sum() == keep.sum():
@@ -379,7 +384,7 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
     world = marker_corners_world()
     maps = [column] if row is None else [column, row]
     cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam = [], [], [], [], []
-    w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else _to_8bit(white).astype(np.float32)
+    w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else stretch_to_8bit(white).astype(np.float32)
     for mid in sorted(found):
         for corner, X in zip(found[mid], world[mid]):
             cam_xyz.append(X)

@@ -33,6 +33,7 @@ from anklescan.core.calibration import paper_model as pm
 from anklescan.core.calibration.file import Calibration, save_calibration
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
+from anklescan.core.robust import robust_sigma
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
 DEFAULT_PROJECTOR_SIZE = (1024, 768)  # the paper's ELP-70
@@ -335,10 +336,10 @@ def _vector_jacobian(problem: _Problem, v: np.ndarray, idx: np.ndarray) -> np.nd
     return np.stack(cols, axis=1)
 
 
-def _flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
+def flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
     """Points whose error exceeds both a robust family-wise threshold and 3 sigma (docs/calibration.md)."""
     comp = r.ravel()
-    robust = 1.4826 * float(np.median(np.abs(comp - np.median(comp))))
+    robust = robust_sigma(comp)
     n, k = r.shape
     if k == 1:
         factor = norm.isf(FLAG_FAMILY_ALPHA / (2 * n))
@@ -376,7 +377,7 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
         warnings += _correlation_warnings(cov, [names[i] for i in idx])
     except np.linalg.LinAlgError:
         warnings.append("the parameters are not all determined by these points (singular normal matrix)")
-    flagged, robust = _flag_outliers(r, sigma if dof > 0 else 0.0)
+    flagged, robust = flag_outliers(r, sigma if dof > 0 else 0.0)
     params = {n: float(np.degrees(v[i]) if i < 3 else v[i]) for i, n in enumerate(names)}
     params = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(params.items())}
     std = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(std.items())}

@@ -27,6 +27,7 @@ import numpy as np
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import GeometryError
+from anklescan.core.robust import robust_sigma
 
 PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cloud's own noise)
 MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the largest one
@@ -143,7 +144,7 @@ def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
     nt, c = _svd_plane(core_pts)
     for _ in range(3):
         r = (core_pts - c) @ nt
-        s = 1.4826 * np.median(np.abs(r))
+        s = robust_sigma(r, centre=0.0)
         nt, c = _svd_plane(core_pts[np.abs(r) < max(4 * s, 1e-6)])
     if nt @ n < 0:
         nt = -nt

@@ -17,8 +17,8 @@ import numpy as np
 
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import AnkleScanError, GeometryError
+from anklescan.core.vocabulary import TABLE_LABELS, parse_label
 
-LABELS = (1, 2, 3, 4, 5, 6, 7)
 
 # Mark-centre localisation is worse than the paper's 0.2 mm surface accuracy (a mark is
 # picked on a few mm wide plate), so the default is deliberately more conservative.
@@ -28,8 +28,8 @@ DEFAULT_SIGMA_MM = 0.5
 ANGLE_MARKS: dict[str, tuple[int, ...]] = {
     "leg_inversion": (1, 2),
     "leg_plantar_flexion": (3, 4),
-    "table_inversion": (5, 6, 7),
-    "table_plantar_flexion": (5, 6, 7),
+    "table_inversion": TABLE_LABELS,
+    "table_plantar_flexion": TABLE_LABELS,
 }
 
 # Below this |n_z| the table is within ~0.06° of vertical: both table angles are then
@@ -129,20 +129,12 @@ _ANGLE_FUNCS: dict[str, Callable[..., float]] = {
 
 # ----------------------------------------------------------------- uncertainty
 
-def _label(key) -> int:
-    try:
-        lab = int(str(key).strip())
-    except ValueError:
-        raise AnkleScanError(f"mark label {key!r} is not a number 1-7") from None
-    if lab not in LABELS:
-        raise AnkleScanError(f"mark label {lab} is out of range (expected 1-7)")
-    return lab
 
 
 def _normalise_marks(marks: Mapping) -> dict[int, np.ndarray]:
     out: dict[int, np.ndarray] = {}
     for key, p in marks.items():
-        lab = _label(key)
+        lab = parse_label(key)
         if lab in out:
             raise AnkleScanError(f"mark {lab} is given twice")
         out[lab] = _point(p, f"mark {lab}")
@@ -277,7 +269,7 @@ def read_marks_csv(path) -> dict[int, np.ndarray]:
         if not raw:
             raise AnkleScanError(f"{where}: missing mark label")
         try:
-            lab = _label(raw)
+            lab = parse_label(raw)
         except AnkleScanError as e:
             raise AnkleScanError(f"{where}: {e}") from None
         if lab in marks:

@@ -11,12 +11,9 @@ from __future__ import annotations
 import csv
 import datetime as _dt
 import math
-import os
-import tempfile
 import textwrap
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,9 +23,9 @@ from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
 from anklescan.core.records import study_stats as st
-from anklescan.core.atomic import temp_affixes
+from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary
 
 A4 = (8.27, 11.69)
 FOOT_SIZE = 7
@@ -70,39 +67,6 @@ class ReportResult:
 
 
 # ------------------------------------------------------------------ output
-
-@contextmanager
-def _atomic_outputs(*targets: Path | None) -> Iterator[list[Path | None]]:
-    """Temp files in each target's folder, renamed over the targets only on success."""
-    tmps: list[Path | None] = []
-    try:
-        for t in targets:
-            if t is None:
-                tmps.append(None)
-                continue
-            if not t.parent.is_dir():
-                raise AnkleScanError(f"output folder {t.parent} does not exist")
-            prefix, suffix = temp_affixes(t.name)  # within NAME_MAX for long report names
-            fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=t.parent)  # 0600
-            os.close(fd)
-            tmps.append(Path(name))
-        yield tmps
-        for tmp, t in zip(tmps, targets):
-            if tmp is not None:
-                _fsync(tmp)
-                os.replace(tmp, t)
-    except OSError as e:
-        raise AnkleScanError(f"cannot write report: {e.strerror or e}") from None
-    finally:
-        for tmp in tmps:
-            if tmp is not None and tmp.exists():
-                tmp.unlink()
-
-
-def _fsync(p: Path) -> None:
-    with open(p, "rb") as fh:
-        os.fsync(fh.fileno())
-
 
 class _Pages:
     """PdfPages that counts pages and stamps a footer on each."""
@@ -498,7 +462,7 @@ def _calibration_text(cal) -> str:
             + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
 
 
-def _calibration_items(store: Store, session, rows: list[dict]) -> list[tuple[str, str]]:
+def _calibration_items(calibrations: dict[int, CalibrationRecord], session, rows: list[dict]) -> list[tuple[str, str]]:
     """One line per calibration the session's trials were measured with (the trial table's
     "Cal." column names it per trial); the session's own when no trial names one."""
     used: dict[int | None, list[int]] = defaultdict(list)
@@ -508,7 +472,7 @@ def _calibration_items(store: Store, session, rows: list[dict]) -> list[tuple[st
         used[session.calibration_id] = []
     items = []
     for cid in sorted(used, key=lambda c: (c is None, c or 0)):
-        text = "none recorded" if cid is None else _calibration_text(store.get_calibration(cid))
+        text = "none recorded" if cid is None else _calibration_text(calibrations[cid])
         if len(used) > 1:
             text += f" — trials {_ranges(used[cid])}"
         items.append(("Calibration" if not items else "", text))
@@ -568,15 +532,14 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
     return lines
 
 
-def _header_page(pages: _Pages, store: Store, session_id: int, rows: list[dict],
-                 group_note: str | None = None) -> None:
-    summ = store.session_summary(session_id)
+def _header_page(pages: _Pages, summ: SessionSummary, calibrations: dict[int, CalibrationRecord],
+                 rows: list[dict], group_note: str | None = None) -> None:
     p, s = summ.patient, summ.session
     history = (f"{p.sprain_count} sprain(s)" + (f", last {p.last_sprain}" if p.last_sprain else "")
                + (f", {p.affected_side} side" if p.affected_side else ""))
     items = [("Patient", p.code), ("Sprain history", history), ("Condition", s.condition),
              ("Session", f"#{s.id}, {s.date}"), ("Operator", s.operator.strip() or "not recorded"),
-             *_calibration_items(store, s, rows), ("Mark diameter", _mark_diameter_text(s)),
+             *_calibration_items(calibrations, s, rows), ("Mark diameter", _mark_diameter_text(s)),
              ("Trials", _trials_text(summ.trials, summ.incomplete_trials))]
     if summ.moved_trials:
         items.append(("Moved", f"{len(summ.moved_trials)} trial(s) moved during the scan ('out' below): "
@@ -672,7 +635,7 @@ def _desc_cells(s: st.StudyStats) -> list[list[str]]:
             for c in st.CONDITIONS:
                 p, t = s.patient_summary[(g, c, axis)], s.trial_summary[(g, c, axis)]
                 cells.append([g, c, _axis_name(axis), str(p.n), str(t.n),
-                              st._f(p.mean_abs), st._f(p.sd),
+                              st.format_or_dash(p.mean_abs), st.format_or_dash(p.sd),
                               "–" if p.n == 0 else f"{p.min:.2f} – {p.max:.2f}",
                               "–" if t.n == 0 else f"{t.mean_signed:+.2f}"])
     return cells
@@ -743,28 +706,29 @@ def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
 
 # ------------------------------------------------------------------ public
 
-def write_session_report(store: Store, session_ids: Sequence[int], pdf_path,
-                         csv_path=None) -> ReportResult:
-    """Per session: header + trial table (every trial, with its state and calibration),
-    Fig. 10, one Fig. 11/12 page per inversion setting (counted trials only); then one
-    group-comparison page over the whole database, when any comparison can be computed."""
-    if not session_ids:
+def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResult:
+    """Per session of ``data.sessions`` (``Store.report_input(session_ids)``): header + trial
+    table (every trial, with its state and calibration), Fig. 10, one Fig. 11/12 page per
+    inversion setting (counted trials only); then one group-comparison page over all of
+    ``data.rows`` (the whole database), when any comparison can be computed."""
+    if not data.sessions:
         raise AnkleScanError("no sessions selected for the report")
-    sessions = [store.get_session(int(i)) for i in session_ids]
-    all_rows = store.study_rows()
-    codes = {store.get_patient(s.patient_id).code for s in sessions}
+    sessions = [summ.session for summ in data.sessions]
+    all_rows = data.rows
+    codes = {summ.patient.code for summ in data.sessions}
     # the group page compares the whole database's patients (this report's starred); with
     # nothing to compare it would be a page of "n too small", so it is left out and said so
     with_group = st.has_tests(st.study_stats(all_rows))
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
-    with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
+    with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             pages = _Pages(pdf, f"AnkleScan session report — {', '.join(sorted(codes))} — "
                                 f"generated {stamp}")
-            for s in sessions:
+            for summ in data.sessions:
+                s = summ.session
                 rows = [r for r in all_rows if r["session_id"] == s.id]
-                _header_page(pages, store, s.id, rows, None if with_group else GROUP_OMITTED)
+                _header_page(pages, summ, data.calibrations, rows, None if with_group else GROUP_OMITTED)
                 label = f"Patient {rows[0]['patient_code'] if rows else ''}, {s.condition}, {s.date}"
                 _fig10_page(pages, rows, f"Mismatch against plantar flexion — {s.condition}, "
                                          f"{s.date}")
@@ -778,18 +742,18 @@ def write_session_report(store: Store, session_ids: Sequence[int], pdf_path,
     return ReportResult(pdf_path, csv_path, pages.count)
 
 
-def write_study_report(store: Store, pdf_path, csv_path=None) -> ReportResult:
-    """All patients and sessions: overview, Fig. 10 per group, group comparison (left out,
-    and said so on the overview, when no comparison can be computed)."""
-    rows = store.study_rows()
+def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResult:
+    """All patients and sessions (``Store.report_input()``): overview, Fig. 10 per group, group
+    comparison (left out, and said so on the overview, when no comparison can be computed)."""
+    rows = data.rows
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
-    with _atomic_outputs(pdf_path, csv_path) as (tmp_pdf, tmp_csv):
+    with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             pages = _Pages(pdf, f"AnkleScan study report — generated {stamp}")
             stats_, lim = st.study_stats(rows), _sym_limit(rows)
             with_group = st.has_tests(stats_)
-            _overview_pages(pages, store, rows, None if with_group else GROUP_OMITTED)
+            _overview_pages(pages, data.patients, rows, None if with_group else GROUP_OMITTED)
             for g in st.GROUPS:
                 mine = [r for r in rows if stats_.patient_group.get(r["patient_code"]) == g]
                 if mine:   # a group nobody is in yet gets no page of empty axes
@@ -807,10 +771,9 @@ def _pdf_info(pdf: PdfPages, title: str) -> None:
     d["Title"], d["Creator"] = title, "AnkleScan"
 
 
-def _overview_pages(pages: _Pages, store: Store, rows: list[dict],
+def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict],
                     group_note: str | None = None) -> None:
     s = st.study_stats(rows)
-    patients = store.list_patients()
     head = ("Patient", "Group", "Sprains", "Side", "Sessions", "Trials\ncounted",
             "|Δ inv.| barefoot\n(°)", "|Δ inv.| shoes\n(°)", "|Δ PF| barefoot\n(°)",
             "|Δ PF| shoes\n(°)")

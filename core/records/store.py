@@ -30,9 +30,8 @@ import re
 import sqlite3
 import stat
 import urllib.parse
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import platformdirs
@@ -40,6 +39,9 @@ import platformdirs
 from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, MARK_SOURCES, SIDES, TRIAL_STATES, AxisSummary,
+                                       CalibrationRecord, Event, MarkRecord, Patient, ReportInput, Session, SessionSummary, Trial,
+                                       parse_label)
 
 DB_FILENAME = "anklescan.sqlite"
 DEFAULT_TIMEOUT_S = 10.0
@@ -161,12 +163,6 @@ MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5]
 MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 SCHEMA_VERSION = len(MIGRATIONS)
 
-CONDITIONS = ("barefoot", "shoes")
-SIDES = ("left", "right", "both")
-MARK_SOURCES = ("auto", "manual")
-TRIAL_STATES = ("scanning", "complete", "cancelled", "failed")
-ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion",
-                "table_plantar_flexion")
 _CODE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 PATIENT_CODE_RULE = ("1-32 letters, digits, '.', '_' or '-', starting with a letter or digit "
                      "(a pseudonym, not a name)")
@@ -178,150 +174,6 @@ def patient_code_problem(code: str) -> str:
     if not code:
         return "Enter a patient code: " + PATIENT_CODE_RULE + "."
     return "" if _CODE_RE.match(code) else f"'{code}' is not a valid code: use {PATIENT_CODE_RULE}."
-
-
-# ------------------------------------------------------------- dataclasses
-
-@dataclass(frozen=True)
-class Patient:
-    id: int
-    code: str
-    sprain_count: int
-    last_sprain: str | None
-    affected_side: str | None
-    notes: str
-    created: str
-    archived: str | None = None
-
-    @property
-    def has_sprain_history(self) -> bool:
-        return self.sprain_count > 0
-
-
-@dataclass(frozen=True)
-class Calibration:
-    id: int
-    created: str
-    json: str
-    rms: float | None
-    source: str
-    verified: bool
-
-    @property
-    def data(self) -> dict:
-        return json.loads(self.json)
-
-
-@dataclass(frozen=True)
-class Session:
-    id: int
-    patient_id: int
-    date: str
-    operator: str
-    condition: str
-    calibration_id: int | None
-    notes: str
-    archived: str | None = None
-    mark_diameter_mm: float | None = None  # None: measured from each capture ("auto")
-
-
-@dataclass(frozen=True)
-class Mark:
-    trial_id: int
-    label: int
-    x: float
-    y: float
-    z: float
-    source: str
-    placed_by: str
-    updated: str
-
-
-@dataclass(frozen=True)
-class Trial:
-    id: int
-    session_id: int
-    created: str
-    ref_inversion: float | None
-    ref_plantar_flexion: float | None
-    leg_inversion: float | None = None
-    leg_inversion_sd: float | None = None
-    leg_plantar_flexion: float | None = None
-    leg_plantar_flexion_sd: float | None = None
-    table_inversion: float | None = None
-    table_inversion_sd: float | None = None
-    table_plantar_flexion: float | None = None
-    table_plantar_flexion_sd: float | None = None
-    mismatch_inversion: float | None = None
-    mismatch_inversion_sd: float | None = None
-    mismatch_plantar_flexion: float | None = None
-    mismatch_plantar_flexion_sd: float | None = None
-    capture_path: str | None = None
-    capture_sha256: str | None = None
-    cloud_path: str | None = None
-    cloud_sha256: str | None = None
-    notes: str = ""
-    status: str = "complete"
-    status_note: str = ""
-    excluded_reason: str | None = None
-    calibration_id: int | None = None
-    motion_mm: float | None = None  # largest displacement of the subject during the scan
-    motion_sd_mm: float | None = None
-    scan_duration_s: float | None = None
-    motion_flagged: bool = False  # moved more than the threshold: out of the statistics ...
-    motion_keep: bool = False  # ... unless the clinician keeps it
-
-    @property
-    def excluded_for_motion(self) -> bool:
-        return bool(self.motion_flagged) and not self.motion_keep
-
-    @property
-    def counted(self) -> bool:
-        """Whether the trial enters a session's statistics: complete and not excluded."""
-        return self.status == "complete" and self.excluded_reason is None and not self.excluded_for_motion
-
-    @property
-    def state_text(self) -> str:
-        """How lists and reports name the trial's state."""
-        if self.excluded_reason is not None:
-            return f"excluded: {self.excluded_reason}"
-        if self.excluded_for_motion and self.status == "complete":
-            return f"moved {self.motion_mm:.1f} mm during the scan (not kept)"
-        return self.status if not self.status_note else f"{self.status}: {self.status_note}"
-
-
-@dataclass(frozen=True)
-class Event:
-    id: int
-    time: str
-    kind: str
-    entity: str
-    entity_id: int
-    detail: str
-    who: str
-
-
-@dataclass(frozen=True)
-class AxisSummary:
-    """Summary of one mismatch axis over a session's measured trials (degrees)."""
-    n: int
-    mean: float | None
-    mean_abs: float | None
-    sd: float | None
-    min: float | None
-    max: float | None
-
-
-@dataclass(frozen=True)
-class SessionSummary:
-    session: Session
-    patient: Patient
-    calibration: Calibration | None
-    trials: list[Trial]
-    inversion: AxisSummary
-    plantar_flexion: AxisSummary
-    incomplete_trials: list[int] = field(default_factory=list)
-    moved_trials: list[int] = field(default_factory=list)  # flagged for motion, not kept: not in the figures
 
 
 # ----------------------------------------------------------------- helpers
@@ -783,7 +635,7 @@ class Store:
     # ------------------------------------------------------------ calibrations
 
     def add_calibration(self, calibration: Mapping | str, *, rms: float | None = None,
-                        source: str = "", verified: bool = False) -> Calibration:
+                        source: str = "", verified: bool = False) -> CalibrationRecord:
         text = calibration if isinstance(calibration, str) else json.dumps(calibration)
         try:
             json.loads(text)
@@ -796,22 +648,22 @@ class Store:
                 " VALUES (?, ?, ?, ?, ?)", (_now(), text, rms, source, int(verified))).lastrowid
         return self.get_calibration(cid)
 
-    def get_calibration(self, cid: int) -> Calibration:
+    def get_calibration(self, cid: int) -> CalibrationRecord:
         row = self._one("SELECT * FROM calibrations WHERE id = ?", (cid,))
         if row is None:
             raise AnkleScanError(f"no calibration {cid}")
         d = dict(row)
         d["verified"] = bool(d["verified"])
-        return Calibration(**d)
+        return CalibrationRecord(**d)
 
-    def set_calibration_verified(self, cid: int, verified: bool) -> Calibration:
+    def set_calibration_verified(self, cid: int, verified: bool) -> CalibrationRecord:
         """Record the outcome of a verification scan of the box for this calibration."""
         self.get_calibration(cid)
         with self._write() as c:
             c.execute("UPDATE calibrations SET verified = ? WHERE id = ?", (int(bool(verified)), cid))
         return self.get_calibration(cid)
 
-    def delete_marks(self, trial_id: int, labels) -> list[Mark]:
+    def delete_marks(self, trial_id: int, labels) -> list[MarkRecord]:
         """Remove marks and recompute the trial's angles from those left, in one transaction."""
         trial = self.get_trial(trial_id)
         labs = [int(x) for x in labels]
@@ -1068,7 +920,7 @@ class Store:
     # ------------------------------------------------------------ marks
 
     def update_marks(self, trial_id: int, marks: Mapping, source: str, placed_by: str = "",
-                     *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True) -> list[Mark]:
+                     *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True) -> list[MarkRecord]:
         """Insert or replace marks (label → xyz mm) and, by default, recompute the trial's
         angles from all its marks in the same transaction, so stored angles never
         disagree with stored marks."""
@@ -1077,12 +929,7 @@ class Store:
         trial = self.get_trial(trial_id)
         clean = {}
         for key, p in marks.items():
-            try:
-                lab = int(str(key).strip())
-            except ValueError:
-                raise AnkleScanError(f"mark label {key!r} is not a number 1-7") from None
-            if lab not in range(1, 8):
-                raise AnkleScanError(f"mark label {lab} is out of range (expected 1-7)")
+            lab = parse_label(key)
             xyz = [_opt_float(v, f"mark {lab} coordinate") for v in p]
             if len(xyz) != 3 or None in xyz:
                 raise AnkleScanError(f"mark {lab} must have 3 coordinates")
@@ -1099,9 +946,9 @@ class Store:
                 self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma_mm), None)
         return self.get_marks(trial_id)
 
-    def get_marks(self, trial_id: int) -> list[Mark]:
+    def get_marks(self, trial_id: int) -> list[MarkRecord]:
         rows = self._all("SELECT * FROM marks WHERE trial_id = ? ORDER BY label", (trial_id,))
-        return [Mark(**dict(r)) for r in rows]
+        return [MarkRecord(**dict(r)) for r in rows]
 
     # ------------------------------------------------------------ summaries
 
@@ -1117,6 +964,16 @@ class Store:
             inversion=_axis_summary([t.mismatch_inversion for t in counted]),
             plantar_flexion=_axis_summary([t.mismatch_plantar_flexion for t in counted]),
             incomplete_trials=incomplete, moved_trials=moved)
+
+    def report_input(self, session_ids: Sequence[int] | None = None) -> ReportInput:
+        """The records a report prints (core.records.report takes these, never the Store): every
+        trial row, the patients, the calibrations the rows and sessions name, and the summaries of
+        ``session_ids`` (a session report's; none for the study report)."""
+        sessions = [self.session_summary(int(i)) for i in (session_ids or ())]
+        rows = self.study_rows()
+        cids = {r["calibration_id"] for r in rows} | {s.session.calibration_id for s in sessions}
+        calibrations = {cid: self.get_calibration(cid) for cid in sorted(c for c in cids if c is not None)}
+        return ReportInput(rows, self.list_patients(), calibrations, sessions)
 
     def study_rows(self) -> list[dict]:
         """Every trial joined with its session, patient and calibration (for stats/CSV)."""

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from anklescan.core.vocabulary import CONDITIONS
+
 AXES = ("inversion", "plantar_flexion")
-CONDITIONS = ("barefoot", "shoes")
 GROUPS = ("sprain history", "no sprain history")
 MIN_N = 2
 TOO_SMALL = "n too small for a test"
@@ -221,7 +222,8 @@ def _paired(s: StudyStats, group: str, axis: str) -> tuple[list[float], list[flo
 
 # ------------------------------------------------------------------ text
 
-def _f(x: float, fmt: str = ".2f") -> str:
+def format_or_dash(x: float | None, fmt: str = ".2f") -> str:
+    """``x`` formatted, or "–" for a missing (None or NaN) value."""
     return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
 
@@ -238,8 +240,8 @@ def format_group_test(t: GroupTest) -> str:
     if t.note == TOO_SMALL or math.isnan(t.welch_p):
         return f"n={t.n_a} vs {t.n_b}: {t.note}"
     s = (f"n={t.n_a} vs {t.n_b}: diff {t.mean_diff:+.2f}°, Welch t={t.welch_t:.2f} "
-         f"p{_pe(t.welch_p)}, g={_f(t.hedges_g)}; Mann–Whitney U={t.mwu_u:.0f} "
-         f"p{_pe(t.mwu_p)}, r={_f(t.rank_biserial)}")
+         f"p{_pe(t.welch_p)}, g={format_or_dash(t.hedges_g)}; Mann–Whitney U={t.mwu_u:.0f} "
+         f"p{_pe(t.mwu_p)}, r={format_or_dash(t.rank_biserial)}")
     return s + (f" ({t.note})" if t.note else "")
 
 
@@ -247,12 +249,12 @@ def format_paired_test(t: PairedTest) -> str:
     if t.note == TOO_SMALL or math.isnan(t.t_p):
         return f"n={t.n} pairs: {t.note}"
     s = (f"n={t.n} pairs: diff {t.mean_diff:+.2f}°, paired t={t.t:.2f} p{_pe(t.t_p)}, "
-         f"dz={_f(t.cohen_dz)}; Wilcoxon W={_f(t.wilcoxon_w, '.0f')} p{_pe(t.wilcoxon_p)}")
+         f"dz={format_or_dash(t.cohen_dz)}; Wilcoxon W={format_or_dash(t.wilcoxon_w, '.0f')} p{_pe(t.wilcoxon_p)}")
     return s + (f" ({t.note})" if t.note else "")
 
 
 def format_summary(s: Summary) -> str:
     if s.n == 0:
         return "no data"
-    return (f"n={s.n}  mean|m|={s.mean_abs:.2f}°  SD={_f(s.sd)}°  "
+    return (f"n={s.n}  mean|m|={s.mean_abs:.2f}°  SD={format_or_dash(s.sd)}°  "
             f"range {s.min:.2f}–{s.max:.2f}°")

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from anklescan.core.atomic import check_replaceable_dir, make_private_dir, mkdtemp_beside, temp_affixes, write_json_atomic
+from anklescan.core.atomic import atomic_paths, check_replaceable_dir, make_private_dir, mkdtemp_beside, write_json_atomic
 from anklescan.core.errors import CaptureError
 from anklescan.core.limits import capture_memory_limit, check_image_side, image_size, load_json
 from anklescan.core.scan.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
@@ -386,18 +386,10 @@ class CaptureWriter:
         else:
             _check_same(self._ref, frame_name, image)
         dest = self.folder / frame_name
-        # the temporary keeps the real extension so imwrite picks the same encoder
-        prefix, suffix = temp_affixes(frame_name, keep_suffix=dest.suffix)
-        tmp = self.folder / f"{prefix}{os.getpid()}{suffix}"
-        try:
+        # the temporary keeps the real extension so imwrite picks the same encoder; frames are
+        # not fsynced one by one (finish() writes the manifest, durably, last)
+        with atomic_paths(dest, keep_suffix=True, fsync=False) as (tmp,):
             imwrite_checked(tmp, image)
-            os.replace(tmp, dest)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
         self._written[frame_name] = _now()
         return dest
 

@@ -24,6 +24,7 @@ import numpy as np
 from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import AxisCode, PatternSet
+from anklescan.core.robust import robust_sigma
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
 REASON_NAMES = ("valid", "shadow", "low_contrast", "saturated", "inconsistent",
@@ -52,8 +53,8 @@ class DecodeResult:
     valid: np.ndarray  # bool HxW
     reason: np.ndarray  # uint8 HxW, see REASON_NAMES
     thresholds: dict
-    _white_raw: np.ndarray = field(repr=False, default=None)
-    _black_raw: np.ndarray = field(repr=False, default=None)
+    white_raw: np.ndarray = field(repr=False, default=None)  # the white frame as captured (its dtype)
+    black_raw: np.ndarray = field(repr=False, default=None)  # the black frame as captured
     # predicted standard deviation of the decoded column (projector px) from the sensor noise
     # and the local pattern modulation; lets triangulation reject points that are too noisy
     column_sigma: np.ndarray | None = field(repr=False, default=None)
@@ -69,11 +70,11 @@ class DecodeResult:
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
     def white(self) -> np.ndarray:
-        return self._white_raw.astype(np.float32)
+        return self.white_raw.astype(np.float32)
 
     @property
     def black(self) -> np.ndarray:
-        return self._black_raw.astype(np.float32)
+        return self.black_raw.astype(np.float32)
 
     def stats(self) -> dict:
         counts = np.bincount(self.reason.ravel(), minlength=len(REASON_NAMES))
@@ -133,8 +134,7 @@ def estimate_sigma(white, black, frame, inverse, full_scale: float) -> float:
         lit = wb > 0.5 * np.partition(wb, int(0.9 * (wb.size - 1)))[int(0.9 * (wb.size - 1))]
         if np.count_nonzero(lit) >= 64:
             r = r[lit]
-    med = np.median(r)
-    sigma = 1.4826 * float(np.median(np.abs(r - med))) / 2.0
+    sigma = robust_sigma(r) / 2.0
     return max(sigma, SIGMA_FLOOR * full_scale)
 
 

@@ -62,8 +62,8 @@ def point_colors(capture: Capture, idx: np.ndarray, white: np.ndarray) -> np.nda
 
 def point_quality(decoded: DecodeResult, idx: np.ndarray, full_scale: float) -> np.ndarray:
     """Projector contrast (white − black) relative to full scale: low values are noisier points."""
-    w = decoded._white_raw.reshape(-1)[idx].astype(np.float32)
-    w -= decoded._black_raw.reshape(-1)[idx]
+    w = decoded.white_raw.reshape(-1)[idx].astype(np.float32)
+    w -= decoded.black_raw.reshape(-1)[idx]
     w *= np.float32(1.0 / full_scale)
     return np.clip(w, 0, 1, out=w)
 
@@ -139,7 +139,7 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     row, col = np.divmod(idx, capture.shape[1])
     pixels = np.empty((idx.size, 2), np.uint16)
     pixels[:, 0], pixels[:, 1] = col, row
-    cloud = PointCloud(points, point_colors(capture, idx, decoded._white_raw), pixels,
+    cloud = PointCloud(points, point_colors(capture, idx, decoded.white_raw), pixels,
                        point_quality(decoded, idx, capture.max_value), sigma=sigma)
     n_pix = decoded.valid.size
     n_reasons = len(REASON_NAMES)

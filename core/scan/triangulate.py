@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import math
 import os
+import threading
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -326,12 +328,20 @@ def build_cache(cal: Calibration) -> TriangulationCache:
     )
 
 
+# One cache per calibration object, for as long as the object lives (weak keys: a calibration
+# that is dropped takes its cache with it; Calibration compares by identity).
+_CACHES: "weakref.WeakKeyDictionary[Calibration, TriangulationCache]" = weakref.WeakKeyDictionary()
+_CACHES_LOCK = threading.Lock()
+
+
 def cache_for(cal: Calibration) -> TriangulationCache:
-    """The calibration's cache, built on first use and kept on the calibration object."""
-    cache = getattr(cal, "_triangulation_cache", None)
+    """The calibration's cache, built on first use and kept while ``cal`` lives."""
+    with _CACHES_LOCK:
+        cache = _CACHES.get(cal)
     if cache is None:
         cache = build_cache(cal)
-        cal._triangulation_cache = cache
+        with _CACHES_LOCK:
+            cache = _CACHES.setdefault(cal, cache)
     return cache
 
 

@@ -1,0 +1,226 @@
+"""The project's vocabulary: the seven marks, the conditions, and the records read from the database.
+
+One definition of each name, imported everywhere (issue 17). What it holds:
+
+- **Mark labels** (SPEC §2): the integers 1-7, as the database stores them and the angles use them.
+  ``label_key`` is the one text form (``"1"`` … ``"7"``), for JSON keys (RESULT.json), CSV and the
+  mark detector's labels; ``parse_label`` reads either form back and refuses anything else.
+  Groups: knee (1, 3), ankle (2, 4), leg (1-4), table (5, 6, 7).
+- **Conditions** of a session (barefoot / shoes) and how the application titles them; the other
+  closed sets the database checks (sides, mark sources, trial states, the angle fields).
+- **Records**: one frozen dataclass per database row kind (``Patient``, ``CalibrationRecord``,
+  ``Session``, ``Trial``, ``MarkRecord``, ``Event``) and the summaries and report inputs built
+  from them. ``anklescan.core.records.store`` reads and writes them; reports and windows only
+  read them.
+
+Pure data: imports nothing from the rest of the package, so every layer can use it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+from anklescan.core.errors import AnkleScanError
+
+# ------------------------------------------------------------------ the seven marks
+
+MarkLabel = int  # 1-7, SPEC §2
+
+LABELS: tuple[MarkLabel, ...] = (1, 2, 3, 4, 5, 6, 7)
+KNEE_LABELS: tuple[MarkLabel, ...] = (1, 3)   # front, lateral
+ANKLE_LABELS: tuple[MarkLabel, ...] = (2, 4)  # front, lateral
+LEG_LABELS: tuple[MarkLabel, ...] = (1, 2, 3, 4)
+TABLE_LABELS: tuple[MarkLabel, ...] = (5, 6, 7)  # the table top under the scanned foot, any order
+
+MARK_NAMES: dict[MarkLabel, str] = {1: "front of the knee", 2: "front of the ankle", 3: "lateral knee",
+                                    4: "lateral ankle", 5: "table", 6: "table", 7: "table"}
+
+
+def label_key(label: MarkLabel) -> str:
+    """The text form of a label: JSON keys, CSV cells, the detector's ``Mark.label``."""
+    return str(int(label))
+
+
+# The same groups in text form (the detector labels its marks with these).
+LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in LABELS)
+LEG_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in LEG_LABELS)
+TABLE_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in TABLE_LABELS)
+
+
+def parse_label(key) -> MarkLabel:
+    """A label from either form (``5``, ``"5"``, ``" 5 "``); AnkleScanError for anything else."""
+    try:
+        lab = int(str(key).strip())
+    except ValueError:
+        raise AnkleScanError(f"mark label {key!r} is not a number 1-7") from None
+    if lab not in LABELS:
+        raise AnkleScanError(f"mark label {lab} is out of range (expected 1-7)")
+    return lab
+
+
+# ------------------------------------------------------------------ closed sets
+
+CONDITIONS: tuple[str, ...] = ("barefoot", "shoes")
+CONDITION_TITLES: dict[str, str] = {"barefoot": "Barefoot", "shoes": "Shoes"}
+SIDES = ("left", "right", "both")
+MARK_SOURCES = ("auto", "manual")
+TRIAL_STATES = ("scanning", "complete", "cancelled", "failed")
+ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
+
+
+# ------------------------------------------------------------------ records (database rows)
+
+@dataclass(frozen=True)
+class Patient:
+    id: int
+    code: str
+    sprain_count: int
+    last_sprain: str | None
+    affected_side: str | None
+    notes: str
+    created: str
+    archived: str | None = None
+
+    @property
+    def has_sprain_history(self) -> bool:
+        return self.sprain_count > 0
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """A calibration as the database keeps it (its file as JSON text, with provenance); the
+    calibration itself is ``anklescan.core.calibration.file.Calibration``."""
+    id: int
+    created: str
+    json: str
+    rms: float | None
+    source: str
+    verified: bool
+
+    @property
+    def data(self) -> dict:
+        return json.loads(self.json)
+
+
+@dataclass(frozen=True)
+class Session:
+    id: int
+    patient_id: int
+    date: str
+    operator: str
+    condition: str
+    calibration_id: int | None
+    notes: str
+    archived: str | None = None
+    mark_diameter_mm: float | None = None  # None: measured from each capture ("auto")
+
+
+@dataclass(frozen=True)
+class MarkRecord:
+    """One stored mark of a trial (label 1-7, world mm, who placed it)."""
+    trial_id: int
+    label: MarkLabel
+    x: float
+    y: float
+    z: float
+    source: str
+    placed_by: str
+    updated: str
+
+
+@dataclass(frozen=True)
+class Trial:
+    id: int
+    session_id: int
+    created: str
+    ref_inversion: float | None
+    ref_plantar_flexion: float | None
+    leg_inversion: float | None = None
+    leg_inversion_sd: float | None = None
+    leg_plantar_flexion: float | None = None
+    leg_plantar_flexion_sd: float | None = None
+    table_inversion: float | None = None
+    table_inversion_sd: float | None = None
+    table_plantar_flexion: float | None = None
+    table_plantar_flexion_sd: float | None = None
+    mismatch_inversion: float | None = None
+    mismatch_inversion_sd: float | None = None
+    mismatch_plantar_flexion: float | None = None
+    mismatch_plantar_flexion_sd: float | None = None
+    capture_path: str | None = None
+    capture_sha256: str | None = None
+    cloud_path: str | None = None
+    cloud_sha256: str | None = None
+    notes: str = ""
+    status: str = "complete"
+    status_note: str = ""
+    excluded_reason: str | None = None
+    calibration_id: int | None = None
+    motion_mm: float | None = None  # largest displacement of the subject during the scan
+    motion_sd_mm: float | None = None
+    scan_duration_s: float | None = None
+    motion_flagged: bool = False  # moved more than the threshold: out of the statistics ...
+    motion_keep: bool = False  # ... unless the clinician keeps it
+
+    @property
+    def excluded_for_motion(self) -> bool:
+        return bool(self.motion_flagged) and not self.motion_keep
+
+    @property
+    def counted(self) -> bool:
+        """Whether the trial enters a session's statistics: complete and not excluded."""
+        return self.status == "complete" and self.excluded_reason is None and not self.excluded_for_motion
+
+    @property
+    def state_text(self) -> str:
+        """How lists and reports name the trial's state."""
+        if self.excluded_reason is not None:
+            return f"excluded: {self.excluded_reason}"
+        if self.excluded_for_motion and self.status == "complete":
+            return f"moved {self.motion_mm:.1f} mm during the scan (not kept)"
+        return self.status if not self.status_note else f"{self.status}: {self.status_note}"
+
+
+@dataclass(frozen=True)
+class Event:
+    id: int
+    time: str
+    kind: str
+    entity: str
+    entity_id: int
+    detail: str
+    who: str
+
+
+@dataclass(frozen=True)
+class AxisSummary:
+    """Summary of one mismatch axis over a session's measured trials (degrees)."""
+    n: int
+    mean: float | None
+    mean_abs: float | None
+    sd: float | None
+    min: float | None
+    max: float | None
+
+
+@dataclass(frozen=True)
+class SessionSummary:
+    session: Session
+    patient: Patient
+    calibration: CalibrationRecord | None
+    trials: list[Trial]
+    inversion: AxisSummary
+    plantar_flexion: AxisSummary
+    incomplete_trials: list[int] = field(default_factory=list)
+    moved_trials: list[int] = field(default_factory=list)  # flagged for motion, not kept: not in the figures
+
+
+@dataclass(frozen=True)
+class ReportInput:
+    """Everything a report prints, read from the database in one go (``Store.report_input``):
+    the reports take these records, never the database."""
+    rows: list[dict]  # Store.study_rows(): every trial joined with its session, patient and calibration
+    patients: list[Patient]
+    calibrations: dict[int, CalibrationRecord]
+    sessions: list[SessionSummary] = field(default_factory=list)  # a session report's sessions, in order
