@@ -30,8 +30,11 @@ class RigSetup(QObject):
         if self.rig is not None or self._starting:
             return
         self._starting = True
+        from anklescan.app.rig import projector_resolution
         s = self.settings
-        backend, scale, device, size = s.get("camera_backend"), s.get("sim_scale"), s.get("camera_device"), s.projector_size
+        # the projector's resolution: the setting, else its monitor's (asked here: only the UI thread may)
+        backend, scale, device, size = (s.get("camera_backend"), s.get("sim_scale"), s.get("camera_device"),
+                                        projector_resolution(s))
         if not in_background:
             self._rig_opened(open_rig_safely(backend, scale, device, size))
             self.win.review.ensure_marks_page()
@@ -75,8 +78,9 @@ class RigSetup(QObject):
         old, self.rig = self.rig, None
         if old is not None:
             old.close()
+        from anklescan.app.rig import projector_resolution
         s = self.settings
-        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"), s.projector_size)
+        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"), projector_resolution(s))
         if problem:
             self.win.banner.show_message("warning", problem)
         self.settings.set("camera_backend", self.rig.backend)

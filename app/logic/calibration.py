@@ -179,8 +179,8 @@ def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tup
     """The marker corner nearest a click, to sub-pixel (cv2.cornerSubPix on the stretched image)."""
     import cv2
 
-    from anklescan.core.calibration.box import _to_8bit
-    g = _to_8bit(image)
+    from anklescan.core.calibration.box import stretch_to_8bit
+    g = stretch_to_8bit(image)
     h, w = g.shape
     if not (half_window <= x < w - half_window and half_window <= y < h - half_window):
         return x, y

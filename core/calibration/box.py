@@ -161,7 +161,6 @@ def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(img) * (255.0 / hi), 0, 255).astype(np.uint8)
 
 
-_to_8bit = stretch_to_8bit  # old private name, still imported by app/calibration_wizard.py (another helper's file): drop once it imports stretch_to_8bit
 
 
 def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np.ndarray]:
