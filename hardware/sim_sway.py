@@ -187,13 +187,13 @@ def frame_transport(still, posed):
     slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
     import scipy.sparse
 
-    from anklescan.hardware.simrig import _single_threaded_blas, _Transport
+    from anklescan.hardware.simrig import single_threaded_blas, LightTransport
 
     still.prepare()
     tr = still._transport
     cam, o = still.camera, still.optics
     W = cam.width
-    with _single_threaded_blas():
+    with single_threaded_blas():
         rows = np.flatnonzero(affected_pixels(still, posed).ravel())
         offs = posed._subpixel_offsets()
         S = len(offs)
@@ -223,7 +223,7 @@ def frame_transport(still, posed):
     matrix = scipy.sparse.csr_matrix((data, indices, tr.matrix.indptr), shape=tr.matrix.shape)
     ambient = tr.ambient.copy()
     ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
-    return _Transport(matrix, ambient, tr.pad, tr.padded_shape)
+    return LightTransport(matrix, ambient, tr.pad, tr.padded_shape)
 
 
 def swaying_capture(rig, images, sway: Sway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:

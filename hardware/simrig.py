@@ -54,7 +54,7 @@ class Optics:
     bit_depth: int = 8  # 8 or 16
 
 
-def _single_threaded_blas():
+def single_threaded_blas():
     """Run the ray casting with one BLAS thread.
 
     Its matrix products are (N, 3) @ (3, 3): memory-bound, gaining nothing from threads, and
@@ -192,7 +192,7 @@ class Truth:
 
 
 @dataclass(eq=False)
-class _Transport:
+class LightTransport:
     """What a frame needs, precomputed: per camera pixel, 4 bilinear taps per sub-sample into
     the padded, blurred projector radiance image, weights already holding shading and the 1/n^2
     mean, as one sparse matrix (a frame is one matrix-vector product: 3x faster than gathering
@@ -224,7 +224,7 @@ class SimRig:
         self.optics = optics or Optics()
         self.rng = np.random.default_rng(seed)
         self.d0 = float(np.linalg.norm(RIG_TARGET - self.projector.center))
-        self._transport: _Transport | None = None
+        self._transport: LightTransport | None = None
         self._truth: Truth | None = None
         self._cache: dict = {}
         # hardware.sim_sway.SwayClock: when set, the subject moves between captured frames
@@ -246,7 +246,7 @@ class SimRig:
     def prepare(self) -> None:
         """Build the projector-independent light transport now rather than at the first frame."""
         if self._transport is None:
-            with _single_threaded_blas():
+            with single_threaded_blas():
                 self._transport = self._build_transport()
 
     def render_linear(self, projector_image: np.ndarray, *, blur: bool = True) -> np.ndarray:
@@ -296,7 +296,7 @@ class SimRig:
 
     def truth(self) -> Truth:
         if self._truth is None:
-            with _single_threaded_blas():
+            with single_threaded_blas():
                 self._truth = self._build_truth()
         return self._truth
 
@@ -397,7 +397,7 @@ class SimRig:
         for r0 in range(0, self.camera.height, rows):
             yield r0, min(self.camera.height, r0 + rows)
 
-    def _build_transport(self) -> _Transport:
+    def _build_transport(self) -> LightTransport:
         cam, prj, o = self.camera, self.projector, self.optics
         H, W = cam.height, cam.width
         offs = self._subpixel_offsets()
@@ -440,7 +440,7 @@ class SimRig:
         per_row = 4 * S
         matrix = scipy.sparse.csr_matrix((data, cols, np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
                                          shape=(H * W, Hp * Wp))
-        return _Transport(matrix, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
+        return LightTransport(matrix, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
 
     def _build_truth(self) -> Truth:
         cam, prj = self.camera, self.projector
