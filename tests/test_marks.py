@@ -5,7 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from anklescan.core.measure.marks import Mark, MarkSet, _circle_geometric, _plane_from_pixels, fit_plane, label_marks
+from anklescan.core.measure.mark_fit import circle_geometric, fit_plane, plane_from_pixels
+from anklescan.core.measure.mark_labels import label_marks
+from anklescan.core.measure.marks import Mark, MarkSet
 from anklescan.hardware.sim_scene import leg_scene
 
 
@@ -84,7 +86,7 @@ def test_circle_prior_holds_a_short_noisy_arc():
     for _ in range(20):
         phi = np.linspace(0, math.pi / 2, 16)
         q = np.c_[7.5 * np.cos(phi), 7.5 * np.sin(phi)] + rng.normal(0, 0.15, (16, 2))
-        c, r, resid, cov = _circle_geometric(q, np.array([0.5, 0.5]), 7.5, (7.5, 0.1))
+        c, r, resid, cov = circle_geometric(q, np.array([0.5, 0.5]), 7.5, (7.5, 0.1))
         errs.append(np.linalg.norm(c))
     assert np.sqrt(np.mean(np.square(errs))) < 0.15
 
@@ -97,9 +99,9 @@ def test_first_plane_ignores_a_side_wall():
     P = np.vstack([top, wall]).astype(np.float32)
     points = P.reshape(10, 10, 3)
     uv = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2)
-    c, n, rms, k = _plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]), consensus=True)
+    c, n, rms, k = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]), consensus=True)
     assert n[2] > 0.999 and abs(c[2]) < 0.05 and k <= 66  # a few wall points touch the top face
-    c, n, rms, k = _plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]))
+    c, n, rms, k = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]))
     assert n[2] < 0.99  # without the consensus step the wall tilts it by > 8°
 
 
@@ -129,7 +131,7 @@ def test_circle_fit_recovers_centre_and_radius_on_a_half_arc():
     rng = np.random.default_rng(1)
     phi = np.linspace(0, math.pi, 40)
     q = np.c_[3 + 7.5 * np.cos(phi), -2 + 7.5 * np.sin(phi)] + rng.normal(0, 0.03, (40, 2))
-    c, r, resid, cov = _circle_geometric(q, np.array([2.0, -1.0]), 7.0)
+    c, r, resid, cov = circle_geometric(q, np.array([2.0, -1.0]), 7.0)
     assert np.allclose(c, [3, -2], atol=0.05) and abs(r - 7.5) < 0.05
     assert np.sqrt(np.diag(cov)).max() < 0.05
 
@@ -237,7 +239,7 @@ def test_shading_correction_recovers_albedo_on_a_curved_surface():
     corrected one is flat (∝ albedo) wherever the light reaches at a usable angle."""
     from anklescan.core.calibration.file import Calibration
     from anklescan.core.calibration.device_model import Device, look_at
-    from anklescan.core.measure.marks import shading_corrected
+    from anklescan.core.measure.mark_candidates import shading_corrected
 
     R, t = look_at([0.0, 1000.0, 0.0], [0.0, 0.0, 0.0])
     cam = Device(200, 150, [[400.0, 0, 99.5], [0, 400.0, 74.5], [0, 0, 1]], [], R, t)
@@ -276,19 +278,19 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     at the rim (``sliver_edges``), against rays cast in the simulated scene, on the far side
     where the sliver is narrow enough to matter (< 1.5 px; wider ones leave the level at A/2).
     The first-order width h·(a_p − a_c) was twice the true one at the grazing 10/20."""
-    from anklescan.core.measure.marks import EdgeProfiles, _plane_basis, _rim_geometry, _sliver_along_profile
+    from anklescan.core.measure.mark_edges import EdgeProfiles, plane_basis, rim_geometry, sliver_along_profile
     from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(leg_scene(inv, pf))
     cal, plate = rig.true_calibration(), rig.scene.marks[label]
     c, n = plate.centre, plate.normal * np.sign(plate.normal @ (rig.camera.center - plate.centre))
-    basis = _plane_basis(n)
+    basis = plane_basis(n)
     phi = np.radians(np.arange(0, 360, 10))
     rim = c + 7.5 * (np.cos(phi)[:, None] * basis[0] + np.sin(phi)[:, None] * basis[1])
     origin, uv = cal.camera.project(c[None])[0], cal.camera.project(rim)
     rows = np.arange(len(phi))
     profiles = EdgeProfiles(origin, uv - origin, None, None, None, None, None, rows, np.ones(len(phi)))
-    model = _sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5, 1.5)
+    model = sliver_along_profile(profiles, cal.camera.rays(uv), cal, c, n, cal.projector.center, 7.5, 1.5)
 
     unit = (uv - origin) / np.linalg.norm(uv - origin, axis=1, keepdims=True)
     xs = np.arange(0.01, 3.0, 0.01)
@@ -299,7 +301,7 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
         j0 = int(np.argmax(np.abs((hit["X"] - c) @ n) > 0.05))
         run = dark[j0:]
         exact[i] = (np.argmin(run) if not run.all() else len(run)) * 0.01 if run[0] else 0.0
-    _, a_c, _ = _rim_geometry(rim, cal.camera.rays(uv), c, n, cal.projector.center)
+    _, a_c, _ = rim_geometry(rim, cal.camera.rays(uv), c, n, cal.projector.center)
     narrow = (a_c >= 0) & (np.minimum(model, exact) < 1.5) & ((model > 0) | (exact > 0))
     assert narrow.sum() >= 3
     assert np.abs(model - exact)[narrow].max() < 0.15, np.c_[model, exact][narrow]
@@ -309,7 +311,7 @@ def test_profiles_that_end_on_the_plate_give_no_edge():
     """A blob smaller than its plate: profiles run to twice the blob's ellipse, which can end
     on the plate's own falling edge; an "edge" read there lies inside the plate (a front knee
     plate was 0.59 mm off), so such profiles give none. Long enough profiles find the rim."""
-    from anklescan.core.measure.marks import edge_profiles
+    from anklescan.core.measure.mark_edges import edge_profiles
 
     yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
     r = np.hypot(xx - 60, yy - 60)
@@ -378,7 +380,7 @@ def test_click_snaps_to_the_sticker_centre():
     far from any disk gives None (the click is kept as it is)."""
     from anklescan.core.scan.decode import decode
     from anklescan.core.scan.lit_image import averaged_lit
-    from anklescan.core.measure.marks import points_image
+    from anklescan.core.measure.mark_candidates import points_image
     from anklescan.core.measure.marks_surface import snap_to_disk
     from anklescan.core.scan.reconstruct import cloud_from_decoded
 
@@ -418,3 +420,109 @@ def test_simulated_stickers_follow_the_skin():
     assert abs(arc[inside].max() - 10.0) < 0.05
     truth = SimRig(scene, scale=0.25, seed=1).truth()
     assert all((truth.mark_label == int(k)).sum() > 5 for k in "1234567")
+
+
+# ---------------------------------------------------------------------------- grazing plates: the tilt of the face
+
+def test_surface_normal_decides_a_weakly_seen_face_tilt():
+    """A grazing plate's face gives its tilt across the view poorly (SD degrees); the surface it
+    rests on gives it well, and the two are weighted: a face whose tilt is well measured
+    stays nearly as it is."""
+    from anklescan.core.measure.mark_edges import plane_basis
+    from anklescan.core.measure.marks_surface import combined_normal
+
+    true_n = np.array([0.0, -0.342, 0.940])
+    true_n /= np.linalg.norm(true_n)
+    B = plane_basis(true_n)
+    face = true_n + math.tan(math.radians(3.0)) * B[0]  # 3° off along its weak direction
+    face /= np.linalg.norm(face)
+    weak = (plane_basis(face), np.diag(np.radians([4.0, 0.3])) ** 2)
+    surface = (true_n, plane_basis(true_n), np.diag(np.radians([0.1, 0.1])) ** 2)
+    n, (_, C) = combined_normal(face, weak, surface)
+    assert math.degrees(math.acos(min(1.0, n @ true_n))) < 0.3
+    assert np.sqrt(np.linalg.eigvalsh(C)).max() < math.radians(0.6)
+    sure = (plane_basis(face), np.diag(np.radians([0.1, 0.1])) ** 2)
+    n, _ = combined_normal(face, sure, surface)
+    assert math.degrees(math.acos(min(1.0, n @ face))) < 0.2
+
+
+def test_tilt_error_is_carried_to_the_centre_covariance():
+    """The centre moves by J·tilt under a tilt of the plane: the covariance gains J C Jᵀ."""
+    from anklescan.core.measure.mark_fit import _tilt_covariance, plane_basis
+
+    n = np.array([0.0, 0.0, 1.0])
+    B = plane_basis(n)
+    J = np.array([[4.0, 0.0], [0.0, 1.0], [0.0, 0.0]])  # mm per radian of slope along B[0], B[1]
+
+    def refit(m):
+        a = -(B @ m) / (m @ n)
+        return (J @ a, None)
+
+    C = np.diag([1e-4, 4e-4])
+    assert np.allclose(_tilt_covariance(n, (B, C), refit), J @ C @ J.T, rtol=1e-3)
+
+
+def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
+    """In the shading-corrected image a 7 x 7 normal window straddling the edge of the decoded
+    region (a table's edge against the floor) makes a bright streak, which once passed as an
+    eighth mark (10 mm plates, 0/+20, 0.75 scale); half its border has no 3-D point, a disk's
+    none."""
+    from anklescan.core.measure.marks import SECOND_LOOK_MAX_BORDER_UNDECODED, border_undecoded
+
+    decoded = np.zeros((60, 60), bool)
+    decoded[30:] = True
+    region = np.zeros((9, 15), bool)
+    region[3:6, 2:13] = True
+    streak = {"slice": (slice(27, 36), slice(20, 35)), "region": region}
+    disk = {"slice": (slice(40, 49), slice(20, 35)), "region": region}
+    assert border_undecoded(streak, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED
+    assert border_undecoded(disk, decoded) == 0.0
+
+
+def test_small_plate_seen_at_a_grazing_angle_is_centred_and_its_sd_covers_it():
+    """10 mm plates, table 0/-20, full resolution: the table plates are seen 67-73° from the
+    camera, where the top face's points span a strip and its tilt across it was 2-4° off; the
+    plate 5 was 0.66 mm off with an SD of 0.145 mm (4.5 SD). The tilt is now steadied by the
+    surface the plate rests on, and what remains of its error is in the covariance."""
+    from anklescan.core.scan.capture import capture_from_images
+    from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.simrig import SimRig
+
+    rig = SimRig(leg_scene(0, -20, mark_type="plate", mark_radius=5.0), scale=1.0, seed=0)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    res = measure_capture(cap, rig.true_calibration())
+    truth = rig.truth()
+    assert res.complete, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < 0.3, k
+        assert math.sqrt(e @ np.linalg.solve(m.covariance, e)) < 3.0, k
+
+
+@pytest.mark.parametrize("inv,pf,kind,diameter,seed,label", [(20, -20, "plate", 20.0, 10, "2"),
+                                                            (10, 10, "plate", 10.0, 8, "2"),
+                                                            (20, 10, "sticker", 20.0, 13, "4")])
+def test_ankle_marks_at_the_terminator_or_the_silhouette(inv, pf, kind, diameter, seed, label):
+    """0.75 scale, the front ankle plate at the terminator of the ankle's shading.
+    20 mm at 20/-20: cut at half-way over the opening of the lit image it leaked into the
+    brighter skin on its lit side at every search radius, and had no candidate; the second
+    look cuts the lit image's seeds against the surface round them too.
+    10 mm at 10/10: lit at 71°, its shadow leaves the ring round it 78 % decoded, and the
+    normal of a quadric through that ring was 4.6° off; weighted with the face's it moved the
+    plate from 0.20 to 0.34 mm off. Such a surface is no longer used (SURFACE_RING_MIN_DECODED).
+    20 mm lateral ankle sticker at 20/10: beside the leg's silhouette, its edges in the shading-
+    corrected image gave an edge RMS of 0.77 mm and it was refused; the lit image's edges fit it."""
+    from anklescan.core.scan.capture import capture_from_images
+    from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.simrig import SimRig
+
+    rig = SimRig(leg_scene(inv, pf, mark_type=kind, mark_radius=diameter / 2), scale=0.75, seed=seed)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    res = measure_capture(cap, rig.true_calibration())
+    truth = rig.truth()
+    assert res.complete, res.marks.message()
+    assert np.linalg.norm(res.marks.labelled[label].centre - truth.marks[label]) < 0.3

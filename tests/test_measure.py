@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from anklescan.core.measure.angles import AngleResult, compute_angles
-from anklescan.core.measure.marks import Mark, MarkSet, label_marks
+from anklescan.core.measure.mark_labels import label_marks
+from anklescan.core.measure.marks import Mark, MarkSet
 from anklescan.core.measure.pipeline import MeasureResult
 from anklescan.hardware.sim_scene import leg_scene
 

@@ -20,6 +20,9 @@ import numpy as np
 import scipy.optimize
 
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.measure.mark_candidates import ellipse_pixels
+from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
@@ -27,6 +30,8 @@ _GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
 MIN_SURFACE_POINTS = 12  # a quadric has 6 parameters
 STEP_FACE_FRACTION = 0.55  # the face's points: within this fraction of the blob's ellipse ...
 STEP_RING = (1.35, 1.9)  # ... the surface's: in this ring (x the ellipse), clear of rim and shadow
+MAX_EDGE_VIEW_DEG = 80.0  # a sticker's edge point seen more obliquely than this is on the limb
+SURFACE_REACH = 1.25  # x the blob's ellipse: the decoded points a sticker's quadric is fitted to
 
 
 def local_frame(centre, normal) -> np.ndarray:
@@ -58,7 +63,7 @@ def fit_quadric(L: np.ndarray, weights=None, extra=None, iterations: int = 4):
         sw = np.sqrt(w[keep])
         coef, *_ = np.linalg.lstsq(A[keep] * sw[:, None], L[keep, 2] * sw, rcond=None)
         r = L[:, 2] - A @ coef
-        mad = 1.4826 * np.median(np.abs(r[keep]))
+        mad = robust_sigma(r[keep], centre=0.0)
         new = np.abs(r) <= max(3.5 * mad, 0.03)
         if np.array_equal(new, keep):
             break
@@ -119,7 +124,7 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
     """(centre (2,), radius, residuals, cov of centre (2, 2), radius SD) of the circle of
     points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
-    as ``anklescan.core.measure.marks._circle_geometric`` does). None if it fails."""
+    as ``anklescan.core.measure.mark_fit.circle_geometric`` does). None if it fails."""
     floor = 0.03
 
     def fun(p, scale):
@@ -149,16 +154,90 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
     return p[:2], float(p[2]), resid, cov[:2, :2], float(math.sqrt(max(cov[2, 2], 0.0)))
 
 
-def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple[float, float] | None:
+def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd):
+    """A sticker: the circle of equal length *along the surface* from its centre, the surface a
+    quadric fitted to the decoded points of the disk and just around it (a sticker has no
+    edge of its own in 3-D), its edge points the camera rays of the image outline cut with that
+    quadric. Every edge point is usable: there is no side wall and no shadow. The frame is
+    re-centred on the centre found until it moves < PLANE_CONVERGED_MM."""
+    from anklescan.core.measure.mark_fit import MIN_EDGE_POINTS, PLANE_CONVERGED_MM, SD_FLOOR_MM  # noqa: PLC0415 (it imports this module)
+
+    cam_c = cal.camera.center
+    rays_all = cal.camera.rays(profiles.points())
+    uv = ellipse_pixels(shape, SURFACE_REACH, points.shape[:2])
+    P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
+    ok = np.isfinite(P[:, 0])
+    P = P[ok]
+    s = sigma[uv[ok, 1], uv[ok, 0]] if sigma is not None else np.full(len(P), 0.05)
+    w = 1.0 / np.maximum(np.nan_to_num(s, nan=0.5), 0.01) ** 2
+    origin, n = centroid, normal
+    c2, r = np.zeros(2), radius_mm
+    prior = None if prior_sd is None else (radius_mm, prior_sd)
+    for _ in range(4):
+        F = local_frame(origin, n)
+        q = fit_quadric((P - origin) @ F.T, w)
+        if q is None:
+            return f"only {len(P)} decoded 3-D points on the mark"
+        coef, surf_rms, keep, _ = q
+        D = rays_all @ F.T
+        E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
+        # where the disk wraps round the leg's silhouette, the outline there is the limb, not
+        # the disk's rim: rays grazing the surface are dropped
+        gE = quadric_grad(coef, E[:, 0], E[:, 1])
+        nE = np.column_stack([-gE, np.ones(len(E))])
+        cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
+        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG)))
+        if use.sum() < MIN_EDGE_POINTS:
+            return "edge points do not form a circle"
+        fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
+        if fit is None:
+            return "edge points do not form a circle"
+        for _ in range(2):
+            resid = fit[2]
+            bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
+            if not bad.any() or (~bad).sum() < MIN_EDGE_POINTS:
+                break
+            use[np.flatnonzero(use)[bad]] = False
+            fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
+            if fit is None:
+                return "edge points do not form a circle"
+        c2, r, resid, cov2, _ = fit
+        g = quadric_grad(coef, c2[0], c2[1])
+        centre = origin + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
+        n_new = np.array([-g[0], -g[1], 1.0]) @ F
+        n_new /= np.linalg.norm(n_new)
+        moved = float(np.linalg.norm(centre - origin))
+        origin, n = centre, n_new
+        c2 = np.zeros(2)
+        if moved < PLANE_CONVERGED_MM:
+            break
+    free = circle_on_surface(coef, E[use, :2], fit[0], fit[1]) if prior is not None else fit
+    radius, radius_sd = (free[1], free[4]) if free is not None else (float("nan"), float("inf"))
+    rms = float(np.sqrt(np.mean(resid**2)))
+    # centre's covariance: the in-surface fit, carried to 3-D along the surface's slope; the
+    # surface's height error at the centre carried along the edge rays; the systematic floor
+    Jm = np.array([[1.0, 0.0], [0.0, 1.0], [g[0], g[1]]])
+    in_surface = F.T @ (Jm @ cov2 @ Jm.T) @ F
+    rays_used = rays_all[use]
+    gv = (rays_used / (rays_used @ n)[:, None]).mean(axis=0)
+    var_offset = surf_rms**2 * 6.0 / max(int(keep.sum()), 1)
+    cov = in_surface + var_offset * np.outer(gv, gv) + SD_FLOOR_MM**2 * np.eye(3)
+    n = n if n @ (cam_c - centre) >= 0 else -n
+    return centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum())
+
+
+def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | None:
     """Height (mm) of a disk's face over the surface around it, and its SD: one quadric through
     the face's points (within STEP_FACE_FRACTION of the blob's ellipse) and the ring's (STEP_RING),
-    with a free offset for the face. A rigid plate stands its thickness proud; a sticker ~0."""
-    from anklescan.core.measure.marks import _ellipse_pixels  # noqa: PLC0415 (no cycle at import time)
-
+    with a free offset for the face. A rigid plate stands its thickness proud; a sticker ~0.
+    Also that surface's unit normal at ``frame_origin`` and the covariance (2, 2) of its slope
+    along the frame's first two axes (radians²; the fit's, without model error): a plate rests
+    on the surface, so this is a second measure of its normal, from many more points than its
+    face has when seen at a grazing angle. Last, the fraction of the ring with a 3-D point."""
     H, W = points.shape[:2]
-    face = _ellipse_pixels(shape, STEP_FACE_FRACTION, (H, W))
-    outer = _ellipse_pixels(shape, STEP_RING[1], (H, W))
-    inner = _ellipse_pixels(shape, STEP_RING[0], (H, W))
+    face = ellipse_pixels(shape, STEP_FACE_FRACTION, (H, W))
+    outer = ellipse_pixels(shape, STEP_RING[1], (H, W))
+    inner = ellipse_pixels(shape, STEP_RING[0], (H, W))
     ring_mask = np.zeros((H, W), bool)
     ring_mask[outer[:, 1], outer[:, 0]] = True
     ring_mask[inner[:, 1], inner[:, 0]] = False
@@ -176,7 +255,42 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple[float
     if fit is None:
         return None
     coef, _, _, cov = fit
-    return float(coef[6]), float(math.sqrt(max(cov[6, 6], 0.0)))
+    n = np.array([-coef[3], -coef[4], 1.0]) @ frame
+    ring_decoded = float(ok[len(face):].mean())
+    return float(coef[6]), float(math.sqrt(max(cov[6, 6], 0.0))), n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded
+
+
+# A plate does not lie exactly in the tangent plane of the quadric fitted round it (the skin
+# under it is curved, it rests on its rim), and that quadric's own fit SD (0.1-0.2°) leaves
+# this out: on the face-on leg plates of 0/-20 its normal was 0.5-1.2° off where the face gave
+# 0.1-0.4°. Added to the surface's slope SD before weighting, so that the surface decides the
+# weakly seen tilt of a grazing plate's face (SD 1-5°) and hardly moves a face-on one's. With
+# 1° a table plate seen at 72° stayed 0.38 mm off; with none, a plate beside the foot whose
+# surround held part of it moved from 0.07 to 0.23 mm (docs/marks.md).
+SURFACE_NORMAL_FLOOR_DEG = 0.5
+
+
+def combined_normal(normal, tilt, surface):
+    """The plate's normal from its face (``normal``, slope covariance ``tilt``) and from the
+    surface it rests on (``surface``: normal, basis, slope covariance, plus
+    SURFACE_NORMAL_FLOOR_DEG), inverse-variance weighted. Returns the normal and its (basis,
+    slope covariance). No consistency gate: the face's SD comes from its points' scatter and
+    misses their bias (rim pixels in the strip seen at a grazing view); a chi² gate at 99 %
+    kept a face 3.6° off (SD 0.7°) against a surface 0.6° off, and that plate 0.53 mm off."""
+    B, C1 = tilt
+    n2, F2, C2 = surface
+    R = B @ F2.T  # the surface's slope axes into the face's
+    C2 = R @ C2 @ R.T + math.radians(SURFACE_NORMAL_FLOOR_DEG) ** 2 * np.eye(2)
+    a2 = -(B @ n2) / float(n2 @ normal)  # the surface's slope in the face's frame (the face's is 0)
+    try:
+        W1, W2 = np.linalg.inv(C1), np.linalg.inv(C2)
+        C = np.linalg.inv(W1 + W2)
+    except np.linalg.LinAlgError:
+        return normal, tilt
+    a = C @ (W2 @ a2)
+    n = normal - a @ B
+    n /= np.linalg.norm(n)
+    return n, (plane_basis(n), C)
 
 
 def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20.0,

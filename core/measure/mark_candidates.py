@@ -1,0 +1,231 @@
+"""Mark candidates: compact bright blobs in the projector-lit image, over a size range.
+
+Also the per-pixel inputs of the mark stage: the world points and predicted noise per camera
+pixel, the image noise, and the shading-corrected (albedo-like) image. docs/marks.md, step 1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.robust import robust_sigma
+
+# Detection. A plate (albedo ~0.9) on skin (~0.45) or the table (~0.55) has a top-hat of
+# 0.6–1.0 x its surround; 0.3 leaves room for shading differences without admitting the
+# smooth skin-albedo variation (±5 %).
+MIN_RELATIVE_CONTRAST = 0.3
+MIN_CONTRAST_SIGMAS = 8.0  # and well above the noise in dark regions
+
+NORMAL_WINDOW_PX = 7  # points averaged before differencing: a plate is ~20 px across
+
+
+def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -> np.ndarray:
+    """``image`` divided by the projector irradiance predicted from the reconstruction (0 where
+    nothing was decoded): proportional to albedo, so a plate is a plate whatever its lighting."""
+    out = np.zeros(image.shape, np.float32)
+    valid = np.isfinite(points[..., 0])
+    if not valid.any():
+        return out
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the reconstructed region only
+    P, ok_pts = points[box], valid[box].astype(np.float32)
+    k = (NORMAL_WINDOW_PX, NORMAL_WINDOW_PX)
+    count = cv2.boxFilter(ok_pts, -1, k, normalize=False)
+    mean = cv2.boxFilter(np.nan_to_num(P).astype(np.float32), -1, k, normalize=False) / np.maximum(count, 1)[..., None]
+    h = NORMAL_WINDOW_PX // 2
+    dx, dy = np.zeros_like(mean), np.zeros_like(mean)
+    dx[:, h:-h] = mean[:, 2 * h:] - mean[:, :-2 * h]
+    dy[h:-h] = mean[2 * h:] - mean[:-2 * h]
+    n = np.stack([dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1], dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2],
+                  dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]], axis=-1)
+    n_len = np.sqrt(np.einsum("ijk,ijk->ij", n, n)) + np.float32(1e-12)
+    facing = np.sign(np.einsum("ijk,ijk->ij", n, cal.camera.center.astype(np.float32) - mean))  # towards the camera
+    to_light = cal.projector.center.astype(np.float32) - mean
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", to_light, to_light)) + np.float32(1e-9)
+    cos_i = facing * np.einsum("ijk,ijk->ij", n, to_light) / (n_len * dist)
+    ok = (count >= 0.5 * NORMAL_WINDOW_PX**2) & (cos_i > 0.05)
+    if not ok.any():
+        return image.astype(np.float32)
+    d0 = float(np.median(dist[ok]))
+    shade = np.where(ok, cos_i * (d0 / dist) ** 2, 1.0)
+    out[box] = np.where(ok, image[box] / shade, 0.0)
+    return out
+
+
+def points_image(cloud: PointCloud, shape: tuple) -> np.ndarray:
+    """(H, W, 3) float32 world points per camera pixel, NaN where nothing was decoded."""
+    img = np.full((*shape, 3), np.nan, np.float32)
+    if len(cloud):
+        px = cloud.pixels.astype(np.intp)
+        img[px[:, 1], px[:, 0]] = cloud.points
+    return img
+
+
+def sigma_image(cloud: PointCloud, shape: tuple):
+    """(H, W) float32 predicted noise per decoded pixel (NaN elsewhere), or None if the cloud
+    has no ``sigma``."""
+    if cloud.sigma is None or not len(cloud):
+        return None
+    img = np.full(shape, np.nan, np.float32)
+    px = cloud.pixels.astype(np.intp)
+    img[px[:, 1], px[:, 0]] = cloud.sigma
+    return img
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """Robust per-pixel noise from the Laplacian-like residual of a 3x3 mean (MAD)."""
+    r = image - cv2.blur(image, (3, 3))
+    return float(max(robust_sigma(r) * 1.06, 1e-3))
+
+
+# ---------------------------------------------------------------------------- candidates
+
+def plate_radius_px(cal: Calibration, depth_mm, radius_mm: float):
+    return cal.camera.fx * radius_mm / np.asarray(depth_mm, float)
+
+
+def camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
+    return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
+
+
+SCALE_STEP = 1.6  # candidate searches at radii this factor apart span a size range
+
+
+def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+    """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii SCALE_STEP apart
+    (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
+    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept."""
+    if np.isscalar(radius_mm):
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background)
+    lo, hi = radius_mm
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(SCALE_STEP))), 0) + 1
+    kept, taken = [], np.zeros(image.shape, bool)
+    for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background):
+            u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
+            if taken[v, u]:
+                continue
+            taken[b["slice"]] |= b["region"]
+            kept.append(b)
+    return kept
+
+
+def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+    """Compact bright blobs, each cut out at half its own contrast over its surround.
+
+    Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
+    any plate): brightness relative to the surrounding surface, not absolute. Each seed's blob
+    is then cut at its own level, so a plate beside a bright area or a shadow edge does not
+    merge with it; a blob filling its search window is a large region, not a plate.
+    ``ring_background``: where the cut over the opening leaks into the surround (the opening's
+    minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
+    the shading-corrected image), cut again at half-way over the median of the decoded surface
+    in a ring around the seed.
+    """
+    valid = np.isfinite(points[..., 0])
+    if valid.sum() < 10:
+        return []
+    depth = camera_depth(cal, points[valid])
+    r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
+    r_max = float(plate_radius_px(cal, np.percentile(depth, 1), r_hi))
+    r_min = float(plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
+    smooth = cv2.GaussianBlur(image, (0, 0), max(0.25 * r_min, 0.7))
+    side = int(2 * math.ceil(2.2 * r_max) + 1)
+    background = cv2.morphologyEx(smooth, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)))
+    tophat = smooth - background
+    k = int(2 * math.ceil(0.6 * r_min) + 1)
+    peaks = ((smooth >= cv2.dilate(smooth, np.ones((k, k), np.uint8)))
+             & (tophat > MIN_RELATIVE_CONTRAST * np.maximum(background, 0)) & (tophat > MIN_CONTRAST_SIGMAS * noise))
+    vs, us = np.nonzero(peaks)
+    order = np.argsort(-tophat[vs, us])
+    taken = np.zeros(image.shape, bool)
+    blobs = []
+    half = int(math.ceil(2.5 * r_max))
+    for v, u in zip(vs[order], us[order]):
+        if taken[v, u]:
+            continue  # inside a blob already cut from a brighter seed
+        blob = cut_blob(smooth, (u, v), background[v, u], half)
+        if blob is None and ring_background:
+            bg = ring_level(smooth, valid, (u, v), cal, points, r_lo)
+            # the seed must stand out from that surround as seeds do from the opening
+            if bg is not None and smooth[v, u] - bg > max(MIN_RELATIVE_CONTRAST * bg, MIN_CONTRAST_SIGMAS * noise):
+                blob = cut_blob(smooth, (u, v), bg, half)
+        if blob is None:
+            continue
+        taken[blob["slice"]] |= blob["region"]
+        blobs.append(blob)
+    return blobs
+
+
+def ring_level(smooth, valid, seed, cal, points, radius_mm):
+    """Median of the decoded pixels 1.6-2.6 plate radii from ``seed`` (None if the seed has no
+    3-D point, or fewer than a third of the ring is decoded): the surface around a plate."""
+    u, v = seed
+    if not valid[v, u]:
+        return None
+    r = float(plate_radius_px(cal, camera_depth(cal, points[v, u][None])[0], radius_mm))
+    h = int(math.ceil(2.6 * r))
+    H, W = valid.shape
+    win = (slice(max(v - h, 0), min(v + h + 1, H)), slice(max(u - h, 0), min(u + h + 1, W)))
+    yy, xx = np.mgrid[win]
+    d = np.hypot(xx - u, yy - v)
+    ring = (d >= 1.6 * r) & (d <= 2.6 * r)
+    ok = ring & valid[win]
+    if ok.sum() < ring.sum() / 3:
+        return None
+    return float(np.median(smooth[win][ok]))
+
+
+def cut_blob(smooth, seed, bg, half):
+    """The connected region around ``seed`` above half-way between its level and the
+    background; None where it reaches its window's border inside the image."""
+    u, v = seed
+    H, W = smooth.shape
+    y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
+    roi = smooth[y0:y1, x0:x1]
+    peak, bg = float(smooth[v, u]), float(bg)
+    region = _region_at(roi, (u - x0, v - y0), bg + 0.35 * (peak - bg))
+    # The seed may be a brightly lit sliver of side wall; the plate's own level is its median.
+    region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(float(np.median(roi[region])), peak) - bg))
+    touches = ((region[0].any() and y0 > 0) or (region[-1].any() and y1 < H)
+               or (region[:, 0].any() and x0 > 0) or (region[:, -1].any() and x1 < W))
+    if touches:
+        return None
+    return {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
+            "centre": (float(u), float(v))}
+
+
+def _region_at(roi, seed, level) -> np.ndarray:
+    _, lab = cv2.connectedComponents((roi > level).astype(np.uint8), connectivity=8)
+    return lab == lab[seed[1], seed[0]]
+
+
+def blob_shape(blob):
+    """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
+    region = blob["region"].astype(np.uint8)
+    x0, y0 = blob["origin"]
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    c = max(contours, key=cv2.contourArea)
+    if len(c) < 5:
+        return None
+    (cx, cy), (d1, d2), ang = cv2.fitEllipse(c)
+    # Areas of the outline polygon (through pixel centres), like the ellipse fitted to it, so
+    # the fill ratio does not depend on the blob's size in pixels.
+    poly, hull = cv2.contourArea(c), cv2.contourArea(cv2.convexHull(c))
+    return {"centre": (cx + x0, cy + y0), "axes": (d1 / 2, d2 / 2), "angle": ang, "area": float(region.sum()),
+            "fill": poly / max(math.pi * d1 * d2 / 4, 1e-9), "solidity": poly / max(hull, 1e-9)}
+
+
+def ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
+    """Integer (u, v) pixels inside the blob's ellipse shrunk by ``fraction``."""
+    mask = np.zeros(img_shape, np.uint8)
+    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    cv2.ellipse(mask, ((cx, cy), (2 * a * fraction, 2 * b * fraction), shape["angle"]), 1, -1)
+    v, u = np.nonzero(mask)
+    return np.stack([u, v], axis=1)
+

@@ -1,0 +1,293 @@
+"""Edges of a mark in the image: radial profiles and their half-contrast crossings, the
+plate-rim geometry (side wall, projector-shadow sliver), clean-edge masks and the sliver
+edges re-found at the level the sliver predicts. docs/marks.md, "Noise and shadow slivers".
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.special
+
+from anklescan.core.calibration.file import Calibration
+
+PROFILE_STEP_PX = 0.2
+TOP_MARGIN_PX = 2.0  # the refined plane uses pixels this far inside the top face's image
+EDGE_OUTSIDE_PX = 2.5  # the outside level is the darkest within this of the edge (a thin shadow)
+WALL_SHIFT_MAX_MM = 0.03  # a side wall h tall shifts the outline by h |a_c|: keep points below this
+SLIVER_MAX_PX = 0.0  # a projector-shadow sliver beside the rim biases the edge inwards ...
+SLIVER_RESOLVED_PX = 3.0  # ... unless it is resolved, several pixels wide
+
+SLIVER_LEVEL_MAX = 0.8  # x the plate's level: above, the rim is no clear fall (surface as bright)
+MIN_BLUR_EDGES = 5  # clean edges needed to measure the blur; else DEFAULT_BLUR_PX
+DEFAULT_BLUR_PX = 0.8
+
+
+def ray_plane(origin, rays, point, normal) -> np.ndarray:
+    s = ((point - origin) @ normal) / (rays @ normal)
+    return origin + s[:, None] * rays
+
+
+@dataclass
+class EdgeProfiles:
+    """Radial image profiles across a blob's outline, and the half-contrast edge on each."""
+
+    origin: np.ndarray  # (2,) blob centre, px
+    dirs: np.ndarray  # (n, 2) origin -> blob ellipse: the profile reaches s = 1 there
+    step: np.ndarray  # (n,) s per sample (PROFILE_STEP_PX along the profile)
+    values: np.ndarray  # (n, n_s) image along the profiles, +inf past s = 2
+    start: np.ndarray  # (n,) first sample outside the plate's interior window
+    inner: np.ndarray  # (n,) the plate's level
+    outer: np.ndarray  # (n,) the darkest level just outside the edge
+    rows: np.ndarray  # profiles with an edge
+    s_edge: np.ndarray  # (len(rows),) where, in s units
+
+    def points(self, s_edge=None) -> np.ndarray:
+        """(len(rows), 2) image points of the edges (or of ``s_edge`` on the same rows)."""
+        s = self.s_edge if s_edge is None else s_edge
+        return self.origin + s[:, None] * self.dirs[self.rows]
+
+
+LEAVE_PLATEAU = 0.85
+
+
+def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False) -> EdgeProfiles:
+    """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
+    half-way from the plate's interior level to the darkest level within ~2.5 px outside
+    the edge. The outside level is re-read at the edge found, because the blob's ellipse
+    (which includes any visible side wall) is only a rough guide to where the rim is.
+    ``local_level``: the first outside level is read just past where the profile first falls
+    clearly (LEAVE_PLATEAU) below the disk's level, not at its darkest (in the shading-corrected image a sticker's surround can be half its
+    level, and the darkest is past the leg's silhouette)."""
+    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    t = math.radians(shape["angle"])
+    ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
+    n_dir = int(np.clip(2 * math.pi * max(a, b), 48, 240))  # ~1 profile per outline pixel
+    phi = np.arange(n_dir) * (2 * math.pi / n_dir)
+    rim = a * np.cos(phi)[:, None] * ea + b * np.sin(phi)[:, None] * eb  # (n, 2) centre → ellipse
+    step = PROFILE_STEP_PX / np.linalg.norm(rim, axis=1)  # profile step in units of s, per direction
+    k_out = int(math.ceil(EDGE_OUTSIDE_PX / PROFILE_STEP_PX))
+    n_s = int(math.ceil(2.0 / step.min()))
+    s = np.arange(n_s)[None, :] * step[:, None]  # (n, n_s)
+    pts = np.array([cx, cy]) + s[..., None] * rim[:, None, :]
+    prof = cv2.remap(image, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+    prof = np.where(s <= 2.0, prof, np.inf)
+    inner = np.nanmedian(np.where((s >= 0.15) & (s <= 0.6), prof, np.nan), axis=1)
+    start = np.argmax(s >= 0.6, axis=1)
+    after = np.arange(n_s)[None, :] >= start[:, None]
+    level = 0.5 * (inner + np.min(np.where(after, prof, np.inf), axis=1))
+    if local_level:
+        k0 = _first_below(prof, LEAVE_PLATEAU * inner, after)  # the first clear fall off the disk
+        near = after & (np.arange(n_s)[None, :] >= k0[:, None]) & (np.arange(n_s)[None, :] <= k0[:, None] + k_out)
+        level = 0.5 * (inner + np.min(np.where(near, prof, np.inf), axis=1))
+    for _ in range(2):
+        k = _first_below(prof, level, after)
+        window = after & (np.arange(n_s)[None, :] >= k[:, None]) & (np.arange(n_s)[None, :] <= k[:, None] + k_out)
+        outer = np.min(np.where(window, prof, np.inf), axis=1)
+        level = 0.5 * (inner + outer)
+    k = _first_below(prof, level, after)
+    # the outside level must come from a whole window past the edge: a profile that ends
+    # (s = 2) on the plate's own falling edge gives a level, and an edge, inside the plate
+    whole = k + k_out < np.isfinite(prof).sum(axis=1)
+    rows = np.flatnonzero((k > start) & (inner - outer > 0) & np.isfinite(outer) & whole)
+    x = _crossing(prof[rows], level[rows], k[rows])
+    return EdgeProfiles(np.array([cx, cy]), rim, step, prof, start, inner, outer, rows, x * step[rows])
+
+
+def _crossing(prof, level, k) -> np.ndarray:
+    """Sub-sample position (in samples) where ``prof`` falls through ``level`` between
+    samples k-1 and k."""
+    i = np.arange(len(k))
+    p0, p1 = prof[i, k - 1], prof[i, k]
+    frac = (p0 - level) / np.where(p0 != p1, p0 - p1, 1.0)
+    return k - 1 + frac
+
+
+def _first_below(prof, level, after) -> np.ndarray:
+    """Index of the first profile sample (from ``after``) below ``level``; 0 if none."""
+    below = after & (prof < level[:, None])
+    return np.where(below.any(axis=1), np.argmax(below, axis=1), 0)
+
+
+def plane_basis(normal):
+    e1 = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(normal, e1)])  # (2, 3)
+
+
+def rim_geometry(E, rays, centre, normal, proj_c):
+    """Per edge point: the outward rim direction ``m`` in the plate's plane and how far beyond
+    the rim (in plate thicknesses) the camera (``a_c``) and the projector (``a_p``) cannot see
+    the surface (n towards the camera; ``a_c < 0``: the camera sees the side wall there)."""
+    m = E - centre
+    m -= np.outer(m @ normal, normal)
+    m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+    a_c = np.einsum("ij,ij->i", m, rays) / -(rays @ normal)
+    dp = E - proj_c
+    dp /= np.linalg.norm(dp, axis=1, keepdims=True)
+    a_p = np.einsum("ij,ij->i", m, dp) / -(dp @ normal)
+    return m, a_c, a_p
+
+
+def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated=None, *, thickness) -> np.ndarray:
+    """Edge points whose image outline is the top face's rim against a cleanly lit surround.
+
+    With ``m`` the outward rim direction and ``d`` a ray (n towards the camera):
+    * the camera hides the surface for ``h a_c`` beyond the rim, ``a_c = (m·d_c)/(−n·d_c)``;
+      ``a_c < 0`` means it sees the side wall there instead (the near side): rejected;
+    * the projector shadows the surface for ``h a_p`` beyond the rim, likewise with its rays.
+    Where ``a_p > a_c`` a shadow sliver ``h (a_p − a_c)`` wide shows just outside the rim; a
+    sliver narrower than the blur pulls the half-contrast level inwards (measured: up to
+    0.4 mm), so such points are dropped unless the sliver is resolved (several pixels) or the
+    edge was ``relocated`` by ``sliver_edges``, which allows for it.
+    """
+    _, a_c, a_p = rim_geometry(E, rays, centre, normal, proj_c)
+    # first order, and not foreshortened: "resolved" keeps more of the outline for the first
+    # fit (foreshortened, a grazing plate was left with 8 points and one fit 2 mm off)
+    sliver_px = thickness * (a_p - a_c) * px_per_mm
+    ok = (sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX)
+    if relocated is not None:
+        ok |= relocated
+    return (thickness * -a_c <= WALL_SHIFT_MAX_MM) & ok
+
+
+def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, radius_mm, thickness):
+    """Edges re-found on the profiles where a projector-shadow sliver lies beside the rim.
+
+    Across the rim the image is the plate's level A falling at the rim, a shadow (no projector
+    light) ``w`` wide, then the surface's level C: I(x) = A Φ(−x/σ) + C Φ((x − w)/σ) with the
+    image blur σ. At the rim (x = 0) that is A/2 + C Φ(−w/σ), not the half-contrast level:
+    with w ≲ σ and a surface as bright as the plate the half-contrast edge lies up to 0.8 mm
+    inside the rim on the simulated rig. ``w`` comes from the geometry (``sliver_along_profile``),
+    σ from the plate's own sliver-free edges, C from the profile beyond the shadow. Returns the
+    new ``s_edge`` and which rows were re-found.
+    """
+    rows = pr.rows
+    vals = pr.values[rows]
+    rays = cal.camera.rays(pr.points())
+    m, a_c, _ = rim_geometry(E, rays, centre, normal, proj_c)
+    cos_b = _profile_across_outline(pr, cal, E, normal, m)
+    w_prof = sliver_along_profile(pr, rays, cal, centre, normal, proj_c, radius_mm, thickness)
+    sliver = w_prof > 0
+    blur_prof = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b) / cos_b  # along the profile, px
+    k_edge = pr.s_edge / pr.step[rows]
+    surface = _level_beyond(vals, k_edge + (w_prof + 2 * blur_prof) / PROFILE_STEP_PX,
+                            np.maximum(2 * blur_prof, 1.0) / PROFILE_STEP_PX)
+    A = pr.inner[rows]
+    level = 0.5 * A + surface * scipy.special.ndtr(-np.where(sliver, w_prof / blur_prof, -np.inf))
+    ok = sliver & np.isfinite(surface) & (level <= SLIVER_LEVEL_MAX * A)
+    after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
+    k = _first_below(vals, np.where(ok, level, -np.inf), after)
+    ok &= k > pr.start[rows]
+    x = _crossing(vals, level, np.maximum(k, 1))
+    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / PROFILE_STEP_PX
+    return np.where(ok, x * pr.step[rows], pr.s_edge), ok
+
+
+def _profile_across_outline(pr: EdgeProfiles, cal: Calibration, E, normal, m) -> np.ndarray:
+    """|cos| of the angle between each profile and the image normal of the plate's outline
+    there (at least 0.2): widths across the outline are 1/cos longer along the profile."""
+    uv_rim = cal.camera.project(E)
+    tangent = cal.camera.project(E + 0.1 * np.cross(normal, m)) - uv_rim
+    nu = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)
+    nu /= np.maximum(np.linalg.norm(nu, axis=1, keepdims=True), 1e-12)
+    p_hat = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
+    return np.maximum(np.abs(np.einsum("ij,ij->i", p_hat, nu)), 0.2)
+
+
+def _level_beyond(vals, first, length) -> np.ndarray:
+    """Median of each profile over samples [first, first + length]; NaN where none."""
+    idx = np.arange(vals.shape[1])[None, :]
+    window = (idx >= first[:, None]) & (idx <= (first + length)[:, None]) & np.isfinite(vals)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # rows with nothing there: NaN, dropped
+        return np.nanmedian(np.where(window, vals, np.nan), axis=1)
+
+
+def sliver_along_profile(pr: EdgeProfiles, rays, cal: Calibration, centre, normal, proj_c, radius_mm, thickness):
+    """Width (px along each profile, 0 where none) of the projector shadow seen beyond the rim.
+
+    The plate's top disc casts its shadow on the surface ``thickness`` (measured) below it (taken as
+    a plane; the reconstructed surface beside the plates changed nothing measurable) as the
+    same disc shifted along the projector's rays; the camera ray through the rim meets that
+    surface at Q0, and the rays further out along the profile move from there by ``g`` per px.
+    The sliver is the stretch from Q0 to where that line leaves the shadow disc. (At a grazing
+    77° the shift is ~7 mm, nearly the plate's radius, so the first-order width h·(a_p − a_c)
+    was twice the true one.) ``rays``: the camera rays of the profiles' edges."""
+    cam_c = cal.camera.center
+    unit = pr.dirs[pr.rows] / np.linalg.norm(pr.dirs[pr.rows], axis=1, keepdims=True)
+    uv = pr.points()
+    # start from the fitted rim on each profile, not the (biased) edge found
+    p0 = ray_plane(cam_c, rays, centre, normal)
+    x_rim = _line_leaves_circle(p0 - centre, ray_plane(cam_c, cal.camera.rays(uv + unit), centre, normal) - p0,
+                                radius_mm, nearest=True)
+    uv = uv + np.nan_to_num(x_rim)[:, None] * unit
+    base = centre - thickness * normal  # the surface plane's point under the centre
+    q0 = ray_plane(cam_c, cal.camera.rays(uv), base, normal)
+    g = ray_plane(cam_c, cal.camera.rays(uv + unit), base, normal) - q0
+    rim_to_proj = (centre + (q0 - base)) - proj_c
+    dp = rim_to_proj / np.linalg.norm(rim_to_proj, axis=1, keepdims=True)
+    shadow_centre = base + thickness * (dp - np.outer(dp @ normal, normal)) / -(dp @ normal)[:, None]
+    inside = np.einsum("ij,ij->i", q0 - shadow_centre, q0 - shadow_centre) < radius_mm**2
+    width = _line_leaves_circle(q0 - shadow_centre, g, radius_mm)
+    return np.where(inside & np.isfinite(width), width, 0.0)
+
+
+def _line_leaves_circle(f, g, radius, nearest=False):
+    """x solving |f + x g| = radius (rows of f, g): the larger root, or with ``nearest`` the
+    root nearest 0; NaN where the line misses the circle."""
+    a = np.einsum("ij,ij->i", g, g)
+    b = 2.0 * np.einsum("ij,ij->i", f, g)
+    c = np.einsum("ij,ij->i", f, f) - radius**2
+    disc = b * b - 4.0 * a * c
+    root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+    a = np.maximum(a, 1e-12)
+    hi, lo = (-b + root) / (2 * a), (-b - root) / (2 * a)
+    return np.where(np.abs(hi) <= np.abs(lo), hi, lo) if nearest else hi
+
+
+def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
+    """Image blur σ (px, across the outline) from the plate's clean edges: a blurred step
+    falls from 75 % to 25 % of its contrast over 1.349 σ."""
+    rows = pr.rows[clean]
+    if len(rows) < MIN_BLUR_EDGES:
+        return DEFAULT_BLUR_PX
+    vals, A, O = pr.values[rows], pr.inner[rows], pr.outer[rows]
+    after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
+    k75 = _first_below(vals, O + 0.75 * (A - O), after)
+    k25 = _first_below(vals, O + 0.25 * (A - O), after)
+    good = (k75 > pr.start[rows]) & (k25 >= k75)
+    if good.sum() < MIN_BLUR_EDGES:
+        return DEFAULT_BLUR_PX
+    x75 = _crossing(vals[good], (O + 0.75 * (A - O))[good], k75[good])
+    x25 = _crossing(vals[good], (O + 0.25 * (A - O))[good], k25[good])
+    return float(np.median((x25 - x75) * PROFILE_STEP_PX * cos_b[clean][good]) / 1.349)
+
+
+def top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> np.ndarray:
+    """Integer (u, v) pixels at least TOP_MARGIN_PX inside the image of the circle (centre,
+    normal, radius): pixels that see only the plate's top face, clear of the blurred rim."""
+    B = plane_basis(normal)
+    phi = np.linspace(0, 2 * math.pi, 96, endpoint=False)
+    rim = centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1])
+    uv = cal.camera.project(rim)
+    if not np.isfinite(uv).all():
+        return np.zeros((0, 2), int)
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 3
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, img_shape[1]), min(y1, img_shape[0])
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return np.zeros((0, 2), int)
+    # Rasterise at 8x sub-pixel precision, then keep pixel centres far enough inside.
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    poly = np.round((uv - [x0, y0]) * 8).astype(np.int32)
+    cv2.fillPoly(mask, [poly], 1, lineType=cv2.LINE_8, shift=3)
+    dist = cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    v, u = np.nonzero(dist > TOP_MARGIN_PX)
+    return np.stack([u + x0, v + y0], axis=1)

@@ -1,0 +1,189 @@
+"""Labelling the marks 1-7 (SPEC §2): the table triple (5, 6, 7 in a rule of their own layout),
+knee above ankle, front vs lateral by the normal round the leg. docs/marks.md, step 6.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.vocabulary import LABEL_KEYS as LABELS  # the detector keys marks by the labels' text form
+from anklescan.core.vocabulary import TABLE_LABEL_KEYS as TABLE_LABELS
+
+if TYPE_CHECKING:
+    from anklescan.core.measure.marks import MarkSet
+
+
+# Labelling.
+TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
+AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
+PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
+SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round the leg to be told apart
+# Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
+# (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
+LONE_SPLIT_DEG = 65.0
+LEG_NORMAL_MAX_Z = 0.7  # without the table triple: leg plates are those with |n_z| < this
+
+
+def label_marks(ms: MarkSet) -> None:
+    """Label in place (SPEC §2). Unresolvable parts stay unlabelled, with a message."""
+    for m in ms.marks:
+        m.label = None
+    marks = ms.marks
+    if len(marks) != len(LABELS):
+        ms.problems.append(f"expected 7 mark plates, found {len(marks)}")
+    table = _table_triple(marks, ms.problems)
+    if table is not None:
+        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
+            m.label = lab
+        leg = [m for i, m in enumerate(marks) if i not in table]
+        if len(leg) <= 4:
+            _label_leg(leg, ms.problems)
+        else:
+            ms.problems.append(f"{len(leg)} leg mark plates (expected 4): leg marks not labelled")
+    else:
+        # No table triple: the leg plates still label themselves if exactly four plates face
+        # sideways (leg plates' normals are perpendicular to the near-vertical leg axis; the
+        # table plates' are within ~30° of +z), so a lost table plate does not cost the leg.
+        leg = [m for m in marks if abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
+        if len(leg) == 4:
+            _label_leg(leg, ms.problems)
+    order = {lab: i for i, lab in enumerate(LABELS)}
+    ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label, 99), m.pixel[1], m.pixel[0]))
+
+
+def _angle_deg(a, b) -> float:
+    return math.degrees(math.acos(float(np.clip(abs(a @ b), -1.0, 1.0))))
+
+
+def _triple_score(ms) -> float:
+    """Worst disagreement (deg) among the three plate normals and the plane through the centres."""
+    P = np.array([m.centre for m in ms])
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    if np.linalg.norm(n) < 1e-9:
+        return 180.0
+    n /= np.linalg.norm(n)
+    return max([_angle_deg(m.normal, n) for m in ms] + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
+
+
+def _table_triple(marks, problems):
+    """Indices of the table marks: the only triple whose plates all lie in one plane, flat on it.
+
+    Leg marks come in pairs along a generator (front, lateral) whose normals are ~90° apart,
+    so any triple other than the table's has a large normal spread. Ties are ambiguous.
+    """
+    if len(marks) < 3:
+        problems.append("fewer than 3 plates: cannot find the table marks")
+        return None
+    scored = sorted((_triple_score([marks[i] for i in t]), t) for t in itertools.combinations(range(len(marks)), 3))
+    best, t = scored[0]
+    if best > TABLE_NORMAL_SPREAD_DEG:
+        problems.append(f"no three plates lie flat in one plane (best {best:.1f}°): table marks not identified")
+        return None
+    if len(scored) > 1 and scored[1][0] - best < AMBIGUITY_MARGIN_DEG:
+        problems.append(f"two candidate sets of table marks ({best:.1f}° vs {scored[1][0]:.1f}°): ambiguous")
+        return None
+    return set(t)
+
+
+def _table_order(ms):
+    """5, 6, 7: counter-clockwise seen from above (about +z) around their centroid, starting
+    after the widest angular gap (for the default layout: lateral-posterior, lateral-anterior,
+    medial)."""
+    P = np.array([m.centre for m in ms])
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    n = n / np.linalg.norm(n) * (1 if n[2] >= 0 else -1)
+    B = plane_basis(n)
+    if np.cross(B[0], B[1]) @ n < 0:
+        B = B[::-1]
+    q = (P - P.mean(axis=0)) @ B.T
+    ang = np.arctan2(q[:, 1], q[:, 0])
+    order = np.argsort(ang)
+    gaps = np.diff(np.r_[ang[order], ang[order[0]] + 2 * math.pi])
+    start = (int(np.argmax(gaps)) + 1) % 3
+    return [ms[i] for i in np.roll(order, -start)]
+
+
+def _label_leg(leg, problems):
+    """Knee pair above the ankle pair (along the leg axis, i.e. z); within a pair the front
+    plate faces anterior (+y) more than lateral (+x), the lateral one the other way round.
+
+    With only two or three leg plates found, what the geometry still decides is labelled: the
+    knee/ankle split is the widest gap in height (it must be clear: ≥ 100 mm), a lone plate in
+    its group is front or lateral by its normal's nearness to the other group's labelled pair
+    (or, without one, by which way round the leg its normal points).
+    """
+    if len(leg) < 2:
+        return
+    z = np.array([m.centre[2] for m in leg])
+    idx = np.argsort(z)
+    if len(leg) == 4:
+        ankle, knee = [leg[i] for i in idx[:2]], [leg[i] for i in idx[2:]]
+        axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
+        gap = (z[idx[2]] - z[idx[1]])
+        if gap < 0.25 * np.linalg.norm(axis):
+            problems.append("knee and ankle marks are not clearly separated in height")
+            return
+    else:
+        gaps = np.diff(z[idx])
+        k = int(np.argmax(gaps))
+        if gaps[k] < PARTIAL_LEG_GAP_MM:
+            problems.append("knee and ankle marks are not clearly separated in height")
+            return
+        ankle, knee = [leg[i] for i in idx[: k + 1]], [leg[i] for i in idx[k + 1:]]
+        if len(ankle) > 2 or len(knee) > 2:
+            problems.append("more than two leg marks at one height")
+            return
+        axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
+    axis /= np.linalg.norm(axis)
+    groups = ((knee, ("1", "3"), "knee"), (ankle, ("2", "4"), "ankle"))
+    for pair, (front, lateral), where in groups:
+        if len(pair) != 2:
+            continue
+        a = [_azimuth_about(m.normal, axis) for m in pair]
+        if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:  # 50-90° apart; a tie means no decision
+            problems.append(f"cannot tell the front from the lateral {where} mark")
+            continue
+        f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
+        f.label, l.label = front, lateral
+    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
+        if len(pair) == 1:
+            label = _lone_label(pair[0], other, axis, front, lateral)
+            if label is None:
+                problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
+            pair[0].label = label
+
+
+def _lone_label(m, other, axis, front, lateral):
+    """A lone knee (ankle) plate is front or lateral by which plate of the labelled ankle
+    (knee) pair its normal is nearer to, around the leg axis: the leg carries both pairs,
+    wherever round its side the marks were stuck. Without that pair, by which side of
+    ``LONE_SPLIT_DEG`` its normal points round the leg (front marks face 90°, lateral ones
+    0-40°: docs/marks.md), at least half the margin clear of it."""
+    if len(other) == 2 and all(o.label is not None for o in other):
+        ref = sorted(other, key=lambda o: o.label)  # front ("1"/"2") before lateral ("3"/"4")
+        a = [abs(_wrap_deg(_azimuth_about(m.normal, axis) - _azimuth_about(o.normal, axis))) for o in ref]
+        if abs(a[0] - a[1]) >= SIDE_MARGIN_DEG:
+            return front if a[0] < a[1] else lateral
+        return None
+    a = _azimuth_about(m.normal, axis)
+    if a >= LONE_SPLIT_DEG + SIDE_MARGIN_DEG / 2:
+        return front
+    if a <= LONE_SPLIT_DEG - SIDE_MARGIN_DEG / 2:
+        return lateral
+    return None
+
+
+def _azimuth_about(n, axis) -> float:
+    """Direction (deg) of a normal round the leg, seen down its axis: 0 lateral (+x), 90 front (+y)."""
+    p = n - (n @ axis) * axis
+    return math.degrees(math.atan2(p[1], p[0]))
+
+
+def _wrap_deg(a: float) -> float:
+    return (a + 180.0) % 360.0 - 180.0
+
