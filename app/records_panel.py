@@ -180,8 +180,7 @@ class RecordsPanel(QWidget):
 
     # ---- patients and sessions: the dialog-driven actions (slots take no data) ---------
     def new_patient(self) -> None:
-        if self.logic.store is None:
-            self.logic.add_patient("")  # says there is no database
+        if not self.logic.require_store():
             return
         dialog = NewPatientDialog(self.window(), exists=self.logic.patient_exists)
         if dialog.exec() == QDialog.DialogCode.Accepted:

@@ -98,9 +98,14 @@ class SessionLogic:
         return [r for r in self.store.study_rows() if r["session_id"] == session_id]
 
     # ---- patients and sessions --------------------------------------------------------
-    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None):
+    def require_store(self) -> bool:
+        """True when there is a database to write to; otherwise say how to get one."""
         if self.store is None:
             self.notice.emit("error", "No sessions database: choose a data folder first (File ▸ Data folder).")
+        return self.store is not None
+
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None):
+        if not self.require_store():
             return None
         return self._write("", lambda: self.store.add_patient(code, sprain_count=sprain_count, affected_side=side))
 
