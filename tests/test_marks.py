@@ -146,14 +146,23 @@ def test_plane_fit_rejects_stray_points():
 
 # ------------------------------------------------------------------ on the simulated rig
 
-def _scan(inv, pf, scale, seed=1):
+def _scan(inv, pf, scale, seed=1, optics=None, **scene):
+    """The simulated rig (``scene``: leg_scene's mark_type / mark_radius; ``optics``: Optics' fields)
+    and its capture of the default pattern set."""
     from anklescan.core.scan.capture import capture_from_images
     from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.simrig import SimRig
+    from anklescan.hardware.simrig import Optics, SimRig
 
-    rig = SimRig(leg_scene(inv, pf), scale=scale, seed=seed)
+    rig = SimRig(leg_scene(inv, pf, **scene), scale=scale, seed=seed, optics=optics and Optics(**optics))
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
     return rig, capture_from_images(pset, rig.capture_many(render_all(pset)))
+
+
+def _measured(inv, pf, scale, seed, **kw):
+    """(measure_capture's result with the true calibration, the truth) for ``_scan``'s capture."""
+    from anklescan.core.measure.pipeline import measure_capture
+    rig, cap = _scan(inv, pf, scale, seed, **kw)
+    return measure_capture(cap, rig.true_calibration()), rig.truth()
 
 
 @pytest.mark.parametrize("inv,pf", [(0, 0), (20, -20)])
@@ -484,16 +493,7 @@ def test_small_plate_seen_at_a_grazing_angle_is_centred_and_its_sd_covers_it():
     camera, where the top face's points span a strip and its tilt across it was 2-4° off; the
     plate 5 was 0.66 mm off with an SD of 0.145 mm (4.5 SD). The tilt is now steadied by the
     surface the plate rests on, and what remains of its error is in the covariance."""
-    from anklescan.core.scan.capture import capture_from_images
-    from anklescan.core.measure.pipeline import measure_capture
-    from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.simrig import SimRig
-
-    rig = SimRig(leg_scene(0, -20, mark_type="plate", mark_radius=5.0), scale=1.0, seed=0)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
-    res = measure_capture(cap, rig.true_calibration())
-    truth = rig.truth()
+    res, truth = _measured(0, -20, 1.0, 0, mark_type="plate", mark_radius=5.0)
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():
         e = m.centre - truth.marks[k]
@@ -514,16 +514,7 @@ def test_ankle_marks_at_the_terminator_or_the_silhouette(inv, pf, kind, diameter
     plate from 0.20 to 0.34 mm off. Such a surface is no longer used (SURFACE_RING_MIN_DECODED).
     20 mm lateral ankle sticker at 20/10: beside the leg's silhouette, its edges in the shading-
     corrected image gave an edge RMS of 0.77 mm and it was refused; the lit image's edges fit it."""
-    from anklescan.core.scan.capture import capture_from_images
-    from anklescan.core.measure.pipeline import measure_capture
-    from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.simrig import SimRig
-
-    rig = SimRig(leg_scene(inv, pf, mark_type=kind, mark_radius=diameter / 2), scale=0.75, seed=seed)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
-    res = measure_capture(cap, rig.true_calibration())
-    truth = rig.truth()
+    res, truth = _measured(inv, pf, 0.75, seed, mark_type=kind, mark_radius=diameter / 2)
     assert res.complete, res.marks.message()
     assert np.linalg.norm(res.marks.labelled[label].centre - truth.marks[label]) < 0.3
 
@@ -589,15 +580,6 @@ def test_marks_under_camera_blur_and_read_noise(optics, inv, pf, kind, label):
     fitted 2.56 mm off (a short arc of 8 edge points, free radius z 4.7 from the size) and kept;
     it is held back and the second look's fit replaces it. Read noise 4/255: the sticker 2 at
     20/0 was refused by the fixed face-smoothness limit (0.21 mm against 0.2, predicted 0.19)."""
-    from anklescan.core.scan.capture import capture_from_images
-    from anklescan.core.measure.pipeline import measure_capture
-    from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.simrig import Optics, SimRig
-
-    rig = SimRig(leg_scene(inv, pf, mark_type=kind, mark_radius=5.0), scale=0.75, seed=7, optics=Optics(**optics))
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
-    res = measure_capture(cap, rig.true_calibration())
-    truth = rig.truth()
+    res, truth = _measured(inv, pf, 0.75, 7, optics=optics, mark_type=kind, mark_radius=5.0)
     assert res.complete, res.marks.message()
     assert np.linalg.norm(res.marks.labelled[label].centre - truth.marks[label]) < 0.3
