@@ -2,7 +2,7 @@
 
     /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick] [--jobs 2]
         [--postures 20/20,10/20] [--seed N | --seeds i,31,32] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
-        [--types plate,sticker] [--diameters 10,15,20] [--size unknown,given]
+        [--types plate,sticker] [--diameters 10,15,20] [--size unknown,given] [--variants 1,2,3]
 
 Every posture with each mark type and diameter; each rendered capture is measured once per
 ``--size`` mode (the diameter measured from the capture, and given as the true one).
@@ -10,6 +10,11 @@ Every posture with each mark type and diameter; each rendered capture is measure
 Prints, per trial, each labelled mark's centre error (mm), the four angle errors (deg),
 whether all seven were found and labelled, and which true marks were not found (each plate
 found is matched to the nearest true centre); then the worst cases and the counts.
+
+``--variants`` replaces our default scene with drawn clinic-like set-ups
+(``hardware/sim_variety.py``: leg, marks of 8-25 mm, plate thickness, albedos, gamma, tone
+curve, specular, rig layout); each variant draws its own mark type and diameter unless
+``--types`` / ``--diameters`` are given.
 """
 
 from __future__ import annotations
@@ -30,16 +35,21 @@ from anklescan.core.measure.marks import LABELS  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
 from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
+from anklescan.core.scan.triangulate import scan_axes  # noqa: E402
+from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 from anklescan.hardware.simrig import Optics, SimRig  # noqa: E402
 
 SETTINGS = [(inv, pf) for inv in (0, 10, 20) for pf in (-20, -10, 0, 10, 20)]
 QUICK = [(0, 0), (20, 20), (10, -20), (20, -20)]
 
 
-def trial(inv, pf, scale, seed, optics=None, mark_type="plate", diameter=15.0, modes=("unknown",)):
-    rig = SimRig(leg_scene(inv, pf, mark_type=mark_type, mark_radius=diameter / 2), scale=scale, seed=seed,
-                 optics=optics)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+def trial(inv, pf, scale, seed, optics=None, mark_type="plate", diameter=15.0, modes=("unknown",), variant=None):
+    if variant is None:
+        rig = SimRig(leg_scene(inv, pf, mark_type=mark_type, mark_radius=diameter / 2), scale=scale, seed=seed,
+                     optics=optics)
+    else:
+        rig = variant_rig(variant, inv, pf, scale=scale, seed=seed, optics=optics)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(rig.true_calibration()))
     cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
     return [_measured(rig, cap, None if mode == "unknown" else diameter) for mode in modes]
 
@@ -62,16 +72,21 @@ def _measured(rig, cap, given):
 
 def _run(job):
     """One trial in a worker process; only the figures travel back."""
-    inv, pf, scale, seed, optics, mtype, diam, modes = job
+    inv, pf, scale, seed, optics, mtype, diam, modes, variant = job
+    if variant is not None:
+        mtype, diam = variant.mark_type, variant.diameter
+    overrides = optics or {}
+    optics = Optics(**overrides) if overrides and variant is None else (overrides or None)
     out = []
-    for mode, (res, me, ae, dt) in zip(modes, trial(inv, pf, scale, seed, optics, mtype, diam, modes)):
+    for mode, (res, me, ae, dt) in zip(modes, trial(inv, pf, scale, seed, optics, mtype, diam, modes, variant)):
         z = [float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
              for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
         d = res.marks.diameter
         out.append({"inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
                     "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
                     "type": mtype, "diameter": diam, "mode": mode,
-                    "measured": None if d is None or mode == "given" else d})
+                    "measured": None if d is None or mode == "given" else d,
+                    "variant": None if variant is None else variant.describe()})
     return out
 
 
@@ -81,8 +96,14 @@ def _jobs(a, optics):
         settings = [tuple(int(v) for v in p.split("/")) for p in a.postures.split(",")]
     seeds = a.seeds.split(",") if a.seeds else ["i" if a.seed is None else str(a.seed)]
     modes = tuple(a.size.split(","))
-    return [(inv, pf, a.scale, i if s == "i" else int(s), optics, t, float(d), modes)
-            for t in a.types.split(",") for d in a.diameters.split(",")
+    if a.variants:
+        types = a.types.split(",") if a.types else [None]
+        diameters = [float(d) for d in a.diameters.split(",")] if a.diameters else [None]
+        return [(inv, pf, a.scale, i if s == "i" else int(s), optics, None, None, modes, draw_variant(int(v), t, d))
+                for v in a.variants.split(",") for t in types for d in diameters
+                for s in seeds for i, (inv, pf) in enumerate(settings)]
+    return [(inv, pf, a.scale, i if s == "i" else int(s), optics, t, float(d), modes, None)
+            for t in (a.types or "plate").split(",") for d in (a.diameters or "15").split(",")
             for s in seeds for i, (inv, pf) in enumerate(settings)]
 
 
@@ -97,14 +118,15 @@ def main(argv=None):
     ap.add_argument("--camera-blur", type=float, help="px (rig default 0.6)")
     ap.add_argument("--projector-blur", type=float, help="projector px (rig default 0.8)")
     ap.add_argument("--noise", type=float, help="read noise, fraction of full scale (rig default 2/255)")
-    ap.add_argument("--types", default="plate", help="mark types: plate,sticker")
-    ap.add_argument("--diameters", default="15", help="mark diameters in mm, e.g. 10,15,20")
+    ap.add_argument("--types", help="mark types: plate,sticker (default: plate; with --variants: drawn)")
+    ap.add_argument("--diameters", help="mark diameters in mm, e.g. 10,15,20 (default: 15; with --variants: drawn)")
+    ap.add_argument("--variants", help="drawn set-ups (hardware/sim_variety.py) by seed, e.g. 1,2,3, instead of "
+                                       "the default scene")
     ap.add_argument("--size", default="unknown", help="unknown (measured), given, or both: unknown,given")
     a = ap.parse_args(argv)
     overrides = {k: v for k, v in (("camera_blur_px", a.camera_blur), ("projector_blur_px", a.projector_blur),
                                    ("noise_sigma", a.noise)) if v is not None}
-    optics = Optics(**overrides) if overrides else None
-    jobs = _jobs(a, optics)
+    jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
         for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
@@ -121,6 +143,8 @@ def main(argv=None):
             angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
             size = (f"{r['type']:7s} {r['diameter']:4.1f} mm {r['mode']:7s}"
                     + (f" (measured {r['measured'][0]:.2f} ± {r['measured'][1]:.2f})" if r["measured"] else ""))
+            if r["variant"]:
+                print(r["variant"], flush=True)
             print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE'}  "
                   f"marks(mm) {marks}  angles(deg) {angles}  [{r['dt']:.1f} s]", flush=True)
             if not r["complete"]:

@@ -52,6 +52,8 @@ class Optics:
     specular: float = 0.0  # Blinn-Phong weight of the projector's highlight; 0 = Lambertian only
     shininess: float = 30.0
     bit_depth: int = 8  # 8 or 16
+    camera_gamma: float = 1.0  # the camera's tone curve: recorded = signal ** (1 / camera_gamma); 1 = linear
+    # (raw, machine-vision cameras), ~2.2 = a webcam's or phone's sRGB-like output
 
 
 def single_threaded_blas():
@@ -278,6 +280,8 @@ class SimRig:
             var = np.float32(o.noise_sigma**2) + np.float32(o.shot_noise) * np.maximum(signal, 0)
             signal = signal + rng.standard_normal(signal.shape, dtype=np.float32) * np.sqrt(var)
         signal *= np.float32(gain)
+        if o.camera_gamma != 1.0:
+            signal = np.clip(signal, 0.0, 1.0) ** np.float32(1.0 / o.camera_gamma)
         depth = bit_depth or o.bit_depth
         full = 65535.0 if depth == 16 else 255.0
         out = np.clip(np.rint(signal * full), 0, full)

@@ -1,0 +1,74 @@
+"""Simulated rigs that are not our default one: other legs, marks, optics and rig layouts.
+
+The default scene is what the method was developed on, so a figure measured only there says
+little about a clinic's rig. ``draw_variant(seed)`` draws, reproducibly, one clinic-like set-up
+from ranges a clinic meets (SPEC §2's 8-25 mm marks, plates 1-3 mm thick, thinner or
+heavier legs, darker or lighter skin, marks stuck further round, projector gamma, a camera tone
+curve, a shiny surface, the projector above or beside the camera); ``variant_rig`` builds the
+rig for one table posture. ``benchmarks/bench_marks.py --vary`` sweeps them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
+from anklescan.hardware.simrig import Optics, SimRig
+
+DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
+LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One drawn set-up: keyword arguments for ``leg_scene`` and ``Optics``, and the layout."""
+
+    seed: int
+    mark_type: str
+    diameter: float
+    layout: str
+    scene: dict = field(default_factory=dict)
+    optics: dict = field(default_factory=dict)
+
+    def describe(self) -> str:
+        s, o = self.scene, self.optics
+        text = (f"variant {self.seed}: {self.mark_type} {self.diameter:.1f} mm"
+                + (f" x {s['mark_thickness']:.1f}" if self.mark_type == "plate" else "")
+                + f", {self.layout}, ankle {s['ankle_semi_axes'][0]:.0f}x{s['ankle_semi_axes'][1]:.0f} mm"
+                f", lateral marks {s['lateral_mark_deg']:.0f} deg, skin {s['skin_albedo']:.2f}"
+                f", mark {s['mark_albedo']:.2f}, gamma {o['projector_gamma']:.1f}/{o['camera_gamma']:.1f}"
+                f", specular {o['specular']:.2f}, exposure {o['exposure']:.2f}")
+        return text
+
+
+def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None = None,
+                 layout: str | None = None) -> Variant:
+    """A reproducible clinic-like set-up; unset type, diameter and layout are drawn too."""
+    rng = np.random.default_rng([seed, 16])
+    u = rng.uniform
+    mark_type = mark_type or ("plate", "sticker")[int(rng.integers(2))]
+    diameter = float(diameter if diameter is not None else round(u(*DIAMETER_RANGE_MM), 1))
+    layout = layout or LAYOUTS[int(rng.integers(len(LAYOUTS)))]
+    ankle = (u(31.0, 44.0), u(26.0, 36.0))
+    table_marks = {k: (a + u(-12, 12), b + u(-12, 12)) for k, (a, b) in DEFAULT_TABLE_MARKS.items()}
+    scene = dict(ankle_semi_axes=ankle, knee_scale=u(1.25, 1.5), leg_offset_deg=(u(-3, 3), u(-3, 3)),
+                 foot_semi_axes=(u(43, 52), u(110, 128), u(31, 38)),
+                 knee_mark_height=u(340, 400), ankle_mark_height=u(52, 72), lateral_mark_deg=u(25, 45),
+                 table_marks=table_marks, mark_radius=diameter / 2, mark_thickness=u(1.0, 3.0),
+                 mark_albedo=u(0.75, 0.95), skin_albedo=u(0.3, 0.6), table_albedo=u(0.4, 0.7),
+                 floor_albedo=u(0.3, 0.6), mark_type=mark_type)
+    optics = dict(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
+                  camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
+                  exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
+                  specular=(0.0, 0.0, u(0.05, 0.25))[int(rng.integers(3))])
+    return Variant(seed, mark_type, diameter, layout, scene, optics)
+
+
+def variant_rig(variant: Variant, inversion: float, plantar_flexion: float, *, scale: float = 1.0,
+                seed: int | None = 0, optics: dict | None = None) -> SimRig:
+    """The variant's rig with the table at (inversion, plantar flexion); ``optics`` overrides."""
+    scene = leg_scene(inversion, plantar_flexion, **variant.scene)
+    o = replace(Optics(), **{**variant.optics, **(optics or {})})
+    return SimRig(scene, scale=scale, optics=o, seed=seed, layout=variant.layout)
