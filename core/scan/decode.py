@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from anklescan.core.scan.camera_response import gamma_from_frames, linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import AxisCode, PatternSet
@@ -151,14 +152,21 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
            k_shadow: float = K_SHADOW, k_contrast: float = K_CONTRAST,
            k_phase: float = K_PHASE, phase_tolerance: float | None = None,
            min_coarse_run: float = MIN_COARSE_RUN,
-           strip_pixels: int = STRIP_PIXELS) -> DecodeResult:
+           strip_pixels: int = STRIP_PIXELS, tone_curve: bool = True) -> DecodeResult:
     """Decode a ``Capture`` (or an (n_frames, H, W) stack in manifest order + its set).
 
     ``saturation``: pixel value treated as clipped (default: the dtype maximum).
     ``sigma``: sensor noise per frame (default: estimated from the capture).
     ``phase_tolerance``: max |phase column - Gray column| before a pixel is called
-    inconsistent (default: period / 4)."""
+    inconsistent (default: period / 4).
+    ``tone_curve``: measure the camera's tone curve (core/scan/camera_response.py) and, if it
+    is not linear, decode the frames in linear light, as floats in [0, 1] (``thresholds``
+    gains ``camera_gamma``)."""
     frames, pset, full = _frames_and_set(capture_or_frames, pattern_set)
+    gamma = gamma_from_frames(frames, pset, full) if tone_curve and frames.dtype != np.float32 else 1.0
+    if gamma != 1.0:
+        saturation = 1.0 if saturation is None else (min(saturation, full) / full) ** gamma
+        frames, full = linear_unit(frames, gamma, full), 1.0
     if saturation is None:
         saturation = full
     white = frames[pset.index("white")]
@@ -169,7 +177,7 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
                                frames[first.gray_inv[0]], full)
     thr = {"sigma": float(sigma), "k_shadow": k_shadow, "shadow": k_shadow * sigma,
            "k_contrast": k_contrast, "contrast": k_contrast * sigma,
-           "saturation": float(saturation), "full_scale": full}
+           "saturation": float(saturation), "full_scale": full, "camera_gamma": gamma}
 
     h, w = frames.shape[1:]
     coords = {axis: np.empty((h, w), np.float32) for axis in pset.axes}

@@ -22,6 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from anklescan.core.scan.camera_response import linearised, response_gamma
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.patterns import PatternSet
 
@@ -31,11 +32,14 @@ REFERENCE_BITS = 5  # the coarsest bits per axis: stripes of >= 1/32 of the proj
 
 def averaged_lit(capture: Capture) -> np.ndarray:
     """(H, W) float32 projector light per pixel, averaged over white − black and the decisive
-    Gray pairs (see the module's docstring)."""
-    return lit_from_frames(capture.frames, capture.pattern_set)
+    Gray pairs (see the module's docstring), in linear light."""
+    return lit_from_frames(capture.frames, capture.pattern_set, response_gamma(capture), capture.max_value)
 
 
-def lit_from_frames(frames: np.ndarray, pset: PatternSet) -> np.ndarray:
+def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, full_scale: float = 255.0) -> np.ndarray:
+    """``averaged_lit`` of ``frames``, first linearised with the camera's tone-curve exponent ``gamma``."""
+    if gamma != 1.0:
+        frames = _LinearFrames(frames, gamma, full_scale)
     white = frames[pset.index("white")]
     black = frames[pset.index("black")]
     pairs = [(g, gi) for axis in pset.axes
@@ -55,6 +59,16 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet) -> np.ndarray:
         cv2.add(total, d, dst=total, mask=mask)
         cv2.add(count, 1.0, dst=count, mask=mask)
     return total / count
+
+
+class _LinearFrames:
+    """``frames[i]`` in linear light, one frame at a time (a whole capture as float32 is ~300 MB)."""
+
+    def __init__(self, frames, gamma, full_scale):
+        self.frames, self.gamma, self.full_scale = frames, gamma, full_scale
+
+    def __getitem__(self, i):
+        return linearised(self.frames[i], self.gamma, self.full_scale)
 
 
 def _reference_indices(pset: PatternSet) -> list[int]:

@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import DecodeResult
 from anklescan.core.scan.pointcloud import PointCloud
@@ -153,7 +154,13 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
     sub = np.arange(0, len(cloud), max(1, -(-len(cloud) // MAX_POINTS)))
     u = cloud.pixels[sub, 0].astype(np.intp)
     v = cloud.pixels[sub, 1].astype(np.intp)
-    main = frames[list(code.phase)][:, v, u].astype(np.float32)  # (N_steps, P)
+    gamma = float(decoded.thresholds.get("camera_gamma", 1.0))
+
+    def sampled(idx):  # on the scale the decoder worked in (linear light where the camera has a tone curve)
+        x = frames[idx][:, v, u]
+        return x.astype(np.float32) if gamma == 1.0 else linear_unit(x, gamma, capture.max_value)
+
+    main = sampled(list(code.phase))  # (N_steps, P)
     A = main.mean(axis=0)
     sigma = float(decoded.thresholds.get("sigma", 1.0))
     geo = _geometry(calibration, cloud, capture.shape, sub)
@@ -167,7 +174,7 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         ks = [_of(pset, i).shift for i in look]
         d = 2 * np.pi * np.asarray(ks, float) / code.steps
         pinv = np.linalg.pinv(np.stack([np.cos(d), np.sin(d)], axis=1))  # (2, n)
-        ab = pinv @ (frames[look][:, v, u].astype(np.float32) - A)
+        ab = pinv @ (sampled(look) - A)
         ab_main = pinv @ (main[[shifts_main[code.phase[k]] for k in ks]] - A)
         z, z_main = ab[0] + 1j * ab[1], ab_main[0] + 1j * ab_main[1]
         mod = np.abs(z_main)
