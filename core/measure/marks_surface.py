@@ -21,7 +21,7 @@ import scipy.optimize
 
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
-from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.measure.mark_edges import decoded_across, plane_basis
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
@@ -164,6 +164,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
 
     cam_c = cal.camera.center
     rays_all = cal.camera.rays(profiles.points())
+    lit_edge = decoded_across(profiles, points)  # not where the light ends
     uv = ellipse_pixels(shape, SURFACE_REACH, points.shape[:2])
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
     ok = np.isfinite(P[:, 0])
@@ -186,7 +187,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         gE = quadric_grad(coef, E[:, 0], E[:, 1])
         nE = np.column_stack([-gE, np.ones(len(E))])
         cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
-        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG)))
+        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG))) & lit_edge
         if use.sum() < MIN_EDGE_POINTS:
             return "edge points do not form a circle"
         fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
