@@ -18,7 +18,8 @@ from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
 from anklescan.hardware.simrig import Optics, SimRig
 
 DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
-LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build
+LAYOUTS = ("side", "side", "diagonal", "above")
+MIN_MARK_CONTRAST = 1.15  # mark albedo over the table's, at least  # beside the camera is the common build
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,12 @@ def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None
                  foot_semi_axes=(u(43, 52), u(110, 128), u(31, 38)),
                  knee_mark_height=u(340, 400), ankle_mark_height=u(52, 72), lateral_mark_deg=u(25, 45),
                  table_marks=table_marks, mark_radius=diameter / 2, mark_thickness=u(1.0, 3.0),
-                 mark_albedo=u(0.75, 0.95), skin_albedo=u(0.3, 0.6), table_albedo=u(0.4, 0.7),
+                 mark_albedo=u(0.75, 0.95), skin_albedo=u(0.3, 0.6), table_albedo=u(0.0, 1.0),
                  floor_albedo=u(0.3, 0.6), mark_type=mark_type)
+    # a light table, but the marks MIN_MARK_CONTRAST brighter than it (docs/marks.md: below that
+    # a mark does not stand out from the surface's own shading; no method finds it)
+    top = min(0.7, scene["mark_albedo"] / MIN_MARK_CONTRAST)
+    scene["table_albedo"] = 0.4 + (top - 0.4) * scene["table_albedo"]
     optics = dict(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
                   camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
                   exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,

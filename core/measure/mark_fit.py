@@ -79,7 +79,7 @@ SD_FLOOR_MM = 0.05
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
              prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
-             plate_thickness: float | None = None, lit_sticker_edges: bool = False):
+             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -97,6 +97,9 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     ``plate_thickness``: the step measured on this capture's clear plates, used where this
     mark's own step is inconclusive (a small blob seen or lit at a grazing angle).
     ``lit_sticker_edges``: fit only as a sticker, with edges from the lit image.
+    ``prefer_kind``: the kind of this capture's other marks (``find_marks``; a clinic sticks one
+    kind), tried first where this mark's step is inconclusive, and alone where it could not be
+    measured.
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -132,6 +135,10 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     kinds = ("sticker", "plate") if step is not None and step[0] < STICKER_MAX_STEP_MM else ("plate", "sticker")
     if clear:
         kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
+    elif prefer_kind in kinds:
+        # no step at all (too little decoded round it): only the capture's kind. A 12.5 mm front
+        # sticker lit at 80° failed as a sticker and passed as a plate, 0.56 mm off at 4 SD
+        kinds = (prefer_kind,) if step is None else (prefer_kind, *[k for k in kinds if k != prefer_kind])
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
     first_reason = None

@@ -46,6 +46,7 @@ PLATE_RADIUS_MM = 7.5  # the plates of the paper's clinic; no longer assumed (fi
 SIZE_RANGE_MM = (3.5, 13.5)  # radius
 SIZE_CLUSTER_REL = 0.08  # free radii within this fraction (or 3 SD) of each other are one size
 GIVEN_SIZE_TOLERANCE_MM = 0.75  # a given radius this far (or 3 SD) from the measured one fits no mark
+COMMON_KIND_SHARE = 0.75  # of the first pass's fits: the capture's kind of mark, tried first where a step is unclear
 
 
 @dataclass(eq=False)
@@ -170,6 +171,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
              and m.step_mm > STICKER_MAX_STEP_MM]
     thick = float(np.median(steps)) if steps else None
+    prefer = _common_kind([m.kind for m in free if m is not None])
     if mark_diameter_mm is not None:
         r0, sd0 = 0.5 * float(mark_diameter_mm), RADIUS_PRIOR_SD_MM
         if sizes and sizes[0]["n"] >= 3 and abs(sizes[0]["radius"] - r0) > max(GIVEN_SIZE_TOLERANCE_MM, 3 * sizes[0]["sd"]):
@@ -187,7 +189,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         return result
     refused = []
     for blob in blobs:
-        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick)
+        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
+                                prefer_kind=prefer)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
             refused.append(blob)
@@ -196,7 +199,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     held = [m for m in result.marks if m.doubtful]
     result.marks = [m for m in result.marks if not m.doubtful]
     if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick)
+        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick, prefer)
     _restore_held(result, held, cal, r0)
     if len(result.marks) < len(LABELS):
         # the last look: a refused blob as a sticker with the lit image's edges. A lateral 20 mm
@@ -265,8 +268,16 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
                 result.marks.append(m)
 
 
+def _common_kind(kinds: list) -> str | None:
+    """The kind ("plate" / "sticker") of at least COMMON_KIND_SHARE of three or more fitted marks, else None."""
+    for kind in ("plate", "sticker"):
+        if len(kinds) >= 3 and kinds.count(kind) >= COMMON_KIND_SHARE * len(kinds):
+            return kind
+    return None
+
+
 def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
-                 albedo=None, plate_thickness=None) -> None:
+                 albedo=None, plate_thickness=None, prefer_kind=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
     A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
@@ -297,7 +308,7 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
         if border_undecoded(blob, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED:
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
         mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=plate_thickness)
+                           plate_thickness=plate_thickness, prefer_kind=prefer_kind)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
