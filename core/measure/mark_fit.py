@@ -77,9 +77,20 @@ EDGE_NOISE_FLOOR_MM = 0.03  # lower bound of the edge-point scatter used for wei
 SD_FLOOR_MM = 0.05
 
 
-def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
-             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
-             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None):
+def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, **kw):
+    """Fit one candidate blob, or where that fails its wider cut (``cut_blob``: a thick plate's
+    face beside its bright side wall); (Mark, '') or (None, the blob's reason). See ``_fit_blob``."""
+    mark, reason = _fit_blob(image, points, blob, cal, radius_mm, sigma, **kw)
+    if mark is None and blob.get("wider") is not None:
+        wider, _ = _fit_blob(image, points, blob["wider"], cal, radius_mm, sigma, **kw)
+        if wider is not None:
+            return wider, ""
+    return mark, reason
+
+
+def _fit_blob(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
+              prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
+              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
