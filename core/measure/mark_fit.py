@@ -102,8 +102,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     mark's own step is inconclusive (a small blob seen or lit at a grazing angle).
     ``lit_sticker_edges``: fit only as a sticker, with edges from the lit image.
     ``prefer_kind``: the kind of this capture's other marks (``find_marks``; a clinic sticks one
-    kind), tried first where this mark's step is inconclusive, and alone where it could not be
-    measured.
+    kind), the only one tried where this mark's step is inconclusive or could not be measured.
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -140,9 +139,10 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     if clear:
         kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
     elif prefer_kind in kinds:
-        # no step at all (too little decoded round it): only the capture's kind. A 12.5 mm front
-        # sticker lit at 80° failed as a sticker and passed as a plate, 0.56 mm off at 4 SD
-        kinds = (prefer_kind,) if step is None else (prefer_kind, *[k for k in kinds if k != prefer_kind])
+        # the step does not say: only the capture's kind. A 12.5 mm front sticker lit at 78-80°
+        # failed as a sticker and passed as a plate, 0.56 mm off at 4 SD (0.75 scale, no step) and
+        # 0.68 mm at 4.6 SD (full resolution, step 0.08 mm but unclear)
+        kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
     first_reason = None
