@@ -53,6 +53,10 @@ MAX_RADIUS_Z = 4.0
 # the 15 x 3 mm table plates it is for had 7.16-7.51 ± 0.07-0.13 mm.
 WIDER_MAX_RADIUS_SD_MM = 0.3
 MIN_INTERIOR_POINTS = 6
+# A disk lit more obliquely than this gets cos 85° = 9 % of the light: a front knee sticker lit at
+# 88° (a variant with the projector diagonal to the camera) was fitted 0.45 mm off at 7 SD. The
+# marks of the default posture sweep are lit at up to 77°.
+MAX_LIGHT_DEG = 85.0
 # A plane's points must span two directions: its tilt about their long axis has an SD of about
 # (point SD) / (their RMS spread across it · √n); above this it is no plane (the top face of an
 # 8 mm plate seen at 66° left 7 pixels in one image row: RMS 0.000 mm, 3.7 mm off).
@@ -195,6 +199,9 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                           f"edge RMS {rms:.2f} mm, {what})")
     if radius_sd > MAX_RADIUS_SD_MM:
         return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
+    light_deg = _view_deg(cal.projector.center, centre, normal)
+    if light_deg > MAX_LIGHT_DEG:
+        return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
     limit = face_rms_limit(sigma, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape))
     if surf_rms > limit:
         return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})"
@@ -206,7 +213,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
-                view_deg=_view_deg(cam_c, centre, normal), light_deg=_view_deg(cal.projector.center, centre, normal),
+                view_deg=_view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd)), ""
 
