@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from anklescan.core.scan.capture import capture_from_images  # noqa: E402
+from anklescan.core.measure.mark_fit import view_deg  # noqa: E402
 from anklescan.core.measure.marks import LABELS  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
@@ -69,8 +70,8 @@ def _measured(rig, cap, given):
         nearest[k] = m.label
     res.found_truth = nearest  # true label -> label given (None: found, not labelled)
     res.truth_marks = tr.marks
-    res.truth_angles = {k: (_angle_deg(rig.camera.center, tr.marks[k], tr.mark_normals[k]),
-                            _angle_deg(rig.projector.center, tr.marks[k], tr.mark_normals[k])) for k in tr.marks}
+    res.truth_angles = {k: (view_deg(rig.camera.center, tr.marks[k], tr.mark_normals[k]),
+                            view_deg(rig.projector.center, tr.marks[k], tr.mark_normals[k])) for k in tr.marks}
     return res, mark_err, ang_err, dt
 
 
@@ -78,12 +79,6 @@ def _measured(rig, cap, given):
 # reach: its face images a sliver, or gets cos(80°) = 17 % of the light (a clinic re-sticks it or
 # turns the rig); the summary counts trials with every mark within both apart.
 REACH_VIEW_DEG, REACH_LIGHT_DEG = 75.0, 80.0
-
-
-def _angle_deg(device_centre, point, normal) -> float:
-    """Degrees between a mark's normal and the ray from a device to it (90: grazing)."""
-    d = device_centre - point
-    return float(np.degrees(np.arccos(np.clip(abs(d @ normal) / np.linalg.norm(d), 0.0, 1.0))))
 
 
 def _run(job):

@@ -5,7 +5,7 @@ little about a clinic's rig. ``draw_variant(seed)`` draws, reproducibly, one cli
 from ranges a clinic meets (SPEC §2's 8-25 mm marks, plates 1-3 mm thick, thinner or
 heavier legs, darker or lighter skin, marks stuck further round, projector gamma, a camera tone
 curve, a shiny surface, the projector above or beside the camera); ``variant_rig`` builds the
-rig for one table posture. ``benchmarks/bench_marks.py --vary`` sweeps them.
+rig for one table posture. ``benchmarks/bench_marks.py --variants`` sweeps them.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
 from anklescan.hardware.simrig import Optics, SimRig
 
 DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
-LAYOUTS = ("side", "side", "diagonal", "above")
-MIN_MARK_CONTRAST = 1.15  # mark albedo over the table's, at least  # beside the camera is the common build
+LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build
+MIN_MARK_CONTRAST = 1.15  # mark albedo over the table's, at least
 
 
 @dataclass(frozen=True)
@@ -35,13 +35,12 @@ class Variant:
 
     def describe(self) -> str:
         s, o = self.scene, self.optics
-        text = (f"variant {self.seed}: {self.mark_type} {self.diameter:.1f} mm"
+        return (f"variant {self.seed}: {self.mark_type} {self.diameter:.1f} mm"
                 + (f" x {s['mark_thickness']:.1f}" if self.mark_type == "plate" else "")
                 + f", {self.layout}, ankle {s['ankle_semi_axes'][0]:.0f}x{s['ankle_semi_axes'][1]:.0f} mm"
                 f", lateral marks {s['lateral_mark_deg']:.0f} deg, skin {s['skin_albedo']:.2f}"
                 f", mark {s['mark_albedo']:.2f}, gamma {o['projector_gamma']:.1f}/{o['camera_gamma']:.1f}"
                 f", specular {o['specular']:.2f}, exposure {o['exposure']:.2f}")
-        return text
 
 
 def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None = None,

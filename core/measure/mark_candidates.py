@@ -190,8 +190,8 @@ def ring_level(smooth, valid, seed, cal, points, radius_mm):
 # A thick plate seen at a grazing angle has a side wall several times brighter than its face
 # (a 15 x 3 mm table plate at 0/-20: wall ~3x the table, face ~1.6x): cut at 0.35 the blob was the
 # wall alone and no fit passed. The cut from 0.2 (face and wall) is kept as the blob's "wider"
-# alternative, fitted where the blob itself fails (``fit_mark``); tried first, it moved a 10 mm
-# plate seen at 72° from 0.05 to 0.43 mm off.
+# alternative, fitted last, for blobs still refused (``find_marks``' wider look); tried first, it
+# moved a 10 mm plate seen at 72° from 0.05 to 0.43 mm off.
 FIRST_CUT, WIDER_FIRST_CUT = 0.35, 0.2
 WIDER_MIN_GROWTH = 1.3  # x the blob's area: a wider cut that adds less is the same blob
 

@@ -179,10 +179,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
 
     centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
     n_in = n_in0
-    if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
-        cov = cov + _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
-                                       centre)
-    what = f"{kind}, seen at {_view_deg(cam_c, centre, normal):.0f}°"
+    what = f"{kind}, seen at {view_deg(cam_c, centre, normal):.0f}°"
     if not (np.isfinite(radius) and radius < 10 * radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
         return None, f"edge points lie on a line, not a circle ({what})"
@@ -199,7 +196,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                           f"edge RMS {rms:.2f} mm, {what})")
     if radius_sd > MAX_RADIUS_SD_MM:
         return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
-    light_deg = _view_deg(cal.projector.center, centre, normal)
+    light_deg = view_deg(cal.projector.center, centre, normal)
     if light_deg > MAX_LIGHT_DEG:
         return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
     limit = face_rms_limit(sigma, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape))
@@ -211,9 +208,12 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
         B = plane_basis(normal)
         cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
+    if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
+        cov = cov + _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
+                                       centre)
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
-                view_deg=_view_deg(cam_c, centre, normal), light_deg=light_deg,
+                view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd)), ""
 
@@ -368,7 +368,7 @@ def _tilt_covariance(normal, tilt, refit) -> np.ndarray:
     return out
 
 
-def _view_deg(cam_c, centre, normal) -> float:
+def view_deg(cam_c, centre, normal) -> float:
     """Angle (deg) between the plate normal and the ray from ``cam_c`` (a device centre) to its centre."""
     d = centre - cam_c
     return math.degrees(math.acos(min(abs(float(d @ normal)) / float(np.linalg.norm(d)), 1.0)))

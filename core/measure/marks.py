@@ -51,7 +51,7 @@ GIVEN_SIZE_TOLERANCE_MM = 0.75  # a given radius this far (or 3 SD) from the mea
 # at 14 SD; good plates have 0.05-0.15 mm, and an 8 mm table plate seen at 69°, doubtful but
 # 0.18 mm off, 0.22 mm (at 0.2 it was lost).
 DOUBTFUL_MAX_EDGE_RMS_MM = 0.25
-COMMON_KIND_SHARE = 0.75  # of the first pass's fits: the capture's kind of mark, tried first where a step is unclear
+COMMON_KIND_SHARE = 0.75  # of the first pass's fits: the capture's kind of mark, the only one fitted where a step is unclear
 
 
 @dataclass(eq=False)
@@ -213,14 +213,14 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         # the corrected image, whose surround there is the silhouette's dark band, and was
         # refused in both size modes; with the lit edges 0.06 mm off. Only now: tried first, it
         # took a front sticker at 20/20 that the second look finds 0.13 mm off, 0.38 mm off.
-        r_px = [float(plate_radius_px(cal, camera_depth(cal, m.centre[None])[0], r0)) for m in result.marks]
+        r_px = [_radius_px(cal, m, r0) for m in result.marks]
         for blob in refused:
             if any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r for m, r in zip(result.marks, r_px)):
                 continue
             mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True)
             if mark is not None:
                 result.marks.append(mark)
-                r_px.append(float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], r0)))
+                r_px.append(_radius_px(cal, mark, r0))
     if len(result.marks) < len(LABELS):
         _wider_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer)
     if mark_diameter_mm is not None and not result.marks:
@@ -259,6 +259,11 @@ def size_groups(marks) -> list[dict]:
     return sorted(groups, key=lambda g: -g["n"])
 
 
+def _radius_px(cal: Calibration, mark: "Mark", radius_mm: float) -> float:
+    """A disk of ``radius_mm`` at the mark's depth, in camera pixels."""
+    return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
+
+
 def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -> None:
     """The doubtful marks (free radius far from the size, ``Mark.doubtful``) after the second
     look: one is kept where no other mark lies within two radii, the first pass's (``held``)
@@ -273,7 +278,7 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
         for m in sorted(group, key=lambda m: -m.n_edge):
             if m.circle_rms > DOUBTFUL_MAX_EDGE_RMS_MM:
                 continue
-            r_px = float(plate_radius_px(cal, camera_depth(cal, m.centre[None])[0], radius_mm))
+            r_px = _radius_px(cal, m, radius_mm)
             if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= 2 * r_px for o in result.marks):
                 result.marks.append(m)
 
@@ -285,7 +290,7 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
     thick plate's face beside its bright side wall (a 15 x 3 mm table plate at 0/-20). Tried in
     the first pass instead, a weaker fit of a 10 mm plate (14 edge points, 0.31 mm off) took the
     place of the second look's (21, 0.18 mm)."""
-    r_px = [float(plate_radius_px(cal, camera_depth(cal, m.centre[None])[0], radius_mm)) for m in result.marks]
+    r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
         wider = blob.get("wider")
         if wider is None or any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r
@@ -295,7 +300,7 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
                            plate_thickness=thickness, prefer_kind=prefer_kind)
         if mark is not None and mark.radius_sd <= WIDER_MAX_RADIUS_SD_MM and not mark.doubtful:
             result.marks.append(mark)
-            r_px.append(float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm)))
+            r_px.append(_radius_px(cal, mark, radius_mm))
 
 
 def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
@@ -304,7 +309,7 @@ def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
     with the most edge points."""
     kept = []
     for m in sorted(marks, key=lambda m: -m.n_edge):
-        r_px = float(plate_radius_px(cal, camera_depth(cal, m.centre[None])[0], radius_mm))
+        r_px = _radius_px(cal, m, radius_mm)
         if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= r_px for o in kept):
             kept.append(m)
     return [m for m in marks if any(m is k for k in kept)]

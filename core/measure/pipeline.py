@@ -105,7 +105,8 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
-    marks = find_marks(averaged_lit(capture), cloud, calibration, mark_diameter_mm=mark_diameter_mm)
+    lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
+    marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm)
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)

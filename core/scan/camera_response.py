@@ -34,7 +34,7 @@ MAX_SAMPLES = 5_000  # a median over these is stable to ~0.03 in gamma
 SAMPLE_GRID_PIXELS = 40_000  # frames larger than this are read on a grid of every k-th pixel
 SPLIT_RANGE = (0.2, 0.8)  # each frame of the pair, as a fraction of the way from black to white
 MIN_LIGHT = 0.15  # white - black, of full scale: pixels the projector clearly lights
-FINE_BITS = 4
+FINE_BITS = 4  # per axis, the finest: most of their pixels sit near a stripe edge
 SATURATED = 0.98  # of full scale: a clipped white says nothing about the curve
 
 
@@ -51,14 +51,13 @@ def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -
     w = frames[pset.index("white")][sub].astype(np.float32) / np.float32(full_scale)
     b = frames[pset.index("black")][sub].astype(np.float32) / np.float32(full_scale)
     lit = (w - b > MIN_LIGHT) & (w < SATURATED)
+    span = np.maximum(w - b, 1e-6)
     samples = []
     for axis in pset.axes:
         code = pset.axis_code(axis)
-        # the finest bits: most of their pixels sit near a stripe edge, where the light is split
         for g, gi in list(zip(code.gray, code.gray_inv))[-FINE_BITS:]:
             p = frames[g][sub].astype(np.float32) / np.float32(full_scale)
             q = frames[gi][sub].astype(np.float32) / np.float32(full_scale)
-            span = np.maximum(w - b, 1e-6)
             fp, fq = (p - b) / span, (q - b) / span
             m = lit & (fp > SPLIT_RANGE[0]) & (fp < SPLIT_RANGE[1]) & (fq > SPLIT_RANGE[0]) & (fq < SPLIT_RANGE[1])
             if m.any():
@@ -80,10 +79,9 @@ def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -
 
 def linearised(frames: np.ndarray, gamma: float, full_scale: float) -> np.ndarray:
     """``frames`` in linear light, float32 on the same scale (full scale stays full scale)."""
-    f = frames.astype(np.float32)
-    if gamma == 1.0:
-        return f
-    return np.float32(full_scale) * (f / np.float32(full_scale)) ** np.float32(gamma)
+    f = linear_unit(frames, gamma, full_scale)
+    f *= np.float32(full_scale)
+    return f
 
 
 def linear_unit(frames: np.ndarray, gamma: float, full_scale: float) -> np.ndarray:

@@ -30,10 +30,12 @@ DECISIVE_FRACTION = 0.85  # lower lets stripe-edge pixels in; higher selects pai
 REFERENCE_BITS = 5  # the coarsest bits per axis: stripes of >= 1/32 of the projector
 
 
-def averaged_lit(capture: Capture) -> np.ndarray:
+def averaged_lit(capture: Capture, gamma: float | None = None) -> np.ndarray:
     """(H, W) float32 projector light per pixel, averaged over white − black and the decisive
-    Gray pairs (see the module's docstring), in linear light."""
-    return lit_from_frames(capture.frames, capture.pattern_set, response_gamma(capture), capture.max_value)
+    Gray pairs (see the module's docstring), in linear light. ``gamma``: the camera's tone curve
+    where already measured (``decode``'s ``thresholds["camera_gamma"]``), else measured here."""
+    gamma = response_gamma(capture) if gamma is None else gamma
+    return lit_from_frames(capture.frames, capture.pattern_set, gamma, capture.max_value)
 
 
 def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, full_scale: float = 255.0) -> np.ndarray:
