@@ -21,23 +21,26 @@ class TrialSnapper:
         self.calibration = calibration
         self.cloud = cloud
         self.mark_diameter_mm = mark_diameter_mm
-        self._lit = self._points = None
+        self._lit = self._points = self._clipped = None
         self._lock = threading.Lock()  # two quick clicks: the images are built once
 
     def _images(self):
         with self._lock:
             if self._lit is None:
                 from anklescan.core.scan.capture import load_capture
-                from anklescan.core.scan.lit_image import averaged_lit
+                from anklescan.core.scan.lit_image import averaged_lit, clipped_white
                 from anklescan.core.measure.marks import points_image
-                lit = averaged_lit(load_capture(self.capture_folder))
+                capture = load_capture(self.capture_folder)
+                lit = averaged_lit(capture)
                 self._points = points_image(self.cloud, lit.shape)
+                self._clipped = clipped_white(capture)
                 self._lit = lit
-            return self._lit, self._points
+            return self._lit, self._points, self._clipped
 
     def snap(self, point) -> tuple[float, float, float] | None:
         """The centre of the disk nearest ``point`` (world mm), or None."""
         from anklescan.core.measure.marks_surface import snap_to_disk
-        lit, points = self._images()
-        mark = snap_to_disk(point, lit, points, self.calibration, mark_diameter_mm=self.mark_diameter_mm)
+        lit, points, clipped = self._images()
+        mark = snap_to_disk(point, lit, points, self.calibration, mark_diameter_mm=self.mark_diameter_mm,
+                            clipped=clipped)
         return None if mark is None else tuple(float(v) for v in mark.centre)

@@ -227,6 +227,23 @@ def _region_at(roi, seed, level) -> np.ndarray:
     return lab == lab[seed[1], seed[0]]
 
 
+def border_undecoded(blob, decoded) -> float:
+    """Fraction of the pixels just outside ``blob`` (a 2-px ring round its region) that have no
+    3-D point. ``decoded``: (H, W) bool, or the (H, W, 3) points image."""
+    y0, x0 = blob["slice"][0].start, blob["slice"][1].start
+    H, W = decoded.shape[:2]
+    region = np.pad(blob["region"], 3)
+    ring = (cv2.dilate(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & ~region
+    v, u = np.nonzero(ring)
+    v, u = v + y0 - 3, u + x0 - 3
+    inside = (v >= 0) & (v < H) & (u >= 0) & (u < W)
+    if not inside.any():
+        return 1.0
+    hit = decoded[v[inside], u[inside]]
+    hit = np.isfinite(hit[:, 0]) if hit.ndim == 2 else hit
+    return float(1.0 - hit.mean())
+
+
 def blob_shape(blob):
     """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
     region = blob["region"].astype(np.uint8)

@@ -9,7 +9,8 @@ import math
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
-from anklescan.core.measure.mark_candidates import blob_shape, camera_depth, ellipse_pixels, plate_radius_px
+from anklescan.core.measure.mark_candidates import (blob_shape, border_undecoded, camera_depth, ellipse_pixels,
+                                                    plate_radius_px)
 from anklescan.core.measure.mark_edges import clean_edge_mask, edge_profiles, plane_basis, ray_plane, sliver_edges, top_face_pixels
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
@@ -62,6 +63,13 @@ MAX_LIGHT_DEG = 85.0
 # 8 mm plate seen at 66° left 7 pixels in one image row: RMS 0.000 mm, 3.7 mm off).
 MAX_PLANE_TILT_SD_RAD = 0.1
 MIN_EDGE_POINTS = 8
+# A sticker lies on the skin, lit as the skin round it is, so the skin round it is decoded;
+# fits with more than this of their blob's border undecoded were bright patches seen between
+# depth steps (a lit sliver of floor between the leg's shadows, 0.98; a strip along the
+# malleolus's silhouette, 0.90), each an eighth mark that cost a trial its labels. Real
+# stickers in the variant sweep (docs/marks.md): at most 0.73. A plate's surround may be dark
+# or shadowed all round (up to 1.0).
+STICKER_MAX_BORDER_UNDECODED = 0.8
 
 # A plate's normal is steadied by that of the surface round it (``combined_normal``) only where
 # the ring of surface_step is this well decoded: the front ankle plate lit at a grazing angle
@@ -87,7 +95,8 @@ SD_FLOOR_MM = 0.05
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
              prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
-             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None):
+             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
+             clipped=None):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -107,6 +116,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     ``lit_sticker_edges``: fit only as a sticker, with edges from the lit image.
     ``prefer_kind``: the kind of this capture's other marks (``find_marks``; a clinic sticks one
     kind), the only one tried where this mark's step is inconclusive or could not be measured.
+    ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -129,7 +139,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     lo, hi = radius_bounds or (radius_mm, radius_mm)
     if not (AREA_RANGE[0] * math.pi * (lo * px_per_mm) ** 2 <= shape["area"] <= AREA_RANGE[1] * math.pi * (hi * px_per_mm) ** 2):
         return None, f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
-    profiles = edge_profiles(image, shape)
+    profiles = edge_profiles(image, shape, clipped=clipped)
     if len(profiles.rows) < MIN_EDGE_POINTS:
         return None, "no clear edge"
     frame = local_frame(centroid, normal)
@@ -149,10 +159,15 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
+    if border_undecoded(blob, points) > STICKER_MAX_BORDER_UNDECODED:
+        tries = [t for t in tries if t[0] != "sticker"]
+        if not tries:
+            return None, "no decoded surface around it, and a sticker lies on one"
     first_reason = None
     for kind, alb in tries:
         mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
-                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, alb, surface)
+                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, alb, surface,
+                                 clipped)
         if mark is not None:
             return mark, ""
         first_reason = first_reason or reason
@@ -160,14 +175,14 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
 
 
 def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
-              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None):
+              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None, clipped=None):
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
     cam_c = cal.camera.center
     n_in0 = n_in
     lit_profiles = profiles
     if kind == "sticker":
         if albedo is not None:
-            pa = edge_profiles(albedo, shape, local_level=True)
+            pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
             profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
         out = fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
     else:
@@ -211,11 +226,26 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
         cov = cov + _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
                                        centre)
+    clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
+    if clipped_rim:
+        # the clipped rim's edges may lie anywhere up to their span inwards (``edge_profiles``):
+        # the fit with all of them there, and a third of the centre's move squared (the RMS
+        # offset of a point spread evenly over the span from its outer end)
+        inward = profiles.inward()
+        if kind == "sticker":
+            other = fit_on_surface(points, sigma, shape, inward, cal, centroid, normal, radius_mm, prior_sd)
+        else:
+            other = _fit_plate(image, points, sigma, inward, cal, centroid, normal, plane_rms, n_in, radius_mm,
+                               prior_sd, px_per_mm, thickness, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape),
+                               surface)
+        if not isinstance(other, str):
+            cov = cov + np.outer(other[0] - centre, other[0] - centre) / 3.0
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
-                doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd)), ""
+                doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
+                clipped=clipped_rim), ""
 
 
 def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):

@@ -34,7 +34,8 @@ import cv2
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
-from anklescan.core.measure.mark_candidates import (camera_depth, candidate_blobs, cut_blob, noise_sigma, plate_radius_px,
+from anklescan.core.measure.mark_candidates import (border_undecoded, camera_depth, candidate_blobs, cut_blob,
+                                  noise_sigma, plate_radius_px,
                                   points_image, ring_level, shading_corrected, sigma_image)
 from anklescan.core.measure.mark_fit import RADIUS_PRIOR_SD_MM, STICKER_MAX_STEP_MM, WIDER_MAX_RADIUS_SD_MM, fit_mark
 from anklescan.core.measure.mark_labels import LABELS, label_marks
@@ -78,6 +79,10 @@ class Mark:
     # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): held back
     # while the second look searches its place (``find_marks``)
     doubtful: bool = False
+    # its face is saturated in the camera along part of the rim used: the rim there may lie
+    # inside where it is read, and the covariance says how far (``edge_profiles``); lower the
+    # camera's exposure
+    clipped: bool = False
 
     @property
     def sd(self) -> float:
@@ -92,7 +97,8 @@ class Mark:
                 "edge_points": self.n_edge, "interior_points": self.n_interior,
                 "kind": self.kind, "step_mm": None if self.step_mm is None else round(self.step_mm, 3),
                 "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
-                "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1)}
+                "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1),
+                "overexposed": self.clipped}
 
 
 @dataclass
@@ -150,13 +156,15 @@ class MarkSet:
 # ---------------------------------------------------------------------------- public entry
 
 def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
-               mark_diameter_mm: float | None = None) -> MarkSet:
+               mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> MarkSet:
     """Detect, fit and label the marks of one scan: rigid plates or stickers, of one size.
 
     ``lit``: the projector's light alone per camera pixel (white − black, or better
     ``anklescan.core.scan.lit_image.averaged_lit`` of the capture, with a third of the noise);
     ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used;
-    ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``).
+    ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``);
+    ``clipped``: (H, W) bool, where the camera's white frame is saturated (``clipped_white``):
+    there a disk's rim is found by its steepest fall, not half-way down (``edge_profiles``).
 
     Two passes: every candidate fitted with its own free radius (the sizes seen), the common
     size taken from the largest group of agreeing radii, then every candidate fitted again with
@@ -170,7 +178,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     bounds = SIZE_RANGE_MM
     blobs = candidate_blobs(image, points, cal, noise, bounds)
     albedo = shading_corrected(image, points, cal)
-    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo)[0]
+    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
+                     clipped=clipped)[0]
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
     steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
@@ -195,7 +204,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     refused = []
     for blob in blobs:
         mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
-                                prefer_kind=prefer)
+                                prefer_kind=prefer, clipped=clipped)
         if mark is None:
             result.rejected.append({"pixel": blob["centre"], "reason": reason})
             refused.append(blob)
@@ -205,7 +214,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     held = [m for m in result.marks if m.doubtful]
     result.marks = [m for m in result.marks if not m.doubtful]
     if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick, prefer)
+        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
     _restore_held(result, held, cal, r0)
     if len(result.marks) < len(LABELS):
         # the last look: a refused blob as a sticker with the lit image's edges. A lateral 20 mm
@@ -217,12 +226,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         for blob in refused:
             if any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r for m, r in zip(result.marks, r_px)):
                 continue
-            mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True)
+            mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True,
+                               clipped=clipped)
             if mark is not None:
                 result.marks.append(mark)
                 r_px.append(_radius_px(cal, mark, r0))
     if len(result.marks) < len(LABELS):
-        _wider_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer)
+        _wider_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
@@ -284,7 +294,7 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
 
 
 def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
-                thickness, prefer_kind) -> None:
+                thickness, prefer_kind, clipped=None) -> None:
     """Last of all, the refused blobs' wider cuts (``cut_blob``), away from the marks found, kept
     where the fit is clearly a disk (free radius SD <= WIDER_MAX_RADIUS_SD_MM, not doubtful): a
     thick plate's face beside its bright side wall (a 15 x 3 mm table plate at 0/-20). Tried in
@@ -296,11 +306,20 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
         if wider is None or any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r
                                 for m, r in zip(result.marks, r_px)):
             continue
-        mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=thickness, prefer_kind=prefer_kind)
-        if mark is not None and mark.radius_sd <= WIDER_MAX_RADIUS_SD_MM and not mark.doubtful:
+        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
+        if mark is not None:
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
+
+
+def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
+               clipped=None):
+    """A blob's wider cut fitted, kept only where the fit is clearly a disk (see ``_wider_look``)."""
+    mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                       plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped)
+    if mark is not None and mark.radius_sd <= WIDER_MAX_RADIUS_SD_MM and not mark.doubtful:
+        return mark
+    return None
 
 
 def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
@@ -324,7 +343,7 @@ def _common_kind(kinds: list) -> str | None:
 
 
 def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
-                 albedo=None, plate_thickness=None, prefer_kind=None) -> None:
+                 albedo=None, plate_thickness=None, prefer_kind=None, clipped=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
     A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
@@ -355,7 +374,7 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
         if border_undecoded(blob, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED:
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
         mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=plate_thickness, prefer_kind=prefer_kind)
+                           plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
@@ -372,23 +391,10 @@ SECOND_LOOK_MIN_DECODED = 0.8
 SECOND_LOOK_MAX_BORDER_UNDECODED = 1 / 3
 
 
-def border_undecoded(blob, decoded) -> float:
-    """Fraction of the pixels just outside ``blob`` (a 2-px ring round its region) that have no
-    3-D point."""
-    y0, x0 = blob["slice"][0].start, blob["slice"][1].start
-    H, W = decoded.shape
-    region = np.pad(blob["region"], 3)
-    ring = (cv2.dilate(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & ~region
-    v, u = np.nonzero(ring)
-    v, u = v + y0 - 3, u + x0 - 3
-    inside = (v >= 0) & (v < H) & (u >= 0) & (u < W)
-    if not inside.any():
-        return 1.0
-    return float(1.0 - decoded[v[inside], u[inside]].mean())
 
 
 def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0,
-                   mark_diameter_mm: float | None = None):
+                   mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None):
     """The white disk nearest ``point`` (a clicked world point, mm) within ``search_mm``: a
     fitted ``Mark`` (centre of the face; the skin under a sticker's centre), or None.
 
@@ -427,9 +433,9 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     best = None
     for blob in blobs:
         if mark_diameter_mm is None:
-            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds)
+            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds, clipped=clipped)
         else:
-            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma)
+            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma, clipped=clipped)
         if mark is None:
             continue
         d = float(np.linalg.norm(mark.centre - point))

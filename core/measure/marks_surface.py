@@ -295,7 +295,7 @@ def combined_normal(normal, tilt, surface):
 
 
 def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20.0,
-                 mark_diameter_mm: float | None = None):
+                 mark_diameter_mm: float | None = None, clipped=None):
     """The centre of the white disk nearest a clicked 3-D point (manual placement).
 
     ``point``: the clicked world point (mm); ``lit``: the capture's projector-lit image
@@ -303,7 +303,8 @@ def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20
     (``anklescan.core.measure.marks.points_image``). The disks found by the automatic search within
     ``search_mm`` of the click (any size, or ``mark_diameter_mm``) are candidates; the nearest
     one's ``anklescan.core.measure.marks.Mark`` is returned, or None when no disk is there (keep the click).
+    ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
     """
     from anklescan.core.measure.marks import fit_marks_near  # noqa: PLC0415
 
-    return fit_marks_near(np.asarray(point, float), lit, points_img, cal, search_mm, mark_diameter_mm)
+    return fit_marks_near(np.asarray(point, float), lit, points_img, cal, search_mm, mark_diameter_mm, clipped)

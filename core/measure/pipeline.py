@@ -18,7 +18,7 @@ from anklescan.core.calibration.file import Calibration, load_calibration
 from anklescan.core.scan.capture import Capture, load_capture
 from anklescan.core.scan.decode import decode
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.scan.lit_image import averaged_lit
+from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 from anklescan.core.measure.marks import MarkSet, find_marks
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
@@ -88,6 +88,10 @@ class MeasureResult:
         d = self.mark_diameter()
         if d is not None:
             lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
+        over = [k for k, m in rows if m.clipped]
+        if over:
+            lines.append(f"overexposed: mark{'s' * (len(over) > 1)} {', '.join(over)} saturate{'s' * (len(over) == 1)} the "
+                         "camera, so the rim is less certain (the sd says how much): lower the exposure")
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
@@ -106,7 +110,7 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
     lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
-    marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm)
+    marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)

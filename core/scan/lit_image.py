@@ -22,7 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from anklescan.core.scan.camera_response import linearised, response_gamma
+from anklescan.core.scan.camera_response import SATURATED, linearised, response_gamma
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.patterns import PatternSet
 
@@ -36,6 +36,14 @@ def averaged_lit(capture: Capture, gamma: float | None = None) -> np.ndarray:
     where already measured (``decode``'s ``thresholds["camera_gamma"]``), else measured here."""
     gamma = response_gamma(capture) if gamma is None else gamma
     return lit_from_frames(capture.frames, capture.pattern_set, gamma, capture.max_value)
+
+
+def clipped_white(capture: Capture) -> np.ndarray:
+    """(H, W) bool: where the white frame is saturated (at least ``SATURATED`` of full scale).
+    There the lit image reads less than the light: a white mark exposed for the skin beside it
+    clips first, and its rim must then be found by its steepest fall (``edge_profiles``)."""
+    white = capture.frames[capture.pattern_set.index("white")]
+    return np.asarray(white) >= SATURATED * capture.max_value
 
 
 def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, full_scale: float = 255.0) -> np.ndarray:
