@@ -215,3 +215,37 @@ def test_an_overexposed_mark_says_so_and_its_sd_covers_its_error():
         e = m.centre - truth.marks[k]
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, (k, np.linalg.norm(e), m.sd)
     assert res.to_dict()["mark_details"][over[0]]["overexposed"] is True
+
+
+def test_a_disk_beside_its_brighter_side_wall_is_found_by_its_outline():
+    """The disk's outline slid over its surround stops over the disk, not on the bright
+    crescent of side wall beside it that the blob cuts were (``disk_contrast_peak``); the fit
+    then finds the rim from there."""
+    import cv2
+
+    from anklescan.core.measure.mark_candidates import disk_contrast_peak
+
+    yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
+    image = np.full((120, 120), 100.0, np.float32) + 0.5 * xx  # skin, lit more to the right
+    face = ((xx - 60) / 12) ** 2 + ((yy - 58) / 7) ** 2 <= 1
+    wall = (((xx - 57) / 12) ** 2 + ((yy - 58) / 7) ** 2 <= 1) & ~face
+    image[face], image[wall] = 170.0, 400.0
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+    mask = np.zeros((27, 27), np.uint8)
+    cv2.ellipse(mask, (13, 13), (12, 7), 0, 0, 360, 1, -1)
+    blob = disk_contrast_peak(image, {"mask": mask.astype(bool), "centre": (52, 58)})
+    assert blob is not None
+    covered = np.zeros(face.shape, bool)
+    covered[blob["slice"]] = blob["region"]
+    assert (covered & face).sum() >= 0.8 * face.sum() and np.hypot(blob["centre"][0] - 60, blob["centre"][1] - 58) <= 3.5
+
+
+def test_a_thick_plate_whose_every_cut_is_its_side_wall_is_found():
+    """Variant 28 at 10/0, full resolution: the 13.4 x 2 mm lateral ankle plate's lit side wall
+    outshines its face, whose level the skin on that side shares; every blob cut was the wall's
+    crescent and the mark was missing. The disk's predicted outline finds it (``_shape_look``)."""
+    rig = variant_rig(draw_variant(28), 10, 0, scale=1.0, seed=2)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k

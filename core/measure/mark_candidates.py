@@ -244,6 +244,90 @@ def border_undecoded(blob, decoded) -> float:
     return float(1.0 - hit.mean())
 
 
+def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
+    """The image of a disk of ``radius_mm`` lying on the surface near pixel ``centre``: a dict
+    with the filled outline ``mask`` (odd-sized, centred) and ``centre``, from a plane through
+    the decoded points within 2.5 radii (None where fewer than a third of them are decoded)."""
+    u, v = int(round(centre[0])), int(round(centre[1]))
+    H, W = points.shape[:2]
+    valid = np.isfinite(points[..., 0])
+    near = points[max(v - 3, 0):v + 4, max(u - 3, 0):u + 4].reshape(-1, 3)
+    near = near[np.isfinite(near[:, 0])]
+    if not len(near):
+        return None
+    r = float(plate_radius_px(cal, np.median(camera_depth(cal, near)), radius_mm))
+    h = int(math.ceil(2.5 * r))
+    win = (slice(max(v - h, 0), min(v + h + 1, H)), slice(max(u - h, 0), min(u + h + 1, W)))
+    P = points[win][valid[win]].astype(np.float64)
+    if len(P) < max(10, valid[win].size // 3):
+        return None
+    c = np.median(P, axis=0)
+    _, _, vt = np.linalg.svd(P - c, full_matrices=False)  # the surface's plane, near enough for an outline
+    n = vt[2]
+    ray = cal.camera.rays(np.array([[u, v]], float))[0]
+    o = cal.camera.center
+    t = float((c - o) @ n) / float(ray @ n)
+    if not np.isfinite(t) or t <= 0:
+        return None
+    X = o + t * ray
+    e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    phi = np.linspace(0, 2 * math.pi, 64, endpoint=False)
+    rim = cal.camera.project(X + radius_mm * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
+    if not np.isfinite(rim).all():
+        return None
+    rim = rim - [u, v]
+    half = int(math.ceil(np.abs(rim).max())) + 1
+    mask = np.zeros((2 * half + 1, 2 * half + 1), np.uint8)
+    cv2.fillPoly(mask, [np.round(rim + half).astype(np.int32)], 1)
+    if mask.sum() < 5:
+        return None
+    return {"mask": mask.astype(bool), "centre": (u, v)}
+
+
+def disk_contrast_peak(image, disk, reach: float = 1.0):
+    """Where ``disk``'s outline (``predicted_disk``), slid within ``reach`` of its own size
+    round its centre, holds the most light over a ring just outside it: a blob of that outline
+    there (None at the search window's edge or off the image)."""
+    mask = disk["mask"]
+    m = mask.astype(np.uint8)
+    k = mask.shape[0]
+    outer = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)), iterations=max(k // 10, 1))
+    size = k + 2 * (outer.shape[0] // 2)
+    kern = np.zeros((size, size), np.float32)
+    o = (size - k) // 2
+    ring = np.zeros_like(kern)
+    big = cv2.copyMakeBorder(outer, o, o, o, o, cv2.BORDER_CONSTANT, value=0).astype(bool)
+    inner = np.zeros(kern.shape, bool)
+    inner[o:o + k, o:o + k] = mask
+    ring[big & ~cv2.dilate(inner.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)] = 1.0
+    if not ring.any():
+        return None
+    kern[inner] = 1.0 / inner.sum()
+    kern -= ring / ring.sum()
+    u, v = disk["centre"]
+    H, W = image.shape
+    reach_px = int(math.ceil(reach * k / 2))
+    pad = size // 2 + reach_px
+    y0, y1, x0, x1 = v - pad, v + pad + 1, u - pad, u + pad + 1
+    if y0 < 0 or x0 < 0 or y1 > H or x1 > W:
+        return None
+    score = cv2.filter2D(image[y0:y1, x0:x1].astype(np.float32), -1, kern, borderType=cv2.BORDER_CONSTANT)
+    c = size // 2
+    inside = score[c:c + 2 * reach_px + 1, c:c + 2 * reach_px + 1]
+    j = np.unravel_index(int(np.argmax(inside)), inside.shape)
+    if j[0] in (0, inside.shape[0] - 1) or j[1] in (0, inside.shape[1] - 1):
+        return None
+    cu, cv_ = u - reach_px + j[1], v - reach_px + j[0]
+    half = k // 2
+    if cv_ - half - 1 < 0 or cu - half - 1 < 0 or cv_ + half + 2 > H or cu + half + 2 > W:
+        return None
+    region = np.pad(mask, 1)
+    return {"slice": (slice(cv_ - half - 1, cv_ + half + 2), slice(cu - half - 1, cu + half + 2)), "region": region,
+            "origin": (cu - half - 1, cv_ - half - 1), "centre": (float(cu), float(cv_))}
+
+
 def blob_shape(blob):
     """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
     region = blob["region"].astype(np.uint8)

@@ -35,7 +35,7 @@ import numpy as np
 
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import (border_undecoded, camera_depth, candidate_blobs, cut_blob,
-                                  noise_sigma, plate_radius_px,
+                                  disk_contrast_peak, noise_sigma, plate_radius_px, predicted_disk,
                                   points_image, ring_level, shading_corrected, sigma_image)
 from anklescan.core.measure.mark_fit import RADIUS_PRIOR_SD_MM, STICKER_MAX_STEP_MM, WIDER_MAX_RADIUS_SD_MM, fit_mark
 from anklescan.core.measure.mark_labels import LABELS, label_marks
@@ -233,6 +233,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
                 r_px.append(_radius_px(cal, mark, r0))
     if len(result.marks) < len(LABELS):
         _wider_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
+    if len(result.marks) < len(LABELS):
+        _shape_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
@@ -312,6 +314,31 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
             r_px.append(_radius_px(cal, mark, radius_mm))
 
 
+def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
+                thickness, prefer_kind, clipped=None) -> None:
+    """Last of all, where a refused blob's cut is not the disk (a thick plate's lit side wall,
+    brighter than its face, which is no brighter than the skin on the wall's side: variant 28
+    at 10/0, a 13.4 x 2 mm lateral ankle plate, every cut the wall's crescent alone): the disk
+    as it must image, the marks' size on the surface round the blob (``predicted_disk``), slid
+    over the blob's surround to where it stands out most (``disk_contrast_peak``), and fitted as
+    a blob of that outline. Kept where the fit is clearly a disk, as the wider look's."""
+    r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
+    for blob in refused:
+        if any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r for m, r in zip(result.marks, r_px)):
+            continue
+        disk = predicted_disk(points, cal, blob["centre"], radius_mm)
+        if disk is None:
+            continue
+        found = disk_contrast_peak(image, disk)
+        if found is None:
+            continue
+        mark = _wider_fit(found, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
+        if mark is not None and all(np.hypot(*(np.asarray(mark.pixel) - m.pixel)) >= 2 * r
+                                    for m, r in zip(result.marks, r_px)):
+            result.marks.append(mark)
+            r_px.append(_radius_px(cal, mark, radius_mm))
+
+
 def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
                clipped=None):
     """A blob's wider cut fitted, kept only where the fit is clearly a disk (see ``_wider_look``)."""
@@ -375,6 +402,9 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
         mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
                            plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped)
+        if mark is None and blob.get("wider") is not None:
+            mark = _wider_fit(blob["wider"], image, points, cal, radius_mm, sigma, prior_sd, albedo, plate_thickness,
+                              prefer_kind, clipped)
         if mark is not None:
             result.marks.append(mark)
             found.append(mark.pixel)
