@@ -250,7 +250,6 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
     the decoded points within 2.5 radii (None where fewer than a third of them are decoded)."""
     u, v = int(round(centre[0])), int(round(centre[1]))
     H, W = points.shape[:2]
-    valid = np.isfinite(points[..., 0])
     near = points[max(v - 3, 0):v + 4, max(u - 3, 0):u + 4].reshape(-1, 3)
     near = near[np.isfinite(near[:, 0])]
     if not len(near):
@@ -258,8 +257,9 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
     r = float(plate_radius_px(cal, np.median(camera_depth(cal, near)), radius_mm))
     h = int(math.ceil(2.5 * r))
     win = (slice(max(v - h, 0), min(v + h + 1, H)), slice(max(u - h, 0), min(u + h + 1, W)))
-    P = points[win][valid[win]].astype(np.float64)
-    if len(P) < max(10, valid[win].size // 3):
+    valid = np.isfinite(points[win][..., 0])
+    P = points[win][valid].astype(np.float64)
+    if len(P) < max(10, valid.size // 3):
         return None
     c = np.median(P, axis=0)
     _, _, vt = np.linalg.svd(P - c, full_matrices=False)  # the surface's plane, near enough for an outline

@@ -141,7 +141,7 @@ def _clipped_span(prof, sat, start, x, inner, outer) -> np.ndarray:
     point may lie (samples): as far as where the profile leaves the clipped plateau (within
     PLATEAU_DROP of its contrast; the disk twice as bright over its surround as it reads);
     0 where no solid plateau (``sat``, the clip mask along the profile) reaches ``x``."""
-    n, n_s = sat.shape
+    n_s = sat.shape[1]
     j = np.arange(n_s)[None, :]
     before = (j >= start[:, None]) & (j <= np.floor(x)[:, None])
     on_plateau = before & (prof >= (inner - PLATEAU_DROP * (inner - outer))[:, None])
@@ -166,7 +166,7 @@ def _clipped_bound(prof, sat, start, x, inner, outer) -> np.ndarray:
     bounded). The edge itself is not moved: a correction for the clip fraction, estimated from
     the fall's shape above and below ``x``, was tried and was off by up to 0.8 px on synthetic
     disks of 0.6-1.2 px blur (the plateau's end is read only to the pixel)."""
-    n, n_s = prof.shape
+    n_s = prof.shape[1]
     up = _clipped_span(prof, sat, start, x, inner, outer)
     j = np.arange(n_s)[None, :]
     low_level = outer + LOW_FRACTION * (inner - outer)
