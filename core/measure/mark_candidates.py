@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.robust import robust_sigma
 
@@ -270,9 +271,7 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
     if not np.isfinite(t) or t <= 0:
         return None
     X = o + t * ray
-    e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    e1, e2 = plane_basis(n)
     phi = np.linspace(0, 2 * math.pi, 64, endpoint=False)
     rim = cal.camera.project(X + radius_mm * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
     if not np.isfinite(rim).all():

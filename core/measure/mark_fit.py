@@ -159,7 +159,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
-    if border_undecoded(blob, points) > STICKER_MAX_BORDER_UNDECODED:
+    if any(k == "sticker" for k, _ in tries) and border_undecoded(blob, points) > STICKER_MAX_BORDER_UNDECODED:
         tries = [t for t in tries if t[0] != "sticker"]
         if not tries:
             return None, "no decoded surface around it, and a sticker lies on one"
@@ -180,14 +180,18 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     cam_c = cal.camera.center
     n_in0 = n_in
     lit_profiles = profiles
-    if kind == "sticker":
-        if albedo is not None:
-            pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
-            profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
-        out = fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd)
-    else:
-        out = _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
-                         px_per_mm, thickness, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape), surface)
+    interior = ellipse_pixels(shape, INTERIOR_FRACTION, image.shape)
+
+    def fit(edges):  # this kind's fit on the given edge profiles
+        if kind == "sticker":
+            return fit_on_surface(points, sigma, shape, edges, cal, centroid, normal, radius_mm, prior_sd)
+        return _fit_plate(image, points, sigma, edges, cal, centroid, normal, plane_rms, n_in0, radius_mm, prior_sd,
+                          px_per_mm, thickness, interior, surface)
+
+    if kind == "sticker" and albedo is not None:
+        pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
+        profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
+    out = fit(profiles)
     if isinstance(out, str):
         return None, out
     from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
@@ -214,7 +218,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     light_deg = view_deg(cal.projector.center, centre, normal)
     if light_deg > MAX_LIGHT_DEG:
         return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
-    limit = face_rms_limit(sigma, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape))
+    limit = face_rms_limit(sigma, interior)
     if surf_rms > limit:
         return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})"
     if prior_sd is not None:
@@ -231,13 +235,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         # the clipped rim's edges may lie anywhere up to their span inwards (``edge_profiles``):
         # the fit with all of them there, and a third of the centre's move squared (the RMS
         # offset of a point spread evenly over the span from its outer end)
-        inward = profiles.inward()
-        if kind == "sticker":
-            other = fit_on_surface(points, sigma, shape, inward, cal, centroid, normal, radius_mm, prior_sd)
-        else:
-            other = _fit_plate(image, points, sigma, inward, cal, centroid, normal, plane_rms, n_in, radius_mm,
-                               prior_sd, px_per_mm, thickness, ellipse_pixels(shape, INTERIOR_FRACTION, image.shape),
-                               surface)
+        other = fit(profiles.inward())
         if not isinstance(other, str):
             cov = cov + np.outer(other[0] - centre, other[0] - centre) / 3.0
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])

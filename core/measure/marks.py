@@ -164,7 +164,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     ``cloud``: its reconstruction (``pixels`` must be set); ``cal``: the calibration used;
     ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``);
     ``clipped``: (H, W) bool, where the camera's white frame is saturated (``clipped_white``):
-    there a disk's rim is found by its steepest fall, not half-way down (``edge_profiles``).
+    a rim read there may lie inside where it is read, and the mark's covariance says how far
+    (``edge_profiles``).
 
     Two passes: every candidate fitted with its own free radius (the sizes seen), the common
     size taken from the largest group of agreeing radii, then every candidate fitted again with
@@ -224,7 +225,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         # took a front sticker at 20/20 that the second look finds 0.13 mm off, 0.38 mm off.
         r_px = [_radius_px(cal, m, r0) for m in result.marks]
         for blob in refused:
-            if any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r for m, r in zip(result.marks, r_px)):
+            if not _away(blob["centre"], result.marks, r_px):
                 continue
             mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True,
                                clipped=clipped)
@@ -276,6 +277,11 @@ def _radius_px(cal: Calibration, mark: "Mark", radius_mm: float) -> float:
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
 
 
+def _away(pixel, marks, r_px) -> bool:
+    """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
+    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px))
+
+
 def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -> None:
     """The doubtful marks (free radius far from the size, ``Mark.doubtful``) after the second
     look: one is kept where no other mark lies within two radii, the first pass's (``held``)
@@ -305,8 +311,7 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
     r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
         wider = blob.get("wider")
-        if wider is None or any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r
-                                for m, r in zip(result.marks, r_px)):
+        if wider is None or not _away(blob["centre"], result.marks, r_px):
             continue
         mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
         if mark is not None:
@@ -324,7 +329,7 @@ def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
     a blob of that outline. Kept where the fit is clearly a disk, as the wider look's."""
     r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
-        if any(np.hypot(*(np.asarray(blob["centre"]) - m.pixel)) < 2 * r for m, r in zip(result.marks, r_px)):
+        if not _away(blob["centre"], result.marks, r_px):
             continue
         disk = predicted_disk(points, cal, blob["centre"], radius_mm)
         if disk is None:
@@ -333,8 +338,7 @@ def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
         if found is None:
             continue
         mark = _wider_fit(found, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
-        if mark is not None and all(np.hypot(*(np.asarray(mark.pixel) - m.pixel)) >= 2 * r
-                                    for m, r in zip(result.marks, r_px)):
+        if mark is not None and _away(mark.pixel, result.marks, r_px):
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
 
