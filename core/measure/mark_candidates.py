@@ -287,8 +287,11 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
 
 def disk_contrast_peak(image, disk, reach: float = 1.0):
     """Where ``disk``'s outline (``predicted_disk``), slid within ``reach`` of its own size
-    round its centre, holds the most light over a ring just outside it: a blob of that outline
-    there (None at the search window's edge or off the image)."""
+    round its centre, holds the most light over its surround: a blob of that outline there
+    (None at the search window's edge or off the image). The surround is the rest of the
+    outline's bounding box, a pixel clear of it (the dilation below is cut off at that box, so
+    at the ends of a flat ellipse's long axis there is next to none): a local background, not
+    the even ring it was meant to be (docs/marks.md, "Held-out set-ups")."""
     mask = disk["mask"]
     m = mask.astype(np.uint8)
     k = mask.shape[0]
