@@ -144,6 +144,7 @@ def main(argv=None):
     PRESET[0], THICKNESS[0] = a.preset, a.thickness
     jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
+    wrong_complete = 0
     reach = {"trials": 0, "incomplete": 0, "errors": [], "angles": []}
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
         for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
@@ -157,6 +158,8 @@ def main(argv=None):
                 reach["errors"] += r["marks"].values()
                 reach["angles"] += map(abs, r["angles"].values())
             n_found += len(r["found"])
+            # the worst outcome: a trial that says it is complete with a mark mislabelled
+            wrong_complete += r["complete"] and any(k != lab for k, lab in r["found"].items())
             n_right += sum(k == lab for k, lab in r["found"].items())
             errors += r["marks"].values()
             angle_errors += map(abs, r["angles"].values())
@@ -180,6 +183,7 @@ def main(argv=None):
     z = z or [0.0]
     print(f"worst mark error {e.max():.3f} mm, worst angle error {max(angle_errors):.3f} deg, incomplete trials "
           f"{failures} of {n_trials}; marks found {n_found}/{7 * n_trials}, correctly labelled {n_right}/{7 * n_trials}")
+    print(f"complete trials with a wrong label (wrong angles, no warning): {wrong_complete}")
     if reach["trials"] < n_trials:
         print(f"in reach (every mark seen <= {REACH_VIEW_DEG:.0f}°, lit <= {REACH_LIGHT_DEG:.0f}°): {reach['trials']} of "
               f"{n_trials} trials, incomplete {reach['incomplete']}, worst mark error "

@@ -78,6 +78,25 @@ def test_lone_leg_plate_labelled_by_the_other_pair(lateral_deg, inv, pf):
         assert sorted(ms.missing) == ["1", "2"]
 
 
+@pytest.mark.parametrize("inv,pf", [(0, 20), (20, -20)])
+@pytest.mark.parametrize("lost", ["2", "4"])
+def test_a_mark_facing_up_never_takes_a_leg_label(inv, pf, lost):
+    """An ankle mark is lost and a bright patch on the floor passes as a mark, facing up: it
+    must not complete the set. (Held-out variant 64 at 0/20: it was labelled the lateral ankle
+    mark, the true one the front, and the leg's angles came out 6° and 16° off with no warning.)"""
+    scene = leg_scene(inv, pf)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    marks = _truth_marks(scene, drop=(lost,))
+    floor = scene.marks[lost].centre + np.array([-20.0, -140.0, -40.0])
+    marks.append(Mark(floor, np.array([-0.15, -0.26, 0.95]) / np.linalg.norm([-0.15, -0.26, 0.95]), 7.5, 0.05, 0.05,
+                      np.eye(3) * 0.01, (0.0, 0.0), 11, 13))
+    ms = MarkSet(marks=marks)
+    label_marks(ms)
+    assert not ms.complete and ms.missing == [lost], ms.message()
+    for m in ms.marks:
+        assert m.label == truth.get(tuple(np.round(m.centre, 6)))  # the floor patch: None
+
+
 def test_circle_prior_holds_a_short_noisy_arc():
     """A 90° arc with 0.15 mm scatter: the radius prior (weighted against the arc's own
     scatter) keeps the centre; a fixed small weight let it drift ~0.5 mm (docs/marks.md)."""

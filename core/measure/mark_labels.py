@@ -26,7 +26,7 @@ SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round
 # Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
 # (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
 LONE_SPLIT_DEG = 65.0
-LEG_NORMAL_MAX_Z = 0.7  # without the table triple: leg plates are those with |n_z| < this
+LEG_NORMAL_MAX_Z = 0.7  # leg plates face sideways: |n_z| < this (the leg stands; z is up, SPEC §1)
 
 
 def label_marks(ms: MarkSet) -> None:
@@ -40,7 +40,10 @@ def label_marks(ms: MarkSet) -> None:
     if table is not None:
         for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
             m.label = lab
-        leg = [m for i, m in enumerate(marks) if i not in table]
+        # a leg mark faces sideways: a bright patch on the floor or the foot's top that passed
+        # as a mark must not take a leg label (variant 64 at 0/20: one did, as the lateral ankle
+        # mark, the true one became the front, and the leg's angles were 6° and 16° off)
+        leg = [m for i, m in enumerate(marks) if i not in table and abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
         if len(leg) <= 4:
             _label_leg(leg, ms.problems)
         else:
