@@ -134,20 +134,28 @@ class ScanFlow(QObject):
         tid = self.logic.trial_id
         has_cloud = self.logic.finished(result)
         self._show_result(result)
+        notes = []  # (kind, text, action): one banner, of the most severe kind, says them all
         if result.save_error:
-            win.banner.show_message("error", result.save_error)
+            notes.append(("error", result.save_error, None))
+        if result.motion_flagged:
+            notes.append(("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
+                          "(The trial is flagged and left out of the statistics unless kept.)",
+                          ("Scan again", self._scan_again)))
+        if result.overexposed:
+            many = len(result.overexposed) > 1
+            notes.append(("warning", f"Mark{'s' * many} {', '.join(result.overexposed)} "
+                          f"{'are' if many else 'is'} overexposed, so {'their' if many else 'its'} position is "
+                          "less certain: lower the exposure in the camera panel and scan again.", None))
         if has_cloud and tid is not None:
             win.review.show_cloud(result.cloud, tid)
             if result.marks:
                 # shown for confirmation in the 3-D view and saved as automatic; undo stops here
                 win.review.marks_page.editor.propose_auto(result.marks)
             if result.marks_note:
-                win.banner.show_message("info", "Some marks were not found automatically: place them in the "
-                                        f"3-D view ({result.marks_note}).")
-        if result.motion_flagged:  # last, so no other message hides it
-            win.banner.show_message("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
-                                    "(The trial is flagged and left out of the statistics unless kept.)",
-                                    ("Scan again", self._scan_again))
+                notes.append(("info", "Some marks were not found automatically: place them in the "
+                              f"3-D view ({result.marks_note}).", None))
+        if notes:
+            show_notes(win.banner, notes)
         win.scan_page.form.clear_notes()
         win.scan_page.progress.setFormat("Done")
         win.records.show_session(select_trial=tid)
@@ -184,3 +192,14 @@ class ScanFlow(QObject):
         self.win.scan_page.progress.setFormat("Cancelled")
         self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
                                      f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
+
+
+SEVERITY = ("info", "warning", "error")
+
+
+def show_notes(banner, notes: list) -> None:
+    """One banner for a scan's notes, [(kind, text, action or None)]: the most severe kind, every
+    text in the order given, and the first action offered."""
+    kind = max((k for k, _, _ in notes), key=SEVERITY.index)
+    action = next((a for _, _, a in notes if a is not None), None)
+    banner.show_message(kind, " ".join(t for _, t, _ in notes), action)

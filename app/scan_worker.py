@@ -63,6 +63,7 @@ class ScanResult:
     depth_range: tuple = (0.0, 0.0)     # mm from the camera, near and far ends of the colours
     marks: dict = field(default_factory=dict)  # automatically found marks, label -> xyz mm
     marks_note: str = ""                # what the detector could not find, when it missed some
+    overexposed: list = field(default_factory=list)  # labels of the marks whose face saturates the camera
     cloud_path: Path | None = None      # the saved cloud, when ScanJob.cloud_path was given
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
@@ -114,6 +115,7 @@ class _Scan:
             result.cloud = out.cloud
             result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
             result.marks_note = "" if out.complete else out.marks.message()
+            result.overexposed = out.marks.overexposed()
             motion = getattr(out, "motion", None)
             if motion is not None:
                 result.motion_mm, result.motion_sd_mm = motion.value_mm, motion.sd_mm

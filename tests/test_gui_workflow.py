@@ -438,3 +438,44 @@ def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeyp
     assert win.store.get_trial(tid).counted and win.store.get_trial(tid).motion_keep
     assert ("trial", "kept") in [(e.entity, e.kind) for e in win.store.events()]
     win.close()
+
+
+def _set_camera_control(win, label: str, value: str) -> None:
+    """Type a value into the camera panel's box labelled ``label``, as a person does."""
+    from PySide6.QtWidgets import QDoubleSpinBox, QFormLayout
+    _click_tab(win, 0)  # the Camera tab
+    form = win.camera_panel._controls_form
+    boxes = [form.itemAt(r, QFormLayout.ItemRole.FieldRole).widget() for r in range(form.rowCount())
+             if form.itemAt(r, QFormLayout.ItemRole.LabelRole) is not None
+             and form.itemAt(r, QFormLayout.ItemRole.LabelRole).widget().text().lower().startswith(label.lower())]
+    assert boxes and isinstance(boxes[0], QDoubleSpinBox), f"no box labelled {label!r}"
+    box = boxes[0]
+    click(box)
+    box.lineEdit().selectAll()
+    QTest.keyClicks(box.lineEdit(), value)
+    QTest.keyClick(box.lineEdit(), Qt.Key.Key_Return)
+    assert box.value() == pytest.approx(float(value))
+
+
+def test_an_overexposed_mark_is_said_and_lowering_the_exposure_clears_it(qtbot, tmp_path):
+    """Our default simulated scene's lateral knee plate saturates the camera at plantar flexion
+    +20 (by design: hardware/simrig.py). The scan says which mark and what to do; the clinician
+    lowers the exposure in the camera panel, scans again, and the warning is gone."""
+    Path(__import__("os").environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
+    win = calibrated_window(qtbot, operator="op")
+    _add_patient(qtbot, win, "P-081")
+    _new_session(qtbot, win)
+    _scan(qtbot, win, "0", "20")
+    print("\nbanner:", win.banner.text)
+    assert win.banner.kind == "warning" and "Mark 3 is overexposed" in win.banner.text
+    assert "lower the exposure in the camera panel" in win.banner.text
+    _set_camera_control(win, "Exposure", "0.7")
+    _scan(qtbot, win, "0", "20")
+    print("banner after:", win.banner.text or "(none)")
+    assert "overexposed" not in win.banner.text
+    import json
+    controls = json.loads((win.last_result.folder / "manifest.json").read_text())["capture"]["controls"]
+    assert controls["exposure"] == pytest.approx(0.7), controls  # the capture records what was set
+    trials = win.store.list_trials(win.records.current_session_id())
+    assert len(trials) == 2
+    win.close()

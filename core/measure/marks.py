@@ -134,6 +134,19 @@ class MarkSet:
     def covariances(self) -> dict:
         return {lab: m.covariance for lab, m in sorted(self.labelled.items())}
 
+    def overexposed(self) -> list:
+        """The labels of the marks whose face saturates the camera ("?" for an unlabelled one)."""
+        return ([str(lab) for lab, m in sorted(self.labelled.items()) if m.clipped]
+                + ["?" for m in self.unlabelled if m.clipped])
+
+    def overexposed_message(self) -> str:
+        """One line naming the marks whose face saturates the camera ('' when none)."""
+        over = self.overexposed()
+        if not over:
+            return ""
+        return (f"overexposed: mark{'s' * (len(over) > 1)} {', '.join(over)} saturate{'s' * (len(over) == 1)} the "
+                "camera, so the rim is less certain (the sd says how much): lower the exposure")
+
     def message(self) -> str:
         """One line: what was found and what is missing ('' when all seven are labelled)."""
         if self.complete:

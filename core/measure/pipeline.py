@@ -88,10 +88,8 @@ class MeasureResult:
         d = self.mark_diameter()
         if d is not None:
             lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
-        over = [k for k, m in rows if m.clipped]
-        if over:
-            lines.append(f"overexposed: mark{'s' * (len(over) > 1)} {', '.join(over)} saturate{'s' * (len(over) == 1)} the "
-                         "camera, so the rim is less certain (the sd says how much): lower the exposure")
+        if self.marks.overexposed_message():
+            lines.append(self.marks.overexposed_message())
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
