@@ -249,3 +249,17 @@ def test_a_thick_plate_whose_every_cut_is_its_side_wall_is_found():
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
+
+
+def test_large_plates_on_evenly_shaded_skin_are_cut_against_their_own_surround():
+    """Held-out variant 55 at 0/-20, full resolution: 20.6 mm plates only 1.3x the skin's albedo.
+    The first, any-size pass cut each blob over the opening's minimum, the skin's darkest side;
+    the cut leaked into the lit skin on the other side, no blob was left, no size was measured,
+    and 0 of 7 marks were found. Where that cut leaks, the first pass now cuts again over the
+    decoded surface round the seed, as the later passes do (``candidate_blobs``' ring_background)."""
+    rig = variant_rig(draw_variant(55), 0, -20, scale=1.0, seed=0)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    assert abs(res.marks.diameter[0] - 20.6) < 0.3
+    for k, m in res.marks.labelled.items():
+        assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k

@@ -161,6 +161,8 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
             # the seed must stand out from that surround as seeds do from the opening
             if bg is not None and smooth[v, u] - bg > max(MIN_RELATIVE_CONTRAST * bg, MIN_CONTRAST_SIGMAS * noise):
                 blob = cut_blob(smooth, (u, v), bg, half)
+                if blob is not None:
+                    blob["ring_cut"] = True
         if blob is None:
             continue
         taken[blob["slice"]] |= blob["region"]
