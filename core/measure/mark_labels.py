@@ -26,6 +26,9 @@ SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round
 # Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
 # (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
 LONE_SPLIT_DEG = 65.0
+# With one leg pair lost, the other is the knee's if it is this far over the table top: ankle
+# marks sit 50-100 mm over the sole, knee marks 300-500 mm (a child's to an adult's shank).
+KNEE_MIN_HEIGHT_MM = 200.0
 LEG_NORMAL_MAX_Z = 0.7  # leg plates face sideways: |n_z| < this (the leg stands; z is up, SPEC §1)
 
 
@@ -45,7 +48,7 @@ def label_marks(ms: MarkSet) -> None:
         # mark, the true one became the front, and the leg's angles were 6° and 16° off)
         leg = [m for i, m in enumerate(marks) if i not in table and abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
         if len(leg) <= 4:
-            _label_leg(leg, ms.problems)
+            _label_leg(leg, ms.problems, _table_plane([marks[i] for i in table]))
         else:
             ms.problems.append(f"{len(leg)} leg mark plates (expected 4): leg marks not labelled")
     else:
@@ -111,7 +114,15 @@ def _table_order(ms):
     return [ms[i] for i in np.roll(order, -start)]
 
 
-def _label_leg(leg, problems):
+def _table_plane(table):
+    """(point, upward unit normal) of the table top through its three marks."""
+    P = np.array([m.centre for m in table])
+    n = np.cross(P[1] - P[0], P[2] - P[0])
+    n = n / np.linalg.norm(n)
+    return P.mean(axis=0), n if n[2] >= 0 else -n
+
+
+def _label_leg(leg, problems, table=None):
     """Knee pair above the ankle pair (along the leg axis, i.e. z); within a pair the front
     plate faces anterior (+y) more than lateral (+x), the lateral one the other way round.
 
@@ -135,6 +146,9 @@ def _label_leg(leg, problems):
         gaps = np.diff(z[idx])
         k = int(np.argmax(gaps))
         if gaps[k] < PARTIAL_LEG_GAP_MM:
+            if len(leg) == 2 and table is not None:
+                _label_lone_pair(leg, table, problems)
+                return
             problems.append("knee and ankle marks are not clearly separated in height")
             return
         ankle, knee = [leg[i] for i in idx[: k + 1]], [leg[i] for i in idx[k + 1:]]
@@ -159,6 +173,21 @@ def _label_leg(leg, problems):
             if label is None:
                 problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
             pair[0].label = label
+
+
+def _label_lone_pair(pair, table, problems):
+    """Two leg plates at one height, the other pair lost: knee or ankle by their height over
+    the table top (``KNEE_MIN_HEIGHT_MM``), front or lateral by which way round the leg their
+    normals point (about z: the leg stands, SPEC §1)."""
+    point, up = table
+    height = float(np.mean([(m.centre - point) @ up for m in pair]))
+    (front, lateral), where = (("1", "3"), "knee") if height >= KNEE_MIN_HEIGHT_MM else (("2", "4"), "ankle")
+    a = [_azimuth_about(m.normal, np.array([0.0, 0.0, 1.0])) for m in pair]
+    if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:
+        problems.append(f"cannot tell the front from the lateral {where} mark")
+        return
+    f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
+    f.label, l.label = front, lateral
 
 
 def _lone_label(m, other, axis, front, lateral):
