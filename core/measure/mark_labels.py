@@ -159,14 +159,8 @@ def _label_leg(leg, problems, table=None):
     axis /= np.linalg.norm(axis)
     groups = ((knee, ("1", "3"), "knee"), (ankle, ("2", "4"), "ankle"))
     for pair, (front, lateral), where in groups:
-        if len(pair) != 2:
-            continue
-        a = [_azimuth_about(m.normal, axis) for m in pair]
-        if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:  # 50-90° apart; a tie means no decision
-            problems.append(f"cannot tell the front from the lateral {where} mark")
-            continue
-        f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
-        f.label, l.label = front, lateral
+        if len(pair) == 2:
+            _label_pair(pair, axis, front, lateral, where, problems)
     for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
         if len(pair) == 1:
             label = _lone_label(pair[0], other, axis, front, lateral)
@@ -182,8 +176,13 @@ def _label_lone_pair(pair, table, problems):
     point, up = table
     height = float(np.mean([(m.centre - point) @ up for m in pair]))
     (front, lateral), where = (("1", "3"), "knee") if height >= KNEE_MIN_HEIGHT_MM else (("2", "4"), "ankle")
-    a = [_azimuth_about(m.normal, np.array([0.0, 0.0, 1.0])) for m in pair]
-    if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:
+    _label_pair(pair, np.array([0.0, 0.0, 1.0]), front, lateral, where, problems)
+
+
+def _label_pair(pair, axis, front, lateral, where, problems):
+    """Front and lateral of one pair by which way round ``axis`` their normals point."""
+    a = [_azimuth_about(m.normal, axis) for m in pair]
+    if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:  # 50-90° apart; a tie means no decision
         problems.append(f"cannot tell the front from the lateral {where} mark")
         return
     f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
