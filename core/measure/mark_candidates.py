@@ -289,27 +289,21 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float):
 
 def disk_contrast_peak(image, disk, reach: float = 1.0):
     """Where ``disk``'s outline (``predicted_disk``), slid within ``reach`` of its own size
-    round its centre, holds the most light over its surround: a blob of that outline there
-    (None at the search window's edge or off the image). The surround is the rest of the
-    outline's bounding box, a pixel clear of it (the dilation below is cut off at that box, so
-    at the ends of a flat ellipse's long axis there is next to none): a local background, not
-    the even ring it was meant to be (docs/marks.md, "Held-out set-ups")."""
+    round its centre, holds the most light over a ring just outside it (a pixel clear of the
+    outline, about a fifth of its size wide): a blob of that outline there (None at the search
+    window's edge or off the image)."""
     mask = disk["mask"]
-    m = mask.astype(np.uint8)
     k = mask.shape[0]
-    outer = cv2.dilate(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)), iterations=max(k // 10, 1))
-    size = k + 2 * (outer.shape[0] // 2)
-    kern = np.zeros((size, size), np.float32)
-    o = (size - k) // 2
-    ring = np.zeros_like(kern)
-    big = cv2.copyMakeBorder(outer, o, o, o, o, cv2.BORDER_CONSTANT, value=0).astype(bool)
-    inner = np.zeros(kern.shape, bool)
-    inner[o:o + k, o:o + k] = mask
-    ring[big & ~cv2.dilate(inner.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)] = 1.0
+    grow = max(k // 10, 1)  # 5 x 5 elliptical dilations, 2 px each
+    inner = np.pad(mask, 2 * grow + 2)
+    outer = cv2.dilate(inner.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)), iterations=grow)
+    ring = outer.astype(bool) & ~cv2.dilate(inner.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     if not ring.any():
         return None
+    size = inner.shape[0]
+    kern = np.zeros((size, size), np.float32)
     kern[inner] = 1.0 / inner.sum()
-    kern -= ring / ring.sum()
+    kern[ring] -= 1.0 / ring.sum()
     u, v = disk["centre"]
     H, W = image.shape
     reach_px = int(math.ceil(reach * k / 2))
