@@ -101,8 +101,7 @@ def _table_order(ms):
     after the widest angular gap (for the default layout: lateral-posterior, lateral-anterior,
     medial)."""
     P = np.array([m.centre for m in ms])
-    n = np.cross(P[1] - P[0], P[2] - P[0])
-    n = n / np.linalg.norm(n) * (1 if n[2] >= 0 else -1)
+    n = _table_plane(ms)[1]
     B = plane_basis(n)
     if np.cross(B[0], B[1]) @ n < 0:
         B = B[::-1]

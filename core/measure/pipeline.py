@@ -88,8 +88,8 @@ class MeasureResult:
         d = self.mark_diameter()
         if d is not None:
             lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
-        if self.marks.overexposed_message():
-            lines.append(self.marks.overexposed_message())
+        if over := self.marks.overexposed_message():
+            lines.append(over)
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
