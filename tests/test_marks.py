@@ -113,6 +113,24 @@ def test_a_lone_leg_pair_is_knee_or_ankle_by_its_height_over_the_table(drop, inv
         assert m.label == truth[tuple(np.round(m.centre, 6))]
 
 
+@pytest.mark.parametrize("lateral_deg", [0.0, 35.0, 55.0])
+@pytest.mark.parametrize("inv,pf", [(0, 0), (20, 20), (10, -20), (20, -20)])
+@pytest.mark.parametrize("kept", ["1", "2", "3", "4"])
+def test_the_only_leg_mark_found_is_labelled_by_height_and_the_way_it_faces(kept, inv, pf, lateral_deg):
+    """Three leg marks lost: the one left is knee or ankle by its height over the table top,
+    front or lateral by which way round the leg it faces; at 55° forward of lateral it faces too
+    near the split to call, and says so rather than guess."""
+    scene = leg_scene(inv, pf, lateral_mark_deg=lateral_deg)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    ms = MarkSet(marks=_truth_marks(scene, drop=tuple(lab for lab in "1234" if lab != kept)))
+    label_marks(ms)
+    (leg,) = [m for m in ms.marks if m.label not in ("5", "6", "7")]
+    if lateral_deg == 55.0 and kept in "34":
+        assert leg.label is None and "front or the lateral" in ms.message()
+    else:
+        assert leg.label == truth[tuple(np.round(leg.centre, 6))] == kept, ms.message()
+
+
 def test_circle_prior_holds_a_short_noisy_arc():
     """A 90° arc with 0.15 mm scatter: the radius prior (weighted against the arc's own
     scatter) keeps the centre; a fixed small weight let it drift ~0.5 mm (docs/marks.md)."""

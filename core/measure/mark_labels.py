@@ -131,6 +131,8 @@ def _label_leg(leg, problems, table=None):
     (or, without one, by which way round the leg its normal points).
     """
     if len(leg) < 2:
+        if len(leg) == 1 and table is not None:
+            _label_lone_mark(leg[0], table, problems)
         return
     z = np.array([m.centre[2] for m in leg])
     idx = np.argsort(z)
@@ -172,10 +174,25 @@ def _label_lone_pair(pair, table, problems):
     """Two leg plates at one height, the other pair lost: knee or ankle by their height over
     the table top (``KNEE_MIN_HEIGHT_MM``), front or lateral by which way round the leg their
     normals point (about z: the leg stands, SPEC §1)."""
-    point, up = table
-    height = float(np.mean([(m.centre - point) @ up for m in pair]))
-    (front, lateral), where = (("1", "3"), "knee") if height >= KNEE_MIN_HEIGHT_MM else (("2", "4"), "ankle")
+    (front, lateral), where = _by_height(pair, table)
     _label_pair(pair, np.array([0.0, 0.0, 1.0]), front, lateral, where, problems)
+
+
+def _label_lone_mark(m, table, problems):
+    """The only leg plate found: knee or ankle by its height over the table top, front or
+    lateral by which way round the leg its normal points (as a lone plate without the other
+    pair, ``_lone_label``)."""
+    (front, lateral), where = _by_height([m], table)
+    m.label = _lone_label(m, [], np.array([0.0, 0.0, 1.0]), front, lateral)
+    if m.label is None:
+        problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
+
+
+def _by_height(marks, table):
+    """((front, lateral) labels, "knee"/"ankle") of leg marks by their mean height over the table top."""
+    point, up = table
+    height = float(np.mean([(m.centre - point) @ up for m in marks]))
+    return (("1", "3"), "knee") if height >= KNEE_MIN_HEIGHT_MM else (("2", "4"), "ankle")
 
 
 def _label_pair(pair, axis, front, lateral, where, problems):
