@@ -11,8 +11,7 @@ import numpy as np
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import (blob_shape, border_undecoded, camera_depth, ellipse_pixels,
                                                     plate_radius_px)
-from anklescan.core.measure.mark_edges import (clean_edge_mask, edge_profiles, face_shape, plane_basis, ray_plane, sliver_edges,
-                                              top_face_pixels)
+from anklescan.core.measure.mark_edges import clean_edge_mask, edge_profiles, plane_basis, ray_plane, sliver_edges, top_face_pixels
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 
@@ -96,11 +95,6 @@ SD_FLOOR_MM = 0.05
 # a face-on view; it grows as 1/cos(view) (``_edge_level_covariance``).
 EDGE_LEVEL_SD_PX = 0.1
 COS_VIEW_MIN = 0.2  # ... up to this grazing a view (78°)
-# A plate's edges profiled again from the image of the face its first fit found are kept if they
-# fit a circle nearly as well (``_profiled_from_face``): where they scatter more than this x
-# the first edges' RMS, the profiles crossed something else than the rim (front plates lit at
-# 77-84°: RMS 0.12 -> 0.21 mm, centres 0.03 -> 0.23 mm off); where they helped, 0.83-1.2 x.
-REPROFILE_MAX_RMS_RATIO = 1.25
 
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
@@ -204,8 +198,6 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     out = fit(profiles)
     if isinstance(out, str):
         return None, out
-    if kind == "plate":
-        out, profiles = _profiled_from_face(out, profiles, fit, image, cal, radius_mm, prior_sd, clipped)
     from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
 
     centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
@@ -256,30 +248,6 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                 kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim), ""
-
-
-def _profiled_from_face(out, profiles, fit, image, cal, radius_mm, prior_sd, clipped):
-    """(fit, profiles): the plate fit again, on edge profiles drawn across the image of the face
-    that ``out`` found, if they fit a circle about as well (``REPROFILE_MAX_RMS_RATIO``) and, with
-    a size prior, agree with the size.
-
-    The first profiles run from the blob's centre to twice its ellipse. At a grazing view the
-    blob can be mostly the plate's lit side wall, brighter than its face: then they start near
-    the near rim and end inside the face, short of its far rim, the only rim a side wall leaves
-    clean. A 14.2 x 2.1 mm table plate seen at 70° kept 8 edges and was 0.93 mm off; profiled
-    from its face, 25 edges, 0.19 mm (docs/marks.md, "Profiles from the face")."""
-    shape = face_shape(cal, out[0], out[1], radius_mm if prior_sd is not None else out[2])
-    if shape is None:
-        return out, profiles
-    again = edge_profiles(image, shape, clipped=clipped)
-    if len(again.rows) < MIN_EDGE_POINTS:
-        return out, profiles
-    better = fit(again)
-    if isinstance(better, str) or better[4] > REPROFILE_MAX_RMS_RATIO * max(out[4], EDGE_NOISE_FLOOR_MM):
-        return out, profiles
-    if prior_sd is not None and radius_disagrees(better[2], better[3], radius_mm, prior_sd):
-        return out, profiles
-    return better, again
 
 
 def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):
