@@ -302,10 +302,13 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     cam_c, proj_c = cal.camera.center, cal.projector.center
     rays = cal.camera.rays(profiles.points())
     fit, last, seen, relocated, s_used = None, None, set(), None, profiles.s_edge
+
+    def circle(r, n, reloc=None):  # the far-side circle of edge rays r, in the plane through centroid normal to n
+        return far_side_circle(ray_plane(cam_c, r, centroid, n), r, centroid, n, cam_c, proj_c, px_per_mm, radius_mm,
+                               reloc, prior_sd=prior_sd, thickness=thickness)
+
     for i in range(PLANE_PASSES + 1):
-        E = ray_plane(cam_c, rays, centroid, normal)
-        fit = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, prior_sd=prior_sd,
-                              thickness=thickness)
+        fit = circle(rays, normal)
         if fit is None:
             return "edge points do not form a circle"
         if i == PLANE_PASSES or (last is not None and np.linalg.norm(fit[0] - last) < PLANE_CONVERGED_MM):
@@ -324,9 +327,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     tilt = _plane_tilt(points, plane_px, centroid, normal)
     if surface is not None and tilt is not None:
         normal, tilt = combined_normal(normal, tilt, surface)
-        E = ray_plane(cam_c, rays, centroid, normal)
-        fit = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, prior_sd=prior_sd,
-                              thickness=thickness)
+        fit = circle(rays, normal)
         if fit is None:
             return "edge points do not form a circle"
     for _ in range(SLIVER_PASSES if thickness > 0 else 0):
@@ -338,26 +339,20 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         if not moved.any():
             break
         rays = cal.camera.rays(profiles.points(s_new))
-        E = ray_plane(cam_c, rays, centroid, normal)
-        better = far_side_circle(E, rays, centroid, normal, cam_c, proj_c, px_per_mm, radius_mm, moved,
-                                 prior_sd=prior_sd, thickness=thickness)
+        better = circle(rays, normal, moved)
         if better is None:
             break
         fit, relocated, s_used = better, moved, s_new
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
 
-    def refit(n):  # the centre found with the plane through the same point tilted to normal n
-        return far_side_circle(ray_plane(cam_c, rays, centroid, n), rays, centroid, n, cam_c, proj_c, px_per_mm,
-                               radius_mm, relocated, prior_sd=prior_sd, thickness=thickness)
-
     if tilt is not None:
-        cov = cov + _tilt_covariance(normal, tilt, refit)
+        # the centre found with the plane through the same point tilted to normal n
+        cov = cov + _tilt_covariance(normal, tilt, lambda n: circle(rays, n, relocated))
 
     def refit_edges(shift_px):  # the centre found with every edge moved outwards by shift_px in the image
-        r = cal.camera.rays(profiles.points(s_used + shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)))
-        return far_side_circle(ray_plane(cam_c, r, centroid, normal), r, centroid, normal, cam_c, proj_c, px_per_mm,
-                               radius_mm, relocated, prior_sd=prior_sd, thickness=thickness)
+        shift = shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)
+        return circle(cal.camera.rays(profiles.points(s_used + shift)), normal, relocated)
 
     level_px = EDGE_LEVEL_SD_PX / max(math.cos(math.radians(view_deg(cam_c, centre, normal))), COS_VIEW_MIN)
     return (centre, normal, radius, radius_sd, rms, plane_rms, cov + _edge_level_covariance(refit_edges, level_px),
