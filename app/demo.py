@@ -70,11 +70,19 @@ def table_setting(p: SimPatient, condition: str, inversion: float, pf: float, rn
 
 
 # ---------------------------------------------------------------------------- workers
-def _worker_init() -> None:
+def _worker_init(scale: float | None = None) -> None:
     # two processes share two cores: no nested thread pools
     import cv2
 
     cv2.setNumThreads(1)
+    if scale is not None:
+        # started while the main process calibrates: the imports and the camera's rays are
+        # ready for the first trial instead of after the calibration
+        from anklescan.core.measure import pipeline  # noqa: F401
+        from anklescan.hardware.sim_scene import leg_scene
+        from anklescan.hardware.simrig import SimRig
+
+        SimRig(leg_scene(0.0, 0.0), scale=scale).warm_camera_rays()
 
 
 _CALIBRATIONS: dict = {}
@@ -142,6 +150,15 @@ def _scan_trial(job: dict) -> dict:
     }
 
 
+def _warm_pool(scale: float) -> ProcessPoolExecutor:
+    """Two scanning workers, started now so that they warm up while the main process calibrates."""
+    workers = max(1, min(2, os.cpu_count() or 1))
+    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(scale,))
+    for _ in range(workers):
+        pool.submit(int)  # a spawn pool starts a worker per submitted job
+    return pool
+
+
 def _calibrate(out: Path, scale: float, progress) -> dict:
     from anklescan.core.calibration.box import calibrate_from_box_capture
     from anklescan.hardware.sim_scene import box_scene_objects
@@ -153,7 +170,7 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
-    folder = save_capture(out / "calibration_box_capture", pset, [rig.capture(img) for img in render_all(pset)],
+    folder = save_capture(out / "calibration_box_capture", pset, rig.capture_many(render_all(pset)),
                           metadata={"device": "simulated rig", "scene": "calibration box"})
     cal, report = calibrate_from_box_capture(folder)
     save_calibration(cal, out / "calibration.json")
@@ -232,36 +249,34 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     _prepare_out(out)
     progress(f"simulated rig at scale {scale} (camera {round(1600 * scale)}x{round(1200 * scale)}, projector "
              f"{round(1024 * scale)}x{round(768 * scale)}); output in {out}")
-    cal = _calibrate(out, scale, progress)
-    with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+    with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        cal = _calibrate(out, scale, progress)
         cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
         results = []
-        workers = max(1, min(2, os.cpu_count() or 1))
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) as pool:
-            for (job, trial_id), res in zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])):
-                _record(store, trial_id, job, res)
-                results.append(res)
-                table = res["angles"]
-                shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}°"
-                                  for k, v in table.items() if k.startswith("table"))
-                status = "all 7 marks" if res["complete"] else (
-                    f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
-                if res["mark_errors_mm"]:
-                    worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
-                    status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
-                m = res["motion"]
-                if m["mm"] is not None:
-                    status += (f"; moved {m['mm']:.2f} ± {m['sd']:.2f} mm (truth {m['true_mm']:.2f})"
-                               + (": FLAGGED, out of the statistics" if m["flagged"] else ""))
-                progress(f"{res['label']}: {shown}  {status}")
-                if res["accuracy"]:
-                    acc = res["accuracy"]["subject"]
-                    shutil.copyfile(job["cloud"], out / "scan.ply")
-                    progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
-                             f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
-                             f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
+        for (job, trial_id), res in zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])):
+            _record(store, trial_id, job, res)
+            results.append(res)
+            table = res["angles"]
+            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}°"
+                              for k, v in table.items() if k.startswith("table"))
+            status = "all 7 marks" if res["complete"] else (
+                f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
+            if res["mark_errors_mm"]:
+                worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
+                status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
+            m = res["motion"]
+            if m["mm"] is not None:
+                status += (f"; moved {m['mm']:.2f} ± {m['sd']:.2f} mm (truth {m['true_mm']:.2f})"
+                           + (": FLAGGED, out of the statistics" if m["flagged"] else ""))
+            progress(f"{res['label']}: {shown}  {status}")
+            if res["accuracy"]:
+                acc = res["accuracy"]["subject"]
+                shutil.copyfile(job["cloud"], out / "scan.ply")
+                progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
+                         f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
+                         f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
         report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
         for session in store.list_sessions():
             patient = store.get_patient(session.patient_id).code
@@ -345,9 +360,9 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     _prepare_out(out)
     progress(f"simulated study at scale {scale}: {len({t['patient'].code for t in plan})} patients, "
              f"{len(plan)} trials; output in {out}")
-    cal = _calibrate(out, scale, progress)
     results = []
-    with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+    with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        cal = _calibrate(out, scale, progress)
         cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         sessions, jobs = {}, []
         for t in plan:
@@ -369,16 +384,14 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
                           "table": t["table"], "scale": scale, "seed": t["seed"], "capture": str(folder / "capture"),
                           "cloud": str(folder / "cloud.ply"), "calibration": cal["calibration"],
                           "accuracy": False, "marks": p.marks, "mark_diameter": mark_diameter}, trial.id))
-        workers = max(1, min(2, os.cpu_count() or 1))
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init) as pool:
-            for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])), 1):
-                _record(store, trial_id, job, res)
-                results.append(res)
-                m = store.get_trial(trial_id)
-                mm = ("mismatch –" if m.mismatch_inversion is None else
-                      f"mismatch inv {m.mismatch_inversion:+5.2f}° pf {m.mismatch_plantar_flexion:+5.2f}°")
-                progress(f"[{k}/{len(jobs)}] {res['label']}: {mm}"
-                         + ("" if res["complete"] else f"  marks {', '.join(res['missing'])} not found"))
+        for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])), 1):
+            _record(store, trial_id, job, res)
+            results.append(res)
+            m = store.get_trial(trial_id)
+            mm = ("mismatch –" if m.mismatch_inversion is None else
+                  f"mismatch inv {m.mismatch_inversion:+5.2f}° pf {m.mismatch_plantar_flexion:+5.2f}°")
+            progress(f"[{k}/{len(jobs)}] {res['label']}: {mm}"
+                     + ("" if res["complete"] else f"  marks {', '.join(res['missing'])} not found"))
         report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
         for code in dict.fromkeys(c for c, _ in sessions):
             write_session_report(store.report_input([sid for (c, _), sid in sessions.items() if c == code]),
