@@ -363,13 +363,27 @@ def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
     return float(np.median((x25 - x75) * PROFILE_STEP_PX * cos_b[clean][good]) / 1.349)
 
 
+def rim_image(cal: Calibration, centre, normal, radius_mm, n: int = 96) -> np.ndarray:
+    """(n, 2) camera pixels of the circle (centre, normal, radius)."""
+    B = plane_basis(normal)
+    phi = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    return cal.camera.project(centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1]))
+
+
+def face_shape(cal: Calibration, centre, normal, radius_mm) -> dict | None:
+    """The image ellipse of the face (centre, normal, radius), as ``blob_shape`` gives a blob's:
+    the outline that ``edge_profiles`` draws its profiles across."""
+    uv = rim_image(cal, centre, normal, radius_mm, 64)
+    if not np.isfinite(uv).all():
+        return None
+    (cx, cy), (d1, d2), ang = cv2.fitEllipse(uv.astype(np.float32))
+    return {"centre": (cx, cy), "axes": (d1 / 2, d2 / 2), "angle": ang}
+
+
 def top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> np.ndarray:
     """Integer (u, v) pixels at least TOP_MARGIN_PX inside the image of the circle (centre,
     normal, radius): pixels that see only the plate's top face, clear of the blurred rim."""
-    B = plane_basis(normal)
-    phi = np.linspace(0, 2 * math.pi, 96, endpoint=False)
-    rim = centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1])
-    uv = cal.camera.project(rim)
+    uv = rim_image(cal, centre, normal, radius_mm)
     if not np.isfinite(uv).all():
         return np.zeros((0, 2), int)
     x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
