@@ -265,6 +265,24 @@ def test_large_plates_on_evenly_shaded_skin_are_cut_against_their_own_surround()
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
 
 
+def test_a_runaway_circle_fit_is_refused_not_a_crash():
+    """Held-out variant 125 at 20/+20, full resolution (8.3 mm stickers): one candidate's first,
+    free-radius plate fit ran away (its edges on a line) and the plate's second profiling drew
+    the face of that circle, millions of pixels across: ``measure`` died asking for 163 GiB.
+    Such a fit is now refused by its checks without a second profiling, and profiles are not
+    drawn across an outline larger than the image."""
+    from anklescan.core.measure.mark_edges import edge_profiles
+
+    image = np.zeros((100, 100), np.float32)
+    huge = edge_profiles(image, {"centre": (50.0, 50.0), "axes": (4.0, 4.6e7), "angle": 10.0})
+    assert len(huge.rows) == 0 and len(huge.points()) == 0
+    rig = variant_rig(draw_variant(125), 20, 20, scale=1.0, seed=4)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
+
+
 def test_a_grazing_plate_is_centred_between_its_two_profile_origins():
     """Held-out variant 50 at 0/-20, full resolution: 14.2 x 2.1 mm table plates seen at ~70° and
     lit at ~67°. The blob found is mostly the plate's lit side wall; the edge profiles drawn from

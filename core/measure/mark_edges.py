@@ -62,6 +62,13 @@ class EdgeProfiles:
         return self.origin + s[:, None] * self.dirs[self.rows]
 
 
+def _no_profiles(cx, cy) -> EdgeProfiles:
+    """EdgeProfiles with no profile and no edge."""
+    none = np.zeros(0)
+    return EdgeProfiles(np.array([cx, cy], float), np.zeros((0, 2)), none, np.zeros((0, 0)), np.zeros(0, int), none,
+                        none, np.zeros(0, int), none)
+
+
 LEAVE_PLATEAU = 0.85
 SURFACE_STEP_LEVEL = 0.8  # x the disk's level: the surface just past a clear edge is at most this
 
@@ -79,6 +86,10 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
     brighter than it reads), by up to the width of the fall: ``s_span`` says how far
     (``_clipped_bound``), and the fit carries that into the mark's covariance."""
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    if not (np.isfinite([cx, cy, a, b]).all() and 0 < min(a, b) and max(a, b) <= max(image.shape)):
+        # no outline on this image (the face of a runaway circle fit, millions of pixels
+        # across: its profiles would not fit in memory)
+        return _no_profiles(cx, cy)
     t = math.radians(shape["angle"])
     ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
     n_dir = int(np.clip(2 * math.pi * max(a, b), 48, 240))  # ~1 profile per outline pixel

@@ -274,6 +274,8 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     fit is kept for the second look of ``_wider_fit``)."""
     if prior_sd is not None and radius_disagrees(out[2], out[3], radius_mm, prior_sd):
         return out
+    if not (np.isfinite(out[2]) and out[2] < 10 * radius_mm):
+        return out  # a runaway circle (edges along a line), refused by the checks that follow
     shape = face_shape(cal, out[0], out[1], radius_mm if prior_sd is not None else out[2])
     if shape is None:
         return out
