@@ -82,7 +82,17 @@ REACH_VIEW_DEG, REACH_LIGHT_DEG = 75.0, 80.0
 
 
 def _run(job):
-    """One trial in a worker process; only the figures travel back."""
+    """One trial in a worker process; only the figures travel back. A trial that raises is
+    reported as a crash, and the sweep goes on (variant 125's MemoryError had ended one)."""
+    try:
+        return _trial_figures(job)
+    except Exception as exc:  # noqa: BLE001 (any crash is a finding to print, not a reason to stop)
+        inv, pf, _, seed, _, _, _, _, variant = job
+        return [{"crash": f"{type(exc).__name__}: {exc}"[:300], "inv": inv, "pf": pf, "seed": seed,
+                 "variant": None if variant is None else variant.describe()}]
+
+
+def _trial_figures(job):
     inv, pf, scale, seed, optics, mtype, diam, modes, variant = job
     if variant is not None:
         mtype, diam = variant.mark_type, variant.diameter
@@ -144,11 +154,18 @@ def main(argv=None):
     PRESET[0], THICKNESS[0] = a.preset, a.thickness
     jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
-    wrong_complete = 0
+    wrong_complete, crashes = 0, 0
     reach = {"trials": 0, "incomplete": 0, "errors": [], "angles": []}
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
         for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
             n_trials += 1
+            if "crash" in r:
+                crashes += 1
+                failures += 1
+                if r["variant"]:
+                    print(r["variant"], flush=True)
+                print(f"CRASH inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {r['crash']}", flush=True)
+                continue
             if r["measured"] is not None:
                 size_err.append((r["measured"][0] - r["diameter"], r["measured"][1]))
             failures += not r["complete"]
@@ -184,6 +201,8 @@ def main(argv=None):
     print(f"worst mark error {e.max():.3f} mm, worst angle error {max(angle_errors):.3f} deg, incomplete trials "
           f"{failures} of {n_trials}; marks found {n_found}/{7 * n_trials}, correctly labelled {n_right}/{7 * n_trials}")
     print(f"complete trials with a wrong label (wrong angles, no warning): {wrong_complete}")
+    if crashes:
+        print(f"CRASHED trials (an exception, counted as incomplete above): {crashes}")
     if reach["trials"] < n_trials:
         print(f"in reach (every mark seen <= {REACH_VIEW_DEG:.0f}°, lit <= {REACH_LIGHT_DEG:.0f}°): {reach['trials']} of "
               f"{n_trials} trials, incomplete {reach['incomplete']}, worst mark error "
