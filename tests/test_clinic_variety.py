@@ -240,6 +240,40 @@ def test_a_disk_beside_its_brighter_side_wall_is_found_by_its_outline():
     assert (covered & face).sum() >= 0.8 * face.sum() and np.hypot(blob["centre"][0] - 60, blob["centre"][1] - 58) <= 3.5
 
 
+def test_a_dim_face_over_a_bright_wall_is_found_by_the_plate_outline():
+    """A thick plate lit at a grazing angle: a dim face (a little over the surface) above a wall
+    far brighter than both, as held-out variant 76's table plates at 0/-20. The disk's outline
+    alone stands out most over the wall, below the face; the plate's outline (face and wall,
+    ``predicted_disk`` with a thickness) stops with its face on the face."""
+    import cv2
+
+    from anklescan.core.measure.mark_candidates import disk_contrast_peak
+
+    yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
+    image = np.full((120, 120), 60.0, np.float32)
+    face = ((xx - 60) / 11) ** 2 + ((yy - 55) / 4) ** 2 <= 1
+    base = ((xx - 60) / 11) ** 2 + ((yy - 59) / 4) ** 2 <= 1
+    wall = (base | ((np.abs(xx - 60) <= 11) & (yy >= 55) & (yy <= 59))) & ~face
+    image[face], image[wall] = 100.0, 400.0
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+
+    def outline(dy):  # the face's ellipse, and its base dy px lower, in a 31 x 31 frame
+        m = np.zeros((31, 31), np.uint8)
+        cv2.ellipse(m, (15, 15), (11, 4), 0, 0, 360, 1, -1)
+        if dy:
+            cv2.ellipse(m, (15, 15 + dy), (11, 4), 0, 0, 360, 1, -1)
+            m[15:15 + dy + 1, 4:27] = 1
+        return m.astype(bool)
+
+    def found_centre(disk):  # where the face's centre (the frame's) stopped
+        return np.array(disk_contrast_peak(image, disk)["centre"])
+
+    alone = found_centre({"mask": outline(0), "centre": (60, 58)})
+    plate = found_centre({"mask": outline(4), "face": outline(0), "centre": (60, 58)})
+    assert abs(alone[1] - 55) >= 3  # the disk alone: over the wall
+    assert np.hypot(plate[0] - 60, plate[1] - 55) <= 1.5
+
+
 def test_a_thick_plate_whose_every_cut_is_its_side_wall_is_found():
     """Variant 28 at 10/0, full resolution: the 13.4 x 2 mm lateral ankle plate's lit side wall
     outshines its face, whose level the skin on that side shares; every blob cut was the wall's
@@ -299,21 +333,27 @@ def test_a_grazing_plate_is_centred_between_its_two_profile_origins():
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
 
 
-def test_a_thick_plate_seen_at_a_grazing_view_has_an_sd_that_covers_its_error():
-    """Held-out variant 76 at 0/-20, full resolution: 13.2 x 2.9 mm table plates seen at 68-71°.
-    Only the far side of such a rim is clean, and there an edge level a quarter of a pixel off
-    moves the centre by 1/cos(view) times as much in the face's plane: the plate found was
-    0.72 mm off with an SD of 0.10 mm (over 4 SD). The edge level's error is now carried to the
-    centre (``_edge_level_covariance``)."""
+def test_thick_table_plates_under_a_grazing_light_are_found_and_covered_by_their_sd():
+    """Held-out variant 76 at 0/-20, full resolution: 13.2 x 2.9 mm table plates seen at 68-71°
+    and lit at 65-68°, their side walls lit almost head-on and far brighter than their faces.
+    - Only the far side of such a rim is clean, and there an edge level a quarter of a pixel off
+      moves the centre by 1/cos(view) times as much in the face's plane: a plate found was
+      0.72 mm off with an SD of 0.10 mm (over 4 SD). The edge level's error is now carried to
+      the centre (``_edge_level_covariance``).
+    - Every cut of plates 5 and 7 was the wall, and the last look's disk stood out most over the
+      wall too, 3.7 px below the face: both were missing and the trial incomplete. The last look
+      now slides the plate's face and side wall together (``predicted_disk`` with the capture's
+      thickness) and fits the face: 0.11-0.23 mm off."""
     rig = variant_rig(draw_variant(76), 0, -20, scale=1.0, seed=0)
     res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
     grazing = 0
-    for m in res.marks.marks:
-        k = min(truth.marks, key=lambda k: np.linalg.norm(truth.marks[k] - m.centre))
+    for k, m in res.marks.labelled.items():
         e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < 0.3, (k, np.linalg.norm(e), m.sd)
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, (k, np.linalg.norm(e), m.sd)
         grazing += m.view_deg > 65
-    assert grazing >= 1
+    assert grazing >= 3
 
 
 def test_a_doubtful_wider_fit_with_clean_edges_completes_the_set():

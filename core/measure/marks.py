@@ -345,21 +345,51 @@ def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
     at 10/0, a 13.4 x 2 mm lateral ankle plate, every cut the wall's crescent alone): the disk
     as it must image, the marks' size on the surface round the blob (``predicted_disk``), slid
     over the blob's surround to where it stands out most (``disk_contrast_peak``), and fitted as
-    a blob of that outline. Kept where the fit is clearly a disk, as the wider look's."""
+    a blob of that outline. Kept where the fit is clearly a disk, as the wider look's.
+    Where the capture's plates have a thickness, the disk is also slid as a plate that thick,
+    face and side wall together, and its face fitted: a thick plate lit at a grazing angle is a
+    bright wall under a dim face, and the disk alone stands out most over the wall (held-out
+    variant 76 at 0/-20: two of its table plates found only so). Which fit is kept:
+    ``_surer_shape_fit``."""
     r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
         if not _away(blob["centre"], result.marks, r_px):
             continue
-        disk = predicted_disk(points, cal, blob["centre"], radius_mm)
-        if disk is None:
-            continue
-        found = disk_contrast_peak(image, disk)
-        if found is None:
-            continue
-        mark = _wider_fit(found, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
-        if mark is not None and _away(mark.pixel, result.marks, r_px):
+        alone, plate = (_shape_fit(image, points, cal, blob["centre"], radius_mm, height, sigma, prior_sd, albedo,
+                                   thickness, prefer_kind, clipped) if height is not None else None
+                        for height in (0.0, thickness or None))
+        mark = _surer_shape_fit(*(m if m is not None and _away(m.pixel, result.marks, r_px) else None
+                                  for m in (alone, plate)))
+        if mark is not None:
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
+
+
+def _surer_shape_fit(alone, plate):
+    """Of ``_shape_look``'s fits of the disk ``alone`` and of the ``plate`` outline (either may
+    be None), the one to keep: a sure one before a doubtful one; then the disk's, unless the
+    plate's rests on SHAPE_PLATE_EDGE_RATIO times its edges or more. Where the plate outline is
+    the right model, its face's profiles reach the far rim the disk alone, cut over the wall,
+    misses: table plates at 0/-20 of held-out variants 39, 50 and 76 had 14-32 edges against
+    8-13, 0.02-0.17 mm off against 0.16-0.72. Where both see the same rim the counts are close
+    and the disk alone was as good or better: front plates lit at 78-85° (variants 28, 59, 73,
+    92) had 17-34 edges against 12-33, 0.23-0.55 mm off against 0.17-0.28 (docs/marks.md)."""
+    if alone is None or plate is None:
+        return alone or plate
+    if alone.doubtful != plate.doubtful:
+        return plate if alone.doubtful else alone
+    return plate if plate.n_edge >= SHAPE_PLATE_EDGE_RATIO * alone.n_edge else alone
+
+
+def _shape_fit(image, points, cal: Calibration, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
+               prefer_kind, clipped):
+    """``_shape_look``'s fit of the disk predicted near ``pixel``, a plate ``height`` high (its
+    face and side wall slid together, the face fitted), or None."""
+    disk = predicted_disk(points, cal, pixel, radius_mm, thickness=height)
+    found = None if disk is None else disk_contrast_peak(image, disk)
+    if found is None:
+        return None
+    return _wider_fit(found, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
 
 
 def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
@@ -437,6 +467,9 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
             result.marks.append(mark)
             found.append(mark.pixel)
 
+
+# ``_surer_shape_fit``: the plate outline's fit replaces the disk's where it has this many times its edges
+SHAPE_PLATE_EDGE_RATIO = 1.5
 
 # Plates found by the second look had >= 93 % of their blob decoded; the corrected image of the
 # sparsely decoded far floor is a patchwork (~40-60 %) whose bits can pass for a plate.
