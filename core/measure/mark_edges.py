@@ -56,6 +56,11 @@ class EdgeProfiles:
             return self
         return dataclasses.replace(self, s_edge=self.s_edge - self.s_span, s_span=None)
 
+    def subset(self, keep) -> "EdgeProfiles":
+        """The same profiles with only the edges ``keep`` ((len(rows),) bool)."""
+        return dataclasses.replace(self, rows=self.rows[keep], s_edge=self.s_edge[keep],
+                                   s_span=None if self.s_span is None else self.s_span[keep])
+
     def points(self, s_edge=None) -> np.ndarray:
         """(len(rows), 2) image points of the edges (or of ``s_edge`` on the same rows)."""
         s = self.s_edge if s_edge is None else s_edge
