@@ -102,8 +102,8 @@ COS_VIEW_MIN = 0.2  # ... up to this grazing a view (78°)
 # than the rim (front plates lit at 77-84°: RMS 0.12 -> 0.21 mm); where they helped, 0.83-1.2 x.
 REPROFILE_MAX_RMS_RATIO = 1.25
 # A stray arc in a plate's outline (``_without_stray_arc``): the rim is the circle that at least
-# this share of the clean edges lie on, within the larger of these of it (good rims: RMS
-# 0.03-0.1 mm at full resolution), found among this many triples of them.
+# this share of its edges lie on, within the larger of these of it (good rims: RMS 0.03-0.1 mm
+# at full resolution), found among this many triples of them.
 STRAY_ARC_MIN_SHARE = 0.6
 STRAY_ARC_TOL_MM, STRAY_ARC_TOL_PX = 0.15, 0.3
 STRAY_ARC_TRIALS = 200
@@ -211,7 +211,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     if isinstance(out, str):
         return None, out
     if kind == "plate":
-        out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm, thickness)
+        out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
     from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
 
@@ -348,13 +348,13 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     and the rim's edge level error (``_edge_level_covariance``).
     """
     cam_c, proj_c = cal.camera.center, cal.projector.center
+    rays = cal.camera.rays(profiles.points())
+    fit, last, seen, relocated, s_used = None, None, set(), None, profiles.s_edge
 
     def circle(r, n, reloc=None):  # the far-side circle of edge rays r, in the plane through centroid normal to n
         return far_side_circle(ray_plane(cam_c, r, centroid, n), r, centroid, n, cam_c, proj_c, px_per_mm, radius_mm,
                                reloc, prior_sd=prior_sd, thickness=thickness)
 
-    rays = cal.camera.rays(profiles.points())
-    fit, last, seen, relocated, s_used = None, None, set(), None, profiles.s_edge
     for i in range(PLANE_PASSES + 1):
         fit = circle(rays, normal)
         if fit is None:
@@ -407,7 +407,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
             n_edge)
 
 
-def _without_stray_arc(out, profiles, fit, cal, px_per_mm, thickness):
+def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
     """(fit, profiles): the plate fit ``out`` made again without the edges off its rim, where its
     edges scatter more than a mark's may (MAX_CIRCLE_RMS_MM) and that scatters less; else
     ``out`` and ``profiles`` as they are. ``fit``: the plate's fit on given profiles.
