@@ -218,7 +218,7 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
     n_in = n_in0
     what = f"{kind}, seen at {view_deg(cam_c, centre, normal):.0f}°"
-    if not (np.isfinite(radius) and radius < 10 * radius_mm):
+    if _runaway(radius, radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
         return None, f"edge points lie on a line, not a circle ({what})"
     if radius_bounds is not None:
@@ -265,6 +265,11 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                 clipped=clipped_rim), ""
 
 
+def _runaway(radius, radius_mm) -> bool:
+    """A free circle that ran away: its edges lie on a line (a lit rim, a silhouette)."""
+    return not (np.isfinite(radius) and radius < 10 * radius_mm)
+
+
 def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     """The plate fit ``out`` with its centre midway to the same fit on edges profiled across the
     image of the face ``out`` found, and half the move between them, along it, in its covariance.
@@ -281,8 +286,8 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     fit is kept for the second look of ``_wider_fit``)."""
     if prior_sd is not None and radius_disagrees(out[2], out[3], radius_mm, prior_sd):
         return out
-    if not (np.isfinite(out[2]) and out[2] < 10 * radius_mm):
-        return out  # a runaway circle (edges along a line), refused by the checks that follow
+    if _runaway(out[2], radius_mm):
+        return out  # refused by the checks that follow
     shape = face_shape(cal, out[0], out[1], radius_mm if prior_sd is not None else out[2])
     if shape is None:
         return out

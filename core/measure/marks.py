@@ -355,11 +355,12 @@ def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
     for blob in refused:
         if not _away(blob["centre"], result.marks, r_px):
             continue
-        alone, plate = (_shape_fit(image, points, cal, blob["centre"], radius_mm, height, sigma, prior_sd, albedo,
-                                   thickness, prefer_kind, clipped) if height is not None else None
-                        for height in (0.0, thickness or None))
-        mark = _surer_shape_fit(*(m if m is not None and _away(m.pixel, result.marks, r_px) else None
-                                  for m in (alone, plate)))
+        def away_fit(height):  # _shape_fit, None where it lands on a mark already found
+            m = _shape_fit(image, points, cal, blob["centre"], radius_mm, height, sigma, prior_sd, albedo, thickness,
+                           prefer_kind, clipped)
+            return m if m is not None and _away(m.pixel, result.marks, r_px) else None
+
+        mark = _surer_shape_fit(away_fit(0.0), away_fit(thickness) if thickness else None)
         if mark is not None:
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
