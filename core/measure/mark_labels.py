@@ -38,7 +38,7 @@ def label_marks(ms: MarkSet) -> None:
         m.label = None
     marks = ms.marks
     if len(marks) != len(LABELS):
-        ms.problems.append(f"expected 7 mark plates, found {len(marks)}")
+        ms.problems.append(f"expected 7 marks, found {len(marks)}")
     table = _table_triple(marks, ms.problems)
     if table is not None:
         for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
@@ -50,7 +50,7 @@ def label_marks(ms: MarkSet) -> None:
         if len(leg) <= 4:
             _label_leg(leg, ms.problems, _table_plane([marks[i] for i in table]))
         else:
-            ms.problems.append(f"{len(leg)} leg mark plates (expected 4): leg marks not labelled")
+            ms.problems.append(f"{len(leg)} leg marks (expected 4): leg marks not labelled")
     else:
         # No table triple: the leg plates still label themselves if exactly four plates face
         # sideways (leg plates' normals are perpendicular to the near-vertical leg axis; the
@@ -83,12 +83,12 @@ def _table_triple(marks, problems):
     so any triple other than the table's has a large normal spread. Ties are ambiguous.
     """
     if len(marks) < 3:
-        problems.append("fewer than 3 plates: cannot find the table marks")
+        problems.append("fewer than 3 marks: cannot find the table marks")
         return None
     scored = sorted((_triple_score([marks[i] for i in t]), t) for t in itertools.combinations(range(len(marks)), 3))
     best, t = scored[0]
     if best > TABLE_NORMAL_SPREAD_DEG:
-        problems.append(f"no three plates lie flat in one plane (best {best:.1f}°): table marks not identified")
+        problems.append(f"no three marks lie flat in one plane (best {best:.1f}°): table marks not identified")
         return None
     if len(scored) > 1 and scored[1][0] - best < AMBIGUITY_MARGIN_DEG:
         problems.append(f"two candidate sets of table marks ({best:.1f}° vs {scored[1][0]:.1f}°): ambiguous")

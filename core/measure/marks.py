@@ -154,7 +154,7 @@ class MarkSet:
         if self.size_error:
             return self.size_error
         found = ", ".join(f"{m.label or '?'} at pixel ({m.pixel[0]:.0f}, {m.pixel[1]:.0f})" for m in self.marks)
-        parts = [f"found {len(self.marks)} mark plate{'s' if len(self.marks) != 1 else ''}"
+        parts = [f"found {len(self.marks)} mark{'s' if len(self.marks) != 1 else ''}"
                  + (f" ({found})" if found else "")]
         if self.missing:
             parts.append(f"missing label{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}")
