@@ -247,8 +247,11 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         B = plane_basis(normal)
         cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
     if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
-        cov = cov + _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
-                                       centre)
+        spread = _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
+                                    centre)
+        if spread is None:
+            return None, f"the lit image's edges here lie on a line, not round a disk ({what})"
+        cov = cov + spread
     clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
     if clipped_rim:
         # the clipped rim's edges may lie anywhere up to their span inwards (``edge_profiles``):
@@ -308,12 +311,19 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
     the lit image's edges, half the centre's move, along it. Both see the same rim; they part
     where the shading model is off (the correction assumes matte skin and a well-measured
     normal: an 11.8 mm sticker lit at 79° on shiny skin was 0.79 mm off at 6 SD, the lit edges
-    0.61 mm away). On a face-on sticker they agree to 0.002-0.04 mm."""
+    0.61 mm away). On a face-on sticker they agree to 0.002-0.04 mm.
+
+    None where the lit image's edges run away (``_runaway``): the lit image shows a straight edge
+    there, not a disk, whatever the corrected image made of it (a bright table seen past the
+    foot's silhouette, variant 168 at 20/+20: a sticker 'found' on the foot, SD 1.6 mm, that took
+    the ankle's lost front mark's label and put the leg's angles 5-14° off)."""
     if len(lit_profiles.rows) < MIN_EDGE_POINTS:
         return np.zeros((3, 3))
     other = fit_on_surface(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd)
     if isinstance(other, str):
         return np.zeros((3, 3))
+    if _runaway(other[2], radius_mm):
+        return None
     half = 0.5 * (other[0] - centre)
     return np.outer(half, half)
 
