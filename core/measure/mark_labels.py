@@ -22,6 +22,12 @@ if TYPE_CHECKING:
 TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
 AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
 PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
+# A pair's two marks (front and lateral, SPEC §2) lie about one level of the leg: their spread
+# along it, over the knee-to-ankle distance, is at most this. A hand-stuck pair may differ by
+# 20-40 mm (0.05-0.15 of a 250-450 mm shank); a bright patch on the foot that passed as a mark,
+# paired with the true lateral ankle mark, was 91 mm (0.26) from it (variant 168 at 20/+20: the
+# leg's angles 5-14° off, said complete). Such a set is left unlabelled, with a message.
+PAIR_MAX_SPREAD = 0.2
 SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round the leg to be told apart
 # Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
 # (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
@@ -157,7 +163,14 @@ def _label_leg(leg, problems, table=None):
             problems.append("more than two leg marks at one height")
             return
         axis = np.mean([m.centre for m in knee], axis=0) - np.mean([m.centre for m in ankle], axis=0)
-    axis /= np.linalg.norm(axis)
+    length = float(np.linalg.norm(axis))
+    axis /= length
+    for pair, where in ((knee, "knee"), (ankle, "ankle")):
+        spread = abs(float((pair[0].centre - pair[-1].centre) @ axis))
+        if spread > PAIR_MAX_SPREAD * length:
+            problems.append(f"the two {where} marks are {spread:.0f} mm apart along the leg (one level expected): "
+                            "one of them may not be a mark; leg marks not labelled")
+            return
     groups = ((knee, ("1", "3"), "knee"), (ankle, ("2", "4"), "ankle"))
     for pair, (front, lateral), where in groups:
         if len(pair) == 2:
