@@ -539,7 +539,8 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               ankle_semi_axes=(38.0, 32.0), knee_scale=1.38, leg_length=460.0,
               foot_semi_axes=(47.5, 120.0, 35.0), foot_sink=13.0, foot_shift=-10.0,
               ankle_back=55.0, ankle_height=20.0,
-              knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG, table_marks=None,
+              knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG,
+              lateral_mark_offsets=(0.0, 0.0), table_marks=None,
               mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type="plate",
               floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
@@ -549,7 +550,8 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     table). Semi-axes: ankle (mediolateral, anteroposterior); the knee section is
     ``knee_scale`` times it. Table marks are (across, along) the top in mm from its centre;
     ``lateral_mark_deg`` is how far round from straight lateral towards the front marks 3 and 4
-    sit (0: straight lateral). ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick)
+    sit (0: straight lateral), ``lateral_mark_offsets`` how far along the leg marks 3 and 4 sit from
+    the level of marks 1 and 2 (mm, knee and ankle: hand-stuck pairs are not level). ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick)
     or "sticker" (white disks on the skin and the table top, no thickness); ``mark_radius`` is
     either's radius (SPEC §2: 4-12.5 mm).
     """
@@ -578,9 +580,10 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
                        taper=taper, length=leg_length, albedo=skin_albedo)
     objs.append(leg)
     marks = {}
+    knee_off, ankle_off = lateral_mark_offsets
     for label, ang, z in (("1", math.pi / 2, knee_mark_height), ("2", math.pi / 2, ankle_mark_height),
-                          ("3", math.radians(lateral_mark_deg), knee_mark_height),
-                          ("4", math.radians(lateral_mark_deg), ankle_mark_height)):
+                          ("3", math.radians(lateral_mark_deg), knee_mark_height + knee_off),
+                          ("4", math.radians(lateral_mark_deg), ankle_mark_height + ankle_off)):
         X, nrm = leg.point(ang, z)
         marks[label] = (_plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo) if mark_type == "plate"
                         else _sticker(label, leg, X, nrm, mark_radius, mark_albedo))

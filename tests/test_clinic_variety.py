@@ -33,6 +33,13 @@ def test_drawn_setups_are_reproducible_and_within_the_spec():
         assert v.mark_type in ("plate", "sticker") and 1.0 <= v.scene["mark_thickness"] <= 3.0
     assert {v.layout for v in map(draw_variant, range(40))} == {"side", "diagonal", "above"}
     assert draw_variant(1, "plate", 8.0).diameter == 8.0
+    # from HAND_PLACED_FROM_SEED on, lateral marks off the front marks' level; before it, level
+    from anklescan.hardware.sim_variety import HAND_PLACED_FROM_SEED, LATERAL_OFFSET_RANGES_MM
+
+    assert "lateral_mark_offsets" not in draw_variant(HAND_PLACED_FROM_SEED - 1).scene
+    for v in map(draw_variant, range(HAND_PLACED_FROM_SEED, HAND_PLACED_FROM_SEED + 20)):
+        for off, (lo, hi) in zip(v.scene["lateral_mark_offsets"], LATERAL_OFFSET_RANGES_MM):
+            assert lo <= off <= hi
 
 
 @pytest.mark.parametrize("gamma", [1.0, 2.2])

@@ -654,3 +654,16 @@ def test_a_pair_spread_along_the_leg_is_left_unlabelled():
         if not labelled:
             assert "apart along the leg" in ms.message()
             assert {m.label for m in ms.marks if m.label} == {"5", "6", "7"}
+
+
+@pytest.mark.parametrize("offsets", [(25.0, 12.0), (-25.0, -12.0), (25.0, -12.0)])
+def test_labels_with_lateral_marks_off_the_front_marks_level(offsets):
+    """Hand-stuck pairs are not level (the drawn set-ups from HAND_PLACED_FROM_SEED on): the
+    lateral marks up to 25 mm (knee) and 12 mm (ankle) along the leg from the front ones."""
+    scene = leg_scene(10, -10, lateral_mark_offsets=offsets)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    ms = MarkSet(marks=_truth_marks(scene))
+    label_marks(ms)
+    assert ms.complete, ms.message()
+    for m in ms.marks:
+        assert m.label == truth[tuple(np.round(m.centre, 6))]
