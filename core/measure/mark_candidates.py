@@ -95,7 +95,11 @@ def camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
 
 
 SCALE_STEP = 1.6  # candidate searches at radii this factor apart span a size range
-DEPTH_GATE_RADII = 2.0  # a disk seen edge-on spans two radii in depth (``_depth_cut``)
+# ``_depth_cut``: depths over this apart within DEPTH_STEP_REACH_PX of a pixel are an outline,
+# not a surface seen obliquely (a plate's face at 73° recedes ~2 mm per pixel, 12 mm over the
+# window; the table behind the leg's outline lies 100 mm and more further), and a blob cut so
+# must have one on DEPTH_STEP_MIN_BORDER of its outline
+DEPTH_STEP_MM, DEPTH_STEP_REACH_PX, DEPTH_STEP_MIN_BORDER = 20.0, 3, 0.1
 
 
 def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
@@ -165,7 +169,7 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
                 if blob is not None:
                     blob["ring_cut"] = True
         if blob is None:
-            blob = _depth_cut(smooth, (u, v), background[v, u], half, points, cal, r_hi)
+            blob = _depth_cut(smooth, (u, v), background[v, u], half, points, cal)
         if blob is None:
             continue
         taken[blob["slice"]] |= blob["region"]
@@ -173,27 +177,48 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     return blobs
 
 
-def _depth_cut(smooth, seed, bg, half, points, cal, radius_mm):
-    """``cut_blob`` among the pixels whose 3-D point lies within DEPTH_GATE_RADII radii (plus
-    SPEC §2's 3 mm plate) of the seed's depth: a mark on the leg's outline, seen against a
+def _depth_cut(smooth, seed, bg, half, points, cal):
+    """``cut_blob`` again with the pixels at a depth step (``_depth_steps``) and the undecoded
+    ones left out: a mark on the leg's outline, seen against a
     table about as bright as its face far behind, leaks into the table at any brightness cut
-    (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at 70-73°: no blob)."""
+    (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at 70-73°: no blob).
+    The blob must be bounded by such a step on DEPTH_STEP_MIN_BORDER of its outline; a band
+    cut out of a smoothly receding floor by a depth window was taken for two marks (variant
+    187 at 20/+20)."""
     u, v = seed
     if not np.isfinite(points[v, u, 0]):
         return None
     H, W = smooth.shape
     y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
     P = points[y0:y1, x0:x1].reshape(-1, 3)
-    depth = np.full(len(P), np.inf)
+    depth = np.full(len(P), np.nan)
     ok = np.isfinite(P[:, 0])
     depth[ok] = camera_depth(cal, P[ok])
-    gate = DEPTH_GATE_RADII * radius_mm + 3.0
-    near = (np.abs(depth - camera_depth(cal, points[v, u][None])[0]) <= gate).reshape(y1 - y0, x1 - x0)
-    masked = np.where(np.pad(near, ((y0, H - y1), (x0, W - x1))), smooth, -np.inf)
+    depth = depth.reshape(y1 - y0, x1 - x0)
+    jump = _depth_steps(depth)
+    keep = np.isfinite(depth) & ~jump
+    masked = np.full(smooth.shape, -np.inf, np.float32)
+    masked[y0:y1, x0:x1] = np.where(keep, smooth[y0:y1, x0:x1], -np.inf)
     blob = cut_blob(masked, seed, bg, half)
-    if blob is not None:
-        blob["depth_cut"] = True
+    if blob is None:
+        return None
+    ring = cv2.dilate(blob["region"].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob["region"]
+    if jump[ring].mean() < DEPTH_STEP_MIN_BORDER:
+        return None
+    blob["depth_cut"] = True
     return blob
+
+
+def _depth_steps(depth) -> np.ndarray:
+    """(h, w) bool: pixels within DEPTH_STEP_REACH_PX of decoded depths more than DEPTH_STEP_MM
+    apart. Not neighbours alone: the pixels at an outline mix the two surfaces and are mostly
+    undecoded (variant 160: half the ring round the plate, a band 3-4 px wide; with 2 px of
+    reach no step was seen)."""
+    k = np.ones((2 * DEPTH_STEP_REACH_PX + 1,) * 2, np.uint8)
+    ok = np.isfinite(depth)
+    hi = cv2.dilate(np.where(ok, depth, -1e9).astype(np.float32), k)  # a window with no decoded pixel: -2e9
+    lo = cv2.erode(np.where(ok, depth, 1e9).astype(np.float32), k)
+    return (hi - lo) > DEPTH_STEP_MM
 
 
 def ring_level(smooth, valid, seed, cal, points, radius_mm):
