@@ -401,13 +401,22 @@ def test_a_bright_table_past_the_foots_silhouette_is_no_sticker():
     sticker on the shading-corrected image, SD 1.6 mm; the lit image's edges there lie on a line.
     It took label 4, the true lateral mark label 2, and the trial said complete with the leg's
     angles 5° and 14° off. Such a fit is refused: the trial is incomplete, and what is labelled
-    is right."""
+    is right. Variant 187 at 0/+20 (11.8 mm plates): a 'sticker' on the table, whose lit-image
+    circle lay 2.6 mm (0.44 radii) from it, made the table marks ambiguous; it is refused and
+    the trial is complete."""
     rig = variant_rig(draw_variant(168), 20, 20, scale=1.0, seed=4)
     res, truth = _measured(rig)
     assert not res.complete and "2" not in res.marks.labelled, res.marks.message()
     assert set(res.marks.labelled) == {"1", "3", "4", "5", "6", "7"}, res.marks.message()
     for k, m in res.marks.labelled.items():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
+    rig = variant_rig(draw_variant(187), 0, 20, scale=1.0, seed=1)
+    res, truth = _measured(rig)
+    assert res.complete and len(res.marks.marks) == 7, res.marks.message()
+    for k, m in res.marks.labelled.items():  # the front ankle plate is lit at 85°: 0.31 mm
+        e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < 0.4, k
+        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
 
 
 def test_a_sticker_on_a_surface_the_quadric_misfits_is_not_taken_for_a_plate():

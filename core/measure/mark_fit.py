@@ -71,6 +71,11 @@ MIN_EDGE_POINTS = 8
 # stickers in the variant sweep (docs/marks.md): at most 0.73. A plate's surround may be dark
 # or shadowed all round (up to 1.0).
 STICKER_MAX_BORDER_UNDECODED = 0.8
+# A sticker's rim on the shading-corrected and on the lit image is one rim: the two fits' centres
+# were at most 0.61 mm (0.1 radius) apart on real stickers (an 11.8 mm one lit at 79° on shiny
+# skin); fits 0.44-0.68 radii apart were a table patch, the foot's outline and a plate taken
+# for a sticker (``_edge_disagreement``)
+EDGE_DISAGREEMENT_MAX_RADII = 0.25
 
 # A plate's normal is steadied by that of the surface round it (``combined_normal``) only where
 # the ring of surface_step is this well decoded: the front ankle plate lit at a grazing angle
@@ -317,13 +322,16 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
     None where the lit image's edges run away (``_runaway``): the lit image shows a straight edge
     there, not a disk, whatever the corrected image made of it (a bright table seen past the
     foot's silhouette, variant 168 at 20/+20: a sticker 'found' on the foot, SD 1.6 mm, that took
-    the ankle's lost front mark's label and put the leg's angles 5-14° off)."""
+    the ankle's lost front mark's label and put the leg's angles 5-14° off); None too where they
+    circle a place over EDGE_DISAGREEMENT_MAX_RADII radii away (variant 187 at 0/+20: a 'sticker'
+    on the table of a plate capture, 2.6 mm from the lit image's circle, that made the table
+    marks ambiguous)."""
     if len(lit_profiles.rows) < MIN_EDGE_POINTS:
         return np.zeros((3, 3))
     other = fit_on_surface(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd)
     if isinstance(other, str):
         return np.zeros((3, 3))
-    if _runaway(other[2], radius_mm):
+    if _runaway(other[2], radius_mm) or np.linalg.norm(other[0] - centre) > EDGE_DISAGREEMENT_MAX_RADII * radius_mm:
         return None
     half = 0.5 * (other[0] - centre)
     return np.outer(half, half)
