@@ -71,11 +71,6 @@ MIN_EDGE_POINTS = 8
 # stickers in the variant sweep (docs/marks.md): at most 0.73. A plate's surround may be dark
 # or shadowed all round (up to 1.0).
 STICKER_MAX_BORDER_UNDECODED = 0.8
-# A sticker's rim on the shading-corrected and on the lit image is one rim: the two fits' centres
-# were at most 0.61 mm (0.1 radius) apart on real stickers (an 11.8 mm one lit at 79° on shiny
-# skin); fits 0.44-0.68 radii apart were a table patch, the foot's outline and a plate taken
-# for a sticker (``_edge_disagreement``)
-EDGE_DISAGREEMENT_MAX_RADII = 0.25
 
 # A plate's normal is steadied by that of the surface round it (``combined_normal``) only where
 # the ring of surface_step is this well decoded: the front ankle plate lit at a grazing angle
@@ -106,11 +101,10 @@ COS_VIEW_MIN = 0.2  # ... up to this grazing a view (78°)
 # where they scatter more than this x the first edges' RMS, the profiles crossed something else
 # than the rim (front plates lit at 77-84°: RMS 0.12 -> 0.21 mm); where they helped, 0.83-1.2 x.
 REPROFILE_MAX_RMS_RATIO = 1.25
-# A stray arc in a mark's outline (``_without_stray_arc``): the rim is the circle that at least
+# A stray arc in a plate's outline (``_without_stray_arc``): the rim is the circle that at least
 # this share of its edges lie on, within the larger of these of it (good rims: RMS 0.03-0.1 mm
-# at full resolution), found among this many triples of them. 0.6 left a 24.4 mm sticker whose
-# lower part the foot hides at 57 % (60 of 106 edges; held-out variant 177: 0.07 mm off on them).
-STRAY_ARC_MIN_SHARE = 0.5
+# at full resolution), found among this many triples of them.
+STRAY_ARC_MIN_SHARE = 0.6
 STRAY_ARC_TOL_MM, STRAY_ARC_TOL_PX = 0.15, 0.3
 STRAY_ARC_TRIALS = 200
 
@@ -216,8 +210,8 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     out = fit(profiles)
     if isinstance(out, str):
         return None, out
-    out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
     if kind == "plate":
+        out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
     from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
 
@@ -322,16 +316,13 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
     None where the lit image's edges run away (``_runaway``): the lit image shows a straight edge
     there, not a disk, whatever the corrected image made of it (a bright table seen past the
     foot's silhouette, variant 168 at 20/+20: a sticker 'found' on the foot, SD 1.6 mm, that took
-    the ankle's lost front mark's label and put the leg's angles 5-14° off); None too where they
-    circle a place over EDGE_DISAGREEMENT_MAX_RADII radii away (variant 187 at 0/+20: a 'sticker'
-    on the table of a plate capture, 2.6 mm from the lit image's circle, that made the table
-    marks ambiguous)."""
+    the ankle's lost front mark's label and put the leg's angles 5-14° off)."""
     if len(lit_profiles.rows) < MIN_EDGE_POINTS:
         return np.zeros((3, 3))
     other = fit_on_surface(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd)
     if isinstance(other, str):
         return np.zeros((3, 3))
-    if _runaway(other[2], radius_mm) or np.linalg.norm(other[0] - centre) > EDGE_DISAGREEMENT_MAX_RADII * radius_mm:
+    if _runaway(other[2], radius_mm):
         return None
     half = 0.5 * (other[0] - centre)
     return np.outer(half, half)
@@ -432,12 +423,9 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
 
 
 def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
-    """(fit, profiles): the fit ``out`` made again without the edges off its rim, where its
+    """(fit, profiles): the plate fit ``out`` made again without the edges off its rim, where its
     edges scatter more than a mark's may (MAX_CIRCLE_RMS_MM) and that scatters less; else
-    ``out`` and ``profiles`` as they are. ``fit``: the mark kind's fit on given profiles (a
-    sticker's rim is near enough a circle in its tangent plane for the consensus: a 24.4 mm
-    sticker whose lower part the foot hides, held-out variant 177, was refused at edge RMS
-    0.38 mm, and is 0.07 mm off on its rim alone).
+    ``out`` and ``profiles`` as they are. ``fit``: the plate's fit on given profiles.
 
     A rim partly hidden or shadowed (held-out variant 138 at 20/+20: a 24.5 mm table plate a
     quarter in the leg's shadow, whose straight edge was that much of its outline: edge RMS
