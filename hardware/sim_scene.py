@@ -550,10 +550,11 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     table). Semi-axes: ankle (mediolateral, anteroposterior); the knee section is
     ``knee_scale`` times it. Table marks are (across, along) the top in mm from its centre;
     ``lateral_mark_deg`` is how far round from straight lateral towards the front marks 3 and 4
-    sit (0: straight lateral), ``lateral_mark_offsets`` how far along the leg marks 3 and 4 sit from
-    the level of marks 1 and 2 (mm, knee and ankle: hand-stuck pairs are not level). ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick)
-    or "sticker" (white disks on the skin and the table top, no thickness); ``mark_radius`` is
-    either's radius (SPEC §2: 4-12.5 mm).
+    sit (0: straight lateral), ``lateral_mark_offsets`` how far along the leg marks 3 and 4 sit
+    from the level of marks 1 and 2 (mm, knee and ankle: hand-stuck pairs are not level).
+    ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick) or "sticker" (white disks
+    on the skin and the table top, no thickness); ``mark_radius`` is either's radius (SPEC §2:
+    4-12.5 mm).
     """
     if mark_type not in ("plate", "sticker"):
         raise ValueError(f"mark_type must be 'plate' or 'sticker', not {mark_type!r}")

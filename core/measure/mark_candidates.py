@@ -179,9 +179,9 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
 
 def _depth_cut(smooth, seed, bg, half, points, cal):
     """``cut_blob`` again with the pixels at a depth step (``_depth_steps``) and the undecoded
-    ones left out: a mark on the leg's outline, seen against a
-    table about as bright as its face far behind, leaks into the table at any brightness cut
-    (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at 70-73°: no blob).
+    ones left out: a mark on the leg's outline, seen against a table about as bright as its
+    face far behind, leaks into the table at any brightness cut (held-out variants 156 and 160
+    at 20/+20, lateral ankle plates seen at 70-73°: no blob).
     The blob must be bounded by such a step on DEPTH_STEP_MIN_BORDER of its outline; a band
     cut out of a smoothly receding floor by a depth window was taken for two marks (variant
     187 at 20/+20)."""
