@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 import tomllib
 import venv
 import zipfile
@@ -53,8 +54,16 @@ def test_the_wheel_holds_only_anklescan_and_its_icon(wheel):
 @pytest.mark.gui  # the GUI check needs the X server pytest-xvfb starts
 def test_a_plain_install_runs_the_gui_with_its_icon(wheel, tmp_path):
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, system_site_packages=True, with_pip=True)  # dependencies from this environment
+    venv.create(env_dir, with_pip=True)
     py = env_dir / "bin" / "python"
+    # The dependencies from the environment running the tests, not from the base interpreter
+    # (``system_site_packages``): on a clean machine only the CI's venv holds PySide6. A path in
+    # a .pth file is added after the venv's own site-packages, and the .pth files in it (this
+    # checkout's editable install) are not read, so anklescan comes from the wheel.
+    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                          check=True, capture_output=True, text=True).stdout.strip()
+    here = {sysconfig.get_paths()[k] for k in ("purelib", "platlib")}
+    (Path(site) / "test_environment.pth").write_text("\n".join(sorted(here)) + "\n")
     subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True,
                    capture_output=True, timeout=300)
     env = {**os.environ, "ANKLESCAN_SETTINGS": str(tmp_path / "s.ini"), "ANKLESCAN_DATA": str(tmp_path / "data"),
