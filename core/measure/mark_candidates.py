@@ -157,6 +157,7 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     taken = np.zeros(image.shape, bool)
     blobs = []
     half = int(math.ceil(2.5 * r_max))
+    outlined = None  # (smooth without the outline pixels, depth steps): built for the first seed that leaks
     for v, u in zip(vs[order], us[order]):
         if taken[v, u]:
             continue  # inside a blob already cut from a brighter seed
@@ -168,8 +169,9 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
                 blob = cut_blob(smooth, (u, v), bg, half)
                 if blob is not None:
                     blob["ring_cut"] = True
-        if blob is None:
-            blob = _depth_cut(smooth, (u, v), background[v, u], half, points, cal)
+        if blob is None and valid[v, u]:
+            outlined = outlined or _without_outlines(smooth, points, valid, cal)
+            blob = _depth_cut(*outlined, (u, v), background[v, u], half)
         if blob is None:
             continue
         taken[blob["slice"]] |= blob["region"]
@@ -177,33 +179,28 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     return blobs
 
 
-def _depth_cut(smooth, seed, bg, half, points, cal):
-    """``cut_blob`` again with the pixels at a depth step (``_depth_steps``) and the undecoded
-    ones left out: a mark on the leg's outline, seen against a table about as bright as its
-    face far behind, leaks into the table at any brightness cut (held-out variants 156 and 160
-    at 20/+20, lateral ankle plates seen at 70-73°: no blob).
-    The blob must be bounded by such a step on DEPTH_STEP_MIN_BORDER of its outline; a band
+def _without_outlines(smooth, points, valid, cal):
+    """(``smooth`` with the undecoded pixels and those at a depth step set to -inf, the depth
+    steps): what ``_depth_cut`` cuts in, for the whole image at once."""
+    depth = np.full(smooth.shape, np.nan)
+    depth[valid] = camera_depth(cal, points[valid])
+    jump = _depth_steps(depth)
+    return np.where(valid & ~jump, smooth, -np.inf).astype(np.float32), jump
+
+
+def _depth_cut(masked, jump, seed, bg, half):
+    """``cut_blob`` again in ``masked`` (``_without_outlines``): a mark on the leg's outline,
+    seen against a table about as bright as its face far behind, leaks into the table at any
+    brightness cut (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at
+    70-73°: no blob).
+    The blob must be bounded by a depth step on DEPTH_STEP_MIN_BORDER of its outline; a band
     cut out of a smoothly receding floor by a depth window was taken for two marks (variant
     187 at 20/+20)."""
-    u, v = seed
-    if not np.isfinite(points[v, u, 0]):
-        return None
-    H, W = smooth.shape
-    y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
-    P = points[y0:y1, x0:x1].reshape(-1, 3)
-    depth = np.full(len(P), np.nan)
-    ok = np.isfinite(P[:, 0])
-    depth[ok] = camera_depth(cal, P[ok])
-    depth = depth.reshape(y1 - y0, x1 - x0)
-    jump = _depth_steps(depth)
-    keep = np.isfinite(depth) & ~jump
-    masked = np.full(smooth.shape, -np.inf, np.float32)
-    masked[y0:y1, x0:x1] = np.where(keep, smooth[y0:y1, x0:x1], -np.inf)
     blob = cut_blob(masked, seed, bg, half)
     if blob is None:
         return None
     ring = cv2.dilate(blob["region"].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob["region"]
-    if jump[ring].mean() < DEPTH_STEP_MIN_BORDER:
+    if jump[blob["slice"]][ring].mean() < DEPTH_STEP_MIN_BORDER:
         return None
     blob["depth_cut"] = True
     return blob
