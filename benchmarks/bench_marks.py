@@ -79,6 +79,7 @@ def _measured(rig, cap, given):
 # reach: its face images a sliver, or gets cos(80°) = 17 % of the light (a clinic re-sticks it or
 # turns the rig); the summary counts trials with every mark within both apart.
 REACH_VIEW_DEG, REACH_LIGHT_DEG = 75.0, 80.0
+FAKE_MM = 3.0  # a mark kept this far from every true mark is a false one
 
 
 def _run(job):
@@ -103,7 +104,10 @@ def _trial_figures(job):
         z = [float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
              for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
         d = res.marks.diameter
-        out.append({"inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
+        # every mark kept, labelled or not: its centre SD, and whether it is one of the true marks
+        sds = [(float(m.sd), min(np.linalg.norm(m.centre - t) for t in res.truth_marks.values()) < FAKE_MM)
+               for m in res.marks.marks]
+        out.append({"sds": sds, "inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
                     "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
                     "type": mtype, "diameter": diam, "mode": mode,
                     "measured": None if d is None or mode == "given" else d,
@@ -154,7 +158,7 @@ def main(argv=None):
     PRESET[0], THICKNESS[0] = a.preset, a.thickness
     jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
-    wrong_complete, crashes = 0, 0
+    wrong_complete, crashes, true_sd, fake_sd = 0, 0, [], []
     reach = {"trials": 0, "incomplete": 0, "errors": [], "angles": []}
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
         for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
@@ -181,6 +185,8 @@ def main(argv=None):
             errors += r["marks"].values()
             angle_errors += map(abs, r["angles"].values())
             z += r["z"]
+            true_sd += [sd for sd, true in r["sds"] if true]
+            fake_sd += [sd for sd, true in r["sds"] if not true]
             marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(r["marks"].items()))
             angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
             size = (f"{r['type']:7s} {r['diameter']:4.1f} mm {r['mode']:7s}"
@@ -215,6 +221,10 @@ def main(argv=None):
     print(f"centre errors: RMS {np.sqrt(np.mean(e ** 2)):.3f} mm, 95th percentile {np.percentile(e, 95):.3f} mm, "
           f"over 0.25 mm {int((e > 0.25).sum())}; error / SD (Mahalanobis) median {np.median(z):.2f} (1.54 ideal), "
           f"over 3.37 (1 % if exact) {int((np.array(z) > 3.37).sum())} of {len(z)}, worst {max(z):.1f}")
+    if true_sd:
+        print(f"centre SD of the true marks kept: median {np.median(true_sd):.3f} mm, 99th percentile "
+              f"{np.percentile(true_sd, 99):.3f} mm, largest {max(true_sd):.3f} mm; false marks kept: {len(fake_sd)}"
+              + (f", SDs {', '.join(f'{s:.2f}' for s in sorted(fake_sd))} mm" if fake_sd else ""))
 
 
 if __name__ == "__main__":
