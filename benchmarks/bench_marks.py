@@ -80,6 +80,7 @@ def _measured(rig, cap, given):
 # turns the rig); the summary counts trials with every mark within both apart.
 REACH_VIEW_DEG, REACH_LIGHT_DEG = 75.0, 80.0
 FAKE_MM = 3.0  # a mark kept this far from every true mark is a false one
+WIDE_SD_MM = 0.5  # a mark kept with a centre SD over this is named in the trial's lines
 
 
 def _run(job):
@@ -105,7 +106,8 @@ def _trial_figures(job):
              for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]]
         d = res.marks.diameter
         # every mark kept, labelled or not: its centre SD, and whether it is one of the true marks
-        sds = [(float(m.sd), min(np.linalg.norm(m.centre - t) for t in res.truth_marks.values()) < FAKE_MM)
+        sds = [(float(m.sd), min(np.linalg.norm(m.centre - t) for t in res.truth_marks.values()) < FAKE_MM,
+                f"{m.label or '?'} {m.kind} seen at {m.view_deg:.0f}°, lit at {m.light_deg:.0f}°")
                for m in res.marks.marks]
         out.append({"sds": sds, "inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
                     "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
@@ -173,7 +175,8 @@ def main(argv=None):
             if r["measured"] is not None:
                 size_err.append((r["measured"][0] - r["diameter"], r["measured"][1]))
             failures += not r["complete"]
-            if all(v <= REACH_VIEW_DEG and li <= REACH_LIGHT_DEG for v, li in r["geometry"].values()):
+            in_reach = all(v <= REACH_VIEW_DEG and li <= REACH_LIGHT_DEG for v, li in r["geometry"].values())
+            if in_reach:
                 reach["trials"] += 1
                 reach["incomplete"] += not r["complete"]
                 reach["errors"] += r["marks"].values()
@@ -185,16 +188,19 @@ def main(argv=None):
             errors += r["marks"].values()
             angle_errors += map(abs, r["angles"].values())
             z += r["z"]
-            true_sd += [sd for sd, true in r["sds"] if true]
-            fake_sd += [sd for sd, true in r["sds"] if not true]
+            true_sd += [sd for sd, true, _ in r["sds"] if true]
+            fake_sd += [sd for sd, true, _ in r["sds"] if not true]
             marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(r["marks"].items()))
             angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
             size = (f"{r['type']:7s} {r['diameter']:4.1f} mm {r['mode']:7s}"
                     + (f" (measured {r['measured'][0]:.2f} ± {r['measured'][1]:.2f})" if r["measured"] else ""))
             if r["variant"]:
                 print(r["variant"], flush=True)
-            print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE'}  "
+            print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE' + ' IN REACH' * in_reach}  "
                   f"marks(mm) {marks}  angles(deg) {angles}  [{r['dt']:.1f} s]", flush=True)
+            for sd, true, what in r["sds"]:
+                if sd > WIDE_SD_MM or not true:
+                    print(f"    {'a true' if true else 'A FALSE'} mark, SD {sd:.2f} mm: {what}", flush=True)
             if not r["complete"]:
                 print("    " + r["message"], flush=True)
                 lost = sorted(set(LABELS) - set(r["found"]))
