@@ -120,7 +120,7 @@ LIT_SHIFT_MAX_RADII, LIT_SHIFT_MAX_LIGHT_DEG = 0.75, 75.0
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
              prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
-             clipped=None):
+             clipped=None, max_edge_rms: float = MAX_CIRCLE_RMS_MM):
     """Fit one candidate; (Mark, '') or (None, reason).
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -141,6 +141,8 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     ``prefer_kind``: the kind of this capture's other marks (``find_marks``; a clinic sticks one
     kind), the only one tried where this mark's step is inconclusive or could not be measured.
     ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
+    ``max_edge_rms``: how far the rim's edges may scatter about the fitted circle (a disk a
+    clinician clicked on may be fitted on looser edges than one the search found alone).
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -191,7 +193,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     for kind, alb in tries:
         mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
                                  radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, alb, surface,
-                                 clipped)
+                                 clipped, max_edge_rms)
         if mark is not None:
             return mark, ""
         first_reason = first_reason or reason
@@ -199,7 +201,8 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
 
 
 def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
-              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None, clipped=None):
+              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None, clipped=None,
+              max_edge_rms=MAX_CIRCLE_RMS_MM):
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
     cam_c = cal.camera.center
     n_in0 = n_in
@@ -230,14 +233,14 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
         return None, f"edge points lie on a line, not a circle ({what})"
     if radius_bounds is not None:
-        if not (lo <= radius <= hi) or rms > MAX_CIRCLE_RMS_MM:
+        if not (lo <= radius <= hi) or rms > max_edge_rms:
             return None, f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})"
     else:
         # The free radius is a size check; on the short arc of an oblique plate it is itself
         # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the
         # fixed one, but not without bound: a straight edge (radius_sd huge) is no mark.
         tol = min(max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd), MAX_RADIUS_TOLERANCE_MM)
-        if abs(radius - radius_mm) > tol or rms > MAX_CIRCLE_RMS_MM:
+        if abs(radius - radius_mm) > tol or rms > max_edge_rms:
             return None, (f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
                           f"edge RMS {rms:.2f} mm, {what})")
     if radius_sd > MAX_RADIUS_SD_MM:
