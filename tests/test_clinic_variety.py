@@ -486,3 +486,18 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
         e = m.centre - truth.marks["2"]
         assert np.linalg.norm(e) < 0.35, sign
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, sign
+
+
+def test_a_disk_with_an_outline_through_its_face_is_refused():
+    """Held-out variant 234 at 20/+20, full resolution (15.4 mm plates): where the bright table's
+    edge stands over the dark floor 105 mm below, a 'sticker' was fitted across the edge, 63 % of
+    its face on the floor, and made the trial 'found 8' with all seven true marks found. A disk's
+    face is one surface, so such a fit is refused: the trial is complete, every mark within its
+    SD."""
+    rig = variant_rig(draw_variant(234), 20, 20, scale=1.0, seed=4)
+    res, truth = _measured(rig)
+    assert res.complete and len(res.marks.marks) == 7, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < 0.3, k
+        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k

@@ -406,9 +406,18 @@ def blob_shape(blob):
 
 def ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
     """Integer (u, v) pixels inside the blob's ellipse shrunk by ``fraction``."""
-    mask = np.zeros(img_shape, np.uint8)
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
-    cv2.ellipse(mask, ((cx, cy), (2 * a * fraction, 2 * b * fraction), shape["angle"]), 1, -1)
+    h, w = img_shape[:2]
+    reach = max(a, b) * fraction + 2
+    if not all(np.isfinite([cx, cy, reach])):
+        return np.zeros((0, 2), int)
+    # drawn in the ellipse's own window: an image-sized mask a call cost more than the fit
+    x0, y0 = max(int(cx - reach), 0), max(int(cy - reach), 0)
+    x1, y1 = min(int(cx + reach) + 2, w), min(int(cy + reach) + 2, h)
+    if x1 <= x0 or y1 <= y0:
+        return np.zeros((0, 2), int)
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.ellipse(mask, ((cx - x0, cy - y0), (2 * a * fraction, 2 * b * fraction), shape["angle"]), 1, -1)
     v, u = np.nonzero(mask)
-    return np.stack([u, v], axis=1)
+    return np.stack([u + x0, v + y0], axis=1)
 

@@ -115,6 +115,12 @@ STRAY_ARC_TRIALS = 200
 # grazingly the lit image's own edges drift with the shading: a true 17.6 mm sticker lit at 85°
 # parted by 1.19 (variant 175 at 0/+20), 0.34 mm off.
 LIT_SHIFT_MAX_RADII, LIT_SHIFT_MAX_LIGHT_DEG = 0.75, 75.0
+# A disk's face is one surface: of the decoded points within FACE_SPAN_FRACTION of its fitted
+# outline, at most FACE_OFF_SHARE may lie further off its plane than FACE_OFF_MM or
+# FACE_OFF_RADII x its radius (a sticker's sag on the leg is under a fifth of its radius there).
+# More is an outline through it: the bright table's edge over the dark floor 105 mm below it
+# passed as a 'sticker', 63 % of its face on the floor (held-out variant 234 at 20/+20).
+FACE_SPAN_FRACTION, FACE_OFF_SHARE, FACE_OFF_MM, FACE_OFF_RADII = 0.7, 0.1, 3.0, 0.3
 
 
 def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
@@ -248,6 +254,9 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     light_deg = view_deg(cal.projector.center, centre, normal)
     if light_deg > MAX_LIGHT_DEG:
         return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
+    off = _face_off_surface(points, cal, centre, normal, radius)
+    if off > FACE_OFF_SHARE:
+        return None, f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})"
     limit = face_rms_limit(sigma, interior)
     if surf_rms > limit:
         return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})"
@@ -280,6 +289,21 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                 kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim), ""
+
+
+def _face_off_surface(points, cal, centre, normal, radius) -> float:
+    """The share of decoded points within FACE_SPAN_FRACTION of the fitted disk's image that lie
+    off its plane by more than max(FACE_OFF_MM, FACE_OFF_RADII x radius); 0 where none is decoded."""
+    shape = face_shape(cal, centre, normal, radius)
+    if shape is None:
+        return 0.0
+    uv = ellipse_pixels(shape, FACE_SPAN_FRACTION, points.shape[:2])
+    p = points[uv[:, 1], uv[:, 0]]
+    p = p[np.isfinite(p[:, 0])]
+    if not len(p):
+        return 0.0
+    height = np.abs((p - centre) @ normal)
+    return float(np.mean(height > max(FACE_OFF_MM, FACE_OFF_RADII * radius)))
 
 
 def _runaway(radius, radius_mm) -> bool:
