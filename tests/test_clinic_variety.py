@@ -501,3 +501,19 @@ def test_a_disk_with_an_outline_through_its_face_is_refused():
         e = m.centre - truth.marks[k]
         assert np.linalg.norm(e) < 0.3, k
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+
+
+def test_a_thick_plate_on_the_outline_is_found_by_its_predicted_outline():
+    """Held-out variant 221 at 20/+20, full resolution (15.7 x 2.8 mm plates): the lateral ankle
+    plate, seen at 74° on the leg's outline, images as its lit side wall over a dim face; the
+    cut blob is mostly the wall and its fit a fifth too small. The shape look's predicted
+    outline (face and wall) was refused as 'not elliptical': a disk 7 px across rasterises to a
+    solidity of 0.87. A predicted outline is now taken as the ellipse it is: the trial is
+    complete, every mark within 0.3 mm and its SD."""
+    rig = variant_rig(draw_variant(221), 20, 20, scale=1.0, seed=4)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    for k, m in res.marks.labelled.items():
+        e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < 0.3, k
+        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k

@@ -385,7 +385,7 @@ def disk_contrast_peak(image, disk, reach: float = 1.0):
         return None
     region = np.pad(disk.get("face", mask), 1)
     return {"slice": (slice(cv_ - half - 1, cv_ + half + 2), slice(cu - half - 1, cu + half + 2)), "region": region,
-            "origin": (cu - half - 1, cv_ - half - 1), "centre": (float(cu), float(cv_))}
+            "origin": (cu - half - 1, cv_ - half - 1), "centre": (float(cu), float(cv_)), "predicted": True}
 
 
 def blob_shape(blob):
