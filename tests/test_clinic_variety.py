@@ -517,3 +517,30 @@ def test_a_thick_plate_on_the_outline_is_found_by_its_predicted_outline():
         e = m.centre - truth.marks[k]
         assert np.linalg.norm(e) < 0.3, k
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+
+
+def test_a_click_is_not_moved_onto_a_doubtful_fit():
+    """Held-out variant 173 at 20/+20, full resolution (11.3 mm plates): the front ankle plate,
+    lit at 77°, is missed by the search. A click 3 mm beside it was snapped onto a fit of its lit
+    side wall (clean edges, radius 7 % short of the size), 2.7 mm off along the view at an SD of
+    0.24 mm: a confident wrong place. A fit whose radius disagrees with the size is passed
+    over now, and the click is kept as it was."""
+    from anklescan.core.scan.lit_image import averaged_lit, clipped_white
+    from anklescan.core.measure.mark_candidates import points_image
+    from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.measure.pipeline import measure_capture
+
+    rig = variant_rig(draw_variant(173), 20, 20, scale=1.0, seed=4)
+    cap = _capture(rig)
+    res = measure_capture(cap, rig.true_calibration())
+    assert "2" not in res.marks.labelled
+    truth = rig.truth()
+    lit = averaged_lit(cap)
+    n = truth.mark_normals["2"]
+    off = np.cross(n, [0.0, 0.0, 1.0])
+    click = truth.marks["2"] + 3.0 * off / np.linalg.norm(off)
+    m = snap_to_disk(click, lit, points_image(res.cloud, lit.shape), rig.true_calibration(),
+                     mark_diameter_mm=res.marks.diameter[0], clipped=clipped_white(cap))
+    if m is not None:  # a snap, if any, must be where the mark is, within its SD
+        e = m.centre - truth.marks["2"]
+        assert np.linalg.norm(e) < 0.35 and float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37
