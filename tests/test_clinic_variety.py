@@ -25,6 +25,14 @@ def _measured(rig):
     return measure_capture(_capture(rig), rig.true_calibration()), rig.truth()
 
 
+def _assert_within(res, truth, limit_mm=0.3):
+    """Every labelled mark within ``limit_mm`` of the truth and within its SD (3.37: 1 % if exact)."""
+    for k, m in res.marks.labelled.items():
+        e = m.centre - truth.marks[k]
+        assert np.linalg.norm(e) < limit_mm, (k, np.linalg.norm(e), m.sd)
+        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, (k, np.linalg.norm(e), m.sd)
+
+
 def test_drawn_setups_are_reproducible_and_within_the_spec():
     a, b = draw_variant(5), draw_variant(5)
     assert a == b and a != draw_variant(6)
@@ -389,10 +397,7 @@ def test_a_doubtful_wider_fit_with_clean_edges_completes_the_set():
     rig = variant_rig(draw_variant(92), 0, 20, scale=1.0, seed=1)
     res, truth = _measured(rig)
     assert res.complete, res.marks.message()
-    for k, m in res.marks.labelled.items():
-        e = m.centre - truth.marks[k]
-        assert np.linalg.norm(e) < 0.3, k
-        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+    _assert_within(res, truth)
 
 
 def test_a_bright_table_past_the_foots_silhouette_is_no_sticker():
@@ -451,10 +456,7 @@ def test_a_sticker_the_lit_image_places_elsewhere_is_refused():
     rig = variant_rig(draw_variant(195), 0, 20, scale=1.0, seed=1)
     res, truth = _measured(rig)
     assert res.complete and len(res.marks.marks) == 7, res.marks.message()
-    for k, m in res.marks.labelled.items():
-        e = m.centre - truth.marks[k]
-        assert np.linalg.norm(e) < 0.3, k
-        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+    _assert_within(res, truth)
 
 
 @pytest.mark.parametrize("variant, inv, pf, seed", [(155, 0, 20, 1), (177, 0, -20, 0)])
@@ -497,10 +499,7 @@ def test_a_disk_with_an_outline_through_its_face_is_refused():
     rig = variant_rig(draw_variant(234), 20, 20, scale=1.0, seed=4)
     res, truth = _measured(rig)
     assert res.complete and len(res.marks.marks) == 7, res.marks.message()
-    for k, m in res.marks.labelled.items():
-        e = m.centre - truth.marks[k]
-        assert np.linalg.norm(e) < 0.3, k
-        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+    _assert_within(res, truth)
 
 
 def test_a_thick_plate_on_the_outline_is_found_by_its_predicted_outline():
@@ -513,10 +512,7 @@ def test_a_thick_plate_on_the_outline_is_found_by_its_predicted_outline():
     rig = variant_rig(draw_variant(221), 20, 20, scale=1.0, seed=4)
     res, truth = _measured(rig)
     assert res.complete, res.marks.message()
-    for k, m in res.marks.labelled.items():
-        e = m.centre - truth.marks[k]
-        assert np.linalg.norm(e) < 0.3, k
-        assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, k
+    _assert_within(res, truth)
 
 
 def test_a_click_is_not_moved_onto_a_doubtful_fit():
