@@ -415,6 +415,18 @@ def test_a_bright_table_past_the_foots_silhouette_is_no_sticker():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
 
 
+def test_a_sticker_lit_past_75_degrees_is_not_refused_for_its_lit_edges_on_a_line():
+    """Held-out variant 36 at 0/+20, full resolution (24.9 mm stickers): the front ankle sticker,
+    lit at 77°, is fitted 0.06 mm off on the shading-corrected image's edges (51 of them, radius
+    within 0.1 mm of the size), but its lit image keeps only the near rim, whose fit runs away
+    like the table's edge above, and it was refused: the trial was incomplete. The lit image's
+    edges now count only where the disk is lit at up to 75°, as for the lit shift."""
+    rig = variant_rig(draw_variant(36), 0, 20, scale=1.0, seed=1)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    _assert_within(res, truth)
+
+
 def test_a_sticker_on_a_surface_the_quadric_misfits_is_not_taken_for_a_plate():
     """Held-out variant 151 at 20/-20, full resolution: the 14.4 mm lateral ankle sticker, near the
     leg's silhouette, stood 0.60 ± 0.02 mm over a quadric that fits the skin round it to 0.19 mm

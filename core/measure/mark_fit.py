@@ -113,7 +113,11 @@ STRAY_ARC_TRIALS = 200
 # shadow edge on the leg, lit at 52°, passed as a sticker at 1.24 (variant 195 at 0/+20); true
 # stickers lit at 47-52° part by up to ~0.4 (23 mm on a curved leg, variant 155). Lit more
 # grazingly the lit image's own edges drift with the shading: a true 17.6 mm sticker lit at 85°
-# parted by 1.19 (variant 175 at 0/+20), 0.34 mm off.
+# parted by 1.19 (variant 175 at 0/+20), 0.34 mm off. The same limit holds for the lit image's
+# edges lying on a line (``_edge_disagreement`` None): a false sticker on the table past the foot
+# lit at 58° is refused so (variant 168 at 20/+20), while a true 24.9 mm front sticker lit at 77°,
+# whose lit image keeps only its near rim, is fitted 0.06 mm off on the corrected image's edges
+# (variant 36 at 0/+20).
 LIT_SHIFT_MAX_RADII, LIT_SHIFT_MAX_LIGHT_DEG = 0.75, 75.0
 # A disk's face is one surface: of the decoded points within FACE_SPAN_FRACTION of its fitted
 # outline, at most FACE_OFF_SHARE may lie further off its plane than FACE_OFF_MM or
@@ -271,10 +275,12 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
         spread = _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
                                     centre)
-        if spread is None:
+        lit_enough = light_deg <= LIT_SHIFT_MAX_LIGHT_DEG
+        if spread is None and lit_enough:
             return None, f"the lit image's edges here lie on a line, not round a disk ({what})"
+        spread = np.zeros((3, 3)) if spread is None else spread
         shift = 2.0 * math.sqrt(float(np.trace(spread)))
-        if shift > LIT_SHIFT_MAX_RADII * radius_mm and light_deg <= LIT_SHIFT_MAX_LIGHT_DEG:
+        if shift > LIT_SHIFT_MAX_RADII * radius_mm and lit_enough:
             return None, f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})"
         cov = cov + spread
     clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
