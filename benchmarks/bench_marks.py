@@ -109,7 +109,10 @@ def _trial_figures(job):
         sds = [(float(m.sd), min(np.linalg.norm(m.centre - t) for t in res.truth_marks.values()) < FAKE_MM,
                 f"{m.label or '?'} {m.kind} seen at {m.view_deg:.0f}°, lit at {m.light_deg:.0f}°")
                for m in res.marks.marks]
-        out.append({"sds": sds, "inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
+        # the doubtful fits kept (free radius far from the size, ``_restore_held``): how far off
+        doubtful = [(k, float(np.linalg.norm(e)), float(np.sqrt(e @ np.linalg.solve(m.covariance, e))))
+                    for k, m in res.marks.labelled.items() if m.doubtful for e in [m.centre - res.truth_marks[k]]]
+        out.append({"sds": sds, "doubtful": doubtful, "inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
                     "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
                     "type": mtype, "diameter": diam, "mode": mode,
                     "measured": None if d is None or mode == "given" else d,
@@ -160,7 +163,7 @@ def main(argv=None):
     PRESET[0], THICKNESS[0] = a.preset, a.thickness
     jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
-    wrong_complete, crashes, true_sd, fake_sd = 0, 0, [], []
+    wrong_complete, crashes, true_sd, fake_sd, doubtful = 0, 0, [], [], []
     reach = {"trials": 0, "incomplete": 0, "errors": [], "angles": []}
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
         for r in (r for rs in (pool.imap(_run, jobs) if pool else map(_run, jobs)) for r in rs):
@@ -190,6 +193,7 @@ def main(argv=None):
             z += r["z"]
             true_sd += [sd for sd, true, _ in r["sds"] if true]
             fake_sd += [sd for sd, true, _ in r["sds"] if not true]
+            doubtful += r["doubtful"]
             marks = " ".join(f"{k}:{v:.2f}" for k, v in sorted(r["marks"].items()))
             angles = " ".join(f"{k.replace('_', ' ')[:10]}:{v:+.3f}" for k, v in r["angles"].items())
             size = (f"{r['type']:7s} {r['diameter']:4.1f} mm {r['mode']:7s}"
@@ -201,6 +205,8 @@ def main(argv=None):
             for sd, true, what in r["sds"]:
                 if sd > WIDE_SD_MM or not true:
                     print(f"    {'a true' if true else 'A FALSE'} mark, SD {sd:.2f} mm: {what}", flush=True)
+            for k, err, zk in r["doubtful"]:
+                print(f"    a doubtful fit kept: {k}, {err:.2f} mm off, {zk:.1f} SD", flush=True)
             if not r["complete"]:
                 print("    " + r["message"], flush=True)
                 lost = sorted(set(LABELS) - set(r["found"]))
@@ -231,6 +237,10 @@ def main(argv=None):
         print(f"centre SD of the true marks kept: median {np.median(true_sd):.3f} mm, 99th percentile "
               f"{np.percentile(true_sd, 99):.3f} mm, largest {max(true_sd):.3f} mm; false marks kept: {len(fake_sd)}"
               + (f", SDs {', '.join(f'{s:.2f}' for s in sorted(fake_sd))} mm" if fake_sd else ""))
+    if doubtful:
+        de = np.array([(err, zk) for _, err, zk in doubtful])
+        print(f"doubtful fits kept (radius far from the size): {len(doubtful)}, worst {de[:, 0].max():.3f} mm off, "
+              f"worst {de[:, 1].max():.1f} SD")
 
 
 if __name__ == "__main__":
