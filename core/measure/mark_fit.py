@@ -53,7 +53,11 @@ MAX_RADIUS_Z = 4.0
 # A blob's wider cut (``find_marks``' wider look) is a last chance, so its fit must be clearly a disk: the 10 mm
 # front plate at 10/+20, lit at 76°, passed on 8 edge points, radius 4.24 ± 0.56 mm, 0.71 mm off;
 # the 15 x 3 mm table plates it is for had 7.16-7.51 ± 0.07-0.13 mm.
-WIDER_MAX_RADIUS_SD_MM = 0.3
+# On large marks the bound is a share of the size instead (WIDER_MAX_RADIUS_SD_REL): a 23.6 mm
+# lateral plate seen at 73°, its disk's outline fitted on 30 edges, radius 11.59 ± 0.32 mm (2.8 %),
+# 0.12 mm off, was refused at 0.3 (held-out variant 120 at 20/+20); a 20.4 mm plate's cut with its
+# side wall, ± 0.54 mm (5.3 %), was 0.58 mm off (variant 42 at 20/+20).
+WIDER_MAX_RADIUS_SD_MM, WIDER_MAX_RADIUS_SD_REL = 0.3, 0.04
 MIN_INTERIOR_POINTS = 6
 # A disk lit more obliquely than this gets cos 85° = 9 % of the light: a front knee sticker lit at
 # 88° (a variant with the projector diagonal to the camera) was fitted 0.45 mm off at 7 SD. The
@@ -372,6 +376,13 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
         return None
     half = 0.5 * (other[0] - centre)
     return np.outer(half, half)
+
+
+def radius_clearly_measured(radius_sd, size) -> bool:
+    """True if a free radius is known well enough for its fit to be clearly a disk, where the fit
+    is a last chance (a blob's wider cut, a predicted outline): an SD of at most
+    WIDER_MAX_RADIUS_SD_MM, or WIDER_MAX_RADIUS_SD_REL of the marks' radius ``size`` if more."""
+    return bool(radius_sd <= max(WIDER_MAX_RADIUS_SD_MM, WIDER_MAX_RADIUS_SD_REL * float(size)))
 
 
 def radius_disagrees(radius, radius_sd, size, size_sd) -> bool:

@@ -39,7 +39,7 @@ from anklescan.core.measure.mark_candidates import (border_undecoded, camera_dep
                                   points_image, ring_level, shading_corrected, sigma_image)
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_fit import (MAX_CIRCLE_RMS_MM, RADIUS_PRIOR_SD_MM, STICKER_MAX_STEP_MM,
-                                             WIDER_MAX_RADIUS_SD_MM, fit_mark)
+                                             fit_mark, radius_clearly_measured)
 from anklescan.core.measure.mark_labels import LABELS, label_marks
 from anklescan.core.scan.pointcloud import PointCloud
 
@@ -221,7 +221,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     for blob in blobs:
         mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
                                 prefer_kind=prefer, clipped=clipped)
-        if mark is not None and blob.get("ring_cut") and mark.radius_sd > WIDER_MAX_RADIUS_SD_MM:
+        if mark is not None and blob.get("ring_cut") and not radius_clearly_measured(mark.radius_sd, r0):
             # cut against the surface round it, not the opening: kept here only if clearly a disk
             # (held-out variant 42 at 20/20: a plate's cut with its side wall, radius ± 0.54 mm,
             # 0.58 mm off; the later looks find it 0.14 mm off)
@@ -325,7 +325,7 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
 def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
                 thickness, prefer_kind, clipped=None) -> None:
     """Last of all, the refused blobs' wider cuts (``cut_blob``), away from the marks found, kept
-    where the fit is clearly a disk (free radius SD <= WIDER_MAX_RADIUS_SD_MM, not doubtful): a
+    where the fit is clearly a disk (``radius_clearly_measured``, not doubtful): a
     thick plate's face beside its bright side wall (a 15 x 3 mm table plate at 0/-20). Tried in
     the first pass instead, a weaker fit of a 10 mm plate (14 edge points, 0.31 mm off) took the
     place of the second look's (21, 0.18 mm)."""
@@ -405,7 +405,7 @@ def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_s
     it), was refused as doubtful and the trial was left incomplete."""
     mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
                        plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped)
-    if mark is None or mark.radius_sd > WIDER_MAX_RADIUS_SD_MM:
+    if mark is None or not radius_clearly_measured(mark.radius_sd, radius_mm):
         return None
     return mark if not mark.doubtful or mark.circle_rms <= DOUBTFUL_MAX_EDGE_RMS_MM else None
 
