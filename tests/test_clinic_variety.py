@@ -539,6 +539,19 @@ def test_a_large_plates_predicted_outline_is_judged_by_its_radius_sd_against_its
     _assert_within(res, truth)
 
 
+def test_two_blobs_of_one_disk_in_the_second_look_leave_one_mark():
+    """Held-out variant 287 at 20/+20, full resolution (10.9 mm stickers): two blobs of the
+    shading-corrected image, 16 px apart, both fitted the front knee sticker, 0.01 mm apart. The
+    second look checked where each blob lies, not where its fit lands, and kept both: 'seven'
+    marks, so the later looks never searched for the missing front ankle sticker, and the leg
+    went unlabelled. One disk is one mark now, and the trial is complete, every mark within
+    0.3 mm and its SD."""
+    rig = variant_rig(draw_variant(287), 20, 20, scale=1.0, seed=4)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    _assert_within(res, truth)
+
+
 def test_a_click_is_not_moved_onto_a_doubtful_fit():
     """Held-out variant 173 at 20/+20, full resolution (11.3 mm plates): the front ankle plate,
     lit at 77°, is missed by the search. A click 3 mm beside it was snapped onto a fit of its lit
