@@ -132,7 +132,9 @@ def use_true_calibration(win) -> None:
 
 
 class GapMeter:
-    """A 10 ms timer on the UI thread; the longest gap between ticks is how long it was blocked."""
+    """A 10 ms timer on the UI thread; the longest gap between ticks is how long it was blocked.
+    Python's garbage-collector pauses in that time are recorded too (``max_gc_ms``): a long test
+    run leaves a large heap behind, whose full collections stall whichever thread triggers them."""
 
     def __init__(self):
         from PySide6.QtCore import QElapsedTimer
@@ -142,6 +144,8 @@ class GapMeter:
         self.timer.timeout.connect(self._tick)
         self.last = None
         self.max_gap_ms = 0
+        self.max_gc_ms = 0.0
+        self._gc_start = None
 
     def _tick(self):
         now = self.clock.elapsed()
@@ -149,12 +153,24 @@ class GapMeter:
             self.max_gap_ms = max(self.max_gap_ms, now - self.last)
         self.last = now
 
+    def _gc(self, phase, info):
+        import time
+        if phase == "start":
+            self._gc_start = time.perf_counter()
+        elif self._gc_start is not None:
+            self.max_gc_ms = max(self.max_gc_ms, (time.perf_counter() - self._gc_start) * 1000)
+
     def start(self):
+        import gc
+        gc.callbacks.append(self._gc)
         self.clock.start()
         self.timer.start()
 
     def stop(self):
+        import gc
         self.timer.stop()
+        if self._gc in gc.callbacks:
+            gc.callbacks.remove(self._gc)
 
 
 def calibrated_window(qtbot, operator: str = "tester"):

@@ -126,7 +126,7 @@ def test_capture_keeps_the_ui_thread_responsive(setup, qtbot):
     qtbot.wait(200)
     meter.stop()
     print(f"\nUI thread: longest gap during the wizard's preview, box scan and report = {meter.max_gap_ms} ms")
-    assert meter.max_gap_ms <= 100
+    assert meter.max_gap_ms <= 100, f"blocked {meter.max_gap_ms} ms (longest garbage-collector pause {meter.max_gc_ms:.0f} ms)"
 
 
 def test_spot_refinement_keeps_the_ui_thread_responsive(setup, qtbot):
