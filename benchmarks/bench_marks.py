@@ -52,9 +52,14 @@ def trial(inv, pf, scale, seed, optics=None, mark_type="plate", diameter=15.0, m
                      scale=scale, seed=seed, optics=optics)
     else:
         rig = variant_rig(variant, inv, pf, scale=scale, seed=seed, optics=optics)
-    pset = make_pattern_set(PRESET[0], rig.projector.width, rig.projector.height, axes=scan_axes(rig.true_calibration()))
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    cap = captured(rig, PRESET[0])
     return [_measured(rig, cap, None if mode == "unknown" else diameter) for mode in modes]
+
+
+def captured(rig, preset="default"):
+    """The rig's capture of the pattern set ``preset``, along the stripe axes its calibration scans."""
+    pset = make_pattern_set(preset, rig.projector.width, rig.projector.height, axes=scan_axes(rig.true_calibration()))
+    return capture_from_images(pset, rig.capture_many(render_all(pset)))
 
 
 def _measured(rig, cap, given):

@@ -24,16 +24,15 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from anklescan.core.measure.mark_candidates import points_image  # noqa: E402
 from anklescan.core.measure.marks import LABELS  # noqa: E402
 from anklescan.core.measure.marks_surface import snap_to_disk  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
-from anklescan.core.scan.capture import capture_from_images  # noqa: E402
 from anklescan.core.scan.lit_image import averaged_lit, clipped_white  # noqa: E402
-from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
-from anklescan.core.scan.triangulate import scan_axes  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
+from bench_marks import captured  # noqa: E402
 
 POSTURE_SEEDS = {(0, -20): 0, (0, 20): 1, (10, 0): 2, (20, -20): 3, (20, 20): 4}  # bench_marks' sweep
 GOOD_MM, GOOD_Z = 0.35, 3.37
@@ -56,8 +55,7 @@ def _trial(job):
     (v, inv, pf, seed), scale, offset, given = job
     variant = draw_variant(v)
     rig = variant_rig(variant, inv, pf, scale=scale, seed=seed)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(rig.true_calibration()))
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    cap = captured(rig)
     cal = rig.true_calibration()
     res = measure_capture(cap, cal, variant.diameter if given else None)
     truth = rig.truth()

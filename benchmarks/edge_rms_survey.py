@@ -25,9 +25,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_marks  # noqa: E402
 import anklescan.core.measure.mark_fit as mark_fit  # noqa: E402
-from anklescan.core.scan.capture import capture_from_images  # noqa: E402
-from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
-from anklescan.core.scan.triangulate import scan_axes  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 
 POSTURES = [(0, -20), (0, 20), (10, 0), (20, -20), (20, 20)]  # the held-out sweeps' five; seed = index
@@ -54,8 +51,7 @@ def _trial(job):
     inv, pf = POSTURES[i]
     variant = draw_variant(v)
     rig = variant_rig(variant, inv, pf, scale=1.0, seed=i)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(rig.true_calibration()))
-    cap = capture_from_images(pset, rig.capture_many(render_all(pset)))
+    cap = bench_marks.captured(rig)
     _TRUTH["marks"] = rig.truth().marks
     _FOUND.clear()
     for mode in ("unknown", "given"):
