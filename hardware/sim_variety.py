@@ -4,8 +4,8 @@ The default scene is what the method was developed on, so a figure measured only
 little about a clinic's rig. ``draw_variant(seed)`` draws, reproducibly, one clinic-like set-up
 from ranges a clinic meets (SPEC §2's 8-25 mm marks, plates 1-3 mm thick, thinner or
 heavier legs, darker or lighter skin, marks stuck further round, projector gamma, a camera tone
-curve, a shiny surface, the projector above or beside the camera); ``variant_rig`` builds the
-rig for one table posture. ``benchmarks/bench_marks.py --variants`` sweeps them.
+curve, a shiny surface, the projector above or beside the camera, and where the camera stands
+and how many pixels a millimetre covers); ``variant_rig`` builds the rig for one table posture. ``benchmarks/bench_marks.py --variants`` sweeps them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
-from anklescan.hardware.simrig import Optics, SimRig
+from anklescan.hardware.simrig import (
+    CAMERA_DISTANCE_MM, CAMERA_F_PX, Optics, SimRig, camera_eye, default_camera, default_projector)
 
 DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
 LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build
@@ -25,6 +26,13 @@ MIN_MARK_CONTRAST = 1.15  # mark albedo over the table's, at least
 # pairs that their tests and recorded figures (docs/marks.md) were measured on.
 HAND_PLACED_FROM_SEED = 169
 LATERAL_OFFSET_RANGES_MM = ((-25.0, 25.0), (-12.0, 12.0))
+# From this seed on, the camera stands elsewhere too: round the leg (azimuth from the front
+# towards the lateral side), higher or lower, nearer or further, zoomed in or out (pixels per mm
+# x0.9-1.1 at the rig's resolution), and the projector at another baseline. The ranges keep all
+# seven marks in both fields (checked for the extremes). Earlier seeds keep our own rig's view.
+VIEW_DRAWN_FROM_SEED = 337
+VIEW_RANGES = {"azimuth_deg": (20.0, 45.0), "elevation_deg": (24.0, 40.0), "distance_mm": (950.0, 1300.0),
+               "zoom": (0.9, 1.1), "baseline_mm": (380.0, 560.0)}
 
 
 @dataclass(frozen=True)
@@ -37,6 +45,7 @@ class Variant:
     layout: str
     scene: dict = field(default_factory=dict)
     optics: dict = field(default_factory=dict)
+    view: dict = field(default_factory=dict)  # VIEW_RANGES' keys; empty: our own rig's view
 
     def describe(self) -> str:
         s, o = self.scene, self.optics
@@ -47,7 +56,19 @@ class Variant:
                 + (" {:+.0f}/{:+.0f} mm".format(*s["lateral_mark_offsets"]) if "lateral_mark_offsets" in s else "")
                 + f", skin {s['skin_albedo']:.2f}"
                 f", mark {s['mark_albedo']:.2f}, gamma {o['projector_gamma']:.1f}/{o['camera_gamma']:.1f}"
-                f", specular {o['specular']:.2f}, exposure {o['exposure']:.2f}")
+                f", specular {o['specular']:.2f}, exposure {o['exposure']:.2f}"
+                + (", camera az {azimuth_deg:.0f} el {elevation_deg:.0f} at {distance_mm:.0f} mm, zoom {zoom:.2f}"
+                   ", baseline {baseline_mm:.0f} mm".format(**self.view) if self.view else ""))
+
+    def devices(self, scale: float = 1.0):
+        """(camera, projector) for this set-up at ``scale``; (None, None): the rig's defaults."""
+        if not self.view:
+            return None, None
+        v = self.view
+        eye = camera_eye(v["distance_mm"], v["azimuth_deg"], v["elevation_deg"])
+        f = CAMERA_F_PX * v["zoom"] * v["distance_mm"] / CAMERA_DISTANCE_MM  # same field at zoom 1
+        return (default_camera(scale, eye=eye, f=f),
+                default_projector(scale, camera_eye=eye, baseline=v["baseline_mm"], layout=self.layout))
 
 
 def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None = None,
@@ -78,7 +99,11 @@ def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None
         # a stream of its own, so that the draws above stay what they were
         hand = np.random.default_rng([seed, 16, 1])
         scene["lateral_mark_offsets"] = tuple(float(hand.uniform(*r)) for r in LATERAL_OFFSET_RANGES_MM)
-    return Variant(seed, mark_type, diameter, layout, scene, optics)
+    view = {}
+    if seed >= VIEW_DRAWN_FROM_SEED:
+        where = np.random.default_rng([seed, 16, 2])
+        view = {k: float(where.uniform(*r)) for k, r in VIEW_RANGES.items()}
+    return Variant(seed, mark_type, diameter, layout, scene, optics, view)
 
 
 def variant_rig(variant: Variant, inversion: float, plantar_flexion: float, *, scale: float = 1.0,
@@ -86,4 +111,5 @@ def variant_rig(variant: Variant, inversion: float, plantar_flexion: float, *, s
     """The variant's rig with the table at (inversion, plantar flexion); ``optics`` overrides."""
     scene = leg_scene(inversion, plantar_flexion, **variant.scene)
     o = replace(Optics(), **{**variant.optics, **(optics or {})})
-    return SimRig(scene, scale=scale, optics=o, seed=seed, layout=variant.layout)
+    camera, projector = variant.devices(scale)
+    return SimRig(scene, camera, projector, scale=scale, optics=o, seed=seed, layout=variant.layout)

@@ -119,10 +119,16 @@ BASELINE_MM = 500.0
 CAMERA_F_PX = 1750.0
 PROJECTOR_F_PX = 1250.0
 
-CAMERA_EYE = RIG_TARGET + CAMERA_DISTANCE_MM * np.array([
-    math.cos(math.radians(CAMERA_ELEVATION_DEG)) * math.sin(math.radians(CAMERA_AZIMUTH_DEG)),
-    math.cos(math.radians(CAMERA_ELEVATION_DEG)) * math.cos(math.radians(CAMERA_AZIMUTH_DEG)),
-    math.sin(math.radians(CAMERA_ELEVATION_DEG))])
+
+
+def camera_eye(distance_mm: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Where a camera stands: ``distance_mm`` from RIG_TARGET, ``azimuth_deg`` from +y (anterior)
+    towards +x, ``elevation_deg`` above the horizontal."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return RIG_TARGET + distance_mm * np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
+
+
+CAMERA_EYE = camera_eye(CAMERA_DISTANCE_MM, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG)
 
 
 def default_camera(scale: float = 1.0, *, eye=None, target=None, f=CAMERA_F_PX, dist=(-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:

@@ -50,6 +50,24 @@ def test_drawn_setups_are_reproducible_and_within_the_spec():
             assert lo <= off <= hi
 
 
+def test_from_a_seed_on_the_camera_stands_elsewhere_and_still_sees_every_mark():
+    """Camera round the leg, higher or lower, nearer or further, zoomed; the projector at another
+    baseline. Every mark's centre stays inside both frames, facing the camera, in every posture."""
+    from anklescan.hardware.sim_variety import VIEW_DRAWN_FROM_SEED, VIEW_RANGES
+
+    assert not draw_variant(VIEW_DRAWN_FROM_SEED - 1).view and draw_variant(VIEW_DRAWN_FROM_SEED).view
+    assert draw_variant(VIEW_DRAWN_FROM_SEED + 3) == draw_variant(VIEW_DRAWN_FROM_SEED + 3)
+    for v in map(draw_variant, range(VIEW_DRAWN_FROM_SEED, VIEW_DRAWN_FROM_SEED + 24)):
+        assert all(lo <= v.view[k] <= hi for k, (lo, hi) in VIEW_RANGES.items())
+        for inv, pf in [(0, -20), (0, 20), (20, -20), (20, 20)]:
+            rig = variant_rig(v, inv, pf, scale=0.25)
+            for m in rig.scene.marks.values():
+                for dev in (rig.camera, rig.projector):
+                    u, w = dev.project(m.centre[None])[0]
+                    assert 0 <= u < dev.width and 0 <= w < dev.height, (v.seed, inv, pf)
+                assert m.normal @ (rig.camera.center - m.centre) > 0
+
+
 @pytest.mark.parametrize("gamma", [1.0, 2.2])
 def test_camera_tone_curve_is_measured_from_the_capture(gamma):
     """A pattern and its inverse share the projector's light: frame + inverse = white + black in
