@@ -106,6 +106,7 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     assert store.get_session(session.id).calibration_id == cid
 
 
+@pytest.mark.timing
 def test_capture_keeps_the_ui_thread_responsive(setup, qtbot):
     """Issue 17: from the live preview with marker detection, through a click on Scan the box,
     to the quality report and a click on Accept and save, the UI thread is never blocked for
@@ -129,6 +130,7 @@ def test_capture_keeps_the_ui_thread_responsive(setup, qtbot):
     assert meter.max_gap_ms <= 100, f"blocked {meter.max_gap_ms} ms (longest garbage-collector pause {meter.max_gc_ms:.0f} ms)"
 
 
+@pytest.mark.timing
 def test_spot_refinement_keeps_the_ui_thread_responsive(setup, qtbot):
     """The manual page's Record spot photographs eight edge frames: in the background, through
     the same acquisition as a scan, so the UI thread is never blocked for more than 100 ms."""

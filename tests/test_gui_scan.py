@@ -45,6 +45,7 @@ def _run_scan(qtbot, win, timeout=120_000):
     return meter.max_gap_ms
 
 
+@pytest.mark.timing
 def test_full_scan_matches_offline_reconstruction(qtbot, window):
     window.scan_page.form.inversion.setValue(10.0)
     window.scan_page.form.plantar_flexion.setValue(-5.0)
@@ -80,6 +81,7 @@ def test_each_frame_shows_its_own_pattern(qtbot, window):
         assert np.abs(shot - own).mean() < 0.5 * np.abs(shot - prev).mean()
 
 
+@pytest.mark.timing
 def test_cancel_stops_within_a_second(qtbot, window):
     captured = []
     window.controller.frameCaptured.connect(lambda i, _: captured.append(i))
@@ -122,6 +124,7 @@ def test_projector_screen_gone_stops_scan(qtbot, window):
     assert "projector" in window.banner.text.lower()
 
 
+@pytest.mark.timing
 def test_gui_starts_quickly():
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", "import sys; from anklescan.app.main_window import run_gui; "

@@ -359,6 +359,7 @@ def test_undo_stops_at_the_automatic_marks(qtbot):
     assert not undo.isEnabled()
 
 
+@pytest.mark.timing
 def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
     """No UI-thread gap over 100 ms from the window being on screen to a usable app, nor while a
     report is exported (the issue measured 1.7-2.3 s and 1.35 s)."""

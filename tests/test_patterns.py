@@ -62,6 +62,7 @@ def test_render_values_and_inverse():
     assert np.all(r[:16] == 0) and np.all(r[16:] == 255) and np.all(r == r[:, :1])
 
 
+@pytest.mark.timing
 def test_render_full_set_is_fast():
     ps = make_pattern_set("default", 1024, 768)
     t0 = time.perf_counter()
