@@ -611,6 +611,28 @@ def test_a_doubtful_mark_gives_way_to_a_better_fit_or_is_kept():
     assert len(result.marks) == 2
 
 
+def test_no_doubtful_mark_is_kept_beside_seven_sure_ones():
+    """Seven sure marks leave no place for a doubtful one, however far from them: it is refused,
+    with the reason; with six it is kept."""
+    from anklescan.core.measure.marks import _restore_held
+    from anklescan.hardware.simrig import SimRig
+
+    cal = SimRig(leg_scene(0, 0), scale=0.5, seed=0).true_calibration()
+
+    def mark(x_mm, doubtful):
+        c = np.array([x_mm, 0.0, 0.0])
+        return Mark(c, np.array([0.0, 0.0, 1.0]), 5.0, 0.05, 0.05, np.eye(3) * 0.01,
+                    tuple(float(v) for v in cal.camera.project(c[None])[0]), 20, 100, doubtful=doubtful)
+
+    sure = [mark(40.0 * i, False) for i in range(7)]
+    result = MarkSet(marks=list(sure))
+    _restore_held(result, [mark(-60.0, True)], cal, 5.0)
+    assert result.marks == sure and "seven sure marks" in result.rejected[-1]["reason"]
+    result = MarkSet(marks=sure[:6])
+    _restore_held(result, [mark(-60.0, True)], cal, 5.0)
+    assert len(result.marks) == 7
+
+
 def test_face_smoothness_limit_scales_with_the_points_noise():
     """The fixed 0.2 mm face RMS limit is raised to FACE_RMS_PER_SIGMA times the face points'
     median predicted SD where that is larger: with read noise 4/255 a sticker's face had 0.21
