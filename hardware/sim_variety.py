@@ -5,7 +5,8 @@ little about a clinic's rig. ``draw_variant(seed)`` draws, reproducibly, one cli
 from ranges a clinic meets (SPEC §2's 8-25 mm marks, plates 1-3 mm thick, thinner or
 heavier legs, darker or lighter skin, marks stuck further round, projector gamma, a camera tone
 curve, a shiny surface, the projector above or beside the camera, and where the camera stands
-and how many pixels a millimetre covers); ``variant_rig`` builds the rig for one table posture. ``benchmarks/bench_marks.py --variants`` sweeps them.
+and how many pixels a millimetre covers); ``variant_rig`` builds the rig for one table posture.
+``benchmarks/bench_marks.py --variants`` sweeps them.
 """
 
 from __future__ import annotations

@@ -120,7 +120,6 @@ CAMERA_F_PX = 1750.0
 PROJECTOR_F_PX = 1250.0
 
 
-
 def camera_eye(distance_mm: float, azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     """Where a camera stands: ``distance_mm`` from RIG_TARGET, ``azimuth_deg`` from +y (anterior)
     towards +x, ``elevation_deg`` above the horizontal."""

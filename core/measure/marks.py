@@ -311,8 +311,8 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
     among those the one with the most edge points. Its covariance carries the radius's
     disagreement ((Δ/2)², ``_fit_kind``). Under camera blur 0.9 px a 10 mm plate fitted 2.56 mm
     off (z 4.7) was replaced by the second look's fit 0.11 mm off; a plate 0.15 mm off (z 4.4)
-    with nothing better there is kept (docs/marks.md). None is kept once seven sure marks are
-    found: a doubtful fit there can only be an eighth (held-out variant 344 at 20/-20, seen from
+    with nothing better there is kept (docs/marks.md). None is kept once seven marks are kept:
+    a doubtful fit there can only be an eighth (held-out variant 344 at 20/-20, seen from
     another viewpoint: skin by the leg's outline fitted 6.3 mm against 7.15, which left five leg
     marks and the trial unlabelled)."""
     late = [m for m in result.marks if m.doubtful]
@@ -323,8 +323,8 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
                 continue
             if len(result.marks) >= len(LABELS):
                 result.rejected.append({"pixel": m.pixel, "reason": (
-                    f"doubtful (radius {m.radius:.2f} mm against the marks' {radius_mm:.2f}), and seven sure marks "
-                    "were found")})
+                    f"doubtful (radius {m.radius:.2f} mm against the marks' {radius_mm:.2f}), and seven marks were "
+                    "already kept")})
                 continue
             r_px = _radius_px(cal, m, radius_mm)
             if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= 2 * r_px for o in result.marks):
