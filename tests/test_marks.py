@@ -689,3 +689,44 @@ def test_labels_with_lateral_marks_off_the_front_marks_level(offsets):
     assert ms.complete, ms.message()
     for m in ms.marks:
         assert m.label == truth[tuple(np.round(m.centre, 6))]
+
+
+def _turned(normal, deg):
+    """``normal`` turned ``deg`` about z (the standing leg's axis, near enough)."""
+    a = math.radians(deg)
+    R = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return R @ normal
+
+
+def test_a_false_mark_beside_the_lateral_ankle_mark_leaves_the_leg_unlabelled():
+    """The front ankle mark lost, a bright patch by the leg's outline kept beside the lateral one
+    and facing 40° further round: the pair's order alone made the true lateral mark the "front"
+    one and the leg's angles 8° off, said complete (held-out variant 378 at 0/+20). Each mark
+    must face round the leg nearer its own role's mark of the other pair."""
+    scene = leg_scene(0, 20)
+    marks = _truth_marks(scene)
+    by = dict(zip(scene.marks, marks))
+    by["2"].normal = _turned(by["4"].normal, -40.0)
+    by["2"].centre = by["4"].centre + 20.0 * (by["2"].normal - by["4"].normal)
+    ms = MarkSet(marks=marks)
+    label_marks(ms)
+    assert not ms.complete
+    assert "may not be a mark" in ms.message()
+    assert {m.label for m in ms.marks if m.label} == {"5", "6", "7"}
+
+
+@pytest.mark.parametrize("twist", [-25.0, 25.0])
+def test_an_ankle_pair_turned_as_a_twisted_tibia_turns_it_is_labelled(twist):
+    """A tibia turns its ankle 20-30° from its knee: both ankle marks face that much further round
+    the leg and are still labelled as they are."""
+    scene = leg_scene(10, 0)
+    truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
+    marks = _truth_marks(scene)
+    for m, lab in zip(marks, scene.marks):
+        if lab in ("2", "4"):
+            m.normal = _turned(m.normal, twist)
+    ms = MarkSet(marks=marks)
+    label_marks(ms)
+    assert ms.complete, ms.message()
+    for m in ms.marks:
+        assert m.label == truth[tuple(np.round(m.centre, 6))]

@@ -29,6 +29,13 @@ PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this fa
 # leg's angles 5-14° off, said complete). Such a set is left unlabelled, with a message.
 PAIR_MAX_SPREAD = 0.2
 SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round the leg to be told apart
+# Both pairs labelled: each mark faces round the leg nearer its own role's mark of the other pair
+# than the other role's, or not more than this worse (a tibia twisted 20-30° between knee and
+# ankle turns the ankle pair that much). A bright patch by the leg's outline kept as a mark
+# beside the true lateral ankle mark made that one the "front": it faced 0.5° from the lateral
+# knee mark and 51° from the front one, and the leg's angles were 8° off, said complete
+# (held-out variant 378 at 0/+20).
+CROSS_PAIR_MARGIN_DEG = 20.0
 # Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
 # (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
 LONE_SPLIT_DEG = 65.0
@@ -175,12 +182,37 @@ def _label_leg(leg, problems, table=None):
     for pair, (front, lateral), where in groups:
         if len(pair) == 2:
             _label_pair(pair, axis, front, lateral, where, problems)
+    if not _pairs_agree(knee, ankle, axis, problems):
+        for m in leg:
+            m.label = None
+        return
     for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
         if len(pair) == 1:
             label = _lone_label(pair[0], other, axis, front, lateral)
             if label is None:
                 problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
             pair[0].label = label
+
+
+def _pairs_agree(knee, ankle, axis, problems) -> bool:
+    """False (with a message) if a mark of one labelled pair faces round the leg clearly nearer
+    the other role's mark of the other pair than its own role's (``CROSS_PAIR_MARGIN_DEG``)."""
+    marks = knee + ankle
+    if len(marks) != 4 or any(m.label is None for m in marks):
+        return True
+    az = {m.label: _azimuth_about(m.normal, axis) for m in marks}
+    # (same role, other role); the ankle's first: a patch on the foot is likelier there
+    partner = {"2": ("1", "3"), "4": ("3", "1"), "1": ("2", "4"), "3": ("4", "2")}
+    for lab, (same, other) in partner.items():
+        d_same, d_other = (abs(_wrap_deg(az[lab] - az[k])) for k in (same, other))
+        if d_other + CROSS_PAIR_MARGIN_DEG < d_same:
+            where = "knee" if lab in ("1", "3") else "ankle"
+            role = "front" if lab in ("1", "2") else "lateral"
+            problems.append(f"the {where}'s {role} mark faces round the leg {d_other:.0f}° from the other pair's "
+                            f"{'lateral' if role == 'front' else 'front'} mark and {d_same:.0f}° from its "
+                            f"{role} one: one of the leg marks may not be a mark; leg marks not labelled")
+            return False
+    return True
 
 
 def _label_lone_pair(pair, table, problems):
