@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -24,11 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.atomic import make_private_dir, make_tree_private, write_text_atomic
-from anklescan.core.errors import AnkleScanError
+from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private, seal_output_dir,
+                                   write_json_atomic)
 from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
 
-MARKER = ".anklescan-demo"
+# The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
+# the next demo run replaces exactly those, and refuses a folder holding anything else.
+OUTPUT_COMMAND = "demo"
 
 
 @dataclass(frozen=True)
@@ -182,12 +183,14 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
 
 # ---------------------------------------------------------------------------- the study
 def _prepare_out(out: Path) -> None:
-    if out.exists() and any(out.iterdir()):
-        if not (out / MARKER).exists():
-            raise AnkleScanError(f"{out} is not empty and not an earlier demo folder; give a new folder")
-        shutil.rmtree(out)  # only ever an earlier demo's own output
-    make_private_dir(out)  # simulated, but a clinic's folder layout: patient data is private
-    write_text_atomic(out / MARKER, "written by anklescan demo; the folder is replaced by the next demo run\n")
+    """An empty or new folder, or an earlier demo's own output (its files only are removed);
+    anything else is refused before any work (core.atomic.claim_output_dir)."""
+    claim_output_dir(out, OUTPUT_COMMAND)
+
+
+def _finish_out(out: Path) -> None:
+    make_tree_private(out)  # a clinic's layout, so patient-data rules: files 0600, folders 0700
+    seal_output_dir(out, OUTPUT_COMMAND)
 
 
 def _sway(rng, sway_mm: float):
@@ -273,7 +276,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             progress(f"{res['label']}: {shown}  {status}")
             if res["accuracy"]:
                 acc = res["accuracy"]["subject"]
-                shutil.copyfile(job["cloud"], out / "scan.ply")
+                copy_private(job["cloud"], out / "scan.ply")
                 progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                          f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                          f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
@@ -282,7 +285,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             patient = store.get_patient(session.patient_id).code
             write_session_report(store.report_input([session.id]), out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
-    make_tree_private(out)  # a clinic's layout, so patient-data rules: files 0600, folders 0700
+    _finish_out(out)
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per session; {time.perf_counter() - t_start:.0f} s")
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
@@ -301,7 +304,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
                              "diameters_mm": sorted({round(r["mark_diameter"]["value"], 2) for r in results
                                                      if r["mark_type"] == t and r["mark_diameter"]})}
                          for t in sorted({r["mark_type"] for r in results})}}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_json_atomic(out / "summary.json", summary)
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
              f"table angles and mismatch); against the simulator's truth: "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "
@@ -398,7 +401,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
                                  out / f"session_{code}.pdf")
         _study_summary(store, progress)
     _summarise(results, out, progress)
-    make_tree_private(out)  # patient-data rules, as run_demo: files 0600, folders 0700
+    _finish_out(out)
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per patient; {time.perf_counter() - t_start:.0f} s")
     return 0

@@ -13,15 +13,32 @@
   folder holding an input). Every command that writes calls it before computing anything.
 - ``check_replaceable_dir``: an existing output folder may only be replaced when it is
   empty or holds nothing but an earlier output of ours; foreign files are never deleted.
+- ``claim_output_dir`` / ``seal_output_dir``: THE rule for a command that fills an output
+  folder in place (``demo``, ``report``): the folder's marker (``OUTPUT_MARKER``) lists every
+  file the command wrote, with its size and modification time; the next run removes exactly
+  those files and refuses, untouched, a folder holding anything else (a user's note, another
+  program's file, a file of ours changed since).
+- Permissions: an existing file is only ever replaced when the user may write it (as ``cp``
+  would), and the final rename goes through a handle on the target's folder opened once, so
+  a folder swapped for a symlink during a run cannot redirect it.
+- Temporaries (``mkdtemp_beside``) carry a marker naming their process; a killed run's are
+  removed by the next run in the same folder once their process is gone (or after
+  ``STALE_TEMP_AGE_S``), and nothing without the marker is ever removed.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import secrets
+import shutil
+import socket
 import stat
 import tempfile
-from contextlib import contextmanager
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from pathlib import Path
 
 from anklescan.core.errors import AnkleScanError
@@ -46,11 +63,86 @@ def temp_affixes(name: str, tag: str = "tmp", keep_suffix: str = "") -> tuple[st
     return f".{stem}.", suffix
 
 
+# A temporary folder holds this file (its process, host and start) until it is renamed into
+# place; a folder with it whose process is gone, or older than STALE_TEMP_AGE_S, is a killed
+# run's and is removed by the next run in the same folder.
+TEMP_MARKER = ".anklescan-temporary"
+STALE_TEMP_AGE_S = 24 * 3600.0
+
+
+@dataclass(frozen=True)
+class TempOwner:
+    """Who made a temporary folder (read from its TEMP_MARKER)."""
+
+    host: str
+    pid: int
+    created: float  # time.time()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def _read_temp_owner(folder: Path) -> TempOwner | None:
+    try:
+        with open(folder / TEMP_MARKER, encoding="utf-8") as fh:
+            obj = json.loads(fh.read(4096))
+        return TempOwner(str(obj["host"]), int(obj["pid"]), float(obj["created"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def clean_stale_temporaries(folder: str | os.PathLike, now: float | None = None) -> list[Path]:
+    """Remove, in ``folder``, the hidden temporary folders of runs that were killed: only those
+    holding our TEMP_MARKER whose process is gone (same host) or that are older than
+    STALE_TEMP_AGE_S. Anything without the marker is left alone. Returns what was removed."""
+    now = time.time() if now is None else now
+    removed: list[Path] = []
+    try:
+        entries = [e for e in os.scandir(folder) if e.name.startswith(".")]
+    except OSError:
+        return removed
+    host = socket.gethostname()
+    for e in entries:
+        try:
+            if not e.is_dir(follow_symlinks=False):
+                continue
+        except OSError:
+            continue
+        owner = _read_temp_owner(Path(e.path))
+        if owner is None or (owner.host == host and owner.pid == os.getpid()):
+            continue
+        gone = owner.host == host and not _pid_alive(owner.pid)
+        if gone or now - owner.created > STALE_TEMP_AGE_S:
+            shutil.rmtree(e.path, ignore_errors=True)
+            removed.append(Path(e.path))
+    return removed
+
+
 def mkdtemp_beside(target: str | os.PathLike, tag: str = "tmp") -> Path:
-    """A new private (0700) hidden folder next to ``target``, named within NAME_MAX."""
+    """A new private (0700) hidden folder next to ``target``, named within NAME_MAX, holding
+    TEMP_MARKER (remove it with ``release_temp_dir`` before renaming the folder into place).
+    Killed runs' temporaries in the same folder are removed first (``clean_stale_temporaries``)."""
     target = Path(target)
+    clean_stale_temporaries(target.parent)
     prefix, suffix = temp_affixes(target.name, tag)
-    return Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    tmp = Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    marker = {"host": socket.gethostname(), "pid": os.getpid(), "created": time.time(), "for": target.name}
+    fd = os.open(tmp / TEMP_MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        fh.write(json.dumps(marker, ensure_ascii=True))
+    return tmp
+
+
+def release_temp_dir(tmp: str | os.PathLike) -> None:
+    """Remove a temporary folder's TEMP_MARKER: it is about to become an output."""
+    Path(tmp, TEMP_MARKER).unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------- privacy
@@ -74,10 +166,8 @@ def make_private_dir(path: str | os.PathLike, *, tighten: bool = True) -> Path:
             break
         p = p.parent
     for d in reversed(missing):
-        try:
+        with suppress(FileExistsError):  # created meanwhile by another process
             d.mkdir(mode=PRIVATE_DIR_MODE)
-        except FileExistsError:
-            pass  # created meanwhile by another process
         os.chmod(d, PRIVATE_DIR_MODE)
     if not path.is_dir():
         raise AnkleScanError(f"{path} exists and is not a folder")
@@ -91,8 +181,9 @@ def make_tree_private(folder: str | os.PathLike) -> int:
     written by an older version under a 022 umask; symlinks and entries we may not change
     are skipped. Returns the number of entries changed."""
     changed = 0
-    for root, dirs, files in os.walk(folder):
-        for name, mode in [(root, PRIVATE_DIR_MODE)] + [(os.path.join(root, f), PRIVATE_FILE_MODE) for f in files]:
+    for root, _dirs, files in os.walk(folder):
+        entries = [(root, PRIVATE_DIR_MODE)] + [(os.path.join(root, f), PRIVATE_FILE_MODE) for f in files]
+        for name, mode in entries:
             try:
                 st = os.lstat(name)
                 if not stat.S_ISLNK(st.st_mode) and stat.S_IMODE(st.st_mode) != mode:
@@ -110,44 +201,117 @@ class WriteError(OSError, AnkleScanError):
     catch those."""
 
 
+def check_may_replace(path: str | os.PathLike, what: str = "output", dir_fd: int | None = None) -> None:
+    """Refuse to replace an existing ``path`` the user could not write, as ``cp`` would: a
+    read-only file of their own (a file with no write bit at all is refused even to root), or
+    another user's file they have no write permission on (in a world-writable folder without
+    the sticky bit a rename would otherwise replace it). A folder or a symbolic link in the
+    way is refused too. A missing ``path`` passes."""
+    p = Path(path)
+    name = p.name if dir_fd is not None else p
+    try:
+        st = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise WriteError(f"cannot write {what} {path}: {e.strerror or e}") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise WriteError(f"cannot write {what} {path}: it is a folder; give a file name")
+    if stat.S_ISLNK(st.st_mode):
+        raise WriteError(f"{what} {path} is a symbolic link; refusing to replace it (give the real file)")
+    if not (st.st_mode & 0o222 and os.access(name, os.W_OK, dir_fd=dir_fd)):
+        owner = "" if st.st_uid == os.getuid() else " (it belongs to another user)"
+        raise WriteError(f"cannot replace {what} {path}: permission denied{owner}; "
+                         "it was left untouched")
+
+
+def _open_dir(folder: Path) -> int:
+    return os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+
+
+def _fd_path(dir_fd: int, folder: Path, name: str) -> Path:
+    """A path that reaches ``name`` through the open folder handle (Linux: /proc/self/fd), so a
+    writer given a path still writes into the folder that was opened, not a swapped symlink."""
+    proc = Path(f"/proc/self/fd/{dir_fd}")
+    return proc / name if proc.is_dir() else folder / name
+
+
 @contextmanager
 def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, keep_suffix: bool = False,
-                 fsync: bool = True):
+                 fsync: bool = True) -> Iterator[list[Path | None]]:
     """The one atomic-write mechanism: yields a private (0600) temporary sibling per target
     (``None`` for a ``None`` target), to be written by any means (an encoder, a PDF backend);
     when the block ends without error each is flushed to disk (``fsync``) and renamed over its
     target, else every temporary is removed and no target is touched. The targets' folders
-    must exist. An OSError becomes a WriteError "cannot write WHAT: ..." (``what`` defaults to
-    the first target); ``keep_suffix`` ends the temporary with the target's extension, for
-    writers that choose the format by it."""
+    must exist; each is opened once, and the temporary, the rename and the clean-up all go
+    through that handle. An existing target the user may not write is refused
+    (``check_may_replace``), before and again at the rename. An OSError becomes a WriteError
+    "cannot write WHAT: ..." (``what`` defaults to the first target); ``keep_suffix`` ends the
+    temporary with the target's extension, for writers that choose the format by it."""
     paths = [None if t is None else Path(t) for t in targets]
     what = what or str(next((p for p in paths if p is not None), ""))
-    tmps: list[Path | None] = []
+    slots: list[tuple[int, str] | None] = []
     try:
         for t in paths:
             if t is None:
-                tmps.append(None)
+                slots.append(None)
                 continue
             if not t.parent.is_dir():
                 raise AnkleScanError(f"output folder {t.parent} does not exist")
+            dfd = _open_dir(t.parent)
+            slots.append((dfd, ""))
+            check_may_replace(t, what="output", dir_fd=dfd)
             prefix, suffix = temp_affixes(t.name, keep_suffix=t.suffix if keep_suffix else "")
-            fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=t.parent)  # 0600
-            os.close(fd)
-            tmps.append(Path(name))
-        yield tmps
-        for tmp, t in zip(tmps, paths):
-            if tmp is not None:
+            for _ in range(100):
+                name = f"{prefix}{secrets.token_hex(_RANDOM_CHARS // 2)}{suffix}"
+                try:
+                    fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                                 PRIVATE_FILE_MODE, dir_fd=dfd)
+                except FileExistsError:
+                    continue
+                os.fchmod(fd, PRIVATE_FILE_MODE)
+                os.close(fd)
+                break
+            else:  # pragma: no cover - 100 collisions of 32 random bits
+                raise WriteError(f"cannot write {what}: no free temporary name")
+            slots[-1] = (dfd, name)
+        yield [None if slot is None else _fd_path(slot[0], t.parent, slot[1])
+               for slot, t in zip(slots, paths, strict=True)]
+        for i, (slot, t) in enumerate(zip(slots, paths, strict=True)):
+            if slot is not None and t is not None:
+                dfd, name = slot
                 if fsync:
-                    _fsync(tmp)
-                os.replace(tmp, t)
+                    _fsync_at(dfd, name)
+                check_may_replace(t, what="output", dir_fd=dfd)
+                os.replace(name, t.name, src_dir_fd=dfd, dst_dir_fd=dfd)
+                slots[i] = (dfd, "")
+                if fsync:
+                    _fsync_fd(dfd)
     except OSError as e:
         if isinstance(e, WriteError):
             raise
         raise WriteError(f"cannot write {what}: {e.strerror or e}") from None
     finally:
-        for tmp in tmps:
-            if tmp is not None:
-                tmp.unlink(missing_ok=True)
+        for slot in slots:
+            if slot is not None:
+                dfd, name = slot
+                if name:
+                    with suppress(OSError):
+                        os.unlink(name, dir_fd=dfd)
+                os.close(dfd)
+
+
+def _fsync_at(dir_fd: int, name: str) -> None:
+    fd = os.open(name, os.O_RDONLY, dir_fd=dir_fd)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_fd(fd: int) -> None:
+    with suppress(OSError):  # some file systems cannot fsync a folder; the rename is still atomic
+        os.fsync(fd)
 
 
 def _fsync(p: Path) -> None:
@@ -165,14 +329,19 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             make_private_dir(path.parent, tighten=False)
     except OSError as e:
         raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
-    with atomic_paths(path) as (tmp,):
-        with open(tmp, mode, encoding=encoding) as f:
-            yield f
+    with atomic_paths(path) as (tmp,), open(tmp, mode, encoding=encoding) as f:
+        yield f
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     with atomic_file(path, "w", encoding="utf-8") as f:
         f.write(text)
+
+
+def copy_private(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Copy a file atomically to ``dst``, private (0600) from its creation whatever the umask."""
+    with atomic_paths(dst) as (tmp,), open(src, "rb") as fin, open(tmp, "wb") as fout:
+        shutil.copyfileobj(fin, fout, 1 << 20)
 
 
 def write_json_atomic(path: str | os.PathLike, obj) -> None:
@@ -272,3 +441,135 @@ def check_replaceable_dir(folder: str | os.PathLike, is_ours) -> None:
     if not empty and not is_ours(folder):
         raise AnkleScanError(f"output folder {folder} holds files this command did not write; "
                              "refusing to replace it (choose a new or empty folder)")
+
+
+# ---------------------------------------------------------------- output folders
+# The marker of a folder a command fills in place: which command, and every file it wrote
+# with its size and modification time (a file changed since is no longer the command's).
+OUTPUT_MARKER = ".anklescan-output.json"
+
+
+@dataclass(frozen=True)
+class OutputEntry:
+    """One file an output folder's marker says the command wrote."""
+
+    path: str  # relative, '/'-separated
+    size: int
+    mtime_ns: int
+
+
+def _read_output_marker(folder: Path, command: str) -> list[OutputEntry] | None:
+    """The files listed by ``folder``'s marker, or None when there is no valid, complete marker
+    of ``command``."""
+    try:
+        with open(folder / OUTPUT_MARKER, encoding="utf-8") as fh:
+            obj = json.loads(fh.read(64 << 20))
+        if obj.get("command") != command or obj.get("complete") is not True:
+            return None
+        return [OutputEntry(str(e["path"]), int(e["size"]), int(e["mtime_ns"])) for e in obj["files"]]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def _walk_output(folder: Path) -> tuple[list[str], list[str], list[str]]:
+    """(files, folders, others) under ``folder`` as relative '/'-paths, the marker excluded;
+    symbolic links, devices and the like are 'others'."""
+    files: list[str] = []
+    dirs: list[str] = []
+    others: list[str] = []
+    for root, dnames, fnames in os.walk(folder):
+        rel_root = Path(root).relative_to(folder)
+        for name in dnames + fnames:
+            rel = (rel_root / name).as_posix()
+            if rel == OUTPUT_MARKER:
+                continue
+            st = os.lstat(Path(root, name))
+            if stat.S_ISDIR(st.st_mode):
+                dirs.append(rel)
+            elif stat.S_ISREG(st.st_mode):
+                files.append(rel)
+            else:
+                others.append(rel)
+        dnames[:] = [d for d in dnames if not os.path.islink(os.path.join(root, d))]
+    return files, dirs, others
+
+
+def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
+    """Make ``folder`` ready for ``command`` to fill: create it (0700, parents too) when it is
+    missing; use it as it is when empty; when it holds an earlier complete output of the same
+    command (``seal_output_dir``'s marker), remove exactly the files that run wrote, unchanged
+    since. Anything else (a file the marker does not list, a listed file changed since, a
+    link, no marker, an unfinished run's marker) is refused with one line and nothing is
+    removed. Call it before any work; call ``seal_output_dir`` when the output is complete."""
+    folder = Path(folder)
+    if folder.is_symlink():
+        raise AnkleScanError(f"output {folder} is a symbolic link; give the real folder or a new one")
+    if folder.exists() and not folder.is_dir():
+        raise AnkleScanError(f"output {folder} exists and is not a folder; choose a new folder")
+    if not folder.exists():
+        make_private_dir(folder)
+        return folder
+    try:
+        files, dirs, others = _walk_output(folder)
+        has_marker = (folder / OUTPUT_MARKER).exists()
+    except OSError as e:
+        raise AnkleScanError(f"cannot read output folder {folder}: {e.strerror or e}") from None
+    if not files and not dirs and not others and not has_marker:
+        make_private(folder)
+        return folder
+    listed = _read_output_marker(folder, command)
+    if listed is None:
+        raise AnkleScanError(f"output folder {folder} is not empty and holds no complete earlier "
+                             f"'{command}' output; nothing was changed (choose a new or empty folder)")
+    known = {e.path: e for e in listed}
+    for rel in others + files:
+        entry = known.get(rel)
+        if entry is None:
+            raise AnkleScanError(f"output folder {folder} holds {rel}, which '{command}' did not write; "
+                                 "nothing was changed (move it away or choose a new folder)")
+        st = os.lstat(folder / rel)
+        if (st.st_size, st.st_mtime_ns) != (entry.size, entry.mtime_ns):
+            raise AnkleScanError(f"output folder {folder}: {rel} was changed after '{command}' wrote it; "
+                                 "nothing was changed (move it away or choose a new folder)")
+    for rel in files:
+        (folder / rel).unlink()
+    for rel in sorted(dirs, key=lambda d: d.count("/"), reverse=True):
+        try:
+            (folder / rel).rmdir()
+        except OSError:
+            raise AnkleScanError(f"output folder {folder}: cannot remove the earlier output's folder {rel}; "
+                                 "it holds something else") from None
+    (folder / OUTPUT_MARKER).unlink()
+    make_private(folder)
+    return folder
+
+
+def seal_output_dir(folder: str | os.PathLike, command: str) -> int:
+    """Write ``folder``'s marker listing every file in it as written by ``command`` (call it
+    once the output is complete; the next ``claim_output_dir`` removes exactly these).
+    Returns the number of files listed."""
+    folder = Path(folder)
+    files, _dirs, _others = _walk_output(folder)
+    entries = []
+    for rel in files:
+        st = os.lstat(folder / rel)
+        entries.append({"path": rel, "size": st.st_size, "mtime_ns": st.st_mtime_ns})
+    write_json_atomic(folder / OUTPUT_MARKER, {"command": command, "complete": True, "files": entries})
+    return len(entries)
+
+
+def is_output_of(folder: str | os.PathLike, command: str) -> bool:
+    """True when ``folder`` holds a complete, unchanged output of ``command`` and nothing else."""
+    folder = Path(folder)
+    listed = _read_output_marker(folder, command)
+    if listed is None:
+        return False
+    try:
+        files, _dirs, others = _walk_output(folder)
+    except OSError:
+        return False
+    known = {e.path: e for e in listed}
+    if others or set(files) - set(known):
+        return False
+    return all((st.st_size, st.st_mtime_ns) == (known[r].size, known[r].mtime_ns)
+               for r in files for st in [os.lstat(folder / r)])

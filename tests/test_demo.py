@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from anklescan.app.demo import MARKER, run_demo
+from anklescan.app.demo import run_demo
+from anklescan.core.atomic import OUTPUT_MARKER
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.records.store import Store
 
@@ -49,7 +50,7 @@ def test_demo_replaces_only_its_own_folder(tmp_path):
     with pytest.raises(AnkleScanError, match="not empty"):
         run_demo(foreign, quick=True, progress=lambda _: None)
     assert (foreign / "patient.txt").read_text() == "keep me"
-    assert not (foreign / MARKER).exists()
+    assert not (foreign / OUTPUT_MARKER).exists()
 
 
 def test_study_plan_is_the_papers_cohort():

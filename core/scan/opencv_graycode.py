@@ -20,10 +20,9 @@ from __future__ import annotations
 import math
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
-from anklescan.core.atomic import write_json_atomic
+from anklescan.core.atomic import copy_private, mkdtemp_beside, write_json_atomic
 from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import Frame, PatternSet, replace_dir
@@ -93,10 +92,10 @@ def import_opencv_graycode(src, out, width: int, height: int, step: int = 1) -> 
         raise CaptureError(f"output {out} already exists and is not an empty folder; choose another --out")
     if not out.parent.is_dir():
         raise CaptureError(f"output folder's parent {out.parent} does not exist")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp.", dir=out.parent))
+    tmp = mkdtemp_beside(out)  # 0700, marked: a killed run's is removed by the next
     try:
         for name in files:
-            shutil.copyfile(src / name, tmp / name)
+            copy_private(src / name, tmp / name)  # frames are patient data: 0600 whatever the umask
         manifest = pset.to_manifest()
         manifest["capture"] = {"imported_from": str(src), "tool": "OpenCV structured_light.GrayCodePattern",
                                "graycode_step": step}

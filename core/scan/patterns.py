@@ -25,7 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from anklescan.core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, write_json_atomic
+from anklescan.core.atomic import (PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, release_temp_dir,
+                                   write_json_atomic)
 from anklescan.core.errors import CaptureError
 from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_STEPS,
                          check_image_side, load_json)
@@ -535,8 +536,10 @@ def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
     out_dir = Path(out_dir)
     old = None
     check_replaceable_dir(out_dir, is_ours or is_pattern_output)
+    release_temp_dir(tmp_dir)
     if out_dir.exists():
         old = Path(mkdtemp_beside(out_dir, "old"))
+        release_temp_dir(old)
         os.rmdir(old)
         os.replace(out_dir, old)
     try:
