@@ -23,19 +23,44 @@ import signal
 import sys
 import warnings
 
-from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_calibrate_box, cmd_calibrate_export,
-                                        cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_demo,
-                                        cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
-                                        cmd_reconstruct, set_verbose)
+from anklescan.app.cli_commands import (
+    cmd_angles,
+    cmd_calibrate_board,
+    cmd_calibrate_box,
+    cmd_calibrate_export,
+    cmd_calibrate_import,
+    cmd_calibrate_level,
+    cmd_calibrate_points,
+    cmd_demo,
+    cmd_gui,
+    cmd_import_opencv_graycode,
+    cmd_measure,
+    cmd_patterns,
+    cmd_reconstruct,
+    set_verbose,
+)
+from anklescan.core.limits import (
+    MAX_BOARD_CORNERS,
+    MAX_IMAGE_SIDE,
+    MAX_MARK_DIAMETER_MM,
+    MAX_MOTION_REFS,
+    MAX_OPTION_MM,
+    MAX_SWAY_MM,
+    bounded_float,
+    bounded_int,
+    size_type,
+)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
 EXIT_TERMINATED = 128 + signal.SIGTERM
 # Signals that end a command the way Ctrl-C does: temporaries removed, exit 128 + signal.
 _CLEAN_EXIT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
-# Largest projector / camera side accepted on the command line (same as anklescan.core.limits, which
-# is not imported here so that --help stays instant).
-MAX_SIDE = 16384
+# Every numeric option's type is one of anklescan.core.limits' bounded types (one mechanism,
+# one-line errors, exit 2); a new option takes one too (bounded_int, bounded_float, size_type).
+_size = size_type()
+_BOARD = size_type(MAX_BOARD_CORNERS, "9x7")
+_LENGTH_MM = bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -60,52 +85,6 @@ def _on_sigterm(signum, frame):
     raise Terminated(signum)
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = text.lower().split("x")
-        if len(w) > 6 or len(h) > 6:
-            raise ValueError
-        w, h = int(w), int(h)
-        if w <= 0 or h <= 0:
-            raise ValueError
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 1024x768, not {text[:40]!r}") from None
-    if w > MAX_SIDE or h > MAX_SIDE:
-        raise argparse.ArgumentTypeError(f"{w}x{h} is beyond any real camera or projector "
-                                         f"(at most {MAX_SIDE} px a side)")
-    return w, h
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, not {text[:40]!r}") from None
-    if not 0 < v < 1e6:  # math.isfinite without importing math: nan fails both comparisons
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, not {text[:40]!r}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not (v > 0 and v < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, not {text!r}")
-    return v
-
-
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
@@ -124,14 +103,14 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--study", action="store_true",
                    help="the paper's whole study: 4 patients with a sprain history and 4 without, barefoot and "
                         "in shoes, 3 trials each (48 scans, several minutes)")
-    d.add_argument("--sway", type=float, default=0.0, metavar="MM",
+    d.add_argument("--sway", type=bounded_float(0, MAX_SWAY_MM, "mm"), default=0.0, metavar="MM",
                    help="one trial in three: the patient drifts up to MM mm during the scan (slower: each frame is "
                         "rendered at its own pose); moved trials are flagged")
     d.add_argument("--camera", choices=("webcam", "dslr"), default="webcam",
                    help="frame timing of the simulated camera for --sway (webcam 30 ms, DSLR 2 s a frame)")
     d.add_argument("--full-resolution", action="store_true",
                    help="simulate the 1600x1200 camera and 1024x768 projector (default: 0.75 of it, for speed)")
-    d.set_defaults(func=cmd_demo)
+    d.set_defaults(func=cmd_demo, out_is_folder=True)
 
     pt = sub.add_parser("patterns", help="write the projector patterns and manifest.json")
     pt.add_argument("--out", required=True)
@@ -139,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="projector resolution WxH (default: the calibration's, else 1024x768)")
     pt.add_argument("--preset", default="default", choices=["default", "paper", "short"],
                     help="default; paper (the paper's 18 frames); short (fewer frames, for slow cameras)")
-    pt.add_argument("--motion-refs", type=int, default=None,
+    pt.add_argument("--motion-refs", type=bounded_int(0, MAX_MOTION_REFS), default=None,
                     help="repeats of a phase-frame pair spread over the scan, to measure how far the subject moved "
                          "(default: 3 for default, 2 for short, 0 for paper; 0 = none)")
     pt.add_argument("--axes", default=None,
@@ -147,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "projector stands on; with --calibration, what that rig needs; the paper preset: column)")
     pt.add_argument("--calibration", help="pick the stripe axes this rig needs: columns for a projector beside "
                                           "the camera, rows above or below it, both diagonal")
-    pt.set_defaults(func=cmd_patterns)
+    pt.set_defaults(func=cmd_patterns, out_is_folder=True)
 
     r = sub.add_parser("reconstruct", help="decode + triangulate a capture to a PLY point cloud")
     r.add_argument("capture")
@@ -170,8 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
     cb.set_defaults(func=cmd_calibrate_box)
     cbo = csub.add_parser("board", help="camera and projector from Gray-code captures of a printed chessboard")
     cbo.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders (column and row patterns)")
-    cbo.add_argument("--board", type=_size, required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x7")
-    cbo.add_argument("--square", type=_positive_float, required=True, metavar="MM", help="square side, mm")
+    cbo.add_argument("--board", type=_BOARD, required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x7")
+    cbo.add_argument("--square", type=_LENGTH_MM, required=True, metavar="MM", help="square side, mm")
     cbo.add_argument("--distortion", default="k1k2",
                      help="free lens distortion terms: k1, k1k2 (default), k1k2p (+ tangential), full (+ k3), "
                           "for both devices or CAMERA/PROJECTOR such as k1/k1k2")
@@ -199,23 +178,24 @@ def build_parser() -> argparse.ArgumentParser:
     io = isub.add_parser("opencv-graycode", help="OpenCV GrayCodePattern frames (procam-calibration's step)")
     io.add_argument("src", metavar="SRC", help="folder of the frames, in OpenCV's order by name")
     io.add_argument("--projector", type=_size, required=True, help="projector resolution WxH")
-    io.add_argument("--step", type=_positive_int, default=1, help="projector pixels per code (graycode_step)")
+    io.add_argument("--step", type=bounded_int(1, MAX_IMAGE_SIDE), default=1, help="projector pixels per code (graycode_step)")
     io.add_argument("--out", required=True)
-    io.set_defaults(func=cmd_import_opencv_graycode)
+    io.set_defaults(func=cmd_import_opencv_graycode, out_is_folder=True)
 
     m = sub.add_parser("measure", help="reconstruct, find and label the 7 marks, compute the angles")
     m.add_argument("capture")
     m.add_argument("--calibration", required=True)
-    m.add_argument("--mark-diameter", type=float, default=None, metavar="MM",
+    m.add_argument("--mark-diameter", type=bounded_float(0, MAX_MARK_DIAMETER_MM, "mm", lo_open=True), default=None,
+                   metavar="MM",
                    help="the marks' diameter in mm (default: measured from the capture)")
     m.add_argument("--out", required=True)
-    m.add_argument("--motion-threshold", type=float, default=0.5,
+    m.add_argument("--motion-threshold", type=_LENGTH_MM, default=0.5,
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")
-    a.add_argument("--sigma", type=_positive, default=0.2, help="mark position uncertainty, mm (default 0.2)")
+    a.add_argument("--sigma", type=_LENGTH_MM, default=0.2, help="mark position uncertainty, mm (default 0.2)")
     a.set_defaults(func=cmd_angles)
     return p
 
@@ -244,12 +224,43 @@ def _say(text: str) -> None:
     print(f"anklescan: {_one_line(text)}", file=sys.stderr, flush=True)
 
 
+# Everything a command writes is patient data or derived from it: private whatever the
+# user's umask (files 0600, folders 0700 from their creation, not chmod-ed at the end).
+PRIVATE_UMASK = 0o077
+
+
+def _check_out_kind(args) -> None:
+    """A trailing '/' means a folder, as a user (and cp, mv) would read it: a command that
+    writes one file refuses it instead of writing a file called like the folder. A command
+    writing a folder declares it with ``set_defaults(out_is_folder=True)``."""
+    from anklescan.core.errors import AnkleScanError
+
+    out = getattr(args, "out", None)
+    if out is None or getattr(args, "out_is_folder", False):
+        return
+    text = os.fsdecode(out)
+    if text.endswith(("/", os.sep)) or (os.altsep and text.endswith(os.altsep)):
+        raise AnkleScanError(f"--out {text} ends with '/', which names a folder, but this command writes "
+                             f"one file: give a file name (e.g. {text.rstrip('/' + os.sep)}/result)")
+    from anklescan.core.atomic import check_may_replace
+
+    check_may_replace(out, "--out")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()
     args = parser.parse_args(argv or ["gui"])
-    if args.func is cmd_gui:
-        return args.func(args)
+    umask = os.umask(PRIVATE_UMASK)
+    try:
+        if args.func is cmd_gui:
+            return args.func(args)
+        return _run(args)
+    finally:
+        os.umask(umask)
+
+
+def _run(args) -> int:
     from anklescan.core.errors import AnkleScanError
 
     set_verbose(getattr(args, "verbose", False))
@@ -276,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                 from anklescan.core.atomic import guard_output
 
                 guard_output(args.out, inputs, what="--out")
+                _check_out_kind(args)
             return args.func(args)
     except AnkleScanError as exc:
         _say(f"error: {exc}")
@@ -288,7 +300,16 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError):
             pass
         return 128 + signal.SIGPIPE
-    except (OSError, MemoryError) as exc:
+    except MemoryError:
+        _say("error: out of memory: the input is larger than this computer can process "
+             "(or a memory limit such as ulimit -v is set); nothing was written")
+        return EXIT_USER_ERROR
+    except ImportError as exc:
+        # a library that cannot be loaded (missing, damaged, or no memory to map it: ulimit -v)
+        _say(f"error: a library could not be loaded ({exc.name or 'unknown'}: {exc}); "
+             "check the installation and the memory limits; nothing was written")
+        return EXIT_USER_ERROR
+    except OSError as exc:
         # Disk full, permissions, a vanished file: the user's environment, not a bug.
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
         _say(f"error: {getattr(exc, 'strerror', None) or exc or type(exc).__name__}{where}")

@@ -13,6 +13,11 @@ refuse a real input; each is a documented constant here so the other modules sha
 - ``require_finite``: a result (dict/list/array of numbers) must hold only finite numbers.
 - ``check_input_file``: an input read whole is a regular file of sane size (the CLI applies
   it to every path argument; not /dev/zero, a FIFO or a 10 GB "CSV").
+- ``bounded_int`` / ``bounded_float`` / ``size_type``: THE argparse ``type=`` of every numeric
+  command-line option (``type=bounded_float(0, MAX_MM, "mm")``): a value outside its range,
+  not finite or not a number is one line and exit 2 before any work. A new option takes one
+  of these with a bound from this module; a bare ``type=int`` / ``type=float`` is a bug.
+- ``MAX_COORDINATE_MM``: any coordinate read from a user's file (marks, control points).
 
 Related helpers elsewhere: ``anklescan.core.atomic.guard_output`` (an output never replaces an input),
 ``anklescan.core.scan.capture.read_image`` (decode any path, including names that are not valid UTF-8,
@@ -21,18 +26,21 @@ on which ``cv2.imread`` crashes).
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
 import stat
 import struct
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from anklescan.core.errors import AnkleScanError
+
+# numpy is imported inside the functions that need it: the command line builds its parser
+# (with this module's option types) before any command runs, and --help must stay instant.
 
 # Largest camera or projector side we accept, px. The largest sensors sold (~150 MP medium
 # format) are ~14200 px wide and projectors stop at 8K (7680): 16384 leaves room.
@@ -64,6 +72,19 @@ MAX_INPUT_FILE_BYTES = 256 << 20
 MAX_JSON_BYTES = 64 << 20
 MAX_JSON_DEPTH = 64
 MAX_JSON_INT_DIGITS = 30  # far beyond any count or id; Python refuses > 4300 digits anyway
+# Repeats of a phase pair spread over a scan to measure motion (ours: 3, at most 2 frames each).
+MAX_MOTION_REFS = 64
+# Any coordinate in a user's file (marks, control points), mm: 100 m is beyond any room, and
+# far below the range where the angles' arithmetic loses its precision (1e308 gave 135°).
+MAX_COORDINATE_MM = 1e5
+# Lengths given on the command line (a board square, a motion threshold, sigma), mm.
+MAX_OPTION_MM = 1e4
+# A mark's diameter, mm: SPEC section 2 allows 8-25 mm; 4x that is a typing error, not a mark.
+MAX_MARK_DIAMETER_MM = 100.0
+# A simulated patient's drift for `demo --sway`, mm (beyond it no mark is found at all).
+MAX_SWAY_MM = 50.0
+# Inner corners of a calibration chessboard, per side.
+MAX_BOARD_CORNERS = 500
 
 
 # ------------------------------------------------------------------------------ JSON
@@ -160,9 +181,91 @@ def load_json(path, what: str, error: type[AnkleScanError] = AnkleScanError):
     return parse_json(text, f"{what} {path}", error)
 
 
+# ------------------------------------------------------------------- option types
+@dataclass(frozen=True)
+class Bounded:
+    """An argparse ``type=``: parses a number and refuses one outside [lo, hi] (``lo_open``:
+    lo itself excluded), NaN and infinities, each with one line naming the range and unit."""
+
+    lo: float
+    hi: float
+    integer: bool = False
+    unit: str = ""
+    lo_open: bool = False
+
+    @property
+    def __name__(self) -> str:  # argparse names the type in its messages
+        return "integer" if self.integer else "number"
+
+    def describe(self) -> str:
+        unit = f" {self.unit}" if self.unit else ""
+        lo = f"{self.lo:g}" if not self.integer else f"{int(self.lo)}"
+        hi = f"{self.hi:g}" if not self.integer else f"{int(self.hi)}"
+        if self.lo_open:
+            return f"more than {lo} and at most {hi}{unit}"
+        return f"{lo} to {hi}{unit}"
+
+    def __call__(self, text: str) -> float | int:
+        raw = str(text).strip()
+        kind = "a whole number" if self.integer else "a number"
+        if len(raw) > 40:
+            raise argparse.ArgumentTypeError(f"expected {kind} ({self.describe()}), not {raw[:40]!r}...")
+        try:
+            value: float | int = int(raw) if self.integer else float(raw)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {kind} ({self.describe()}), not {raw!r}") from None
+        ok = (self.lo < value if self.lo_open else self.lo <= value) and value <= self.hi
+        if not ok:  # NaN fails every comparison
+            raise argparse.ArgumentTypeError(f"{raw} is out of range: expected {self.describe()}")
+        return value
+
+
+def bounded_int(lo: int, hi: int, unit: str = "") -> Callable[[str], int]:
+    """argparse ``type=`` for a whole number in [lo, hi]."""
+    return Bounded(lo, hi, integer=True, unit=unit)  # type: ignore[return-value]
+
+
+def bounded_float(lo: float, hi: float, unit: str = "", *, lo_open: bool = False) -> Callable[[str], float]:
+    """argparse ``type=`` for a finite number in [lo, hi] (``lo_open``: lo excluded, e.g. a
+    length that must be positive: ``bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)``)."""
+    return Bounded(lo, hi, unit=unit, lo_open=lo_open)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class SizeType:
+    """argparse ``type=`` for WIDTHxHEIGHT (pixels, or a board's corners), each side 1..max_side."""
+
+    max_side: int = MAX_IMAGE_SIDE
+    example: str = "1024x768"
+
+    @property
+    def __name__(self) -> str:
+        return "size"
+
+    def __call__(self, text: str) -> tuple[int, int]:
+        raw = str(text).strip()
+        try:
+            w_text, h_text = raw.lower().split("x")
+            if len(w_text) > 6 or len(h_text) > 6:
+                raise ValueError
+            w, h = int(w_text), int(h_text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. {self.example}, not {raw[:40]!r}") from None
+        if not (0 < w <= self.max_side and 0 < h <= self.max_side):
+            raise argparse.ArgumentTypeError(f"{w}x{h} is out of range: each side 1 to {self.max_side}")
+        return w, h
+
+
+def size_type(max_side: int = MAX_IMAGE_SIDE, example: str = "1024x768") -> Callable[[str], tuple[int, int]]:
+    """argparse ``type=`` for WIDTHxHEIGHT, each side 1..``max_side``."""
+    return SizeType(max_side, example)  # type: ignore[return-value]
+
+
 # ---------------------------------------------------------------------------- images
 def check_image_side(width, height, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
     """Refuse a size no real camera or projector has (before anything is allocated)."""
+    import numpy as np
+
     for v in (width, height):
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
             raise error(f"{what}: size {width}x{height} is not a positive whole number of pixels")
@@ -214,6 +317,8 @@ def capture_memory_limit() -> int:
 def require_finite(obj, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
     """Raise ``error`` when a number anywhere in ``obj`` (dict/list/tuple/array) is NaN or
     infinite: a nonsense input must never surface as ``nan`` in a result."""
+    import numpy as np
+
     stack = [(obj, what)]
     while stack:
         node, where = stack.pop()

@@ -28,7 +28,7 @@ import numpy as np
 from anklescan.core.atomic import (PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, release_temp_dir,
                                    write_json_atomic)
 from anklescan.core.errors import CaptureError
-from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_PHASE_STEPS,
+from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_MOTION_REFS, MAX_PHASE_STEPS,
                          check_image_side, load_json)
 
 FORMAT = "anklescan-patterns"
@@ -345,6 +345,9 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
         if n_refs < 2 or preset == "paper" or steps % 4:
             raise CaptureError(f"motion references need a phase preset with steps a multiple of 4 "
                                f"and at least 2 of them, got {motion_refs!r} ({preset}, {steps} steps)")
+        if n_refs > MAX_MOTION_REFS or len(specs) + 2 * n_refs > MAX_FRAMES:
+            raise CaptureError(f"{n_refs} motion references are beyond any scan (at most {MAX_MOTION_REFS}, "
+                               f"and {MAX_FRAMES} frames in all)")
         specs = _with_motion_refs(specs, axes[0], n_refs, steps)
     digits = max(2, len(str(len(specs) - 1)))
     names = [_file_name(i, digits, kind, kw) for i, (kind, kw) in enumerate(specs)]
