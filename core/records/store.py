@@ -317,37 +317,204 @@ def _header_fields(path: Path) -> tuple[int, int, int]:
     return head[18], int.from_bytes(head[60:64], "big"), int.from_bytes(head[68:72], "big")
 
 
+# A -wal shorter than its 32-byte header holds no transaction: SQLite ignores it.
+_WAL_HEADER_BYTES = 32
+_WAL_MAGIC = (0x377F0682, 0x377F0683)
+# Rows a database of ours never loses (patients, calibrations, sessions, trials are archived,
+# never deleted): a -wal whose replay would remove one is not this database's.
+_KEPT_ROWS = {"patients": "code", "calibrations": "id", "sessions": "patient_id", "trials": "session_id"}
+_EXPECTED_SCHEMA: dict[int, dict[str, set[str]]] = {}
+
+
+def _expected_schema(version: int) -> dict[str, set[str]]:
+    """Tables and their columns a database of schema ``version`` has (MIGRATIONS applied to an
+    empty database in memory)."""
+    if version not in _EXPECTED_SCHEMA:
+        conn = sqlite3.connect(":memory:")
+        try:
+            for v in range(min(version, SCHEMA_VERSION)):
+                for stmt in _statements(MIGRATIONS[v]):
+                    conn.execute(stmt)
+            _EXPECTED_SCHEMA[version] = _columns(conn)
+        finally:
+            conn.close()
+    return _EXPECTED_SCHEMA[version]
+
+
+def _columns(conn: sqlite3.Connection) -> dict[str, set[str]]:
+    columns = {}
+    for (table,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall():
+        columns[table] = {r[1] for r in conn.execute(f"PRAGMA table_info(\"{table}\")")}
+    return columns
+
+
+def _check_contents(conn: sqlite3.Connection, path: Path, where: str = "") -> None:
+    """Refuse what ``conn`` shows unless it is a healthy database of ours (or a blank SQLite
+    file): our application id (or, before it existed, our tables), every table and column its
+    schema version has, and a clean quick_check. ``where`` adds to the messages (e.g. 'once
+    its -wal is applied')."""
+    app_id = conn.execute("PRAGMA application_id").fetchone()[0]
+    version = conn.execute("PRAGMA user_version").fetchone()[0]
+    columns = _columns(conn)
+    suffix = f" {where}" if where else ""
+    if app_id not in (0, APPLICATION_ID):
+        raise AnkleScanError(f"{path} is an SQLite database of another program (application id {app_id:#x})"
+                             f"{suffix}, not AnkleScan's; it was left untouched")
+    blank = not columns and version == 0  # an empty SQLite file holds nothing to lose
+    if app_id != APPLICATION_ID and not blank and not all(
+            cols <= columns.get(t, set()) for t, cols in _SCHEMA_MARKER.items()):
+        raise AnkleScanError(f"{path} is an SQLite database of another program{suffix}, not AnkleScan's; "
+                             "it was left untouched")
+    if 0 < version <= SCHEMA_VERSION:
+        missing: list[str] = []
+        for table, cols in _expected_schema(version).items():
+            if table not in columns:
+                missing.append(f"table {table}")
+            else:
+                missing += [f"{table}.{c}" for c in sorted(cols - columns[table])]
+        if missing:
+            shown = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
+            raise AnkleScanError(f"database {path} is incomplete{suffix}: schema v{version} but {shown} "
+                                 "missing; it was left untouched, restore it from a backup")
+    bad = conn.execute("PRAGMA quick_check(1)").fetchone()[0]
+    if bad != "ok":
+        raise AnkleScanError(f"database {path} is damaged{suffix} ({' '.join(str(bad).split())}); it was "
+                             "left untouched, restore it from a backup")
+
+
+def _kept_rows(conn: sqlite3.Connection) -> dict[str, set[tuple]]:
+    rows: dict[str, set[tuple]] = {}
+    tables = _columns(conn)
+    for table, key in _KEPT_ROWS.items():
+        if key in tables.get(table, set()) and "id" in tables[table]:
+            rows[table] = set(conn.execute(f"SELECT id, {key} FROM {table}").fetchall())
+    return rows
+
+
+def _check_companions(path: Path) -> Path | None:
+    """Check the database's -wal, -shm and -journal before SQLite sees them: regular files (not
+    links), the database file's owner, and a -wal whose header is a WAL's with the database's
+    page size. Returns the -wal when it holds transactions SQLite would apply, else None."""
+    try:
+        db = os.stat(path)
+        with open(path, "rb") as fh:
+            head = fh.read(100)
+    except OSError as e:
+        raise AnkleScanError(f"cannot read database {path}: {e.strerror or e}") from None
+    page = int.from_bytes(head[16:18], "big")
+    page = 65536 if page == 1 else page
+    wal_with_frames = None
+    for suffix in ("-wal", "-shm", "-journal"):
+        companion = Path(f"{path}{suffix}")
+        try:
+            st = os.lstat(companion)
+        except FileNotFoundError:
+            continue
+        except OSError as e:
+            raise AnkleScanError(f"cannot read {companion}: {e.strerror or e}") from None
+        untouched = "the database and it were left untouched"
+        if not stat.S_ISREG(st.st_mode):
+            raise AnkleScanError(f"{companion} (the database's {suffix[1:]} file) is not a regular file "
+                                 f"(a link, folder or device); {untouched}")
+        if st.st_uid != db.st_uid:
+            raise AnkleScanError(f"{companion} (the database's {suffix[1:]} file) belongs to another user than "
+                                 f"the database; {untouched}")
+        if suffix == "-wal" and st.st_size > _WAL_HEADER_BYTES:
+            try:
+                with open(companion, "rb") as fh:
+                    wal_head = fh.read(_WAL_HEADER_BYTES)
+            except OSError as e:
+                raise AnkleScanError(f"cannot read {companion}: {e.strerror or e}") from None
+            magic, wal_page = int.from_bytes(wal_head[0:4], "big"), int.from_bytes(wal_head[8:12], "big")
+            if magic not in _WAL_MAGIC:
+                raise AnkleScanError(f"{companion} is not an SQLite -wal file; {untouched} "
+                                     "(move it away if no program uses it)")
+            if wal_page != page:
+                raise AnkleScanError(f"{companion} belongs to another database (its pages are {wal_page} bytes, "
+                                     f"the database's {page}); {untouched} (move it away if no program uses it)")
+            wal_with_frames = companion
+        if suffix == "-journal" and st.st_size > 0:
+            raise AnkleScanError(f"{companion}: a rollback journal beside a database in WAL mode is not ours; "
+                                 f"{untouched}")
+    return wal_with_frames
+
+
+def _inspect_with_wal(path: Path, wal: Path, timeout: float) -> None:
+    """What SQLite would make of the database once it applies ``wal``, found on a private copy
+    (the real files are not touched): the same checks as without a -wal, and no patient,
+    calibration, session or trial of the database lost (they are archived, never deleted)."""
+    from anklescan.core.atomic import copy_private, mkdtemp_beside
+
+    before_conn = None
+    try:
+        before_conn = sqlite3.connect(_uri(path, "mode=ro&immutable=1"), uri=True, isolation_level=None)
+        before = _kept_rows(before_conn)
+    except sqlite3.Error as e:
+        raise _translate(e, path, timeout) from None
+    finally:
+        if before_conn is not None:
+            before_conn.close()
+    try:
+        tmp = mkdtemp_beside(path, "check")
+    except OSError:
+        import tempfile
+
+        tmp = Path(tempfile.mkdtemp(prefix=".anklescan-check."))  # 0700; a read-only data folder
+    conn = None
+    try:
+        copy = tmp / "copy.sqlite"
+        copy_private(path, copy)
+        copy_private(wal, Path(f"{copy}-wal"))
+        conn = sqlite3.connect(copy, timeout=timeout, isolation_level=None)
+        where = f"once its -wal ({wal.name}) is applied"
+        try:
+            _check_contents(conn, path, where)
+            after = _kept_rows(conn)
+        except AnkleScanError as e:
+            raise AnkleScanError(f"{e} (the -wal may belong to another database: move it away if no program "
+                                 "uses it)") from None
+        lost = {t: len(rows - after.get(t, set())) for t, rows in before.items()}
+        lost = {t: n for t, n in lost.items() if n}
+        if lost:
+            what = ", ".join(f"{n} {t}" for t, n in lost.items())
+            raise AnkleScanError(f"{wal} does not belong to database {path}: applying it would remove {what}; "
+                                 "the database and the -wal were left untouched (move the -wal away if no "
+                                 "program uses the database)")
+    except sqlite3.Error as e:
+        raise _translate(e, path, timeout) from None
+    except OSError as e:
+        raise AnkleScanError(f"cannot check database {path}: {e.strerror or e}") from None
+    finally:
+        if conn is not None:
+            conn.close()
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def _inspect(path: Path, timeout: float) -> None:
     """Refuse, untouched, an existing SQLite file that is not a healthy database of ours.
 
-    Read-only throughout: a WAL file nobody has open is read as immutable (so no -wal/-shm
-    appear next to someone else's file); otherwise with mode=ro.
+    Read-only throughout: its companions are checked first (``_check_companions``); a -wal
+    with transactions is applied to a private copy and the result checked
+    (``_inspect_with_wal``); without one the file is read as immutable (so no -wal/-shm
+    appear next to someone else's file).
     """
     try:
-        journal, version, app_id = _header_fields(path)
+        _journal, _version, app_id = _header_fields(path)
     except OSError as e:
         raise AnkleScanError(f"cannot read database {path}: {e.strerror or e}") from None
     if app_id not in (0, APPLICATION_ID):
         raise AnkleScanError(f"{path} is an SQLite database of another program (application id "
                              f"{app_id:#x}), not AnkleScan's; it was left untouched")
-    shm = Path(f"{path}-shm")
-    query = "mode=ro&immutable=1" if journal == 2 and not shm.exists() else "mode=ro"
+    wal = _check_companions(path)
+    if wal is not None:
+        _inspect_with_wal(path, wal, timeout)
+        return
     conn = None
     try:
-        conn = sqlite3.connect(_uri(path, query), uri=True, timeout=timeout, isolation_level=None)
-        conn.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
-        columns = {}
-        for (table,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'"):
-            columns[table] = {r[1] for r in conn.execute(f"PRAGMA table_info(\"{table}\")")}
-        blank = not columns and version == 0  # an empty SQLite file holds nothing to lose
-        if app_id != APPLICATION_ID and not blank and not all(
-                cols <= columns.get(t, set()) for t, cols in _SCHEMA_MARKER.items()):
-            raise AnkleScanError(f"{path} is an SQLite database of another program, not AnkleScan's; "
-                                 "it was left untouched")
-        bad = conn.execute("PRAGMA quick_check(1)").fetchone()[0]
-        if bad != "ok":
-            raise AnkleScanError(f"database {path} is damaged ({' '.join(str(bad).split())}); it was "
-                                 "left untouched, restore it from a backup")
+        conn = sqlite3.connect(_uri(path, "mode=ro&immutable=1"), uri=True, timeout=timeout, isolation_level=None)
+        _check_contents(conn, path)
     except sqlite3.Error as e:
         raise _translate(e, path, timeout) from None
     finally:
