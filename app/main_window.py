@@ -54,6 +54,7 @@ class MainWindow(QMainWindow):
         self.rig_setup = RigSetup(self)
         self._build_menus()
         self._wire()
+        self.session.ask_read_only = self._ask_read_only
         self.session.open_store(self.data_folder())
         self._restore_geometry()
         if open_rig_now:
@@ -187,6 +188,13 @@ class MainWindow(QMainWindow):
             self.settings.set("data_folder", folder)
             self.session.open_store(self.data_folder())
             self.rig_setup.load_calibration()
+
+    def _ask_read_only(self, text: str) -> bool:
+        """Another AnkleScan holds the data folder: open it read-only, or not at all?"""
+        answer = QMessageBox.question(self, "Data folder in use", f"{text}\n\nOpen it read-only, to review only?",
+                                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
+                                      QMessageBox.StandardButton.No)
+        return answer == QMessageBox.StandardButton.Yes
 
     def about(self) -> None:
         QMessageBox.about(self, "About AnkleScan", "AnkleScan measures functional ankle instability with a "

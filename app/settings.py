@@ -8,6 +8,7 @@ the tests use it so that they never read or change a clinician's real configurat
 from __future__ import annotations
 
 import os
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,6 +57,26 @@ class Settings:
             self._qs = QSettings(str(path), QSettings.Format.IniFormat)
         else:
             self._qs = QSettings("AnkleScan", "AnkleScan")
+        self._make_private()
+
+    def _make_private(self) -> None:
+        """The settings say where patient data lives: the file is 0600 and a folder made for it
+        0700 whatever the umask. The file is created private before Qt first writes it (Qt keeps
+        an existing file's mode when it saves)."""
+        from anklescan.core.atomic import PRIVATE_FILE_MODE, make_private, make_private_dir
+        name = self._qs.fileName()
+        if not name:
+            return
+        try:
+            make_private_dir(Path(name).parent, tighten=False)
+            fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+            os.fchmod(fd, PRIVATE_FILE_MODE)
+            os.close(fd)
+        except FileExistsError:
+            with suppress(OSError):  # not ours to change: leave it
+                make_private(name)
+        except OSError:
+            pass  # an unwritable settings folder: Qt keeps the settings in memory
 
     def get(self, key: str):
         spec = KEYS[key]
@@ -72,6 +93,7 @@ class Settings:
 
     def sync(self) -> None:
         self._qs.sync()
+        self._make_private()
 
     @property
     def data_folder(self) -> Path:

@@ -7,6 +7,7 @@ for. A write that fails leaves the database as it was and is reported through ``
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from anklescan.app.logic.events import Event
@@ -21,14 +22,33 @@ class SessionLogic:
         self.calibration_id = None        # its row in this data folder's database
         self.notice = Event()             # (kind, text): "info" | "warning" | "error"
         self.storeOpened = Event()        # () after a (re)open, the lists must be rebuilt
+        # asked when another AnkleScan holds the data folder: the message -> open it read-only?
+        # (the window asks the user; None: refuse to open it)
+        self.ask_read_only: Callable[[str], bool] | None = None
+        self._lock = None                 # core.records.lock.DataFolderLock of the open folder
 
     # ---- the database -----------------------------------------------------------------
     def open_store(self, folder: Path) -> None:
         from anklescan.core.records.store import Store
         if self.store is not None:
             self.store.close()
+            self.store = None
+        self._release_lock()
         self.folder = Path(folder)
         try:
+            holder = self._lock_folder(self.folder)
+            if holder is not None:
+                text = (f"The data folder {self.folder} is in use by {holder.describe()}. Two copies writing "
+                        "one folder could lose a clinic's data.")
+                if self.ask_read_only is None or not self.ask_read_only(text):
+                    self.notice.emit("error", f"{text} It was not opened: close the other AnkleScan first.")
+                    self.storeOpened.emit()
+                    return
+                self.store = Store.open(data_dir=self.folder, read_only=True)
+                self.notice.emit("warning", f"{text} Opened read-only: you can review it, but changes "
+                                 "cannot be saved.")
+                self.storeOpened.emit()
+                return
             self.store = Store.open(data_dir=self.folder)
             if self.store.read_only:
                 self.notice.emit("warning", f"The sessions database is read-only ({self.store.read_only_reason}): "
@@ -42,6 +62,26 @@ class SessionLogic:
         if self.store is not None:
             self.store.close()
             self.store = None
+        self._release_lock()
+
+    def _lock_folder(self, folder: Path):
+        """Take the folder's single-instance lock; the other holder (LockHolder) when in use."""
+        from anklescan.core.atomic import make_private_dir
+        from anklescan.core.records.lock import DataFolderLock
+        try:
+            make_private_dir(folder, tighten=False)
+        except OSError:
+            return None  # cannot be created: Store.open says why
+        lock = DataFolderLock(folder)
+        holder = lock.acquire()
+        if holder is None:
+            self._lock = lock
+        return holder
+
+    def _release_lock(self) -> None:
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     @property
     def read_only(self) -> bool:
