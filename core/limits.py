@@ -65,6 +65,9 @@ MAX_FOCAL_PX = 1e6
 MAX_PRINCIPAL_POINT_SIZES = 10.0
 MAX_DISTORTION = 1e3
 MAX_TRANSLATION_MM = 1e5
+# The camera-projector baseline, mm: depth resolution scales with it, and real rigs use
+# 100-400 mm; below 1 mm (a projector "at the camera") nothing can be triangulated.
+MIN_BASELINE_MM = 1.0
 # Any single input file a command reads whole (CSV of marks or control points, JSON, a
 # device's calibration export): ours are kB to a few MB.
 MAX_INPUT_FILE_BYTES = 256 << 20

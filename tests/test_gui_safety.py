@@ -9,9 +9,13 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from anklescan.app.main_window import MainWindow
-from anklescan.core.records.store import APPLICATION_ID, DB_FILENAME, SCHEMA_VERSION, Store
+from anklescan.core.records.store import (
+    APPLICATION_ID,
+    DB_FILENAME,
+    SCHEMA_VERSION,
+    Store,
+)
 from gui_actions import dismiss, press_accept, with_dialog
 
 pytestmark = pytest.mark.gui

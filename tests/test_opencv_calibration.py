@@ -75,7 +75,8 @@ def test_bad_files_are_one_line_errors(tmp_path, cal):
     _write_stereo(tmp_path / "nosize.yml", cal, size=False)
     with pytest.raises(CalibrationError, match="--camera WxH"):
         import_opencv_calibration(tmp_path / "nosize.yml", (1024, 768))
-    assert import_opencv_calibration(tmp_path / "nosize.yml", (1024, 768), camera_size=(400, 300)).camera.width == 400
+    assert import_opencv_calibration(tmp_path / "nosize.yml", (1024, 768), camera_size=(400, 300),
+                                     unit="m").camera.width == 400
     fs = cv2.FileStorage(str(tmp_path / "half.xml"), cv2.FILE_STORAGE_WRITE)
     fs.write("K1", cal.camera.K)
     fs.release()

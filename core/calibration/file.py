@@ -17,7 +17,7 @@ import numpy as np
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.device_model import AXES, Device
 from anklescan.core.errors import CalibrationError
-from anklescan.core.limits import (MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
+from anklescan.core.limits import (MIN_BASELINE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
                          MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
 
 ORTHONORMAL_TOL = 1e-4
@@ -128,7 +128,12 @@ def calibration_from_dict(obj) -> Calibration:
         if key not in obj:
             raise CalibrationError(f"calibration: missing '{key}'")
     extra = {k: v for k, v in obj.items() if k not in ("units", "camera", "projector")}
-    return Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
+    cal = Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
+    baseline = float(np.linalg.norm(cal.projector.center - cal.camera.center))
+    if not baseline >= MIN_BASELINE_MM:  # the projector at the camera: no depth can be triangulated
+        raise CalibrationError(f"calibration: the projector is {baseline:.3g} mm from the camera (at least "
+                               f"{MIN_BASELINE_MM:g} mm needed to triangulate); check its R and t")
+    return cal
 
 
 def calibration_to_dict(cal: Calibration) -> dict:

@@ -28,6 +28,7 @@ from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.file import Calibration, calibration_from_dict, calibration_to_dict
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
+from anklescan.core.limits import MIN_BASELINE_MM
 
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 NAMES = {  # role -> accepted keys, first found wins
@@ -50,6 +51,10 @@ def _read_storage(path: Path) -> cv2.FileStorage:
         fs = None
     if fs is None or not fs.isOpened():
         raise CalibrationError(f"{path}: not an OpenCV FileStorage file (XML/YAML)")
+    if not fs.root().isMap():  # a JSON list or a bare number: OpenCV asserts on any key lookup
+        fs.release()
+        raise CalibrationError(f"{path}: a FileStorage calibration must hold named entries (a map), "
+                               "not a list or a single value")
     return fs
 
 
@@ -167,6 +172,11 @@ def import_opencv_calibration(path, projector_size: tuple[int, int], camera_size
     if tc.size != 3:
         raise CalibrationError(f"{path}: 't_world_camera' must be a 3-vector")
     s = UNITS_MM[unit]
+    baseline = float(np.linalg.norm(T)) * s
+    if not baseline >= MIN_BASELINE_MM:
+        raise CalibrationError(f"{path}: '{kt}' puts the projector {baseline:.3g} mm from the camera: no depth "
+                               f"can be triangulated (at least {MIN_BASELINE_MM:g} mm; is the file in another "
+                               "unit? give --unit m, cm or in)")
     R = _rotation(R, kr, path)
     camera = Device(cw, ch, _K(cam_K, kc, path), _dist(cam_d, kcd, path), Rc, tc * s)
     projector = Device(pw, ph, _K(proj_K, kp, path), _dist(proj_d, kpd, path), R @ Rc,
