@@ -182,10 +182,11 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
 
 
 # ---------------------------------------------------------------------------- the study
-def _prepare_out(out: Path) -> None:
+def _prepare_out(out: Path) -> Path:
     """An empty or new folder, or an earlier demo's own output (its files only are removed);
-    anything else is refused before any work (core.atomic.claim_output_dir)."""
-    claim_output_dir(out, OUTPUT_COMMAND)
+    anything else is refused before any work (core.atomic.claim_output_dir). Returns the
+    folder's real path, which the run writes into."""
+    return claim_output_dir(out, OUTPUT_COMMAND)
 
 
 def _finish_out(out: Path) -> None:
@@ -249,7 +250,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     from anklescan.core.records.store import Store
 
     t_start = time.perf_counter()
-    _prepare_out(out)
+    out = _prepare_out(out)
     progress(f"simulated rig at scale {scale} (camera {round(1600 * scale)}x{round(1200 * scale)}, projector "
              f"{round(1024 * scale)}x{round(768 * scale)}); output in {out}")
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
@@ -360,7 +361,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
 
     t_start = time.perf_counter()
     plan = study_plan() if plan is None else plan
-    _prepare_out(out)
+    out = _prepare_out(out)
     progress(f"simulated study at scale {scale}: {len({t['patient'].code for t in plan})} patients, "
              f"{len(plan)} trials; output in {out}")
     results = []

@@ -500,7 +500,9 @@ def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
     command (``seal_output_dir``'s marker), remove exactly the files that run wrote, unchanged
     since. Anything else (a file the marker does not list, a listed file changed since, a
     link, no marker, an unfinished run's marker) is refused with one line and nothing is
-    removed. Call it before any work; call ``seal_output_dir`` when the output is complete."""
+    removed. Call it before any work and write into the folder it returns (the real path,
+    resolved once, so a link swapped in later for a part of the given path does not redirect
+    the files); call ``seal_output_dir`` when the output is complete."""
     folder = Path(folder)
     if folder.is_symlink():
         raise AnkleScanError(f"output {folder} is a symbolic link; give the real folder or a new one")
@@ -508,7 +510,7 @@ def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
         raise AnkleScanError(f"output {folder} exists and is not a folder; choose a new folder")
     if not folder.exists():
         make_private_dir(folder)
-        return folder
+        return folder.resolve()
     try:
         files, dirs, others = _walk_output(folder)
         has_marker = (folder / OUTPUT_MARKER).exists()
@@ -516,7 +518,7 @@ def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
         raise AnkleScanError(f"cannot read output folder {folder}: {e.strerror or e}") from None
     if not files and not dirs and not others and not has_marker:
         make_private(folder)
-        return folder
+        return folder.resolve()
     listed = _read_output_marker(folder, command)
     if listed is None:
         raise AnkleScanError(f"output folder {folder} is not empty and holds no complete earlier "
@@ -541,7 +543,7 @@ def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
                                  "it holds something else") from None
     (folder / OUTPUT_MARKER).unlink()
     make_private(folder)
-    return folder
+    return folder.resolve()
 
 
 def seal_output_dir(folder: str | os.PathLike, command: str) -> int:
