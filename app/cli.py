@@ -254,10 +254,23 @@ def main(argv: list[str] | None = None) -> int:
     umask = os.umask(PRIVATE_UMASK)
     try:
         if args.func is cmd_gui:
-            return args.func(args)
+            return _run_gui(args)
         return _run(args)
     finally:
         os.umask(umask)
+
+
+def _run_gui(args) -> int:
+    """The desktop app: a Qt or OpenGL library that cannot be loaded is one line and exit 2."""
+    try:
+        return args.func(args)
+    except ImportError as exc:
+        _say(f"error: a library the desktop application needs could not be loaded ({exc.name or 'unknown'}: "
+             f"{exc}); check the installation and the memory limits")
+        return EXIT_USER_ERROR
+    except MemoryError:
+        _say("error: out of memory while starting the desktop application")
+        return EXIT_USER_ERROR
 
 
 def _run(args) -> int:
