@@ -66,9 +66,15 @@ class SessionLogic:
 
     def _lock_folder(self, folder: Path):
         """Take the folder's single-instance lock; the other holder (LockHolder) when in use."""
+        import os
+
         from anklescan.core.atomic import make_private_dir
         from anklescan.core.records.lock import DataFolderLock
+        from anklescan.core.records.store import DB_FILENAME
+        db = folder / DB_FILENAME
         try:
+            if db.exists() and not (db.stat().st_mode & 0o222 and os.access(db, os.W_OK)):
+                return None  # opened read-only anyway: nothing to guard, and the folder is left as it is
             make_private_dir(folder, tighten=False)
         except OSError:
             return None  # cannot be created: Store.open says why
