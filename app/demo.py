@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private, seal_output_dir,
-                                   write_json_atomic)
+                                   write_text_atomic)
 from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
 
 # The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
@@ -305,7 +305,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
                              "diameters_mm": sorted({round(r["mark_diameter"]["value"], 2) for r in results
                                                      if r["mark_type"] == t and r["mark_diameter"]})}
                          for t in sorted({r["mark_type"] for r in results})}}
-    write_json_atomic(out / "summary.json", summary)
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")  # atomic and private
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
              f"table angles and mismatch); against the simulator's truth: "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "
