@@ -25,8 +25,8 @@ import warnings
 
 from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_calibrate_box, cmd_calibrate_export,
                                         cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_demo,
-                                        cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
-                                        cmd_reconstruct, set_verbose)
+                                        cmd_check, cmd_gui, cmd_import_opencv_graycode, cmd_measure,
+                                        cmd_patterns, cmd_reconstruct, set_verbose)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
@@ -93,6 +93,16 @@ def _positive_float(text: str) -> float:
         v = float("nan")
     if not (v > 0 and v < float("inf")):
         raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
+    return v
+
+
+def _degrees(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not -90 < v < 90:  # nan fails too
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees, not {text[:40]!r}")
     return v
 
 
@@ -212,6 +222,21 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--motion-threshold", type=float, default=0.5,
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
+
+    ck = sub.add_parser("check", help="the daily check: measure a known-angle object and compare with its set angles")
+    ck.add_argument("capture")
+    ck.add_argument("--calibration", required=True)
+    ck.add_argument("--inversion", type=_degrees, required=True, metavar="DEG", help="the object's set inversion")
+    ck.add_argument("--plantar-flexion", type=_degrees, required=True, metavar="DEG",
+                    help="the object's set plantar flexion")
+    ck.add_argument("--tolerance", type=_positive_float, default=0.3, metavar="DEG",
+                    help="largest difference on either axis that passes, degrees (default 0.3)")
+    ck.add_argument("--flatness", type=_positive_float, default=0.3, metavar="MM",
+                    help="largest sag of the flat top that passes, mm (default 0.3; the object must be flatter)")
+    ck.add_argument("--min-area", type=_positive_float, default=100.0, metavar="CM2",
+                    help="the object's top is at least this large, cm² (default 100)")
+    ck.add_argument("--out", default=None, metavar="CHECK.json")
+    ck.set_defaults(func=cmd_check)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")
