@@ -79,6 +79,8 @@ class ScanFlow(QObject):
             win.banner.show_message("error", f"The scan could not start: {exc}")
             return False
         win.banner.hide()
+        if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
+            win.banner.show_message("warning", self.logic.check_warning)
         if not win.projector.isVisible():
             win.rig_setup.show_projector()
         self.controller.start(job)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,94 @@ def test_command_exit_code_from_a_real_process(rig_files):
                            "--calibration", str(work / "tilt_x.json"), "--inversion", str(INV),
                            "--plantar-flexion", str(PF)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 3 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+# ---- the checks kept in the database, and what they say at the start of a scan ----------------
+class _Settings(dict):
+    DEFAULTS = {"operator": "AB", "pattern_preset": "default", "motion_threshold_mm": 0.5, "settle_ms": 30,
+                "daily_check_policy": "warn", "daily_check_max_age_hours": 24.0}
+
+    def get(self, key):
+        return super().get(key, self.DEFAULTS[key])
+
+    def set(self, key, value):
+        self[key] = value
+
+
+@pytest.fixture(scope="module")
+def results(rig_files):
+    """A passed and a failed check of the same capture (true and tilted calibrations)."""
+    from anklescan.core.calibration.file import load_calibration
+    work, _ = rig_files
+    cap = load_capture(work / "wedge")
+    return (run_check(cap, load_calibration(work / "true.json"), INV, PF),
+            run_check(cap, load_calibration(work / "tilt_x.json"), INV, PF))
+
+
+def test_checks_are_kept_with_their_date_newest_last(results, tmp_path):
+    import datetime as dt
+
+    from anklescan.core.records.daily_checks import CheckState, add_check, last_check, list_checks, standing
+    from anklescan.core.records.store import SCHEMA_VERSION, Store
+    good, bad = results
+    t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.UTC)
+    with Store.open(data_dir=tmp_path) as store:
+        assert store.schema_version() == SCHEMA_VERSION
+        assert last_check(store) is None
+        assert standing(None).state is CheckState.NONE
+        first = add_check(store, good, calibration_id=None, who="AB", when=t0)
+        second = add_check(store, bad, who="AB", when=t0 + dt.timedelta(hours=1))
+        assert [r.id for r in list_checks(store)] == [second.id, first.id]
+        last = last_check(store)
+        assert last == second and not last.passed and "plantar flexion off by" in last.summary
+        assert abs(first.measured_inversion - good.top.inversion.value) < 1e-9 and first.passed
+        assert abs(second.measured_plantar_flexion - second.expected_plantar_flexion + 2.0) < 0.1
+        assert standing(last, now=t0 + dt.timedelta(hours=2)).state is CheckState.FAILED
+        assert standing(first, now=t0 + dt.timedelta(hours=2)).ok
+        assert standing(first, now=t0 + dt.timedelta(hours=25)).state is CheckState.STALE
+        assert standing(first, now=t0 + dt.timedelta(hours=25), max_age_hours=48).ok
+    with Store.open(data_dir=tmp_path) as store:  # kept across opening the database again
+        assert len(list_checks(store)) == 2
+
+
+def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
+    from anklescan.app.logic.daily_check import record_check
+    from anklescan.app.logic.scan import ScanLogic, ScanRefused
+    from anklescan.app.logic.session import SessionLogic
+
+    @dataclass
+    class Entry:
+        ref_inversion: float = 10.0
+        ref_plantar_flexion: float = -5.0
+        condition: str = "barefoot"
+        notes: str = ""
+
+    good, bad = results
+    session = SessionLogic(_Settings())
+    session.open_store(tmp_path / "data")
+    try:
+        session.use_calibration(SimRig(scale=0.1).true_calibration(), None)
+        sid = session.start_session(session.add_patient("P-001").id, "barefoot").id
+        scan = ScanLogic(session, session.settings)
+        scan.begin(sid, Entry(), None)  # no check yet: warned, not refused
+        assert "not had its daily check" in scan.check_warning
+        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        record_check(session, bad)
+        scan.begin(sid, Entry(), None)
+        assert "FAILED" in scan.check_warning and "plantar flexion" in scan.check_warning
+        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        session.settings.set("daily_check_policy", "block")
+        n_trials = len(session.trials(sid))
+        with pytest.raises(ScanRefused, match="FAILED"):
+            scan.begin(sid, Entry(), None)
+        assert len(session.trials(sid)) == n_trials  # refused before any trial is made
+        record_check(session, good)
+        scan.begin(sid, Entry(), None)  # a passed check today: no word
+        assert scan.check_warning == ""
+        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        session.settings.set("daily_check_policy", "off")
+        record_check(session, bad)
+        scan.begin(sid, Entry(), None)
+        assert scan.check_warning == ""
+    finally:
+        session.close()
