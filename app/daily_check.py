@@ -159,9 +159,9 @@ class DailyCheckDialog(QDialog):
             self.history.setText(f"The result could not be kept in the database: {exc}")
         ok = result.passed
         self.verdict.setStyleSheet(f"font-weight: bold; color: {'#1b7a1b' if ok else '#b00020'};")
-        self.verdict.setText(("PASSED — " if ok else "FAILED — ") + result.summary())
+        self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
         if not ok:
-            self.win.banner.show_message("warning", f"The daily check failed: {'; '.join(result.drift())}")
+            self.win.banner.show_message("warning", f"The daily check failed: {result.details()}.")
         if self.record is not None:
             self._show_history()
         self.checkDone.emit(result)

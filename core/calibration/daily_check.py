@@ -128,16 +128,22 @@ class CheckResult:
                        "or a wrong levelling; or the object is not at the angles given): level again or recalibrate")
         return out
 
-    def summary(self) -> str:
+    def details(self) -> str:
+        """The measured angles against the set ones and the top's shape; when failed, what drifted."""
+        if not self.passed:
+            return "; ".join(self.drift())
         t = self.top
-        head = (f"inversion {t.inversion.value:.2f} ± {t.inversion.sd:.3f}° (set {self.expected_inversion:.2f}°, "
+        return (f"inversion {t.inversion.value:.2f} ± {t.inversion.sd:.3f}° (set {self.expected_inversion:.2f}°, "
                 f"{self.inversion_off:+.2f}°), plantar flexion {t.plantar_flexion.value:.2f} ± "
                 f"{t.plantar_flexion.sd:.3f}° (set {self.expected_plantar_flexion:.2f}°, "
-                f"{self.plantar_flexion_off:+.2f}°)"
-                f"; top {t.size_mm[0]:.0f} x {t.size_mm[1]:.0f} mm, {t.rms_mm:.2f} mm RMS, {t.sag_mm:.2f} mm sag")
+                f"{self.plantar_flexion_off:+.2f}°); top {t.size_mm[0]:.0f} x {t.size_mm[1]:.0f} mm, "
+                f"{t.rms_mm:.2f} mm RMS, {t.sag_mm:.2f} mm sag")
+
+    def summary(self) -> str:
+        """One line: passed or FAILED, and why."""
         if self.passed:
-            return f"check passed (within {self.settings.tolerance_deg:g}°): {head}"
-        return f"check FAILED (tolerance {self.settings.tolerance_deg:g}°): " + "; ".join(self.drift())
+            return f"check passed (within {self.settings.tolerance_deg:g}°): {self.details()}"
+        return f"check FAILED (tolerance {self.settings.tolerance_deg:g}°): {self.details()}"
 
     def to_json(self) -> dict:
         t = self.top

@@ -83,7 +83,7 @@ def add_check(store, result: CheckResult, *, calibration_id: int | None = None, 
             " sag_mm, tolerance_deg, passed, summary, who) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (stamp, calibration_id, *values[:2], values[2], _finite(t.inversion.sd), values[3],
              _finite(t.plantar_flexion.sd), _finite(t.sag_mm), float(result.settings.tolerance_deg),
-             int(result.passed), result.summary(), who)).lastrowid
+             int(result.passed), result.details(), who)).lastrowid
     return _get(store, cid)
 
 
@@ -120,7 +120,7 @@ def standing(last: DailyCheckRecord | None, *, calibration_id: int | None = None
     age_h = ((now or _now()) - last.when).total_seconds() / 3600.0
     when = last.when.astimezone().strftime("%Y-%m-%d %H:%M")
     if not last.passed:
-        return CheckStanding(CheckState.FAILED, last, f"The last daily check ({when}) FAILED: {last.summary}")
+        return CheckStanding(CheckState.FAILED, last, f"The last daily check ({when}) FAILED: {last.summary}.")
     if calibration_id is not None and last.calibration_id is not None and last.calibration_id != calibration_id:
         return CheckStanding(CheckState.OTHER_CALIBRATION, last,
                              f"The last daily check ({when}) was of another calibration: check this one "
