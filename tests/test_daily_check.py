@@ -102,7 +102,7 @@ def test_frame_tilted_two_degrees_fails_naming_the_axis(rig_files, capsys, cal, 
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "FAILED" in lines[0]
     assert f"{axis_named} off by" in lines[0] and f"{other} off by" not in lines[0]
-    assert "frame is turned" in lines[0]
+    assert "frame looks turned" in lines[0]
     doc = json.loads(out_json.read_text())
     assert doc["passed"] is False
     key = axis_named.replace(" ", "_")

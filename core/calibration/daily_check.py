@@ -124,8 +124,9 @@ class CheckResult:
                        f"{self.top.size_mm[0]:.0f} mm, more than {self.settings.flatness_mm:g} mm): the calibration "
                        f"no longer fits the rig (a device moved or its lens was turned): recalibrate")
         elif not self.angles_pass:
-            out.append("the top is still flat, so the frame is turned (a moved camera and projector together, "
-                       "or a wrong levelling; or the object is not at the angles given): level again or recalibrate")
+            out.append("the top is still flat, so the frame looks turned (a wrong levelling, the rig moved as a "
+                       "whole, the object not at the angles given) or a device moved slightly: level again or "
+                       "recalibrate")
         return out
 
     def details(self) -> str:
