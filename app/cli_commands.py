@@ -4,6 +4,7 @@ starts without loading the reconstruction stack and ``--help`` is instant."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -205,7 +206,7 @@ def cmd_measure(args) -> int:
 EXIT_CHECK_FAILED = 3  # SPEC §6: the daily check ran and the rig has drifted
 
 
-def cmd_check(args) -> int:
+def cmd_check(args: argparse.Namespace) -> int:
     from anklescan.core.atomic import write_json_atomic
     from anklescan.core.calibration.daily_check import CheckSettings, run_check
     from anklescan.core.calibration.file import load_calibration

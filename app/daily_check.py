@@ -11,8 +11,9 @@ data folder's database with its date; a scan then warns or is refused on the las
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from anklescan.app.background import run_in_background
-from anklescan.app.logic.daily_check import check_camera, check_folder, new_check_folder, record_check
 from anklescan.app.main_parts import no_args
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (
@@ -24,7 +25,13 @@ from PySide6.QtWidgets import (
     QProgressBar,
     QPushButton,
     QVBoxLayout,
+    QWidget,
 )
+
+# app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
+if TYPE_CHECKING:
+    from anklescan.app.main_window import MainWindow
+    from anklescan.core.calibration.daily_check import CheckResult
 
 HISTORY_ROWS = 5
 
@@ -43,7 +50,7 @@ def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "
 class DailyCheckDialog(QDialog):
     checkDone = Signal(object)  # anklescan.core.calibration.daily_check.CheckResult
 
-    def __init__(self, win, parent=None):
+    def __init__(self, win: MainWindow, parent: QWidget | None = None):
         super().__init__(parent or win)
         self.setWindowTitle("Daily check")
         self.win, self.settings = win, win.settings
@@ -112,6 +119,7 @@ class DailyCheckDialog(QDialog):
                            ("daily_check_tolerance", tol)):
             self.settings.set(key, value)
         self._set = (inv, pf, tol)
+        from anklescan.app.logic.daily_check import check_camera, new_check_folder
         from anklescan.app.scan_worker import ScanJob
         try:
             self._folder = new_check_folder(win.data_folder())
@@ -140,7 +148,8 @@ class DailyCheckDialog(QDialog):
         self.progress.setValue(done)
         self.progress.setFormat(text or "%v / %m")
 
-    def _captured(self, _scan_result) -> None:
+    def _captured(self, _scan_result: object) -> None:
+        from anklescan.app.logic.daily_check import check_folder
         inv, pf, tol = self._set
         folder, cal = self._folder, self.win.session.calibration
         self.verdict.setText("Measuring the object's top…")
@@ -148,7 +157,8 @@ class DailyCheckDialog(QDialog):
         self._job = run_in_background(lambda: check_folder(folder, cal, inv, pf, tol), self._checked,
                                       self._failed, name="daily check")
 
-    def _checked(self, result) -> None:
+    def _checked(self, result: CheckResult) -> None:
+        from anklescan.app.logic.daily_check import record_check
         self._job = None
         self.scan_button.setEnabled(True)
         self.result = result
@@ -205,7 +215,7 @@ class DailyCheckDialog(QDialog):
         super().done(code)
 
 
-def open_daily_check(win) -> None:
+def open_daily_check(win: MainWindow) -> None:
     """Scan ▸ Daily check…"""
     if win.rig is None or win.rig_setup.projector is None or win.scan_flow.busy:
         if win.rig is None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 from enum import Enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from anklescan.core.calibration.daily_check import CheckResult, CheckSettings, run_check
 from anklescan.core.records.daily_checks import (
@@ -21,6 +22,12 @@ from anklescan.core.records.daily_checks import (
     last_check,
     standing,
 )
+
+if TYPE_CHECKING:
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.rig import Rig
+    from anklescan.core.calibration.file import Calibration
+    from anklescan.hardware.camera import Camera
 
 CHECKS_FOLDER = "daily_checks"  # in the data folder: one capture per check, kept
 
@@ -38,7 +45,7 @@ class CheckPolicy(Enum):
             return cls.WARN  # a hand-edited value must not silently turn the check off
 
 
-def check_camera(rig, inversion_deg: float, plantar_flexion_deg: float):
+def check_camera(rig: Rig, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
     """What photographs the object: on the simulated rig a simulated camera on the wedge block at the
     set angles (same devices, same projector image); on real hardware the rig's own camera."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
@@ -60,7 +67,7 @@ def new_check_folder(data_folder: Path, now: _dt.datetime | None = None) -> Path
     return folder
 
 
-def check_folder(folder: Path, calibration, inversion_deg: float, plantar_flexion_deg: float,
+def check_folder(folder: Path, calibration: Calibration, inversion_deg: float, plantar_flexion_deg: float,
                  tolerance_deg: float) -> CheckResult:
     """The check on a capture folder (in a background job)."""
     from anklescan.core.scan.capture import load_capture
@@ -68,7 +75,7 @@ def check_folder(folder: Path, calibration, inversion_deg: float, plantar_flexio
                      CheckSettings(tolerance_deg=tolerance_deg))
 
 
-def record_check(session, result: CheckResult) -> DailyCheckRecord | None:
+def record_check(session: SessionLogic, result: CheckResult) -> DailyCheckRecord | None:
     """Keep the result in the data folder's database (None without a writable one)."""
     store = session.store
     if store is None or store.read_only:
@@ -76,7 +83,7 @@ def record_check(session, result: CheckResult) -> DailyCheckRecord | None:
     return add_check(store, result, calibration_id=session.calibration_id, who=session.operator or "")
 
 
-def check_standing(session, settings) -> CheckStanding | None:
+def check_standing(session: SessionLogic, settings: object) -> CheckStanding | None:
     """What the last check says about scanning now; None when the policy is off or there is no database."""
     if CheckPolicy.from_setting(settings.get("daily_check_policy")) is CheckPolicy.OFF or session.store is None:
         return None

@@ -12,9 +12,13 @@ import datetime as _dt
 import math
 from dataclasses import dataclass
 from enum import Enum
+from typing import TYPE_CHECKING
 
 from anklescan.core.calibration.daily_check import CheckResult
 from anklescan.core.errors import AnkleScanError
+
+if TYPE_CHECKING:
+    from anklescan.core.records.store import Store
 
 DEFAULT_MAX_AGE_HOURS = 24.0
 
@@ -68,7 +72,7 @@ def _finite(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def add_check(store, result: CheckResult, *, calibration_id: int | None = None, who: str = "",
+def add_check(store: Store, result: CheckResult, *, calibration_id: int | None = None, who: str = "",
               when: _dt.datetime | None = None) -> DailyCheckRecord:
     """Keep one check's outcome with its date."""
     t = result.top
@@ -87,27 +91,27 @@ def add_check(store, result: CheckResult, *, calibration_id: int | None = None, 
     return _get(store, cid)
 
 
-def _record(row) -> DailyCheckRecord:
+def _record(row: object) -> DailyCheckRecord:
     d = dict(row)
     d["passed"] = bool(d["passed"])
     return DailyCheckRecord(**d)
 
 
-def _get(store, cid: int) -> DailyCheckRecord:
+def _get(store: Store, cid: int) -> DailyCheckRecord:
     row = store._one("SELECT * FROM daily_checks WHERE id = ?", (cid,))
     if row is None:
         raise AnkleScanError(f"no daily check {cid}")
     return _record(row)
 
 
-def list_checks(store, limit: int | None = None) -> list[DailyCheckRecord]:
+def list_checks(store: Store, limit: int | None = None) -> list[DailyCheckRecord]:
     """Newest first."""
     sql = "SELECT * FROM daily_checks ORDER BY time DESC, id DESC"
     rows = store._all(sql + " LIMIT ?", (int(limit),)) if limit is not None else store._all(sql)
     return [_record(r) for r in rows]
 
 
-def last_check(store) -> DailyCheckRecord | None:
+def last_check(store: Store) -> DailyCheckRecord | None:
     found = list_checks(store, 1)
     return found[0] if found else None
 
