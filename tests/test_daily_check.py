@@ -254,3 +254,17 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         assert scan.check_warning == ""
     finally:
         session.close()
+
+
+def test_another_object_size_and_place_is_measured_not_assumed(rig_files, tmp_path):
+    """A smaller wedge (150 x 200 mm), off-centre and lower: nothing in the check knows its size."""
+    _, rig = rig_files
+    scene = check_scene(-8.0, 4.0, CheckObject.WEDGE, top_size=(150.0, 200.0), centre=(40.0, -30.0, 90.0),
+                        albedo=0.8)  # a white block: the dimmer far end of a grey one is not decoded here
+    cap = load_capture(_render(rig.with_scene(scene), tmp_path / "small"))
+    result = run_check(cap, rig.true_calibration(), -8.0, 4.0)
+    assert result.passed, result.summary()
+    assert abs(result.inversion_off) < 0.05 and abs(result.plantar_flexion_off) < 0.05
+    long_side, short_side = result.top.size_mm
+    assert abs(long_side - 200.0) < 12 and abs(short_side - 150.0) < 12, result.top.size_mm
+    assert np.linalg.norm(result.top.centre[:2] - [40.0, -30.0]) < 10

@@ -65,7 +65,7 @@ class TopFit:
     """The object's top as measured: its plane and how flat it came out."""
 
     normal: np.ndarray  # unit, n_z > 0, in the calibration's world frame
-    centre: np.ndarray  # mm
+    centre: np.ndarray  # mm: the centre of the top's bounding rectangle, on its plane
     size_mm: tuple[float, float]  # the top's extent in its plane (long, short), measured
     n_points: int
     rms_mm: float  # points about the plane
@@ -306,11 +306,12 @@ def measure_top(patch: _Patch) -> TopFit:
     # size: the extent of the whole patch in its plane (minimum-area rectangle)
     P = patch.points
     uv = np.stack([(P - c) @ e1, (P - c) @ e2], axis=1).astype(np.float32)
-    (_, _), (w, hgt), _ = cv2.minAreaRect(uv)
+    (ru, rv), (w, hgt), _ = cv2.minAreaRect(uv)
     size = (float(max(w, hgt)), float(min(w, hgt)))
+    centre = c + ru * e1 + rv * e2  # the rectangle's centre, on the fitted plane
     inv, pf = table_angles(n)
     sd_inv, sd_pf = _jackknife(X, u, v)
-    return TopFit(n, c, size, len(X), rms, sag, Angle(inv, sd_inv), Angle(pf, sd_pf))
+    return TopFit(n, centre, size, len(X), rms, sag, Angle(inv, sd_inv), Angle(pf, sd_pf))
 
 
 def _jackknife(X: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, float]:
