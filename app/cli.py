@@ -24,8 +24,8 @@ import sys
 import warnings
 
 from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_calibrate_box, cmd_calibrate_export,
-                                        cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_demo,
-                                        cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
+                                        cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_check,
+                                        cmd_demo, cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
                                         cmd_reconstruct, set_verbose)
 from anklescan.core.limits import (MAX_BOARD_CORNERS, MAX_IMAGE_SIDE, MAX_MARK_DIAMETER_MM, MAX_MOTION_REFS,
                                    MAX_OPTION_MM, MAX_SWAY_MM, bounded_float, bounded_int, size_type)
@@ -40,6 +40,9 @@ _CLEAN_EXIT_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if
 _size = size_type()
 _BOARD = size_type(MAX_BOARD_CORNERS, "9x7")
 _LENGTH_MM = bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)
+_DEGREES = bounded_float(-90, 90, "°", lo_open=True)
+_TOLERANCE_DEG = bounded_float(0, 90, "°", lo_open=True)
+_AREA_CM2 = bounded_float(0, 1e6, "cm²", lo_open=True)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -171,6 +174,21 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--motion-threshold", type=_LENGTH_MM, default=0.5,
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
+
+    ck = sub.add_parser("check", help="the daily check: measure a known-angle object and compare with its set angles")
+    ck.add_argument("capture")
+    ck.add_argument("--calibration", required=True)
+    ck.add_argument("--inversion", type=_DEGREES, required=True, metavar="DEG", help="the object's set inversion")
+    ck.add_argument("--plantar-flexion", type=_DEGREES, required=True, metavar="DEG",
+                    help="the object's set plantar flexion")
+    ck.add_argument("--tolerance", type=_TOLERANCE_DEG, default=0.3, metavar="DEG",
+                    help="largest difference on either axis that passes, degrees (default 0.3)")
+    ck.add_argument("--flatness", type=_LENGTH_MM, default=0.3, metavar="MM",
+                    help="largest sag of the flat top that passes, mm (default 0.3; the object must be flatter)")
+    ck.add_argument("--min-area", type=_AREA_CM2, default=100.0, metavar="CM2",
+                    help="the object's top is at least this large, cm² (default 100)")
+    ck.add_argument("--out", default=None, metavar="CHECK.json")
+    ck.set_defaults(func=cmd_check)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")

@@ -4,6 +4,7 @@ starts without loading the reconstruction stack and ``--help`` is instant."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -199,6 +200,34 @@ def cmd_measure(args) -> int:
     result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter,
                          motion_threshold_mm=args.motion_threshold)
     print(result.format_text())
+    return 0
+
+
+EXIT_CHECK_FAILED = 3  # SPEC §6: the daily check ran and the rig has drifted
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from anklescan.core.atomic import write_json_atomic
+    from anklescan.core.calibration.daily_check import CheckSettings, run_check
+    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.scan.capture import load_capture
+
+    progress = Progress(args.quiet)
+    cal = load_calibration(args.calibration)
+    progress(f"loading capture {args.capture}")
+    capture = load_capture(args.capture)
+    progress("measuring the object's top")
+    settings = CheckSettings(args.tolerance, args.flatness, args.min_area * 100.0)
+    result = run_check(capture, cal, args.inversion, args.plantar_flexion, settings)
+    if args.out is not None:
+        write_json_atomic(args.out, {**result.to_json(), "capture": Path(args.capture).name,
+                                     "calibration": Path(args.calibration).name})
+    if not result.passed:
+        print(f"anklescan: {result.summary()}", file=sys.stderr, flush=True)
+        return EXIT_CHECK_FAILED
+    print(result.summary())
+    if args.out is not None:
+        print(f"wrote {args.out}")
     return 0
 
 

@@ -29,6 +29,7 @@ from PySide6.QtWidgets import (QApplication, QFileDialog, QLabel, QMainWindow, Q
 from anklescan.app import resources
 from anklescan.app.logic.scan import ScanLogic
 from anklescan.app.logic.session import SessionLogic
+from anklescan.app.daily_check import open_daily_check
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
 from anklescan.app.records_panel import RecordsPanel, confirm
 from anklescan.app.review import Review
@@ -125,6 +126,7 @@ class MainWindow(QMainWindow):
         self.cancel_action.setEnabled(False)
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
+        self.daily_check_action = act(scan, "&Daily check…", lambda: open_daily_check(self))
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
                            ("Calibration spot (arrow keys move it)", "spot")):

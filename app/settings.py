@@ -37,6 +37,13 @@ KEYS = {
     "calibration_verified": Key("calibration/verified", "", str),  # "", "pass" or "fail"
     "calibration_verified_at": Key("calibration/verified_at", "", str),
     "calibration_max_age_days": Key("calibration/max_age_days", 30.0, float),  # older: the banner warns
+    # the daily check (app.logic.daily_check): "off", "warn" or "block" a scan when the last check failed
+    # or is older than the age; the known-angle object's set angles and the tolerance, as last typed
+    "daily_check_policy": Key("daily_check/policy", "warn", str),
+    "daily_check_max_age_hours": Key("daily_check/max_age_hours", 24.0, float),
+    "daily_check_inversion": Key("daily_check/inversion", 0.0, float),
+    "daily_check_plantar_flexion": Key("daily_check/plantar_flexion", 0.0, float),
+    "daily_check_tolerance": Key("daily_check/tolerance", 0.3, float),
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),

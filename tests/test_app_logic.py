@@ -16,7 +16,8 @@ from anklescan.app.logic.session import SessionLogic
 
 
 class DictSettings(dict):
-    DEFAULTS = {"operator": "", "pattern_preset": "default", "motion_threshold_mm": 0.5, "settle_ms": 30}
+    DEFAULTS = {"operator": "", "pattern_preset": "default", "motion_threshold_mm": 0.5, "settle_ms": 30,
+                "daily_check_policy": "warn", "daily_check_max_age_hours": 24.0}
 
     def get(self, key):
         return super().get(key, self.DEFAULTS[key])

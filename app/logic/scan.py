@@ -37,6 +37,7 @@ class ScanLogic:
         self.settings = settings
         self.trial_id: int | None = None   # the trial being scanned (or just finished)
         self.notice = session.notice
+        self.check_warning = ""  # why the rig is not known good, when a scan starts anyway (daily check)
 
     def begin(self, session_id: int | None, entry, mark_diameter_mm: float | None) -> int:
         """Create the scan's trial; returns the session it belongs to (a new one when the entry's
@@ -46,6 +47,7 @@ class ScanLogic:
             raise ScanRefused("No calibration yet: calibrate the scanner before measuring patients.")
         if s.store is None or session_id is None:
             raise ScanRefused("Select a patient and a session first (File ▸ New patient…, then New session).")
+        self.check_warning = self._daily_check()
         if not s.set_mark_diameter(session_id, mark_diameter_mm):
             raise ScanRefused("the mark diameter was not saved")
         session = s.store.get_session(session_id)
@@ -61,6 +63,23 @@ class ScanLogic:
             raise ScanRefused(str(exc)) from exc
         self.trial_id = trial.id
         return session.id
+
+    def _daily_check(self) -> str:
+        """The last daily check's word on this scan: "" when it passed recently; its message when the
+        policy warns; ScanRefused when the policy blocks (the ``daily_check_policy`` setting)."""
+        from anklescan.app.logic.daily_check import CheckPolicy, check_standing
+        policy = CheckPolicy.from_setting(self.settings.get("daily_check_policy"))
+        if policy is CheckPolicy.OFF:
+            return ""
+        try:
+            standing = check_standing(self.session, self.settings)
+        except Exception as exc:  # an unreadable check history must not hide a failed rig: say so
+            text = f"The daily checks could not be read ({exc})."
+        else:
+            text = "" if standing is None or standing.ok else standing.message
+        if text and policy is CheckPolicy.BLOCK:
+            raise ScanRefused(f"{text} Scans wait for a passed daily check (the daily check setting).")
+        return text
 
     def pattern_set(self, projector_size: tuple[int, int]):
         """The patterns this rig's geometry needs (columns beside the camera, rows above, both

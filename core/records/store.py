@@ -159,7 +159,28 @@ ALTER TABLE trials ADD COLUMN motion_flagged INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE trials ADD COLUMN motion_keep INTEGER NOT NULL DEFAULT 0;
 """
 
-MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5]
+# v6: the daily check (issue 37, core/records/daily_checks.py): each scan of the known-angle
+# object with its date, the calibration it checked, the set and measured angles, pass or fail.
+_V_DAILY_CHECKS = """
+CREATE TABLE daily_checks (
+    id INTEGER PRIMARY KEY,
+    time TEXT NOT NULL,
+    calibration_id INTEGER REFERENCES calibrations(id),
+    expected_inversion REAL NOT NULL,
+    expected_plantar_flexion REAL NOT NULL,
+    measured_inversion REAL NOT NULL,
+    measured_inversion_sd REAL,
+    measured_plantar_flexion REAL NOT NULL,
+    measured_plantar_flexion_sd REAL,
+    sag_mm REAL,
+    tolerance_deg REAL NOT NULL,
+    passed INTEGER NOT NULL CHECK (passed IN (0, 1)),
+    summary TEXT NOT NULL DEFAULT '',
+    who TEXT NOT NULL DEFAULT ''
+);
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5, _V_DAILY_CHECKS]
 MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 SCHEMA_VERSION = len(MIGRATIONS)
 

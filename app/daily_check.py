@@ -1,0 +1,228 @@
+"""Scan ▸ Daily check…: scan the known-angle object with the current calibration and say whether the
+rig is still what its calibration says (SPEC §6 ``check``).
+
+The dialog asks for the object's set angles (inversion, plantar flexion) and the tolerance, scans
+it through the ordinary acquisition path (app.scan_worker.ScanController: a background job that
+shows each pattern in the projector window and captures it), then measures the capture in a
+second background job (app.logic.daily_check) and shows pass or fail. Each result is kept in the
+data folder's database with its date; a scan then warns or is refused on the last one
+(app.logic.scan, the ``daily_check_policy`` setting). The rules live in app.logic.daily_check.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from anklescan.app.background import run_in_background
+from anklescan.app.main_parts import no_args
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import (
+    QDialog,
+    QDialogButtonBox,
+    QDoubleSpinBox,
+    QFormLayout,
+    QLabel,
+    QProgressBar,
+    QPushButton,
+    QVBoxLayout,
+    QWidget,
+)
+
+# app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
+if TYPE_CHECKING:
+    from anklescan.app.main_window import MainWindow
+    from anklescan.core.calibration.daily_check import CheckResult
+
+HISTORY_ROWS = 5
+
+
+def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "°") -> QDoubleSpinBox:
+    box = QDoubleSpinBox()
+    box.setObjectName(name)
+    box.setRange(low, high)
+    box.setDecimals(2)
+    box.setSingleStep(0.5)
+    box.setSuffix(suffix)
+    box.setValue(value)
+    return box
+
+
+class DailyCheckDialog(QDialog):
+    checkDone = Signal(object)  # anklescan.core.calibration.daily_check.CheckResult
+
+    def __init__(self, win: MainWindow, parent: QWidget | None = None):
+        super().__init__(parent or win)
+        self.setWindowTitle("Daily check")
+        self.win, self.settings = win, win.settings
+        self.result = None  # the last CheckResult
+        self.record = None  # its database row (core.records.daily_checks.DailyCheckRecord)
+        self._folder = None
+        self._job = None
+        self._set = (0.0, 0.0, 0.3)
+        s = self.settings
+        self.inversion = _angle_box("inversion", s.get("daily_check_inversion"), -45.0, 45.0)
+        self.plantar_flexion = _angle_box("plantar_flexion", s.get("daily_check_plantar_flexion"), -45.0, 45.0)
+        self.tolerance = _angle_box("tolerance", s.get("daily_check_tolerance"), 0.05, 5.0)
+        intro = QLabel("Set the known-angle object (the wedge block, or the reference table set on its own) "
+                       "in the scanning volume, type the angles it is set to, and scan it. Its top must be "
+                       "in view, standing clear of the floor.")
+        intro.setWordWrap(True)
+        form = QFormLayout()
+        form.addRow("Object's inversion:", self.inversion)
+        form.addRow("Object's plantar flexion:", self.plantar_flexion)
+        form.addRow("Tolerance (either axis):", self.tolerance)
+        self.scan_button = QPushButton("Scan and check")
+        self.scan_button.clicked.connect(no_args(self.start))
+        self.progress = QProgressBar()
+        self.progress.setVisible(False)
+        self.verdict = QLabel("")
+        self.verdict.setObjectName("verdict")
+        self.verdict.setWordWrap(True)
+        self.history = QLabel("")
+        self.history.setWordWrap(True)
+        buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Close)
+        buttons.rejected.connect(self.reject)
+        lay = QVBoxLayout(self)
+        for w in (intro,):
+            lay.addWidget(w)
+        lay.addLayout(form)
+        for w in (self.scan_button, self.progress, self.verdict, self.history):
+            lay.addWidget(w)
+        lay.addStretch(1)
+        lay.addWidget(buttons)
+        self.resize(560, 420)
+        from anklescan.app.scan_worker import ScanController
+        self.controller = ScanController(win.rig_setup.projector, self)
+        self.controller.progress.connect(self._progress)
+        self.controller.finished.connect(self._captured)
+        self.controller.failed.connect(lambda message, _folder: self._failed(message))
+        self.controller.cancelled.connect(lambda _folder: self._failed("Scan cancelled."))
+        self.controller.busyChanged.connect(self._busy)
+        self._show_history()
+
+    @property
+    def busy(self) -> bool:
+        return self.controller.busy or self._job is not None
+
+    def start(self) -> bool:
+        """Scan the object; False (with the reason shown) when it cannot start."""
+        win = self.win
+        cal = win.session.calibration
+        if self.busy:
+            return False
+        if win.rig is None or win.rig_setup.projector is None:
+            return self._say("The camera is still connecting; try again in a moment.", False)
+        if cal is None:
+            return self._say("No calibration yet: calibrate the scanner first (Scan ▸ Calibration…).", False)
+        inv, pf, tol = self.inversion.value(), self.plantar_flexion.value(), self.tolerance.value()
+        for key, value in (("daily_check_inversion", inv), ("daily_check_plantar_flexion", pf),
+                           ("daily_check_tolerance", tol)):
+            self.settings.set(key, value)
+        self._set = (inv, pf, tol)
+        from anklescan.app.logic.daily_check import check_camera, new_check_folder
+        from anklescan.app.scan_worker import ScanJob
+        try:
+            self._folder = new_check_folder(win.data_folder())
+            job = ScanJob(win.scan_flow.logic.pattern_set(win.rig.projector_size), check_camera(win.rig, inv, pf),
+                          self._folder, settle_s=self.settings.get("settle_ms") / 1000.0,
+                          metadata={"purpose": "daily check", "set_inversion": inv, "set_plantar_flexion": pf})
+        except Exception as exc:
+            return self._say(f"The check could not start: {exc}", False)
+        if not win.rig_setup.projector.isVisible():
+            win.rig_setup.show_projector()
+        self.verdict.setText("Scanning the object…")
+        self.verdict.setStyleSheet("")
+        self.controller.start(job)
+        return True
+
+    # ---- the jobs' reports (UI thread) ---------------------------------------------------
+    def _busy(self, busy: bool) -> None:
+        self.scan_button.setEnabled(not busy)
+        self.progress.setVisible(busy)
+        panel = getattr(self.win, "camera_panel", None)
+        if panel is not None:
+            panel.set_busy(busy)
+
+    def _progress(self, done: int, total: int, text: str) -> None:
+        self.progress.setMaximum(max(total, 1))
+        self.progress.setValue(done)
+        self.progress.setFormat(text or "%v / %m")
+
+    def _captured(self, _scan_result: object) -> None:
+        from anklescan.app.logic.daily_check import check_folder
+        inv, pf, tol = self._set
+        folder, cal = self._folder, self.win.session.calibration
+        self.verdict.setText("Measuring the object's top…")
+        self.scan_button.setEnabled(False)
+        self._job = run_in_background(lambda: check_folder(folder, cal, inv, pf, tol), self._checked,
+                                      self._failed, name="daily check")
+
+    def _checked(self, result: CheckResult) -> None:
+        from anklescan.app.logic.daily_check import record_check
+        self._job = None
+        self.scan_button.setEnabled(True)
+        self.result = result
+        try:
+            self.record = record_check(self.win.session, result)
+        except Exception as exc:
+            self.record = None
+            self.history.setText(f"The result could not be kept in the database: {exc}")
+        ok = result.passed
+        self.verdict.setStyleSheet(f"font-weight: bold; color: {'#1b7a1b' if ok else '#b00020'};")
+        self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
+        if not ok:
+            self.win.banner.show_message("warning", f"The daily check failed: {result.details()}.")
+        if self.record is not None:
+            self._show_history()
+        self.checkDone.emit(result)
+
+    def _failed(self, message: str) -> None:
+        self._job = None
+        self.scan_button.setEnabled(True)
+        self._say(f"The check did not complete: {message}")
+
+    def _say(self, text: str, value: bool = True) -> bool:
+        self.verdict.setStyleSheet("")
+        self.verdict.setText(text)
+        return value
+
+    def _show_history(self) -> None:
+        store = self.win.session.store
+        if store is None:
+            self.history.setText("No database: results are not kept.")
+            return
+        from anklescan.core.records.daily_checks import list_checks
+        try:
+            rows = list_checks(store, HISTORY_ROWS)
+        except Exception as exc:
+            self.history.setText(f"The earlier checks could not be read: {exc}")
+            return
+        if not rows:
+            self.history.setText("No check kept yet.")
+            return
+        lines = [f"{r.when.astimezone().strftime('%Y-%m-%d %H:%M')}  {'passed' if r.passed else 'FAILED'}  "
+                 f"inversion {r.measured_inversion - r.expected_inversion:+.2f}°, plantar flexion "
+                 f"{r.measured_plantar_flexion - r.expected_plantar_flexion:+.2f}°" for r in rows]
+        self.history.setText("Last checks:\n" + "\n".join(lines))
+
+    def done(self, code: int) -> None:
+        """Closing stops a running scan first (its frames are kept; nothing is recorded)."""
+        if self.controller.busy:
+            self.controller.stop()
+        if self._job is not None:
+            self._job.wait(30)
+            self._job = None
+        super().done(code)
+
+
+def open_daily_check(win: MainWindow) -> None:
+    """Scan ▸ Daily check…"""
+    if win.rig is None or win.rig_setup.projector is None or win.scan_flow.busy:
+        if win.rig is None:
+            win.banner.show_message("info", "The camera is still connecting; try again in a moment.")
+        return
+    dlg = DailyCheckDialog(win)
+    dlg.exec()
+    restore = getattr(win.rig_setup, "_restore_projector", None)
+    if restore is not None:
+        restore()
