@@ -11,7 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from anklescan.core.calibration.daily_check import CheckResult, CheckSettings, run_check
 from anklescan.core.records.daily_checks import (
@@ -25,7 +25,6 @@ from anklescan.core.records.daily_checks import (
 
 if TYPE_CHECKING:
     from anklescan.app.logic.session import SessionLogic
-    from anklescan.app.rig import Rig
     from anklescan.core.calibration.file import Calibration
     from anklescan.hardware.camera import Camera
 
@@ -45,7 +44,14 @@ class CheckPolicy(Enum):
             return cls.WARN  # a hand-edited value must not silently turn the check off
 
 
-def check_camera(rig: Rig, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
+class _RigView(Protocol):
+    """What the check needs of the app's rig (the logic layer never imports the windows' modules)."""
+
+    simulated: bool
+    camera: Camera
+
+
+def check_camera(rig: _RigView, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
     """What photographs the object: on the simulated rig a simulated camera on the wedge block at the
     set angles (same devices, same projector image); on real hardware the rig's own camera."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
