@@ -25,7 +25,6 @@ from anklescan.core.records.daily_checks import (
 
 if TYPE_CHECKING:
     from anklescan.app.logic.session import SessionLogic
-    from anklescan.app.rig import Rig
     from anklescan.core.calibration.file import Calibration
     from anklescan.hardware.camera import Camera
 
@@ -45,9 +44,10 @@ class CheckPolicy(Enum):
             return cls.WARN  # a hand-edited value must not silently turn the check off
 
 
-def check_camera(rig: Rig, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
+def check_camera(rig: object, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
     """What photographs the object: on the simulated rig a simulated camera on the wedge block at the
-    set angles (same devices, same projector image); on real hardware the rig's own camera."""
+    set angles (same devices, same projector image); on real hardware the rig's own camera.
+    ``rig`` is app.rig.Rig (not imported here: that module reaches for Qt)."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
         return rig.camera
     from anklescan.app.logic.calibration import _scene_camera
