@@ -27,9 +27,9 @@ from PySide6.QtWidgets import (QApplication, QFileDialog, QLabel, QMainWindow, Q
                                QStackedWidget, QTabWidget, QVBoxLayout, QWidget)
 
 from anklescan.app import resources
+from anklescan.app.daily_check import open_daily_check
 from anklescan.app.logic.scan import ScanLogic
 from anklescan.app.logic.session import SessionLogic
-from anklescan.app.daily_check import open_daily_check
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
 from anklescan.app.records_panel import RecordsPanel, confirm
 from anklescan.app.review import Review

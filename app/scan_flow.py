@@ -81,7 +81,8 @@ class ScanFlow(QObject):
         win.banner.hide()
         if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
             from anklescan.app.daily_check import open_daily_check
-            win.banner.show_message("warning", self.logic.check_warning, ("Daily check…", lambda: open_daily_check(win)))
+            win.banner.show_message("warning", self.logic.check_warning,
+                                    ("Daily check…", lambda: open_daily_check(win)))
         if not win.projector.isVisible():
             win.rig_setup.show_projector()
         self.controller.start(job)

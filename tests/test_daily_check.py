@@ -209,8 +209,14 @@ def test_checks_are_kept_with_their_date_newest_last(results, tmp_path):
         assert standing(first, now=t0 + dt.timedelta(hours=2)).ok
         assert standing(first, now=t0 + dt.timedelta(hours=25)).state is CheckState.STALE
         assert standing(first, now=t0 + dt.timedelta(hours=25), max_age_hours=48).ok
+        # a check of an earlier calibration says nothing about the current one
+        cal_a, cal_b = (store.add_calibration({"units": "mm", "n": i}).id for i in (1, 2))
+        third = add_check(store, good, calibration_id=cal_a, when=t0 + dt.timedelta(hours=3))
+        assert standing(third, calibration_id=cal_a, now=t0 + dt.timedelta(hours=4)).ok
+        other = standing(third, calibration_id=cal_b, now=t0 + dt.timedelta(hours=4))
+        assert other.state is CheckState.OTHER_CALIBRATION and "another calibration" in other.message
     with Store.open(data_dir=tmp_path) as store:  # kept across opening the database again
-        assert len(list_checks(store)) == 2
+        assert len(list_checks(store)) == 3
 
 
 def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):

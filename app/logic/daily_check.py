@@ -45,7 +45,7 @@ class CheckPolicy(Enum):
 
 
 class _RigView(Protocol):
-    """What the check needs of the app's rig (the logic layer never imports the windows' modules)."""
+    """What the check needs of the app's rig."""
 
     simulated: bool
     camera: Camera
@@ -53,7 +53,8 @@ class _RigView(Protocol):
 
 def check_camera(rig: _RigView, inversion_deg: float, plantar_flexion_deg: float) -> Camera:
     """What photographs the object: on the simulated rig a simulated camera on the wedge block at the
-    set angles (same devices, same projector image); on real hardware the rig's own camera."""
+    set angles (same devices, same projector image); on real hardware the rig's own camera.
+    ``rig`` is app.rig.Rig (not imported here: that module reaches for Qt)."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
         return rig.camera
     from anklescan.app.logic.calibration import _scene_camera

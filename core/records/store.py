@@ -159,7 +159,7 @@ ALTER TABLE trials ADD COLUMN motion_flagged INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE trials ADD COLUMN motion_keep INTEGER NOT NULL DEFAULT 0;
 """
 
-# v6: the daily check (issue 37, core/records/daily_checks.py): each scan of the known-angle
+# the daily check (issue 37, core/records/daily_checks.py): each scan of the known-angle
 # object with its date, the calibration it checked, the set and measured angles, pass or fail.
 _V_DAILY_CHECKS = """
 CREATE TABLE daily_checks (
