@@ -27,6 +27,7 @@ from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_cal
                                         cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_demo,
                                         cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
                                         cmd_reconstruct, set_verbose)
+from anklescan.app.study_commands import cmd_export, cmd_report
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
@@ -94,6 +95,15 @@ def _positive_float(text: str) -> float:
     if not (v > 0 and v < float("inf")):
         raise argparse.ArgumentTypeError(f"expected a positive number, not {text!r}")
     return v
+
+
+def _date(text: str) -> str:
+    import datetime as _dt
+
+    try:
+        return _dt.date.fromisoformat(text.strip()).isoformat()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, not {text!r}") from None
 
 
 def _positive_int(text: str) -> int:
@@ -212,6 +222,26 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--motion-threshold", type=float, default=0.5,
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
+
+    rp = sub.add_parser("report", help="the study from a data folder's own database (SPEC §7)")
+    rp.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
+    rp.add_argument("--out", required=True, metavar="OUTDIR",
+                    help="a new or empty folder, or an earlier report's (replaced)")
+    rp.add_argument("--patient", default=None, metavar="CODE", help="one patient's trials only")
+    rp.add_argument("--from", dest="date_from", type=_date, default=None, metavar="YYYY-MM-DD",
+                    help="visits on or after this date")
+    rp.add_argument("--to", dest="date_to", type=_date, default=None, metavar="YYYY-MM-DD",
+                    help="visits on or before this date")
+    rp.set_defaults(func=cmd_report)
+
+    ex = sub.add_parser("export", help="one trial's marks as C3D, or a session's results as FHIR (SPEC §7)")
+    ex.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
+    which = ex.add_mutually_exclusive_group(required=True)
+    which.add_argument("--trial", type=_positive_int, metavar="N", help="the trial's number (trials.csv `trial`)")
+    which.add_argument("--session", type=_positive_int, metavar="N", help="the session's number")
+    ex.add_argument("--format", required=True, choices=("c3d", "fhir"))
+    ex.add_argument("--out", required=True, metavar="FILE")
+    ex.set_defaults(func=cmd_export)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")
