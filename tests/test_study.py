@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-
 from anklescan.app.cli import main
 from anklescan.core.records.store import Store
 
@@ -226,7 +225,8 @@ def test_export_c3d_reads_back_with_seven_labelled_marks(data, tmp_path, capfd):
     pts = frames[0][1]
     for i, lab in enumerate(range(1, 8)):
         assert np.allclose(pts[i, :3], marks[lab], atol=1e-3)
-    code, _, err = run(capfd, "export", "--data", data, "--session", 1, "--format", "c3d", "--out", out.with_suffix(".x"))
+    code, _, err = run(capfd, "export", "--data", data, "--session", 1, "--format", "c3d",
+                       "--out", out.with_suffix(".x"))
     assert code == 2 and len(err) == 1
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -97,7 +98,9 @@ def icc_2_1(first: Sequence[float], second: Sequence[float]) -> tuple[float, flo
     df = pd.DataFrame({"patient": list(range(n)) * 2, "visit": [0] * n + [1] * n,
                        "ae": np.r_[np.asarray(first, float), np.asarray(second, float)]})
     try:
-        tab = pg.intraclass_corr(df, targets="patient", raters="visit", ratings="ae").set_index("Type")
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore")   # identical visits divide by a zero error mean square
+            tab = pg.intraclass_corr(df, targets="patient", raters="visit", ratings="ae").set_index("Type")
     except (AssertionError, ValueError, ZeroDivisionError, FloatingPointError):
         return math.nan, math.nan, math.nan
     key = "ICC(A,1)" if "ICC(A,1)" in tab.index else "ICC2"
@@ -105,7 +108,8 @@ def icc_2_1(first: Sequence[float], second: Sequence[float]) -> tuple[float, flo
     icc = float(tab.loc[key, "ICC"])
     if not math.isfinite(icc):
         return math.nan, math.nan, math.nan
-    return icc, float(ci[0]), float(ci[1])
+    lo, hi = (float(c) if math.isfinite(float(c)) else math.nan for c in ci)
+    return icc, lo, hi
 
 
 def reliability(errors: Sequence[SessionErrors]) -> list[Reliability]:
@@ -132,7 +136,8 @@ def site_mdc_path(data_dir: Path) -> Path:
 
 def save_site_mdc(data_dir: Path, rows: Sequence[Reliability], made: str) -> Path | None:
     """Keep the site's reliability in the data folder (only rows with an MDC; nothing when none has one)."""
-    known = [r.as_row() for r in rows if r.known]
+    known = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.as_row().items()}
+             for r in rows if r.known]
     if not known:
         return None
     path = site_mdc_path(data_dir)
@@ -145,8 +150,9 @@ def load_site_mdc(data_dir: Path) -> dict[tuple[str, str], Reliability]:
     """(condition, axis) → the kept Reliability; empty when none is kept or the file is unreadable."""
     try:
         obj = json.loads(site_mdc_path(data_dir).read_text(encoding="utf-8"))
-        return {(r["condition"], r["axis"]): Reliability(**{k: (float(v) if k not in ("condition", "axis", "n_patients")
-                                                                 else v) for k, v in r.items()})
+        return {(r["condition"], r["axis"]): Reliability(**{k: (v if k in ("condition", "axis", "n_patients")
+                                                                 else math.nan if v is None else float(v))
+                                                              for k, v in r.items()})
                 for r in obj["rows"]}
     except (OSError, ValueError, KeyError, TypeError):
         return {}

@@ -964,9 +964,31 @@ def _history_page(pages: _Pages, t, patient: str) -> None:
     fig.suptitle(f"Visits over time — patient {patient}", fontsize=12, weight="bold", y=0.965)
     fig.text(0.5, 0.935, "AE (mean |mismatch|) per visit; band = first visit's AE ± the site's MDC95: a visit "
              "outside it differs by a real change", ha="center", fontsize=8, color="0.3")
+    draw_history(fig, visits, t.site_mdc, bottom=0.34, height=0.2, gap=0.1)
+    cells = history_cells(visits)
+    head = ("Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "Change of\nAE (°)", "vs MDC95")
+    _draw_table(fig, 0.3, head, cells[:14], (0.16, 0.1, 0.12, 0.05, 0.09, 0.09, 0.09, 0.1, 0.12), row_in=0.18)
+    pages.save(fig)
+
+
+def history_cells(visits) -> list[list[str]]:
+    """A patient's visits as table cells (the report page and the app's Patient history)."""
+    cells = []
+    for v in visits:
+        judged = ("–" if v.change is None else "no MDC yet" if v.real is None
+                  else "real change" if v.real else "within MDC")
+        cells.append([f"#{v.session} {v.visit_date}", v.condition, _axis_name(v.axis), str(v.figures.n),
+                      _dash(v.figures.AE), _dash(v.figures.CE, sign=True), _dash(v.figures.VE),
+                      "–" if v.change is None else signed(v.change), judged])
+    return cells
+
+
+def draw_history(fig: Figure, visits, site_mdc, bottom: float, height: float, gap: float) -> None:
+    """AE per visit against date, one panel per axis (inversion on top), barefoot and shoes as two
+    lines, each with the band first visit ± the site's MDC95."""
     dates = sorted({v.visit_date for v in visits})
     for i, axis in enumerate(st.AXES):
-        ax = fig.add_axes((0.12, 0.64 - 0.3 * i, 0.8, 0.2))
+        ax = fig.add_axes((0.12, bottom + (height + gap) * (len(st.AXES) - 1 - i), 0.8, height))
         top = MIN_HALF_SPAN_DEG
         for j, cond in enumerate(st.CONDITIONS):
             vs = [v for v in visits if v.axis == axis and v.condition == cond]
@@ -976,7 +998,7 @@ def _history_page(pages: _Pages, t, patient: str) -> None:
             x = [dates.index(v.visit_date) + (j - 0.5) * 0.08 for v in vs]
             ys = [v.figures.AE for v in vs]
             ax.plot(x, ys, "-o", color=col, ms=5, label=cond, zorder=4)
-            mdc = t.site_mdc.get((cond, axis))
+            mdc = site_mdc.get((cond, axis))
             if mdc is not None and mdc.known:
                 ax.axhspan(ys[0] - mdc.mdc95, ys[0] + mdc.mdc95, color=col, alpha=0.12, lw=0,
                            label=f"{cond}: first visit ± MDC95 ({mdc.mdc95:.2f}°)")
@@ -992,16 +1014,6 @@ def _history_page(pages: _Pages, t, patient: str) -> None:
         _plain_ticks(ax, "y")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, frameon=False, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2)
-    cells = []
-    for v in visits:
-        judged = ("–" if v.change is None else "no MDC yet" if v.real is None
-                  else "real change" if v.real else "within MDC")
-        cells.append([f"#{v.session} {v.visit_date}", v.condition, _axis_name(v.axis), str(v.figures.n),
-                      _dash(v.figures.AE), _dash(v.figures.CE, sign=True), _dash(v.figures.VE),
-                      "–" if v.change is None else signed(v.change), judged])
-    head = ("Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "Change of\nAE (°)", "vs MDC95")
-    _draw_table(fig, 0.3, head, cells[:14], (0.16, 0.1, 0.12, 0.05, 0.09, 0.09, 0.09, 0.1, 0.12), row_in=0.18)
-    pages.save(fig)
 
 
 def _reliability_page(pages: _Pages, t) -> None:
@@ -1018,10 +1030,11 @@ def _reliability_page(pages: _Pages, t) -> None:
     if not any(r.known for r in t.reliability):
         y = _text_block(fig, y - 0.01, "No reliability yet: it needs at least 3 patients with two visits in "
                         "the same condition. Until then no change between visits can be called real.", size=8.5)
-    fig.text(0.5, y - 0.015, "Bland–Altman: difference of AE (second − first visit) against their mean; "
+    fig.text(0.5, y - 0.015, "Bland–Altman: difference of AE (second − first visit) against their mean;\n"
              "line = mean difference (bias), dashed = bias ± 1.96 SD (limits of agreement)",
-             ha="center", fontsize=8, color="0.3")
-    h = (y - 0.1) / 2 - 0.05
+             ha="center", va="top", fontsize=8, color="0.3", linespacing=1.3)
+    y -= 0.02
+    h = (y - 0.26) / 2
     for i, axis in enumerate(st.AXES):
         for j, cond in enumerate(st.CONDITIONS):
             ax = fig.add_axes((0.1 + 0.46 * j, y - 0.06 - (h + 0.06) * (i + 1), 0.37, h))
