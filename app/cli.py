@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
     d.add_argument("--study", action="store_true",
                    help="the paper's whole study: 4 patients with a sprain history and 4 without, barefoot and "
-                        "in shoes, 3 trials each (48 scans, several minutes)")
+                        "in shoes, 3 trials each, and a retest visit four weeks on (96 scans, about 6 minutes)")
     d.add_argument("--sway", type=float, default=0.0, metavar="MM",
                    help="one trial in three: the patient drifts up to MM mm during the scan (slower: each frame is "
                         "rendered at its own pose); moved trials are flagged")

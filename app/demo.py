@@ -13,6 +13,7 @@ calibration, marks, angles — is the product's own pipeline working on simulate
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import os
 import shutil
@@ -360,8 +361,6 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     one session report per patient (barefoot and shoes)."""
     from anklescan.core.records.report import write_session_report, write_study_report
     from anklescan.core.records.store import Store
-
-    import datetime as _dt
 
     t_start = time.perf_counter()
     plan = study_plan() if plan is None else plan

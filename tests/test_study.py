@@ -251,3 +251,33 @@ def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
     code, _, err = run(capfd, "export", "--data", data, "--session", 999, "--format", "fhir", "--out",
                        tmp_path / "n.json")
     assert code == 2 and len(err) == 1 and not (tmp_path / "n.json").exists()
+
+
+def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
+    """No "-0.00" anywhere; a page whose settings all have one trial says so and asks for repeats;
+    one trial is one point; legends sit above the axes, off the data."""
+    import shutil
+    import subprocess
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from anklescan.core.records import report as rp
+
+    assert rp.signed(-0.001) == "+0.00" and rp.signed(-0.006) == "-0.01"
+    out = tmp_path / "all"
+    assert main(["-q", "report", "--data", str(data), "--out", str(out)]) == 0
+    if shutil.which("pdftotext"):
+        text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True, text=True).stdout
+        assert "-0.00" not in text and "\u22120.00" not in text
+        assert "one trial (n=1)" in text and "Repeat every setting" in text   # patient P9
+    one = [{"mismatch_inversion": 0.4, "mismatch_plantar_flexion": -0.3, "marks_confirmed": 0}]
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.1, 0.1, 0.8, 0.6))
+    rp._plot_error_range(ax, {0.0: one}, "inversion")
+    points = [ln for ln in ax.lines if ln.get_marker() == "o" and len(ln.get_xdata())]
+    assert len(points) == 1 and points[0].get_markerfacecolor() == "none" and points[0].get_zorder() > 4
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    assert ax.get_legend().get_window_extent(r).y0 >= ax.get_window_extent(r).y1 - 1

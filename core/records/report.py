@@ -319,7 +319,7 @@ def _trial_marker(ax, x, y, col, confirmed: bool, ms: float = 3.5, alpha: float 
     if confirmed:
         ax.plot(x, y, "o", ms=ms, color=col, alpha=alpha, mec="none", zorder=3)
     else:   # drawn above the filled points and the means, so it is never hidden under them
-        ax.plot(x, y, "o", ms=ms + 1.5, mfc="white", mec=col, mew=1.3, alpha=1.0, zorder=6)
+        ax.plot(x, y, "o", ms=ms + 1.5, mfc="none", mec=col, mew=1.3, alpha=1.0, zorder=6)
 
 
 def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
