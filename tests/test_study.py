@@ -259,10 +259,9 @@ def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
     import shutil
     import subprocess
 
+    from anklescan.core.records import report as rp
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from anklescan.core.records import report as rp
 
     assert rp.signed(-0.001) == "+0.00" and rp.signed(-0.006) == "-0.01"
     out = tmp_path / "all"
