@@ -58,6 +58,7 @@ def test_study_report_and_patient_history_by_clicks(qtbot, win, tmp_path):
     def fill(dialog):
         dialog.patient.setCurrentText("All patients")
         dialog.out.setText(str(out))   # as pasted (typed keys cannot carry "é" under Xvfb)
+        dialog.grab().save(str(SHOTS / "study_report_dialog.png"))
         press_accept(dialog)
 
     with_dialog(qtbot, menu_action(win, "File/Study report…").trigger, fill)
