@@ -280,3 +280,26 @@ def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
     fig.canvas.draw()
     r = fig.canvas.get_renderer()
     assert ax.get_legend().get_window_extent(r).y0 >= ax.get_window_extent(r).y1 - 1
+
+
+def test_a_change_is_real_only_beyond_the_kept_mdc(tmp_path):
+    """The site's MDC kept in the data folder judges a patient's visits when the database alone cannot
+    give one (here: a single patient), and only a change larger than MDC95 is called real."""
+    from anklescan.core.records import reliability as rel
+    from anklescan.core.records.study import patient_visits, study_tables
+
+    kept = [rel.Reliability("barefoot", axis, 6, 0.8, 0.4, 0.95, 0.25, 1.96 * math.sqrt(2) * 0.25)
+            for axis in ("inversion", "plantar_flexion")]
+    assert rel.save_site_mdc(tmp_path, kept, "2026-12-04T10:00:00") == tmp_path / "site_mdc.json"
+    assert rel.load_site_mdc(tmp_path)[("barefoot", "inversion")] == kept[0]
+    with Store.open(data_dir=tmp_path) as store:
+        store.add_patient("Q1")
+        for date, err in (("2026-01-05", 2.0), ("2026-02-05", 1.5), ("2026-03-05", 0.2)):
+            s = store.start_session("Q1", condition="barefoot", date=date)
+            t = store.add_trial(s.id, ref_inversion=5.0, ref_plantar_flexion=0.0)
+            store.update_marks(t.id, table_marks(5.0 + err, 0.0), "manual", "test")
+        data = store.report_input()
+    visits = [v for v in patient_visits(study_tables(data, data_dir=tmp_path), "Q1") if v.axis == "inversion"]
+    mdc = kept[0].mdc95   # 0.69°
+    assert [v.real for v in visits] == [None, False, True]   # -0.5° is within it, -1.3° is real
+    assert visits[2].change == pytest.approx(-1.3, abs=1e-6) and abs(visits[2].change) > mdc

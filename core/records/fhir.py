@@ -102,9 +102,8 @@ def session_bundle(trials: Sequence[Mapping], patient_code: str, affected_side: 
     patient = {"resourceType": "Patient", "id": pid,
                "identifier": [{"system": "urn:anklescan:patient-code", "value": patient_code}]}
     side = _side(affected_side)
-    entries = [{"fullUrl": f"urn:uuid:{uuid.uuid5(uuid.NAMESPACE_URL, 'anklescan:patient:' + patient_code)}",
-                "resource": patient}]
-    patient_ref = entries[0]["fullUrl"]
+    patient_ref = f"urn:uuid:{uuid.uuid5(uuid.NAMESPACE_URL, 'anklescan:patient:' + patient_code)}"
+    entries: list[dict] = [{"fullUrl": patient_ref, "resource": patient}]
     for t in done:
         entries.append({"fullUrl": f"urn:uuid:{uuid.uuid4()}", "resource": observation(t, patient_ref, side)})
     return {"resourceType": "Bundle", "type": "collection",

@@ -150,9 +150,12 @@ def load_site_mdc(data_dir: Path) -> dict[tuple[str, str], Reliability]:
     """(condition, axis) → the kept Reliability; empty when none is kept or the file is unreadable."""
     try:
         obj = json.loads(site_mdc_path(data_dir).read_text(encoding="utf-8"))
-        return {(r["condition"], r["axis"]): Reliability(**{k: (v if k in ("condition", "axis", "n_patients")
-                                                                 else math.nan if v is None else float(v))
-                                                              for k, v in r.items()})
+        def num(v: float | None) -> float:
+            return math.nan if v is None else float(v)
+
+        return {(r["condition"], r["axis"]): Reliability(str(r["condition"]), str(r["axis"]), int(r["n_patients"]),
+                                                         num(r["icc"]), num(r["ci_low"]), num(r["ci_high"]),
+                                                         num(r["sem"]), num(r["mdc95"]))
                 for r in obj["rows"]}
     except (OSError, ValueError, KeyError, TypeError):
         return {}

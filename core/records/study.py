@@ -158,10 +158,10 @@ def patient_visits(t: StudyTables, patient: str) -> list[Visit]:
         for axis in tables.AXES:
             es = sorted((e for e in mine if e.condition == cond and e.axis == axis),
                         key=lambda e: (e.visit_date, e.session))
-            prev = None
+            prev: ps.SessionErrors | None = None
             for e in es:
-                change = None if prev is None else e.figures.AE - prev.figures.AE
-                real = None if prev is None else rel.real_change(prev.figures.AE, e.figures.AE,
+                change: float | None = None if prev is None else e.figures.AE - prev.figures.AE
+                real: bool | None = None if prev is None else rel.real_change(prev.figures.AE, e.figures.AE,
                                                                  t.site_mdc.get((cond, axis)))
                 out.append(Visit(e.session, e.visit_date, cond, axis, e.figures, change, real))
                 prev = e
