@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from PySide6.QtCore import QDate, QObject
+from PySide6.QtCore import QDate, QObject, Qt
+from PySide6.QtGui import QAction
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -136,6 +137,12 @@ class StudyGui(QObject):
         self.last_result = None
         self.progress: QProgressBar | None = None
         self.history: PatientHistoryDialog | None = None
+        # the records sidebar: right-click a patient for the history (the File menu has it too)
+        patients = win.records.patients
+        self.history_action = QAction("Patient history…", patients)
+        self.history_action.triggered.connect(lambda _checked=False: self.open_patient_history())
+        patients.addAction(self.history_action)
+        patients.setContextMenuPolicy(Qt.ContextMenuPolicy.ActionsContextMenu)
 
     def _store_paths(self):
         store = self.win.session.store

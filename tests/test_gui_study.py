@@ -87,6 +87,14 @@ def test_study_report_and_patient_history_by_clicks(qtbot, win, tmp_path):
     win.grab().save(str(SHOTS / "main_window_after_study.png"))
     click(dialog.findChild(QDialogButtonBox).buttons()[0])   # Close
     assert not dialog.isVisible()
+    # the same from the sidebar: the patient list's context menu holds it
+    item = lst.findItems("A-03", Qt.MatchFlag.MatchStartsWith)[0]
+    QTest.mouseClick(lst.viewport(), Qt.MouseButton.LeftButton, pos=lst.visualItemRect(item).center())
+    (history,) = [a for a in lst.actions() if a.text() == "Patient history…"]
+    history.trigger()
+    assert win.study.history is not dialog and win.study.history.isVisible()
+    assert "A-03" in win.study.history.windowTitle()
+    win.study.history.close()
 
 
 def test_study_report_refuses_a_foreign_folder(qtbot, win, tmp_path):

@@ -303,3 +303,21 @@ def test_a_change_is_real_only_beyond_the_kept_mdc(tmp_path):
     mdc = kept[0].mdc95   # 0.69°
     assert [v.real for v in visits] == [None, False, True]   # -0.5° is within it, -1.3° is real
     assert visits[2].change == pytest.approx(-1.3, abs=1e-6) and abs(visits[2].change) > mdc
+
+
+def test_c3d_keeps_seven_labels_when_marks_are_missing(tmp_path):
+    """A trial with marks 3 and 4 not found: still seven labelled points, those two invalid (residual −1)."""
+    import warnings
+
+    import c3d
+    from anklescan.core.records.c3d import write_c3d
+
+    marks = {k: v for k, v in table_marks(5.0, 0.0).items() if k not in (3, 4)}
+    assert write_c3d(marks, tmp_path / "t.c3d") == 5
+    with open(tmp_path / "t.c3d", "rb") as fh, warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # "no analog data": a still scan has none
+        reader = c3d.Reader(fh)
+        assert [s.strip() for s in reader.point_labels] == [str(k) for k in range(1, 8)]
+        (_, pts, _), = list(reader.read_frames())
+    assert (pts[[2, 3], 3] == -1).all() and (pts[[0, 1, 4, 5, 6], 3] >= 0).all()
+    assert np.allclose(pts[4, :3], marks[5], atol=1e-3)
