@@ -925,9 +925,10 @@ def _grid_page(pages: _Pages, t) -> None:
     top = max((g.figures.AE for g in t.grid), default=0.0)
     vmax = max(MIN_HALF_SPAN_DEG, top)
     cmap = colormaps["viridis_r"]
+    mappable = None
     for i, axis in enumerate(st.AXES):
         for j, cond in enumerate(st.CONDITIONS):
-            ax = fig.add_axes((0.1 + 0.46 * j, 0.52 - 0.42 * i, 0.37, 0.3))
+            ax = fig.add_axes((0.1 + 0.43 * j, 0.52 - 0.42 * i, 0.33, 0.3))
             gs = [g for g in t.grid if g.axis == axis and g.condition == cond]
             ax.set_title(f"{cond}: |mismatch of {axis.replace('_', ' ')}|", fontsize=9)
             if not gs:
@@ -950,7 +951,11 @@ def _grid_page(pages: _Pages, t) -> None:
             ax.set_ylabel("Reference inversion (°)", fontsize=8)
             ax.tick_params(labelsize=7.5)
             _plain_ticks(ax)
-            fig.colorbar(sc, ax=ax, fraction=0.05, pad=0.02).set_label("AE (°)", fontsize=7.5)
+            mappable = sc
+    if mappable is not None:   # one scale for the four panels, beside them
+        cbar = fig.colorbar(mappable, cax=fig.add_axes((0.9, 0.1, 0.018, 0.72)))
+        cbar.set_label("AE = mean |mismatch| (°)", fontsize=8)
+        cbar.ax.tick_params(labelsize=7.5)
     pages.save(fig)
 
 
