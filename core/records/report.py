@@ -408,7 +408,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
         v = np.asarray([r[f"mismatch_{axis}"] for r in per_pf_rows[p]], float)
         if v.size == 1:   # no spread to draw: the one trial, once, at its setting
             r = per_pf_rows[p][0]
-            _trial_marker(ax, p, v[0], COLOURS[1], _confirmed(r), ms=5, alpha=1.0)
+            _trial_marker(ax, p, v[0], "0.35", _confirmed(r), ms=5, alpha=1.0)
             extent.append(float(v[0]))
             ax.annotate("n=1", (p, v[0]), xytext=(0, 6), textcoords="offset points", ha="center",
                         fontsize=7, color="0.3")
@@ -430,9 +430,10 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
     ax.set_ylim(*span_limits(extent, pad=0.18))
     if pfs:
         ax.set_xlim(*x_limits([pfs[0] - 0.6, pfs[-1] + 1.4], pad=0.1))
-        ax.plot([], [], "o", color=COLOURS[1], label="mean")
-        ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
-        ax.plot([], [], color="0.35", lw=1, label="min – max")
+        if any(len(rs) > 1 for rs in per_pf_rows.values()):   # only what the panel draws
+            ax.plot([], [], "o", color=COLOURS[1], label="mean")
+            ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
+            ax.plot([], [], color="0.35", lw=1, label="min – max")
         unconfirmed = any(not _confirmed(r) for rs in per_pf_rows.values() for r in rs)
         h, lab = _marker_handles(unconfirmed)
         h0, lab0 = ax.get_legend_handles_labels()
