@@ -428,7 +428,7 @@ def _reliability_summary(folder: Path, progress) -> None:
         for r in csv.DictReader(fh):
             progress(f"retest reliability, {r['condition']}, AE of {r['axis'].replace('_', ' ')}: "
                      f"n={r['n_patients']} patients, ICC(2,1) {r['icc'][:5] or '–'}, "
-                     f"MDC95 {r['mdc95'][:5] or '–'}°")
+                     f"MDC95 {r['mdc95'][:5] + '°' if r['mdc95'] else '–'}")
 
 
 def _study_summary(store, progress) -> None:
