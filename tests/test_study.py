@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -196,11 +197,17 @@ def test_report_refuses_foreign_folder_and_replaces_its_own(data, report, tmp_pa
     code, _, err = run(capfd, "report", "--data", data, "--out", foreign)
     assert code == 2 and len(err) == 1 and "did not write" in err[0]
     assert [p.name for p in foreign.iterdir()] == ["thesis.docx"]
-    # an earlier report folder is replaced
-    code, out, err = run(capfd, "report", "--data", data, "--out", report, "--patient", "P2")
+    # an earlier report folder is replaced (a copy: the module's report stays whole for the other tests)
+    earlier = tmp_path / "earlier"
+    shutil.copytree(report, earlier)
+    code, out, err = run(capfd, "report", "--data", data, "--out", earlier, "--patient", "P2")
     assert code == 0, err
-    df = trials_frame(report)
+    df = trials_frame(earlier)
     assert set(df.patient) == {"P2"}
+    # visits from a date on
+    code, out, err = run(capfd, "report", "--data", data, "--out", tmp_path / "later", "--from", "2026-02-01")
+    assert code == 0, err
+    assert set(trials_frame(tmp_path / "later").visit_date) == {"2026-02-14", "2026-03-01"}
     code, _, err = run(capfd, "report", "--data", data, "--out", tmp_path / "x", "--patient", "NOPE")
     assert code == 2 and len(err) == 1 and "NOPE" in err[0]
     code, _, err = run(capfd, "report", "--data", tmp_path / "empty", "--out", tmp_path / "y")
@@ -256,7 +263,6 @@ def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
 def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
     """No "-0.00" anywhere; a page whose settings all have one trial says so and asks for repeats;
     one trial is one point; legends sit above the axes, off the data."""
-    import shutil
     import subprocess
 
     from anklescan.core.records import report as rp
