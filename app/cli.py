@@ -27,6 +27,7 @@ from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_cal
                                         cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_check,
                                         cmd_demo, cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
                                         cmd_reconstruct, set_verbose)
+from anklescan.app.study_commands import cmd_export, cmd_report
 from anklescan.core.limits import (MAX_BOARD_CORNERS, MAX_IMAGE_SIDE, MAX_MARK_DIAMETER_MM, MAX_MOTION_REFS,
                                    MAX_OPTION_MM, MAX_SWAY_MM, bounded_float, bounded_int, size_type)
 
@@ -43,6 +44,7 @@ _LENGTH_MM = bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)
 _DEGREES = bounded_float(-90, 90, "°", lo_open=True)
 _TOLERANCE_DEG = bounded_float(0, 90, "°", lo_open=True)
 _AREA_CM2 = bounded_float(0, 1e6, "cm²", lo_open=True)
+_RECORD_ID = bounded_int(1, 2**63 - 1)  # a database row number (SQLite INTEGER PRIMARY KEY)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -67,6 +69,16 @@ def _on_sigterm(signum, frame):
     raise Terminated(signum)
 
 
+def _date(text: str) -> str:
+    """argparse ``type=`` for a calendar date (YYYY-MM-DD)."""
+    import datetime as _dt
+
+    try:
+        return _dt.date.fromisoformat(text.strip()).isoformat()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, not {text[:40]!r}") from None
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="anklescan", description="Structured-light 3-D scanner for ankle posture.")
@@ -84,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
     d.add_argument("--study", action="store_true",
                    help="the paper's whole study: 4 patients with a sprain history and 4 without, barefoot and "
-                        "in shoes, 3 trials each (48 scans, several minutes)")
+                        "in shoes, 3 trials each, and a retest visit four weeks on (96 scans, about 6 minutes)")
     d.add_argument("--sway", type=bounded_float(0, MAX_SWAY_MM, "mm"), default=0.0, metavar="MM",
                    help="one trial in three: the patient drifts up to MM mm during the scan (slower: each frame is "
                         "rendered at its own pose); moved trials are flagged")
@@ -189,6 +201,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the object's top is at least this large, cm² (default 100)")
     ck.add_argument("--out", default=None, metavar="CHECK.json")
     ck.set_defaults(func=cmd_check)
+
+    rp = sub.add_parser("report", help="the study from a data folder's own database (SPEC §7)")
+    rp.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
+    rp.add_argument("--out", required=True, metavar="OUTDIR",
+                    help="a new or empty folder, or an earlier report's (replaced)")
+    rp.add_argument("--patient", default=None, metavar="CODE", help="one patient's trials only")
+    rp.add_argument("--from", dest="date_from", type=_date, default=None, metavar="YYYY-MM-DD",
+                    help="visits on or after this date")
+    rp.add_argument("--to", dest="date_to", type=_date, default=None, metavar="YYYY-MM-DD",
+                    help="visits on or before this date")
+    rp.set_defaults(func=cmd_report)
+
+    ex = sub.add_parser("export", help="one trial's marks as C3D, or a session's results as FHIR (SPEC §7)")
+    ex.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
+    which = ex.add_mutually_exclusive_group(required=True)
+    which.add_argument("--trial", type=_RECORD_ID, metavar="N", help="the trial's number (trials.csv `trial`)")
+    which.add_argument("--session", type=_RECORD_ID, metavar="N", help="the session's number")
+    ex.add_argument("--format", required=True, choices=("c3d", "fhir"))
+    ex.add_argument("--out", required=True, metavar="FILE")
+    ex.set_defaults(func=cmd_export)
 
     a = sub.add_parser("angles", help="SPEC §3 angles from labelled marks (label,x,y,z)")
     a.add_argument("marks")

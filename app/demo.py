@@ -13,6 +13,7 @@ calibration, marks, angles — is the product's own pipeline working on simulate
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import os
 import time
@@ -335,20 +336,26 @@ STUDY_PATIENTS = PATIENTS + (
 # mean |mismatch|, which is what the tests compare (core/records/study_stats.py).
 STUDY_INVERSIONS = (0.0,)
 STUDY_PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
+# Every patient comes back for a retest four weeks after the first visit (same settings, both
+# conditions), so the study's reliability (ICC, SEM, MDC95: core/records/reliability.py) and each
+# patient's visits over time carry numbers: 8 patients × 2 conditions × 2 visits × 3 trials = 96 scans.
+STUDY_VISITS = (0, 28)   # days after the first visit
 
 
 def study_plan(patients=STUDY_PATIENTS, inversions=STUDY_INVERSIONS, pfs=STUDY_PLANTAR_FLEXIONS,
-               seed: int = 2027) -> list[dict]:
-    """Every trial of the simulated study, in scanning order: patient, condition, reference
-    setting, the table setting the simulated patient chose, and the simulator's seed."""
+               seed: int = 2027, visits=STUDY_VISITS) -> list[dict]:
+    """Every trial of the simulated study, in scanning order: patient, visit (days after the first),
+    condition, reference setting, the table setting the simulated patient chose, and the simulator's seed."""
     rng = np.random.default_rng(seed)
     plan = []
-    for p in patients:
-        for condition in CONDITIONS:
-            for inv in inversions:
-                for pf in pfs:
-                    plan.append({"patient": p, "condition": condition, "ref": (inv, pf),
-                                 "table": table_setting(p, condition, inv, pf, rng), "seed": int(rng.integers(2**31))})
+    for visit in visits:
+        for p in patients:
+            for condition in CONDITIONS:
+                for inv in inversions:
+                    for pf in pfs:
+                        plan.append({"patient": p, "condition": condition, "ref": (inv, pf), "visit": visit,
+                                     "table": table_setting(p, condition, inv, pf, rng),
+                                     "seed": int(rng.integers(2**31))})
     return plan
 
 
@@ -361,6 +368,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
 
     t_start = time.perf_counter()
     plan = study_plan() if plan is None else plan
+    first_day = _dt.date.today() - _dt.timedelta(days=max(t.get("visit", 0) for t in plan))
     out = _prepare_out(out)
     progress(f"simulated study at scale {scale}: {len({t['patient'].code for t in plan})} patients, "
              f"{len(plan)} trials; output in {out}")
@@ -374,10 +382,12 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
             if p.code not in {q.code for q in store.list_patients()}:
                 store.add_patient(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
                                   affected_side="right" if p.sprain_count else None, notes=p.notes)
-            key = (p.code, t["condition"])
+            key = (p.code, t["condition"], t.get("visit", 0))
             if key not in sessions:
-                sessions[key] = store.start_session(p.code, condition=t["condition"], operator="demo",
-                                                    calibration_id=cal_id, notes="simulated rig, --study").id
+                day = first_day + _dt.timedelta(days=key[2])
+                sessions[key] = store.start_session(p.code, condition=t["condition"], operator="demo", date=day,
+                                                    calibration_id=cal_id,
+                                                    notes="simulated rig, --study" + (", retest" if key[2] else "")).id
                 if p.marks[2]:  # the clinic gave the marks' size for this patient's sessions
                     store.set_session_mark_diameter(sessions[key], p.marks[1])
             mark_diameter = store.get_session(sessions[key]).mark_diameter_mm
@@ -397,15 +407,32 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
             progress(f"[{k}/{len(jobs)}] {res['label']}: {mm}"
                      + ("" if res["complete"] else f"  marks {', '.join(res['missing'])} not found"))
         report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
-        for code in dict.fromkeys(c for c, _ in sessions):
-            write_session_report(store.report_input([sid for (c, _), sid in sessions.items() if c == code]),
+        for code in dict.fromkeys(c for c, _, _ in sessions):
+            write_session_report(store.report_input([sid for (c, _, _), sid in sessions.items() if c == code]),
                                  out / f"session_{code}.pdf")
         _study_summary(store, progress)
+        from anklescan.core.records.study import write_study_folder
+
+        study = write_study_folder(store.report_input(), out / "study", data_dir=out, keep_site_mdc=True)
+        progress(f"the clinic's study (as `anklescan report --data {out}`): {study.folder} ({study.pages} pages, "
+                 "position_sense.csv, reliability.csv, trials.xlsx)")
+        _reliability_summary(study.folder, progress)
     _summarise(results, out, progress)
     _finish_out(out)
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
              f"{report.csv_path}, one session report per patient; {time.perf_counter() - t_start:.0f} s")
     return 0
+
+
+def _reliability_summary(folder: Path, progress) -> None:
+    """The reliability rows, one line each (the PDF's last page has them with Bland–Altman plots)."""
+    import csv
+
+    with open(folder / "reliability.csv", encoding="utf-8-sig", newline="") as fh:
+        for r in csv.DictReader(fh):
+            progress(f"retest reliability, {r['condition']}, AE of {r['axis'].replace('_', ' ')}: "
+                     f"n={r['n_patients']} patients, ICC(2,1) {r['icc'][:5] or '–'}, "
+                     f"MDC95 {r['mdc95'][:5] + '°' if r['mdc95'] else '–'}")
 
 
 def _study_summary(store, progress) -> None:

@@ -36,6 +36,7 @@ from anklescan.app.review import Review
 from anklescan.app.rig_setup import RigSetup
 from anklescan.app.scan_flow import ScanFlow
 from anklescan.app.settings import Settings
+from anklescan.app.study_view import StudyGui
 
 log = logging.getLogger("anklescan.gui")
 
@@ -51,6 +52,7 @@ class MainWindow(QMainWindow):
         self.setWindowIcon(resources.app_icon())
         self._build()
         self.review = Review(self)
+        self.study = StudyGui(self)
         self.scan_flow = ScanFlow(self, ScanLogic(self.session, self.settings))
         self.rig_setup = RigSetup(self)
         self._build_menus()
@@ -116,6 +118,8 @@ class MainWindow(QMainWindow):
         act(file, "Open point &cloud…", review.open_cloud_file, "Ctrl+O")
         act(file, "Export session p&lots (PNG/SVG)…", review.export_plots)
         act(file, "Session &report (PDF + CSV)…", review.export_session_report, "Ctrl+R")
+        act(file, "&Study report…", self.study.open_study_report)
+        act(file, "Patient &history…", self.study.open_patient_history)
         file.addSeparator()
         file.addActions([rec.exclude_action, rec.restore_action, rec.archive_session_action, rec.archive_patient_action])
         file.addSeparator()
@@ -218,6 +222,7 @@ class MainWindow(QMainWindow):
                 return
             self.scan_flow.stop_for_exit()
         self.review.wait_for_jobs()
+        self.study.wait_for_jobs()
         self.settings.set("window_geometry", bytes(self.saveGeometry()))
         self.settings.sync()
         self.rig_setup.close()

@@ -59,15 +59,17 @@ def test_study_plan_is_the_papers_cohort():
     sprain history and less in shoes (structure only: no scanning here, the study takes minutes)."""
     import numpy as np
 
-    from anklescan.app.demo import STUDY_PLANTAR_FLEXIONS, study_plan
+    from anklescan.app.demo import STUDY_PLANTAR_FLEXIONS, STUDY_VISITS, study_plan
 
     plan = study_plan()
     codes = {t["patient"].code: t["patient"].sprain_count for t in plan}
     assert len(codes) == 8 and sum(n > 0 for n in codes.values()) == 4
     for code in codes:
         for cond in ("barefoot", "shoes"):
-            pfs = sorted(t["ref"][1] for t in plan if t["patient"].code == code and t["condition"] == cond)
-            assert pfs == sorted(STUDY_PLANTAR_FLEXIONS) and len(set(pfs)) >= 3
+            for visit in STUDY_VISITS:   # a first visit and a retest, the same settings
+                pfs = sorted(t["ref"][1] for t in plan if t["patient"].code == code and t["condition"] == cond
+                             and t["visit"] == visit)
+                assert pfs == sorted(STUDY_PLANTAR_FLEXIONS) and len(set(pfs)) >= 3
     assert len({t["seed"] for t in plan}) == len(plan) and plan == study_plan()  # distinct scans, reproducible
 
     def err(sprain: bool, cond: str) -> float:
@@ -81,10 +83,18 @@ def test_study_demo_runs_end_to_end_on_a_small_plan(tmp_path):
     without the marks' type, and only the structure was tested)."""
     from anklescan.app.demo import run_study_demo, study_plan
     from anklescan.core.records.store import Store
-    plan = [t for t in study_plan() if t["condition"] == "barefoot" and t["ref"][1] == 0.0][:2]
+    # one patient's first visit and retest: the study folder (as `anklescan report`) comes with it
+    plan = [t for t in study_plan() if t["condition"] == "barefoot" and t["ref"][1] == 0.0
+            and t["patient"].code == "SIM-02"]
     out, lines = tmp_path / "study", []
     assert run_study_demo(out, progress=lines.append, scale=0.5, plan=plan) == 0
     assert (out / "report.pdf").exists() and (out / "trials.csv").exists()
     with Store.open(out / "anklescan.db", data_dir=out / "data") as db:
         trials = [t for s in db.list_sessions() for t in db.list_trials(s.id)]
         assert len(trials) == 2 and all(t.cloud_path for t in trials)
+        dates = sorted(s.date for s in db.list_sessions())
+    import datetime as dt
+    assert (dt.date.fromisoformat(dates[1]) - dt.date.fromisoformat(dates[0])).days == 28   # the retest
+    with open(out / "study" / "position_sense.csv", encoding="utf-8-sig") as fh:
+        sessions = {line.split(",")[1] for line in fh.read().splitlines()[1:]}
+    assert len(sessions) == 2 and (out / "study" / "reliability.csv").exists()

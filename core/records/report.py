@@ -108,10 +108,15 @@ def write_csv(rows: Sequence[dict], path: Path) -> None:
 
 # ------------------------------------------------------------------ formatting
 
+def signed(v: float, digits: int = 2) -> str:
+    """``v`` with its sign to ``digits`` decimals, never "-0.00": a value that rounds to zero is "+0.00"."""
+    return f"{round(float(v), digits) + 0.0:+.{digits}f}"
+
+
 def _fmt(v, sd=None, digits=1) -> str:
     if v is None:
         return "–"
-    s = f"{v:+.{digits}f}" if digits else f"{v:+.0f}"
+    s = signed(v, digits)
     return s if sd is None else f"{s} ± {sd:.{digits}f}"
 
 
@@ -312,9 +317,9 @@ def _trial_marker(ax, x, y, col, confirmed: bool, ms: float = 3.5, alpha: float 
     """One trial's point: filled when its marks are manual or confirmed, hollow when they
     are still the automatic detection nobody has checked."""
     if confirmed:
-        ax.plot(x, y, "o", ms=ms, color=col, alpha=alpha, mec="none")
-    else:
-        ax.plot(x, y, "o", ms=ms + 1, mfc="none", mec=col, mew=1.0, alpha=min(1.0, alpha + 0.4))
+        ax.plot(x, y, "o", ms=ms, color=col, alpha=alpha, mec="none", zorder=3)
+    else:   # drawn above the filled points and the means, so it is never hidden under them
+        ax.plot(x, y, "o", ms=ms + 1.5, mfc="none", mec=col, mew=1.3, alpha=1.0, zorder=6)
 
 
 def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
@@ -343,16 +348,21 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         pfs = sorted(data[inv])
         means = [np.mean(data[inv][p]) for p in pfs]
         for p in pfs:
-            for r in by_rows[inv][p]:
+            trials = by_rows[inv][p]
+            if len(trials) == 1:   # one trial is its own mean: one point, hollow when its marks are unconfirmed
+                _trial_marker(ax, p + dx, trials[0][f"mismatch_{axis}"], col, _confirmed(trials[0]), ms=5,
+                              alpha=1.0)
+                continue
+            for r in trials:
                 _trial_marker(ax, p + dx, r[f"mismatch_{axis}"], col, _confirmed(r))
+            ax.plot(p + dx, np.mean(data[inv][p]), "o", ms=5, color=col, zorder=4)
         xs = [p + dx for p in pfs]
         all_x += xs
         if show_sd:
             sds = [np.std(data[inv][p], ddof=1) if len(data[inv][p]) > 1 else 0 for p in pfs]
-            ax.errorbar(xs, means, yerr=sds, fmt="-o", ms=5, color=col, capsize=3,
-                        label=f"inversion {inv:g}°")
+            ax.errorbar(xs, means, yerr=sds, fmt="-", color=col, capsize=3, label=f"inversion {inv:g}°")
         else:
-            ax.plot(xs, means, "-o", ms=5, color=col, label=f"inversion {inv:g}°")
+            ax.plot(xs, means, "-", color=col, label=f"inversion {inv:g}°")
     _style(ax, AXIS_LABEL[axis])
     if all_x:
         ax.set_xlim(*x_limits(all_x))
@@ -396,6 +406,13 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
     extent: list[float] = []
     for p in pfs:
         v = np.asarray([r[f"mismatch_{axis}"] for r in per_pf_rows[p]], float)
+        if v.size == 1:   # no spread to draw: the one trial, once, at its setting
+            r = per_pf_rows[p][0]
+            _trial_marker(ax, p, v[0], "0.35", _confirmed(r), ms=5, alpha=1.0)
+            extent.append(float(v[0]))
+            ax.annotate("n=1", (p, v[0]), xytext=(0, 6), textcoords="offset points", ha="center",
+                        fontsize=7, color="0.3")
+            continue
         for r in per_pf_rows[p]:
             _trial_marker(ax, p + 1.4, r[f"mismatch_{axis}"], "0.35", _confirmed(r), alpha=0.6)
         sd_ = v.std(ddof=1) if v.size > 1 else 0.0
@@ -413,13 +430,16 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
     ax.set_ylim(*span_limits(extent, pad=0.18))
     if pfs:
         ax.set_xlim(*x_limits([pfs[0] - 0.6, pfs[-1] + 1.4], pad=0.1))
-        ax.plot([], [], "o", color=COLOURS[1], label="mean")
-        ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
-        ax.plot([], [], color="0.35", lw=1, label="min – max")
+        if any(len(rs) > 1 for rs in per_pf_rows.values()):   # only what the panel draws
+            ax.plot([], [], "o", color=COLOURS[1], label="mean")
+            ax.plot([], [], color=COLOURS[0], lw=6, alpha=0.45, label="± 1 SD")
+            ax.plot([], [], color="0.35", lw=1, label="min – max")
         unconfirmed = any(not _confirmed(r) for rs in per_pf_rows.values() for r in rs)
         h, lab = _marker_handles(unconfirmed)
         h0, lab0 = ax.get_legend_handles_labels()
-        ax.legend(h0 + h, lab0 + lab, fontsize=8, frameon=False, loc="best")
+        # above the axes, never on the data
+        ax.legend(h0 + h, lab0 + lab, fontsize=7.5, frameon=False, loc="lower center",
+                  bbox_to_anchor=(0.5, 1.0), ncol=len(h0 + h), handlelength=1.5, columnspacing=1.2)
 
 
 def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
@@ -445,9 +465,17 @@ def _error_range_pages(pages: _Pages, rows: list[dict], label: str) -> None:
                      fontsize=12, weight="bold", y=0.965)
         fig.text(0.5, 0.935, label, ha="center", fontsize=8, color="0.3")
         for k, axis in enumerate(st.AXES):
-            ax = fig.add_axes((0.13, 0.56 - 0.45 * k, 0.8, 0.33))
+            ax = fig.add_axes((0.13, 0.53 - 0.45 * k, 0.8, 0.33))
             _plot_error_range(ax, per_inv[inv], axis)
+        counts = [len(rs) for rs in per_inv[inv].values()]
+        if max(counts) < 2:
+            fig.text(0.5, 0.905, SINGLE_TRIAL_NOTE, ha="center", va="top", fontsize=8, color=COLOURS[1],
+                     linespacing=1.3)
         pages.save(fig)
+
+
+SINGLE_TRIAL_NOTE = ("Each setting here has one trial (n=1): a single point has no spread, so no SD bar or range\n"
+                     "can be drawn. Repeat every setting (3 trials or more) to see the error range of the mismatch.")
 
 
 def _mark_diameter_text(session) -> str:
@@ -548,8 +576,8 @@ def _header_page(pages: _Pages, summ: SessionSummary, calibrations: dict[int, Ca
         a = getattr(summ, axis)
         items.append((f"Mismatch {axis.replace('_', ' ')}",
                       "–" if a.n == 0 else
-                      f"mean |m| {a.mean_abs:.2f}°, mean {a.mean:+.2f}°, SD "
-                      f"{'–' if a.sd is None else f'{a.sd:.2f}'}°, range {a.min:+.2f}…{a.max:+.2f}° "
+                      f"mean |m| {a.mean_abs:.2f}°, mean {signed(a.mean)}°, SD "
+                      f"{'–' if a.sd is None else f'{a.sd:.2f}'}°, range {signed(a.min)}…{signed(a.max)}° "
                       f"(n={a.n})"))
     if s.notes:
         items.append(("Notes", "\n".join(_wrap(s.notes, max_lines=4))))
@@ -637,7 +665,7 @@ def _desc_cells(s: st.StudyStats) -> list[list[str]]:
                 cells.append([g, c, _axis_name(axis), str(p.n), str(t.n),
                               st.format_or_dash(p.mean_abs), st.format_or_dash(p.sd),
                               "–" if p.n == 0 else f"{p.min:.2f} – {p.max:.2f}",
-                              "–" if t.n == 0 else f"{t.mean_signed:+.2f}"])
+                              "–" if t.n == 0 else signed(t.mean_signed)])
     return cells
 
 
@@ -660,7 +688,7 @@ def _test_cells(s: st.StudyStats) -> list[list[str]]:
 
 
 def _signed(v: float) -> str:
-    return "–" if math.isnan(v) else f"{v:+.2f}"
+    return "–" if math.isnan(v) else signed(v)
 
 
 def _tp(name: str, stat: float, p: float, fmt: str = ".2f") -> str:
@@ -823,3 +851,257 @@ def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -
             axes.append(ax)
     _page_legend(fig, axes, 0.9, rows)
     pages.save(fig)
+
+
+# ------------------------------------------------------------------ the clinic's study (anklescan report)
+
+PS_HEAD = ("Patient", "Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "E (°)")
+PS_WIDTHS = (0.14, 0.14, 0.11, 0.13, 0.06, 0.1, 0.1, 0.1, 0.1)
+PS_NOTE = ("Position-sense errors over the complete, included trials of each visit, per axis of the mismatch "
+           "(adjusted − reference table): AE = mean |mismatch|, how far off whatever the direction; CE = mean "
+           "mismatch, a bias to one side; VE = SD of the mismatch (n − 1), how consistent; E = √(CE² + VE²), "
+           "the total error. VE and E need two trials or more ('–' with one).")
+REL_NOTE = ("Test–retest reliability of the visit's AE, over patients with two or more visits in a condition "
+            "(their first two by date). ICC(2,1): two-way random effects, absolute agreement, single measure, "
+            "with its 95 % confidence interval (pingouin). SEM = SD·√(1 − ICC), SD of all the AEs compared; "
+            "MDC95 = 1.96·√2·SEM: a patient's change of AE between two visits is a real change only when it is "
+            "larger than the MDC95; a smaller one is within what the measurement repeats. ICC needs 3 patients.")
+
+
+def _dash(v: float | None, digits: int = 2, sign: bool = False) -> str:
+    if v is None or not math.isfinite(v):
+        return "–"
+    return signed(v, digits) if sign else f"{round(float(v), digits) + 0.0:.{digits}f}"
+
+
+def _text_block(fig: Figure, y: float, text: str, width: int = 110, size: float = 8) -> float:
+    lines = _wrap(text, width)
+    fig.text(0.06, y, "\n".join(lines), fontsize=size, va="top", color="0.2", linespacing=1.35)
+    return y - 0.0125 * len(lines) * size / 7.5 - 0.01
+
+
+def _study_cover(pages: _Pages, t) -> None:
+    from anklescan.core.records import study as sy
+
+    rows = t.data.rows
+    counts = [("Covers", t.filter.text()),
+              ("Patients", str(len({r["patient_code"] for r in rows}))),
+              ("Visits", f"{len({r['session_id'] for r in rows})} sessions"),
+              ("Trials", f"{len(rows)} in all, {len(sy.tables.included(t.trials))} complete and included"),
+              ("Files", "trials.csv / trials.xlsx (every trial, with its state), data_dictionary.csv, "
+                        "position_sense.csv, reliability.csv")]
+    fig = pages.new()
+    fig.text(0.06, 0.955, "AnkleScan — the clinic's study", fontsize=14, weight="bold")
+    y = _key_values(fig, 0.925, counts)
+    y = _text_block(fig, y - 0.01, "What this report holds, in order: the study overview; per patient and "
+                    "condition the mismatch against plantar flexion (the paper's Figs. 10–12); the position-sense "
+                    "errors per visit and over the grid of reference angles; each patient's visits over time; "
+                    "the group comparisons; and the reliability of the measurement (ICC, SEM, MDC95).")
+    pages.save(fig)
+
+
+def _ps_table_pages(pages: _Pages, t) -> None:
+    cells = [[e.patient, f"#{e.session} {e.visit_date}", e.condition, _axis_name(e.axis), str(e.figures.n),
+              _dash(e.figures.AE), _dash(e.figures.CE, sign=True), _dash(e.figures.VE), _dash(e.figures.E)]
+             for e in t.errors]
+    per_page = 44
+    for start in range(0, max(len(cells), 1), per_page):
+        fig = pages.new()
+        fig.text(0.06, 0.955, "Position-sense errors per visit" + (" (continued)" if start else ""),
+                 fontsize=13, weight="bold")
+        y = _text_block(fig, 0.93, PS_NOTE) if not start else 0.93
+        _draw_table(fig, y - 0.01, PS_HEAD, cells[start:start + per_page], PS_WIDTHS, row_in=0.19)
+        pages.save(fig)
+
+
+def _grid_page(pages: _Pages, t) -> None:
+    """The position-specific picture: AE (colour and number) at every reference setting, per condition
+    and axis, pooled over the included trials there."""
+    from matplotlib import colormaps
+
+    fig = pages.new()
+    fig.suptitle("Position-sense error over the grid of reference angles", fontsize=12, weight="bold", y=0.965)
+    fig.text(0.5, 0.935, "AE = mean |mismatch| at each reference setting (number: AE in °, n trials), pooled over "
+             "the patients and visits in this report", ha="center", fontsize=8, color="0.3")
+    top = max((g.figures.AE for g in t.grid), default=0.0)
+    vmax = max(MIN_HALF_SPAN_DEG, top)
+    cmap = colormaps["viridis_r"]
+    mappable = None
+    for i, axis in enumerate(st.AXES):
+        for j, cond in enumerate(st.CONDITIONS):
+            ax = fig.add_axes((0.1 + 0.43 * j, 0.52 - 0.42 * i, 0.33, 0.3))
+            gs = [g for g in t.grid if g.axis == axis and g.condition == cond]
+            ax.set_title(f"{cond}: |mismatch of {axis.replace('_', ' ')}|", fontsize=9)
+            if not gs:
+                _no_data(ax)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                continue
+            sc = ax.scatter([g.reference_plantar_flexion for g in gs], [g.reference_inversion for g in gs],
+                            c=[g.figures.AE for g in gs], cmap=cmap, vmin=0, vmax=vmax, s=380, marker="s",
+                            edgecolors="0.5", linewidths=0.5)
+            for g in gs:
+                ax.annotate(f"{g.figures.AE:.2f}\nn={g.figures.n}", (g.reference_plantar_flexion,
+                            g.reference_inversion), xytext=(0, -24), textcoords="offset points", ha="center",
+                            va="top", fontsize=6.5, color="0.2")
+            xs = [g.reference_plantar_flexion for g in gs]
+            ys = [g.reference_inversion for g in gs]
+            ax.set_xlim(*x_limits(xs, pad=0.2))
+            ax.set_ylim(*x_limits(ys, pad=0.25))
+            ax.set_xlabel(PF_LABEL, fontsize=8)
+            ax.set_ylabel("Reference inversion (°)", fontsize=8)
+            ax.tick_params(labelsize=7.5)
+            _plain_ticks(ax)
+            mappable = sc
+    if mappable is not None:   # one scale for the four panels, beside them
+        cbar = fig.colorbar(mappable, cax=fig.add_axes((0.9, 0.1, 0.018, 0.72)))
+        cbar.set_label("AE = mean |mismatch| (°)", fontsize=8)
+        cbar.ax.tick_params(labelsize=7.5)
+    pages.save(fig)
+
+
+def _history_page(pages: _Pages, t, patient: str) -> None:
+    """A patient's visits over time: AE per axis per visit, barefoot against shoes, with the site's
+    MDC95 band around the first visit (a later visit outside it is a real change)."""
+    from anklescan.core.records import study as sy
+
+    visits = sy.patient_visits(t, patient)
+    fig = pages.new()
+    fig.suptitle(f"Visits over time — patient {patient}", fontsize=12, weight="bold", y=0.965)
+    fig.text(0.5, 0.935, "AE (mean |mismatch|) per visit; band = first visit's AE ± the site's MDC95: a visit "
+             "outside it differs by a real change", ha="center", fontsize=8, color="0.3")
+    draw_history(fig, visits, t.site_mdc, bottom=0.34, height=0.2, gap=0.1)
+    cells = history_cells(visits)
+    head = ("Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "Change of\nAE (°)", "vs MDC95")
+    _draw_table(fig, 0.3, head, cells[:14], (0.16, 0.1, 0.12, 0.05, 0.09, 0.09, 0.09, 0.1, 0.12), row_in=0.18)
+    pages.save(fig)
+
+
+def history_cells(visits) -> list[list[str]]:
+    """A patient's visits as table cells (the report page and the app's Patient history)."""
+    cells = []
+    for v in visits:
+        judged = ("–" if v.change is None else "no MDC yet" if v.real is None
+                  else "real change" if v.real else "within MDC")
+        cells.append([f"#{v.session} {v.visit_date}", v.condition, _axis_name(v.axis), str(v.figures.n),
+                      _dash(v.figures.AE), _dash(v.figures.CE, sign=True), _dash(v.figures.VE),
+                      "–" if v.change is None else signed(v.change), judged])
+    return cells
+
+
+def draw_history(fig: Figure, visits, site_mdc, bottom: float, height: float, gap: float) -> None:
+    """AE per visit against date, one panel per axis (inversion on top), barefoot and shoes as two
+    lines, each with the band first visit ± the site's MDC95."""
+    dates = sorted({v.visit_date for v in visits})
+    for i, axis in enumerate(st.AXES):
+        ax = fig.add_axes((0.12, bottom + (height + gap) * (len(st.AXES) - 1 - i), 0.8, height))
+        top = MIN_HALF_SPAN_DEG
+        for j, cond in enumerate(st.CONDITIONS):
+            vs = [v for v in visits if v.axis == axis and v.condition == cond]
+            if not vs:
+                continue
+            col = COLOURS[0] if j == 0 else COLOURS[2]
+            x = [dates.index(v.visit_date) + (j - 0.5) * 0.08 for v in vs]
+            ys = [v.figures.AE for v in vs]
+            ax.plot(x, ys, "-o", color=col, ms=5, label=cond, zorder=4)
+            mdc = site_mdc.get((cond, axis))
+            if mdc is not None and mdc.known:
+                ax.axhspan(ys[0] - mdc.mdc95, ys[0] + mdc.mdc95, color=col, alpha=0.12, lw=0,
+                           label=f"{cond}: first visit ± MDC95 ({mdc.mdc95:.2f}°)")
+                top = max(top, ys[0] + mdc.mdc95)
+            top = max(top, *ys)
+        ax.set_xticks(range(len(dates)))
+        ax.set_xticklabels(dates, fontsize=7.5)
+        ax.set_xlim(-0.5, max(len(dates) - 0.5, 0.5))
+        ax.set_ylim(0, top * 1.15)
+        ax.set_ylabel(f"AE {_axis_name(axis)} (°)", fontsize=8.5)
+        ax.tick_params(axis="y", labelsize=8)
+        ax.grid(True, color="0.9", lw=0.6)
+        _plain_ticks(ax, "y")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, frameon=False, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2)
+
+
+def _reliability_page(pages: _Pages, t) -> None:
+    from anklescan.core.records import reliability as rel
+
+    fig = pages.new()
+    fig.text(0.06, 0.955, "Reliability and the smallest real change", fontsize=13, weight="bold")
+    y = _text_block(fig, 0.93, REL_NOTE)
+    cells = [[r.condition, _axis_name(r.axis), str(r.n_patients), _dash(r.icc),
+              "–" if not math.isfinite(r.ci_low) else f"{_dash(r.ci_low)} – {_dash(r.ci_high)}",
+              _dash(r.sem), _dash(r.mdc95)] for r in t.reliability]
+    head = ("Condition", "Axis", "Patients", "ICC(2,1)", "95 % CI", "SEM (°)", "MDC95 (°)")
+    y = _draw_table(fig, y - 0.01, head, cells, (0.14, 0.14, 0.1, 0.12, 0.18, 0.12, 0.12), row_in=0.2)
+    if not any(r.known for r in t.reliability):
+        y = _text_block(fig, y - 0.01, "No reliability yet: it needs at least 3 patients with two visits in "
+                        "the same condition. Until then no change between visits can be called real.", size=8.5)
+    fig.text(0.5, y - 0.015, "Bland–Altman: difference of AE (second − first visit) against their mean;\n"
+             "line = mean difference (bias), dashed = bias ± 1.96 SD (limits of agreement)",
+             ha="center", va="top", fontsize=8, color="0.3", linespacing=1.3)
+    y -= 0.02
+    h = (y - 0.26) / 2
+    for i, axis in enumerate(st.AXES):
+        for j, cond in enumerate(st.CONDITIONS):
+            ax = fig.add_axes((0.1 + 0.46 * j, y - 0.06 - (h + 0.06) * (i + 1), 0.37, h))
+            ps_ = rel.pairs(t.errors, cond, axis)
+            ax.set_title(f"{cond}, {axis.replace('_', ' ')} (n={len(ps_)})", fontsize=8.5)
+            if not ps_:
+                _no_data(ax, "no patient with two visits")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                continue
+            a = np.array([p.ae for p in ps_], float)
+            mean, diff = a.mean(axis=1), a[:, 1] - a[:, 0]
+            ax.plot(mean, diff, "o", color=COLOURS[0], ms=5, zorder=4)
+            bias = float(diff.mean())
+            ax.axhline(bias, color=COLOURS[1], lw=1)
+            lim = [abs(bias)]
+            if diff.size > 1:
+                loa = 1.96 * float(diff.std(ddof=1))
+                for v in (bias - loa, bias + loa):
+                    ax.axhline(v, color=COLOURS[1], lw=0.8, ls="--")
+                lim.append(abs(bias) + loa)
+            ax.axhline(0, color="0.6", lw=0.6, zorder=0)
+            lo, hi = span_limits([*diff, *lim, -max(lim)], floor=0.5)
+            ax.set_ylim(lo, hi)
+            ax.set_xlim(0, max(MIN_HALF_SPAN_DEG, float(mean.max()) * 1.2))
+            ax.set_xlabel("Mean AE of the two visits (°)", fontsize=7.5)
+            ax.set_ylabel("Difference of AE (°)", fontsize=7.5)
+            ax.tick_params(labelsize=7)
+            ax.grid(True, color="0.9", lw=0.6)
+            _plain_ticks(ax)
+    pages.save(fig)
+
+
+def write_study_pages(t, pdf_path: Path) -> int:
+    """report.pdf of ``anklescan report`` from a ``core.records.study.StudyTables``: cover, overview, per
+    patient and condition the paper's Figs. 10–12, the position-sense errors (table and grid), each
+    patient's visits over time, the group comparison (when any can be computed) and the reliability.
+    Written atomically; returns the number of pages."""
+    rows = t.data.rows
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    with atomic_paths(Path(pdf_path), what="report.pdf") as (tmp,), PdfPages(tmp) as pdf:
+        pages = _Pages(pdf, f"AnkleScan study — {t.filter.text()} — generated {stamp}")
+        _study_cover(pages, t)
+        stats_ = st.study_stats(rows)
+        with_group = st.has_tests(stats_)
+        _overview_pages(pages, t.data.patients, rows, None if with_group else GROUP_OMITTED)
+        for code in sorted({r["patient_code"] for r in rows}):
+            for cond in st.CONDITIONS:
+                mine = [r for r in rows if r["patient_code"] == code and r["condition"] == cond]
+                if not _measured(mine):
+                    continue
+                visits = sorted({r["session_date"] for r in mine})
+                label = f"Patient {code}, {cond}, visits {', '.join(visits)}"
+                _fig10_page(pages, mine, f"Mismatch against plantar flexion — {code}, {cond}")
+                _error_range_pages(pages, mine, label)
+        _ps_table_pages(pages, t)
+        _grid_page(pages, t)
+        for code in sorted({e.patient for e in t.errors}):
+            _history_page(pages, t, code)
+        if with_group:
+            _group_page(pages, rows, set())
+        _reliability_page(pages, t)
+        _pdf_info(pdf, "AnkleScan study")
+    return pages.count

@@ -1,0 +1,244 @@
+"""The clinic's study in the app (issue 39): File > Study report… (patient and date filters, written in a
+background job with progress, the same folder as ``anklescan report``) and File > Patient history… (a
+patient's visits over time: AE per axis per visit, barefoot against shoes, with the site's MDC95)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from PySide6.QtCore import QDate, QObject, Qt
+from PySide6.QtGui import QAction
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QDateEdit,
+    QDialog,
+    QDialogButtonBox,
+    QFileDialog,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QProgressBar,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+ALL_PATIENTS = "All patients"
+
+
+def _date_row(label: str) -> tuple[QCheckBox, QDateEdit, QWidget]:
+    box, edit = QCheckBox(label), QDateEdit(QDate.currentDate())
+    edit.setCalendarPopup(True)
+    edit.setDisplayFormat("yyyy-MM-dd")
+    edit.setEnabled(False)
+    box.toggled.connect(edit.setEnabled)
+    w = QWidget()
+    lay = QHBoxLayout(w)
+    lay.setContentsMargins(0, 0, 0, 0)
+    lay.addWidget(box)
+    lay.addWidget(edit, 1)
+    return box, edit, w
+
+
+class StudyReportDialog(QDialog):
+    """Which patients and visits, and the output folder."""
+
+    def __init__(self, codes: list[str], default_out: Path, parent=None):
+        super().__init__(parent)
+        self.setWindowTitle("Study report")
+        form = QFormLayout(self)
+        self.patient = QComboBox()
+        self.patient.addItems([ALL_PATIENTS, *codes])
+        form.addRow("Patients", self.patient)
+        self.from_box, self.from_date, row = _date_row("From")
+        form.addRow("Visits from", row)
+        self.to_box, self.to_date, row = _date_row("To")
+        form.addRow("Visits to", row)
+        self.out = QLineEdit(str(default_out))
+        browse = QPushButton("Browse…")
+        browse.clicked.connect(self._browse)
+        w = QWidget()
+        lay = QHBoxLayout(w)
+        lay.setContentsMargins(0, 0, 0, 0)
+        lay.addWidget(self.out, 1)
+        lay.addWidget(browse)
+        form.addRow("Output folder", w)
+        form.addRow(QLabel("report.pdf, trials.csv/.xlsx, data_dictionary.csv, position_sense.csv and "
+                           "reliability.csv;\na new or empty folder, or an earlier study report's (replaced)."))
+        buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
+        buttons.button(QDialogButtonBox.StandardButton.Ok).setText("Write report")
+        buttons.accepted.connect(self.accept)
+        buttons.rejected.connect(self.reject)
+        form.addRow(buttons)
+
+    def _browse(self) -> None:
+        path = QFileDialog.getExistingDirectory(self, "Study report folder", self.out.text())
+        if path:
+            self.out.setText(path)
+
+    def choice(self):
+        from anklescan.core.records.study import StudyFilter
+
+        code = self.patient.currentText()
+        return StudyFilter(None if code == ALL_PATIENTS else code,
+                           self.from_date.date().toString("yyyy-MM-dd") if self.from_box.isChecked() else None,
+                           self.to_date.date().toString("yyyy-MM-dd") if self.to_box.isChecked() else None)
+
+
+class PatientHistoryDialog(QDialog):
+    """A patient's visits over time: the plot of the report's history page and its table."""
+
+    HEAD = ("Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "Change of AE (°)", "vs MDC95")
+
+    def __init__(self, tables, patient: str, parent=None):
+        super().__init__(parent)
+        from anklescan.core.records import report
+        from anklescan.core.records.study import patient_visits
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+
+        self.setWindowTitle(f"Patient history — {patient}")
+        self.resize(820, 760)
+        self.visits = patient_visits(tables, patient)
+        lay = QVBoxLayout(self)
+        known = {k: r for k, r in tables.site_mdc.items() if r.known}
+        lay.addWidget(QLabel(
+            f"Patient {patient}: {len({v.session for v in self.visits})} visit(s). AE = mean |mismatch| per visit; "
+            + ("the band is the first visit ± the site's MDC95: a change beyond it is real." if known else
+               "no MDC yet (it needs 3 patients with two visits): no change can be called real.")))
+        fig = Figure(figsize=(8, 4.6))
+        report.draw_history(fig, self.visits, tables.site_mdc, bottom=0.1, height=0.3, gap=0.17)
+        self.canvas = FigureCanvasQTAgg(fig)
+        lay.addWidget(self.canvas, 3)
+        cells = report.history_cells(self.visits)
+        self.table = QTableWidget(len(cells), len(self.HEAD))
+        self.table.setHorizontalHeaderLabels(list(self.HEAD))
+        for i, row in enumerate(cells):
+            for j, text in enumerate(row):
+                self.table.setItem(i, j, QTableWidgetItem(text))
+        self.table.resizeColumnsToContents()
+        lay.addWidget(self.table, 2)
+        close = QDialogButtonBox(QDialogButtonBox.StandardButton.Close)
+        close.rejected.connect(self.reject)
+        lay.addWidget(close)
+
+
+class StudyGui(QObject):
+    """The two actions, wired by the main window."""
+
+    def __init__(self, win):
+        super().__init__(win)
+        self.win = win
+        self.jobs: list = []
+        self.last_result = None
+        self.progress: QProgressBar | None = None
+        self.history: PatientHistoryDialog | None = None
+        # the records sidebar: right-click a patient for the history (the File menu has it too)
+        patients = win.records.patients
+        self.history_action = QAction("Patient history…", patients)
+        self.history_action.triggered.connect(lambda _checked=False: self.open_patient_history())
+        patients.addAction(self.history_action)
+        patients.setContextMenuPolicy(Qt.ContextMenuPolicy.ActionsContextMenu)
+
+    def _store_paths(self):
+        store = self.win.session.store
+        if store is None:
+            self.win.banner.show_message("warning", "No database is open: choose a data folder first.")
+            return None
+        return store.path, store.data_dir
+
+    def _report_input(self, paths):
+        from anklescan.core.records.store import Store
+
+        db, data_dir = paths
+        with Store.open(db, data_dir=data_dir, read_only=True) as own:  # its own connection, read-only
+            return own.report_input()
+
+    def open_study_report(self) -> None:
+        paths = self._store_paths()
+        if paths is None:
+            return
+        codes = [p.code for p in self.win.session.store.list_patients()]
+        dialog = StudyReportDialog(codes, Path(self.win.data_folder()).parent / "study-report", self.win)
+        if dialog.exec() != QDialog.DialogCode.Accepted:
+            return
+        self.write_study_report(dialog.choice(), Path(dialog.out.text()))
+
+    def write_study_report(self, flt, out: Path):
+        from anklescan.app.background import run_in_background
+        from anklescan.core.atomic import guard_output
+
+        paths = self._store_paths()
+        if paths is None:
+            return None
+        win = self.win
+        try:
+            guard_output(out, [paths[1]], what="the study report folder")
+        except Exception as exc:   # one line in the banner, the folder untouched
+            win.banner.show_message("error", f"The study report was not written: {exc}")
+            return None
+        whole = flt.patient is None and flt.date_from is None and flt.date_to is None
+
+        def render(job):
+            from anklescan.core.records.study import write_study_folder
+
+            job.progress(0, 3, "reading the database")
+            data = self._report_input(paths)
+            steps = iter(range(1, 3))
+            return write_study_folder(data, out, flt, data_dir=paths[1], keep_site_mdc=whole,
+                                      progress=lambda text: job.progress(next(steps, 2), 3, text))
+
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 3)
+        win.statusBar().addPermanentWidget(self.progress)
+        win.banner.show_message("info", f"Writing the study report to {out}…")
+        job = run_in_background(render, self._written, self._failed, on_progress=self._progress, pass_job=True,
+                                name="anklescan-study")
+        self.jobs = [j for j in self.jobs if j.running] + [job]
+        return job
+
+    def _progress(self, done: int, total: int, text: str) -> None:
+        if self.progress is not None:
+            self.progress.setRange(0, total)
+            self.progress.setValue(done)
+            self.progress.setFormat(text)
+
+    def _end_progress(self) -> None:
+        if self.progress is not None:
+            self.win.statusBar().removeWidget(self.progress)
+            self.progress.deleteLater()
+            self.progress = None
+
+    def _written(self, result) -> None:
+        self._end_progress()
+        self.last_result = result
+        self.win.banner.show_message("info", f"Study report saved in {result.folder}: report.pdf ({result.pages} "
+                                             f"pages), trials.csv/.xlsx, position_sense.csv, reliability.csv")
+        self.win.reportWritten.emit(str(result.folder / "report.pdf"))
+
+    def _failed(self, error: str) -> None:
+        self._end_progress()
+        self.win.banner.show_message("error", f"The study report could not be written: {error}")
+
+    def open_patient_history(self) -> PatientHistoryDialog | None:
+        from anklescan.core.records.study import study_tables
+
+        paths = self._store_paths()
+        code = self.win.records.current_code()
+        if paths is None:
+            return None
+        if code is None:
+            self.win.banner.show_message("warning", "Select a patient first.")
+            return None
+        tables = study_tables(self._report_input(paths), data_dir=paths[1])
+        self.history = PatientHistoryDialog(tables, code, self.win)
+        self.history.show()
+        return self.history
+
+    def wait_for_jobs(self) -> None:
+        for job in self.jobs:
+            job.wait(60)

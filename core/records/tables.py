@@ -1,0 +1,179 @@
+"""The study's trial table as other programs read it (SPEC §7): ``trials.csv`` (UTF-8 with a BOM, so
+that a spreadsheet opens accents and "°" correctly), ``trials.xlsx`` with the same rows (openpyxl), and
+``data_dictionary.csv`` describing every column.
+
+One row per trial, every trial with its state: ``status`` is the trial's lifecycle state (scanning,
+complete, cancelled, failed) and ``excluded`` says whether it is left out of the statistics (excluded
+by the clinician, or moved during the scan and not kept). The figures of position_sense.csv and
+reliability.csv are computed over exactly the rows with ``status == complete`` and ``excluded == false``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from anklescan.core.records import study_stats as st
+
+BOM = "\ufeff"
+TRUE, FALSE = "true", "false"
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+@dataclass(frozen=True)
+class Column:
+    name: str
+    unit: str
+    description: str
+    text: bool = False   # free text: guarded against spreadsheet formulas
+
+
+ANGLES = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
+_ANGLE_TEXT = {"leg_inversion": "leg inversion angle θ1 (SPEC §3: line of marks 1–2 in the x–z plane, from vertical)",
+               "leg_plantar_flexion": "leg plantar-flexion angle θ2 (SPEC §3: line of marks 3–4 in the y–z plane)",
+               "table_inversion": "inversion of the adjusted table under the scanned foot (marks 5, 6, 7)",
+               "table_plantar_flexion": "plantar flexion of the adjusted table under the scanned foot (marks 5, 6, 7)"}
+
+COLUMNS: tuple[Column, ...] = (
+    Column("patient", "", "the patient's pseudonymous code", text=True),
+    Column("session", "", "the session's number in the database (one visit in one condition)"),
+    Column("visit_date", "YYYY-MM-DD", "the session's date"),
+    Column("condition", "", "barefoot or shoes"),
+    Column("trial", "", "the trial's number in the database (unique; `anklescan export --trial N` takes it)"),
+    Column("status", "", "the trial's state: complete, cancelled, failed or scanning"),
+    Column("excluded", "true/false", "true when the trial is left out of the statistics: excluded by the "
+                                     "clinician, or moved during the scan and not kept"),
+    Column("excluded_reason", "", "why it is excluded (empty when it is not)", text=True),
+    Column("marks_confirmed", "true/false", "false while the marks are the automatic detection nobody checked"),
+    Column("reference_inversion", "deg", "the reference (left) table's inversion: set by the operator or measured"),
+    Column("reference_plantar_flexion", "deg", "the reference (left) table's plantar flexion"),
+    Column("mismatch_inversion", "deg", "adjusted table's measured inversion minus the reference inversion"),
+    Column("mismatch_inversion_sd", "deg", "standard uncertainty of mismatch_inversion"),
+    Column("mismatch_plantar_flexion", "deg", "adjusted table's measured plantar flexion minus the reference"),
+    Column("mismatch_plantar_flexion_sd", "deg", "standard uncertainty of mismatch_plantar_flexion"),
+    *(c for a in ANGLES for c in (Column(a, "deg", _ANGLE_TEXT[a]),
+                                  Column(f"{a}_sd", "deg", f"standard uncertainty of {a} (1 SD, every known source)"))),
+    Column("motion_mm", "mm", "how far the subject moved during the scan, at most"),
+    Column("motion_sd_mm", "mm", "standard uncertainty of motion_mm"),
+    Column("calibration", "", "the number of the calibration the trial was measured with"),
+    Column("calibration_rms", "px", "that calibration's reprojection RMS"),
+    Column("sprain_count", "", "the patient's recorded ankle sprains"),
+    Column("affected_side", "", "left, right or both (empty: none recorded)"),
+    Column("operator", "", "who ran the session", text=True),
+    Column("created", "ISO 8601", "when the trial was started"),
+)
+COLUMN_NAMES: tuple[str, ...] = tuple(c.name for c in COLUMNS)
+DICTIONARY_HEAD = ("column", "unit", "description")
+
+
+def _excluded_reason(r: Mapping) -> str:
+    if r.get("excluded_reason") is not None:
+        return str(r["excluded_reason"])
+    if r.get("motion_excluded"):
+        return f"moved {r['motion_mm']:.2f} mm during the scan, not kept"
+    return ""
+
+
+def trial_rows(rows: Sequence[Mapping]) -> list[dict]:
+    """``Store.study_rows()`` rows → the export's rows (SPEC §7 column names; numbers as numbers,
+    None for a value not measured, booleans as "true"/"false")."""
+    out = []
+    for r in rows:
+        excluded = r.get("excluded_reason") is not None or bool(r.get("motion_excluded"))
+        d = {"patient": r["patient_code"], "session": r["session_id"], "visit_date": r["session_date"],
+             "condition": r["condition"], "trial": r["trial_id"], "status": r.get("status") or "complete",
+             "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
+             "marks_confirmed": TRUE if r.get("marks_confirmed", 1) else FALSE,
+             "reference_inversion": r["ref_inversion"], "reference_plantar_flexion": r["ref_plantar_flexion"],
+             "motion_mm": r.get("motion_mm"), "motion_sd_mm": r.get("motion_sd_mm"),
+             "calibration": r.get("calibration_id"), "calibration_rms": r.get("calibration_rms"),
+             "sprain_count": r.get("sprain_count"), "affected_side": r.get("affected_side"),
+             "operator": r.get("operator"), "created": r.get("created")}
+        for k in ("mismatch_inversion", "mismatch_plantar_flexion", *ANGLES):
+            d[k], d[f"{k}_sd"] = r.get(k), r.get(f"{k}_sd")
+        out.append(d)
+    return out
+
+
+def included(trials: Sequence[Mapping]) -> list[Mapping]:
+    """Export rows that enter the statistics (status complete, not excluded)."""
+    return [t for t in trials if t["status"] == "complete" and t["excluded"] == FALSE]
+
+
+def mismatch(t: Mapping, axis: str) -> float | None:
+    v = t.get(f"mismatch_{axis}")
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _cell(col: Column, v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ""
+    s = str(v)
+    if col.text and s[:1] in _FORMULA_START:  # a free-text cell starting like a formula would run as one
+        return "'" + s
+    return s
+
+
+def write_trials_csv(trials: Sequence[Mapping], path: Path) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        fh.write(BOM)
+        w = csv.writer(fh)
+        w.writerow(COLUMN_NAMES)
+        for t in trials:
+            w.writerow([_cell(c, t.get(c.name)) for c in COLUMNS])
+
+
+def write_trials_xlsx(trials: Sequence[Mapping], path: Path) -> None:
+    """The same rows as trials.csv: numbers as numbers, true/false as the same words, empty for none."""
+    from openpyxl import Workbook
+
+    wb = Workbook()
+    ws = wb.active
+    ws.title = "trials"
+    ws.append(list(COLUMN_NAMES))
+    for t in trials:
+        row = []
+        for c in COLUMNS:
+            v = t.get(c.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                v = None
+            elif isinstance(v, str):
+                v = _cell(c, v)
+            row.append(v)
+        ws.append(row)
+    ws.freeze_panes = "A2"
+    wd = wb.create_sheet("data_dictionary")
+    wd.append(list(DICTIONARY_HEAD))
+    for c in COLUMNS:
+        wd.append([c.name, c.unit, c.description])
+    wb.save(path)
+
+
+def write_dictionary(path: Path, extra: Sequence[tuple[str, Sequence[Column]]] = ()) -> None:
+    """data_dictionary.csv: every column of trials.csv, then those of the other tables (``extra``:
+    (file name, its columns)), with unit and meaning."""
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        fh.write(BOM)
+        w = csv.writer(fh)
+        w.writerow(("file", *DICTIONARY_HEAD))
+        for file, cols in (("trials.csv", COLUMNS), *extra):
+            for c in cols:
+                w.writerow((file, c.name, c.unit, c.description))
+
+
+def write_table(path: Path, columns: Sequence[Column], rows: Sequence[Mapping]) -> None:
+    """A plain CSV (UTF-8 with BOM) of ``rows`` in ``columns``' order; NaN and None are empty."""
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        fh.write(BOM)
+        w = csv.writer(fh)
+        w.writerow([c.name for c in columns])
+        for r in rows:
+            w.writerow([_cell(c, r.get(c.name)) for c in columns])
+
+
+AXES = st.AXES
