@@ -211,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="visits on or after this date")
     rp.add_argument("--to", dest="date_to", type=_date, default=None, metavar="YYYY-MM-DD",
                     help="visits on or before this date")
-    rp.set_defaults(func=cmd_report)
+    rp.set_defaults(func=cmd_report, out_is_folder=True)
 
     ex = sub.add_parser("export", help="one trial's marks as C3D, or a session's results as FHIR (SPEC §7)")
     ex.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
