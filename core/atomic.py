@@ -105,7 +105,7 @@ def clean_stale_temporaries(folder: str | os.PathLike, now: float | None = None)
     now = time.time() if now is None else now
     removed: list[Path] = []
     try:
-        entries = [e for e in os.scandir(folder) if e.name.startswith(".")]
+        entries = [e for e in os.scandir(os.fspath(folder)) if e.name.startswith(".")]
     except OSError:
         return removed
     host = socket.gethostname()
@@ -181,7 +181,7 @@ def make_tree_private(folder: str | os.PathLike) -> int:
     written by an older version under a 022 umask; symlinks and entries we may not change
     are skipped. Returns the number of entries changed."""
     changed = 0
-    for root, _dirs, files in os.walk(folder):
+    for root, _dirs, files in os.walk(str(folder)):
         entries = [(root, PRIVATE_DIR_MODE)] + [(os.path.join(root, f), PRIVATE_FILE_MODE) for f in files]
         for name, mode in entries:
             try:
@@ -275,7 +275,7 @@ def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, ke
             else:  # pragma: no cover - 100 collisions of 32 random bits
                 raise WriteError(f"cannot write {what}: no free temporary name")
             slots[-1] = (dfd, name)
-        yield [None if slot is None else _fd_path(slot[0], t.parent, slot[1])
+        yield [None if slot is None or t is None else _fd_path(slot[0], t.parent, slot[1])
                for slot, t in zip(slots, paths, strict=True)]
         for i, (slot, t) in enumerate(zip(slots, paths, strict=True)):
             if slot is not None and t is not None:
@@ -329,8 +329,10 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             make_private_dir(path.parent, tighten=False)
     except OSError as e:
         raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
-    with atomic_paths(path) as (tmp,), open(tmp, mode, encoding=encoding) as f:
-        yield f
+    with atomic_paths(path) as (tmp,):
+        assert tmp is not None
+        with open(tmp, mode, encoding=encoding) as f:
+            yield f
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -340,8 +342,10 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 
 def copy_private(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """Copy a file atomically to ``dst``, private (0600) from its creation whatever the umask."""
-    with atomic_paths(dst) as (tmp,), open(src, "rb") as fin, open(tmp, "wb") as fout:
-        shutil.copyfileobj(fin, fout, 1 << 20)
+    with atomic_paths(dst) as (tmp,):
+        assert tmp is not None
+        with open(src, "rb") as fin, open(tmp, "wb") as fout:
+            shutil.copyfileobj(fin, fout, 1 << 20)
 
 
 def write_json_atomic(path: str | os.PathLike, obj) -> None:
@@ -477,7 +481,7 @@ def _walk_output(folder: Path) -> tuple[list[str], list[str], list[str]]:
     files: list[str] = []
     dirs: list[str] = []
     others: list[str] = []
-    for root, dnames, fnames in os.walk(folder):
+    for root, dnames, fnames in os.walk(os.fspath(folder)):
         rel_root = Path(root).relative_to(folder)
         for name in dnames + fnames:
             rel = (rel_root / name).as_posix()
