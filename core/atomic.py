@@ -28,8 +28,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 import secrets
 import shutil
 import socket
@@ -201,6 +203,58 @@ class WriteError(OSError, AnkleScanError):
     catch those."""
 
 
+# A temporary file carries its marker in its name (a file holds no marker of its own):
+# ".<target>.<random>.<host>-<pid>.anklescan-tmp[.ext]", host a short hash of the host name.
+_TEMP_FILE_RE = re.compile(r"^\..*\.[0-9a-f]{8}\.(?P<host>[0-9a-f]{6})-(?P<pid>[0-9]{1,10})\.anklescan-tmp(\.[^.]*)?$")
+_cleaned_dirs: set[tuple[int, int]] = set()
+
+
+def _host_tag() -> str:
+    return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
+
+
+def _temp_file_tag() -> str:
+    return f"{_host_tag()}-{os.getpid()}.anklescan-tmp"
+
+
+def _clean_stale_temp_files(dir_fd: int, folder: Path, now: float | None = None) -> list[str]:
+    """Remove, once per folder and process, the temporary files of killed writes: names with
+    our marker whose process is gone (this host) or older than STALE_TEMP_AGE_S (any host).
+    Returns the names removed."""
+    removed: list[str] = []
+    try:
+        st = os.fstat(dir_fd)
+    except OSError:
+        return removed
+    key = (st.st_dev, st.st_ino)
+    if key in _cleaned_dirs and now is None:
+        return removed
+    _cleaned_dirs.add(key)
+    now = time.time() if now is None else now
+    host = _host_tag()
+    try:
+        names = [e.name for e in os.scandir(dir_fd) if _TEMP_FILE_RE.match(e.name)]
+    except OSError:
+        return removed
+    for name in names:
+        m = _TEMP_FILE_RE.match(name)
+        if m is None:
+            continue
+        try:
+            est = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+        except OSError:
+            continue
+        if not stat.S_ISREG(est.st_mode) or est.st_uid != os.getuid():
+            continue
+        pid = int(m.group("pid"))
+        gone = m.group("host") == host and pid != os.getpid() and not _pid_alive(pid)
+        if gone or now - est.st_mtime > STALE_TEMP_AGE_S:
+            with suppress(OSError):
+                os.unlink(name, dir_fd=dir_fd)
+                removed.append(name)
+    return removed
+
+
 def check_may_replace(path: str | os.PathLike, what: str = "output", dir_fd: int | None = None) -> None:
     """Refuse to replace an existing ``path`` the user could not write, as ``cp`` would: a
     read-only file of their own (a file with no write bit at all is refused even to root), or
@@ -261,7 +315,8 @@ def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, ke
             dfd = _open_dir(t.parent)
             slots.append((dfd, ""))
             check_may_replace(t, what="output", dir_fd=dfd)
-            prefix, suffix = temp_affixes(t.name, keep_suffix=t.suffix if keep_suffix else "")
+            _clean_stale_temp_files(dfd, t.parent)
+            prefix, suffix = temp_affixes(t.name, tag=_temp_file_tag(), keep_suffix=t.suffix if keep_suffix else "")
             for _ in range(100):
                 name = f"{prefix}{secrets.token_hex(_RANDOM_CHARS // 2)}{suffix}"
                 try:
