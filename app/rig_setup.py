@@ -151,7 +151,7 @@ class RigSetup(QObject):
         from anklescan.app.logic.calibration import calibration_warning
         win = self.win
         text = calibration_warning(self.settings)
-        if win.session.read_only:  # review only: nothing will be scanned, the read-only notice stays
+        if win.session.read_only or win.session.store is None:  # review only, or no database: its notice stays
             return
         if win.session.calibration is None:
             win.banner.show_message("warning", "No calibration yet: calibrate the scanner before measuring patients.",

@@ -28,8 +28,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 import secrets
 import shutil
 import socket
@@ -105,7 +107,7 @@ def clean_stale_temporaries(folder: str | os.PathLike, now: float | None = None)
     now = time.time() if now is None else now
     removed: list[Path] = []
     try:
-        entries = [e for e in os.scandir(folder) if e.name.startswith(".")]
+        entries = [e for e in os.scandir(os.fspath(folder)) if e.name.startswith(".")]
     except OSError:
         return removed
     host = socket.gethostname()
@@ -181,7 +183,7 @@ def make_tree_private(folder: str | os.PathLike) -> int:
     written by an older version under a 022 umask; symlinks and entries we may not change
     are skipped. Returns the number of entries changed."""
     changed = 0
-    for root, _dirs, files in os.walk(folder):
+    for root, _dirs, files in os.walk(str(folder)):
         entries = [(root, PRIVATE_DIR_MODE)] + [(os.path.join(root, f), PRIVATE_FILE_MODE) for f in files]
         for name, mode in entries:
             try:
@@ -199,6 +201,58 @@ class WriteError(OSError, AnkleScanError):
     """An output could not be written (full disk, no permission, a folder in the way): one
     line naming the target, never our temporary. Still an OSError for callers that
     catch those."""
+
+
+# A temporary file carries its marker in its name (a file holds no marker of its own):
+# ".<target>.<random>.<host>-<pid>.anklescan-tmp[.ext]", host a short hash of the host name.
+_TEMP_FILE_RE = re.compile(r"^\..*\.[0-9a-f]{8}\.(?P<host>[0-9a-f]{6})-(?P<pid>[0-9]{1,10})\.anklescan-tmp(\.[^.]*)?$")
+_cleaned_dirs: set[tuple[int, int]] = set()
+
+
+def _host_tag() -> str:
+    return hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
+
+
+def _temp_file_tag() -> str:
+    return f"{_host_tag()}-{os.getpid()}.anklescan-tmp"
+
+
+def _clean_stale_temp_files(dir_fd: int, folder: Path, now: float | None = None) -> list[str]:
+    """Remove, once per folder and process, the temporary files of killed writes: names with
+    our marker whose process is gone (this host) or older than STALE_TEMP_AGE_S (any host).
+    Returns the names removed."""
+    removed: list[str] = []
+    try:
+        st = os.fstat(dir_fd)
+    except OSError:
+        return removed
+    key = (st.st_dev, st.st_ino)
+    if key in _cleaned_dirs and now is None:
+        return removed
+    _cleaned_dirs.add(key)
+    now = time.time() if now is None else now
+    host = _host_tag()
+    try:
+        names = [e.name for e in os.scandir(dir_fd) if _TEMP_FILE_RE.match(e.name)]
+    except OSError:
+        return removed
+    for name in names:
+        m = _TEMP_FILE_RE.match(name)
+        if m is None:
+            continue
+        try:
+            est = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+        except OSError:
+            continue
+        if not stat.S_ISREG(est.st_mode) or est.st_uid != os.getuid():
+            continue
+        pid = int(m.group("pid"))
+        gone = m.group("host") == host and pid != os.getpid() and not _pid_alive(pid)
+        if gone or now - est.st_mtime > STALE_TEMP_AGE_S:
+            with suppress(OSError):
+                os.unlink(name, dir_fd=dir_fd)
+                removed.append(name)
+    return removed
 
 
 def check_may_replace(path: str | os.PathLike, what: str = "output", dir_fd: int | None = None) -> None:
@@ -261,7 +315,8 @@ def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, ke
             dfd = _open_dir(t.parent)
             slots.append((dfd, ""))
             check_may_replace(t, what="output", dir_fd=dfd)
-            prefix, suffix = temp_affixes(t.name, keep_suffix=t.suffix if keep_suffix else "")
+            _clean_stale_temp_files(dfd, t.parent)
+            prefix, suffix = temp_affixes(t.name, tag=_temp_file_tag(), keep_suffix=t.suffix if keep_suffix else "")
             for _ in range(100):
                 name = f"{prefix}{secrets.token_hex(_RANDOM_CHARS // 2)}{suffix}"
                 try:
@@ -275,7 +330,7 @@ def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, ke
             else:  # pragma: no cover - 100 collisions of 32 random bits
                 raise WriteError(f"cannot write {what}: no free temporary name")
             slots[-1] = (dfd, name)
-        yield [None if slot is None else _fd_path(slot[0], t.parent, slot[1])
+        yield [None if slot is None or t is None else _fd_path(slot[0], t.parent, slot[1])
                for slot, t in zip(slots, paths, strict=True)]
         for i, (slot, t) in enumerate(zip(slots, paths, strict=True)):
             if slot is not None and t is not None:
@@ -329,8 +384,10 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             make_private_dir(path.parent, tighten=False)
     except OSError as e:
         raise WriteError(f"cannot write {path}: {e.strerror or e}") from None
-    with atomic_paths(path) as (tmp,), open(tmp, mode, encoding=encoding) as f:
-        yield f
+    with atomic_paths(path) as (tmp,):
+        assert tmp is not None
+        with open(tmp, mode, encoding=encoding) as f:
+            yield f
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
@@ -340,8 +397,10 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
 
 def copy_private(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """Copy a file atomically to ``dst``, private (0600) from its creation whatever the umask."""
-    with atomic_paths(dst) as (tmp,), open(src, "rb") as fin, open(tmp, "wb") as fout:
-        shutil.copyfileobj(fin, fout, 1 << 20)
+    with atomic_paths(dst) as (tmp,):
+        assert tmp is not None
+        with open(src, "rb") as fin, open(tmp, "wb") as fout:
+            shutil.copyfileobj(fin, fout, 1 << 20)
 
 
 def write_json_atomic(path: str | os.PathLike, obj) -> None:
@@ -477,7 +536,7 @@ def _walk_output(folder: Path) -> tuple[list[str], list[str], list[str]]:
     files: list[str] = []
     dirs: list[str] = []
     others: list[str] = []
-    for root, dnames, fnames in os.walk(folder):
+    for root, dnames, fnames in os.walk(os.fspath(folder)):
         rel_root = Path(root).relative_to(folder)
         for name in dnames + fnames:
             rel = (rel_root / name).as_posix()

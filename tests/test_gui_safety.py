@@ -60,6 +60,8 @@ def test_second_instance_is_told_who_holds_the_folder_and_can_refuse(qtbot, othe
     win, question = _open_window(qtbot, dismiss)
     assert "in use" in question and f"process {other_app.pid}" in question
     assert win.session.store is None  # not opened: nothing could be written next to the other copy
+    win.show()
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
     assert win.banner.kind == "error" and "close the other AnkleScan" in win.banner.label.text()
     win.close()
 
@@ -68,6 +70,8 @@ def test_second_instance_opens_the_folder_read_only_when_asked(qtbot, other_app)
     win, question = _open_window(qtbot, press_accept)
     assert f"process {other_app.pid}" in question
     assert win.session.read_only and [p.code for p in win.session.patients()] == ["P-01"]
+    win.show()
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
     assert win.banner.kind == "warning" and "read-only" in win.banner.label.text()
     win.close()
 
@@ -96,7 +100,8 @@ def test_a_database_without_its_tables_is_one_message_not_a_crash(qtbot):
     qtbot.addWidget(win)
     win.show()
     qtbot.waitExposed(win)
-    assert win.session.store is None
+    qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
+    assert win.session.store is None  # and its message is what the clinician still sees once the app is ready
     text = win.banner.label.text()
     assert win.banner.kind == "error" and "incomplete" in text and "patients" in text, text
     assert db.read_bytes() == before  # left untouched

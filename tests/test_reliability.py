@@ -311,7 +311,7 @@ def test_control_points_out_of_range_are_refused(capfd, tmp_path):
     (tmp_path / "cam.csv").write_text("X,Y,Z,u,v\n" + "".join(f"{a},{b},{c},10,20\n" for a, b, c in xyz))
     (tmp_path / "proj.csv").write_text("X,Y,Z,u\n" + "".join(f"{a},{b},{c},10\n" for a, b, c in xyz))
     assert_refused(capfd, tmp_path, "calibrate", "points", "--camera", tmp_path / "cam.csv",
-                   "--projector", tmp_path / "proj.csv", "--out", tmp_path / "c.json", words=("beyond",))
+                   "--projector", tmp_path / "proj.csv", "--out", tmp_path / "c.json", words=("out of range",))
 
 
 def test_angles_with_no_computable_angle_is_an_error(capfd, tmp_path):
@@ -322,7 +322,7 @@ def test_angles_with_no_computable_angle_is_an_error(capfd, tmp_path):
 def test_angles_out_of_range_is_an_error(capfd, tmp_path):
     rows = "".join(f"{i},{1e200 * (i % 3 + 1)},{1e200 * (i % 2)},{1e199 * i}\n" for i in range(1, 8))
     (tmp_path / "marks.csv").write_text("label,x,y,z\n" + rows)
-    assert_refused(capfd, tmp_path, "angles", tmp_path / "marks.csv", words=("finite",))
+    assert_refused(capfd, tmp_path, "angles", tmp_path / "marks.csv", words=("out of range",))
 
 
 @pytest.mark.parametrize("args", [
@@ -345,9 +345,9 @@ def test_argument_errors_are_one_line(capfd, tmp_path, args):
 
 
 def test_cli_size_limit_is_the_documented_constant():
-    from anklescan.app.cli import MAX_SIDE
+    from anklescan.app.cli import _size
 
-    assert MAX_SIDE == MAX_IMAGE_SIDE
+    assert _size.max_side == MAX_IMAGE_SIDE
 
 
 def test_truncated_png_is_one_line_without_libpng_noise(work):

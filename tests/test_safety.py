@@ -380,3 +380,18 @@ def test_the_lock_names_its_holder_and_dies_with_it(tmp_path):
     assert lock.acquire() is None and lock.held
     assert stat.S_IMODE((tmp_path / "anklescan.lock").stat().st_mode) == 0o600
     lock.release()
+
+
+def test_a_killed_writes_temporary_file_is_removed_by_the_next_write_and_nothing_else(tmp_path):
+    code = ("import os, sys\n"
+            "from anklescan.core.atomic import atomic_paths\n"
+            "with atomic_paths(sys.argv[1]) as (tmp,):\n"
+            "    tmp.write_bytes(b'x' * 1000)\n"
+            "    os._exit(9)  # killed mid-write: no clean-up runs\n")
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "cloud.ply")], timeout=60)
+    left = [p.name for p in tmp_path.iterdir()]
+    assert len(left) == 1 and left[0].startswith(".cloud.ply.") and "anklescan-tmp" in left[0]
+    (tmp_path / ".cloud.ply.notes.tmp").write_text("the user's")  # no marker: never touched
+    code = "import sys\nfrom anklescan.core.atomic import write_text_atomic\nwrite_text_atomic(sys.argv[1], 'ok')\n"
+    assert subprocess.run([sys.executable, "-c", code, str(tmp_path / "next.txt")], timeout=60).returncode == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".cloud.ply.notes.tmp", "next.txt"]

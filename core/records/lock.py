@@ -36,7 +36,11 @@ class LockHolder:
 
     def describe(self) -> str:
         where = "this computer" if self.host == socket.gethostname() else f"computer {self.host}"
-        return f"AnkleScan on {where} (process {self.pid}) since {self.since or 'an unknown time'}"
+        try:
+            since = datetime.fromisoformat(self.since).astimezone().strftime("%Y-%m-%d %H:%M")
+        except (ValueError, TypeError):
+            since = self.since or "an unknown time"
+        return f"AnkleScan on {where} (process {self.pid}) since {since}"
 
 
 class DataFolderLock:
