@@ -29,7 +29,7 @@ from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_cal
                                         cmd_reconstruct, set_verbose)
 from anklescan.app.study_commands import cmd_export, cmd_report
 from anklescan.core.limits import (MAX_BOARD_CORNERS, MAX_IMAGE_SIDE, MAX_MARK_DIAMETER_MM, MAX_MOTION_REFS,
-                                   MAX_OPTION_MM, MAX_SWAY_MM, bounded_float, bounded_int, size_type)
+                                   MAX_OPTION_MM, MAX_SWAY_MM, bounded_float, bounded_int, date_type, size_type)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
@@ -44,7 +44,8 @@ _LENGTH_MM = bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)
 _DEGREES = bounded_float(-90, 90, "°", lo_open=True)
 _TOLERANCE_DEG = bounded_float(0, 90, "°", lo_open=True)
 _AREA_CM2 = bounded_float(0, 1e6, "cm²", lo_open=True)
-_RECORD_ID = bounded_int(1, 2**63 - 1)  # a database row number (SQLite INTEGER PRIMARY KEY)
+_DATE = date_type()
+_RECORD_ID = bounded_int(1, 10**9)  # a trial or session number (far beyond any clinic's database)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -67,16 +68,6 @@ def _on_sigterm(signum, frame):
     for s in _CLEAN_EXIT_SIGNALS:  # a second signal must not interrupt the clean-up
         signal.signal(s, signal.SIG_IGN)
     raise Terminated(signum)
-
-
-def _date(text: str) -> str:
-    """argparse ``type=`` for a calendar date (YYYY-MM-DD)."""
-    import datetime as _dt
-
-    try:
-        return _dt.date.fromisoformat(text.strip()).isoformat()
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, not {text[:40]!r}") from None
 
 
 # ---------------------------------------------------------------------------- parser
@@ -207,9 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", required=True, metavar="OUTDIR",
                     help="a new or empty folder, or an earlier report's (replaced)")
     rp.add_argument("--patient", default=None, metavar="CODE", help="one patient's trials only")
-    rp.add_argument("--from", dest="date_from", type=_date, default=None, metavar="YYYY-MM-DD",
+    rp.add_argument("--from", dest="date_from", type=_DATE, default=None, metavar="YYYY-MM-DD",
                     help="visits on or after this date")
-    rp.add_argument("--to", dest="date_to", type=_date, default=None, metavar="YYYY-MM-DD",
+    rp.add_argument("--to", dest="date_to", type=_DATE, default=None, metavar="YYYY-MM-DD",
                     help="visits on or before this date")
     rp.set_defaults(func=cmd_report, out_is_folder=True)
 

@@ -264,6 +264,29 @@ def size_type(max_side: int = MAX_IMAGE_SIDE, example: str = "1024x768") -> Call
     return SizeType(max_side, example)  # type: ignore[return-value]
 
 
+@dataclass(frozen=True)
+class DateType:
+    """argparse ``type=`` for a calendar date YYYY-MM-DD (ISO 8601), returned as that text."""
+
+    @property
+    def __name__(self) -> str:
+        return "date"
+
+    def __call__(self, text: str) -> str:
+        import datetime as _dt
+
+        raw = str(text).strip()
+        try:
+            return _dt.date.fromisoformat(raw[:10] if len(raw) == 10 else "x").isoformat()
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, not {raw[:40]!r}") from None
+
+
+def date_type() -> Callable[[str], str]:
+    """argparse ``type=`` for a calendar date (YYYY-MM-DD)."""
+    return DateType()  # type: ignore[return-value]
+
+
 # ---------------------------------------------------------------------------- images
 def check_image_side(width, height, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
     """Refuse a size no real camera or projector has (before anything is allocated)."""

@@ -32,7 +32,7 @@ from anklescan.core.atomic import (
     seal_output_dir,
 )
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.limits import Bounded, SizeType
+from anklescan.core.limits import Bounded, DateType, SizeType
 from anklescan.core.records.lock import DataFolderLock
 from anklescan.core.records.store import APPLICATION_ID, SCHEMA_VERSION, Store
 
@@ -203,7 +203,7 @@ def test_every_numeric_option_is_bounded_by_core_limits():
     typed = [(cmd, a) for cmd, a in _actions(cli.build_parser()) if a.type is not None]
     assert typed
     for cmd, a in typed:
-        assert isinstance(a.type, (Bounded, SizeType)), f"{cmd} {a.option_strings}: type {a.type!r} is not bounded"
+        assert isinstance(a.type, (Bounded, SizeType, DateType)), f"{cmd} {a.option_strings}: type {a.type!r} is not bounded"
         for bad in ("nan", "inf", "-1e309", "1e400", "99999999999", "x"):
             with pytest.raises(argparse.ArgumentTypeError):
                 a.type(bad)
