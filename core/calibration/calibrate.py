@@ -30,7 +30,9 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
 from anklescan.core.calibration import paper_model as pm
+from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration, save_calibration
+from anklescan.core.calibration.uncertainty import CalibratedVolume, ParameterCovariance, form_covariance, joined
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
@@ -270,6 +272,8 @@ class DeviceQuality:
     notes: list
     nfev: int
     excluded: list = field(default_factory=list)  # 0-based indices (of the input) left out as mis-read
+    covariance: np.ndarray | None = None  # s² (JᵀJ)⁻¹ over the vector's entries ``covariance_index``
+    covariance_index: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:
@@ -387,8 +391,11 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
     model = {"camera": "paper camera (11)", "projector": "paper projector 1-D (9)", "projector2d": "paper camera model on the projector (11)"}[problem.kind]
     if v.size in (10, 12):
         model = model.replace(")", " + k2)")
-    return DeviceQuality(problem.kind if problem.kind != "projector2d" else "projector", model, params, std, r, dof,
-                         sigma, robust, flagged, warnings, notes, nfev)
+    q = DeviceQuality(problem.kind if problem.kind != "projector2d" else "projector", model, params, std, r, dof,
+                      sigma, robust, flagged, warnings, notes, nfev)
+    if "cov" in locals() and np.isfinite(cov).all():
+        q.covariance, q.covariance_index = cov, idx
+    return q
 
 
 def _correlation_warnings(cov: np.ndarray, names: list) -> list:
@@ -479,8 +486,35 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     extra = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
-             "quality": report.to_dict()}
+             "quality": report.to_dict(),
+             "volume": CalibratedVolume.of_points(np.vstack([np.asarray(cam_xyz, float).reshape(-1, 3),
+                                                             np.asarray(proj_xyz, float).reshape(-1, 3)])).to_dict()}
+    cov = _paper_covariance(Cn, cam_q, proj_q, Pn, two_d, camera_size, projector_size)
+    if cov is not None:
+        extra["covariance"] = cov.to_dict()
     return Calibration(camera, projector, extra), report
+
+
+def _paper_covariance(Cn: np.ndarray, cam_q: DeviceQuality, proj_q: DeviceQuality, Pn: np.ndarray, two_d: bool,
+                      camera_size: tuple[int, int], projector_size: tuple[int, int]) -> ParameterCovariance | None:
+    """Both fits' s² (JᵀJ)⁻¹ over the paper's vectors, in the file's form (core/calibration/uncertainty.py)."""
+    to_proj = pm.projector2d_to_device if two_d else pm.projector_to_device
+    parts = []
+    for name, v, q, conv, size in (("camera", Cn, cam_q, pm.camera_to_device, camera_size),
+                                   ("projector", Pn, proj_q, to_proj, projector_size)):
+        if q.covariance is None or q.covariance_index is None:
+            return None
+        idx = q.covariance_index
+
+        def to_device(x: np.ndarray, v: np.ndarray = v, idx: np.ndarray = idx, conv=conv, size=size) -> Device:
+            full = v.copy()
+            full[idx] = x
+            return conv(full, *size)
+
+        x = v[idx].astype(np.float64)
+        steps = np.where(idx < 3, 1e-7, 1e-7 * np.maximum(np.abs(x), 1.0))
+        parts.append(form_covariance(name, to_device, x, q.covariance, steps))
+    return joined(parts)
 
 
 # ==== CSV ==================================================================================

@@ -16,6 +16,7 @@ import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.device_model import AXES, Device
+from anklescan.core.calibration.uncertainty import CalibratedVolume, ParameterCovariance
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import (MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
                          MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
@@ -128,7 +129,33 @@ def calibration_from_dict(obj) -> Calibration:
         if key not in obj:
             raise CalibrationError(f"calibration: missing '{key}'")
     extra = {k: v for k, v in obj.items() if k not in ("units", "camera", "projector")}
-    return Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
+    cal = Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
+    calibrated_volume(cal)  # refuse a malformed volume or covariance now, not at the first measurement
+    parameter_covariance(cal)
+    return cal
+
+
+def calibrated_volume(cal: Calibration) -> CalibratedVolume | None:
+    """The volume the calibration was made in (SPEC §4), None for a file that does not say."""
+    obj = cal.extra.get("volume")
+    return None if obj is None else CalibratedVolume.from_dict(obj)
+
+
+def parameter_covariance(cal: Calibration) -> ParameterCovariance | None:
+    """Its parameters' covariance (core/calibration/uncertainty.py), None for a file that does not say."""
+    obj = cal.extra.get("covariance")
+    return None if obj is None else ParameterCovariance.from_dict(obj)
+
+
+def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> dict:
+    """``volume`` and ``covariance`` entries of ``cal.extra`` re-expressed after the world moves
+    (old = A @ new + o, ``calibrate level``); only the keys the calibration has."""
+    out: dict = {}
+    if (volume := calibrated_volume(cal)) is not None:
+        out["volume"] = volume.transformed(A, o).to_dict()
+    if (cov := parameter_covariance(cal)) is not None:
+        out["covariance"] = cov.leveled({"camera": cal.camera, "projector": cal.projector}, o).to_dict()
+    return out
 
 
 def calibration_to_dict(cal: Calibration) -> dict:

@@ -1,0 +1,172 @@
+"""Is the ± honest? Coverage of the angles' SD over calibrations and postures (SPEC §3).
+
+    PYTHONPATH=. python benchmarks/bench_uncertainty.py [--seeds N] [--growth]
+
+The cheap sweep the docs' table comes from (docs/performance.md, "Honest ±"): the simulator's
+true rig (hardware/simrig.py: OpenCV distortion with k1, k2 and tangential terms, which the
+paper's model lacks) projects the calibration box's control points (core/calibration/box.py's
+face grid), with Gaussian pixel noise, and `calibrate_points` fits the paper's model, once with
+the box where it stands and once with a second copy raised by --raise mm (the box at the knee's
+height too). The simulated leg's seven true mark centres (hardware/sim_scene.py, several
+postures) get Gaussian position noise (--mark-sd), are projected through the true rig to their
+camera pixel and projector column, triangulated with the fitted calibration, and their angles
+compared with the true ones. The SD is core/measure/uncertainty.py's, with the mark SD given.
+
+``--growth`` measures EXTRAPOLATION_GROWTH instead: points on a grid round the volume, triangulated
+from exact observations with the single-box calibrations; the per-axis error's excess variance
+over the covariance's prediction, fitted as (g · distance outside)².
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from anklescan.core.calibration.box import face_grid_points  # noqa: E402
+from anklescan.core.calibration.calibrate import calibrate_points  # noqa: E402
+from anklescan.core.calibration.file import Calibration, calibrated_volume  # noqa: E402
+from anklescan.core.measure.angles import compute_angles  # noqa: E402
+from anklescan.core.calibration.file import parameter_covariance  # noqa: E402
+from anklescan.core.measure.uncertainty import calibration_jacobian, position_uncertainty  # noqa: E402
+from anklescan.core.scan.triangulate import triangulate_points  # noqa: E402
+from anklescan.hardware.sim_scene import angles_from_marks, leg_scene  # noqa: E402
+from anklescan.hardware.simrig import default_camera, default_projector  # noqa: E402
+
+ANGLES = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
+TERMS = 1  # radial terms of the paper's model (--terms)
+POSTURES = ((0.0, 0.0), (10.0, -10.0), (-10.0, 15.0), (15.0, 5.0), (-5.0, -15.0), (20.0, 20.0))
+
+
+def true_rig() -> Calibration:
+    return Calibration(default_camera(), default_projector())
+
+
+def box_points(raises: tuple[float, ...]) -> np.ndarray:
+    X = face_grid_points()
+    return np.vstack([X + [0.0, 0.0, h] for h in raises])
+
+
+def noisy_calibration(truth: Calibration, X: np.ndarray, noise_px: float, rng: np.random.Generator,
+                      terms: int = 1) -> Calibration:
+    uv = truth.camera.project(X)
+    col = truth.projector.project(X)
+    seen = (np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] <= truth.camera.width - 1) & (uv[:, 1] >= 0)
+            & (uv[:, 1] <= truth.camera.height - 1) & np.isfinite(col).all(1) & (col[:, 0] >= 0)
+            & (col[:, 0] <= truth.projector.width - 1) & (col[:, 1] >= 0) & (col[:, 1] <= truth.projector.height - 1))
+    X = X[seen]
+    uv = uv[seen] + rng.normal(0.0, noise_px, (len(X), 2))
+    u = col[seen, 0] + rng.normal(0.0, noise_px, len(X))
+    cal, _ = calibrate_points(X, uv, X, u, radial_terms=terms)
+    return cal
+
+
+def true_marks(posture: tuple[float, float]) -> dict[int, np.ndarray]:
+    scene = leg_scene(*posture)
+    return {int(k): np.asarray(m.centre, float) for k, m in scene.marks.items()}
+
+
+def measured(truth: Calibration, cal: Calibration, marks: dict[int, np.ndarray], mark_sd: float,
+             rng: np.random.Generator) -> dict[int, np.ndarray]:
+    labels = sorted(marks)
+    X = np.array([marks[k] for k in labels]) + rng.normal(0.0, mark_sd, (len(labels), 3))
+    uv, proj = truth.camera.project(X), truth.projector.project(X)[:, 0]
+    Y = triangulate_points(cal, uv, proj)
+    return dict(zip(labels, Y, strict=True))
+
+
+def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float) -> list[dict]:
+    truth = true_rig()
+    rows = []
+    for boxes, raises in (("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))):
+        for noise in noises:
+            for seed in range(seeds):
+                rng = np.random.default_rng(1000 * seed + int(noise * 100))
+                cal = noisy_calibration(truth, box_points(raises), noise, rng, TERMS)
+                for posture in POSTURES:
+                    marks = true_marks(posture)
+                    ref = angles_from_marks({str(k): v for k, v in marks.items()})
+                    got = measured(truth, cal, marks, mark_sd, rng)
+                    joint, shares = position_uncertainty(cal, got, {k: np.eye(3) * mark_sd**2 for k in got})
+                    ang = compute_angles(got, 0.0, joint=joint)
+                    knee = max(float(np.linalg.norm(got[k] - marks[k])) for k in (1, 3))
+                    for name in ANGLES:
+                        rows.append({"boxes": boxes, "noise": noise, "seed": seed, "posture": posture, "angle": name,
+                                     "err": ang[name]["value"] - ref[name], "sd": ang[name]["sd"], "knee_mm": knee,
+                                     "outside": max(s.outside_mm for s in shares.values())})
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| calibration | noise px | angles | within 2 SD | max abs err / SD | max abs err ° | median SD ° | knee marks max err mm |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    keys = sorted({(r["boxes"], r["noise"]) for r in rows}, key=lambda k: (k[0] != "table box", k[1]))
+    for key in [*keys, ("all", None)]:
+        sel = [r for r in rows if key[0] == "all" or (r["boxes"], r["noise"]) == key]
+        z = np.array([abs(r["err"]) / r["sd"] for r in sel])
+        err = np.array([abs(r["err"]) for r in sel])
+        out.append(f"| {key[0]} | {'all' if key[1] is None else key[1]} | {len(sel)} | {100 * np.mean(z <= 2):.1f} % | "
+                   f"{z.max():.2f} | {err.max():.3f} | {np.median([r['sd'] for r in sel]):.3f} | "
+                   f"{max(r['knee_mm'] for r in sel):.2f} |")
+    return "\n".join(out)
+
+
+def growth(seeds: int, noise: float) -> float:
+    """Fit g: per-axis excess variance over the covariance's prediction = (g d)²."""
+    truth = true_rig()
+    g = np.mgrid[-400:401:100, -400:401:100, -100:701:100].reshape(3, -1).T.astype(float)
+    ds, excess = [], []
+    for seed in range(seeds):
+        rng = np.random.default_rng(seed + 77)
+        cal = noisy_calibration(truth, box_points((0.0,)), noise, rng, TERMS)
+        vol = calibrated_volume(cal)
+        uv = truth.camera.project(g)
+        col = truth.projector.project(g)
+        ok = (np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < truth.camera.width) & (uv[:, 1] >= 0)
+              & (uv[:, 1] < truth.camera.height) & (col[:, 0] >= 0) & (col[:, 0] < truth.projector.width))
+        P, uv, u = g[ok], uv[ok], col[ok, 0]
+        Y = triangulate_points(cal, uv, u)
+        J = calibration_jacobian(cal, parameter_covariance(cal), Y)
+        C = J @ parameter_covariance(cal).matrix @ J.T
+        for i in range(len(P)):
+            d = vol.outside(P[i]).distance_mm
+            var_pred = np.trace(C[3 * i:3 * i + 3, 3 * i:3 * i + 3]) / 3.0
+            ds.append(d)
+            excess.append(float(np.sum((Y[i] - P[i]) ** 2)) / 3.0 - var_pred)
+    d, e = np.array(ds), np.array(excess)
+    for lo, hi in ((0, 1), (1, 100), (100, 200), (200, 300), (300, 500)):
+        s = (d >= lo) & (d < hi)
+        if s.any():
+            print(f"outside {lo:3d}-{hi:3d} mm: {s.sum():4d} points, RMS excess per axis "
+                  f"{np.sqrt(max(np.mean(e[s]), 0)):.3f} mm")
+    out = d > 0
+    g2 = float(np.sum(d[out] ** 2 * e[out]) / np.sum(d[out] ** 4))
+    return float(np.sqrt(max(g2, 0.0)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.1, 0.2, 0.3])
+    ap.add_argument("--raise", dest="raise_mm", type=float, default=300.0, help="the second box's height, mm")
+    ap.add_argument("--mark-sd", type=float, default=0.05, help="mark centre SD per axis, mm")
+    ap.add_argument("--growth", action="store_true")
+    ap.add_argument("--terms", type=int, default=1, choices=(1, 2), help="radial terms of the paper's model")
+    args = ap.parse_args()
+    global TERMS
+    TERMS = args.terms
+    t0 = time.time()
+    if args.growth:
+        print(f"EXTRAPOLATION_GROWTH fit: {growth(args.seeds, 0.2):.4f} mm/mm")
+    else:
+        print(table(sweep(args.seeds, tuple(args.noise), args.raise_mm, args.mark_sd)))
+    print(f"({time.time() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""Every source of a mark's position uncertainty the tool knows, jointly over the marks (SPEC §3).
+
+- The calibration: its parameters' covariance (core/calibration/uncertainty.py) is propagated to
+  the marks by re-triangulating each mark's observations (its camera pixel and projector column,
+  recovered by projecting the measured centre through the calibration) under perturbed
+  parameters. The same parameters move every mark, so the result is one (3L, 3L) matrix with the
+  cross terms that make an angle's calibration error correlated across its marks.
+- Extrapolation: a mark ``d`` mm outside the calibrated volume gets an isotropic SD of
+  ``EXTRAPOLATION_GROWTH * d`` per axis. The covariance is first order in a model that fits the
+  control points; outside them the model's own error (distortion terms the paper's model lacks)
+  grows faster than the covariance says. The growth is measured by ``benchmarks/bench_uncertainty.py``
+  (docs/performance.md, "Honest ±").
+- The mark centres: each mark's own covariance from its fit (core/measure/marks.py).
+- Motion: the trial's ``motion_mm`` (value v, sd s) as an isotropic per-axis SD of
+  ``sqrt(v² / 3 + s²)`` on every mark (a 3-D displacement of v in a random direction).
+
+A calibration file without a covariance (an old one, or an import) contributes nothing for its
+parameters; without a volume nothing for extrapolation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from anklescan.core.calibration.file import Calibration, calibrated_volume, parameter_covariance
+from anklescan.core.calibration.uncertainty import ParameterCovariance, perturbed_device
+from anklescan.core.measure.angles import JointCovariance
+from anklescan.core.scan.triangulate import triangulate_points
+
+# Position SD per axis (mm) per mm a mark lies outside the calibrated volume. Measured by
+# benchmarks/bench_uncertainty.py --growth (docs/performance.md): the RMS excess error per axis over
+# the covariance's prediction, divided by the distance, fitted over points 0-300 mm outside.
+EXTRAPOLATION_GROWTH = 0.0034
+
+_STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
+
+
+@dataclass(frozen=True)
+class MarkUncertainty:
+    """Where one mark's SD comes from (mm, RMS per axis), for RESULT.json and the docs."""
+
+    calibration_mm: float
+    extrapolation_mm: float
+    outside_mm: float
+    motion_mm: float
+
+    def to_dict(self) -> dict:
+        return {"calibration_mm": round(self.calibration_mm, 4), "extrapolation_mm": round(self.extrapolation_mm, 4),
+                "outside_volume_mm": round(self.outside_mm, 1), "motion_mm": round(self.motion_mm, 4)}
+
+
+def mark_observations(cal: Calibration, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera pixels (N, 2) and projector coordinates ((N,) columns, or (N, 2) for a 2-D projector)."""
+    uv = cal.camera.project(centres)
+    proj = cal.projector.project(centres)
+    return uv, (proj[:, 0] if cal.projector.axis == "column" else proj)
+
+
+def calibration_jacobian(cal: Calibration, cov: ParameterCovariance, centres: np.ndarray) -> np.ndarray:
+    """d(marks, flattened (3N,)) / d(parameters), by central differences of the re-triangulation."""
+    uv, proj = mark_observations(cal, centres)
+    cols = []
+    for name in cov.parameters:
+        dev, _, par = name.partition(".")
+        h = _STEPS[par[0]]
+        pts = []
+        for sign in (1.0, -1.0):
+            moved = perturbed_device(getattr(cal, dev), {par: sign * h})
+            c = Calibration(moved if dev == "camera" else cal.camera, moved if dev == "projector" else cal.projector)
+            pts.append(triangulate_points(c, uv, proj))
+        cols.append(((pts[0] - pts[1]) / (2 * h)).ravel())
+    return np.stack(cols, axis=1)
+
+
+def motion_sd_mm(motion_value_mm: float | None, motion_sd_mm: float | None) -> float:
+    """Per-axis SD of a mark from the trial's measured motion (0 when not measured)."""
+    v = motion_value_mm or 0.0
+    s = motion_sd_mm or 0.0
+    return math.sqrt(v * v / 3.0 + s * s)
+
+
+def position_uncertainty(cal: Calibration, centres: Mapping[int, np.ndarray],
+                         mark_covariances: Mapping[int, np.ndarray] | None = None, *,
+                         motion_value_mm: float | None = None, motion_sd_mm_: float | None = None,
+                         growth: float = EXTRAPOLATION_GROWTH) -> tuple[JointCovariance, dict[int, MarkUncertainty]]:
+    """The marks' joint covariance from every source above, and each source's share per mark."""
+    labels = tuple(sorted(centres))
+    X = np.array([np.asarray(centres[k], dtype=np.float64) for k in labels]).reshape(-1, 3)
+    n = len(labels)
+    total = np.zeros((3 * n, 3 * n))
+    cal_part = np.zeros_like(total)
+    cov = parameter_covariance(cal)
+    if cov is not None and n:
+        J = calibration_jacobian(cal, cov, X)
+        cal_part = J @ cov.matrix @ J.T
+        cal_part = np.where(np.isfinite(cal_part), cal_part, 0.0)
+    total += cal_part
+    volume = calibrated_volume(cal)
+    m_sd = motion_sd_mm(motion_value_mm, motion_sd_mm_)
+    shares = {}
+    for i, lab in enumerate(labels):
+        block = slice(3 * i, 3 * i + 3)
+        outside = volume.outside(X[i]).distance_mm if volume is not None else 0.0
+        extra_sd = growth * outside
+        total[block, block] += np.eye(3) * (extra_sd**2 + m_sd**2)
+        if mark_covariances is not None and lab in mark_covariances:
+            total[block, block] += np.asarray(mark_covariances[lab], dtype=np.float64)
+        shares[lab] = MarkUncertainty(math.sqrt(max(np.trace(cal_part[block, block]), 0.0) / 3.0), extra_sd, outside,
+                                      m_sd)
+    return JointCovariance(labels, total), shares
