@@ -5,11 +5,15 @@
   recovered by projecting the measured centre through the calibration) under perturbed
   parameters. The same parameters move every mark, so the result is one (3L, 3L) matrix with the
   cross terms that make an angle's calibration error correlated across its marks.
-- Extrapolation: a mark ``d`` mm outside the calibrated volume gets an isotropic SD of
-  ``EXTRAPOLATION_GROWTH * d`` per axis. The covariance is first order in a model that fits the
-  control points; outside them the model's own error (distortion terms the paper's model lacks)
-  grows faster than the covariance says. The growth is measured by ``benchmarks/bench_uncertainty.py``
-  (docs/performance.md, "Honest ±").
+- The model and extrapolation: a mark ``d`` mm outside the calibrated volume (0 inside) gets an
+  isotropic SD of ``MODEL_ERROR_MM + EXTRAPOLATION_GROWTH * d`` per axis, independent between
+  marks. The covariance holds the control points' noise only; a model that cannot represent the
+  lens exactly (the paper's single radial term and column-only projector against a lens with
+  higher and tangential terms) leaves a systematic error the same in every calibration of a rig,
+  small among the control points and growing outside them faster than the covariance says.
+  Both numbers are measured by ``benchmarks/bench_uncertainty.py --growth`` on the simulated
+  rig's lenses (docs/performance.md, "Honest ±"); a rig whose lenses the model fits better is
+  over-covered, one with stronger distortion under-covered.
 - The mark centres: each mark's own covariance from its fit (core/measure/marks.py).
 - Motion: the trial's ``motion_mm`` (value v, sd s) as an isotropic per-axis SD of
   ``sqrt(v² / 3 + s²)`` on every mark (a 3-D displacement of v in a random direction).
@@ -30,10 +34,12 @@ from anklescan.core.calibration.file import Calibration, calibrated_volume, para
 from anklescan.core.calibration.uncertainty import ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
+from anklescan.core.vocabulary import parse_label
 
-# Position SD per axis (mm) per mm a mark lies outside the calibrated volume. Measured by
-# benchmarks/bench_uncertainty.py --growth (docs/performance.md): the RMS excess error per axis over
-# the covariance's prediction, divided by the distance, fitted over points 0-300 mm outside.
+# Measured by benchmarks/bench_uncertainty.py --growth (docs/performance.md): on a 100 mm grid of
+# points round the table box, the RMS error per axis beyond the covariance's prediction; inside
+# the volume (MODEL_ERROR_MM) and its growth per mm outside, fitted as (a + g d)².
+MODEL_ERROR_MM = 0.064
 EXTRAPOLATION_GROWTH = 0.0034
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
@@ -44,12 +50,12 @@ class MarkUncertainty:
     """Where one mark's SD comes from (mm, RMS per axis), for RESULT.json and the docs."""
 
     calibration_mm: float
-    extrapolation_mm: float
+    model_mm: float  # the model's error, with its growth outside the volume
     outside_mm: float
     motion_mm: float
 
     def to_dict(self) -> dict:
-        return {"calibration_mm": round(self.calibration_mm, 4), "extrapolation_mm": round(self.extrapolation_mm, 4),
+        return {"calibration_mm": round(self.calibration_mm, 4), "model_mm": round(self.model_mm, 4),
                 "outside_volume_mm": round(self.outside_mm, 1), "motion_mm": round(self.motion_mm, 4)}
 
 
@@ -86,10 +92,13 @@ def motion_sd_mm(motion_value_mm: float | None, motion_sd_mm: float | None) -> f
 def position_uncertainty(cal: Calibration, centres: Mapping[int, np.ndarray],
                          mark_covariances: Mapping[int, np.ndarray] | None = None, *,
                          motion_value_mm: float | None = None, motion_sd_mm_: float | None = None,
-                         growth: float = EXTRAPOLATION_GROWTH) -> tuple[JointCovariance, dict[int, MarkUncertainty]]:
+                         model_error_mm: float = MODEL_ERROR_MM, growth: float = EXTRAPOLATION_GROWTH
+                         ) -> tuple[JointCovariance, dict[int, MarkUncertainty]]:
     """The marks' joint covariance from every source above, and each source's share per mark."""
-    labels = tuple(sorted(centres))
-    X = np.array([np.asarray(centres[k], dtype=np.float64) for k in labels]).reshape(-1, 3)
+    given = {parse_label(k): k for k in centres}
+    labels = tuple(sorted(given))
+    X = np.array([np.asarray(centres[given[k]], dtype=np.float64) for k in labels]).reshape(-1, 3)
+    mark_covariances = {parse_label(k): v for k, v in (mark_covariances or {}).items()}
     n = len(labels)
     total = np.zeros((3 * n, 3 * n))
     cal_part = np.zeros_like(total)
@@ -105,9 +114,9 @@ def position_uncertainty(cal: Calibration, centres: Mapping[int, np.ndarray],
     for i, lab in enumerate(labels):
         block = slice(3 * i, 3 * i + 3)
         outside = volume.outside(X[i]).distance_mm if volume is not None else 0.0
-        extra_sd = growth * outside
+        extra_sd = (model_error_mm + growth * outside) if cov is not None or volume is not None else 0.0
         total[block, block] += np.eye(3) * (extra_sd**2 + m_sd**2)
-        if mark_covariances is not None and lab in mark_covariances:
+        if lab in mark_covariances:
             total[block, block] += np.asarray(mark_covariances[lab], dtype=np.float64)
         shares[lab] = MarkUncertainty(math.sqrt(max(np.trace(cal_part[block, block]), 0.0) / 3.0), extra_sd, outside,
                                       m_sd)
