@@ -31,9 +31,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from anklescan.core.calibration.box import face_grid_points  # noqa: E402
 from anklescan.core.calibration.calibrate import calibrate_points  # noqa: E402
-from anklescan.core.calibration.file import Calibration, calibrated_volume  # noqa: E402
+from anklescan.core.calibration.file import (  # noqa: E402
+    Calibration,
+    calibrated_volume,
+    parameter_covariance,  # noqa: E402
+)
 from anklescan.core.measure.angles import compute_angles  # noqa: E402
-from anklescan.core.calibration.file import parameter_covariance  # noqa: E402
 from anklescan.core.measure.uncertainty import calibration_jacobian, position_uncertainty  # noqa: E402
 from anklescan.core.scan.triangulate import triangulate_points  # noqa: E402
 from anklescan.hardware.sim_scene import angles_from_marks, leg_scene  # noqa: E402
@@ -105,7 +108,8 @@ def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| calibration | noise px | angles | within 2 SD | max abs err / SD | max abs err ° | median SD ° | knee marks max err mm |",
+    out = ["| calibration | noise px | angles | within 2 SD | max abs err / SD | max abs err ° | median SD ° "
+           "| knee marks max err mm |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     keys = sorted({(r["boxes"], r["noise"]) for r in rows}, key=lambda k: (k[0] != "table box", k[1]))
     for key in [*keys, ("all", None)]:

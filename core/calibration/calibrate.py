@@ -588,14 +588,34 @@ def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list) -> None:
         seen[xyz] = line
 
 
-def run_calibrate_points(cam_csv, proj_csv, out_path, *, camera_size=DEFAULT_CAMERA_SIZE,
-                         projector_size=DEFAULT_PROJECTOR_SIZE, radial_terms: int = 1,
-                         loss: str = "linear") -> CalibrationReport:
-    """Read both CSVs, calibrate and save atomically; on any error nothing is written."""
-    cam_xyz, cam_uv = read_control_points_csv(cam_csv, "camera")
-    proj_xyz, proj_u = read_control_points_csv(proj_csv, "projector")
+def read_control_point_files(paths: str | Path | list[str | Path], kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Several CSVs of one kind (e.g. the box at two heights, in one world frame) as one set."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    parts = [read_control_points_csv(p, kind) for p in paths]
+    X = np.concatenate([p[0] for p in parts])
+    obs = np.concatenate([p[1] for p in parts])
+    if len(parts) > 1:
+        key = np.round(X / DUPLICATE_TOL_MM).astype(np.int64)
+        _, counts = np.unique(key, axis=0, return_counts=True)
+        if (counts > 1).any():
+            raise CalibrationError(f"{kind} control-point files repeat a point X,Y,Z: give each box position "
+                                   "its own world coordinates")
+    return X, obs
+
+
+def run_calibrate_points(cam_csv: str | Path | list[str | Path], proj_csv: str | Path | list[str | Path], out_path,
+                         *, camera_size=DEFAULT_CAMERA_SIZE, projector_size=DEFAULT_PROJECTOR_SIZE,
+                         radial_terms: int = 1, loss: str = "linear") -> CalibrationReport:
+    """Read the CSVs (one or several per device), calibrate and save atomically; on any error
+    nothing is written."""
+    cam_xyz, cam_uv = read_control_point_files(cam_csv, "camera")
+    proj_xyz, proj_u = read_control_point_files(proj_csv, "projector")
     cal, report = calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, camera_size=camera_size,
                                    projector_size=projector_size, radial_terms=radial_terms, loss=loss)
-    cal.extra["source"] = f"anklescan calibrate points --camera {Path(cam_csv).name} --projector {Path(proj_csv).name}"
+
+    def names(p: str | Path | list[str | Path]) -> str:
+        return " ".join(Path(q).name for q in ([p] if isinstance(p, (str, Path)) else p))
+
+    cal.extra["source"] = f"anklescan calibrate points --camera {names(cam_csv)} --projector {names(proj_csv)}"
     save_calibration(cal, out_path)
     return report

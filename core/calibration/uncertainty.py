@@ -30,10 +30,9 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
+from scipy.spatial.transform import Rotation
 
 COVARIANCE_FORM = "opencv-device (rotation in the device frame, rad; t mm; K px; dist)"
 DEVICE_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -133,7 +132,7 @@ class ParameterCovariance:
 
     def to_dict(self) -> dict:
         return {"form": COVARIANCE_FORM, "parameters": list(self.parameters),
-                "matrix": [[float(f"{v:.6g}") for v in row] for row in self.matrix]}
+                "matrix": self.matrix.tolist()}
 
     @staticmethod
     def from_dict(obj: object) -> ParameterCovariance:

@@ -29,7 +29,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-
 from anklescan.core.calibration.file import Calibration, calibrated_volume, parameter_covariance
 from anklescan.core.calibration.uncertainty import ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
