@@ -195,18 +195,30 @@ def form_covariance(device_name: str, to_device: Callable[[np.ndarray], Device],
                     cov_x: np.ndarray, steps: np.ndarray) -> ParameterCovariance:
     """Map a covariance over some parameters ``x`` (e.g. the paper's vector) into the form, by the
     numeric Jacobian of ``to_device`` at ``x``. The form's parameters that do not move are left out."""
-    ref = to_device(x)
+    return devices_form_covariance(lambda v: {device_name: to_device(v)}, x, cov_x, steps)
+
+
+def devices_form_covariance(to_devices: Callable[[np.ndarray], dict[str, Device]], x: np.ndarray,
+                            cov_x: np.ndarray, steps: np.ndarray) -> ParameterCovariance:
+    """As ``form_covariance`` for devices fitted together (a board: shared poses correlate them)."""
+    refs = to_devices(x)
+
+    def params(v: np.ndarray) -> np.ndarray:
+        devs = to_devices(v)
+        return np.concatenate([device_parameters(devs[n], refs[n]) for n in refs])
+
     cols = []
     for i, h in enumerate(steps):
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        cols.append((device_parameters(to_device(xp), ref) - device_parameters(to_device(xm), ref)) / (2 * h))
-    G = np.stack(cols, axis=1)  # (15, len(x))
-    scale = np.maximum(np.abs(device_parameters(ref, ref)), 1.0)
+        cols.append((params(xp) - params(xm)) / (2 * h))
+    G = np.stack(cols, axis=1)  # (15 per device, len(x))
+    scale = np.maximum(np.abs(np.concatenate([device_parameters(d, d) for d in refs.values()])), 1.0)
     moves = np.abs(G).max(axis=1) > 1e-9 * scale
     G = G[moves]
-    names = tuple(f"{device_name}.{n}" for n, m in zip(DEVICE_PARAMETERS, moves, strict=True) if m)
+    all_names = [f"{n}.{p}" for n in refs for p in DEVICE_PARAMETERS]
+    names = tuple(n for n, m in zip(all_names, moves, strict=True) if m)
     return ParameterCovariance(names, G @ cov_x @ G.T)
 
 
