@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.measure.angles import AngleResult, compute_angles
+from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
 from anklescan.core.atomic import write_json_atomic
 from anklescan.core.calibration.file import Calibration, load_calibration
 from anklescan.core.scan.capture import Capture, load_capture
@@ -40,6 +40,7 @@ class MeasureResult:
     duration_s: float | None = None  # the capture's duration, from its frame timestamps
     warnings: list[str] = field(default_factory=list)  # SPEC §6: core/measure/measure_warnings.py
     mark_uncertainty: dict = field(default_factory=dict)  # label -> MarkUncertainty: where each SD comes from
+    position_covariance: JointCovariance | None = None  # the marks' joint covariance the angles' SD come from
 
     @property
     def motion_flagged(self) -> bool:
@@ -118,21 +119,21 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)
-    angles, shares = honest_angles(marks, calibration, motion)
+    angles, shares, joint = honest_angles(marks, calibration, motion)
     warnings = measure_warnings(WarningContext(marks.centres(), calibration))
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
-                         scan_duration_s(capture), warnings, shares)
+                         scan_duration_s(capture), warnings, shares, joint)
 
 
 def honest_angles(marks: MarkSet, calibration: Calibration, motion: MotionEstimate | None
-                  ) -> tuple[AngleResult, dict[int, MarkUncertainty]]:
+                  ) -> tuple[AngleResult, dict[int, MarkUncertainty], JointCovariance | None]:
     """SPEC §3's angles with an SD from every source (core/measure/uncertainty.py)."""
     if not marks.labelled:
-        return AngleResult(), {}
+        return AngleResult(), {}, None
     joint, shares = position_uncertainty(calibration, marks.centres(), marks.covariances(),
                                          motion_value_mm=None if motion is None else motion.value_mm,
                                          motion_sd_mm_=None if motion is None else motion.sd_mm)
-    return compute_angles(marks.centres(), 0.0, joint=joint), shares
+    return compute_angles(marks.centres(), 0.0, joint=joint), shares, joint
 
 
 def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,
