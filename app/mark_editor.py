@@ -9,6 +9,8 @@ a "?" until the operator confirms it) or ``manual`` (placed or moved by the oper
 
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -315,7 +317,7 @@ class MarkEditor(QWidget):
             else:
                 how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
                 note = self.mark_notes.get(lab, [])
-                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how + "".join(f"; ⚠ {n}" for n in note)]
+                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how + "".join(f"\n⚠ {_short(n)}" for n in note)]
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 if col == len(cells) - 1 and self.mark_notes.get(lab) and m is not None:
@@ -365,6 +367,15 @@ def marks_from_store(rows) -> PlacedMarks:
     return {r.label: PlacedMark((r.x, r.y, r.z), r.source,
                           r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
             for r in rows}
+
+
+def _short(warning: str) -> str:
+    """A mark's warning as its status cell has room for it (the whole line is the tooltip):
+    "mark 1 lies 114 mm outside the calibrated volume (above it): ..." -> "114 mm above vol."."""
+    m = re.match(r"mark \d+ lies (\d+ mm) outside the calibrated volume \((above|below)?", warning)
+    if m is None:
+        return warning.split(": ", 1)[0]
+    return f"{m.group(1)} {m.group(2) or 'out of'} vol."
 
 
 def _sigmas(joint) -> dict[int, float]:
