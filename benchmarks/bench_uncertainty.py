@@ -80,23 +80,63 @@ def measured(truth: Calibration, cal: Calibration, marks: dict[int, np.ndarray],
              rng: np.random.Generator) -> dict[int, np.ndarray]:
     labels = sorted(marks)
     X = np.array([marks[k] for k in labels]) + rng.normal(0.0, mark_sd, (len(labels), 3))
-    uv, proj = truth.camera.project(X), truth.projector.project(X)[:, 0]
+    uv, proj = truth.camera.project(X), truth.projector.project(X)
+    proj = proj if cal.projector.axis == "both" else proj[:, 0]  # a 2-D projector model reads rows too
     Y = triangulate_points(cal, uv, proj)
     return dict(zip(labels, Y, strict=True))
 
 
-def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float) -> list[dict]:
+BOARD = (9, 7, 40.0)  # inner corners and square (mm) of the simulated chessboard (hardware/sim_board.py)
+
+
+def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Generator
+                      ) -> tuple[Calibration, np.ndarray, np.ndarray]:
+    """A chessboard calibration (core/calibration/board.py) from the simulator's four board poses,
+    corners and projector points projected through the true rig with noise; and (B, b): the
+    board calibration's world = B @ (true world) + b (its frame is the first board's)."""
+    import cv2
+
+    from anklescan.core.calibration.board import BoardView, board_points, board_world_frame, calibrate_board_views
+    from anklescan.hardware.sim_board import board_views
+
+    cols, rows, square = BOARD
+    c_off = np.array([(cols - 1) * square / 2, (rows - 1) * square / 2, 0.0])
+    Xb = board_points(cols, rows, square)
+    views, first = [], None
+    for k, (_scene, centre, Rv) in enumerate(board_views(cols, rows, square)):
+        Xw = centre + (Xb - c_off) @ Rv.T
+        uv = truth.camera.project(Xw) + rng.normal(0.0, noise_px, (len(Xw), 2))
+        pp = truth.projector.project(Xw) + rng.normal(0.0, noise_px, (len(Xw), 2))
+        views.append(BoardView(f"view{k}", (truth.camera.width, truth.camera.height), uv, pp,
+                               np.full(len(Xw), noise_px), float(np.median(np.linalg.norm(np.diff(uv, axis=0), axis=1)))))
+        if first is None:
+            Rcb = truth.camera.R @ Rv
+            first = (cv2.Rodrigues(Rcb)[0].ravel(), truth.camera.R @ (centre - Rv @ c_off) + truth.camera.t, centre, Rv)
+    cal = calibrate_board_views(views, cols, rows, square, (truth.projector.width, truth.projector.height)).calibration
+    rvec, tvec, centre, Rv = first
+    A, o = board_world_frame(rvec, tvec, cols, rows, square)
+    # board coords X_b = Rvᵀ (X_w - centre) + c_off = A @ world_b + o
+    B = A.T @ Rv.T
+    return cal, B, A.T @ (c_off - Rv.T @ centre - o)
+
+
+def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float, board: bool = False) -> list[dict]:
     truth = true_rig()
     rows = []
-    for boxes, raises in (("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))):
+    paths = [("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))] + ([("board, 4 views", None)] if board else [])
+    for boxes, raises in paths:
         for noise in noises:
             for seed in range(seeds):
                 rng = np.random.default_rng(1000 * seed + int(noise * 100))
-                cal = noisy_calibration(truth, box_points(raises), noise, rng, TERMS)
+                if raises is None:
+                    cal, B, b = board_calibration(truth, noise, rng)
+                else:
+                    cal, B, b = noisy_calibration(truth, box_points(raises), noise, rng, TERMS), np.eye(3), np.zeros(3)
                 for posture in POSTURES:
-                    marks = true_marks(posture)
+                    world = true_marks(posture)
+                    marks = {k: B @ v + b for k, v in world.items()}  # in the calibration's frame
                     ref = angles_from_marks({str(k): v for k, v in marks.items()})
-                    got = measured(truth, cal, marks, mark_sd, rng)
+                    got = measured(truth, cal, world, mark_sd, rng)  # triangulated: in the calibration's frame
                     joint, shares = position_uncertainty(cal, got, {k: np.eye(3) * mark_sd**2 for k in got})
                     ang = compute_angles(got, 0.0, joint=joint)
                     knee = max(float(np.linalg.norm(got[k] - marks[k])) for k in (1, 3))
@@ -139,7 +179,8 @@ def table(rows: list[dict]) -> str:
     out = ["| calibration | noise px | angles | within 2 SD | max abs err / SD | max abs err ° | median SD ° "
            "| knee marks max err mm |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    keys = sorted({(r["boxes"], r["noise"]) for r in rows}, key=lambda k: (k[0] != "table box", k[1]))
+    order = {"table box": 0, "table + knee box": 1}
+    keys = sorted({(r["boxes"], r["noise"]) for r in rows}, key=lambda k: (order.get(k[0], 2), k[1]))
     for key in [*keys, ("all", None)]:
         sel = [r for r in rows if key[0] == "all" or (r["boxes"], r["noise"]) == key]
         z = np.array([abs(r["err"]) / r["sd"] for r in sel])
@@ -157,13 +198,13 @@ def growth(seeds: int, noise: float) -> tuple[float, float]:
     ds, excess = [], []
     for seed in range(seeds):
         rng = np.random.default_rng(seed + 77)
-        cal = noisy_calibration(truth, box_points((0.0,)), noise, rng, TERMS)
+        cal, B, b = noisy_calibration(truth, box_points((0.0,)), noise, rng, TERMS), np.eye(3), np.zeros(3)
         vol = calibrated_volume(cal)
         uv = truth.camera.project(g)
         col = truth.projector.project(g)
         ok = (np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < truth.camera.width) & (uv[:, 1] >= 0)
               & (uv[:, 1] < truth.camera.height) & (col[:, 0] >= 0) & (col[:, 0] < truth.projector.width))
-        P, uv, u = g[ok], uv[ok], col[ok, 0]
+        P, uv, u = g[ok] @ B.T + b, uv[ok], (col[ok] if cal.projector.axis == "both" else col[ok, 0])
         Y = triangulate_points(cal, uv, u)
         J = calibration_jacobian(cal, parameter_covariance(cal), Y)
         C = J @ parameter_covariance(cal).matrix @ J.T
@@ -191,6 +232,7 @@ def main() -> None:
     ap.add_argument("--raise", dest="raise_mm", type=float, default=300.0, help="the second box's height, mm")
     ap.add_argument("--mark-sd", type=float, default=0.05, help="mark centre SD per axis, mm")
     ap.add_argument("--growth", action="store_true")
+    ap.add_argument("--board", action="store_true", help="add chessboard calibrations (4 simulated poses)")
     ap.add_argument("--rendered", action="store_true", help="full rendered captures instead (the independent check)")
     ap.add_argument("--scale", type=float, default=0.5, help="--rendered: the simulated rig's scale")
     ap.add_argument("--terms", type=int, default=1, choices=(1, 2), help="radial terms of the paper's model")
@@ -207,7 +249,7 @@ def main() -> None:
         for r in rows[::4]:
             print(r["boxes"], r["posture"], "; ".join(r["warnings"]) or "no warnings")
     else:
-        print(table(sweep(args.seeds, tuple(args.noise), args.raise_mm, args.mark_sd)))
+        print(table(sweep(args.seeds, tuple(args.noise), args.raise_mm, args.mark_sd, args.board)))
     print(f"({time.time() - t0:.0f} s)")
 
 

@@ -32,7 +32,8 @@ from scipy.stats import norm
 from anklescan.core.calibration import paper_model as pm
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration, save_calibration
-from anklescan.core.calibration.uncertainty import CalibratedVolume, ParameterCovariance, form_covariance, joined
+from anklescan.core.calibration.uncertainty import (PAPER_MODEL_ERROR, CalibratedVolume, ParameterCovariance,
+                                                   form_covariance, joined)
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
@@ -489,6 +490,7 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
              "quality": report.to_dict(),
              "volume": CalibratedVolume.of_points(np.vstack([np.asarray(cam_xyz, float).reshape(-1, 3),
                                                              np.asarray(proj_xyz, float).reshape(-1, 3)])).to_dict()}
+    extra["model_error"] = PAPER_MODEL_ERROR.to_dict()  # the paper's model misses lens terms: docs/performance.md
     cov = _paper_covariance(Cn, cam_q, proj_q, Pn, two_d, camera_size, projector_size)
     if cov is not None:
         extra["covariance"] = cov.to_dict()

@@ -16,7 +16,7 @@ import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.device_model import AXES, Device
-from anklescan.core.calibration.uncertainty import CalibratedVolume, ParameterCovariance
+from anklescan.core.calibration.uncertainty import CalibratedVolume, ModelError, ParameterCovariance
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import (MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
                          MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
@@ -132,6 +132,7 @@ def calibration_from_dict(obj) -> Calibration:
     cal = Calibration(device_from_dict(obj["camera"], "camera"), device_from_dict(obj["projector"], "projector"), extra)
     calibrated_volume(cal)  # refuse a malformed volume or covariance now, not at the first measurement
     parameter_covariance(cal)
+    model_error(cal)
     return cal
 
 
@@ -145,6 +146,12 @@ def parameter_covariance(cal: Calibration) -> ParameterCovariance | None:
     """Its parameters' covariance (core/calibration/uncertainty.py), None for a file that does not say."""
     obj = cal.extra.get("covariance")
     return None if obj is None else ParameterCovariance.from_dict(obj)
+
+
+def model_error(cal: Calibration) -> ModelError:
+    """What its model leaves beyond the covariance (core/calibration/uncertainty.py); none recorded: 0."""
+    obj = cal.extra.get("model_error")
+    return ModelError() if obj is None else ModelError.from_dict(obj)
 
 
 def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> dict:

@@ -112,6 +112,38 @@ class CalibratedVolume:
         return CalibratedVolume(lo, hi)
 
 
+@dataclass(frozen=True)
+class ModelError:
+    """What a calibration's model leaves beyond its covariance, per axis of a point: ``sd_mm``
+    inside the volume plus ``growth`` mm per mm outside it (the lens terms the model lacks).
+    Recorded as ``"model_error": {"sd_mm": a, "growth_mm_per_mm": g}`` by the path that knows its
+    model; measured by benchmarks/bench_uncertainty.py --growth (docs/performance.md)."""
+
+    sd_mm: float = 0.0
+    growth: float = 0.0
+
+    def at(self, outside_mm: float) -> float:
+        return self.sd_mm + self.growth * outside_mm
+
+    def to_dict(self) -> dict:
+        return {"sd_mm": self.sd_mm, "growth_mm_per_mm": self.growth}
+
+    @staticmethod
+    def from_dict(obj: object) -> ModelError:
+        try:
+            a, g = float(obj["sd_mm"]), float(obj["growth_mm_per_mm"])  # type: ignore[index]
+        except (TypeError, KeyError, ValueError):
+            raise CalibrationError("calibration: model_error must be {\"sd_mm\": a, \"growth_mm_per_mm\": g}") from None
+        if not (math.isfinite(a) and math.isfinite(g) and a >= 0 and g >= 0):
+            raise CalibrationError("calibration: model_error values must be finite and >= 0")
+        return ModelError(a, g)
+
+
+# The paper's model (one radial term, a column-only projector) on the simulated rig's lenses
+# (k1, k2 and tangential terms): benchmarks/bench_uncertainty.py --growth --seeds 6.
+PAPER_MODEL_ERROR = ModelError(0.064, 0.0034)
+
+
 @dataclass(frozen=True, eq=False)
 class ParameterCovariance:
     """Covariance of a calibration's parameters in this module's form (see the module docstring)."""

@@ -6,8 +6,9 @@
   parameters. The same parameters move every mark, so the result is one (3L, 3L) matrix with the
   cross terms that make an angle's calibration error correlated across its marks.
 - The model and extrapolation: a mark ``d`` mm outside the calibrated volume (0 inside) gets an
-  isotropic SD of ``MODEL_ERROR_MM + EXTRAPOLATION_GROWTH * d`` per axis, independent between
-  marks. The covariance holds the control points' noise only; a model that cannot represent the
+  isotropic SD of ``a + g * d`` per axis, independent between marks, with (a, g) the calibration's
+  recorded ``model_error`` (core/calibration/uncertainty.py ``ModelError``; the paper path records
+  ``PAPER_MODEL_ERROR``, a board's full OpenCV model none). The covariance holds the control points' noise only; a model that cannot represent the
   lens exactly (the paper's single radial term and column-only projector against a lens with
   higher and tangential terms) leaves a systematic error the same in every calibration of a rig,
   small among the control points and growing outside them faster than the covariance says.
@@ -29,17 +30,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from anklescan.core.calibration.file import Calibration, calibrated_volume, parameter_covariance
-from anklescan.core.calibration.uncertainty import ParameterCovariance, perturbed_device
+from anklescan.core.calibration.file import Calibration, calibrated_volume, model_error, parameter_covariance
+from anklescan.core.calibration.uncertainty import ModelError, ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
 from anklescan.core.vocabulary import parse_label
 
-# Measured by benchmarks/bench_uncertainty.py --growth (docs/performance.md): on a 100 mm grid of
-# points round the table box, the RMS error per axis beyond the covariance's prediction; inside
-# the volume (MODEL_ERROR_MM) and its growth per mm outside, fitted as (a + g d)².
-MODEL_ERROR_MM = 0.064
-EXTRAPOLATION_GROWTH = 0.0034
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
 
@@ -91,9 +87,10 @@ def motion_sd_mm(motion_value_mm: float | None, motion_sd_mm: float | None) -> f
 def position_uncertainty(cal: Calibration, centres: Mapping[int, np.ndarray],
                          mark_covariances: Mapping[int, np.ndarray] | None = None, *,
                          motion_value_mm: float | None = None, motion_sd_mm_: float | None = None,
-                         model_error_mm: float = MODEL_ERROR_MM, growth: float = EXTRAPOLATION_GROWTH
-                         ) -> tuple[JointCovariance, dict[int, MarkUncertainty]]:
-    """The marks' joint covariance from every source above, and each source's share per mark."""
+                         model: ModelError | None = None) -> tuple[JointCovariance, dict[int, MarkUncertainty]]:
+    """The marks' joint covariance from every source above, and each source's share per mark.
+    ``model``: the calibration's recorded model error unless given."""
+    model = model_error(cal) if model is None else model
     given = {parse_label(k): k for k in centres}
     labels = tuple(sorted(given))
     X = np.array([np.asarray(centres[given[k]], dtype=np.float64) for k in labels]).reshape(-1, 3)
@@ -113,7 +110,7 @@ def position_uncertainty(cal: Calibration, centres: Mapping[int, np.ndarray],
     for i, lab in enumerate(labels):
         block = slice(3 * i, 3 * i + 3)
         outside = volume.outside(X[i]).distance_mm if volume is not None else 0.0
-        extra_sd = (model_error_mm + growth * outside) if cov is not None or volume is not None else 0.0
+        extra_sd = model.at(outside)
         total[block, block] += np.eye(3) * (extra_sd**2 + m_sd**2)
         if lab in mark_covariances:
             total[block, block] += np.asarray(mark_covariances[lab], dtype=np.float64)
