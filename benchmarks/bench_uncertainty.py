@@ -95,7 +95,6 @@ def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Genera
     corners and projector points projected through the true rig with noise; and (B, b): the
     board calibration's world = B @ (true world) + b (its frame is the first board's)."""
     import cv2
-
     from anklescan.core.calibration.board import BoardView, board_points, board_world_frame, calibrate_board_views
     from anklescan.hardware.sim_board import board_views
 
@@ -107,8 +106,9 @@ def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Genera
         Xw = centre + (Xb - c_off) @ Rv.T
         uv = truth.camera.project(Xw) + rng.normal(0.0, noise_px, (len(Xw), 2))
         pp = truth.projector.project(Xw) + rng.normal(0.0, noise_px, (len(Xw), 2))
+        spacing = float(np.median(np.linalg.norm(np.diff(uv, axis=0), axis=1)))
         views.append(BoardView(f"view{k}", (truth.camera.width, truth.camera.height), uv, pp,
-                               np.full(len(Xw), noise_px), float(np.median(np.linalg.norm(np.diff(uv, axis=0), axis=1)))))
+                               np.full(len(Xw), noise_px), spacing))
         if first is None:
             Rcb = truth.camera.R @ Rv
             first = (cv2.Rodrigues(Rcb)[0].ravel(), truth.camera.R @ (centre - Rv @ c_off) + truth.camera.t, centre, Rv)
@@ -123,7 +123,8 @@ def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Genera
 def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float, board: bool = False) -> list[dict]:
     truth = true_rig()
     rows = []
-    paths = [("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))] + ([("board, 4 views", None)] if board else [])
+    paths = [("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))]
+    paths += [("board, 4 views", None)] if board else []
     for boxes, raises in paths:
         for noise in noises:
             for seed in range(seeds):

@@ -8,13 +8,14 @@
 - The model and extrapolation: a mark ``d`` mm outside the calibrated volume (0 inside) gets an
   isotropic SD of ``a + g * d`` per axis, independent between marks, with (a, g) the calibration's
   recorded ``model_error`` (core/calibration/uncertainty.py ``ModelError``; the paper path records
-  ``PAPER_MODEL_ERROR``, a board's full OpenCV model none). The covariance holds the control points' noise only; a model that cannot represent the
-  lens exactly (the paper's single radial term and column-only projector against a lens with
-  higher and tangential terms) leaves a systematic error the same in every calibration of a rig,
-  small among the control points and growing outside them faster than the covariance says.
-  Both numbers are measured by ``benchmarks/bench_uncertainty.py --growth`` on the simulated
-  rig's lenses (docs/performance.md, "Honest ±"); a rig whose lenses the model fits better is
-  over-covered, one with stronger distortion under-covered.
+  ``PAPER_MODEL_ERROR``, a board's full OpenCV model none). The covariance holds the control
+  points' noise only; a model that cannot represent the lens exactly (the paper's single radial
+  term and column-only projector against a lens with higher and tangential terms) leaves a
+  systematic error the same in every calibration of a rig, small among the control points and
+  growing outside them faster than the covariance says. The paper path's numbers are measured by
+  ``benchmarks/bench_uncertainty.py --growth`` on the simulated rig's lenses (docs/performance.md,
+  "Honest ±"); a rig whose lenses the model fits better is over-covered, one with stronger
+  distortion under-covered.
 - The mark centres: each mark's own covariance from its fit (core/measure/marks.py).
 - Motion: the trial's ``motion_mm`` (value v, sd s) as an isotropic per-axis SD of
   ``sqrt(v² / 3 + s²)`` on every mark (a 3-D displacement of v in a random direction).
@@ -35,7 +36,6 @@ from anklescan.core.calibration.uncertainty import ModelError, ParameterCovarian
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
 from anklescan.core.vocabulary import parse_label
-
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
 
