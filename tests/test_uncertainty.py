@@ -176,3 +176,30 @@ def test_cli_calibrate_points_takes_several_files(tmp_path: Path, truth: Calibra
                "--out", d / "same.json")
     assert same.returncode == 2 and len(same.stderr.strip().splitlines()) == 1 and "Traceback" not in same.stderr
     assert not (d / "same.json").exists()
+
+
+def test_measure_writes_the_warnings_and_an_honest_sd(tmp_path: Path) -> None:
+    """A rendered capture of the leg (0.5 scale) measured with the table box's calibration, then
+    with the box at two heights: RESULT.json names marks 1 and 3, then nothing; every angle within
+    2.5 SD of the truth."""
+    from anklescan.core.measure.pipeline import run_measure
+    from anklescan.core.scan.capture import save_capture
+    from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.sim_scene import angles_from_marks, leg_scene
+    from anklescan.hardware.simrig import SimRig
+
+    scene = leg_scene(6.0, 8.0, leg_offset_deg=(-2.5, 1.0))
+    rig = SimRig(scene, scale=0.5, seed=8)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column",))
+    save_capture(tmp_path / "cap", pset, rig.capture_many(render_all(pset)))
+    truth = angles_from_marks({k: m.centre for k, m in scene.marks.items()})
+    for name, raises, named in (("table", (0.0,), [1, 3]), ("both", (0.0, 300.0), [])):
+        cal = bench.noisy_calibration(rig.true_calibration(), bench.box_points(raises), 0.1, np.random.default_rng(5))
+        save_calibration(cal, tmp_path / f"{name}.json")
+        run_measure(tmp_path / "cap", tmp_path / f"{name}.json", tmp_path / f"{name}-result.json")
+        result = json.loads((tmp_path / f"{name}-result.json").read_text(encoding="utf-8"))
+        assert [int(w.split()[1]) for w in result["warnings"]] == named, result["warnings"]
+        for angle, v in result["angles"].items():
+            assert abs(v["value"] - truth[angle]) <= 2.5 * v["sd"], (name, angle, v, truth[angle])
+        outside = result["mark_uncertainty"]["1"]["outside_volume_mm"]
+        assert (outside > 50) if named else (outside == 0), outside
