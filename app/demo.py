@@ -269,7 +269,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             _record(store, trial_id, job, res)
             results.append(res)
             table = res["angles"]
-            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}°"
+            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}° ± {v['sd']:.2f}°"
                               for k, v in table.items() if k.startswith("table"))
             status = "all 7 marks" if res["complete"] else (
                 f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
