@@ -148,6 +148,16 @@ def parameter_covariance(cal: Calibration) -> ParameterCovariance | None:
     return None if obj is None else ParameterCovariance.from_dict(obj)
 
 
+def volume_text(cal: Calibration) -> str:
+    """One line for the calibrate commands: the volume the calibration holds, and what to do about it."""
+    v = calibrated_volume(cal)
+    if v is None:
+        return "calibrated volume: not recorded"
+    spans = ", ".join(f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("xyz", v.min, v.max, strict=True))
+    return (f"calibrated volume: {spans} mm; marks outside it are measured less well (measure warns): "
+            "place the box at the knee's height too if the knee is above it")
+
+
 def model_error(cal: Calibration) -> ModelError:
     """What its model leaves beyond the covariance (core/calibration/uncertainty.py); none recorded: 0."""
     obj = cal.extra.get("model_error")
