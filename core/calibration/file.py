@@ -13,13 +13,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.device_model import AXES, Device
 from anklescan.core.calibration.uncertainty import CalibratedVolume, ModelError, ParameterCovariance
 from anklescan.core.errors import CalibrationError
-from anklescan.core.limits import (MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
-                         MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
+from anklescan.core.limits import (
+    MAX_DISTORTION,
+    MAX_FOCAL_PX,
+    MAX_IMAGE_SIDE,
+    MAX_PRINCIPAL_POINT_SIZES,
+    MAX_TRANSLATION_MM,
+    MIN_FOCAL_PX,
+    load_json,
+)
 
 ORTHONORMAL_TOL = 1e-4
 
