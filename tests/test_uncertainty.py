@@ -222,3 +222,16 @@ def test_the_store_keeps_the_honest_sd(tmp_path: Path, table_box: Calibration) -
     for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
         assert getattr(got, f"{name}_sd") == pytest.approx(want[name]["sd"], rel=1e-9)
     assert got.leg_inversion_sd != pytest.approx(compute_angles(marks)["leg_inversion"]["sd"], rel=0.05)
+
+
+def test_warnings_are_one_line_each_and_extendable(two_boxes: Calibration) -> None:
+    from anklescan.core.measure.measure_warnings import CHECKS, warnings_by_mark
+
+    marks = bench.true_marks((0.0, 0.0))
+    ctx = WarningContext(marks, two_boxes, "overexposed: mark 5 saturates the camera")
+    assert measure_warnings(ctx) == ["overexposed: mark 5 saturates the camera"]
+    extra = measure_warnings(ctx, [*CHECKS, lambda c: [f"{len(c.marks)} marks"]])
+    assert extra[-1] == "7 marks" and all("\n" not in w for w in extra)
+    far = {**marks, 2: marks[2] + [0.0, 0.0, -400.0]}
+    lines = measure_warnings(WarningContext(far, two_boxes))
+    assert warnings_by_mark(lines) == {2: lines} and "(below it)" in lines[0] and "this mark's height" in lines[0]

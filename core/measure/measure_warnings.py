@@ -26,6 +26,7 @@ class WarningContext:
 
     marks: Mapping[int, np.ndarray]
     calibration: Calibration
+    overexposed_message: str = ""  # MarkSet.overexposed_message(): marks whose face saturates the camera
     details: Mapping[str, object] = field(default_factory=dict)  # room for other checks' inputs
 
 
@@ -54,7 +55,12 @@ def volume_warnings(ctx: WarningContext) -> list[str]:
     return out
 
 
-CHECKS: list[WarningCheck] = [volume_warnings]
+def overexposure_warnings(ctx: WarningContext) -> list[str]:
+    """Marks whose face saturates the camera (their SD already says how much less certain they are)."""
+    return [ctx.overexposed_message] if ctx.overexposed_message else []
+
+
+CHECKS: list[WarningCheck] = [volume_warnings, overexposure_warnings]
 
 
 def measure_warnings(ctx: WarningContext, checks: list[WarningCheck] | None = None) -> list[str]:

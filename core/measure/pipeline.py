@@ -100,7 +100,7 @@ class MeasureResult:
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
-        lines += [f"warning: {w}" for w in self.warnings]
+        lines += [f"warning: {w}" for w in self.warnings if w != self.marks.overexposed_message()]
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
@@ -120,7 +120,7 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)
     angles, shares, joint = honest_angles(marks, calibration, motion)
-    warnings = measure_warnings(WarningContext(marks.centres(), calibration))
+    warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
                          scan_duration_s(capture), warnings, shares, joint)
 
