@@ -32,7 +32,6 @@ from enum import Enum
 import numpy as np
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
-from scipy.spatial.transform import Rotation
 
 COVARIANCE_FORM = "opencv-device (rotation in the device frame, rad; t mm; K px; dist)"
 DEVICE_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -205,12 +204,16 @@ class ParameterCovariance:
 # ---- the form's parameters of a Device ---------------------------------------------------
 def device_parameters(dev: Device, reference: Device) -> np.ndarray:
     """The 15 form parameters of ``dev``; the rotation is measured from ``reference``'s."""
+    from scipy.spatial.transform import Rotation  # not at import: scipy.spatial costs the app's start 0.25 s
+
     r = Rotation.from_matrix(dev.R @ reference.R.T).as_rotvec()
     return np.concatenate([r, dev.t, [dev.K[0, 0], dev.K[1, 1], dev.K[0, 2], dev.K[1, 2]], dev.dist])
 
 
 def perturbed_device(dev: Device, delta: dict[str, float]) -> Device:
     """``dev`` with form parameters moved by ``delta`` (name without the device prefix -> step)."""
+    from scipy.spatial.transform import Rotation  # not at import (see device_parameters)
+
     r = np.array([delta.get(n, 0.0) for n in ("rx", "ry", "rz")])
     R = Rotation.from_rotvec(r).as_matrix() @ dev.R if r.any() else dev.R
     t = dev.t + np.array([delta.get(n, 0.0) for n in ("tx", "ty", "tz")])
