@@ -120,10 +120,11 @@ def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Genera
     return cal, B, A.T @ (c_off - Rv.T @ centre - o)
 
 
-def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float, board: bool = False) -> list[dict]:
+def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float, board: bool = False,
+          boxes_too: bool = True) -> list[dict]:
     truth = true_rig()
     rows = []
-    paths = [("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))]
+    paths = [("table box", (0.0,)), ("table + knee box", (0.0, raise_mm))] if boxes_too else []
     paths += [("board, 4 views", None)] if board else []
     for boxes, raises in paths:
         for noise in noises:

@@ -141,6 +141,14 @@ def test_coverage_on_a_small_seeded_sweep() -> None:
     assert 0.90 <= np.mean(z <= 2.0) <= 0.98, np.mean(z <= 2.0)
 
 
+def test_coverage_with_board_calibrations() -> None:
+    """The same with chessboard calibrations (another model: no model term, its covariance alone)."""
+    rows = bench.sweep(1, (0.1, 0.3), 300.0, 0.05, board=True, boxes_too=False)
+    z = np.array([abs(r["err"]) / r["sd"] for r in rows])
+    assert len(rows) == 2 * len(bench.POSTURES) * 4
+    assert np.mean(z <= 2.0) >= 0.90 and z.max() < 3.0, (np.mean(z <= 2.0), z.max())
+
+
 def _csv(path: Path, header: str, rows: np.ndarray) -> None:
     path.write_text(header + "\n" + "\n".join(",".join(f"{v:.6f}" for v in r) for r in rows) + "\n")
 
