@@ -122,8 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("calibrate", help="calibrate camera and projector")
     csub = c.add_subparsers(dest="calibrate_command", required=True)
     cp = csub.add_parser("points", help="the paper's two-step calibration from control points")
-    cp.add_argument("--camera", required=True, help="CSV with columns X,Y,Z,u,v")
-    cp.add_argument("--projector", required=True, help="CSV with columns X,Y,Z,u")
+    cp.add_argument("--camera", required=True, nargs="+", action="extend",
+                    help="CSV(s) with columns X,Y,Z,u,v; several (or the option repeated): e.g. the box at two heights")
+    cp.add_argument("--projector", required=True, nargs="+", action="extend",
+                    help="CSV(s) with columns X,Y,Z,u; several as for --camera")
     cp.add_argument("--out", required=True)
     cp.add_argument("--camera-size", type=_size, default=(1600, 1200), help="camera resolution WxH")
     cp.add_argument("--projector-size", type=_size, default=(1024, 768), help="projector resolution WxH")

@@ -108,6 +108,8 @@ def cmd_calibrate_points(args) -> int:
     report = run_calibrate_points(args.camera, args.projector, args.out,
                                   camera_size=args.camera_size, projector_size=args.projector_size)
     print(report.format_text())
+    from anklescan.core.calibration.file import load_calibration, volume_text
+    print(volume_text(load_calibration(args.out)))
     print(f"wrote calibration to {args.out}")
     return 0
 
@@ -119,6 +121,8 @@ def cmd_calibrate_box(args) -> int:
     cal, report = calibrate_from_box_capture(args.capture)
     save_calibration(cal, args.out)
     print(report.format_text())
+    from anklescan.core.calibration.file import volume_text
+    print(volume_text(cal))
     print(f"wrote calibration to {args.out}")
     return 0
 
@@ -170,6 +174,8 @@ def cmd_calibrate_board(args) -> int:
     result = calibrate_from_board_captures(args.captures, cols, rows, args.square, args.distortion)
     save_calibration(result.calibration, args.out)
     print(result.report.format_text())
+    from anklescan.core.calibration.file import volume_text
+    print(volume_text(result.calibration))
     print(f"world frame: the board of {Path(args.captures[0]).name} (z its normal, origin its corner grid's centre); "
           f"unless it lay flat on the level table, run 'anklescan calibrate level' before measuring angles")
     print(f"wrote calibration to {args.out}")

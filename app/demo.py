@@ -142,6 +142,9 @@ def _scan_trial(job: dict) -> dict:
         "missing": [k for k in LABEL_KEYS if k not in result.marks.labelled],
         "marks": {k: [float(x) for x in m.centre] for k, m in found.items()},
         "covariances": {k: np.asarray(c).tolist() for k, c in result.marks.covariances().items()},
+        "joint": None if result.position_covariance is None else
+        {"labels": list(result.position_covariance.labels), "matrix": result.position_covariance.matrix.tolist()},
+        "warnings": list(result.warnings),
         "angles": {k: dict(v) for k, v in result.angles.items()},
         "mark_type": mark_type,
         "mark_diameter": result.mark_diameter(),
@@ -241,8 +244,15 @@ def _record(store, trial_id: int, job: dict, res: dict) -> None:
     store.set_trial_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
     if res["marks"]:
         # store the measured marks; the store recomputes the angles and mismatch from them
-        store.update_marks(trial_id, res["marks"], "auto", "anklescan demo",
-                           sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
+        # the marks' joint covariance (calibration, model, mark centres, motion: SPEC §3) gives the SD
+        joint = res.get("joint")
+        if joint is not None:
+            from anklescan.core.measure.angles import JointCovariance
+            store.update_marks(trial_id, res["marks"], "auto", "anklescan demo", sigma_mm=0.0,
+                               joint=JointCovariance(tuple(joint["labels"]), np.asarray(joint["matrix"])))
+        else:
+            store.update_marks(trial_id, res["marks"], "auto", "anklescan demo",
+                               sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
 
 
 def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE, sway_mm: float = 0.0,
@@ -264,7 +274,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             _record(store, trial_id, job, res)
             results.append(res)
             table = res["angles"]
-            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}°"
+            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}° ± {v['sd']:.2f}°"
                               for k, v in table.items() if k.startswith("table"))
             status = "all 7 marks" if res["complete"] else (
                 f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")

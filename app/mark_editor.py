@@ -9,6 +9,8 @@ a "?" until the operator confirms it) or ``manual`` (placed or moved by the oper
 
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -77,6 +79,8 @@ class MarkEditor(QWidget):
         self.current_label = 1
         self.angles = {}
         self.reference = None  # the trial's reference-table angles: the mismatch is measured against them
+        self.mark_notes: dict[int, list[str]] = {}  # label -> the measurement's warnings about it
+        self.position_covariance = None  # the measurement's JointCovariance: the honest ± (SPEC §3)
         self.snapper = None    # moves a click to the centre of the disk under it (app.mark_snap)
         self.undo_stack = QUndoStack(self)
         self._build()
@@ -177,6 +181,7 @@ class MarkEditor(QWidget):
         """Start editing a trial's marks (a fresh undo history)."""
         self.store, self.trial_id = store, trial_id
         self.reference = None
+        self.mark_notes, self.position_covariance = {}, None
         if store is not None and trial_id is not None:
             t = store.get_trial(trial_id)
             if None not in (t.ref_inversion, t.ref_plantar_flexion):
@@ -189,9 +194,14 @@ class MarkEditor(QWidget):
     def load_trial(self, store, trial_id: int) -> None:
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
 
-    def propose_auto(self, detected: dict) -> None:
+    def propose_auto(self, detected: dict, warnings: list[str] | None = None, covariance=None) -> None:
         """Detected marks (label → xyz) to confirm, saved as 'auto'. They are where the undo
-        history starts: Undo goes back to them, never past them to an empty trial."""
+        history starts: Undo goes back to them, never past them to an empty trial. ``warnings``:
+        the measurement's (shown beside the marks they name); ``covariance``: its JointCovariance."""
+        from anklescan.core.measure.measure_warnings import warnings_by_mark
+
+        self.mark_notes = warnings_by_mark(list(warnings or []))
+        self.position_covariance = covariance
         after = {int(k): PlacedMark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
         self._apply(after)
         self.undo_stack.clear()
@@ -279,7 +289,7 @@ class MarkEditor(QWidget):
         if self.store is None or self.trial_id is None:
             return
         try:
-            save_marks(self.store, self.trial_id, changes)
+            save_marks(self.store, self.trial_id, changes, self.position_covariance)
         except Exception as exc:  # the edit stays on screen; the operator is told it is unsaved
             self.saveFailed.emit(f"The marks could not be saved: {exc}")
 
@@ -306,9 +316,12 @@ class MarkEditor(QWidget):
                 cells = [str(lab), "", "", "", f"{MARK_NAMES[lab]}: not placed"]
             else:
                 how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
-                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how]
+                note = self.mark_notes.get(lab, [])
+                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how + "".join(f"\n⚠ {_short(n)}" for n in note)]
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
+                if col == len(cells) - 1 and self.mark_notes.get(lab) and m is not None:
+                    item.setToolTip("\n".join(self.mark_notes[lab]))
                 item.setData(Qt.ItemDataRole.UserRole, lab)
                 if col in (1, 2, 3):
                     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
@@ -324,7 +337,8 @@ class MarkEditor(QWidget):
 
     def _refresh_angles(self) -> None:
         try:
-            self.angles = compute_angles({lab: m.xyz for lab, m in self.marks.items()})
+            self.angles = compute_angles({lab: m.xyz for lab, m in self.marks.items()},
+                                         _sigmas(self.position_covariance), joint=self.position_covariance)
         except Exception as exc:  # degenerate geometry (e.g. 5, 6, 7 collinear) while editing
             self.angles = {}
             self.missing_label.setText(str(exc))
@@ -355,15 +369,33 @@ def marks_from_store(rows) -> PlacedMarks:
             for r in rows}
 
 
-def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None]) -> None:
+def _short(warning: str) -> str:
+    """A mark's warning as its status cell has room for it (the whole line is the tooltip):
+    "mark 1 lies 114 mm outside the calibrated volume (above it): ..." -> "114 mm above vol."."""
+    m = re.match(r"mark \d+ lies (\d+ mm) outside the calibrated volume \((above|below)?", warning)
+    if m is None:
+        return warning.split(": ", 1)[0]
+    return f"{m.group(1)} {m.group(2) or 'out of'} vol."
+
+
+def _sigmas(joint) -> dict[int, float]:
+    """Per-mark SD to add to ``joint`` (which already holds the measured marks' own): the default
+    for a mark it does not cover (placed by hand)."""
+    from anklescan.core.measure.angles import DEFAULT_SIGMA_MM
+
+    return {lab: 0.0 if joint is not None and lab in joint.labels else DEFAULT_SIGMA_MM for lab in LABELS}
+
+
+def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None], joint=None) -> None:
     """Write changed marks (grouped by provenance, as update_marks takes one source per call),
-    delete removed ones, and let the store recompute the trial's angles."""
+    delete removed ones, and let the store recompute the trial's angles (with the measurement's
+    joint covariance ``joint`` when there is one: the honest ±)."""
     groups: dict[tuple[str, str], dict[int, tuple]] = {}
     for lab, m in changes.items():
         if m is not None:
             groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
     for (source, placed_by), marks in groups.items():
-        store.update_marks(trial_id, marks, source, placed_by)
+        store.update_marks(trial_id, marks, source, placed_by, sigma_mm=_sigmas(joint), joint=joint)
     removed = [lab for lab, m in changes.items() if m is None]
     if removed:
         store.delete_marks(trial_id, removed)

@@ -154,7 +154,10 @@ class ScanFlow(QObject):
             win.review.show_cloud(result.cloud, tid)
             if result.marks:
                 # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks)
+                win.review.marks_page.editor.propose_auto(result.marks, result.warnings, result.position_covariance)
+            volume_notes = [w for w in result.warnings if "outside the calibrated volume" in w]
+            if volume_notes:
+                notes.append(("warning", "; ".join(volume_notes) + ".", None))
             if result.marks_note:
                 notes.append(("info", "Some marks were not found automatically: place them in the "
                               f"3-D view ({result.marks_note}).", None))

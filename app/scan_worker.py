@@ -64,6 +64,8 @@ class ScanResult:
     marks: dict = field(default_factory=dict)  # automatically found marks, label -> xyz mm
     marks_note: str = ""                # what the detector could not find, when it missed some
     overexposed: list = field(default_factory=list)  # labels of the marks whose face saturates the camera
+    warnings: list = field(default_factory=list)  # the measurement's one-line warnings (SPEC §6)
+    position_covariance: object = None  # the marks' JointCovariance: the angles' honest ± (SPEC §3)
     cloud_path: Path | None = None      # the saved cloud, when ScanJob.cloud_path was given
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
@@ -116,6 +118,8 @@ class _Scan:
             result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
             result.marks_note = "" if out.complete else out.marks.message()
             result.overexposed = out.marks.overexposed()
+            result.warnings = list(getattr(out, "warnings", []))
+            result.position_covariance = getattr(out, "position_covariance", None)
             motion = getattr(out, "motion", None)
             if motion is not None:
                 result.motion_mm, result.motion_sd_mm = motion.value_mm, motion.sd_mm

@@ -74,3 +74,21 @@ def test_board_world_frame_does_not_depend_on_the_corner_order():
     # the world axes and origin, in the camera's frame, agree
     assert np.allclose(R @ A1, R2 @ A2, atol=1e-12)
     assert np.allclose(R @ o1 + tv, R2 @ o2 + t2, atol=1e-9)
+
+
+def test_board_records_volume_and_covariance(board_calibration):
+    """SPEC §4: the span of every view's corners in world mm, and the fit's covariance in the file's form."""
+    from anklescan.core.calibration.file import calibrated_volume, parameter_covariance
+
+    rig, views, result = board_calibration
+    cal = result.calibration
+    vol = calibrated_volume(cal)
+    size = np.array([(COLS - 1) * SQUARE, (ROWS - 1) * SQUARE])
+    assert np.allclose(np.sort(vol.max[:2] - vol.min[:2])[::-1] >= np.sort(size)[::-1] - 1.0, True)
+    assert vol.max[2] - vol.min[2] > 10.0  # tilted views leave the first board's plane
+    cov = parameter_covariance(cal)
+    se = cov.standard_errors()
+    for dev in ("camera", "projector"):
+        q = getattr(result.report, dev)
+        assert se[f"{dev}.fx"] == pytest.approx(q.std_errors["fx"], rel=0.02), dev
+        assert se[f"{dev}.rx"] > 0 and se[f"{dev}.tz"] > 0

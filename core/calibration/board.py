@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, flag_outliers
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.uncertainty import CalibratedVolume, devices_form_covariance
 from anklescan.core.errors import CalibrationError, GeometryError
 
 DIST_MODELS = {  # which of k1, k2, p1, p2, k3 are free
@@ -501,9 +502,42 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
                        "corners_camera": [len(v.corners) for v in views],
                        "corners_projector": [int(m.sum()) for m in masks], "distortion": model},
              "quality": report.to_dict()}
+    fitted_cov = cov if np.isfinite(se).all() else None
+    extra.update(_board_trust(sol.x, lay, fitted_cov, A, o, _board_corners(views, obj, poses), Rc, tc, csize, psize))
     cal = Calibration(camera, projector, extra)
     return BoardCalibration(cal, report, views, float(np.sqrt(np.mean(np.concatenate(rc)**2) * 2)),
                             float(np.sqrt(np.mean(np.concatenate(rp)**2) * 2)))
+
+
+def _board_corners(views: list, obj: list, poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each view's board corners with its pose (rvec, tvec)."""
+    return [(np.asarray(obj[k], np.float64), poses[k]) for k in range(len(views))]
+
+
+def _board_trust(x: np.ndarray, lay: _Layout, cov: np.ndarray | None, A: np.ndarray, o: np.ndarray,
+                 boards: list[tuple[np.ndarray, np.ndarray]], Rc: np.ndarray, tc: np.ndarray,
+                 csize: tuple[int, int], psize: tuple[int, int]) -> dict:
+    """SPEC §4's ``volume`` (the span of every view's corners, world mm) and ``covariance`` (the
+    fit's s² (JᵀJ)⁻¹ over every parameter, poses included, mapped to core/calibration/uncertainty.py's form)."""
+    corners = []
+    for X, pose in boards:
+        R, _ = cv2.Rodrigues(np.asarray(pose[:3], np.float64))
+        corners.append((X @ R.T + pose[3:] - tc) @ Rc)  # camera frame -> world: Rcᵀ (x - tc)
+    out = {"volume": CalibratedVolume.of_points(np.vstack(corners)).to_dict()}
+    if cov is None:
+        return out
+
+    def to_devices(v: np.ndarray) -> dict[str, Device]:
+        (Kc, dc), (Kp, dp), rrel, trel, poses = lay.unpack(v)
+        R0, _ = cv2.Rodrigues(poses[0, :3])
+        Rcv, tcv = R0 @ A, R0 @ o + poses[0, 3:]
+        Rrel, _ = cv2.Rodrigues(rrel)
+        return {"camera": Device(csize[0], csize[1], Kc, dc, Rcv, tcv),
+                "projector": Device(psize[0], psize[1], Kp, dp, Rrel @ Rcv, Rrel @ tcv + trel)}
+
+    steps = 1e-7 * np.maximum(np.abs(x), 1.0)
+    out["covariance"] = devices_form_covariance(to_devices, x, cov, steps).to_dict()
+    return out
 
 
 def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: float,

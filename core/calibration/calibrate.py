@@ -30,7 +30,10 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
 from anklescan.core.calibration import paper_model as pm
+from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration, save_calibration
+from anklescan.core.calibration.uncertainty import (PAPER_MODEL_ERROR, CalibratedVolume, ParameterCovariance,
+                                                   form_covariance, joined)
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
@@ -270,6 +273,8 @@ class DeviceQuality:
     notes: list
     nfev: int
     excluded: list = field(default_factory=list)  # 0-based indices (of the input) left out as mis-read
+    covariance: np.ndarray | None = None  # s² (JᵀJ)⁻¹ over the vector's entries ``covariance_index``
+    covariance_index: np.ndarray | None = None
 
     @property
     def n_points(self) -> int:
@@ -387,8 +392,11 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
     model = {"camera": "paper camera (11)", "projector": "paper projector 1-D (9)", "projector2d": "paper camera model on the projector (11)"}[problem.kind]
     if v.size in (10, 12):
         model = model.replace(")", " + k2)")
-    return DeviceQuality(problem.kind if problem.kind != "projector2d" else "projector", model, params, std, r, dof,
-                         sigma, robust, flagged, warnings, notes, nfev)
+    q = DeviceQuality(problem.kind if problem.kind != "projector2d" else "projector", model, params, std, r, dof,
+                      sigma, robust, flagged, warnings, notes, nfev)
+    if "cov" in locals() and np.isfinite(cov).all():
+        q.covariance, q.covariance_index = cov, idx
+    return q
 
 
 def _correlation_warnings(cov: np.ndarray, names: list) -> list:
@@ -479,8 +487,36 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     extra = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
-             "quality": report.to_dict()}
+             "quality": report.to_dict(),
+             "volume": CalibratedVolume.of_points(np.vstack([np.asarray(cam_xyz, float).reshape(-1, 3),
+                                                             np.asarray(proj_xyz, float).reshape(-1, 3)])).to_dict()}
+    extra["model_error"] = PAPER_MODEL_ERROR.to_dict()  # the paper's model misses lens terms: docs/performance.md
+    cov = _paper_covariance(Cn, cam_q, proj_q, Pn, two_d, camera_size, projector_size)
+    if cov is not None:
+        extra["covariance"] = cov.to_dict()
     return Calibration(camera, projector, extra), report
+
+
+def _paper_covariance(Cn: np.ndarray, cam_q: DeviceQuality, proj_q: DeviceQuality, Pn: np.ndarray, two_d: bool,
+                      camera_size: tuple[int, int], projector_size: tuple[int, int]) -> ParameterCovariance | None:
+    """Both fits' s² (JᵀJ)⁻¹ over the paper's vectors, in the file's form (core/calibration/uncertainty.py)."""
+    to_proj = pm.projector2d_to_device if two_d else pm.projector_to_device
+    parts = []
+    for name, v, q, conv, size in (("camera", Cn, cam_q, pm.camera_to_device, camera_size),
+                                   ("projector", Pn, proj_q, to_proj, projector_size)):
+        if q.covariance is None or q.covariance_index is None:
+            return None
+        idx = q.covariance_index
+
+        def to_device(x: np.ndarray, v: np.ndarray = v, idx: np.ndarray = idx, conv=conv, size=size) -> Device:
+            full = v.copy()
+            full[idx] = x
+            return conv(full, *size)
+
+        x = v[idx].astype(np.float64)
+        steps = np.where(idx < 3, 1e-7, 1e-7 * np.maximum(np.abs(x), 1.0))
+        parts.append(form_covariance(name, to_device, x, q.covariance, steps))
+    return joined(parts)
 
 
 # ==== CSV ==================================================================================
@@ -554,14 +590,34 @@ def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list) -> None:
         seen[xyz] = line
 
 
-def run_calibrate_points(cam_csv, proj_csv, out_path, *, camera_size=DEFAULT_CAMERA_SIZE,
-                         projector_size=DEFAULT_PROJECTOR_SIZE, radial_terms: int = 1,
-                         loss: str = "linear") -> CalibrationReport:
-    """Read both CSVs, calibrate and save atomically; on any error nothing is written."""
-    cam_xyz, cam_uv = read_control_points_csv(cam_csv, "camera")
-    proj_xyz, proj_u = read_control_points_csv(proj_csv, "projector")
+def read_control_point_files(paths: str | Path | list[str | Path], kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Several CSVs of one kind (e.g. the box at two heights, in one world frame) as one set."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    parts = [read_control_points_csv(p, kind) for p in paths]
+    X = np.concatenate([p[0] for p in parts])
+    obs = np.concatenate([p[1] for p in parts])
+    if len(parts) > 1:
+        key = np.round(X / DUPLICATE_TOL_MM).astype(np.int64)
+        _, counts = np.unique(key, axis=0, return_counts=True)
+        if (counts > 1).any():
+            raise CalibrationError(f"{kind} control-point files repeat a point X,Y,Z: give each box position "
+                                   "its own world coordinates")
+    return X, obs
+
+
+def run_calibrate_points(cam_csv: str | Path | list[str | Path], proj_csv: str | Path | list[str | Path], out_path,
+                         *, camera_size=DEFAULT_CAMERA_SIZE, projector_size=DEFAULT_PROJECTOR_SIZE,
+                         radial_terms: int = 1, loss: str = "linear") -> CalibrationReport:
+    """Read the CSVs (one or several per device), calibrate and save atomically; on any error
+    nothing is written."""
+    cam_xyz, cam_uv = read_control_point_files(cam_csv, "camera")
+    proj_xyz, proj_u = read_control_point_files(proj_csv, "projector")
     cal, report = calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, camera_size=camera_size,
                                    projector_size=projector_size, radial_terms=radial_terms, loss=loss)
-    cal.extra["source"] = f"anklescan calibrate points --camera {Path(cam_csv).name} --projector {Path(proj_csv).name}"
+
+    def names(p: str | Path | list[str | Path]) -> str:
+        return " ".join(Path(q).name for q in ([p] if isinstance(p, (str, Path)) else p))
+
+    cal.extra["source"] = f"anklescan calibrate points --camera {names(cam_csv)} --projector {names(proj_csv)}"
     save_calibration(cal, out_path)
     return report

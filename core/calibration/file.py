@@ -16,9 +16,18 @@ import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.calibration.device_model import AXES, Device
+from anklescan.core.calibration.uncertainty import CalibratedVolume, ModelError, ParameterCovariance
 from anklescan.core.errors import CalibrationError
-from anklescan.core.limits import (MIN_BASELINE_MM, MAX_DISTORTION, MAX_FOCAL_PX, MAX_IMAGE_SIDE, MAX_PRINCIPAL_POINT_SIZES,
-                         MAX_TRANSLATION_MM, MIN_FOCAL_PX, load_json)
+from anklescan.core.limits import (
+    MAX_DISTORTION,
+    MAX_FOCAL_PX,
+    MAX_IMAGE_SIDE,
+    MAX_PRINCIPAL_POINT_SIZES,
+    MAX_TRANSLATION_MM,
+    MIN_BASELINE_MM,
+    MIN_FOCAL_PX,
+    load_json,
+)
 
 ORTHONORMAL_TOL = 1e-4
 
@@ -133,7 +142,49 @@ def calibration_from_dict(obj) -> Calibration:
     if not baseline >= MIN_BASELINE_MM:  # the projector at the camera: no depth can be triangulated
         raise CalibrationError(f"calibration: the projector is {baseline:.3g} mm from the camera (at least "
                                f"{MIN_BASELINE_MM:g} mm needed to triangulate); check its R and t")
+    calibrated_volume(cal)  # refuse a malformed volume or covariance now, not at the first measurement
+    parameter_covariance(cal)
+    model_error(cal)
     return cal
+
+
+def calibrated_volume(cal: Calibration) -> CalibratedVolume | None:
+    """The volume the calibration was made in (SPEC §4), None for a file that does not say."""
+    obj = cal.extra.get("volume")
+    return None if obj is None else CalibratedVolume.from_dict(obj)
+
+
+def parameter_covariance(cal: Calibration) -> ParameterCovariance | None:
+    """Its parameters' covariance (core/calibration/uncertainty.py), None for a file that does not say."""
+    obj = cal.extra.get("covariance")
+    return None if obj is None else ParameterCovariance.from_dict(obj)
+
+
+def volume_text(cal: Calibration) -> str:
+    """One line for the calibrate commands: the volume the calibration holds, and what to do about it."""
+    v = calibrated_volume(cal)
+    if v is None:
+        return "calibrated volume: not recorded"
+    spans = ", ".join(f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("xyz", v.min, v.max, strict=True))
+    return (f"calibrated volume: {spans} mm; marks outside it are measured less well (measure warns): "
+            "place the box at the knee's height too if the knee is above it")
+
+
+def model_error(cal: Calibration) -> ModelError:
+    """What its model leaves beyond the covariance (core/calibration/uncertainty.py); none recorded: 0."""
+    obj = cal.extra.get("model_error")
+    return ModelError() if obj is None else ModelError.from_dict(obj)
+
+
+def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> dict:
+    """``volume`` and ``covariance`` entries of ``cal.extra`` re-expressed after the world moves
+    (old = A @ new + o, ``calibrate level``); only the keys the calibration has."""
+    out: dict = {}
+    if (volume := calibrated_volume(cal)) is not None:
+        out["volume"] = volume.transformed(A, o).to_dict()
+    if (cov := parameter_covariance(cal)) is not None:
+        out["covariance"] = cov.leveled({"camera": cal.camera, "projector": cal.projector}, o).to_dict()
+    return out
 
 
 def calibration_to_dict(cal: Calibration) -> dict:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.file import Calibration, moved_trust
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
@@ -234,6 +234,7 @@ def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> 
     new_extra = dict(cal.extra)
     new_extra["frame"] = "clinic (levelled from the reference table: SPEC §1)"
     new_extra["levelled"] = extra
+    new_extra.update(moved_trust(cal, A, o))  # the calibrated volume and covariance in the new frame
     return Calibration(move(cal.camera), move(cal.projector), new_extra)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -129,7 +130,17 @@ _ANGLE_FUNCS: dict[str, Callable[..., float]] = {
 
 # ----------------------------------------------------------------- uncertainty
 
+@dataclass(frozen=True, eq=False)
+class JointCovariance:
+    """Covariance (mm²) of several marks' positions together, cross terms included: ``matrix`` is
+    (3L, 3L) over ``labels`` in order, x, y, z per mark (core/measure/uncertainty.py builds it)."""
 
+    labels: tuple[int, ...]
+    matrix: np.ndarray
+
+    def block(self, labels: tuple[int, ...]) -> np.ndarray:
+        idx = [3 * self.labels.index(lab) + k for lab in labels for k in range(3)]
+        return self.matrix[np.ix_(idx, idx)]
 
 def _normalise_marks(marks: Mapping) -> dict[int, np.ndarray]:
     out: dict[int, np.ndarray] = {}
@@ -171,24 +182,28 @@ def _jacobian(f: Callable[..., float], pts: list[np.ndarray]) -> np.ndarray:
     return J
 
 
-def angle_with_sd(name: str, points: list, covariances: list[np.ndarray]) -> dict:
-    """One angle and its first-order standard deviation (degrees)."""
+def angle_with_sd(name: str, points: list, covariances: list[np.ndarray] | None = None,
+                  joint: np.ndarray | None = None) -> dict:
+    """One angle and its first-order standard deviation (degrees): from per-mark covariances,
+    and/or one (3k, 3k) covariance over the angle's k marks together (``joint``)."""
     f = _ANGLE_FUNCS[name]
-    pts = [_point(p, f"mark {lab}") for p, lab in zip(points, ANGLE_MARKS[name])]
+    pts = [_point(p, f"mark {lab}") for p, lab in zip(points, ANGLE_MARKS[name], strict=True)]
     value = f(*pts)
     J = _jacobian(f, pts)
-    cov = np.zeros((J.size, J.size))
-    for k, c in enumerate(covariances):
-        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = c
+    cov = np.zeros((J.size, J.size)) if joint is None else np.array(joint, dtype=float)
+    for k, c in enumerate(covariances or []):
+        cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] += c
     return {"value": float(value), "sd": float(math.sqrt(max(J @ cov @ J, 0.0)))}
 
 
-def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM) -> AngleResult:
+def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM, *, joint: JointCovariance | None = None) -> AngleResult:
     """SPEC §3 angles from labelled marks (mm), each ``{"value", "sd"}`` in degrees.
 
     ``sigma_mm`` is the isotropic position SD of every mark, or a mapping label → SD or
-    label → 3x3 covariance (mm²). Angles whose marks are absent are left out and listed
-    in ``result.missing``; degenerate geometry raises GeometryError.
+    label → 3x3 covariance (mm²); ``joint`` adds a covariance over several marks together (the
+    calibration's, which moves every mark at once: core/measure/uncertainty.py). Angles whose
+    marks are absent are left out and listed in ``result.missing``; degenerate geometry raises
+    GeometryError.
     """
     pts = _normalise_marks(marks)
     result, missing = {}, {}
@@ -198,7 +213,8 @@ def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM) -> AngleResult:
             missing[name] = lacking
             continue
         covs = [_covariance(sigma_mm, lab) for lab in labels]
-        result[name] = angle_with_sd(name, [pts[lab] for lab in labels], covs)
+        shared = joint.block(labels) if joint is not None and all(lab in joint.labels for lab in labels) else None
+        result[name] = angle_with_sd(name, [pts[lab] for lab in labels], covs, shared)
     return AngleResult(result, missing=missing)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.measure.angles import AngleResult, compute_angles
+from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
 from anklescan.core.atomic import write_json_atomic
 from anklescan.core.calibration.file import Calibration, load_calibration
 from anklescan.core.scan.capture import Capture, load_capture
@@ -20,6 +20,8 @@ from anklescan.core.scan.decode import decode
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 from anklescan.core.measure.marks import MarkSet, find_marks
+from anklescan.core.measure.measure_warnings import WarningContext, measure_warnings
+from anklescan.core.measure.uncertainty import MarkUncertainty, position_uncertainty
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
@@ -36,6 +38,9 @@ class MeasureResult:
     motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/scan/motion.py)
     motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
     duration_s: float | None = None  # the capture's duration, from its frame timestamps
+    warnings: list[str] = field(default_factory=list)  # SPEC §6: core/measure/measure_warnings.py
+    mark_uncertainty: dict = field(default_factory=dict)  # label -> MarkUncertainty: where each SD comes from
+    position_covariance: JointCovariance | None = None  # the marks' joint covariance the angles' SD come from
 
     @property
     def motion_flagged(self) -> bool:
@@ -57,6 +62,8 @@ class MeasureResult:
             "reconstruction": self.reconstruction,
             "motion_mm": (self.motion or MotionEstimate(None, None)).to_dict(),
             "motion": self._motion_details(),
+            "warnings": list(self.warnings),
+            "mark_uncertainty": {str(k): v.to_dict() for k, v in sorted(self.mark_uncertainty.items())},
         }
 
     def mark_diameter(self) -> dict | None:
@@ -93,6 +100,7 @@ class MeasureResult:
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
+        lines += [f"warning: {w}" for w in self.warnings if w != self.marks.overexposed_message()]
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
@@ -109,11 +117,23 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     cloud = cloud_from_decoded(capture, calibration, decoded)
     lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
     marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
-    angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)
+    angles, shares, joint = honest_angles(marks, calibration, motion)
+    warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
-                         scan_duration_s(capture))
+                         scan_duration_s(capture), warnings, shares, joint)
+
+
+def honest_angles(marks: MarkSet, calibration: Calibration, motion: MotionEstimate | None
+                  ) -> tuple[AngleResult, dict[int, MarkUncertainty], JointCovariance | None]:
+    """SPEC §3's angles with an SD from every source (core/measure/uncertainty.py)."""
+    if not marks.labelled:
+        return AngleResult(), {}, None
+    joint, shares = position_uncertainty(calibration, marks.centres(), marks.covariances(),
+                                         motion_value_mm=None if motion is None else motion.value_mm,
+                                         motion_sd_mm_=None if motion is None else motion.sd_mm)
+    return compute_angles(marks.centres(), 0.0, joint=joint), shares, joint
 
 
 def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,

@@ -589,7 +589,7 @@ def _header_page(pages: _Pages, summ: SessionSummary, calibrations: dict[int, Ca
     fig.text(0.06, 0.955, "AnkleScan — ankle joint-angle sensing report", fontsize=14,
              weight="bold")
     y = _key_values(fig, 0.925, items)
-    fig.text(0.04, y - 0.01, "Trials (values ± 1 SD propagated from mark uncertainty; mismatch = "
+    fig.text(0.04, y - 0.01, "Trials (values ± 1 SD: calibration, extrapolation, marks, motion; mismatch = "
              "adjusted − reference table;\nCal. = the calibration the trial was measured with; grey "
              "rows are shown but not counted)", fontsize=8, va="top", linespacing=1.3)
     y -= 0.017   # the two-line caption

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import platformdirs
 
-from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, compute_angles, mismatch
+from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, MARK_SOURCES, SIDES, TRIAL_STATES, AxisSummary,
@@ -1108,10 +1108,12 @@ class Store:
     # ------------------------------------------------------------ marks
 
     def update_marks(self, trial_id: int, marks: Mapping, source: str, placed_by: str = "",
-                     *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True) -> list[MarkRecord]:
+                     *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True,
+                     joint: JointCovariance | None = None) -> list[MarkRecord]:
         """Insert or replace marks (label → xyz mm) and, by default, recompute the trial's
         angles from all its marks in the same transaction, so stored angles never
-        disagree with stored marks."""
+        disagree with stored marks. ``joint``: the marks' covariance over all sources
+        (``MeasureResult.position_covariance``; then ``sigma_mm`` adds to it, give 0)."""
         if source not in MARK_SOURCES:
             raise AnkleScanError(f"mark source must be 'auto' or 'manual', got {source!r}")
         trial = self.get_trial(trial_id)
@@ -1131,7 +1133,7 @@ class Store:
             if recompute:
                 allm = {r[0]: r[1:] for r in c.execute(
                     "SELECT label, x, y, z FROM marks WHERE trial_id = ?", (trial_id,))}
-                self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma_mm), None)
+                self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma_mm, joint=joint), None)
         return self.get_marks(trial_id)
 
     def get_marks(self, trial_id: int) -> list[MarkRecord]:
