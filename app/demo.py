@@ -18,42 +18,18 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-
 from anklescan.core.atomic import make_private_dir, make_tree_private, write_text_atomic
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
+from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
 
 MARKER = ".anklescan-demo"
 
 
-@dataclass(frozen=True)
-class SimPatient:
-    code: str
-    sprain_count: int
-    last_sprain: str | None
-    notes: str
-    # the table setting error, degrees: bias + gain_inv * inversion + gain_pf * plantar flexion + noise
-    bias: tuple  # (inversion, plantar flexion)
-    gain_inv: tuple
-    gain_pf: tuple
-    noise: float
-    shoes_factor: float  # shoes give the ankle a better sense of the angle (the paper's finding)
-    # the clinic's marks for this patient: type, diameter (mm), and whether the session is told
-    # the size (else measured from each capture)
-    marks: tuple = ("plate", 15.0, False)
-
-
-PATIENTS = (
-    SimPatient("SIM-01", 3, "2026-08-14", "simulated: recurrent sprains, right ankle", (1.5, -1.0), (0.12, 0.0),
-               (0.05, -0.08), 1.6, 0.55, ("sticker", 12.0, False)),
-    SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
-               ("plate", 15.0, True)),
-)
 INVERSIONS = (0.0, 10.0, 20.0)
 # the issue's whole range in three steps (the benchmark has all five: docs/marks.md)
 PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
@@ -61,12 +37,6 @@ PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
 # (sprain history vs none) — the study's two comparisons in three sessions, under two minutes
 SESSIONS = (("SIM-01", "barefoot"), ("SIM-01", "shoes"), ("SIM-02", "barefoot"))
 DEMO_SCALE = 0.75  # marks are found reliably from 0.75 up; 0.75 keeps the demo under two minutes
-
-
-def table_setting(p: SimPatient, condition: str, inversion: float, pf: float, rng) -> tuple[float, float]:
-    f = p.shoes_factor if condition == "shoes" else 1.0
-    err = [f * (p.bias[i] + p.gain_inv[i] * inversion + p.gain_pf[i] * pf + rng.normal(0.0, p.noise)) for i in (0, 1)]
-    return inversion + err[0], pf + err[1]
 
 
 # ---------------------------------------------------------------------------- workers
@@ -100,13 +70,13 @@ def _calibration(obj: dict):
 
 def _scan_trial(job: dict) -> dict:
     """Simulate one trial's scan, save it, measure it; compare with the truth (demo only)."""
-    from anklescan.core.scan.capture import load_capture, save_capture
     from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.capture import load_capture, save_capture
+    from anklescan.core.scan.motion import default_motion_refs
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.core.scan.pointcloud import write_ply
     from anklescan.core.scan.triangulate import scan_axes
     from anklescan.hardware.sim_accuracy import as_dict, evaluate
-    from anklescan.core.scan.motion import default_motion_refs
     from anklescan.hardware.sim_scene import angles_from_marks, leg_scene
     from anklescan.hardware.sim_sway import FRAME_S, Sway, swaying_capture, true_largest_displacement
     from anklescan.hardware.simrig import SimRig
@@ -161,11 +131,10 @@ def _warm_pool(scale: float) -> ProcessPoolExecutor:
 
 def _calibrate(out: Path, scale: float, progress) -> dict:
     from anklescan.core.calibration.box import calibrate_from_box_capture
-    from anklescan.hardware.sim_scene import box_scene_objects
     from anklescan.core.calibration.file import calibration_to_dict, save_calibration
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.sim_scene import quad_scene
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
     from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)

@@ -73,7 +73,9 @@ class Review(QObject):
         page, logic = self.ensure_marks_page(), self.win.session
         self.viewer_trial = trial_id
         rig_cal = getattr(self.win.rig, "calibration", None) if self.win.rig is not None else None
-        page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or f"Trial {trial_id}")
+        if title is None and trial_id is not None and logic.store is not None:
+            title = self.trial_title(logic.trial(trial_id))
+        page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or "Point cloud")
         if trial_id is not None and logic.store is not None:
             # Marks are signed by the session's operator, or the logged-in user when none was entered.
             trial = logic.trial(trial_id)
@@ -84,6 +86,19 @@ class Review(QObject):
         else:
             page.editor.load({})
             page.editor.set_snapper(None)
+
+    def trial_title(self, trial, full: bool = False) -> str:
+        """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
+        its reference angles and any state that leaves it out of the statistics."""
+        from anklescan.app.records_panel import trial_number
+        text = f"Trial {trial_number(self.win.session.store, trial)}"
+        if full:
+            text += f" · reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
+        if trial.simulated:
+            text += " · SIMULATED patient"
+        if full and not trial.counted:
+            text += f" · {trial.state_text}"
+        return text
 
     def _snapper(self, trial, cloud, session):
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
@@ -102,16 +117,14 @@ class Review(QObject):
             return False
         win.records.select_trial_item(trial.id)
         if not trial.cloud_path:
-            win.banner.show_message("info", f"Trial {trial.id} has no point cloud ({trial.state_text}).")
+            win.banner.show_message("info", f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
             cloud = read_ply(logic.store.resolve(trial.cloud_path))
         except Exception as exc:
             win.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False
-        ref = f"reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
-        state = "" if trial.counted else f" · {trial.state_text}"
-        self.show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}{state}")
+        self.show_cloud(cloud, trial.id, self.trial_title(trial, full=True))
         if switch_tab:
             win.tabs.setCurrentIndex(PAGE_MARKS)
         return True

@@ -71,9 +71,16 @@ class ScanFlow(QObject):
         except (ValueError, ScanRefused) as exc:  # a field shows the same message
             win.banner.show_message("warning", f"The scan did not start: {exc}")
             return False
+        stance = self._stand_simulated_patient(entry)
         win.records.show_patient(select_session=session_id)
         try:
-            job = self.scan_job(self.logic.plan(win.rig.projector_size, win.rig.description))
+            plan = self.logic.plan(win.rig.projector_size, win.rig.description)
+            if stance is not None:  # the capture says who stood there and how: the simulator's truth
+                plan.metadata["simulated_patient"] = {
+                    "profile": stance_profile(win.rig), "reference_deg": list(stance.reference),
+                    "table_deg": list(stance.table), "condition": stance.condition,
+                    "mark_type": stance.mark_type, "mark_diameter_mm": stance.mark_diameter_mm}
+            job = self.scan_job(plan)
         except Exception as exc:
             self.logic.end_unstarted(str(exc))
             win.banner.show_message("error", f"The scan could not start: {exc}")
@@ -83,6 +90,15 @@ class ScanFlow(QObject):
             win.rig_setup.show_projector()
         self.controller.start(job)
         return True
+
+    def _stand_simulated_patient(self, entry):
+        """On the simulated rig: the reference table set to the typed angles, the simulated patient
+        setting the adjustable one, and the trial recorded as simulated. The Stance, or None."""
+        stance = self.win.rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
+        store, tid = self.win.session.store, self.logic.trial_id
+        if stance is not None and store is not None and tid is not None:
+            store.set_trial_simulated(tid)
+        return stance
 
     def scan_job(self, plan):
         from anklescan.app.scan_worker import ScanJob, measure_folder
@@ -192,6 +208,10 @@ class ScanFlow(QObject):
         self.win.scan_page.progress.setFormat("Cancelled")
         self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
                                      f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
+
+
+def stance_profile(rig) -> str:
+    return rig.sim_patient.profile.value if rig.sim_patient is not None else ""
 
 
 SEVERITY = ("info", "warning", "error")

@@ -39,6 +39,8 @@ KEYS = {
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),
+    # who stands on the simulated rig (hardware.sim_patient.PatientProfile): "no sprain" or "sprain history"
+    "sim_patient": Key("scan/sim_patient", "no sprain", str),
     "pattern_preset": Key("scan/pattern_preset", "default", str),
     # a trial whose subject moved more than this during the scan is flagged (core/scan/motion.py)
     "motion_threshold_mm": Key("scan/motion_threshold_mm", 0.5, float),

@@ -162,6 +162,7 @@ class Trial:
     scan_duration_s: float | None = None
     motion_flagged: bool = False  # moved more than the threshold: out of the statistics ...
     motion_keep: bool = False  # ... unless the clinician keeps it
+    simulated: bool = False  # scanned on the built-in simulated rig (a simulated patient), not a person
 
     @property
     def excluded_for_motion(self) -> bool:

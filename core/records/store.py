@@ -159,7 +159,13 @@ ALTER TABLE trials ADD COLUMN motion_flagged INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE trials ADD COLUMN motion_keep INTEGER NOT NULL DEFAULT 0;
 """
 
-MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5]
+# simulated trials (issue 42): a trial scanned on the built-in simulated rig is a simulated patient's,
+# and every list, report and CSV says so.
+_V_SIMULATED = """
+ALTER TABLE trials ADD COLUMN simulated INTEGER NOT NULL DEFAULT 0;
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5, _V_SIMULATED]
 MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -750,6 +756,13 @@ class Store:
                 (session_id, _now(), ri, rp, notes or "", cid, status)).lastrowid
         return self.get_trial(tid)
 
+    def set_trial_simulated(self, trial_id: int, simulated: bool = True) -> Trial:
+        """Record that the trial was scanned on the simulated rig (a simulated patient)."""
+        t = self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET simulated = ? WHERE id = ?", (int(bool(simulated)), t.id))
+        return self.get_trial(t.id)
+
     def set_trial_status(self, trial_id: int, status: str, note: str = "", *, who: str = "") -> Trial:
         """Move a trial to ``complete``, ``cancelled`` or ``failed`` (with a short note why)."""
         _check_state(status)
@@ -997,7 +1010,7 @@ class Store:
 
 def _trial(row) -> Trial:
     d = dict(row)
-    for k in ("motion_flagged", "motion_keep"):
+    for k in ("motion_flagged", "motion_keep", "simulated"):
         d[k] = bool(d.get(k) or 0)
     return Trial(**d)
 

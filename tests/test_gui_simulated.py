@@ -1,0 +1,102 @@
+"""The simulated rig a newcomer can trust (issue 42): a simulated patient stands on the tables,
+sets the adjustable one to the references the clinician types, and everything says "simulated"."""
+
+import csv
+import json
+import subprocess
+
+import numpy as np
+import pytest
+from PySide6.QtCore import Qt
+from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QLineEdit
+
+from anklescan.app.main_parts import PAGE_SCAN
+from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
+from gui_actions import button, calibrated_window, click, menu_action, press_accept, save_as, with_dialog
+
+pytestmark = pytest.mark.gui
+
+
+def _type(field: QLineEdit, text: str) -> None:
+    click(field)
+    field.selectAll()
+    QTest.keyClicks(field, text)
+    QTest.keyClick(field, Qt.Key.Key_Return)
+
+
+def test_a_simulated_patient_sets_the_table_near_the_reference():
+    """The model alone: a sprain history sets the table further from the reference than none."""
+    refs = [(inv, pf) for inv in (0.0, 10.0, 20.0) for pf in (-20.0, 0.0, 20.0)] * 10
+    spread = {}
+    for profile in PatientProfile:
+        patient = SimulatedPatient(profile, seed=3)
+        errors = np.array([patient.stance(r, "barefoot").mismatch for r in refs])
+        spread[profile] = float(np.sqrt(np.mean(errors ** 2)))
+        assert 0.2 < spread[profile] < 5.0
+    assert spread[PatientProfile.SPRAIN_HISTORY] > 1.5 * spread[PatientProfile.NO_SPRAIN]
+    # seeded: the same patient answers the same way
+    a, b = SimulatedPatient(PatientProfile.NO_SPRAIN, seed=1), SimulatedPatient(PatientProfile.NO_SPRAIN, seed=1)
+    assert a.stance((10.0, 0.0), "shoes") == b.stance((10.0, 0.0), "shoes")
+
+
+@pytest.mark.slow
+def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path, monkeypatch):
+    """New patient, session, three trials at different references on the app's default rig
+    scale: each measured mismatch is the simulated patient's table setting error (small), not
+    minus the reference; the window, the trial list, the report's every page and the CSV say
+    simulated."""
+    (tmp_path / "scale.ini").write_text("[scan]\nsim_scale=0.75\n")
+    monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "scale.ini"))
+    win = calibrated_window(qtbot)
+    win.resize(1280, 800)
+    panel = win.camera_panel
+    assert panel.patient_box.isVisibleTo(panel)
+    panel.profile.setCurrentIndex(panel.profile.findData(PatientProfile.SPRAIN_HISTORY.value))
+    assert win.settings.get("sim_patient") == "sprain history"
+    assert "SIMULATED" in win.rig_label.text() and "sprain history" in win.rig_label.text()
+
+    def fill(dialog):
+        QTest.keyClicks(dialog.code, "SIM-P1")
+        press_accept(dialog)
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), fill)
+    click(button(win, "New session"))
+    sid = win.records.current_session_id()
+
+    refs = [(0.0, -20.0), (10.0, 0.0), (20.0, 20.0)]
+    for inv, pf in refs:
+        form = win.scan_page.form
+        win.tabs.setCurrentIndex(PAGE_SCAN)
+        _type(form.inversion.edit, f"{inv:g}")
+        _type(form.plantar_flexion.edit, f"{pf:g}")
+        with qtbot.waitSignal(win.controller.busyChanged, timeout=240_000, check_params_cb=lambda b: b is False):
+            click(win.scan_page.scan_button)
+        qtbot.wait(200)
+    trials = win.store.list_trials(sid)
+    assert len(trials) == 3 and all(t.simulated and t.status == "complete" for t in trials)
+    print()
+    for t, ref in zip(trials, refs, strict=True):
+        assert (t.ref_inversion, t.ref_plantar_flexion) == ref
+        meta = json.loads((win.store.resolve(t.capture_path) / "manifest.json").read_text())["capture"]
+        truth = meta["simulated_patient"]
+        true_mismatch = np.subtract(truth["table_deg"], truth["reference_deg"])
+        measured = np.array([t.mismatch_inversion, t.mismatch_plantar_flexion])
+        print(f"reference {ref}: true mismatch {true_mismatch.round(2)}, measured {measured.round(2)}")
+        assert np.all(np.abs(true_mismatch) < 8.0)                 # a patient's error, not minus the reference
+        assert np.all(np.abs(measured - true_mismatch) < 1.0)      # the scanner measures what the patient set
+    # the screens say simulated: the trial list (numbered per session) and the 3-D view's title
+    texts = [win.records.trials.item(i).text() for i in range(win.records.trials.count())]
+    assert [s.split()[1] for s in texts] == ["1", "2", "3"] and all("simulated" in s for s in texts)
+
+    pdf = tmp_path / "out" / "report.pdf"
+    pdf.parent.mkdir()
+    with qtbot.waitSignal(win.reportWritten, timeout=120_000):
+        with_dialog(qtbot, menu_action(win, "File/Session report (PDF + CSV)…").trigger, save_as(pdf))
+    pages = subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True,
+                           check=True).stdout.split("\f")
+    pages = [p for p in pages if p.strip()]
+    assert pages and all("SIMULATED" in p for p in pages)
+    with open(pdf.with_suffix(".csv"), encoding="utf-8-sig") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 3 and {r["simulated"] for r in rows} == {"1"}
+    win.close()
