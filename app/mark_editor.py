@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtGui import QKeySequence, QShortcut, QUndoCommand, QUndoStack
+from PySide6.QtGui import QColor, QKeySequence, QShortcut, QUndoCommand, QUndoStack
 from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout,
                                QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
@@ -25,6 +25,7 @@ ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Le
                 "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion",
                 "mismatch_inversion": "Mismatch, inversion", "mismatch_plantar_flexion": "Mismatch, plantar flexion"}
 CONFIRMED_PREFIX = "confirmed by "
+STATUS_COLUMN = 5  # the marks table's last column: automatic / manual, and any warning
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,15 @@ class PlacedMark:
     source: str = "manual"   # 'auto' | 'manual' (the store's vocabulary)
     confirmed: bool = True   # auto marks start unconfirmed
     placed_by: str = ""
+    sd_mm: float | None = None   # an automatic mark's position SD (None: placed by hand, not measured)
+    warning: str = ""            # why its position is less certain ("overexposed"), "" when it is not
+
+    @property
+    def note(self) -> str:
+        """"±0.14 mm ⚠ overexposed": its SD and any warning, as the 3-D view writes it beside the label."""
+        from anklescan.app.viewer_labels import WARNING_MARK
+        sd = "" if self.sd_mm is None else f"±{self.sd_mm:.2f} mm"
+        return (sd + (f" {WARNING_MARK} {self.warning}" if self.warning else "")).strip()
 
 
 PlacedMarks = dict[int, PlacedMark]
@@ -49,12 +59,17 @@ class _SetMarks(QUndoCommand):
         self.editor = editor
         self.after = after
         self.before = {k: editor.marks.get(k) for k in after}
+        self.done_once = False
 
     def redo(self) -> None:
         self.editor._apply(self.after)
+        if self.done_once:  # Redo, not the first push: the click's message no longer holds
+            self.editor.show_pick(f"Redone: {self.text()}.")
+        self.done_once = True
 
     def undo(self) -> None:
         self.editor._apply(self.before)
+        self.editor.show_pick(f"Undone: {self.text()}.")
 
 
 # ---------------------------------------------------------------------------- the editor
@@ -100,15 +115,16 @@ class MarkEditor(QWidget):
         self.hint.setWordWrap(True)
         self.hint.setObjectName("hint")
         # a table sized to its columns: the one-line list text was cut off at the panel's width
-        self.list = QTableWidget(len(LABELS), 5)
-        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", ""])
+        self.list = QTableWidget(len(LABELS), 6)
+        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", "SD mm", ""])
+        self.list.setWordWrap(True)
         self.list.verticalHeader().hide()
         self.list.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
         self.list.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.list.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.list.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.list.horizontalHeader().setSectionResizeMode(4, QHeaderView.ResizeMode.Stretch)
+        self.list.horizontalHeader().setSectionResizeMode(STATUS_COLUMN, QHeaderView.ResizeMode.Stretch)
         self.list.currentCellChanged.connect(lambda *_: self._list_selected())
         self.confirm_button = QPushButton("Confirm automatic marks")
         self.confirm_button.clicked.connect(self.confirm_all)
@@ -167,8 +183,7 @@ class MarkEditor(QWidget):
         for lab in LABELS:
             QShortcut(QKeySequence(str(lab)), self, lambda lab=lab: self.set_current_label(lab),
                       context=Qt.ShortcutContext.WindowShortcut)
-        QShortcut(QKeySequence.StandardKey.Undo, self, self.undo_stack.undo, context=Qt.ShortcutContext.WindowShortcut)
-        QShortcut(QKeySequence.StandardKey.Redo, self, self.undo_stack.redo, context=Qt.ShortcutContext.WindowShortcut)
+        # Ctrl+Z / Ctrl+Shift+Z are the main window's Edit ▸ Undo / Redo (app.review), which act on this stack
         QShortcut(QKeySequence.StandardKey.Delete, self, lambda: self.delete(self.current_label),
                   context=Qt.ShortcutContext.WindowShortcut)
 
@@ -189,12 +204,20 @@ class MarkEditor(QWidget):
     def load_trial(self, store, trial_id: int) -> None:
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
 
-    def propose_auto(self, detected: dict) -> None:
-        """Detected marks (label → xyz) to confirm, saved as 'auto'. They are where the undo
-        history starts: Undo goes back to them, never past them to an empty trial."""
-        after = {int(k): PlacedMark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
+    def propose_auto(self, detected: dict, quality: dict | None = None) -> None:
+        """Detected marks (label → xyz) to confirm, saved as 'auto', with their SD and warnings
+        (``quality``: label → app.scan_worker.MarkQuality). They are where the undo history
+        starts: Undo goes back to them, never past them to an empty trial."""
+        quality = quality or {}
+
+        def placed(k, v) -> PlacedMark:
+            q = quality.get(int(k))
+            return PlacedMark(tuple(map(float, v)), "auto", False, "", None if q is None else q.sd_mm,
+                              "" if q is None else q.warning)
+        after = {int(k): placed(k, v) for k, v in detected.items()}
         self._apply(after)
         self.undo_stack.clear()
+        self.pick_label.setText("Click the cloud to place the selected mark.")
 
     # ---- edits (all undoable) ------------------------------------------------------------
     def set_current_label(self, label: int) -> None:
@@ -285,7 +308,8 @@ class MarkEditor(QWidget):
 
     def _refresh(self, save: bool = True) -> None:
         unconfirmed = {lab for lab, m in self.marks.items() if not m.confirmed}
-        self.viewer.set_marks({lab: m.xyz for lab, m in self.marks.items()}, unconfirmed, self.current_label)
+        self.viewer.set_marks({lab: m.xyz for lab, m in self.marks.items()}, unconfirmed, self.current_label,
+                              {lab: m.note for lab, m in self.marks.items()})
         self._refresh_list()
         self._refresh_angles()
         button = self.label_buttons.button(self.current_label)
@@ -303,18 +327,27 @@ class MarkEditor(QWidget):
         for row, lab in enumerate(LABELS):
             m = self.marks.get(lab)
             if m is None:
-                cells = [str(lab), "", "", "", f"{MARK_NAMES[lab]}: not placed"]
+                cells = [str(lab), "", "", "", "", f"{MARK_NAMES[lab]}: not placed"]
             else:
                 how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
-                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how]
+                if m.warning:
+                    how += f" — {m.warning}: less certain"
+                cells = ([str(lab)] + [f"{v:.1f}" for v in m.xyz]
+                         + ["–" if m.sd_mm is None else f"{m.sd_mm:.2f}", how])
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setData(Qt.ItemDataRole.UserRole, lab)
-                if col in (1, 2, 3):
+                item.setToolTip(text if col == STATUS_COLUMN else "")
+                if col in (1, 2, 3, 4):
                     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                if m is not None and m.warning and col in (4, STATUS_COLUMN):
+                    item.setForeground(QColor("#b35c00"))
                 self.list.setItem(row, col, item)
         self.list.selectRow(LABELS.index(self.current_label) if self.current_label in LABELS else 0)
         self.list.resizeRowsToContents()
+        # all seven rows, never a scrolled window of two to four
+        rows_h = sum(self.list.rowHeight(r) for r in range(self.list.rowCount()))
+        self.list.setMinimumHeight(rows_h + self.list.horizontalHeader().height() + 2 * self.list.frameWidth())
         self.list.blockSignals(False)
 
     def _list_selected(self) -> None:
@@ -351,7 +384,8 @@ def marks_from_store(rows) -> PlacedMarks:
     """anklescan.core.vocabulary.MarkRecord rows → PlacedMarks. An auto mark counts as confirmed once an operator has
     confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
     return {r.label: PlacedMark((r.x, r.y, r.z), r.source,
-                          r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
+                                r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by,
+                                getattr(r, "sd_mm", None), getattr(r, "warning", "") or "")
             for r in rows}
 
 
@@ -364,6 +398,10 @@ def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None]) -> N
             groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
     for (source, placed_by), marks in groups.items():
         store.update_marks(trial_id, marks, source, placed_by)
+    quality = {lab: (m.sd_mm, m.warning) for lab, m in changes.items()
+               if m is not None and (m.sd_mm is not None or m.warning)}
+    if quality:  # an automatic mark keeps its SD and warning when confirmed or relabelled
+        store.set_mark_quality(trial_id, quality)
     removed = [lab for lab, m in changes.items() if m is None]
     if removed:
         store.delete_marks(trial_id, removed)

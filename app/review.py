@@ -4,6 +4,7 @@ first needed: the OpenGL viewer and pyqtgraph are slow to load."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from PySide6.QtCore import QObject, Qt
@@ -33,6 +34,9 @@ class Review(QObject):
             win.marks_holder.addWidget(self.marks_page)
             win.marks_holder.setCurrentWidget(self.marks_page)
             self.marks_page.editor.setEnabled(not win.session.read_only)
+            self.marks_page.editor.undo_stack.indexChanged.connect(lambda _: self.update_edit_actions())
+            self.marks_page.editor.undo_stack.cleanChanged.connect(lambda _: self.update_edit_actions())
+            self.update_edit_actions()
         return self.marks_page
 
     def ensure_session_view(self):
@@ -145,10 +149,83 @@ class Review(QObject):
         self.win.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
+    # ---- Edit ▸ Undo / Redo: the mark editor's undo stack -------------------------------
+    def undo(self) -> None:
+        if self.marks_page is not None and self.marks_page.editor.isEnabled():
+            self.marks_page.editor.undo_stack.undo()
+
+    def redo(self) -> None:
+        if self.marks_page is not None and self.marks_page.editor.isEnabled():
+            self.marks_page.editor.undo_stack.redo()
+
+    def update_edit_actions(self) -> None:
+        """Edit ▸ Undo / Redo say what they undo ("Undo place mark 1") and are enabled when they can."""
+        win = self.win
+        if not hasattr(win, "undo_action"):
+            return
+        stack = None if self.marks_page is None else self.marks_page.editor.undo_stack
+        with contextlib.suppress(RuntimeError):  # the window is closing: its undo stack is already gone
+            self._show_edit_actions(win, stack)
+
+    @staticmethod
+    def _show_edit_actions(win, stack) -> None:
+        for action, can, text, verb in (
+                (win.undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
+                (win.redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
+            action.setEnabled(bool(can))
+            action.setText(f"&{verb} {text}" if can and text else f"&{verb}")
+
     # ---- what leaves the app ----------------------------------------------------------------
+    def _proposed(self, kind: str, suffix: str) -> str:
+        """The documents folder, named by the selected patient's code and the session's date."""
+        from anklescan.app.help_menu import proposed_path
+        win, logic = self.win, self.win.session
+        sid = win.records.current_session_id()
+        session = logic.session(sid) if sid is not None else None
+        path = proposed_path(kind, win.records.current_code(), session.date if session is not None else None, suffix)
+        with contextlib.suppress(OSError):  # the dialog lets the clinician choose another folder
+            path.parent.mkdir(parents=True, exist_ok=True)
+        return str(path)
+
+    def print_current(self) -> bool:
+        """File ▸ Print…: the page on screen — the 3-D marks, else the session plots — through the
+        print dialog; with no printer installed it prints to a PDF in the documents folder."""
+        from PySide6.QtPrintSupport import QPrintDialog, QPrinter, QPrinterInfo
+        printer = QPrinter(QPrinter.PrinterMode.HighResolution)
+        if not QPrinterInfo.availablePrinterNames():
+            printer.setOutputFormat(QPrinter.OutputFormat.PdfFormat)
+            printer.setOutputFileName(self._proposed("print", ".pdf"))
+        dialog = QPrintDialog(printer, self.win)
+        dialog.setWindowTitle("Print")
+        if dialog.exec() != QPrintDialog.DialogCode.Accepted:
+            return False
+        return self.print_to(printer)
+
+    def print_to(self, printer) -> bool:
+        from anklescan.app.help_menu import print_widget_pages
+        win = self.win
+        if win.tabs.currentIndex() == PAGE_MARKS and self.marks_page is not None:
+            widget, what = self.marks_page, "3-D marks"
+        else:
+            self.ensure_session_view()
+            self.refresh_plots()
+            widget, what = self.session_view, "Session plots"
+        sid = win.records.current_session_id()
+        title = win.session.session_title(sid) if sid is not None and win.session.store is not None else ""
+        simulated = sid is not None and any(t.simulated for t in win.session.trials(sid))
+        heading = f"AnkleScan — {what}" + (f" — {title}" if title else "") + (
+            "\nSIMULATED — a simulated patient on the built-in simulated rig, not patient data" if simulated else "")
+        try:
+            print_widget_pages(printer, [widget], heading)
+        except Exception as exc:
+            win.banner.show_message("error", f"Printing failed: {exc}")
+            return False
+        target = printer.outputFileName()
+        win.banner.show_message("info", f"{what} printed" + (f" to {target}" if target else "") + ".")
+        return True
+
     def export_plots(self) -> Path | None:
-        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots",
-                                              str(self.win.data_folder() / "session_plots.png"),
+        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots", self._proposed("plots", ".png"),
                                               "PNG image (*.png);;SVG vector (*.svg)")
         return self.export_plots_to(path) if path else None
 
@@ -168,8 +245,8 @@ class Review(QObject):
         if self.win.session.store is None or sid is None:
             self.win.banner.show_message("warning", "Select a session first.")
             return
-        path, _ = QFileDialog.getSaveFileName(self.win, "Session report",
-                                              str(self.win.data_folder() / f"session-{sid}.pdf"), "PDF (*.pdf)")
+        path, _ = QFileDialog.getSaveFileName(self.win, "Session report", self._proposed("report", ".pdf"),
+                                              "PDF (*.pdf)")
         if path:
             self.write_session_report_to(path)
 

@@ -30,7 +30,7 @@ class Rig:
             return
         from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
 
-        self.sim_patient = SimulatedPatient(PatientProfile.parse(profile))
+        self.sim_patient = SimulatedPatient(PatientProfile.parse(profile), seed=0)  # the same answers each start
 
     @property
     def profile_label(self) -> str:

@@ -145,6 +145,32 @@ class RigSetup(QObject):
         self.win.scan_flow.update_enabled()
         self.check_calibration_age()
 
+    def choose_calibration(self) -> bool:
+        """Scan ▸ Choose calibration…: one of the database's calibrations becomes the current one."""
+        from anklescan.app.calibration_chooser import CalibrationChooser
+        from anklescan.app.logic.calibration import use_stored_calibration
+        win = self.win
+        store = win.session.store
+        if store is None or win.scan_flow.busy:
+            return False
+        records = store.list_calibrations()
+        if not records:
+            win.banner.show_message("info", "This data folder's database keeps no calibration yet: run Calibration….")
+            return False
+        dialog = CalibrationChooser(records, win.session.calibration_id, win)
+        if dialog.exec() != CalibrationChooser.DialogCode.Accepted or dialog.chosen() is None:
+            return False
+        record = dialog.chosen()
+        try:
+            use_stored_calibration(record, win.data_folder(), self.settings)
+        except Exception as exc:
+            win.banner.show_message("error", f"Calibration #{record.id} could not be used: {exc}")
+            return False
+        self.load_calibration()
+        if win.session.calibration_id == record.id:
+            win.banner.show_message("info", f"Calibration #{record.id} ({record.created[:10]}) is now the current one.")
+        return True
+
     def open_calibration(self) -> None:
         from anklescan.app.calibration_wizard import CalibrationWizard
         win = self.win

@@ -166,7 +166,7 @@ class ScanFlow(QObject):
             win.review.show_cloud(result.cloud, tid)
             if result.marks:
                 # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks)
+                win.review.marks_page.editor.propose_auto(result.marks, result.quality)
             if result.marks_note:
                 notes.append(("info", "Some marks were not found automatically: place them in the "
                               f"3-D view ({result.marks_note}).", None))

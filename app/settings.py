@@ -2,7 +2,8 @@
 
 A thin typed layer over QSettings so that every key has one name, one type and one default
 in one place. ``ANKLESCAN_SETTINGS`` names an INI file to use instead of the user's settings;
-the tests use it so that they never read or change a clinician's real configuration.
+the tests use it so that they never read or change a clinician's real configuration. A
+location that cannot be written is said at start-up (``Settings.problem``), never lost silently.
 """
 
 from __future__ import annotations
@@ -74,6 +75,27 @@ class Settings:
 
     def sync(self) -> None:
         self._qs.sync()
+
+    @property
+    def location(self) -> str:
+        return self._qs.fileName()
+
+    def problem(self) -> str:
+        """Why settings set now would be lost (the accepted calibration, the operator, ...), in
+        one sentence for the banner; "" when they are kept."""
+        where = Path(self.location)
+        named = " (named by ANKLESCAN_SETTINGS)" if os.environ.get("ANKLESCAN_SETTINGS") else ""
+        if where.is_dir():
+            return (f"The settings location {where}{named} is a folder, not a file: settings cannot be kept, so the "
+                    "accepted calibration and the operator will be lost on restart. Name a file instead.")
+        if not self._qs.isWritable():
+            return (f"The settings file {where}{named} cannot be written: the accepted calibration and the operator "
+                    "will be lost on restart. Make it writable (or Scan ▸ Choose calibration… after each start).")
+        self._qs.sync()
+        if self._qs.status() != QSettings.Status.NoError:
+            return (f"The settings file {where}{named} could not be saved ({self._qs.status().name}): the accepted "
+                    "calibration and the operator will be lost on restart.")
+        return ""
 
     @property
     def data_folder(self) -> Path:

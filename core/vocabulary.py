@@ -127,6 +127,8 @@ class MarkRecord:
     source: str
     placed_by: str
     updated: str
+    sd_mm: float | None = None  # the automatic mark's position SD (None: not measured, e.g. placed by hand)
+    warning: str = ""           # why its position is less certain (e.g. "overexposed"), "" when it is not
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QLineEdit
 
-from anklescan.app.main_parts import PAGE_SCAN
+from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN
 from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
 from gui_actions import button, calibrated_window, click, menu_action, press_accept, save_as, with_dialog
 
@@ -99,4 +99,57 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
     with open(pdf.with_suffix(".csv"), encoding="utf-8-sig") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 3 and {r["simulated"] for r in rows} == {"1"}
+    win.close()
+
+
+def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, tmp_path, monkeypatch):
+    """The lateral knee plate clips at plantar flexion +20 and not at -20 (the table now follows
+    the reference): after the +20 scan mark 3's SD and 'overexposed' are in the marks table, beside
+    its label in the 3-D view, in the database and in the report; the -20 scan warns of nothing."""
+    (tmp_path / "scale.ini").write_text("[scan]\nsim_scale=0.5\n")
+    monkeypatch.setenv("ANKLESCAN_SETTINGS", str(tmp_path / "scale.ini"))
+    win = calibrated_window(qtbot)
+    win.resize(1280, 800)
+    win.records.add_patient("P-OVER", 0, None)
+    win.records.start_session("barefoot")
+    sid = win.records.current_session_id()
+
+    def scan(inv: str, pf: str) -> int:
+        win.tabs.setCurrentIndex(PAGE_SCAN)
+        _type(win.scan_page.form.inversion.edit, inv)
+        _type(win.scan_page.form.plantar_flexion.edit, pf)
+        with qtbot.waitSignal(win.controller.busyChanged, timeout=240_000, check_params_cb=lambda b: b is False):
+            click(win.scan_page.scan_button)
+        qtbot.wait(200)
+        return win.store.list_trials(sid)[-1].id
+
+    low = scan("0", "-20")
+    assert "overexposed" not in win.banner.text
+    print("\n-20:", {m.label: (round(m.sd_mm, 3), m.warning) for m in win.store.get_marks(low)})
+    assert all("overexposed" not in m.warning for m in win.store.get_marks(low))
+    high = scan("0", "20")
+    assert "Mark 3 is overexposed" in win.banner.text
+    marks = {m.label: m for m in win.store.get_marks(high)}
+    assert marks[3].warning == "overexposed" and marks[3].sd_mm > 0
+    win.tabs.setCurrentIndex(PAGE_MARKS)
+    qtbot.wait(100)
+    table = win.marks_page.editor.list
+    header = [table.horizontalHeaderItem(c).text() for c in range(table.columnCount())]
+    assert "SD mm" in header
+    row3 = [table.item(2, c).text() for c in range(table.columnCount())]
+    assert row3[header.index("SD mm")] == f"{marks[3].sd_mm:.2f}" and "overexposed" in row3[-1]
+    # every row of the table is on screen, none scrolled away
+    assert table.viewport().height() >= sum(table.rowHeight(r) for r in range(table.rowCount()))
+    assert "overexposed" in win.marks_page.viewer.mark_notes[3]
+    # confirming keeps the warning; the next banner does not take it away
+    click(win.marks_page.editor.confirm_button)
+    win.banner.show_message("info", "something else")
+    assert {m.label: m for m in win.store.get_marks(high)}[3].warning == "overexposed"
+    pdf = tmp_path / "out" / "report.pdf"
+    pdf.parent.mkdir()
+    with qtbot.waitSignal(win.reportWritten, timeout=120_000):
+        with_dialog(qtbot, menu_action(win, "File/Session report (PDF + CSV)…").trigger, save_as(pdf))
+    text = subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True,
+                          check=True).stdout
+    assert "mark 3 overexposed" in " ".join(text.split())
     win.close()

@@ -50,7 +50,8 @@ CSV_COLUMNS = (
     "mismatch_plantar_flexion", "mismatch_plantar_flexion_sd",
     "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
     "status", "status_note", "excluded_reason", "counted", "marks_confirmed",
-    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep", "simulated")
+    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep", "simulated",
+    "mark_warnings")
 _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
@@ -537,12 +538,17 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
     notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
              for (state, reason), ts in why.items()]
     marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
+    uncertain = [f"trial {i + 1}: {rows[i]['mark_warnings']}" for i in range(start, stop)
+                 if rows[i].get("mark_warnings")]
     lines = []
     if notes:
         lines += _wrap("Shown, but left out of the plots and statistics: " + "; ".join(notes) + ".", 130)
     if marks:
         lines += _wrap("* automatic marks, not confirmed by an operator (plotted hollow): trials "
                        + _ranges(marks) + ".", 130)
+    if uncertain:
+        lines += _wrap("Marks less certain than usual (their SD is in the angles' SD): " + "; ".join(uncertain)
+                       + ".", 130)
     return lines
 
 
