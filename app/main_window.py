@@ -96,7 +96,10 @@ class MainWindow(QMainWindow):
         """Settings that cannot be kept are said at once, in the banner and (lasting) in the status bar."""
         problem = self.settings.problem()
         if problem:
-            self.banner.show_message("error", problem)
+            # a banner of its own: the next notice (e.g. "No calibration") must not take it away
+            self.settings_banner = Banner()
+            self.banner.parentWidget().layout().insertWidget(0, self.settings_banner)
+            self.settings_banner.show_message("error", problem)
             self.settings_label = QLabel("Settings are NOT saved")
             self.settings_label.setToolTip(problem)
             self.settings_label.setStyleSheet("color: #b3261e; font-weight: bold;")

@@ -90,3 +90,40 @@ def test_print_writes_the_session_plots_and_reports_go_to_the_documents_folder(q
     path = proposed["path"]
     assert path.parent == docs and path.name.startswith("report_P-PRN_") and path.suffix == ".pdf"
     assert not path.is_relative_to(win.data_folder())
+
+
+def test_an_unwritable_settings_file_is_said_at_once(qtbot, tmp_path, monkeypatch):
+    from anklescan.app.main_window import MainWindow
+    folder = tmp_path / "settings-folder"
+    folder.mkdir()
+    monkeypatch.setenv("ANKLESCAN_SETTINGS", str(folder))  # a folder, not a file
+    w = MainWindow(open_rig_now=True)
+    qtbot.addWidget(w)
+    w.show()
+    said = w.settings_banner
+    assert said.isVisible() and said.kind == "error" and "cannot be kept" in said.label.text()
+    assert "ANKLESCAN_SETTINGS" in said.label.text() and "calibration" in said.label.text()
+    assert w.settings_label.isVisible() and "NOT saved" in w.settings_label.text()
+    w.close()
+
+
+def test_the_current_calibration_is_chosen_from_the_database(qtbot, win):
+    """Settings lost (the current calibration forgotten): the database's calibrations are listed
+    with their date, RMS and verification, and one click makes one current again."""
+    first_id = win.calibration_id
+    win.store.set_calibration_verified(first_id, True)
+    for key in ("calibration_path", "calibration_id", "calibration_created"):
+        win.settings.set(key, "")
+    win.rig_setup.load_calibration()
+    assert win.calibration is None and not win.scan_page.scan_button.isEnabled()
+    seen = {}
+
+    def choose(dialog):
+        t = dialog.table
+        seen["rows"] = [[t.item(r, c).text() for c in range(t.columnCount())] for r in range(t.rowCount())]
+        press_accept(dialog, "Use this calibration")
+    with_dialog(qtbot, menu_action(win, "Scan/Choose calibration…").trigger, choose)
+    (row,) = seen["rows"]
+    assert row[0].startswith(str(first_id)) and row[3] == "yes" and row[1][:4].isdigit()
+    assert win.calibration is not None and win.calibration_id == first_id
+    assert win.settings.get("calibration_verified") == "pass" and win.scan_page.scan_button.isEnabled()
