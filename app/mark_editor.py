@@ -18,6 +18,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGr
                                QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
 
+from anklescan.app.main_parts import signed
 from anklescan.core.measure.angles import compute_angles
 from anklescan.core.vocabulary import LABELS, MARK_NAMES
 
@@ -371,7 +372,7 @@ class MarkEditor(QWidget):
                 shown[f"mismatch_{axis}"] = v
         for name, lab in self.angle_labels.items():
             v = shown.get(name)
-            lab.setText("—" if v is None else f"{v['value']:+.2f}° ± {v['sd']:.2f}°")
+            lab.setText("—" if v is None else f"{signed(v['value'], 2)}° ± {v['sd']:.2f}°")
         self.missing_label.setText(self.angles.missing_message())
 
     def show_pick(self, text: str) -> None:

@@ -99,7 +99,9 @@ class RecordsPanel(QWidget):
         self.patients.clear()
         self.patients.blockSignals(False)
         for p in self.logic.patients(self.show_archived.isChecked()):
-            text = p.code + (f"   ·  {p.sprain_count} sprain(s)" if p.sprain_count else "")
+            history = ([f"{p.sprain_count} sprain(s)"] if p.sprain_count else []) + (
+                [f"{p.affected_side} side" if p.affected_side != "both" else "both sides"] if p.affected_side else [])
+            text = p.code + (f"   ·  {', '.join(history)}" if history else "")
             item = QListWidgetItem(text + ("   (archived)" if p.archived else ""))
             item.setData(ID, p.id)
             item.setData(ID + 1, p.code)
@@ -185,10 +187,12 @@ class RecordsPanel(QWidget):
             return
         dialog = NewPatientDialog(self.window(), exists=self.logic.patient_exists)
         if dialog.exec() == QDialog.DialogCode.Accepted:
-            self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData())
+            self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData(),
+                             dialog.last_sprain_date())
 
-    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None) -> bool:
-        patient = self.logic.add_patient(code, sprain_count, side)
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None,
+                    last_sprain: str | None = None) -> bool:
+        patient = self.logic.add_patient(code, sprain_count, side, last_sprain)
         if patient is not None:
             self.refresh_patients(select_code=patient.code)
         return patient is not None

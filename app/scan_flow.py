@@ -127,6 +127,8 @@ class ScanFlow(QObject):
     # ---- the worker's reports -----------------------------------------------------------
     def _busy(self, busy: bool) -> None:
         self.update_enabled()
+        if not busy:  # the scan is over, however it ended: the projector leaves its last stripe pattern
+            self.win.rig_setup._restore_projector()
         self.win.scan_page.cancel_button.setEnabled(busy)
         self.win.cancel_action.setEnabled(busy)
         if self.win.camera_panel is not None:
@@ -170,6 +172,8 @@ class ScanFlow(QObject):
             if result.marks_note:
                 notes.append(("info", "Some marks were not found automatically: place them in the "
                               f"3-D view ({result.marks_note}).", None))
+        store = win.session.store
+        win.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
         if notes:
             show_notes(win.banner, notes)
         win.scan_page.form.clear_notes()

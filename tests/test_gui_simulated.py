@@ -58,8 +58,19 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
 
     def fill(dialog):
         QTest.keyClicks(dialog.code, "SIM-P1")
+        dialog.sprains.lineEdit().selectAll()
+        QTest.keyClicks(dialog.sprains.lineEdit(), "3")
+        dialog.side.setCurrentIndex(dialog.side.findData("right"))
+        QTest.keyClicks(dialog.last_sprain, "14.8.2026")
+        press_accept(dialog)  # not a date: the dialog stays open and says how to write it
+        assert dialog.isVisible() and "YYYY-MM-DD" in dialog.message.text()
+        dialog.last_sprain.clear()
+        QTest.keyClicks(dialog.last_sprain, "2026-08-14")
         press_accept(dialog)
     with_dialog(qtbot, lambda: click(button(win, "New patient…")), fill)
+    patient = win.store.get_patient("SIM-P1")
+    assert patient.last_sprain == "2026-08-14" and patient.affected_side == "right"
+    assert win.records.patients.currentItem().text() == "SIM-P1   ·  3 sprain(s), right side"
     click(button(win, "New session"))
     sid = win.records.current_session_id()
 
@@ -84,6 +95,13 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
         print(f"reference {ref}: true mismatch {true_mismatch.round(2)}, measured {measured.round(2)}")
         assert np.all(np.abs(true_mismatch) < 8.0)                 # a patient's error, not minus the reference
         assert np.all(np.abs(measured - true_mismatch) < 1.0)      # the scanner measures what the patient set
+    # after the scan the projector is back to black (no stripe pattern left on the patient), and the
+    # Result tab shows the last trial's angles, without "-0.00"
+    assert win.projector.mode == "black"
+    result_text = win.result_page.angles.text()
+    last = trials[-1]
+    assert "Mismatch" in result_text and f"{last.mismatch_inversion:+.2f}°" in result_text
+    assert "SIMULATED" in result_text and "-0.00" not in result_text
     # the screens say simulated: the trial list (numbered per session) and the 3-D view's title
     texts = [win.records.trials.item(i).text() for i in range(win.records.trials.count())]
     assert [s.split()[1] for s in texts] == ["1", "2", "3"] and all("simulated" in s for s in texts)
