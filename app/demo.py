@@ -200,6 +200,7 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
 
 
 def _record(store, trial_id: int, job: dict, res: dict) -> None:
+    store.set_trial_simulated(trial_id)  # a simulated patient: every report and CSV says so
     store.set_trial_files(trial_id, capture=job["capture"], cloud=job["cloud"])
     m = res["motion"]
     store.set_trial_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
@@ -219,27 +220,17 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     progress(f"simulated rig at scale {scale} (camera {round(1600 * scale)}x{round(1200 * scale)}, projector "
              f"{round(1024 * scale)}x{round(768 * scale)}); output in {out}")
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        progress("calibrating the simulated scanner from a scan of the calibration box (about 20 s)…")
         cal = _calibrate(out, scale, progress)
         cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
         results = []
-        for (job, trial_id), res in zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])):
+        for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]),
+                                                       strict=True), start=1):
             _record(store, trial_id, job, res)
             results.append(res)
-            table = res["angles"]
-            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}°"
-                              for k, v in table.items() if k.startswith("table"))
-            status = "all 7 marks" if res["complete"] else (
-                f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
-            if res["mark_errors_mm"]:
-                worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
-                status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
-            m = res["motion"]
-            if m["mm"] is not None:
-                status += (f"; moved {m['mm']:.2f} ± {m['sd']:.2f} mm (truth {m['true_mm']:.2f})"
-                           + (": FLAGGED, out of the statistics" if m["flagged"] else ""))
-            progress(f"{res['label']}: {shown}  {status}")
+            progress(f"[{k}/{len(jobs)}] {_clinical_line(res, store.get_trial(trial_id))}")
             if res["accuracy"]:
                 acc = res["accuracy"]["subject"]
                 shutil.copyfile(job["cloud"], out / "scan.ply")
@@ -257,6 +248,24 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
 
 
+def _clinical_line(res: dict, trial) -> str:
+    """One trial as a clinician reads it: who, the reference, the mismatch, and what to do (the
+    comparison with the simulator's truth goes to summary.json, not here)."""
+    def deg(v) -> str:
+        if v is None:
+            return "—"
+        text = f"{v:+.1f}"
+        return f"{text[1:] if float(text) == 0 else text}°"  # 0.0, never -0.0
+    text = (f"{res['label']}: mismatch inversion {deg(trial.mismatch_inversion)}, "
+            f"plantar flexion {deg(trial.mismatch_plantar_flexion)}")
+    text += " · all 7 marks found" if res["complete"] else (
+        f" · marks {', '.join(res['missing'])} not found: place them in the 3-D view")
+    m = res["motion"]
+    if m["flagged"]:
+        text += f" · moved {m['mm']:.1f} mm during the scan: left out of the statistics"
+    return text
+
+
 def _summarise(results: list[dict], out: Path, progress) -> None:
     mark_err = [e for r in results for e in r["mark_errors_mm"].values()]
     ang_err = [abs(e) for r in results for e in r["angle_errors_deg"].values()]
@@ -272,7 +281,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
                          for t in sorted({r["mark_type"] for r in results})}}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
-             f"table angles and mismatch); against the simulator's truth: "
+             f"table angles and mismatch); self-check against the simulator's truth (summary.json): "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "
              f"worst angle {summary['max_angle_error_deg'] or float('nan'):.2f}°")
 

@@ -190,6 +190,9 @@ class RigSetup(QObject):
         self.win.session.use_calibration(cal, cid)
         self.win.banner.clear("warning")
         self.win.scan_flow.update_enabled()
+        if not self.win.session.operator:  # who calibrated: asked now, not only at the first session
+            self.win.banner.show_message("info", "Calibration saved. Who is operating? Your name or initials sign "
+                                         "the sessions, marks and reports.", ("Operator…", self.win.records.ask_operator))
 
     def check_calibration_age(self) -> None:
         from anklescan.app.logic.calibration import calibration_warning

@@ -145,6 +145,8 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     assert win.calibration is not None and win.scan_page.scan_button.isEnabled()
     assert not win.scan_page.calibrate_button.isVisible()
     _no_error(win)
+    # saved without an operator: asked for now (a banner with its button), not only at New session
+    assert "Who is operating" in win.banner.text and button(win, "Operator…").isVisible()
 
     # 3. a session; the operator is asked for once
     _new_session(qtbot, win, operator="Dr. Ada Test")
