@@ -229,9 +229,11 @@ class ResultPage(QWidget):
                                 if trial is not None else "")
             return
 
+        def value(v, sd) -> str:  # sd None: a set value (the reference), not a measured one
+            return "—" if v is None else f"{signed(v, 2)}°" + ("" if sd is None else f" ± {sd:.2f}°")
+
         def pair(name: str, inv, inv_sd, pf, pf_sd) -> str:
-            one = "—" if inv is None else f"{signed(inv, 2)}° ± {inv_sd or 0:.2f}°"
-            two = "—" if pf is None else f"{signed(pf, 2)}° ± {pf_sd or 0:.2f}°"
+            one, two = value(inv, inv_sd), value(pf, pf_sd)
             return f"<tr><td>{name}</td><td align=right>{one}</td><td align=right>{two}</td></tr>"
         t = trial
         rows = [pair("<b>Mismatch</b>", t.mismatch_inversion, t.mismatch_inversion_sd, t.mismatch_plantar_flexion,
@@ -239,7 +241,7 @@ class ResultPage(QWidget):
                 pair("Table", t.table_inversion, t.table_inversion_sd, t.table_plantar_flexion,
                      t.table_plantar_flexion_sd),
                 pair("Leg", t.leg_inversion, t.leg_inversion_sd, t.leg_plantar_flexion, t.leg_plantar_flexion_sd),
-                pair("Reference", t.ref_inversion, 0.0, t.ref_plantar_flexion, 0.0)]
+                pair("Reference", t.ref_inversion, None, t.ref_plantar_flexion, None)]
         sim = " <span style='color:#b3261e'><b>SIMULATED patient</b></span>" if t.simulated else ""
         self.angles.setText("<table cellspacing=6><tr><td></td><td><b>Inversion</b></td>"
                             f"<td><b>Plantar flexion</b></td></tr>{''.join(rows)}</table>{sim}")

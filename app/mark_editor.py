@@ -117,7 +117,8 @@ class MarkEditor(QWidget):
         self.hint.setObjectName("hint")
         # a table sized to its columns: the one-line list text was cut off at the panel's width
         self.list = QTableWidget(len(LABELS), 6)
-        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", "SD mm", ""])
+        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", "SD", ""])
+        self.list.horizontalHeaderItem(4).setToolTip("The mark's position SD, mm: how certain its centre is")
         self.list.setWordWrap(True)
         self.list.verticalHeader().hide()
         self.list.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
@@ -125,8 +126,11 @@ class MarkEditor(QWidget):
         self.list.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.list.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.list.horizontalHeader().setSectionResizeMode(STATUS_COLUMN, QHeaderView.ResizeMode.Stretch)
+        # the status read whole (it was cut to "automatic, to ..."): as wide as its longest, and the rest of the row
+        self.list.horizontalHeader().setStretchLastSection(True)
         self.list.currentCellChanged.connect(lambda *_: self._list_selected())
+        # a status wrapped onto two lines when the panel is narrow: rows follow the column's width
+        self.list.horizontalHeader().sectionResized.connect(lambda *_: self._fit_rows())
         self.confirm_button = QPushButton("Confirm automatic marks")
         self.confirm_button.clicked.connect(self.confirm_all)
         self.delete_button = QPushButton("Delete")
@@ -180,7 +184,7 @@ class MarkEditor(QWidget):
         outer.addWidget(marks_box, 1)
         outer.addWidget(angles_box)
         outer.addWidget(self.pick_label)
-        self.setMinimumWidth(300)
+        self.setMinimumWidth(440)  # the marks table's seven rows and their status, read whole
         for lab in LABELS:
             QShortcut(QKeySequence(str(lab)), self, lambda lab=lab: self.set_current_label(lab),
                       context=Qt.ShortcutContext.WindowShortcut)
@@ -330,26 +334,31 @@ class MarkEditor(QWidget):
             if m is None:
                 cells = [str(lab), "", "", "", "", f"{MARK_NAMES[lab]}: not placed"]
             else:
-                how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
+                # short, so that it is read whole in the panel: the tooltip has it in full
+                how = "to confirm" if not m.confirmed else ("auto" if m.source == "auto" else "manual")
                 if m.warning:
-                    how += f" — {m.warning}: less certain"
+                    how += f" ⚠ {m.warning}"
                 cells = ([str(lab)] + [f"{v:.1f}" for v in m.xyz]
                          + ["–" if m.sd_mm is None else f"{m.sd_mm:.2f}", how])
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setData(Qt.ItemDataRole.UserRole, lab)
-                item.setToolTip(text if col == STATUS_COLUMN else "")
+                item.setToolTip(_status_tip(m) if col == STATUS_COLUMN and m is not None else text)
                 if col in (1, 2, 3, 4):
                     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
                 if m is not None and m.warning and col in (4, STATUS_COLUMN):
                     item.setForeground(QColor("#b35c00"))
                 self.list.setItem(row, col, item)
         self.list.selectRow(LABELS.index(self.current_label) if self.current_label in LABELS else 0)
-        self.list.resizeRowsToContents()
-        # all seven rows, never a scrolled window of two to four
-        rows_h = sum(self.list.rowHeight(r) for r in range(self.list.rowCount()))
-        self.list.setMinimumHeight(rows_h + self.list.horizontalHeader().height() + 2 * self.list.frameWidth())
+        self._fit_rows()
         self.list.blockSignals(False)
+
+    def _fit_rows(self) -> None:
+        """Rows as tall as their (wrapped) text, and all seven on screen, never a scrolled window of two to four."""
+        self.list.resizeRowsToContents()
+        rows_h = sum(self.list.rowHeight(r) for r in range(self.list.rowCount()))
+        self.list.setMinimumHeight(rows_h + self.list.horizontalHeader().sizeHint().height()
+                                   + 2 * self.list.frameWidth() + 4)
 
     def _list_selected(self) -> None:
         row = self.list.currentRow()
@@ -377,6 +386,14 @@ class MarkEditor(QWidget):
 
     def show_pick(self, text: str) -> None:
         self.pick_label.setText(text)
+
+
+def _status_tip(m: PlacedMark) -> str:
+    how = ("automatic, not yet confirmed by an operator" if not m.confirmed else
+           "automatic, confirmed" if m.source == "auto" else f"placed by hand{' by ' + m.placed_by if m.placed_by else ''}")
+    sd = "" if m.sd_mm is None else f"; position SD {m.sd_mm:.2f} mm"
+    warn = f"; {m.warning}: its position is less certain than usual" if m.warning else ""
+    return how + sd + warn
 
 
 # ---------------------------------------------------------------------------- store glue
@@ -453,7 +470,7 @@ class MarksPage(QWidget):
         split.addWidget(self.viewer)
         split.addWidget(self.editor)
         split.setStretchFactor(0, 1)
-        split.setSizes([900, 330])
+        split.setSizes([810, 440])
         outer = QVBoxLayout(self)
         outer.addLayout(bar)
         outer.addWidget(split, 1)

@@ -153,9 +153,13 @@ def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, t
     qtbot.wait(100)
     table = win.marks_page.editor.list
     header = [table.horizontalHeaderItem(c).text() for c in range(table.columnCount())]
-    assert "SD mm" in header
+    assert "SD" in header
     row3 = [table.item(2, c).text() for c in range(table.columnCount())]
-    assert row3[header.index("SD mm")] == f"{marks[3].sd_mm:.2f}" and "overexposed" in row3[-1]
+    assert row3[header.index("SD")] == f"{marks[3].sd_mm:.2f}" and "overexposed" in row3[-1]
+    status = table.item(2, table.columnCount() - 1)  # read whole, not cut to "automatic, to ..."
+    rect = table.visualItemRect(status)
+    needed = table.fontMetrics().boundingRect(0, 0, rect.width() - 8, 1000, Qt.TextFlag.TextWordWrap, status.text())
+    assert needed.height() <= rect.height() and needed.width() <= rect.width()
     # every row of the table is on screen, none scrolled away
     assert table.viewport().height() >= sum(table.rowHeight(r) for r in range(table.rowCount()))
     assert "overexposed" in win.marks_page.viewer.mark_notes[3]
