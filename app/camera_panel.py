@@ -103,6 +103,7 @@ class CameraPanel(QWidget):
     controlChanged = Signal(str, float)        # name, value (for the settings)
     testCaptured = Signal(object)              # the full test frame
     profileChanged = Signal(str)               # the simulated patient's profile (PatientProfile value)
+    swayChanged = Signal(float)                # how far the simulated patient sways, mm (0: still)
 
     def __init__(self, backends: list[tuple[str, str]], saturation_level: int = 250, parent=None):
         super().__init__(parent)
@@ -159,6 +160,16 @@ class CameraPanel(QWidget):
         self.patient_box = QGroupBox("Simulated patient")
         pf = QFormLayout(self.patient_box)
         pf.addRow("Profile", self.profile)
+        self.sway = QDoubleSpinBox()
+        self.sway.setRange(0.0, 10.0)
+        self.sway.setSingleStep(0.5)
+        self.sway.setDecimals(1)
+        self.sway.setSuffix(" mm")
+        self.sway.setSpecialValueText("stands still")
+        self.sway.setToolTip("The simulated patient sways sideways by up to this during a scan (slower scans: each "
+                             "frame is rendered at its own pose); over the motion threshold a trial is flagged")
+        self.sway.valueChanged.connect(self.swayChanged.emit)
+        pf.addRow("Sway ±", self.sway)
         self._timer = QTimer(self)
         self._timer.setInterval(PREVIEW_MS)
         self._timer.timeout.connect(self._pull_preview)
@@ -230,6 +241,11 @@ class CameraPanel(QWidget):
         self.profile.blockSignals(True)
         self.profile.setCurrentIndex(max(index, 0))
         self.profile.blockSignals(False)
+
+    def set_sway(self, mm: float) -> None:
+        self.sway.blockSignals(True)
+        self.sway.setValue(float(mm))
+        self.sway.blockSignals(False)
 
     def show_profile(self, simulated: bool) -> None:
         """The simulated patient's box, on the simulated rig only."""

@@ -389,8 +389,9 @@ class MarkEditor(QWidget):
 
 
 def _status_tip(m: PlacedMark) -> str:
+    by = f" by {m.placed_by}" if m.placed_by else ""
     how = ("automatic, not yet confirmed by an operator" if not m.confirmed else
-           "automatic, confirmed" if m.source == "auto" else f"placed by hand{' by ' + m.placed_by if m.placed_by else ''}")
+           "automatic, confirmed" if m.source == "auto" else f"placed by hand{by}")
     sd = "" if m.sd_mm is None else f"; position SD {m.sd_mm:.2f} mm"
     warn = f"; {m.warning}: its position is less certain than usual" if m.warning else ""
     return how + sd + warn

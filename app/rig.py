@@ -32,6 +32,11 @@ class Rig:
 
         self.sim_patient = SimulatedPatient(PatientProfile.parse(profile), seed=0)  # the same answers each start
 
+    def set_sway(self, amplitude_mm: float) -> None:
+        """The simulated patient sways sideways, ±A mm at up to A mm/s, while scanned (0: stands still)."""
+        if self.simulated:
+            _set_sway(self.camera.rig, amplitude_mm)
+
     @property
     def profile_label(self) -> str:
         return self.sim_patient.profile.label if self.sim_patient is not None else ""
@@ -157,8 +162,14 @@ def _sway_from_environment(rig) -> None:
         amplitude = float(os.environ.get("ANKLESCAN_SIM_SWAY_MM", "") or 0.0)
     except ValueError:
         return
-    if amplitude > 0 and amplitude < 100:
+    _set_sway(rig, amplitude)
+
+
+def _set_sway(rig, amplitude: float) -> None:
+    if 0 < amplitude < 100:
         from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock
 
         rig.motion = SwayClock(Sway((1.0, 0.0, 0.0), amplitude_mm=amplitude, speed_mm_s=amplitude),
                                FRAME_S["webcam"])
+    else:
+        rig.motion = None

@@ -70,6 +70,8 @@ class RigSetup(QObject):
         panel.deviceChanged.connect(self._choose_device)
         panel.set_profile(self.settings.get("sim_patient"))
         panel.profileChanged.connect(self.choose_profile)
+        panel.set_sway(self.settings.get("sim_sway_mm"))
+        panel.swayChanged.connect(self.choose_sway)
         self.win.camera_holder.addWidget(panel)
         self.win.camera_holder.setCurrentWidget(panel)
 
@@ -99,6 +101,12 @@ class RigSetup(QObject):
             self.rig.set_profile(profile)
             self._show_rig_label()
 
+    def choose_sway(self, mm: float) -> None:
+        """How far the simulated patient sways (Camera setup): kept, and from the next frame."""
+        self.settings.set("sim_sway_mm", float(mm))
+        if self.rig is not None and self.rig.simulated:
+            self.rig.set_sway(mm)
+
     def _show_rig_label(self) -> None:
         win = self.win
         win.rig_label.setText(self.rig.description)
@@ -111,6 +119,8 @@ class RigSetup(QObject):
         self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
         self._apply_stored_controls()
         self.camera_panel.show_profile(self.rig.simulated)
+        if self.rig.simulated and self.settings.get("sim_sway_mm") > 0:
+            self.rig.set_sway(self.settings.get("sim_sway_mm"))
         self._show_rig_label()
         self._ensure_projector()
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
@@ -192,7 +202,8 @@ class RigSetup(QObject):
         self.win.scan_flow.update_enabled()
         if not self.win.session.operator:  # who calibrated: asked now, not only at the first session
             self.win.banner.show_message("info", "Calibration saved. Who is operating? Your name or initials sign "
-                                         "the sessions, marks and reports.", ("Operator…", self.win.records.ask_operator))
+                                         "the sessions, marks and reports.",
+                                         ("Operator…", self.win.records.ask_operator))
 
     def check_calibration_age(self) -> None:
         from anklescan.app.logic.calibration import calibration_warning

@@ -98,6 +98,7 @@ class ScanFlow(QObject):
         store, tid = self.win.session.store, self.logic.trial_id
         if stance is not None and store is not None and tid is not None:
             store.set_trial_simulated(tid)
+        self.mixed_note = mixed_warning(store, tid, stance is not None)
         return stance
 
     def scan_job(self, plan):
@@ -174,6 +175,8 @@ class ScanFlow(QObject):
                               f"3-D view ({result.marks_note}).", None))
         store = win.session.store
         win.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
+        if getattr(self, "mixed_note", ""):
+            notes.append(("warning", self.mixed_note, None))
         if notes:
             show_notes(win.banner, notes)
         win.scan_page.form.clear_notes()
@@ -212,6 +215,20 @@ class ScanFlow(QObject):
         self.win.scan_page.progress.setFormat("Cancelled")
         self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
                                      f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
+
+
+def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
+    """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
+    if store is None or trial_id is None:
+        return ""
+    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
+    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
+              if t.id != trial_id and t.simulated != simulated]
+    if not others:
+        return ""
+    kind, other = ("simulated", "real") if simulated else ("real", "simulated")
+    return (f"This {kind} trial joins {len(others)} {other} trial(s) of the same patient: reports and the CSV mark "
+            "them, but keep simulated patients apart from real ones.")
 
 
 def stance_profile(rig) -> str:

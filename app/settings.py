@@ -42,6 +42,7 @@ KEYS = {
     "sim_scale": Key("scan/sim_scale", 0.75, float),
     # who stands on the simulated rig (hardware.sim_patient.PatientProfile): "no sprain" or "sprain history"
     "sim_patient": Key("scan/sim_patient", "no sprain", str),
+    "sim_sway_mm": Key("scan/sim_sway_mm", 0.0, float),  # the simulated patient sways ±this, mm (0: still)
     "pattern_preset": Key("scan/pattern_preset", "default", str),
     # a trial whose subject moved more than this during the scan is flagged (core/scan/motion.py)
     "motion_threshold_mm": Key("scan/motion_threshold_mm", 0.5, float),

@@ -141,8 +141,11 @@ def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, t
         qtbot.wait(200)
         return win.store.list_trials(sid)[-1].id
 
+    # the patient already has a real trial (from a real rig): mixing is said, on screen and in the report
+    real = win.store.add_trial(sid, ref_inversion=5.0, ref_plantar_flexion=5.0, status="failed")
+    assert not real.simulated
     low = scan("0", "-20")
-    assert "overexposed" not in win.banner.text
+    assert "overexposed" not in win.banner.text and "keep simulated patients apart" in win.banner.text
     print("\n-20:", {m.label: (round(m.sd_mm, 3), m.warning) for m in win.store.get_marks(low)})
     assert all("overexposed" not in m.warning for m in win.store.get_marks(low))
     high = scan("0", "20")
@@ -174,4 +177,21 @@ def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, t
     text = subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True,
                           check=True).stdout
     assert "mark 3 overexposed" in " ".join(text.split())
+    pages = [p for p in text.split("\f") if p.strip()]
+    assert all("SIMULATED and real trials mixed" in " ".join(p.split()) for p in pages)
+    win.close()
+
+
+def test_the_simulated_patient_sways_as_set_in_camera_setup(qtbot):
+    win = calibrated_window(qtbot)
+    panel = win.camera_panel
+    assert panel.sway.specialValueText() == "stands still" and win.rig.camera.rig.motion is None
+    panel.sway.setValue(2.0)
+    assert win.settings.get("sim_sway_mm") == 2.0
+    assert win.rig.camera.rig.motion is not None and win.rig.camera.rig.motion.sway.amplitude_mm == 2.0
+    # the next trial's stance keeps the sway
+    win.rig.stand_patient((0.0, 0.0), "barefoot")
+    assert win.rig.camera.rig.motion is not None
+    panel.sway.setValue(0.0)
+    assert win.rig.camera.rig.motion is None
     win.close()

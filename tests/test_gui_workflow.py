@@ -160,21 +160,25 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     _no_error(win)
 
     # 5. one mark placed and moved by clicks in the 3-D view, on a trial opened by one click (the
-    # last: the simulated patient stands as for it now, so the simulator's truth is its marks')
-    _click_trial(win, trials[0])
-    _click_trial(win, trials[-1])
-    assert win.tabs.currentIndex() == PAGE_MARKS and "Trial 3 " in win.marks_page.title.text()
-    assert win.records.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[-1]
+    # simulator's truth for it: the stance its capture's manifest records)
+    _click_trial(win, trials[1])
+    assert win.tabs.currentIndex() == PAGE_MARKS and "Trial 2 " in win.marks_page.title.text()
+    assert win.records.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[1]
     viewer, editor = win.marks_page.viewer, win.marks_page.editor
     qtbot.wait(100)
     viewer.render_now()
     click(button(editor, "1"))
     # a click a few pixels beside the knee mark lands on its disk's centre, not where it hit
-    truth = np.asarray(win.rig.camera.rig.truth().marks["1"], float)
+    import json
+
+    from anklescan.hardware.sim_scene import leg_scene
+    stance = json.loads((win.store.resolve(stored[1].capture_path) / "manifest.json").read_text())["capture"][
+        "simulated_patient"]
+    truth = np.asarray(leg_scene(*stance["table_deg"]).marks["1"].centre, float)
     x, y, _ = viewer.widget_pos_of(truth[None])[0]
     with qtbot.waitSignal(editor.snapped, timeout=60_000):
         click_at(viewer, int(x) + 3, int(y) + 2)
-    mark = {m.label: m for m in win.store.get_marks(trials[-1])}[1]
+    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
     snapped_error = np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth)
     print(f"\nmark 1 placed by a click 3 px off: {snapped_error:.2f} mm from the truth ({editor.pick_label.text()})")
     assert snapped_error < 0.5 and "centre" in editor.pick_label.text()
@@ -184,7 +188,7 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     x, y, _ = viewer.widget_pos_of(target[None])[0]
     with qtbot.waitSignal(editor.snapped, timeout=60_000):
         click_at(viewer, int(x), int(y))
-    mark = {m.label: m for m in win.store.get_marks(trials[-1])}[1]
+    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
     assert mark.source == "manual" and mark.placed_by == "Dr. Ada Test"
     assert np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth) > 5
     assert "moved" not in win.banner.text
