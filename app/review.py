@@ -70,7 +70,11 @@ class Review(QObject):
         sid, logic = self.win.records.current_session_id(), self.win.session
         if self.session_view is None or logic.store is None:
             return
-        self.session_view.set_rows(logic.session_rows(sid), title=logic.session_title(sid) if sid is not None else None)
+        rows = logic.session_rows(sid)
+        title = logic.session_title(sid) if sid is not None else None
+        if title and any(r.get("simulated") for r in rows):  # simulated trials are never shown as patient data
+            title += " · SIMULATED patient"
+        self.session_view.set_rows(rows, title=title)
 
     # ---- the 3-D view ---------------------------------------------------------------------
     def show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:

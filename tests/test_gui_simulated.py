@@ -11,7 +11,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QLineEdit
 
-from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN
+from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION
 from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
 from gui_actions import button, calibrated_window, click, menu_action, press_accept, save_as, with_dialog
 
@@ -105,6 +105,9 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
     # the screens say simulated: the trial list (numbered per session) and the 3-D view's title
     texts = [win.records.trials.item(i).text() for i in range(win.records.trials.count())]
     assert [s.split()[1] for s in texts] == ["1", "2", "3"] and all("simulated" in s for s in texts)
+
+    win.tabs.setCurrentIndex(PAGE_SESSION)  # the session plots say it in their title
+    assert "SIMULATED" in win.session_view.title
 
     pdf = tmp_path / "out" / "report.pdf"
     pdf.parent.mkdir()
