@@ -114,14 +114,27 @@ class WizardPages:
         self.report_view = ZoomView()
         self.report_summary = QLabel("")
         self.report_summary.setWordWrap(True)
+        self.report_verdict = QLabel("")  # the answer first, large: may this calibration be used?
+        self.report_verdict.setWordWrap(True)
+        self.report_verdict.setObjectName("calibrationVerdict")
         self.report_text = QPlainTextEdit()
         self.report_text.setReadOnly(True)
         self.report_text.setStyleSheet("font-family: monospace; font-size: 11px;")
+        self.report_text.hide()  # the fitted parameters are for an engineer: shown on request
+        self.report_details = QPushButton("Show the fitted parameters")
+        self.report_details.setCheckable(True)
+        self.report_details.setFlat(True)
+        self.report_details.toggled.connect(self.report_text.setVisible)
+        self.report_details.toggled.connect(lambda on: self.report_details.setText(
+            "Hide the fitted parameters" if on else "Show the fitted parameters"))
         side = QWidget()
         sv = QVBoxLayout(side)
         sv.setContentsMargins(0, 0, 0, 0)
+        sv.addWidget(self.report_verdict)
         sv.addWidget(self.report_summary)
+        sv.addWidget(self.report_details)
         sv.addWidget(self.report_text, 1)
+        sv.addStretch(0)
         split = QSplitter()
         split.addWidget(self.report_view)
         split.addWidget(side)
@@ -226,6 +239,17 @@ class WizardPages:
 
     def _report_summary_text(self, rep) -> None:
         ok = rep.camera.rms_px < 1.0 and rep.projector.rms_px < 1.0 and not rep.warnings
+        worst = max(rep.camera.rms_px, rep.projector.rms_px)
+        if ok:
+            verdict = ("<span style='color:#2e6b3a; font-size:16pt'><b>✔ Good calibration</b></span><br>"
+                       f"The scanner's model fits the box to {worst:.2f} px on average. Accept and save it, then "
+                       "verify it with a second scan of the box.")
+        else:
+            why = (f"{len(rep.warnings)} warning(s)" if rep.warnings else
+                   f"a fit of {worst:.2f} px, above the 1 px a good calibration reaches")
+            verdict = ("<span style='color:#b35c00; font-size:16pt'><b>⚠ Check before accepting</b></span><br>"
+                       f"This calibration has {why}: see below; scan the box again, or use the manual method.")
+        self.report_verdict.setText(verdict)
         self.report_summary.setText(
             f"<b>Camera</b> RMS {rep.camera.rms_px:.3f} px ({rep.camera.n_points} points) · "
             f"<b>Projector</b> RMS {rep.projector.rms_px:.3f} px ({rep.projector.n_points} points)<br>"

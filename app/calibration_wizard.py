@@ -183,6 +183,12 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         frame, rgb, n = result
         self._last_frame = frame
         if page == PAGE_PLACE:
+            if not mode == "white" == self.projector.mode:
+                # photographed before the projector lit the box: a black picture and "0 markers"
+                # would only mislead; the next frame, under white, is shown
+                self.place_count.setText("Lighting the box with the projector…")
+                self.place_count.setStyleSheet("")
+                return
             self.show_place_frame(rgb, n)
         elif page == PAGE_MANUAL:
             # clicks are refined on the box under white light, not the spot: white at both ends

@@ -16,6 +16,8 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout
                                QHBoxLayout, QLabel, QPushButton, QSizePolicy, QSpinBox, QVBoxLayout,
                                QWidget)
 
+from anklescan.hardware.sim_patient import PatientProfile
+
 
 PREVIEW_MS = 100
 USB_POLL_MS = 2000  # plug/unplug shows within 2 s; one enumeration costs well under a millisecond
@@ -100,6 +102,8 @@ class CameraPanel(QWidget):
     settleChanged = Signal(float)              # settle time in ms (self-test result or typed)
     controlChanged = Signal(str, float)        # name, value (for the settings)
     testCaptured = Signal(object)              # the full test frame
+    profileChanged = Signal(str)               # the simulated patient's profile (PatientProfile value)
+    swayChanged = Signal(float)                # how far the simulated patient sways, mm (0: still)
 
     def __init__(self, backends: list[tuple[str, str]], saturation_level: int = 250, parent=None):
         super().__init__(parent)
@@ -147,6 +151,25 @@ class CameraPanel(QWidget):
         self.test_button = QPushButton("Test capture")
         self.test_button.clicked.connect(self.test_capture)
         self._controls_form = QFormLayout()
+        self.profile = QComboBox()
+        self.profile.setToolTip("Who stands on the simulated rig: the patient sets the adjustable table to match "
+                                "the reference angles typed on the Scan page, with this profile's bias and noise")
+        for p in PatientProfile:
+            self.profile.addItem(p.label, p.value)
+        self.profile.currentIndexChanged.connect(lambda _: self.profileChanged.emit(self.profile.currentData()))
+        self.patient_box = QGroupBox("Simulated patient")
+        pf = QFormLayout(self.patient_box)
+        pf.addRow("Profile", self.profile)
+        self.sway = QDoubleSpinBox()
+        self.sway.setRange(0.0, 10.0)
+        self.sway.setSingleStep(0.5)
+        self.sway.setDecimals(1)
+        self.sway.setSuffix(" mm")
+        self.sway.setSpecialValueText("stands still")
+        self.sway.setToolTip("The simulated patient sways sideways by up to this during a scan (slower scans: each "
+                             "frame is rendered at its own pose); over the motion threshold a trial is flagged")
+        self.sway.valueChanged.connect(self.swayChanged.emit)
+        pf.addRow("Sway ±", self.sway)
         self._timer = QTimer(self)
         self._timer.setInterval(PREVIEW_MS)
         self._timer.timeout.connect(self._pull_preview)
@@ -184,7 +207,7 @@ class CameraPanel(QWidget):
         buttons.addStretch(1)
         buttons.addWidget(self.test_button)
         side = QVBoxLayout()
-        for w in (source, controls, exposure, timing):
+        for w in (source, self.patient_box, controls, exposure, timing):
             side.addWidget(w)
         side.addStretch(1)
         side_w = QWidget()
@@ -211,6 +234,22 @@ class CameraPanel(QWidget):
         self._show_settle_of(camera)
         if self._watcher is None:
             self.start_usb_watch()
+
+    def set_profile(self, profile: str) -> None:
+        """Show the stored simulated patient's profile without announcing it."""
+        index = self.profile.findData(profile)
+        self.profile.blockSignals(True)
+        self.profile.setCurrentIndex(max(index, 0))
+        self.profile.blockSignals(False)
+
+    def set_sway(self, mm: float) -> None:
+        self.sway.blockSignals(True)
+        self.sway.setValue(float(mm))
+        self.sway.blockSignals(False)
+
+    def show_profile(self, simulated: bool) -> None:
+        """The simulated patient's box, on the simulated rig only."""
+        self.patient_box.setVisible(simulated)
 
     def _rebuild_controls(self) -> None:
         while self._controls_form.rowCount():

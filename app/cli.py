@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("qt_args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     g.set_defaults(func=cmd_gui)
 
-    d = sub.add_parser("demo", help="a whole clinical session on the built-in simulated rig")
+    d = sub.add_parser("demo", help="a whole simulated study (calibration, two simulated patients, "
+                                    "three sessions, report) on the built-in simulated rig, no hardware")
     d.add_argument("--out", required=True, help="output folder")
     d.add_argument("--quick", action="store_true", help="one condition, four settings (a quick look)")
     d.add_argument("--study", action="store_true",
@@ -170,13 +171,15 @@ def build_parser() -> argparse.ArgumentParser:
     io.set_defaults(func=cmd_import_opencv_graycode, out_is_folder=True)
 
     m = sub.add_parser("measure", help="reconstruct, find and label the 7 marks, compute the angles")
-    m.add_argument("capture")
-    m.add_argument("--calibration", required=True)
+    m.add_argument("capture", metavar="CAPTURE", help="a capture folder (frames + manifest.json)")
+    m.add_argument("--calibration", required=True, metavar="FILE", help="the rig's calibration JSON")
     m.add_argument("--mark-diameter", type=bounded_float(0, MAX_MARK_DIAMETER_MM, "mm", lo_open=True), default=None,
                    metavar="MM",
                    help="the marks' diameter in mm (default: measured from the capture)")
-    m.add_argument("--out", required=True)
-    m.add_argument("--motion-threshold", type=_LENGTH_MM, default=0.5,
+    m.add_argument("--out", required=True, metavar="RESULT.json",
+                   help="the result file to write (marks, angles ± SD, motion); written only for a complete "
+                        "measurement")
+    m.add_argument("--motion-threshold", type=_LENGTH_MM, default=0.5, metavar="MM",
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
     m.set_defaults(func=cmd_measure)
 

@@ -18,44 +18,20 @@ import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-
-from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private, seal_output_dir,
-                                   write_text_atomic)
+from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private,
+                                   seal_output_dir, write_text_atomic)
 from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
+from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
 
 # The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
 # the next demo run replaces exactly those, and refuses a folder holding anything else.
 OUTPUT_COMMAND = "demo"
 
 
-@dataclass(frozen=True)
-class SimPatient:
-    code: str
-    sprain_count: int
-    last_sprain: str | None
-    notes: str
-    # the table setting error, degrees: bias + gain_inv * inversion + gain_pf * plantar flexion + noise
-    bias: tuple  # (inversion, plantar flexion)
-    gain_inv: tuple
-    gain_pf: tuple
-    noise: float
-    shoes_factor: float  # shoes give the ankle a better sense of the angle (the paper's finding)
-    # the clinic's marks for this patient: type, diameter (mm), and whether the session is told
-    # the size (else measured from each capture)
-    marks: tuple = ("plate", 15.0, False)
-
-
-PATIENTS = (
-    SimPatient("SIM-01", 3, "2026-08-14", "simulated: recurrent sprains, right ankle", (1.5, -1.0), (0.12, 0.0),
-               (0.05, -0.08), 1.6, 0.55, ("sticker", 12.0, False)),
-    SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
-               ("plate", 15.0, True)),
-)
 INVERSIONS = (0.0, 10.0, 20.0)
 # the issue's whole range in three steps (the benchmark has all five: docs/marks.md)
 PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
@@ -63,12 +39,6 @@ PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
 # (sprain history vs none) — the study's two comparisons in three sessions, under two minutes
 SESSIONS = (("SIM-01", "barefoot"), ("SIM-01", "shoes"), ("SIM-02", "barefoot"))
 DEMO_SCALE = 0.75  # marks are found reliably from 0.75 up; 0.75 keeps the demo under two minutes
-
-
-def table_setting(p: SimPatient, condition: str, inversion: float, pf: float, rng) -> tuple[float, float]:
-    f = p.shoes_factor if condition == "shoes" else 1.0
-    err = [f * (p.bias[i] + p.gain_inv[i] * inversion + p.gain_pf[i] * pf + rng.normal(0.0, p.noise)) for i in (0, 1)]
-    return inversion + err[0], pf + err[1]
 
 
 # ---------------------------------------------------------------------------- workers
@@ -102,13 +72,13 @@ def _calibration(obj: dict):
 
 def _scan_trial(job: dict) -> dict:
     """Simulate one trial's scan, save it, measure it; compare with the truth (demo only)."""
-    from anklescan.core.scan.capture import load_capture, save_capture
     from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.capture import load_capture, save_capture
+    from anklescan.core.scan.motion import default_motion_refs
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.core.scan.pointcloud import write_ply
     from anklescan.core.scan.triangulate import scan_axes
     from anklescan.hardware.sim_accuracy import as_dict, evaluate
-    from anklescan.core.scan.motion import default_motion_refs
     from anklescan.hardware.sim_scene import angles_from_marks, leg_scene
     from anklescan.hardware.sim_sway import FRAME_S, Sway, swaying_capture, true_largest_displacement
     from anklescan.hardware.simrig import SimRig
@@ -166,11 +136,10 @@ def _warm_pool(scale: float) -> ProcessPoolExecutor:
 
 def _calibrate(out: Path, scale: float, progress) -> dict:
     from anklescan.core.calibration.box import calibrate_from_box_capture
-    from anklescan.hardware.sim_scene import box_scene_objects
     from anklescan.core.calibration.file import calibration_to_dict, save_calibration
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
-    from anklescan.hardware.sim_scene import quad_scene
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
     from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)
@@ -239,6 +208,7 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
 
 
 def _record(store, trial_id: int, job: dict, res: dict) -> None:
+    store.set_trial_simulated(trial_id)  # a simulated patient: every report and CSV says so
     store.set_trial_files(trial_id, capture=job["capture"], cloud=job["cloud"])
     m = res["motion"]
     store.set_trial_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
@@ -265,27 +235,17 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     progress(f"simulated rig at scale {scale} (camera {round(1600 * scale)}x{round(1200 * scale)}, projector "
              f"{round(1024 * scale)}x{round(768 * scale)}); output in {out}")
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
+        progress("calibrating the simulated scanner from a scan of the calibration box (about 20 s)…")
         cal = _calibrate(out, scale, progress)
         cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
         results = []
-        for (job, trial_id), res in zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])):
+        for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]),
+                                                       strict=True), start=1):
             _record(store, trial_id, job, res)
             results.append(res)
-            table = res["angles"]
-            shown = "  ".join(f"{k.replace('table_', 'table ').replace('_', ' ')} {v['value']:+6.2f}° ± {v['sd']:.2f}°"
-                              for k, v in table.items() if k.startswith("table"))
-            status = "all 7 marks" if res["complete"] else (
-                f"marks {', '.join(res['missing'])} not found: place them in the 3-D view")
-            if res["mark_errors_mm"]:
-                worst = max(res["mark_errors_mm"], key=res["mark_errors_mm"].get)
-                status += f" (truth: worst centre {res['mark_errors_mm'][worst]:.2f} mm, mark {worst})"
-            m = res["motion"]
-            if m["mm"] is not None:
-                status += (f"; moved {m['mm']:.2f} ± {m['sd']:.2f} mm (truth {m['true_mm']:.2f})"
-                           + (": FLAGGED, out of the statistics" if m["flagged"] else ""))
-            progress(f"{res['label']}: {shown}  {status}")
+            progress(f"[{k}/{len(jobs)}] {_clinical_line(res, store.get_trial(trial_id))}")
             if res["accuracy"]:
                 acc = res["accuracy"]["subject"]
                 copy_private(job["cloud"], out / "scan.ply")
@@ -303,6 +263,24 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
 
 
+def _clinical_line(res: dict, trial) -> str:
+    """One trial as a clinician reads it: who, the reference, the mismatch, and what to do (the
+    comparison with the simulator's truth goes to summary.json, not here)."""
+    def deg(v) -> str:
+        if v is None:
+            return "—"
+        text = f"{v:+.1f}"
+        return f"{text[1:] if float(text) == 0 else text}°"  # 0.0, never -0.0
+    text = (f"{res['label']}: mismatch inversion {deg(trial.mismatch_inversion)}, "
+            f"plantar flexion {deg(trial.mismatch_plantar_flexion)}")
+    text += " · all 7 marks found" if res["complete"] else (
+        f" · marks {', '.join(res['missing'])} not found: place them in the 3-D view")
+    m = res["motion"]
+    if m["flagged"]:
+        text += f" · moved {m['mm']:.1f} mm during the scan: left out of the statistics"
+    return text
+
+
 def _summarise(results: list[dict], out: Path, progress) -> None:
     mark_err = [e for r in results for e in r["mark_errors_mm"].values()]
     ang_err = [abs(e) for r in results for e in r["angle_errors_deg"].values()]
@@ -318,7 +296,7 @@ def _summarise(results: list[dict], out: Path, progress) -> None:
                          for t in sorted({r["mark_type"] for r in results})}}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")  # atomic and private
     progress(f"{complete}/{len(results)} trials with all seven marks found automatically (the others keep their "
-             f"table angles and mismatch); against the simulator's truth: "
+             f"table angles and mismatch); self-check against the simulator's truth (summary.json): "
              f"worst mark centre {summary['max_mark_error_mm'] or float('nan'):.2f} mm, "
              f"worst angle {summary['max_angle_error_deg'] or float('nan'):.2f}°")
 

@@ -20,8 +20,14 @@ def no_args(slot):
     return lambda *_args: slot()
 
 
+def signed(value: float, digits: int = 1) -> str:
+    """``+1.2`` / ``-1.2``, and ``0.0`` for a value that rounds to zero (never "-0.00")."""
+    text = f"{value:+.{digits}f}"
+    return text[1:] if float(text) == 0 else text
+
+
 def deg(value) -> str:
-    return "—" if value is None else f"{value:+.1f}°"
+    return "—" if value is None else f"{signed(value)}°"
 
 
 # ---------------------------------------------------------------------------- small widgets
@@ -96,7 +102,11 @@ class NewPatientDialog(QDialog):
         form = QFormLayout(self)
         form.addRow("Patient code", self.code)
         form.addRow("", self.message)
+        self.last_sprain = QLineEdit()
+        self.last_sprain.setPlaceholderText("YYYY-MM-DD, or empty")
+        self.last_sprain.setToolTip("The date of the last sprain (reports print it); leave empty when none")
         form.addRow("Sprains (last 6 months)", self.sprains)
+        form.addRow("Last sprain", self.last_sprain)
         form.addRow("Affected side", self.side)
         buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Ok | QDialogButtonBox.StandardButton.Cancel)
         buttons.accepted.connect(self.accept)
@@ -107,8 +117,8 @@ class NewPatientDialog(QDialog):
     def accept(self) -> None:
         from anklescan.core.records.store import patient_code_problem
         code = self.code.text().strip()
-        problem = patient_code_problem(code) or (f"Patient {code} already exists: choose another code."
-                                                 if self._exists(code) else "")
+        problem = (patient_code_problem(code) or (f"Patient {code} already exists: choose another code."
+                                                  if self._exists(code) else "") or self.last_sprain_problem())
         if problem:  # stay open with everything typed, and say why
             self.message.setText(problem)
             self.message.setStyleSheet("color: #b3261e;")
@@ -116,6 +126,23 @@ class NewPatientDialog(QDialog):
             self.code.selectAll()
             return
         super().accept()
+
+    def last_sprain_date(self) -> str | None:
+        text = self.last_sprain.text().strip()
+        return text or None
+
+    def last_sprain_problem(self) -> str:
+        import datetime as _dt
+        text = self.last_sprain.text().strip()
+        if not text:
+            return ""
+        try:
+            day = _dt.date.fromisoformat(text)
+        except ValueError:
+            return f"Last sprain '{text}' is not a date: write it as YYYY-MM-DD (e.g. 2026-08-14), or leave it empty."
+        if day > _dt.date.today():
+            return f"Last sprain {text} is in the future."
+        return ""
 
 
 # ---------------------------------------------------------------------------- pages
@@ -180,10 +207,41 @@ class ResultPage(QWidget):
         self.summary.setObjectName("hint")
         self.summary.setWordWrap(True)
         self.new_trial = QPushButton("Next trial")
+        # the trial's angles, once its marks are found (SPEC §3): what the clinician scanned for
+        self.angles = QLabel("")
+        self.angles.setObjectName("resultAngles")
+        self.angles.setWordWrap(True)
+        self.angles.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        self.angles.setStyleSheet("font-size: 13pt;")
         row = QHBoxLayout()
         row.addWidget(self.summary, 1)
         row.addWidget(self.new_trial)
         outer = QVBoxLayout(self)
         outer.addWidget(heading)
         outer.addWidget(self.image, 1)
+        outer.addWidget(self.angles)
         outer.addLayout(row)
+
+    def show_angles(self, trial) -> None:
+        """The trial's mismatch, table and leg angles (± SD), or why there are none yet."""
+        if trial is None or trial.table_inversion is None:
+            self.angles.setText("Angles: not yet — the marks are placed or confirmed in 4  3-D marks."
+                                if trial is not None else "")
+            return
+
+        def value(v, sd) -> str:  # sd None: a set value (the reference), not a measured one
+            return "—" if v is None else f"{signed(v, 2)}°" + ("" if sd is None else f" ± {sd:.2f}°")
+
+        def pair(name: str, inv, inv_sd, pf, pf_sd) -> str:
+            one, two = value(inv, inv_sd), value(pf, pf_sd)
+            return f"<tr><td>{name}</td><td align=right>{one}</td><td align=right>{two}</td></tr>"
+        t = trial
+        rows = [pair("<b>Mismatch</b>", t.mismatch_inversion, t.mismatch_inversion_sd, t.mismatch_plantar_flexion,
+                     t.mismatch_plantar_flexion_sd),
+                pair("Table", t.table_inversion, t.table_inversion_sd, t.table_plantar_flexion,
+                     t.table_plantar_flexion_sd),
+                pair("Leg", t.leg_inversion, t.leg_inversion_sd, t.leg_plantar_flexion, t.leg_plantar_flexion_sd),
+                pair("Reference", t.ref_inversion, None, t.ref_plantar_flexion, None)]
+        sim = " <span style='color:#b3261e'><b>SIMULATED patient</b></span>" if t.simulated else ""
+        self.angles.setText("<table cellspacing=6><tr><td></td><td><b>Inversion</b></td>"
+                            f"<td><b>Plantar flexion</b></td></tr>{''.join(rows)}</table>{sim}")

@@ -59,6 +59,7 @@ class MainWindow(QMainWindow):
         self._wire()
         self.session.ask_read_only = self._ask_read_only
         self.session.open_store(self.data_folder())
+        self._warn_settings()
         self._restore_geometry()
         if open_rig_now:
             self.rig_setup.finish_startup(in_background=False)
@@ -95,6 +96,19 @@ class MainWindow(QMainWindow):
         self.statusBar().addWidget(self.projector_label)
         self.statusBar().addPermanentWidget(self.data_label)
 
+    def _warn_settings(self) -> None:
+        """Settings that cannot be kept are said at once, in the banner and (lasting) in the status bar."""
+        problem = self.settings.problem()
+        if problem:
+            # a banner of its own: the next notice (e.g. "No calibration") must not take it away
+            self.settings_banner = Banner()
+            self.banner.parentWidget().layout().insertWidget(0, self.settings_banner)
+            self.settings_banner.show_message("error", problem)
+            self.settings_label = QLabel("Settings are NOT saved")
+            self.settings_label.setToolTip(problem)
+            self.settings_label.setStyleSheet("color: #b3261e; font-weight: bold;")
+            self.statusBar().addPermanentWidget(self.settings_label)
+
     @staticmethod
     def _holder(text: str) -> QStackedWidget:
         holder = QStackedWidget()
@@ -120,10 +134,16 @@ class MainWindow(QMainWindow):
         act(file, "Session &report (PDF + CSV)…", review.export_session_report, "Ctrl+R")
         act(file, "&Study report…", self.study.open_study_report)
         act(file, "Patient &history…", self.study.open_patient_history)
+        act(file, "&Print…", review.print_current, QKeySequence.StandardKey.Print)
         file.addSeparator()
         file.addActions([rec.exclude_action, rec.restore_action, rec.archive_session_action, rec.archive_patient_action])
         file.addSeparator()
         act(file, "&Quit", self.close, QKeySequence.StandardKey.Quit)
+        edit = self.menuBar().addMenu("&Edit")  # the mark editor's undo stack (app.review)
+        self.undo_action = act(edit, "&Undo", review.undo, QKeySequence.StandardKey.Undo)
+        self.redo_action = act(edit, "&Redo", review.redo, QKeySequence.StandardKey.Redo)
+        edit.aboutToShow.connect(review.update_edit_actions)
+        review.update_edit_actions()
         scan = self.menuBar().addMenu("&Scan")
         self.scan_action = act(scan, "&Start scan", self.scan_flow.start_scan, "F5")
         self.cancel_action = act(scan, "&Cancel scan", self.scan_flow.cancel_scan, "Esc")
@@ -131,6 +151,7 @@ class MainWindow(QMainWindow):
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
         self.daily_check_action = act(scan, "&Daily check…", lambda: open_daily_check(self))
+        act(scan, "C&hoose calibration…", rig.choose_calibration)
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
                            ("Calibration spot (arrow keys move it)", "spot")):
@@ -141,8 +162,12 @@ class MainWindow(QMainWindow):
         view.addSeparator()
         screens = view.addMenu("Projector &monitor")
         screens.aboutToShow.connect(lambda: rig.fill_screen_menu(screens))
-        act(view, "Show &projector window", rig.show_projector, "Ctrl+P")
-        act(self.menuBar().addMenu("&Help"), "&About AnkleScan", self.about)
+        act(view, "Show &projector window", rig.show_projector, "Ctrl+Shift+P")  # Ctrl+P prints
+        help_menu = self.menuBar().addMenu("&Help")
+        act(help_menu, "&User guide", self.show_guide, QKeySequence.StandardKey.HelpContents)
+        act(help_menu, "&Keyboard shortcuts", self.show_shortcuts)
+        help_menu.addSeparator()
+        act(help_menu, "&About AnkleScan", self.about)
 
     def _wire(self) -> None:
         self.session.notice.connect(self.banner.show_message)
@@ -203,8 +228,16 @@ class MainWindow(QMainWindow):
         return answer == QMessageBox.StandardButton.Yes
 
     def about(self) -> None:
-        QMessageBox.about(self, "About AnkleScan", "AnkleScan measures functional ankle instability with a "
-                          "structured-light 3-D scanner (one camera, one projector).")
+        from anklescan.app.help_menu import about_text
+        QMessageBox.about(self, "About AnkleScan", about_text())
+
+    def show_guide(self) -> None:
+        from anklescan.app.help_menu import GuideDialog
+        GuideDialog(self).exec()
+
+    def show_shortcuts(self) -> None:
+        from anklescan.app.help_menu import ShortcutsDialog
+        ShortcutsDialog(self).exec()
 
     # ---- housekeeping -------------------------------------------------------------------
     def _restore_geometry(self) -> None:

@@ -15,11 +15,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtGui import QKeySequence, QShortcut, QUndoCommand, QUndoStack
+from PySide6.QtGui import QColor, QKeySequence, QShortcut, QUndoCommand, QUndoStack
 from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout,
                                QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
 
+from anklescan.app.main_parts import signed
 from anklescan.core.measure.angles import compute_angles
 from anklescan.core.vocabulary import LABELS, MARK_NAMES
 
@@ -27,6 +28,7 @@ ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Le
                 "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion",
                 "mismatch_inversion": "Mismatch, inversion", "mismatch_plantar_flexion": "Mismatch, plantar flexion"}
 CONFIRMED_PREFIX = "confirmed by "
+STATUS_COLUMN = 5  # the marks table's last column: automatic / manual, and any warning
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,15 @@ class PlacedMark:
     source: str = "manual"   # 'auto' | 'manual' (the store's vocabulary)
     confirmed: bool = True   # auto marks start unconfirmed
     placed_by: str = ""
+    sd_mm: float | None = None   # an automatic mark's position SD (None: placed by hand, not measured)
+    warning: str = ""            # why its position is less certain ("overexposed"), "" when it is not
+
+    @property
+    def note(self) -> str:
+        """"±0.14 mm ⚠ overexposed": its SD and any warning, as the 3-D view writes it beside the label."""
+        from anklescan.app.viewer_labels import WARNING_MARK
+        sd = "" if self.sd_mm is None else f"±{self.sd_mm:.2f} mm"
+        return (sd + (f" {WARNING_MARK} {self.warning}" if self.warning else "")).strip()
 
 
 PlacedMarks = dict[int, PlacedMark]
@@ -51,12 +62,17 @@ class _SetMarks(QUndoCommand):
         self.editor = editor
         self.after = after
         self.before = {k: editor.marks.get(k) for k in after}
+        self.done_once = False
 
     def redo(self) -> None:
         self.editor._apply(self.after)
+        if self.done_once:  # Redo, not the first push: the click's message no longer holds
+            self.editor.show_pick(f"Redone: {self.text()}.")
+        self.done_once = True
 
     def undo(self) -> None:
         self.editor._apply(self.before)
+        self.editor.show_pick(f"Undone: {self.text()}.")
 
 
 # ---------------------------------------------------------------------------- the editor
@@ -104,16 +120,21 @@ class MarkEditor(QWidget):
         self.hint.setWordWrap(True)
         self.hint.setObjectName("hint")
         # a table sized to its columns: the one-line list text was cut off at the panel's width
-        self.list = QTableWidget(len(LABELS), 5)
-        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", ""])
+        self.list = QTableWidget(len(LABELS), 6)
+        self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", "SD", ""])
+        self.list.horizontalHeaderItem(4).setToolTip("The mark's position SD, mm: how certain its centre is")
+        self.list.setWordWrap(True)
         self.list.verticalHeader().hide()
         self.list.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
         self.list.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.list.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.list.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
-        self.list.horizontalHeader().setSectionResizeMode(4, QHeaderView.ResizeMode.Stretch)
+        # the status read whole (it was cut to "automatic, to ..."): as wide as its longest, and the rest of the row
+        self.list.horizontalHeader().setStretchLastSection(True)
         self.list.currentCellChanged.connect(lambda *_: self._list_selected())
+        # a status wrapped onto two lines when the panel is narrow: rows follow the column's width
+        self.list.horizontalHeader().sectionResized.connect(lambda *_: self._fit_rows())
         self.confirm_button = QPushButton("Confirm automatic marks")
         self.confirm_button.clicked.connect(self.confirm_all)
         self.delete_button = QPushButton("Delete")
@@ -167,12 +188,11 @@ class MarkEditor(QWidget):
         outer.addWidget(marks_box, 1)
         outer.addWidget(angles_box)
         outer.addWidget(self.pick_label)
-        self.setMinimumWidth(300)
+        self.setMinimumWidth(440)  # the marks table's seven rows and their status, read whole
         for lab in LABELS:
             QShortcut(QKeySequence(str(lab)), self, lambda lab=lab: self.set_current_label(lab),
                       context=Qt.ShortcutContext.WindowShortcut)
-        QShortcut(QKeySequence.StandardKey.Undo, self, self.undo_stack.undo, context=Qt.ShortcutContext.WindowShortcut)
-        QShortcut(QKeySequence.StandardKey.Redo, self, self.undo_stack.redo, context=Qt.ShortcutContext.WindowShortcut)
+        # Ctrl+Z / Ctrl+Shift+Z are the main window's Edit ▸ Undo / Redo (app.review), which act on this stack
         QShortcut(QKeySequence.StandardKey.Delete, self, lambda: self.delete(self.current_label),
                   context=Qt.ShortcutContext.WindowShortcut)
 
@@ -194,17 +214,26 @@ class MarkEditor(QWidget):
     def load_trial(self, store, trial_id: int) -> None:
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
 
-    def propose_auto(self, detected: dict, warnings: list[str] | None = None, covariance=None) -> None:
-        """Detected marks (label → xyz) to confirm, saved as 'auto'. They are where the undo
-        history starts: Undo goes back to them, never past them to an empty trial. ``warnings``:
-        the measurement's (shown beside the marks they name); ``covariance``: its JointCovariance."""
+    def propose_auto(self, detected: dict, quality: dict | None = None, warnings: list[str] | None = None,
+                     covariance=None) -> None:
+        """Detected marks (label → xyz) to confirm, saved as 'auto', with their SD and warnings
+        (``quality``: label → app.scan_worker.MarkQuality). They are where the undo history
+        starts: Undo goes back to them, never past them to an empty trial. ``warnings``: the
+        measurement's (shown beside the marks they name); ``covariance``: its JointCovariance."""
         from anklescan.core.measure.measure_warnings import warnings_by_mark
 
         self.mark_notes = warnings_by_mark(list(warnings or []))
         self.position_covariance = covariance
-        after = {int(k): PlacedMark(tuple(map(float, v)), "auto", False) for k, v in detected.items()}
+        quality = quality or {}
+
+        def placed(k, v) -> PlacedMark:
+            q = quality.get(int(k))
+            return PlacedMark(tuple(map(float, v)), "auto", False, "", None if q is None else q.sd_mm,
+                              "" if q is None else q.warning)
+        after = {int(k): placed(k, v) for k, v in detected.items()}
         self._apply(after)
         self.undo_stack.clear()
+        self.pick_label.setText("Click the cloud to place the selected mark.")
 
     # ---- edits (all undoable) ------------------------------------------------------------
     def set_current_label(self, label: int) -> None:
@@ -295,7 +324,8 @@ class MarkEditor(QWidget):
 
     def _refresh(self, save: bool = True) -> None:
         unconfirmed = {lab for lab, m in self.marks.items() if not m.confirmed}
-        self.viewer.set_marks({lab: m.xyz for lab, m in self.marks.items()}, unconfirmed, self.current_label)
+        self.viewer.set_marks({lab: m.xyz for lab, m in self.marks.items()}, unconfirmed, self.current_label,
+                              {lab: m.note for lab, m in self.marks.items()})
         self._refresh_list()
         self._refresh_angles()
         button = self.label_buttons.button(self.current_label)
@@ -313,22 +343,37 @@ class MarkEditor(QWidget):
         for row, lab in enumerate(LABELS):
             m = self.marks.get(lab)
             if m is None:
-                cells = [str(lab), "", "", "", f"{MARK_NAMES[lab]}: not placed"]
+                cells = [str(lab), "", "", "", "", f"{MARK_NAMES[lab]}: not placed"]
             else:
-                how = "automatic, to confirm" if not m.confirmed else ("automatic" if m.source == "auto" else "manual")
-                note = self.mark_notes.get(lab, [])
-                cells = [str(lab)] + [f"{v:.1f}" for v in m.xyz] + [how + "".join(f"\n⚠ {_short(n)}" for n in note)]
+                # short, so that it is read whole in the panel: the tooltip has it in full
+                how = "to confirm" if not m.confirmed else ("auto" if m.source == "auto" else "manual")
+                if m.warning:
+                    how += f" ⚠ {m.warning}"
+                how += "".join(f" ⚠ {_short(n)}" for n in self.mark_notes.get(lab, []))
+                cells = ([str(lab)] + [f"{v:.1f}" for v in m.xyz]
+                         + ["–" if m.sd_mm is None else f"{m.sd_mm:.2f}", how])
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
-                if col == len(cells) - 1 and self.mark_notes.get(lab) and m is not None:
-                    item.setToolTip("\n".join(self.mark_notes[lab]))
                 item.setData(Qt.ItemDataRole.UserRole, lab)
-                if col in (1, 2, 3):
+                tip = _status_tip(m) if col == STATUS_COLUMN and m is not None else text
+                if col == STATUS_COLUMN and m is not None and self.mark_notes.get(lab):
+                    tip = "\n".join([tip, *self.mark_notes[lab]])
+                item.setToolTip(tip)
+                if col in (1, 2, 3, 4):
                     item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
+                if m is not None and m.warning and col in (4, STATUS_COLUMN):
+                    item.setForeground(QColor("#b35c00"))
                 self.list.setItem(row, col, item)
         self.list.selectRow(LABELS.index(self.current_label) if self.current_label in LABELS else 0)
-        self.list.resizeRowsToContents()
+        self._fit_rows()
         self.list.blockSignals(False)
+
+    def _fit_rows(self) -> None:
+        """Rows as tall as their (wrapped) text, and all seven on screen, never a scrolled window of two to four."""
+        self.list.resizeRowsToContents()
+        rows_h = sum(self.list.rowHeight(r) for r in range(self.list.rowCount()))
+        self.list.setMinimumHeight(rows_h + self.list.horizontalHeader().sizeHint().height()
+                                   + 2 * self.list.frameWidth() + 4)
 
     def _list_selected(self) -> None:
         row = self.list.currentRow()
@@ -352,11 +397,20 @@ class MarkEditor(QWidget):
                 shown[f"mismatch_{axis}"] = v
         for name, lab in self.angle_labels.items():
             v = shown.get(name)
-            lab.setText("—" if v is None else f"{v['value']:+.2f}° ± {v['sd']:.2f}°")
+            lab.setText("—" if v is None else f"{signed(v['value'], 2)}° ± {v['sd']:.2f}°")
         self.missing_label.setText(self.angles.missing_message())
 
     def show_pick(self, text: str) -> None:
         self.pick_label.setText(text)
+
+
+def _status_tip(m: PlacedMark) -> str:
+    by = f" by {m.placed_by}" if m.placed_by else ""
+    how = ("automatic, not yet confirmed by an operator" if not m.confirmed else
+           "automatic, confirmed" if m.source == "auto" else f"placed by hand{by}")
+    sd = "" if m.sd_mm is None else f"; position SD {m.sd_mm:.2f} mm"
+    warn = f"; {m.warning}: its position is less certain than usual" if m.warning else ""
+    return how + sd + warn
 
 
 # ---------------------------------------------------------------------------- store glue
@@ -365,7 +419,8 @@ def marks_from_store(rows) -> PlacedMarks:
     """anklescan.core.vocabulary.MarkRecord rows → PlacedMarks. An auto mark counts as confirmed once an operator has
     confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
     return {r.label: PlacedMark((r.x, r.y, r.z), r.source,
-                          r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by)
+                                r.source == "manual" or r.placed_by.startswith(CONFIRMED_PREFIX), r.placed_by,
+                                getattr(r, "sd_mm", None), getattr(r, "warning", "") or "")
             for r in rows}
 
 
@@ -396,6 +451,10 @@ def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None], join
             groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
     for (source, placed_by), marks in groups.items():
         store.update_marks(trial_id, marks, source, placed_by, sigma_mm=_sigmas(joint), joint=joint)
+    quality = {lab: (m.sd_mm, m.warning) for lab, m in changes.items()
+               if m is not None and (m.sd_mm is not None or m.warning)}
+    if quality:  # an automatic mark keeps its SD and warning when confirmed or relabelled
+        store.set_mark_quality(trial_id, quality)
     removed = [lab for lab, m in changes.items() if m is None]
     if removed:
         store.delete_marks(trial_id, removed)
@@ -446,7 +505,7 @@ class MarksPage(QWidget):
         split.addWidget(self.viewer)
         split.addWidget(self.editor)
         split.setStretchFactor(0, 1)
-        split.setSizes([900, 330])
+        split.setSizes([810, 440])
         outer = QVBoxLayout(self)
         outer.addLayout(bar)
         outer.addWidget(split, 1)

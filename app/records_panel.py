@@ -99,7 +99,9 @@ class RecordsPanel(QWidget):
         self.patients.clear()
         self.patients.blockSignals(False)
         for p in self.logic.patients(self.show_archived.isChecked()):
-            text = p.code + (f"   ·  {p.sprain_count} sprain(s)" if p.sprain_count else "")
+            history = ([f"{p.sprain_count} sprain(s)"] if p.sprain_count else []) + (
+                [f"{p.affected_side} side" if p.affected_side != "both" else "both sides"] if p.affected_side else [])
+            text = p.code + (f"   ·  {', '.join(history)}" if history else "")
             item = QListWidgetItem(text + ("   (archived)" if p.archived else ""))
             item.setData(ID, p.id)
             item.setData(ID + 1, p.code)
@@ -129,8 +131,9 @@ class RecordsPanel(QWidget):
         self.trials.blockSignals(True)
         self.trials.clear()
         session = self.logic.session(self.current_session_id())
-        for t in self.logic.trials(self.current_session_id()):
-            item = QListWidgetItem(f"Trial {t.id}   {deg(t.ref_inversion)} / {deg(t.ref_plantar_flexion)}"
+        for number, t in enumerate(self.logic.trials(self.current_session_id()), start=1):
+            item = QListWidgetItem(f"Trial {number}   {deg(t.ref_inversion)} / {deg(t.ref_plantar_flexion)}"
+                                   + ("   · simulated" if t.simulated else "")
                                    + ("" if t.counted else f"   [{t.state_text}]"))
             item.setToolTip(_trial_tip(t))
             if not t.counted:
@@ -184,10 +187,12 @@ class RecordsPanel(QWidget):
             return
         dialog = NewPatientDialog(self.window(), exists=self.logic.patient_exists)
         if dialog.exec() == QDialog.DialogCode.Accepted:
-            self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData())
+            self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData(),
+                             dialog.last_sprain_date())
 
-    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None) -> bool:
-        patient = self.logic.add_patient(code, sprain_count, side)
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None,
+                    last_sprain: str | None = None) -> bool:
+        patient = self.logic.add_patient(code, sprain_count, side, last_sprain)
         if patient is not None:
             self.refresh_patients(select_code=patient.code)
         return patient is not None
@@ -259,9 +264,16 @@ def confirm(parent, title: str, text: str) -> bool:
     return answer == QMessageBox.StandardButton.Yes
 
 
+def trial_number(store, trial) -> int:
+    """The trial's number in its session (1, 2, ...), as the trials list shows it."""
+    return sum(1 for t in store.list_trials(trial.session_id) if t.id <= trial.id)
+
+
 def _trial_tip(t) -> str:
     moved = ("" if t.motion_mm is None else f"; moved {t.motion_mm:.1f} ± {t.motion_sd_mm or 0:.1f} mm"
              + (f" in a {t.scan_duration_s:.1f} s scan" if t.scan_duration_s else "")
              + (" (flagged, kept)" if t.motion_flagged and t.motion_keep else ""))
     return (f"Reference inversion / plantar flexion; {t.state_text}{moved}"
+            + (f"; database trial {t.id}" if t.id else "")
+            + ("; a simulated patient on the simulated rig" if t.simulated else "")
             + ("" if t.cloud_path else " (no point cloud)") + ". Click: open in 3-D")

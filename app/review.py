@@ -4,6 +4,7 @@ first needed: the OpenGL viewer and pyqtgraph are slow to load."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from PySide6.QtCore import QObject, Qt
@@ -33,6 +34,9 @@ class Review(QObject):
             win.marks_holder.addWidget(self.marks_page)
             win.marks_holder.setCurrentWidget(self.marks_page)
             self.marks_page.editor.setEnabled(not win.session.read_only)
+            self.marks_page.editor.undo_stack.indexChanged.connect(lambda _: self.update_edit_actions())
+            self.marks_page.editor.undo_stack.cleanChanged.connect(lambda _: self.update_edit_actions())
+            self.update_edit_actions()
         return self.marks_page
 
     def ensure_session_view(self):
@@ -66,14 +70,20 @@ class Review(QObject):
         sid, logic = self.win.records.current_session_id(), self.win.session
         if self.session_view is None or logic.store is None:
             return
-        self.session_view.set_rows(logic.session_rows(sid), title=logic.session_title(sid) if sid is not None else None)
+        rows = logic.session_rows(sid)
+        title = logic.session_title(sid) if sid is not None else None
+        if title and any(r.get("simulated") for r in rows):  # simulated trials are never shown as patient data
+            title += " · SIMULATED patient"
+        self.session_view.set_rows(rows, title=title)
 
     # ---- the 3-D view ---------------------------------------------------------------------
     def show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:
         page, logic = self.ensure_marks_page(), self.win.session
         self.viewer_trial = trial_id
         rig_cal = getattr(self.win.rig, "calibration", None) if self.win.rig is not None else None
-        page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or f"Trial {trial_id}")
+        if title is None and trial_id is not None and logic.store is not None:
+            title = self.trial_title(logic.trial(trial_id))
+        page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or "Point cloud")
         if trial_id is not None and logic.store is not None:
             # Marks are signed by the session's operator, or the logged-in user when none was entered.
             trial = logic.trial(trial_id)
@@ -84,6 +94,19 @@ class Review(QObject):
         else:
             page.editor.load({})
             page.editor.set_snapper(None)
+
+    def trial_title(self, trial, full: bool = False) -> str:
+        """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
+        its reference angles and any state that leaves it out of the statistics."""
+        from anklescan.app.records_panel import trial_number
+        text = f"Trial {trial_number(self.win.session.store, trial)}"
+        if full:
+            text += f" · reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
+        if trial.simulated:
+            text += " · SIMULATED patient"
+        if full and not trial.counted:
+            text += f" · {trial.state_text}"
+        return text
 
     def _snapper(self, trial, cloud, session):
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
@@ -102,16 +125,14 @@ class Review(QObject):
             return False
         win.records.select_trial_item(trial.id)
         if not trial.cloud_path:
-            win.banner.show_message("info", f"Trial {trial.id} has no point cloud ({trial.state_text}).")
+            win.banner.show_message("info", f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
             cloud = read_ply(logic.store.resolve(trial.cloud_path))
         except Exception as exc:
             win.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False
-        ref = f"reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
-        state = "" if trial.counted else f" · {trial.state_text}"
-        self.show_cloud(cloud, trial.id, f"Trial {trial.id} · {ref}{state}")
+        self.show_cloud(cloud, trial.id, self.trial_title(trial, full=True))
         if switch_tab:
             win.tabs.setCurrentIndex(PAGE_MARKS)
         return True
@@ -132,10 +153,83 @@ class Review(QObject):
         self.win.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
+    # ---- Edit ▸ Undo / Redo: the mark editor's undo stack -------------------------------
+    def undo(self) -> None:
+        if self.marks_page is not None and self.marks_page.editor.isEnabled():
+            self.marks_page.editor.undo_stack.undo()
+
+    def redo(self) -> None:
+        if self.marks_page is not None and self.marks_page.editor.isEnabled():
+            self.marks_page.editor.undo_stack.redo()
+
+    def update_edit_actions(self) -> None:
+        """Edit ▸ Undo / Redo say what they undo ("Undo place mark 1") and are enabled when they can."""
+        win = self.win
+        if not hasattr(win, "undo_action"):
+            return
+        stack = None if self.marks_page is None else self.marks_page.editor.undo_stack
+        with contextlib.suppress(RuntimeError):  # the window is closing: its undo stack is already gone
+            self._show_edit_actions(win, stack)
+
+    @staticmethod
+    def _show_edit_actions(win, stack) -> None:
+        for action, can, text, verb in (
+                (win.undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
+                (win.redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
+            action.setEnabled(bool(can))
+            action.setText(f"&{verb} {text}" if can and text else f"&{verb}")
+
     # ---- what leaves the app ----------------------------------------------------------------
+    def _proposed(self, kind: str, suffix: str) -> str:
+        """The documents folder, named by the selected patient's code and the session's date."""
+        from anklescan.app.help_menu import proposed_path
+        win, logic = self.win, self.win.session
+        sid = win.records.current_session_id()
+        session = logic.session(sid) if sid is not None else None
+        path = proposed_path(kind, win.records.current_code(), session.date if session is not None else None, suffix)
+        with contextlib.suppress(OSError):  # the dialog lets the clinician choose another folder
+            path.parent.mkdir(parents=True, exist_ok=True)
+        return str(path)
+
+    def print_current(self) -> bool:
+        """File ▸ Print…: the page on screen — the 3-D marks, else the session plots — through the
+        print dialog; with no printer installed it prints to a PDF in the documents folder."""
+        from PySide6.QtPrintSupport import QPrintDialog, QPrinter, QPrinterInfo
+        printer = QPrinter(QPrinter.PrinterMode.HighResolution)
+        if not QPrinterInfo.availablePrinterNames():
+            printer.setOutputFormat(QPrinter.OutputFormat.PdfFormat)
+            printer.setOutputFileName(self._proposed("print", ".pdf"))
+        dialog = QPrintDialog(printer, self.win)
+        dialog.setWindowTitle("Print")
+        if dialog.exec() != QPrintDialog.DialogCode.Accepted:
+            return False
+        return self.print_to(printer)
+
+    def print_to(self, printer) -> bool:
+        from anklescan.app.help_menu import print_widget_pages
+        win = self.win
+        if win.tabs.currentIndex() == PAGE_MARKS and self.marks_page is not None:
+            widget, what = self.marks_page, "3-D marks"
+        else:
+            self.ensure_session_view()
+            self.refresh_plots()
+            widget, what = self.session_view, "Session plots"
+        sid = win.records.current_session_id()
+        title = win.session.session_title(sid) if sid is not None and win.session.store is not None else ""
+        simulated = sid is not None and any(t.simulated for t in win.session.trials(sid))
+        heading = f"AnkleScan — {what}" + (f" — {title}" if title else "") + (
+            "\nSIMULATED — a simulated patient on the built-in simulated rig, not patient data" if simulated else "")
+        try:
+            print_widget_pages(printer, [widget], heading)
+        except Exception as exc:
+            win.banner.show_message("error", f"Printing failed: {exc}")
+            return False
+        target = printer.outputFileName()
+        win.banner.show_message("info", f"{what} printed" + (f" to {target}" if target else "") + ".")
+        return True
+
     def export_plots(self) -> Path | None:
-        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots",
-                                              str(self.win.data_folder() / "session_plots.png"),
+        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots", self._proposed("plots", ".png"),
                                               "PNG image (*.png);;SVG vector (*.svg)")
         return self.export_plots_to(path) if path else None
 
@@ -155,8 +249,8 @@ class Review(QObject):
         if self.win.session.store is None or sid is None:
             self.win.banner.show_message("warning", "Select a session first.")
             return
-        path, _ = QFileDialog.getSaveFileName(self.win, "Session report",
-                                              str(self.win.data_folder() / f"session-{sid}.pdf"), "PDF (*.pdf)")
+        path, _ = QFileDialog.getSaveFileName(self.win, "Session report", self._proposed("report", ".pdf"),
+                                              "PDF (*.pdf)")
         if path:
             self.write_session_report_to(path)
 

@@ -21,11 +21,47 @@ class Rig:
     simulated: bool
     sim_projector: object = None     # a ProjectorOutput (hardware.simrig); fed with what the window paints
     calibration: object = None       # anklescan.core.calibration.file.Calibration, when known
+    sim_patient: object = None       # hardware.sim_patient.SimulatedPatient standing on the simulated rig
+    stance: object = None            # hardware.sim_patient.Stance of the last trial set up
+
+    def set_profile(self, profile: str) -> None:
+        """Who stands on the simulated rig ("no sprain", "sprain history"); no effect on a real rig."""
+        if not self.simulated:
+            return
+        from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
+
+        self.sim_patient = SimulatedPatient(PatientProfile.parse(profile), seed=0)  # the same answers each start
+
+    def set_sway(self, amplitude_mm: float) -> None:
+        """The simulated patient sways sideways, ±A mm at up to A mm/s, while scanned (0: stands still)."""
+        if self.simulated:
+            _set_sway(self.camera.rig, amplitude_mm)
+
+    @property
+    def profile_label(self) -> str:
+        return self.sim_patient.profile.label if self.sim_patient is not None else ""
+
+    def stand_patient(self, reference: tuple[float | None, float | None], condition: str):
+        """Before a trial on the simulated rig: the reference table at ``reference`` (the angles the
+        clinician typed), the simulated patient setting the adjustable table to match, the scene
+        the camera sees changed to it. Returns the Stance (None on a real rig)."""
+        if not self.simulated or self.sim_patient is None:
+            return None
+        stance = self.sim_patient.stance(reference, condition)
+        current = self.camera.rig
+        posed = current.with_scene(self.sim_patient.scene(stance))
+        posed.motion = current.motion
+        if posed.motion is not None:
+            posed.motion.reset()
+        self.camera.rig = posed
+        self.stance = stance
+        return stance
 
     @property
     def description(self) -> str:
         if self.simulated:
-            return "Simulated rig — no hardware connected"
+            who = f" · simulated patient: {self.profile_label.lower()}" if self.sim_patient is not None else ""
+            return f"SIMULATED rig — no hardware connected{who}"
         return f"Camera: {camera_name(self.camera)} · projector {self.projector_size[0]}×{self.projector_size[1]}"
 
     def close(self) -> None:
@@ -96,9 +132,10 @@ def _display_size(preferred: str) -> tuple[int, int] | None:
 
 
 def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
-             projector_size: tuple[int, int] | None = None) -> Rig:
+             projector_size: tuple[int, int] | None = None, profile: str = "no sprain") -> Rig:
     """``projector_size`` is the real projector's resolution (``projector_resolution()`` when not
-    given: the setting or the connected monitor); the simulated rig has its own."""
+    given: the setting or the connected monitor); the simulated rig has its own. ``profile`` is
+    the simulated patient's (hardware.sim_patient.PatientProfile's value)."""
     if backend != SIMULATED:
         from anklescan.hardware import camera
 
@@ -110,7 +147,9 @@ def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
     _sway_from_environment(rig)
     cam, projector = simrig.simulated_devices(rig)
     cam.open()
-    return Rig(SIMULATED, cam, tuple(projector.size), True, projector, rig.true_calibration())
+    opened = Rig(SIMULATED, cam, tuple(projector.size), True, projector, rig.true_calibration())
+    opened.set_profile(profile)
+    return opened
 
 
 def _sway_from_environment(rig) -> None:
@@ -123,8 +162,14 @@ def _sway_from_environment(rig) -> None:
         amplitude = float(os.environ.get("ANKLESCAN_SIM_SWAY_MM", "") or 0.0)
     except ValueError:
         return
-    if amplitude > 0 and amplitude < 100:
+    _set_sway(rig, amplitude)
+
+
+def _set_sway(rig, amplitude: float) -> None:
+    if 0 < amplitude < 100:
         from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock
 
         rig.motion = SwayClock(Sway((1.0, 0.0, 0.0), amplitude_mm=amplitude, speed_mm_s=amplitude),
                                FRAME_S["webcam"])
+    else:
+        rig.motion = None

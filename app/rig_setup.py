@@ -35,13 +35,16 @@ class RigSetup(QObject):
         # the projector's resolution: the setting, else its monitor's (asked here: only the UI thread may)
         backend, scale, device, size = (s.get("camera_backend"), s.get("sim_scale"), s.get("camera_device"),
                                         projector_resolution(s))
+        profile = s.get("sim_patient")
         if not in_background:
-            self._rig_opened(open_rig_safely(backend, scale, device, size))
+            self._rig_opened(open_rig_safely(backend, scale, device, size, profile=profile))
             self.win.review.ensure_marks_page()
             return
         from anklescan.app.background import run_in_background
-        run_in_background(lambda: open_rig_safely(backend, scale, device, size, warm=True), self._rig_opened,
-                          lambda error: self.win.banner.show_message("error", f"The camera could not be opened: {error}"))
+        run_in_background(lambda: open_rig_safely(backend, scale, device, size, warm=True, profile=profile),
+                          self._rig_opened,
+                          lambda error: self.win.banner.show_message("error",
+                                                                     f"The camera could not be opened: {error}"))
 
     def _rig_opened(self, opened) -> None:
         rig, problem = opened
@@ -65,6 +68,10 @@ class RigSetup(QObject):
         panel.set_settle_ms(self.settings.get("settle_ms"))
         panel.settleChanged.connect(lambda ms: self.settings.set("settle_ms", round(ms)))
         panel.deviceChanged.connect(self._choose_device)
+        panel.set_profile(self.settings.get("sim_patient"))
+        panel.profileChanged.connect(self.choose_profile)
+        panel.set_sway(self.settings.get("sim_sway_mm"))
+        panel.swayChanged.connect(self.choose_sway)
         self.win.camera_holder.addWidget(panel)
         self.win.camera_holder.setCurrentWidget(panel)
 
@@ -80,20 +87,41 @@ class RigSetup(QObject):
             old.close()
         from anklescan.app.rig import projector_resolution
         s = self.settings
-        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"), projector_resolution(s))
+        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"),
+                                            projector_resolution(s), profile=s.get("sim_patient"))
         if problem:
             self.win.banner.show_message("warning", problem)
         self.settings.set("camera_backend", self.rig.backend)
         self._rig_ready()
+
+    def choose_profile(self, profile: str) -> None:
+        """The simulated patient chosen in Camera setup: kept, and standing on the rig from the next trial."""
+        self.settings.set("sim_patient", profile)
+        if self.rig is not None and self.rig.simulated:
+            self.rig.set_profile(profile)
+            self._show_rig_label()
+
+    def choose_sway(self, mm: float) -> None:
+        """How far the simulated patient sways (Camera setup): kept, and from the next frame."""
+        self.settings.set("sim_sway_mm", float(mm))
+        if self.rig is not None and self.rig.simulated:
+            self.rig.set_sway(mm)
+
+    def _show_rig_label(self) -> None:
+        win = self.win
+        win.rig_label.setText(self.rig.description)
+        win.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
+        win.rig_label.setStyle(win.rig_label.style())  # re-polish: the object name picks the style
 
     def _rig_ready(self) -> None:
         from anklescan.app.rig import camera_name
         win = self.win
         self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
         self._apply_stored_controls()
-        win.rig_label.setText(self.rig.description)
-        win.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
-        win.rig_label.setStyle(win.rig_label.style())  # re-polish: the object name picks the style
+        self.camera_panel.show_profile(self.rig.simulated)
+        if self.rig.simulated and self.settings.get("sim_sway_mm") > 0:
+            self.rig.set_sway(self.settings.get("sim_sway_mm"))
+        self._show_rig_label()
         self._ensure_projector()
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
             self.show_projector()
@@ -127,6 +155,32 @@ class RigSetup(QObject):
         self.win.scan_flow.update_enabled()
         self.check_calibration_age()
 
+    def choose_calibration(self) -> bool:
+        """Scan ▸ Choose calibration…: one of the database's calibrations becomes the current one."""
+        from anklescan.app.calibration_chooser import CalibrationChooser
+        from anklescan.app.logic.calibration import use_stored_calibration
+        win = self.win
+        store = win.session.store
+        if store is None or win.scan_flow.busy:
+            return False
+        records = store.list_calibrations()
+        if not records:
+            win.banner.show_message("info", "This data folder's database keeps no calibration yet: run Calibration….")
+            return False
+        dialog = CalibrationChooser(records, win.session.calibration_id, win)
+        if dialog.exec() != CalibrationChooser.DialogCode.Accepted or dialog.chosen() is None:
+            return False
+        record = dialog.chosen()
+        try:
+            use_stored_calibration(record, win.data_folder(), self.settings)
+        except Exception as exc:
+            win.banner.show_message("error", f"Calibration #{record.id} could not be used: {exc}")
+            return False
+        self.load_calibration()
+        if win.session.calibration_id == record.id:
+            win.banner.show_message("info", f"Calibration #{record.id} ({record.created[:10]}) is now the current one.")
+        return True
+
     def open_calibration(self) -> None:
         from anklescan.app.calibration_wizard import CalibrationWizard
         win = self.win
@@ -146,6 +200,10 @@ class RigSetup(QObject):
         self.win.session.use_calibration(cal, cid)
         self.win.banner.clear("warning")
         self.win.scan_flow.update_enabled()
+        if not self.win.session.operator:  # who calibrated: asked now, not only at the first session
+            self.win.banner.show_message("info", "Calibration saved. Who is operating? Your name or initials sign "
+                                         "the sessions, marks and reports.",
+                                         ("Operator…", self.win.records.ask_operator))
 
     def check_calibration_age(self) -> None:
         from anklescan.app.logic.calibration import calibration_warning
@@ -235,17 +293,18 @@ class RigSetup(QObject):
             self.rig.close()
 
 
-def open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False):
+def open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False,
+                    profile: str = "no sprain"):
     """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
     ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
     from anklescan.app.rig import SIMULATED, open_rig
     if warm:
         warm_imports()
     try:
-        return open_rig(backend, scale, device, projector), ""
+        return open_rig(backend, scale, device, projector, profile), ""
     except Exception as exc:
         problem = f"The camera backend '{backend}' could not be opened ({exc}); using the simulated rig instead."
-        return open_rig(SIMULATED, scale, "", projector), problem
+        return open_rig(SIMULATED, scale, "", projector, profile), problem
 
 
 def warm_imports() -> None:

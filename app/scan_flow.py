@@ -71,9 +71,16 @@ class ScanFlow(QObject):
         except (ValueError, ScanRefused) as exc:  # a field shows the same message
             win.banner.show_message("warning", f"The scan did not start: {exc}")
             return False
+        stance = self._stand_simulated_patient(entry)
         win.records.show_patient(select_session=session_id)
         try:
-            job = self.scan_job(self.logic.plan(win.rig.projector_size, win.rig.description))
+            plan = self.logic.plan(win.rig.projector_size, win.rig.description)
+            if stance is not None:  # the capture says who stood there and how: the simulator's truth
+                plan.metadata["simulated_patient"] = {
+                    "profile": stance_profile(win.rig), "reference_deg": list(stance.reference),
+                    "table_deg": list(stance.table), "condition": stance.condition,
+                    "mark_type": stance.mark_type, "mark_diameter_mm": stance.mark_diameter_mm}
+            job = self.scan_job(plan)
         except Exception as exc:
             self.logic.end_unstarted(str(exc))
             win.banner.show_message("error", f"The scan could not start: {exc}")
@@ -87,6 +94,16 @@ class ScanFlow(QObject):
             win.rig_setup.show_projector()
         self.controller.start(job)
         return True
+
+    def _stand_simulated_patient(self, entry):
+        """On the simulated rig: the reference table set to the typed angles, the simulated patient
+        setting the adjustable one, and the trial recorded as simulated. The Stance, or None."""
+        stance = self.win.rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
+        store, tid = self.win.session.store, self.logic.trial_id
+        if stance is not None and store is not None and tid is not None:
+            store.set_trial_simulated(tid)
+        self.mixed_note = mixed_warning(store, tid, stance is not None)
+        return stance
 
     def scan_job(self, plan):
         from anklescan.app.scan_worker import ScanJob, measure_folder
@@ -115,6 +132,8 @@ class ScanFlow(QObject):
     # ---- the worker's reports -----------------------------------------------------------
     def _busy(self, busy: bool) -> None:
         self.update_enabled()
+        if not busy:  # the scan is over, however it ended: the projector leaves its last stripe pattern
+            self.win.rig_setup._restore_projector()
         self.win.scan_page.cancel_button.setEnabled(busy)
         self.win.cancel_action.setEnabled(busy)
         if self.win.camera_panel is not None:
@@ -154,13 +173,18 @@ class ScanFlow(QObject):
             win.review.show_cloud(result.cloud, tid)
             if result.marks:
                 # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks, result.warnings, result.position_covariance)
+                win.review.marks_page.editor.propose_auto(result.marks, result.quality, result.warnings,
+                                                              result.position_covariance)
             volume_notes = [w for w in result.warnings if "outside the calibrated volume" in w]
             if volume_notes:
                 notes.append(("warning", "; ".join(volume_notes) + ".", None))
             if result.marks_note:
                 notes.append(("info", "Some marks were not found automatically: place them in the "
                               f"3-D view ({result.marks_note}).", None))
+        store = win.session.store
+        win.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
+        if getattr(self, "mixed_note", ""):
+            notes.append(("warning", self.mixed_note, None))
         if notes:
             show_notes(win.banner, notes)
         win.scan_page.form.clear_notes()
@@ -199,6 +223,24 @@ class ScanFlow(QObject):
         self.win.scan_page.progress.setFormat("Cancelled")
         self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
                                      f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
+
+
+def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
+    """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
+    if store is None or trial_id is None:
+        return ""
+    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
+    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
+              if t.id != trial_id and t.simulated != simulated]
+    if not others:
+        return ""
+    kind, other = ("simulated", "real") if simulated else ("real", "simulated")
+    return (f"This {kind} trial joins {len(others)} {other} trial(s) of the same patient: reports and the CSV mark "
+            "them, but keep simulated patients apart from real ones.")
+
+
+def stance_profile(rig) -> str:
+    return rig.sim_patient.profile.value if rig.sim_patient is not None else ""
 
 
 SEVERITY = ("info", "warning", "error")

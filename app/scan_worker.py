@@ -66,6 +66,7 @@ class ScanResult:
     overexposed: list = field(default_factory=list)  # labels of the marks whose face saturates the camera
     warnings: list = field(default_factory=list)  # the measurement's one-line warnings (SPEC §6)
     position_covariance: object = None  # the marks' JointCovariance: the angles' honest ± (SPEC §3)
+    quality: dict = field(default_factory=dict)  # label -> MarkQuality of the automatic marks
     cloud_path: Path | None = None      # the saved cloud, when ScanJob.cloud_path was given
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
@@ -76,6 +77,28 @@ class ScanResult:
     motion_flagged: bool = False        # moved more than the threshold: "scan again?"
     motion_note: str = ""               # why there is no motion figure, when there is none
     duration_s: float = 0.0             # the scan's duration: first frame shown to last frame captured
+
+
+OBLIQUE_VIEW_DEG = 70.0  # a plate seen more obliquely than this has a less accurate centre (docs/marks.md)
+
+
+@dataclass(frozen=True)
+class MarkQuality:
+    """How certain an automatic mark's position is: its SD (mm, the isotropic equivalent of its
+    covariance) and why it is less certain than usual ("" when nothing is wrong)."""
+
+    sd_mm: float
+    warning: str = ""
+
+
+def mark_quality(mark) -> MarkQuality:
+    """A measured mark's (core.measure.marks.Mark) SD and warnings, for the marks table and the 3-D view."""
+    notes = []
+    if mark.clipped:
+        notes.append("overexposed")
+    if mark.view_deg is not None and mark.view_deg > OBLIQUE_VIEW_DEG:
+        notes.append(f"seen at {mark.view_deg:.0f}°")
+    return MarkQuality(float(mark.sd), ", ".join(notes))
 
 
 def run_scan(job: ScanJob, acquisition: Acquisition, bg, on_frame: Callable | None = None) -> ScanResult:
@@ -120,6 +143,7 @@ class _Scan:
             result.overexposed = out.marks.overexposed()
             result.warnings = list(getattr(out, "warnings", []))
             result.position_covariance = getattr(out, "position_covariance", None)
+            result.quality = {int(k): mark_quality(m) for k, m in out.marks.labelled.items()}
             motion = getattr(out, "motion", None)
             if motion is not None:
                 result.motion_mm, result.motion_sd_mm = motion.value_mm, motion.sd_mm

@@ -23,6 +23,7 @@ import pyqtgraph as pg
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
+from anklescan.app.main_parts import signed
 from anklescan.core.records.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL, span_limits, x_limits
 from anklescan.core.records.study_stats import is_counted
 
@@ -54,8 +55,8 @@ def group(rows, axis: str) -> dict[float, dict[float, list[dict]]]:
 
 def trial_tip(r: dict, axis: str) -> str:
     return (f"Trial {r['trial_id']} · {r.get('patient_code', '')} {r.get('session_date', '')}\n"
-            f"reference inv {r['ref_inversion']:+.1f}°, PF {r['ref_plantar_flexion']:+.1f}°\n"
-            f"mismatch {axis.replace('_', ' ')} {r[f'mismatch_{axis}']:+.2f}°"
+            f"reference inv {signed(r['ref_inversion'])}°, PF {signed(r['ref_plantar_flexion'])}°\n"
+            f"mismatch {axis.replace('_', ' ')} {signed(r[f'mismatch_{axis}'], 2)}°"
             + (f" ± {r[f'mismatch_{axis}_sd']:.2f}°" if r.get(f"mismatch_{axis}_sd") is not None else "")
             + ("" if marks_confirmed(r) else f"\n{UNCONFIRMED_LABEL}"))
 

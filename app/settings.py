@@ -2,7 +2,8 @@
 
 A thin typed layer over QSettings so that every key has one name, one type and one default
 in one place. ``ANKLESCAN_SETTINGS`` names an INI file to use instead of the user's settings;
-the tests use it so that they never read or change a clinician's real configuration.
+the tests use it so that they never read or change a clinician's real configuration. A
+location that cannot be written is said at start-up (``Settings.problem``), never lost silently.
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ KEYS = {
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),
+    # who stands on the simulated rig (hardware.sim_patient.PatientProfile): "no sprain" or "sprain history"
+    "sim_patient": Key("scan/sim_patient", "no sprain", str),
+    "sim_sway_mm": Key("scan/sim_sway_mm", 0.0, float),  # the simulated patient sways ±this, mm (0: still)
     "pattern_preset": Key("scan/pattern_preset", "default", str),
     # a trial whose subject moved more than this during the scan is flagged (core/scan/motion.py)
     "motion_threshold_mm": Key("scan/motion_threshold_mm", 0.5, float),
@@ -101,6 +105,27 @@ class Settings:
     def sync(self) -> None:
         self._qs.sync()
         self._make_private()
+
+    @property
+    def location(self) -> str:
+        return self._qs.fileName()
+
+    def problem(self) -> str:
+        """Why settings set now would be lost (the accepted calibration, the operator, ...), in
+        one sentence for the banner; "" when they are kept."""
+        where = Path(self.location)
+        named = " (named by ANKLESCAN_SETTINGS)" if os.environ.get("ANKLESCAN_SETTINGS") else ""
+        if where.is_dir():
+            return (f"The settings location {where}{named} is a folder, not a file: settings cannot be kept, so the "
+                    "accepted calibration and the operator will be lost on restart. Name a file instead.")
+        if not self._qs.isWritable():
+            return (f"The settings file {where}{named} cannot be written: the accepted calibration and the operator "
+                    "will be lost on restart. Make it writable (or Scan ▸ Choose calibration… after each start).")
+        self._qs.sync()
+        if self._qs.status() != QSettings.Status.NoError:
+            return (f"The settings file {where}{named} could not be saved ({self._qs.status().name}): the accepted "
+                    "calibration and the operator will be lost on restart.")
+        return ""
 
     @property
     def data_folder(self) -> Path:

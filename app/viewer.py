@@ -97,6 +97,7 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self.lod_points = LOD_POINTS
         self.marks: dict[int, np.ndarray] = {}
         self.unconfirmed: set[int] = set()
+        self.mark_notes: dict[int, str] = {}  # label -> "±0.14 mm, overexposed": shown beside the label
         self.selected_mark: int | None = None
         self.last_pick: PickResult | None = None
         self._clear_cloud_state()
@@ -248,9 +249,12 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
             return 1.0
         return float(np.clip(np.ceil(self.spacing_mm / self.mm_per_pixel() - 0.25), 1, 5))
 
-    def set_marks(self, marks: dict, unconfirmed=(), selected: int | None = None) -> None:
+    def set_marks(self, marks: dict, unconfirmed=(), selected: int | None = None,
+                  notes: dict[int, str] | None = None) -> None:
+        """``notes``: label -> its SD and any warning, written beside the mark's label."""
         self.marks = {int(k): np.asarray(v, np.float64) for k, v in marks.items()}
         self.unconfirmed = set(unconfirmed)
+        self.mark_notes = {int(k): str(v) for k, v in (notes or {}).items() if v}
         self.selected_mark = selected
         self.update()
 

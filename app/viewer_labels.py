@@ -11,6 +11,9 @@ from PySide6.QtWidgets import QWidget
 from anklescan.app import picking
 from anklescan.app.viewer_gl import COLOR_WHITE, MARK_COLOURS, RENDER_CLASSIC, UNCONFIRMED_COLOUR
 
+WARNING_MARK = "⚠"  # in a mark's note: its position is less certain than usual (the note says why)
+WARNING_COLOUR = "#ff8a00"
+
 
 class OverlayPainting:
     """CloudViewer's QPainter half (a mixin: it reads the viewer's state and last matrices)."""
@@ -42,7 +45,12 @@ class OverlayPainting:
         taken: list[QRectF] = []
         for label, (x, y, _) in zip(labels, pos):
             text = f"{label}?" if label in self.unconfirmed else str(label)
+            note = getattr(self, "mark_notes", {}).get(label, "")
+            if note:  # its SD and any warning: an uncertain mark is shown as one where it is
+                text += f"  {note}"
             colour = QColor(UNCONFIRMED_COLOUR if label in self.unconfirmed else MARK_COLOURS[label])
+            if WARNING_MARK in note:
+                colour = QColor(WARNING_COLOUR)
             at = _free_spot(QPointF(x + 9, y - 9), metrics.horizontalAdvance(text) + 4, metrics.height(), taken)
             if (at - QPointF(x + 9, y - 9)).manhattanLength() > 1:  # moved away: a leader shows whose label it is
                 painter.setPen(colour)

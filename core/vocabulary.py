@@ -127,6 +127,8 @@ class MarkRecord:
     source: str
     placed_by: str
     updated: str
+    sd_mm: float | None = None  # the automatic mark's position SD (None: not measured, e.g. placed by hand)
+    warning: str = ""           # why its position is less certain (e.g. "overexposed"), "" when it is not
 
 
 @dataclass(frozen=True)
@@ -162,6 +164,7 @@ class Trial:
     scan_duration_s: float | None = None
     motion_flagged: bool = False  # moved more than the threshold: out of the statistics ...
     motion_keep: bool = False  # ... unless the clinician keeps it
+    simulated: bool = False  # scanned on the built-in simulated rig (a simulated patient), not a person
 
     @property
     def excluded_for_motion(self) -> bool:

@@ -71,6 +71,11 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     rep = wiz.report
     assert rep.camera.rms_px < 0.6 and rep.projector.rms_px < 0.6 and rep.projector.n_points >= 60
     assert "RMS" in wiz.report_summary.text() and "±" in wiz.report_text.toPlainText()
+    # the verdict first, large; the parameter dump only on request
+    assert "Good calibration" in wiz.report_verdict.text() and not wiz.report_text.isVisible()
+    wiz.report_details.click()
+    assert wiz.report_text.isVisible()
+    wiz.report_details.click()
     assert wiz.calibration.projector.axis == "both"  # rows were scanned: the full 2-D model
     _shot(wiz, "calib_report.png")
 

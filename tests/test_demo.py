@@ -41,6 +41,13 @@ def test_quick_demo_writes_a_whole_study(tmp_path):
         sizes = {store.get_patient(s.patient_id).code: s.mark_diameter_mm for s in store.list_sessions()}
         assert sizes == {"SIM-01": None, "SIM-02": 15.0}
     assert any("scanner accuracy" in line for line in lines)
+    # a clinician's progress: a line before the calibration starts, then each trial's mismatch
+    assert lines[1].startswith("calibrating the simulated scanner")
+    trial_lines = [line for line in lines if line.startswith("[")]
+    assert len(trial_lines) == 8 and trial_lines[0].startswith("[1/8] SIM-")
+    assert all("mismatch inversion" in line and "truth" not in line for line in trial_lines)
+    # simulated patients: said in the CSV and on every report page
+    assert {r["simulated"] for r in rows} == {"1"}
 
 
 def test_demo_replaces_only_its_own_folder(tmp_path):

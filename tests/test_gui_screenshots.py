@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from anklescan.app import resources
-from anklescan.app.main_parts import PAGE_CAMERA, PAGE_SCAN
+from anklescan.app.main_parts import PAGE_CAMERA, PAGE_MARKS, PAGE_RESULT, PAGE_SCAN
 from anklescan.app.main_window import MainWindow
 from gui_actions import use_true_calibration
 
@@ -20,6 +20,8 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     data = Path.home() / "AnkleScan-screenshots"  # a clinic-like path in the pictures, not a test's temp folder
     shutil.rmtree(data, ignore_errors=True)
     monkeypatch.setenv("ANKLESCAN_DATA", str(data))
+    # the app's own rig scale, at which the marks are found: the 3-D page shows them with their SDs
+    Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.75\n")
     qapp.setStyleSheet(resources.STYLE)
     win = MainWindow(open_rig_now=True)
     qtbot.addWidget(win)
@@ -37,6 +39,15 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     form.plantar_flexion.setValue(10.0)
     with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: not b):
         win.scan_flow.start_scan()
+    OUT.mkdir(parents=True, exist_ok=True)
+    win.tabs.setCurrentIndex(PAGE_RESULT)
+    qtbot.wait(100)
+    win.grab().save(str(OUT / "result_page.png"))
+    win.tabs.setCurrentIndex(PAGE_MARKS)
+    qtbot.wait(300)
+    win.marks_page.viewer.render_now()
+    qtbot.wait(100)
+    win.grab().save(str(OUT / "marks_page.png"))
     win.banner.hide()
     win.tabs.setCurrentIndex(PAGE_SCAN)
     form.notes.setPlainText("Second trial after rest.")

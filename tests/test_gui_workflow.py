@@ -145,6 +145,8 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     assert win.calibration is not None and win.scan_page.scan_button.isEnabled()
     assert not win.scan_page.calibrate_button.isVisible()
     _no_error(win)
+    # saved without an operator: asked for now (a banner with its button), not only at New session
+    assert "Who is operating" in win.banner.text and button(win, "Operator…").isVisible()
 
     # 3. a session; the operator is asked for once
     _new_session(qtbot, win, operator="Dr. Ada Test")
@@ -157,16 +159,22 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     assert all(t.status == "complete" and t.cloud_path and t.calibration_id == win.calibration_id for t in stored)
     _no_error(win)
 
-    # 5. one mark placed and moved by clicks in the 3-D view, on a trial opened by one click
+    # 5. one mark placed and moved by clicks in the 3-D view, on a trial opened by one click (the
+    # simulator's truth for it: the stance its capture's manifest records)
     _click_trial(win, trials[1])
-    assert win.tabs.currentIndex() == PAGE_MARKS and f"Trial {trials[1]}" in win.marks_page.title.text()
+    assert win.tabs.currentIndex() == PAGE_MARKS and "Trial 2 " in win.marks_page.title.text()
     assert win.records.trials.currentItem().data(Qt.ItemDataRole.UserRole) == trials[1]
     viewer, editor = win.marks_page.viewer, win.marks_page.editor
     qtbot.wait(100)
     viewer.render_now()
     click(button(editor, "1"))
     # a click a few pixels beside the knee mark lands on its disk's centre, not where it hit
-    truth = np.asarray(win.rig.camera.rig.truth().marks["1"], float)
+    import json
+
+    from anklescan.hardware.sim_scene import leg_scene
+    stance = json.loads((win.store.resolve(stored[1].capture_path) / "manifest.json").read_text())["capture"][
+        "simulated_patient"]
+    truth = np.asarray(leg_scene(*stance["table_deg"]).marks["1"].centre, float)
     x, y, _ = viewer.widget_pos_of(truth[None])[0]
     with qtbot.waitSignal(editor.snapped, timeout=60_000):
         click_at(viewer, int(x) + 3, int(y) + 2)

@@ -24,7 +24,7 @@ def test_every_subpackage_is_listed_in_pyproject():
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {"anklescan." + ".".join(p.parent.relative_to(ROOT).parts)
              for top in ("core", "hardware", "app", "resources") for p in (ROOT / top).rglob("__init__.py")}
-    assert found == listed
+    assert found | {"anklescan.docs"} == listed  # docs/: package data only (the user guide), no module
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +32,7 @@ def wheel(tmp_path_factory):
     # built from a copy: setuptools leaves build/ in the source tree, and a stale build/lib there
     # (a module since moved) would be packed into the next wheel
     src, out = tmp_path_factory.mktemp("src"), tmp_path_factory.mktemp("wheel")
-    for name in ("core", "hardware", "app", "resources"):
+    for name in ("core", "hardware", "app", "resources", "docs"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, src / name)
@@ -47,6 +47,7 @@ def test_the_wheel_holds_only_anklescan_and_its_icon(wheel):
     assert {n.split("/")[0] for n in names} == {"anklescan", wheel.name.split("-py")[0] + ".dist-info"}
     assert "anklescan/resources/anklescan.svg" in names
     assert "anklescan/resources/calibration_box.json" in names
+    assert "anklescan/docs/gui.md" in names  # Help ▸ User guide, offline
     sources = {str(p.relative_to(ROOT)) for top in ("core", "hardware", "app") for p in (ROOT / top).rglob("*.py")}
     assert {"anklescan/" + s for s in sources} <= set(names)
 
@@ -71,6 +72,9 @@ def test_a_plain_install_runs_the_gui_with_its_icon(wheel, tmp_path):
     where = subprocess.run([str(py), "-c", "import anklescan.app.resources as r; print(r.ICONS)"], cwd=tmp_path,
                            env=env, capture_output=True, text=True, check=True).stdout.strip()
     assert Path(where).is_relative_to(env_dir) and (Path(where) / "anklescan.svg").is_file()
+    guide = subprocess.run([str(py), "-c", "from anklescan.app.help_menu import docs_folder; print(docs_folder())"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(guide).is_relative_to(env_dir) and (Path(guide) / "gui.md").is_file()
     assert (env_dir / "bin" / "anklescan").is_file()  # the console script
     gui = subprocess.run([str(py), "-c", "import sys; from anklescan.app.main_window import run_gui; "
                           "sys.exit(run_gui(['anklescan', '--quit-when-shown']))"], cwd=tmp_path, env=env,

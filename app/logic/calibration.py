@@ -94,6 +94,37 @@ def accept_calibration(cal, report, data_folder: Path, store, settings,
     return path, cid
 
 
+def use_stored_calibration(record, data_folder: Path, settings) -> Path:
+    """Make a calibration kept in the database (a CalibrationRecord) the current one: its own file
+    when it is still in the data folder and the same, else the database's copy written next to
+    the others. Its verification in the database is kept as the current verdict."""
+    from anklescan.core.atomic import write_text_atomic
+    from anklescan.core.calibration.file import calibration_from_dict
+    calibration_from_dict(record.data)  # a calibration that cannot be read is refused before anything changes
+    folder = Path(data_folder) / "calibrations"
+    name = record.source.split(": ", 1)[-1] if ": " in record.source else ""
+    path = folder / name if name.endswith(".json") else None
+    if path is None or not path.is_file() or _json_or_none(path) != record.data:
+        path = folder / f"calibration_db{record.id}.json"
+        write_text_atomic(path, json.dumps(record.data, indent=1) + "\n")
+    created = str(record.data.get("created", "") or record.created)
+    s = settings
+    for key, value in (("calibration_path", str(path)), ("calibration_id", str(record.id)),
+                       ("calibration_created", created),
+                       ("calibration_verified", "pass" if record.verified else ""),
+                       ("calibration_verified_at", "")):
+        s.set(key, value)
+    s.sync()
+    return path
+
+
+def _json_or_none(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
 def record_verification(result, settings, calibration_path: str | None = None) -> None:
     """Remember the verdict (the banner reads it) and keep the report next to the file."""
     from anklescan.core.atomic import write_text_atomic

@@ -150,10 +150,11 @@ class SessionLogic:
             self.notice.emit("error", "No sessions database: choose a data folder first (File ▸ Data folder).")
         return self.store is not None
 
-    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None):
+    def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None, last_sprain: str | None = None):
         if not self.require_store():
             return None
-        return self._write("", lambda: self.store.add_patient(code, sprain_count=sprain_count, affected_side=side))
+        return self._write("", lambda: self.store.add_patient(code, sprain_count=sprain_count, affected_side=side,
+                                                              last_sprain=last_sprain))
 
     def start_session(self, patient_id: int | None, condition: str):
         if patient_id is None or self.store is None:

@@ -322,7 +322,12 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         # offset of a point spread evenly over the span from its outer end)
         other = fit(profiles.inward())
         if not isinstance(other, str):
-            cov = cov + np.outer(other[0] - centre, other[0] - centre) / 3.0
+            clip = np.outer(other[0] - centre, other[0] - centre) / 3.0
+            # overexposed (said to the clinician) only where the clip makes the centre less
+            # certain: a few clipped rim pixels on a face at the clip level move it by microns
+            before = math.sqrt(max(float(np.trace(cov)), 0.0))
+            cov = cov + clip
+            clipped_rim = math.sqrt(max(float(np.trace(cov)), 0.0)) >= CLIP_SD_RISE * before
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
@@ -330,6 +335,9 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                 step_sd=float("nan") if step is None else float(step[1]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim), ""
+
+
+CLIP_SD_RISE = 1.1  # a clip that raises the mark's SD by 10 % or more makes it "overexposed"
 
 
 def _face_off_surface(points, cal, centre, normal, radius) -> float:

@@ -50,7 +50,8 @@ CSV_COLUMNS = (
     "mismatch_plantar_flexion", "mismatch_plantar_flexion_sd",
     "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
     "status", "status_note", "excluded_reason", "counted", "marks_confirmed",
-    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep")
+    "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep", "simulated",
+    "mark_warnings")
 _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
@@ -71,8 +72,8 @@ class ReportResult:
 class _Pages:
     """PdfPages that counts pages and stamps a footer on each."""
 
-    def __init__(self, pdf: PdfPages, footer: str):
-        self.pdf, self.footer, self.count = pdf, footer, 0
+    def __init__(self, pdf: PdfPages, footer: str, stamp: str = ""):
+        self.pdf, self.footer, self.count, self.stamp = pdf, footer, 0, stamp
 
     def new(self) -> Figure:
         fig = Figure(figsize=A4)
@@ -83,7 +84,21 @@ class _Pages:
         self.count += 1
         fig.text(0.5, 0.02, f"{self.footer} — page {self.count}", ha="center",
                  fontsize=FOOT_SIZE, color="0.4")
+        if self.stamp:  # simulated trials: said at the top of every page, never only once
+            fig.text(0.5, 0.99, self.stamp, ha="center", va="top", fontsize=FOOT_SIZE + 1, color="#b3261e",
+                     fontweight="bold")
         self.pdf.savefig(fig)
+
+
+def simulated_stamp(rows: Sequence[dict]) -> str:
+    """What every page says of the simulated trials among ``rows`` ("" when there are none)."""
+    sim = sum(1 for r in rows if r.get("simulated"))
+    if not sim:
+        return ""
+    if sim == len(rows):
+        return "SIMULATED — trials of a simulated patient on the built-in simulated rig, not patient data"
+    return (f"WARNING: SIMULATED and real trials mixed — {sim} of {len(rows)} trials are a simulated "
+            "patient's (column 'simulated' in the CSV)")
 
 
 def _csv_value(key: str, v) -> str:
@@ -551,12 +566,17 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
     notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
              for (state, reason), ts in why.items()]
     marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
+    uncertain = [f"trial {i + 1}: {rows[i]['mark_warnings']}" for i in range(start, stop)
+                 if rows[i].get("mark_warnings")]
     lines = []
     if notes:
         lines += _wrap("Shown, but left out of the plots and statistics: " + "; ".join(notes) + ".", 130)
     if marks:
         lines += _wrap("* automatic marks, not confirmed by an operator (plotted hollow): trials "
                        + _ranges(marks) + ".", 130)
+    if uncertain:
+        lines += _wrap("Marks less certain than usual (their SD is in the angles' SD): " + "; ".join(uncertain)
+                       + ".", 130)
     return lines
 
 
@@ -751,8 +771,10 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
     with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
+            ids = {summ.session.id for summ in data.sessions}
+            shown = all_rows if with_group else [r for r in all_rows if r["session_id"] in ids]
             pages = _Pages(pdf, f"AnkleScan session report — {', '.join(sorted(codes))} — "
-                                f"generated {stamp}")
+                                f"generated {stamp}", simulated_stamp(shown))
             for summ in data.sessions:
                 s = summ.session
                 rows = [r for r in all_rows if r["session_id"] == s.id]
@@ -778,7 +800,7 @@ def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResu
     pdf_path, csv_path = Path(pdf_path), (Path(csv_path) if csv_path else None)
     with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
-            pages = _Pages(pdf, f"AnkleScan study report — generated {stamp}")
+            pages = _Pages(pdf, f"AnkleScan study report — generated {stamp}", simulated_stamp(rows))
             stats_, lim = st.study_stats(rows), _sym_limit(rows)
             with_group = st.has_tests(stats_)
             _overview_pages(pages, data.patients, rows, None if with_group else GROUP_OMITTED)

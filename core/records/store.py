@@ -180,7 +180,16 @@ CREATE TABLE daily_checks (
 );
 """
 
-MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5, _V_DAILY_CHECKS]
+# issue 42: a trial scanned on the built-in simulated rig is a simulated patient's, and every list,
+# report and CSV says so; an automatic mark keeps its position SD and why it is less certain
+# ("overexposed"), so the 3-D view, the marks table and the report show it after the scan too.
+_V_SIMULATED = """
+ALTER TABLE trials ADD COLUMN simulated INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE marks ADD COLUMN sd_mm REAL;
+ALTER TABLE marks ADD COLUMN warning TEXT NOT NULL DEFAULT '';
+"""
+
+MIGRATIONS: list[str] = [_V1, _V2, _V3, _V4, _V5, _V_DAILY_CHECKS, _V_SIMULATED]
 MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -844,6 +853,11 @@ class Store:
         d["verified"] = bool(d["verified"])
         return CalibrationRecord(**d)
 
+    def list_calibrations(self) -> list[CalibrationRecord]:
+        """Every calibration kept, newest first (to choose the current one from)."""
+        rows = self._all("SELECT * FROM calibrations ORDER BY created DESC, id DESC")
+        return [CalibrationRecord(**{**dict(r), "verified": bool(r["verified"])}) for r in rows]
+
     def set_calibration_verified(self, cid: int, verified: bool) -> CalibrationRecord:
         """Record the outcome of a verification scan of the box for this calibration."""
         self.get_calibration(cid)
@@ -937,6 +951,13 @@ class Store:
                 " notes, calibration_id, status) VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (session_id, _now(), ri, rp, notes or "", cid, status)).lastrowid
         return self.get_trial(tid)
+
+    def set_trial_simulated(self, trial_id: int, simulated: bool = True) -> Trial:
+        """Record that the trial was scanned on the simulated rig (a simulated patient)."""
+        t = self.get_trial(trial_id)
+        with self._write() as c:
+            c.execute("UPDATE trials SET simulated = ? WHERE id = ?", (int(bool(simulated)), t.id))
+        return self.get_trial(t.id)
 
     def set_trial_status(self, trial_id: int, status: str, note: str = "", *, who: str = "") -> Trial:
         """Move a trial to ``complete``, ``cancelled`` or ``failed`` (with a short note why)."""
@@ -1136,6 +1157,16 @@ class Store:
                 self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma_mm, joint=joint), None)
         return self.get_marks(trial_id)
 
+    def set_mark_quality(self, trial_id: int, quality: Mapping) -> list[MarkRecord]:
+        """Keep stored marks' position SD (mm) and warning: label → (sd_mm or None, warning)."""
+        self.get_trial(trial_id)
+        rows = []
+        for key, (sd, warning) in quality.items():
+            rows.append((_opt_float(sd, f"mark {key} SD"), str(warning or ""), trial_id, parse_label(key)))
+        with self._write() as c:
+            c.executemany("UPDATE marks SET sd_mm = ?, warning = ? WHERE trial_id = ? AND label = ?", rows)
+        return self.get_marks(trial_id)
+
     def get_marks(self, trial_id: int) -> list[MarkRecord]:
         rows = self._all("SELECT * FROM marks WHERE trial_id = ? ORDER BY label", (trial_id,))
         return [MarkRecord(**dict(r)) for r in rows]
@@ -1178,7 +1209,9 @@ class Store:
             # automatic marks count as confirmed once an operator confirmed them (recorded in
             # placed_by, as app.mark_editor does) or moved them (source 'manual')
             " NOT EXISTS (SELECT 1 FROM marks m WHERE m.trial_id = t.id AND m.source = 'auto'"
-            " AND m.placed_by NOT LIKE 'confirmed by %') AS marks_confirmed"
+            " AND m.placed_by NOT LIKE 'confirmed by %') AS marks_confirmed,"
+            " (SELECT group_concat('mark ' || m.label || ' ' || m.warning || ' (SD ' || printf('%.2f', m.sd_mm)"
+            " || ' mm)', '; ') FROM marks m WHERE m.trial_id = t.id AND m.warning != '') AS mark_warnings"
             " FROM trials t JOIN sessions s ON s.id = t.session_id"
             " JOIN patients p ON p.id = s.patient_id"
             " LEFT JOIN calibrations c ON c.id = COALESCE(t.calibration_id, s.calibration_id)"
@@ -1187,7 +1220,7 @@ class Store:
 
 def _trial(row) -> Trial:
     d = dict(row)
-    for k in ("motion_flagged", "motion_keep"):
+    for k in ("motion_flagged", "motion_keep", "simulated"):
         d[k] = bool(d.get(k) or 0)
     return Trial(**d)
 
