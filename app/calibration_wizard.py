@@ -256,8 +256,9 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             return
         if self._scan_purpose == "level":
             cal = self.calibration
-            self.status.setText("Finding the table top…")
-            self._run(lambda: level_folder(folder, cal), self._levelled)
+            table_size = str(self.settings.get("table_size"))
+            self.status.setText(f"Finding the table top ({table_size} mm)…")
+            self._run(lambda: level_folder(folder, cal, table_size), self._levelled)
             return
         self.status.setText("Finding the control points…")
         if self._scan_purpose == "calibrate":
@@ -273,8 +274,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.calibration = cal
         self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store, self.settings,
                                                      source="levelled")
-        self.status.setText(f"Levelled on the table top ({top.size_mm[0]:.0f} × {top.size_mm[1]:.0f} mm, "
-                            f"{top.rms_mm:.2f} mm RMS): saved as {self.accepted_path.name}"
+        self.status.setText(f"Levelled on the table top found ({top.describe()}): saved as {self.accepted_path.name}"
                             + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
         self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
 

@@ -181,6 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     cl.add_argument("calibration", metavar="CAL.json")
     cl.add_argument("capture", metavar="TABLE_CAPTURE")
     cl.add_argument("--out", required=True)
+    cl.add_argument("--table-size", default=None, metavar="LxW",
+                    help="the reference table's top in mm, long side first (default 320x220: docs/calibration.md)")
     cl.set_defaults(func=cmd_calibrate_level)
     ci = csub.add_parser("import", help="an OpenCV FileStorage (XML/YAML) projector-camera calibration")
     ci.add_argument("file")

@@ -36,6 +36,8 @@ KEYS = {
     "calibration_verified": Key("calibration/verified", "", str),  # "", "pass" or "fail"
     "calibration_verified_at": Key("calibration/verified_at", "", str),
     "calibration_max_age_days": Key("calibration/max_age_days", 30.0, float),  # older: the banner warns
+    # the level reference table's top, mm, long side first (core.calibration.levelling.TableSpec)
+    "table_size": Key("calibration/table_size", "320x220", str),
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),

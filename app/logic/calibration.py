@@ -245,10 +245,12 @@ def check_board_folder(folder, cols, rows) -> Path:
     return Path(folder)
 
 
-def level_folder(folder, cal):
-    from anklescan.core.calibration.levelling import level_calibration
+def level_folder(folder, cal, table_size: str = ""):
+    """(levelled calibration, TableTop) from a scan of the level reference table of ``table_size`` ("LxW" mm)."""
+    from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
-    return level_calibration(cal, load_capture(folder))
+    table = parse_table_size(table_size) if table_size else DEFAULT_TABLE
+    return level_calibration(cal, load_capture(folder), table)
 
 
 def verify_folder(folder, cal):
