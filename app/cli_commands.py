@@ -112,12 +112,15 @@ def cmd_calibrate_points(args) -> int:
 
 
 def cmd_calibrate_box(args) -> int:
-    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.core.calibration.box import calibrate_from_box_captures, position_summary
     from anklescan.core.calibration.file import save_calibration
 
-    cal, report = calibrate_from_box_capture(args.capture)
+    Progress(args.quiet)(f"reading {len(args.captures)} box capture(s)")
+    cal, report, positions = calibrate_from_box_captures(args.captures)
     save_calibration(cal, args.out)
     print(report.format_text())
+    for line in position_summary(positions):
+        print(line)
     print(f"wrote calibration to {args.out}")
     return 0
 

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
 
@@ -124,8 +125,9 @@ def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> tuple[
 
 def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c = X.mean(axis=0)
-    _, _, vt = np.linalg.svd(X - c, full_matrices=False)
-    return vt[2], c
+    d = X - c
+    _, v = np.linalg.eigh(d.T @ d)  # the scatter's least direction (= the SVD's last, 3 x 3 only)
+    return v[:, 0], c
 
 
 def _ransac_planes(X: np.ndarray, tol: float, rng: np.random.Generator, count: int) -> list[np.ndarray]:
@@ -143,6 +145,24 @@ def _ransac_planes(X: np.ndarray, tol: float, rng: np.random.Generator, count: i
         out.append(np.concatenate([nt, c]))
         rest = rest[np.abs((rest - c) @ nt) >= 2 * tol]
     return out
+
+
+def floor_normal(points: np.ndarray, camera_centre: np.ndarray, seed: int = 0) -> np.ndarray | None:
+    """The unit normal (towards the camera) of the scan's dominant plane, the floor, or None."""
+    X = np.asarray(points, np.float64)
+    if len(X) < 1000:
+        return None
+    rng = np.random.default_rng(seed)
+    sub = X[rng.choice(len(X), min(len(X), 20000), replace=False)]
+    try:
+        n, p0 = _ransac_plane(sub, PLANE_TOL_MM, rng)
+    except GeometryError:
+        return None
+    on = sub[np.abs((sub - p0) @ n) < PLANE_TOL_MM]
+    if len(on) < 0.2 * len(sub):
+        return None  # no plane dominates the scan
+    n, c = _svd_plane(on)
+    return n if n @ (camera_centre - c) > 0 else -n
 
 
 def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndarray | None = None,
@@ -352,6 +372,7 @@ def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> 
 
     new_extra = dict(cal.extra)
     new_extra["frame"] = "clinic (levelled from the reference table: SPEC §1)"
+    new_extra[FRAME_KEY] = FrameSource.LEVELLED.value
     new_extra["levelled"] = extra
     return Calibration(move(cal.camera), move(cal.projector), new_extra)
 

@@ -23,6 +23,7 @@ from anklescan.core.measure.marks import MarkSet, find_marks
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
+from anklescan.core.calibration.frame import frame_warnings
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -36,6 +37,7 @@ class MeasureResult:
     motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/scan/motion.py)
     motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
     duration_s: float | None = None  # the capture's duration, from its frame timestamps
+    frame_warnings: list[str] = field(default_factory=list)  # the frame vs the tables (core/calibration/frame.py)
 
     @property
     def motion_flagged(self) -> bool:
@@ -57,6 +59,7 @@ class MeasureResult:
             "reconstruction": self.reconstruction,
             "motion_mm": (self.motion or MotionEstimate(None, None)).to_dict(),
             "motion": self._motion_details(),
+            "warnings": list(self.frame_warnings),
         }
 
     def mark_diameter(self) -> dict | None:
@@ -93,6 +96,7 @@ class MeasureResult:
         if self.motion is not None:
             lines.append(self.motion.format_text() + (
                 f": MOVED MORE THAN {self.motion_threshold_mm:g} mm, scan again" if self.motion_flagged else ""))
+        lines += [f"warning: {w}" for w in self.frame_warnings]
         if not self.complete:
             lines.append("incomplete: " + self.marks.message())
         return "\n".join(lines)
@@ -112,8 +116,10 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     angles = compute_angles(marks.centres(), marks.covariances()) if marks.labelled else AngleResult()
     summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
     motion = estimate_motion(capture, calibration, decoded, cloud)
-    return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
-                         scan_duration_s(capture))
+    result = MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
+                           scan_duration_s(capture))
+    result.frame_warnings = frame_warnings(calibration.extra, cloud.points, calibration.camera.center)
+    return result
 
 
 def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,
