@@ -293,7 +293,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self._job = None
         if error:
             self.status.setText(f"Calibration failed: {error}")
-            if self._scan_purpose == "board":
+            if self._scan_purpose in ("board", "calibrate"):  # back to placing the box: scan it again
                 self.go(PAGE_PLACE)
             return
         on_done(result)

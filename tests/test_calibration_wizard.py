@@ -336,6 +336,7 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     qtbot.mouseClick(wiz.level_button, Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: "Levelled" in wiz.status.text() or "failed" in wiz.status.text(), timeout=180000)
     assert "Levelled" in wiz.status.text(), wiz.status.text()
+    assert "mm RMS" in wiz.status.text() and "points" in wiz.status.text()  # the top found, for the clinic to judge
     cal, cid = load_current_calibration(Settings())
     assert cid is not None and cal.extra["source"] == "imported, levelled" and "levelled" in cal.extra
     M = cal.camera.R.T @ true.camera.R

@@ -222,10 +222,17 @@ def white_frame(folder):
 
 
 def calibrate_folder(folder, camera_size, projector_size):
-    """(BoxPoints, Calibration, report) from a box scan."""
+    """(BoxPoints, Calibration, report) from a box scan; BoxCalibrationRefused (its one line says what
+    to do) when the residuals are far beyond the corners' noise."""
+    from anklescan.core.calibration.box import BoxCapture, BoxPose, check_residuals, observe_box
+    from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
     decoded = decode_folder(folder)
-    pts = observe(decoded.white, decoded.column, decoded.row)
+    obs = observe_box(decoded.white, decoded.column, decoded.row)
+    pts = BoxPoints(np.asarray(decoded.white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
+                    obs.proj_cam_uv, obs.found)
     cal, report = calibrate_box(pts, camera_size, projector_size)
+    check_residuals(report, [BoxCapture(Path(folder).name, BoxPose(), obs)], cal)
+    cal.extra[FRAME_KEY] = FrameSource.BOX.value
     cal.extra["source"] = f"calibration box scan {Path(folder).name}"
     cal.extra["box"] = {"markers_found": sorted(pts.found), "camera_points": len(pts.cam_xyz),
                         "projector_points": len(pts.proj_xyz), "capture": str(folder)}
