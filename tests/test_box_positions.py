@@ -159,3 +159,17 @@ def test_a_turned_box_warns_until_levelled(boxes, table_cal, true_cal, tmp_path)
     assert frame_alignment(levelled.extra, reconstruct(capture, levelled).points,
                            levelled.camera.center).warnings() == []
     assert errors(levelled, true_cal)[0] <= 0.2
+
+
+def test_frame_provenance_decides_what_needs_checking():
+    from anklescan.core.calibration.frame import FrameAlignment, FrameSource, frame_source
+
+    assert frame_source({}) == FrameSource.UNKNOWN and frame_source({"frame_source": "nonsense"}) == FrameSource.UNKNOWN
+    assert frame_source({"frame_source": "levelled"}) == FrameSource.LEVELLED
+    assert FrameAlignment(FrameSource.LEVELLED, 40.0, 40.0).warnings() == []  # the clinic's by construction
+    camera = FrameAlignment(FrameSource.CAMERA, None, None).warnings()
+    assert len(camera) == 1 and "camera's" in camera[0] and "calibrate level" in camera[0]
+    assert FrameAlignment(FrameSource.BOX, 0.3, 2.0).warnings() == []
+    assert FrameAlignment(FrameSource.BOX, None, None).warnings() == []  # nothing to judge by: no claim
+    tilted = FrameAlignment(FrameSource.BOARD, 8.0, 1.0).warnings()
+    assert len(tilted) == 1 and "tilted 8.0°" in tilted[0] and "board" in tilted[0]

@@ -110,6 +110,21 @@ def frame_alignment(extra: dict, points: np.ndarray, camera_centre: np.ndarray) 
     return FrameAlignment(source, tilt, turn)
 
 
+_MEASURED: dict[bytes, FrameAlignment] = {}  # a calibration's frame, once measured with its table in view
+
+
 def frame_warnings(extra: dict, points: np.ndarray, camera_centre: np.ndarray) -> list[str]:
-    """One-line warnings (at most one) for RESULT.json when the frame is not aligned with the tables."""
-    return frame_alignment(extra, points, camera_centre).warnings()
+    """One-line warnings (at most one) for RESULT.json when the frame is not aligned with the tables.
+
+    A frame does not change from scan to scan: once a scan showed the floor and a table, the
+    answer is kept for that calibration (its camera centre and provenance) and the next scans
+    cost nothing (~1 s otherwise)."""
+    key = np.asarray(camera_centre, np.float64).round(6).tobytes() + str(extra.get(FRAME_KEY)).encode()
+    if key in _MEASURED:
+        return _MEASURED[key].warnings()
+    found = frame_alignment(extra, points, camera_centre)
+    if found.floor_tilt_deg is not None and found.table_turn_deg is not None:
+        if len(_MEASURED) >= 16:
+            _MEASURED.clear()
+        _MEASURED[key] = found
+    return found.warnings()
