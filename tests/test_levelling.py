@@ -201,3 +201,22 @@ def test_level_takes_the_table_sized_top_not_a_higher_small_patch(tmp_path):
     done = run("calibrate", "level", tmp_path / "cal.json", tmp_path / "table", "--table-size", "big",
                "--out", tmp_path / "big.json")
     assert done.returncode == 2 and "320x220" in done.stderr and not (tmp_path / "big.json").exists()
+
+
+def test_level_takes_the_whole_top_when_the_floor_is_not_parallel_to_it(tmp_path):
+    """The floor seen 5° off the top's plane (a sloping floor; or, as an independent tester saw, a
+    calibration that bends the far floor away from the top): slicing heights along the floor's
+    normal once took a 311 x 90 mm strip of the top, exit 0. The top's own plane, grown, is whole."""
+    a = np.radians(5.0)
+    floor = Plane(kind=ObjectId.FLOOR, normal=(np.sin(a), 0.0, np.cos(a)), albedo=0.5)
+    rig = SimRig(Scene([floor, *reference_table_scene().objects[1:]]), scale=0.25, seed=3)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height)
+    save_capture(tmp_path / "table", pset, rig.capture_many(render_all(pset)))
+    true = rig.true_calibration()
+    save_calibration(true, tmp_path / "cal.json")
+    done = run("calibrate", "level", tmp_path / "cal.json", tmp_path / "table", "--out", tmp_path / "level.json")
+    assert done.returncode == 0, done.stderr
+    meta = json.loads((tmp_path / "level.json").read_text())["levelled"]
+    assert 290 < meta["table_top_mm"][0] < 330 and 200 < meta["table_top_mm"][1] < 230, meta
+    z_err, y_err = frame_error_deg(load_calibration(tmp_path / "level.json"), true)
+    assert z_err < 0.1 and y_err < 0.3, (z_err, y_err)
