@@ -611,8 +611,9 @@ def position_summary(captures: list[BoxCapture]) -> list[str]:
         o = c.observations
         turn = np.degrees(np.arctan2(c.pose.R[1, 0], c.pose.R[0, 0]))
         tilt = np.degrees(np.arccos(np.clip(c.pose.R[2, 2], -1.0, 1.0)))
+        x, y, z = c.pose.t
         where = ("defines the world frame" if k == 0 else
-                 f"at ({c.pose.t[0]:.0f}, {c.pose.t[1]:.0f}, {c.pose.t[2]:.0f}) mm, turned {turn:.1f}°, tilted {tilt:.1f}°")
+                 f"at ({x:.0f}, {y:.0f}, {z:.0f}) mm, turned {turn:.1f}°, tilted {tilt:.1f}°")
         dropped = f", dropped (outline not confirmed): {', '.join(map(str, o.unconfirmed))}" if o.unconfirmed else ""
         out.append(f"box position {k + 1} ({c.name}): {where}; {len(o.marker_ids)} markers, "
                    f"{len(o.cam_xyz)} camera / {len(o.proj_xyz)} projector points{dropped}")

@@ -29,7 +29,6 @@ The scan must show the whole table top; nothing of the table's size and level ma
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -185,19 +184,16 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
         bins = np.array([h.min() - tol, h.max() + tol])
     counts, edges = np.histogram(h, bins)
     # level surfaces make peaks (the floor is usually the biggest, and a mark plate or a shelf may sit higher)
-    peaks = [b for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
+    peaks = [int(b) for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
              if counts[b] >= counts[max(b - 1, 0)] and counts[b] >= counts[min(b + 1, len(counts) - 1)]]
-    seeds: list[Callable[[], np.ndarray]] = []
-    for b in sorted(peaks, reverse=True):
-        h_top = 0.5 * (edges[b] + edges[b + 1])
-        seeds.append(lambda h_top=h_top: X[np.abs(h - h_top) < 2 * tol])
-    for plane in _ransac_planes(sub, tol, rng, SEQUENTIAL_PLANES):
-        seeds.append(lambda plane=plane: X[np.abs((X - plane[3:]) @ plane[:3]) < 2 * tol])
+    # candidate planes (unit normal, offset: n·x = offset), the highest level surface first
+    seeds: list[tuple[np.ndarray, float]] = [(n, 0.5 * float(edges[b] + edges[b + 1])) for b in sorted(peaks)[::-1]]
+    seeds += [(plane[:3], float(plane[:3] @ plane[3:])) for plane in _ransac_planes(sub, tol, rng, SEQUENTIAL_PLANES)]
     tops: list[TableTop] = []
     errors: list[GeometryError] = []
-    for make in seeds:
+    for normal, offset in seeds:
         try:
-            tops.append(_top_at(X, make(), n, tol, camera_centre))
+            tops.append(_top_at(X, X[np.abs(X @ normal - offset) < 2 * tol], n, tol, camera_centre))
         except GeometryError as e:
             errors.append(e)
     good = [t for t in tops if table.matches(t.size_mm) and t.rms_mm <= table.max_rms_mm]
