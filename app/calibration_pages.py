@@ -143,9 +143,15 @@ class WizardPages:
         self.accept_button.clicked.connect(self.accept_current)
         manual = QPushButton("Use the manual method instead…")
         manual.clicked.connect(lambda: self.go(PAGE_MANUAL))
+        self.add_position_button = QPushButton("Add a box position (knee)…")
+        self.add_position_button.setToolTip("Scan the box again at the knee's height (on a stand) before accepting: "
+                                            "all positions go into one fit, so the calibration covers the table "
+                                            "and the knee")
+        self.add_position_button.clicked.connect(self.add_box_position)
         row = QHBoxLayout()
         row.addWidget(manual)
         row.addStretch(1)
+        row.addWidget(self.add_position_button)
         row.addWidget(self.accept_button)
         v.addWidget(split, 1)
         v.addLayout(row)
@@ -217,6 +223,7 @@ class WizardPages:
 
     def show_report(self, board_white=None) -> None:
         pts, rep = self.points, self.report
+        self.add_position_button.setEnabled(False)  # a box scan's report enables it (more positions)
         if pts is None:  # a chessboard calibration: the first view with its corners, the report as text
             img = gray_rgb(board_white)
             for v in self.board_result.views[:1]:

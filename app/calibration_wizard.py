@@ -41,7 +41,7 @@ from PySide6.QtWidgets import QDialog
 from anklescan.app.acquisition import Acquisition, WindowOutput
 from anklescan.app.background import run_in_background
 from anklescan.app.logic.calibration import (BoxPoints, accept_calibration, board_camera, box_camera,
-                                             calibrate_board_folders, calibrate_folder, calibration_warning,
+                                             calibrate_board_folders, calibrate_folders, calibration_warning,
                                              camera_size, check_board_folder, current_calibration_info, level_folder,
                                              load_current_calibration, manual_points, record_verification,
                                              verify_folder)
@@ -91,6 +91,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.acquisition = Acquisition(self.camera, self.output, settle_s)
         self.points: BoxPoints | None = None
         self.board_captures: list[Path] = []  # chessboard views scanned so far
+        self.box_captures: list[Path] = []  # box positions of the calibration being made (table, knee, ...)
+        self._adding_position = False  # the next box scan adds a position instead of starting afresh
         self.board_result = None
         self.calibration = self.report = None
         self.verification = None
@@ -262,13 +264,19 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             return
         if self._scan_purpose == "level":
             cal = self.calibration
-            self.status.setText("Finding the table top…")
-            self._run(lambda: level_folder(folder, cal), self._levelled)
+            table_size = str(self.settings.get("table_size"))
+            self.status.setText(f"Finding the table top ({table_size} mm)…")
+            self._run(lambda: level_folder(folder, cal, table_size), self._levelled)
             return
         self.status.setText("Finding the control points…")
         if self._scan_purpose == "calibrate":
             size_c, size_p = self.camera_size, tuple(self.projector.projector_size)
-            self._run(lambda: calibrate_folder(folder, size_c, size_p), self._calibrated)
+            if not self._adding_position:
+                self.box_captures = []
+            self._adding_position = False
+            self.box_captures.append(Path(folder))
+            folders = list(self.box_captures)
+            self._run(lambda: calibrate_folders(folders, size_c, size_p), self._calibrated)
         else:
             cal = self.calibration
             self._run(lambda: verify_folder(folder, cal), self._verified)
@@ -279,8 +287,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.calibration = cal
         self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store, self.settings,
                                                      source="levelled")
-        self.status.setText(f"Levelled on the table top ({top.size_mm[0]:.0f} × {top.size_mm[1]:.0f} mm, "
-                            f"{top.rms_mm:.2f} mm RMS): saved as {self.accepted_path.name}"
+        self.status.setText(f"Levelled on the table top found ({top.describe()}): saved as {self.accepted_path.name}"
                             + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
         self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
 
@@ -298,8 +305,10 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     def _job_done(self, result, error: str, on_done) -> None:
         self._job = None
         if error:
+            if self._scan_purpose == "calibrate" and self.box_captures:
+                self.box_captures.pop()  # a refused position is not kept
             self.status.setText(f"Calibration failed: {error}")
-            if self._scan_purpose == "board":
+            if self._scan_purpose in ("board", "calibrate"):  # back to placing the box: scan it again
                 self.go(PAGE_PLACE)
             return
         on_done(result)
@@ -313,7 +322,26 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.points, self.calibration, self.report = result
         self.show_report()
         self.go(PAGE_REPORT)
-        self.status.setText("Check the report, then accept.")
+        n = len(self.box_captures)
+        self.add_position_button.setEnabled(n < 3)
+        self.status.setText(f"{n} box position(s) in one fit" + (" (every position's arrows drawn on the last scan)"
+                                                                  if n > 1 else "")
+                            + ". Check the report, then accept"
+                            + (", or add the box at the knee's height first." if n == 1 else "."))
+
+    def add_box_position(self) -> bool:
+        """Back to placing the box, keeping the positions scanned so far: the next scan adds one
+        (first at the table, then on a stand at the knee, then half-way; docs/calibration_app.md)."""
+        if not self.box_captures or self.busy():
+            return False
+        self._adding_position = True
+        self.camera = box_camera(self.rig, len(self.box_captures))  # the simulated rig: the box moved
+        self.acquisition.camera = self.camera
+        self.go(PAGE_PLACE)
+        self.status.setText(f"Box position {len(self.box_captures) + 1}: stand the box at the knee's height (on a "
+                            "stable stand, the same faces towards the scanner), then scan it. The positions so far "
+                            "are kept and all go into one fit.")
+        return True
 
     def accept_current(self) -> bool:
         if self.calibration is None:

@@ -132,7 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--projector-size", type=_size, default=(1024, 768), help="projector resolution WxH")
     cp.set_defaults(func=cmd_calibrate_points)
     cb = csub.add_parser("box", help="automatic calibration from a scan of the calibration box")
-    cb.add_argument("capture")
+    cb.add_argument("captures", nargs="+", metavar="CAPTURE",
+                    help="one capture per box position: first at the table's height (it defines the world frame), "
+                         "then at the knee's")
     cb.add_argument("--out", required=True)
     cb.set_defaults(func=cmd_calibrate_box)
     cbo = csub.add_parser("board", help="camera and projector from Gray-code captures of a printed chessboard")
@@ -148,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     cl.add_argument("calibration", metavar="CAL.json")
     cl.add_argument("capture", metavar="TABLE_CAPTURE")
     cl.add_argument("--out", required=True)
+    cl.add_argument("--table-size", default=None, metavar="LxW",
+                    help="the reference table's top in mm, long side first (default 320x220: docs/calibration.md)")
     cl.set_defaults(func=cmd_calibrate_level)
     ci = csub.add_parser("import", help="an OpenCV FileStorage (XML/YAML) projector-camera calibration")
     ci.add_argument("file")

@@ -115,14 +115,17 @@ def cmd_calibrate_points(args) -> int:
 
 
 def cmd_calibrate_box(args) -> int:
-    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.core.calibration.box import calibrate_from_box_captures, position_summary
     from anklescan.core.calibration.file import save_calibration
 
-    cal, report = calibrate_from_box_capture(args.capture)
+    Progress(args.quiet)(f"reading {len(args.captures)} box capture(s)")
+    cal, report, positions = calibrate_from_box_captures(args.captures)
     save_calibration(cal, args.out)
     print(report.format_text())
     from anklescan.core.calibration.file import volume_text
     print(volume_text(cal))
+    for line in position_summary(positions):
+        print(line)
     print(f"wrote calibration to {args.out}")
     return 0
 
@@ -185,14 +188,14 @@ def cmd_calibrate_board(args) -> int:
 def cmd_calibrate_level(args) -> int:
     from anklescan.core.calibration.file import load_calibration, save_calibration
     from anklescan.core.scan.capture import load_capture
-    from anklescan.core.calibration.levelling import level_calibration
+    from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
 
+    table = DEFAULT_TABLE if args.table_size is None else parse_table_size(args.table_size)
     cal = load_calibration(args.calibration)
     capture = load_capture(args.capture)
-    new, top = level_calibration(cal, capture)
+    new, top = level_calibration(cal, capture, table)
     save_calibration(new, args.out)
-    print(f"table top {top.size_mm[0]:.0f} x {top.size_mm[1]:.0f} mm, {top.n_points} points, "
-          f"{top.rms_mm:.2f} mm RMS about its plane")
+    print(f"table top found: {top.describe()} (the reference table: {table.describe()})")
     print(f"wrote levelled calibration to {args.out}")
     return 0
 

@@ -173,8 +173,8 @@ class ScanFlow(QObject):
             win.review.show_cloud(result.cloud, tid)
             if result.marks:
                 # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks, result.quality, result.warnings,
-                                                              result.position_covariance)
+                win.review.marks_page.editor.propose_auto(result.marks, result.quality, warnings=result.warnings,
+                                                              covariance=result.position_covariance)
             volume_notes = [w for w in result.warnings if "outside the calibrated volume" in w]
             if volume_notes:
                 notes.append(("warning", "; ".join(volume_notes) + ".", None))

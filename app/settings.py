@@ -45,6 +45,8 @@ KEYS = {
     "daily_check_inversion": Key("daily_check/inversion", 0.0, float),
     "daily_check_plantar_flexion": Key("daily_check/plantar_flexion", 0.0, float),
     "daily_check_tolerance": Key("daily_check/tolerance", 0.3, float),
+    # the level reference table's top, mm, long side first (core.calibration.levelling.TableSpec)
+    "table_size": Key("calibration/table_size", "320x220", str),
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds
     "sim_scale": Key("scan/sim_scale", 0.75, float),

@@ -122,3 +122,38 @@ def test_shipped_drawing_and_description_are_current():
     assert (res / "calibration_box.svg").read_text() == cb.box_svg()
     ET.fromstring(cb.box_svg())
     assert json.loads((res / "calibration_box.json").read_text()) == json.loads(json.dumps(cb.box_description(), indent=1))
+
+
+def test_a_marker_cut_past_its_edge_is_dropped_not_kept_raw(box_capture):
+    """The white surround of a marker cut 1.5 px past one side (the projector's field ending there):
+    refinement cannot confirm that side; the marker is dropped, never kept with ArUco's raw corners."""
+    from anklescan.core.scan.capture import load_capture
+
+    folder, true = box_capture
+    cap = load_capture(folder)
+    white = cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")]).astype(np.float32)
+    world = cb.marker_corners_world()
+    H, W = white.shape
+    pix = np.stack(np.mgrid[0:W, 0:H], axis=-1).transpose(1, 0, 2).astype(np.float64)  # (H, W, 2) x, y
+    raw_off, checked = [], 0
+    for mid in (1, 4, 10, 13, 19, 22):
+        q = true.camera.project(world[mid])
+        for k in range(4):
+            a, b = q[k], q[(k + 1) % 4]
+            d = (b - a) / np.linalg.norm(b - a)
+            n = np.array([d[1], -d[0]])
+            if (0.5 * (a + b) - q.mean(axis=0)) @ n < 0:
+                n = -n
+            img = white.copy()
+            near = np.linalg.norm(pix - q.mean(axis=0), axis=-1) < 2 * np.linalg.norm(b - a)
+            img[near & ((pix - a) @ n > 1.5)] *= 0.03
+            dropped: list[int] = []
+            found = cb.detect_markers(img, unconfirmed=dropped)
+            raw = cb.detect_markers(img, refine_edges=False)
+            if mid in found:  # confirmed: then right
+                assert np.abs(found[mid] - q).max() < 0.3, (mid, k)
+            elif mid in raw:
+                assert mid in dropped
+                raw_off.append(np.abs(raw[mid] - q).max())
+            checked += 1
+    assert checked == 24 and len(raw_off) >= 12 and max(raw_off) > 1.0  # what keeping raw corners cost

@@ -341,6 +341,7 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     qtbot.mouseClick(wiz.level_button, Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: "Levelled" in wiz.status.text() or "failed" in wiz.status.text(), timeout=180000)
     assert "Levelled" in wiz.status.text(), wiz.status.text()
+    assert "mm RMS" in wiz.status.text() and "points" in wiz.status.text()  # the top found, for the clinic to judge
     cal, cid = load_current_calibration(Settings())
     assert cid is not None and cal.extra["source"] == "imported, levelled" and "levelled" in cal.extra
     M = cal.camera.R.T @ true.camera.R
@@ -349,3 +350,40 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     want, got = compute_angles(marks), compute_angles({k: M @ v + m for k, v in marks.items()})
     for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
         assert abs(got[name]["value"] - want[name]["value"]) < 0.05, name
+
+
+def test_box_at_the_table_then_the_knee_by_clicking(setup, qtbot):
+    """Scan the box, click Add a box position, scan it again (the simulated person stood it on a
+    300 mm stand): one calibration of both positions, accepted, right at the knee."""
+    from PySide6.QtCore import Qt
+
+    from anklescan.app.calibration_wizard import PAGE_PLACE, PAGE_REPORT, PAGE_VERIFY
+
+    rig, projector, store, wiz = setup
+    true = rig.camera.rig.true_calibration()
+    qtbot.waitUntil(lambda: "markers found" in wiz.place_count.text(), timeout=20000)
+    qtbot.mouseClick(wiz.scan_box_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT, timeout=120000)
+    assert wiz.add_position_button.isEnabled() and "knee" in wiz.status.text()
+    qtbot.mouseClick(wiz.add_position_button, Qt.MouseButton.LeftButton)
+    assert wiz.pages.currentIndex() == PAGE_PLACE and "position 2" in wiz.status.text()
+    qtbot.mouseClick(wiz.scan_box_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: wiz.pages.currentIndex() == PAGE_REPORT or "failed" in wiz.status.text(),
+                    timeout=120000)
+    assert wiz.pages.currentIndex() == PAGE_REPORT, wiz.status.text()
+    assert "2 box position(s)" in wiz.status.text()
+    _shot(wiz, "calib_report_two_positions.png")
+    positions = wiz.calibration.extra["box"]["positions"]
+    assert len(positions) == 2 and abs(positions[1]["t"][2] - 300.0) < 1.0
+    # the knee's marks, seen by the true rig, triangulated with the calibration: within 0.3 mm
+    from anklescan.hardware.sim_scene import leg_scene
+    cal = wiz.calibration
+    for label in ("1", "3"):
+        P = np.asarray(leg_scene(0, 0).marks[label].centre)[None]
+        uv, pr = true.camera.project(P), true.projector.project(P)
+        d = cal.camera.rays(uv)
+        plane = cal.projector.column_plane(pr[:, 0], pr[:, 1])
+        s = -(plane[:, :3] @ cal.camera.center + plane[:, 3]) / np.einsum("ij,ij->i", plane[:, :3], d)
+        assert np.linalg.norm(cal.camera.center + s[:, None] * d - P) < 0.3, label
+    qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
+    assert wiz.pages.currentIndex() == PAGE_VERIFY

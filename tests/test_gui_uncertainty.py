@@ -31,7 +31,7 @@ def test_marks_page_shows_the_volume_warning_and_the_honest_sd(qtbot) -> None:
     warnings = measure_warnings(WarningContext(marks, cal))
     editor = win.marks_page.editor
     # what the scan flow hands the editor when a measurement finishes (app/scan_flow.py)
-    editor.propose_auto({k: tuple(v) for k, v in marks.items()}, warnings, joint)
+    editor.propose_auto({k: tuple(v) for k, v in marks.items()}, warnings=warnings, covariance=joint)
     status = {lab: editor.list.item(lab - 1, 4).text() for lab in range(1, 8)}
     assert "mm above vol." in status[1] and "mm above vol." in status[3]
     assert "knee's height" in editor.list.item(2, 4).toolTip()

@@ -149,13 +149,22 @@ def _scene_camera(rig, scene, name: str):
     return sim
 
 
-def box_camera(rig):
+# where a person stands the box for its 1st, 2nd, 3rd scan on the simulated rig: on the floor at
+# the table (its documented place), on a stand at the knee, half-way (docs/calibration_app.md)
+SIM_BOX_LIFTS_MM = (0.0, 300.0, 150.0)
+
+
+def box_camera(rig, position: int = 0):
     """The camera that photographs the box: on the simulated rig a simulated camera on the box
-    scene (same devices, same projector image); on real hardware the rig's own camera."""
+    scene (same devices, same projector image) with the box at ``position`` (``SIM_BOX_LIFTS_MM``);
+    on real hardware the rig's own camera."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
         return rig.camera
+    from anklescan.core.calibration.box import BoxPose
     from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
-    return _scene_camera(rig, quad_scene(box_scene_objects()), "Simulated camera (box)")
+    lift = SIM_BOX_LIFTS_MM[position % len(SIM_BOX_LIFTS_MM)]
+    return _scene_camera(rig, quad_scene(box_scene_objects(4.0, BoxPose.placed(lift_mm=lift))),
+                         "Simulated camera (box)")
 
 
 def board_camera(rig, view: int, cols: int, rows: int, square: float):
@@ -253,13 +262,38 @@ def white_frame(folder):
 
 
 def calibrate_folder(folder, camera_size, projector_size):
-    """(BoxPoints, Calibration, report) from a box scan."""
+    """(BoxPoints, Calibration, report) from a box scan; BoxCalibrationRefused (its one line says what
+    to do) when the residuals are far beyond the corners' noise."""
+    from anklescan.core.calibration.box import BoxCapture, BoxPose, check_residuals, observe_box
+    from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
     decoded = decode_folder(folder)
-    pts = observe(decoded.white, decoded.column, decoded.row)
+    obs = observe_box(decoded.white, decoded.column, decoded.row)
+    pts = BoxPoints(np.asarray(decoded.white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
+                    obs.proj_cam_uv, obs.found)
     cal, report = calibrate_box(pts, camera_size, projector_size)
+    check_residuals(report, [BoxCapture(Path(folder).name, BoxPose(), obs)], cal)
+    cal.extra[FRAME_KEY] = FrameSource.BOX.value
     cal.extra["source"] = f"calibration box scan {Path(folder).name}"
     cal.extra["box"] = {"markers_found": sorted(pts.found), "camera_points": len(pts.cam_xyz),
                         "projector_points": len(pts.proj_xyz), "capture": str(folder)}
+    return pts, cal, report
+
+
+def calibrate_folders(folders, camera_size, projector_size):
+    """(BoxPoints of all positions, drawn on the last scan's white frame, Calibration, report) from
+    box scans at several positions in one fit (core.calibration.box.calibrate_from_box_captures;
+    refused like one scan)."""
+    from anklescan.core.calibration.box import calibrate_from_box_captures
+    if len(folders) == 1:
+        return calibrate_folder(folders[0], camera_size, projector_size)
+    cal, report, caps = calibrate_from_box_captures(folders)
+    obs = [c.observations for c in caps]
+    pts = BoxPoints(np.asarray(decode_folder(folders[-1]).white, np.float32),
+                    np.concatenate([c.pose.apply(o.cam_xyz) for c, o in zip(caps, obs, strict=True)]),
+                    np.concatenate([o.cam_uv for o in obs]),
+                    np.concatenate([c.pose.apply(o.proj_xyz) for c, o in zip(caps, obs, strict=True)]),
+                    np.concatenate([o.proj_uv for o in obs]), np.concatenate([o.proj_cam_uv for o in obs]),
+                    obs[-1].found)
     return pts, cal, report
 
 
@@ -276,10 +310,12 @@ def check_board_folder(folder, cols, rows) -> Path:
     return Path(folder)
 
 
-def level_folder(folder, cal):
-    from anklescan.core.calibration.levelling import level_calibration
+def level_folder(folder, cal, table_size: str = ""):
+    """(levelled calibration, TableTop) from a scan of the level reference table of ``table_size`` ("LxW" mm)."""
+    from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
-    return level_calibration(cal, load_capture(folder))
+    table = parse_table_size(table_size) if table_size else DEFAULT_TABLE
+    return level_calibration(cal, load_capture(folder), table)
 
 
 def verify_folder(folder, cal):

@@ -498,6 +498,7 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
     extra = {"source": "chessboard calibration (anklescan.core.calibration.board)",
              "frame": "first capture's board: z board normal on the camera side, y board axis down the "
                       "camera image, origin at the corner grid's centre",
+             "frame_source": "board",  # core.calibration.frame.FrameSource
              "board": {"cols": cols, "rows": rows, "square_mm": square, "captures": [v.name for v in views],
                        "corners_camera": [len(v.corners) for v in views],
                        "corners_projector": [int(m.sum()) for m in masks], "distortion": model},

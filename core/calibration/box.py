@@ -21,12 +21,13 @@ marker image, where "upright" on each face is given by the face's (u, v) axes be
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import CalibrationError
 from anklescan.core.robust import robust_sigma
 
@@ -134,9 +135,30 @@ def face_texture(face: Face, px_per_mm: float = 4.0) -> np.ndarray:
     return tex
 
 
-def face_placements(px_per_mm: float = 4.0) -> list[dict]:
-    """Per visible face: origin, u_axis, v_axis (mm vectors) and albedo texture for a TexturedQuad."""
-    return [{"name": f.name, "origin": f.origin.copy(), "u_axis": f.u_axis.copy(), "v_axis": f.v_axis.copy(),
+@dataclass(frozen=True)
+class BoxPose:
+    """Where a box stands in the world: world = R @ box + t (the identity: the documented place,
+    which defines the world frame)."""
+
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def placed(cls, lift_mm: float = 0.0, turn_deg: float = 0.0, shift_mm: tuple[float, float] = (0.0, 0.0)) -> BoxPose:
+        """The box raised by ``lift_mm``, turned by ``turn_deg`` about the vertical, moved by ``shift_mm`` (x, y)."""
+        a = np.radians(turn_deg)
+        R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        return cls(R, np.array([shift_mm[0], shift_mm[1], lift_mm], float))
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        return np.asarray(X, np.float64) @ self.R.T + self.t
+
+
+def face_placements(px_per_mm: float = 4.0, pose: BoxPose | None = None) -> list[dict]:
+    """Per visible face: origin, u_axis, v_axis (mm vectors) and albedo texture for a TexturedQuad,
+    for the box at ``pose`` (default: its documented place)."""
+    pose = pose or BoxPose()
+    return [{"name": f.name, "origin": pose.apply(f.origin), "u_axis": pose.R @ f.u_axis, "v_axis": pose.R @ f.v_axis,
              "texture": face_texture(f, px_per_mm)} for f in FACES]
 
 
@@ -163,11 +185,15 @@ def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
 
 
 
-def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np.ndarray]:
+def detect_markers(white: np.ndarray, refine_edges: bool = True,
+                   unconfirmed: list[int] | None = None) -> dict[int, np.ndarray]:
     """Box marker id -> (4, 2) sub-pixel corners (OpenCV pixel convention) in a white-frame image.
 
     ``refine_edges``: corners as intersections of the marker's four fitted outline edges
-    (``refine_marker_corners``); a live preview that only draws outlines can skip it.
+    (``refine_marker_corners``); a marker whose outline cannot be confirmed that way (cut by
+    the projector's field or the frame, seen nearly edge-on) is dropped, never kept with the
+    detector's raw corners (1-17 px off where refinement failed), and its id appended to
+    ``unconfirmed``. A live preview that only draws outlines can skip the refinement.
     """
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -179,11 +205,17 @@ def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np
     known = marker_layout()
     gray = _gray_float(white) if refine_edges else None
     out = {}
-    for c, i in zip(corners, [] if ids is None else ids.ravel()):
+    for c, i in zip(corners, [] if ids is None else ids.ravel(), strict=True):
         if int(i) in known:
             quad = c.reshape(4, 2).astype(np.float64)
-            refined = refine_marker_corners(gray, quad) if refine_edges else None
-            out[int(i)] = quad if refined is None else refined
+            if not refine_edges:
+                out[int(i)] = quad
+                continue
+            refined = refine_marker_corners(gray, quad)
+            if refined is not None:
+                out[int(i)] = refined
+            elif unconfirmed is not None:
+                unconfirmed.append(int(i))
     return out
 
 
@@ -198,6 +230,17 @@ def detect_markers(white: np.ndarray, refine_edges: bool = True) -> dict[int, np
 EDGE_END_SKIP = 0.15      # fraction of each side left out at both ends (the blurred corners)
 EDGE_STEP_PX = 0.1        # sampling step across the edge
 EDGE_ROUNDS = 2           # re-sample about the refined lines once
+# A corner is confirmed only where the marker's white surround is whole: flat for SURROUND_PX
+# beyond the sampled profile on every side (not cut by the projector's field, the frame or a
+# shadow), and as bright on each side as on the brightest (within SIDE_LIGHT_RATIO). A cut 1-2 px
+# past an edge otherwise shifts that edge's half-way crossings by up to 2 px, unnoticed (measured:
+# the simulated box's white frame darkened past a line 0.5-2.5 px outside one side of a marker,
+# every side of all 27: kept before with up to 2.2 px errors, now all dropped). Further out the
+# surround may legitimately darken (a face's edge seen obliquely, 10 mm out): not looked at.
+SURROUND_PX = 1.0
+SURROUND_FLAT = 0.85      # darkest / brightest sample of the surround, median over the side
+SIDE_LIGHT_RATIO = 0.7
+MIN_GOOD_FRACTION = 0.7   # of a side's profiles must show a clean dark-to-light step
 
 
 def _gray_float(image: np.ndarray) -> np.ndarray:
@@ -207,10 +250,20 @@ def _gray_float(image: np.ndarray) -> np.ndarray:
     return np.nan_to_num(img.astype(np.float32))
 
 
-def _edge_crossings(gray: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndarray, half: float) -> np.ndarray:
-    """Points where profiles across side a→b cross half-way from the dark inside to the light outside."""
+def _edge_crossings(gray: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndarray,
+                    half: float) -> tuple[np.ndarray, float | None]:
+    """(points where profiles across side a→b cross half-way from the dark inside to the light
+    outside, the side's white level), or (no points, None) when the white surround is not whole."""
     length = float(np.linalg.norm(b - a))
     t = np.linspace(EDGE_END_SKIP, 1 - EDGE_END_SKIP, max(6, int(length * (1 - 2 * EDGE_END_SKIP))))
+    far = np.arange(half, half + SURROUND_PX + 1e-9, 0.5)
+    base = a + t[:, None] * (b - a)
+    fpts = base[:, None, :] + far[None, :, None] * outward
+    surround = cv2.remap(gray, fpts[..., 0].astype(np.float32), fpts[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    flat = surround.min(axis=1) / np.maximum(surround.max(axis=1), 1e-6)
+    if np.median(flat) < SURROUND_FLAT:
+        return np.zeros((0, 2)), None
     offs = np.arange(-half, half + 1e-9, EDGE_STEP_PX)
     base = a + t[:, None] * (b - a)
     pts = base[:, None, :] + offs[None, :, None] * outward
@@ -228,7 +281,9 @@ def _edge_crossings(gray: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.
     p0, p1 = prof[rows, j - 1], prof[rows, j]
     frac = np.clip((level - p0) / np.where(p1 > p0, p1 - p0, 1.0), 0.0, 1.0)
     off = offs[j - 1] + frac * EDGE_STEP_PX
-    return (base + off[:, None] * outward)[good]
+    if good.mean() < MIN_GOOD_FRACTION:
+        return np.zeros((0, 2)), None
+    return (base + off[:, None] * outward)[good], float(np.median(surround))
 
 
 def fit_line(points: np.ndarray, min_points: int = 4, floor_px: float = 1e-3) -> tuple[np.ndarray, np.ndarray] | None:
@@ -247,24 +302,28 @@ def fit_line(points: np.ndarray, min_points: int = 4, floor_px: float = 1e-3) ->
 
 def refine_marker_corners(gray: np.ndarray, quad: np.ndarray) -> np.ndarray | None:
     """(4, 2) corners of a dark square marker as the intersections of its fitted outline edges,
-    or None when an edge cannot be measured (the caller keeps the detector's corners)."""
+    or None when an edge cannot be measured (the caller drops the marker)."""
     quad = np.asarray(quad, np.float64)
     side = min(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1))
     # across the edge: well into the one-cell black border, but not past it into the bits
     half = float(np.clip(0.35 * side / (MARKER_BITS + 2), 1.5, 4.0))
     for _ in range(EDGE_ROUNDS):
         centre = quad.mean(axis=0)
-        lines = []
+        lines, whites = [], []
         for k in range(4):
             a, b = quad[k], quad[(k + 1) % 4]
             d = (b - a) / np.linalg.norm(b - a)
             n = np.array([d[1], -d[0]])
             if np.dot(0.5 * (a + b) - centre, n) < 0:
                 n = -n
-            line = fit_line(_edge_crossings(gray, a, b, n, half))
+            crossings, white = _edge_crossings(gray, a, b, n, half)
+            line = fit_line(crossings) if white is not None else None
             if line is None:
                 return None
             lines.append(line)
+            whites.append(white)
+        if min(whites) < SIDE_LIGHT_RATIO * max(whites):
+            return None  # one side's surround darker than the others: cut or shadowed
         new = np.empty_like(quad)
         for k in range(4):
             (c0, n0), (c1, n1) = lines[k - 1], lines[k]
@@ -375,38 +434,62 @@ class BoxObservations:
     marker_ids: list
     proj_cam_uv: np.ndarray  # (N, 2) the camera pixel where each projector point was read
     found: dict  # marker id -> (4, 2) camera corners
+    unconfirmed: list = field(default_factory=list)  # marker ids seen but dropped (outline not confirmed)
+    cam_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # marker id of each camera point
+    proj_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # and of each projector point
 
 
 def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = None) -> BoxObservations:
     """Camera and projector control points from a white frame and decoded projector maps."""
-    found = detect_markers(white)
+    unconfirmed: list[int] = []
+    found = detect_markers(white, unconfirmed=unconfirmed)
     world = marker_corners_world()
     maps = [column] if row is None else [column, row]
-    cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam = [], [], [], [], []
-    w = np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2 else stretch_to_8bit(white).astype(np.float32)
+    cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam, cam_ids, proj_ids = [], [], [], [], [], [], []
+    w = (np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2
+         else stretch_to_8bit(white).astype(np.float32))
     for mid in sorted(found):
-        for corner, X in zip(found[mid], world[mid]):
+        for corner, X in zip(found[mid], world[mid], strict=True):
             cam_xyz.append(X)
             cam_uv.append(corner)
+            cam_ids.append(mid)
             q = projector_at(corner, maps, w, found[mid])
             if q is not None:
                 proj_xyz.append(X)
                 proj_uv.append(q)
                 proj_cam.append(corner)
+                proj_ids.append(mid)
     if not cam_xyz:
         raise CalibrationError("no calibration-box markers found in the white frame: is the box in view and lit?")
     proj_uv = np.array(proj_uv).reshape(len(proj_uv), len(maps))
     return BoxObservations(np.array(cam_xyz), np.array(cam_uv), np.array(proj_xyz).reshape(-1, 3),
                            proj_uv[:, 0] if row is None else proj_uv, sorted(found),
-                           np.array(proj_cam).reshape(-1, 2), found)
+                           np.array(proj_cam).reshape(-1, 2), found, sorted(unconfirmed),
+                           np.array(cam_ids, int), np.array(proj_ids, int))
 
 
-def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str = "linear"):
-    """(Calibration, CalibrationReport) from a capture of the calibration box (SPEC §5 folder).
+# A box calibration is refused, not written, when its residuals are far beyond the corners' noise
+# (edge-line corners: 0.03-0.05 px RMS on the simulator; a few tenths on a real print): a marker
+# read wrong, a face not flat, a box that moved. Settings, in the device's pixels.
+MAX_RMS_PX = 0.5
+MAX_POINT_PX = 2.0
+POSE_ROUNDS = 3  # alternations of (box poses from the camera) and (one fit of all captures' points)
 
-    Uses the projector rows too when the capture has row patterns (2-D projector model).
-    """
-    from anklescan.core.calibration.calibrate import calibrate_points
+
+class BoxCalibrationRefused(CalibrationError):
+    """The box calibration's residuals are far beyond its noise: nothing is written."""
+
+
+@dataclass(frozen=True)
+class BoxCapture:
+    """One box position: its capture folder's name, the box's pose found in the world frame, its points."""
+
+    name: str
+    pose: BoxPose
+    observations: BoxObservations
+
+
+def _observe_capture(capture_dir) -> tuple[BoxObservations, tuple[int, int], tuple[int, int]]:
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.decode import decode
 
@@ -414,13 +497,135 @@ def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str 
     result = decode(capture)
     obs = observe_box(result.white, result.column, result.row)
     H, W = capture.shape
-    pset = capture.pattern_set
-    cal, report = calibrate_points(obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv, camera_size=(W, H),
-                                   projector_size=(pset.width, pset.height), radial_terms=radial_terms, loss=loss,
-                                   exclude_flagged=True)  # read automatically: a mis-read point is dropped
-    cal.extra["source"] = f"calibration box capture {Path(capture_dir).name}"
-    cal.extra["box"] = {"size_mm": BOX_SIZE_MM, "markers_found": obs.marker_ids,
-                        "camera_points": len(obs.cam_xyz), "projector_points": len(obs.proj_xyz)}
+    return obs, (W, H), (capture.pattern_set.width, capture.pattern_set.height)
+
+
+def _box_pose(camera, obs: BoxObservations) -> BoxPose:
+    """The box's pose in the world from its camera points and a calibrated camera (PnP)."""
+    ok, rvec, tvec = cv2.solvePnP(obs.cam_xyz.astype(np.float64), obs.cam_uv.astype(np.float64), camera.K,
+                                  np.asarray(camera.dist, np.float64), flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise CalibrationError("the box's position could not be found in one of the captures")
+    Rk = cv2.Rodrigues(rvec)[0]
+    return BoxPose(camera.R.T @ Rk, camera.R.T @ (tvec.ravel() - camera.t))
+
+
+def _stacked(captures: list[BoxCapture]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    cam_xyz = np.concatenate([c.pose.apply(c.observations.cam_xyz) for c in captures])
+    cam_uv = np.concatenate([c.observations.cam_uv for c in captures])
+    proj_xyz = np.concatenate([c.pose.apply(c.observations.proj_xyz) for c in captures])
+    proj_uv = np.concatenate([c.observations.proj_uv for c in captures])
+    return cam_xyz, cam_uv, proj_xyz, proj_uv
+
+
+def worst_markers(captures: list[BoxCapture], cal, count: int = 3) -> list[tuple[str, int, float]]:
+    """(capture name, marker id, its largest camera or projector error in px), worst first."""
+    worst: dict[tuple[str, int], float] = {}
+    for c in captures:
+        o = c.observations
+        e_cam = np.linalg.norm(cal.camera.project(c.pose.apply(o.cam_xyz)) - o.cam_uv, axis=1)
+        p = cal.projector.project(c.pose.apply(o.proj_xyz))
+        e_proj = (np.abs(p[:, 0] - o.proj_uv) if o.proj_uv.ndim == 1 else np.linalg.norm(p - o.proj_uv, axis=1))
+        for ids, err in ((o.cam_ids, e_cam), (o.proj_ids, e_proj)):
+            for mid, e in zip(ids, np.nan_to_num(err, nan=1e9), strict=True):
+                key = (c.name, int(mid))
+                worst[key] = max(worst.get(key, 0.0), float(e))
+    ranked = sorted(worst.items(), key=lambda kv: -kv[1])[:count]
+    return [(name, mid, e) for (name, mid), e in ranked]
+
+
+def check_residuals(report, captures: list[BoxCapture], cal) -> None:
+    """BoxCalibrationRefused (one line, the worst markers named) when the residuals are far beyond the noise."""
+    bad = [f"{q.device} RMS {q.rms_px:.2f} px, max {q.point_errors_px.max():.2f} px"
+           for q in (report.camera, report.projector)
+           if q.rms_px > MAX_RMS_PX or q.point_errors_px.max() > MAX_POINT_PX]
+    if not bad:
+        return
+    many = len(captures) > 1
+    names = ", ".join(f"marker {mid}{f' of {name}' if many else ''} ({e:.1f} px)"
+                      for name, mid, e in worst_markers(captures, cal))
+    raise BoxCalibrationRefused(
+        f"box calibration refused, nothing written: residuals far beyond the corners' noise ({'; '.join(bad)}; "
+        f"allowed {MAX_RMS_PX:g} px RMS, {MAX_POINT_PX:g} px max); worst: {names}. Check that the box's faces are "
+        f"flat and clean, that it did not move, that every marker is lit and in view, and scan it again")
+
+
+def calibrate_from_box_captures(capture_dirs, *, radial_terms: int = 2, loss: str = "linear", check: bool = True):
+    """(Calibration, CalibrationReport, [BoxCapture]) from captures of the calibration box, one per position
+    (SPEC §6: the box at the table's height, then at the knee's). The first capture's box defines the world
+    frame; every other box's pose is found (PnP with the camera fitted so far) and all captures' control
+    points go into one fit, alternating ``POSE_ROUNDS`` times. Refused (``BoxCalibrationRefused``) when the
+    residuals are far beyond the noise (``check``)."""
+    from anklescan.core.calibration.calibrate import calibrate_points
+
+    dirs = [Path(d) for d in capture_dirs]
+    if not dirs:
+        raise CalibrationError("no box capture given")
+    seen = []
+    captures: list[BoxCapture] = []
+    sizes = None
+    for d in dirs:
+        obs, cam_size, proj_size = _observe_capture(d)
+        if sizes is not None and sizes != (cam_size, proj_size):
+            raise CalibrationError(f"{d.name}: camera or projector size differs from {dirs[0].name}'s")
+        sizes = (cam_size, proj_size)
+        name = d.name if d.name not in seen else str(d)
+        seen.append(name)
+        captures.append(BoxCapture(name, BoxPose(), obs))
+    cam_size, proj_size = sizes
+
+    def fit():
+        return calibrate_points(*_stacked(captures), camera_size=cam_size, projector_size=proj_size,
+                                radial_terms=radial_terms, loss=loss,
+                                exclude_flagged=True)  # read automatically: a mis-read point is dropped
+
+    cal, report = calibrate_points(captures[0].observations.cam_xyz, captures[0].observations.cam_uv,
+                                   captures[0].observations.proj_xyz, captures[0].observations.proj_uv,
+                                   camera_size=cam_size, projector_size=proj_size, radial_terms=radial_terms,
+                                   loss=loss, exclude_flagged=True)
+    for _ in range(POSE_ROUNDS if len(captures) > 1 else 0):
+        captures = [captures[0]] + [BoxCapture(c.name, _box_pose(cal.camera, c.observations), c.observations)
+                                    for c in captures[1:]]
+        cal, report = fit()
+    if check:
+        check_residuals(report, captures, cal)
+    all_world = np.concatenate([c.pose.apply(c.observations.cam_xyz) for c in captures])
+    cal.extra["source"] = "calibration box capture" + ("s " if len(dirs) > 1 else " ") + ", ".join(
+        c.name for c in captures)
+    cal.extra[FRAME_KEY] = FrameSource.BOX.value
+    cal.extra["box"] = {"size_mm": BOX_SIZE_MM, "markers_found": captures[0].observations.marker_ids,
+                        "camera_points": int(sum(len(c.observations.cam_xyz) for c in captures)),
+                        "projector_points": int(sum(len(c.observations.proj_xyz) for c in captures)),
+                        "positions": [{"capture": c.name, "R": c.pose.R.tolist(), "t": c.pose.t.tolist(),
+                                       "markers_found": c.observations.marker_ids,
+                                       "markers_dropped": c.observations.unconfirmed} for c in captures],
+                        "points_span_mm": {"min": all_world.min(axis=0).tolist(),
+                                           "max": all_world.max(axis=0).tolist()}}
+    return cal, report, captures
+
+
+def position_summary(captures: list[BoxCapture]) -> list[str]:
+    """One line per box position: where it stood in the world frame, markers used and dropped."""
+    out = []
+    for k, c in enumerate(captures):
+        o = c.observations
+        turn = np.degrees(np.arctan2(c.pose.R[1, 0], c.pose.R[0, 0]))
+        tilt = np.degrees(np.arccos(np.clip(c.pose.R[2, 2], -1.0, 1.0)))
+        x, y, z = c.pose.t
+        where = ("defines the world frame" if k == 0 else
+                 f"at ({x:.0f}, {y:.0f}, {z:.0f}) mm, turned {turn:.1f}°, tilted {tilt:.1f}°")
+        dropped = f", dropped (outline not confirmed): {', '.join(map(str, o.unconfirmed))}" if o.unconfirmed else ""
+        out.append(f"box position {k + 1} ({c.name}): {where}; {len(o.marker_ids)} markers, "
+                   f"{len(o.cam_xyz)} camera / {len(o.proj_xyz)} projector points{dropped}")
+    return out
+
+
+def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str = "linear", check: bool = True):
+    """(Calibration, CalibrationReport) from one capture of the calibration box (SPEC §5 folder).
+
+    Uses the projector rows too when the capture has row patterns (2-D projector model).
+    """
+    cal, report, _ = calibrate_from_box_captures([capture_dir], radial_terms=radial_terms, loss=loss, check=check)
     return cal, report
 
 

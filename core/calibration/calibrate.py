@@ -485,6 +485,7 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
     report = CalibrationReport(cam_q, proj_q)
     extra = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
+             "frame_source": "points",  # the control points' frame (core.calibration.frame.FrameSource)
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
              "quality": report.to_dict(),

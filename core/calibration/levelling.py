@@ -8,13 +8,23 @@ the tables) measures correct distances but wrong angles.  A scan of the referenc
 * y: along the table top's long side, towards the camera (the patient's front);
 * x = y × z; origin: the centre of the table top.
 
-Finding the top in the cloud: the dominant plane of the scan (RANSAC) gives the "level"
-orientation (the floor and the top of a level table are parallel); along its normal the top is
-the highest level surface holding a substantial share of the points (a leg or foot standing on
-it spreads over many heights and makes no such peak).  The top's own plane is then fitted to its
-points, its largest connected patch kept, and the long sides found by a minimum-area rectangle
-refined by robust line fits to the points along the two long edges.  The scan must show the whole
-table top; nothing level may lie above it in view.
+Finding the top in the cloud (it must not silently lie: a wrong patch taken as the top turns every
+angle measured afterwards):
+
+* candidate planes: the level surfaces along the dominant plane's normal (RANSAC; the floor and the
+  top of a level table are parallel in the true geometry) and, because a calibration with errors
+  bends the reconstructed floor and top apart, the largest planes found one after another by RANSAC;
+* each candidate is re-fitted to its own points and grown over the whole cloud along its own plane
+  (not along the floor's normal), its largest connected patch kept, its plane fitted to the patch's
+  interior and its long sides found by a minimum-area rectangle refined by robust line fits to the
+  points along the two long edges; a top must end in drops (something lower seen beyond at least
+  two of its sides: the decoded surface around it);
+* the top is the candidate of the reference table's size (``TableSpec``: 320 x 220 mm, the
+  documented table of docs/simulator.md, or ``--table-size LxW``; within ``size_tolerance``) that
+  fits its plane within ``max_rms_mm``, the one with the most points.  None: refused, naming the
+  largest planar region found (its size, RMS and points) and the size looked for.
+
+The scan must show the whole table top; nothing of the table's size and level may lie above it.
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ import numpy as np
 
 from anklescan.core.calibration.file import Calibration, moved_trust
 from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
 
@@ -34,24 +45,69 @@ MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the
 MIN_TOP_POINTS = 500  # and at least this many points
 EDGE_BAND_MM = 8.0  # points this close to a long side of the rectangle take part in its line fit
 RANSAC_ITERATIONS = 300
-GRID_MM = 4.0
+GRID_MM = 4.0  # in-plane raster for the connected-patch test
 DROP_MM = 10.0  # what lies this far below the top's plane, past its edge, is "something lower"
 EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's length: a floor seen past
-# the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)  # in-plane raster for the connected-patch test
+# the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)
 
 
-@dataclass
+SEQUENTIAL_PLANES = 6  # largest planes tried one after another, besides the level surfaces
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """The level reference table's top as the clinic built it (a setting: ``--table-size LxW``)."""
+
+    length_mm: float = 320.0  # the long side (docs/simulator.md's table: 220 x 320 mm)
+    width_mm: float = 220.0
+    size_tolerance: float = 0.15  # a found top's sides may differ by this fraction (edges lose a few mm)
+    max_rms_mm: float = 1.0  # of the top's points about its plane (a true top: 0.25-0.4 mm)
+
+    def __post_init__(self) -> None:
+        if not (0 < self.width_mm <= self.length_mm < 1e5) or not np.isfinite([self.length_mm, self.width_mm]).all():
+            raise GeometryError(f"a table size must be two positive lengths, long side first, not "
+                                f"{self.length_mm:g} x {self.width_mm:g} mm")
+
+    def matches(self, size_mm: tuple[float, float]) -> bool:
+        return (abs(size_mm[0] - self.length_mm) <= self.size_tolerance * self.length_mm
+                and abs(size_mm[1] - self.width_mm) <= self.size_tolerance * self.width_mm)
+
+    def describe(self) -> str:
+        return f"{self.length_mm:g} x {self.width_mm:g} mm"
+
+
+DEFAULT_TABLE = TableSpec()
+
+
+def parse_table_size(text: str) -> TableSpec:
+    """``"340x260"`` (mm, either order) as a TableSpec; GeometryError on anything else."""
+    parts = str(text).lower().replace("×", "x").split("x")
+    try:
+        a, b = (float(v) for v in parts)
+    except ValueError:
+        raise GeometryError(f"a table size is LENGTHxWIDTH in mm such as 320x220, not {text!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b) and a > 0 and b > 0):
+        raise GeometryError(f"a table size is two positive lengths in mm such as 320x220, not {text!r}")
+    return TableSpec(max(a, b), min(a, b))
+
+
+@dataclass(frozen=True)
 class TableTop:
     normal: np.ndarray  # unit, towards the camera
     centre: np.ndarray  # on the plane, current world frame
     long_axis: np.ndarray  # unit, in the plane, towards the camera
-    size_mm: tuple  # (long, short) sides of the fitted rectangle
+    size_mm: tuple[float, float]  # (long, short) sides of the fitted rectangle
     rms_mm: float  # of the top's points about their plane
     n_points: int
 
+    def describe(self) -> str:
+        return (f"{self.size_mm[0]:.0f} x {self.size_mm[1]:.0f} mm, {self.rms_mm:.2f} mm RMS about its plane, "
+                f"{self.n_points} points")
 
-def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> np.ndarray:
-    best, best_n = None, -1
+
+def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normal, a point) of the plane holding the most points within ``tol``."""
+    best, best_p, best_n = None, None, -1
     for _ in range(RANSAC_ITERATIONS):
         p = X[rng.choice(len(X), 3, replace=False)]
         n = np.cross(p[1] - p[0], p[2] - p[0])
@@ -61,20 +117,57 @@ def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> np.nda
         n /= norm
         cnt = int(np.count_nonzero(np.abs((X - p[0]) @ n) < tol))
         if cnt > best_n:
-            best, best_n = n, cnt
-    if best is None:
+            best, best_p, best_n = n, p[0], cnt
+    if best is None or best_p is None:
         raise GeometryError("the table scan holds no plane")
-    return best
+    return best, best_p
 
 
 def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c = X.mean(axis=0)
-    _, _, vt = np.linalg.svd(X - c, full_matrices=False)
-    return vt[2], c
+    d = X - c
+    _, v = np.linalg.eigh(d.T @ d)  # the scatter's least direction (= the SVD's last, 3 x 3 only)
+    return v[:, 0], c
+
+
+def _ransac_planes(X: np.ndarray, tol: float, rng: np.random.Generator, count: int) -> list[np.ndarray]:
+    """Up to ``count`` planes (unit normal, point) found one after another, each from what the last left."""
+    out = []
+    rest = X
+    for _ in range(count):
+        if len(rest) < MIN_TOP_POINTS:
+            break
+        n, p0 = _ransac_plane(rest, tol, rng)
+        on = np.abs((rest - p0) @ n) < tol
+        if on.sum() < MIN_TOP_POINTS:
+            break
+        nt, c = _svd_plane(rest[on])
+        out.append(np.concatenate([nt, c]))
+        rest = rest[np.abs((rest - c) @ nt) >= 2 * tol]
+    return out
+
+
+def floor_normal(points: np.ndarray, camera_centre: np.ndarray, seed: int = 0) -> np.ndarray | None:
+    """The unit normal (towards the camera) of the scan's dominant plane, the floor, or None."""
+    X = np.asarray(points, np.float64)
+    if len(X) < 1000:
+        return None
+    rng = np.random.default_rng(seed)
+    sub = X[rng.choice(len(X), min(len(X), 20000), replace=False)]
+    try:
+        n, p0 = _ransac_plane(sub, PLANE_TOL_MM, rng)
+    except GeometryError:
+        return None
+    on = sub[np.abs((sub - p0) @ n) < PLANE_TOL_MM]
+    if len(on) < 0.2 * len(sub):
+        return None  # no plane dominates the scan
+    n, c = _svd_plane(on)
+    return n if n @ (camera_centre - c) > 0 else -n
 
 
 def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndarray | None = None,
-                   seed: int = 0) -> TableTop:
+                   seed: int = 0, table: TableSpec = DEFAULT_TABLE) -> TableTop:
+    """The level reference table's top in a scan of it, or GeometryError naming what was found instead."""
     X = np.asarray(points, np.float64)
     if len(X) < 1000:
         raise GeometryError(f"the table scan has only {len(X)} points: is the table in view and lit?")
@@ -83,7 +176,7 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
         tol = max(tol, 3.0 * float(np.median(sigma)))
     rng = np.random.default_rng(seed)
     sub = X[rng.choice(len(X), min(len(X), 20000), replace=False)]
-    n = _ransac_plane(sub, tol, rng)
+    n, _ = _ransac_plane(sub, tol, rng)
     if n @ (camera_centre - sub.mean(axis=0)) < 0:
         n = -n
     h = X @ n
@@ -91,33 +184,55 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
     if len(bins) < 2:
         bins = np.array([h.min() - tol, h.max() + tol])
     counts, edges = np.histogram(h, bins)
-    # level surfaces make peaks; the top is the highest one that is a whole, bounded table top
-    # (the floor is usually the biggest peak, and a mark plate or a shelf may sit higher)
-    peaks = [b for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
+    # level surfaces make peaks (the floor is usually the biggest, and a mark plate or a shelf may sit higher)
+    peaks = [int(b) for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
              if counts[b] >= counts[max(b - 1, 0)] and counts[b] >= counts[min(b + 1, len(counts) - 1)]]
-    error = GeometryError("no level surface in the table scan")
-    for b in sorted(peaks, reverse=True):
-        h_top = 0.5 * (edges[b] + edges[b + 1])
+    # candidate planes (unit normal, offset: n·x = offset), the highest level surface first
+    seeds: list[tuple[np.ndarray, float]] = [(n, 0.5 * float(edges[b] + edges[b + 1])) for b in sorted(peaks)[::-1]]
+    seeds += [(plane[:3], float(plane[:3] @ plane[3:])) for plane in _ransac_planes(sub, tol, rng, SEQUENTIAL_PLANES)]
+    tops: list[TableTop] = []
+    errors: list[GeometryError] = []
+    for normal, offset in seeds:
         try:
-            return _top_at(X, h, h_top, n, tol, camera_centre)
+            tops.append(_top_at(X, X[np.abs(X @ normal - offset) < 2 * tol], n, tol, camera_centre))
         except GeometryError as e:
-            error = e
-    raise error
+            errors.append(e)
+    good = [t for t in tops if table.matches(t.size_mm) and t.rms_mm <= table.max_rms_mm]
+    if good:
+        return max(good, key=lambda t: t.n_points)
+    if tops:
+        biggest = max(tops, key=lambda t: t.size_mm[0] * t.size_mm[1])
+        raise GeometryError(f"no table top of the reference table's size ({table.describe()}, --table-size) fits "
+                            f"well in the scan: the largest planar region found is {biggest.describe()}; scan the "
+                            f"level reference table with all of its top in view")
+    raise errors[0] if errors else GeometryError("no level surface in the table scan")
 
 
-def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
-    near = np.abs(h - h_top) < 2 * tol
-    cand = X[near]
+def _top_at(X: np.ndarray, cand: np.ndarray, n: np.ndarray, tol: float, camera_centre: np.ndarray) -> TableTop:
     if len(cand) < MIN_TOP_POINTS:
         raise GeometryError(f"the table top shows only {len(cand)} points: scan the whole top")
-    # the top's own plane (it need not be exactly parallel to the floor)
+    # the top's own plane (it need not be exactly parallel to the floor): fitted to the candidate's
+    # largest connected patch, then grown over the whole cloud along that plane
     nt, c = _svd_plane(cand)
     for _ in range(3):
         on = np.abs((cand - c) @ nt) < tol
+        if on.sum() < 3:
+            raise GeometryError("no table top found in the scan")
         nt, c = _svd_plane(cand[on])
+    patch = _largest_patch(cand[np.abs((cand - c) @ nt) < tol], nt)
+    if len(patch) < MIN_TOP_POINTS:
+        raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
+    for _ in range(2):
+        nt, c = _svd_plane(patch)
+        r = (patch - c) @ nt
+        s = robust_sigma(r, centre=0.0)
+        nt, c = _svd_plane(patch[np.abs(r) < max(4 * s, 1e-6)])
+        patch = _largest_patch(X[np.abs((X - c) @ nt) < tol], nt)
+        if len(patch) < MIN_TOP_POINTS:
+            raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
     if nt @ n < 0:
         nt = -nt
-    top = cand[np.abs((cand - c) @ nt) < tol]
+    top = patch
     # in-plane coordinates; the largest connected patch is the top (not a shelf at the same height)
     e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
     e1 /= np.linalg.norm(e1)
@@ -167,6 +282,27 @@ def _top_at(X, h, h_top, n, tol, camera_centre) -> TableTop:
     if abs(w - hgt) < 0.05 * w:
         raise GeometryError(f"the table top looks square ({w:.0f} x {hgt:.0f} mm): its long side is undefined")
     return TableTop(nt, centre, long_axis, (float(w), float(hgt)), rms, int(len(top)))
+
+
+def _largest_patch(P: np.ndarray, nt: np.ndarray) -> np.ndarray:
+    """The points of the largest connected patch (on a GRID_MM raster in the plane of normal ``nt``)."""
+    if len(P) == 0:
+        return P
+    e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nt, e1)
+    uv = np.stack([P @ e1, P @ e2], axis=1)
+    ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64)
+    if ij.max() > 20000:  # a plane seen edge-on across the whole scene: no table top
+        return P[:0]
+    grid = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
+    grid[ij[:, 1], ij[:, 0]] = 1
+    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    nlab, lab = cv2.connectedComponents(grid, connectivity=8)
+    if nlab < 2:
+        return P[:0]
+    sizes = np.bincount(lab.ravel())[1:]
+    return P[lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))]
 
 
 def _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, length, width) -> None:
@@ -233,21 +369,24 @@ def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> 
 
     new_extra = dict(cal.extra)
     new_extra["frame"] = "clinic (levelled from the reference table: SPEC §1)"
+    new_extra[FRAME_KEY] = FrameSource.LEVELLED.value
     new_extra["levelled"] = extra
     new_extra.update(moved_trust(cal, A, o))  # the calibrated volume and covariance in the new frame
     return Calibration(move(cal.camera), move(cal.projector), new_extra)
 
 
-def level_calibration(cal: Calibration, capture) -> tuple[Calibration, TableTop]:
-    """``cal`` re-expressed in the clinic's frame from a capture of the level reference table."""
+def level_calibration(cal: Calibration, capture, table: TableSpec = DEFAULT_TABLE) -> tuple[Calibration, TableTop]:
+    """``cal`` re-expressed in the clinic's frame from a capture of the level reference table
+    (GeometryError, one line, when no top of ``table``'s size fits well)."""
     from anklescan.core.scan.reconstruct import reconstruct
 
     cloud = reconstruct(capture, cal)
     sigma = getattr(cloud, "sigma", None)
-    top = find_table_top(cloud.points, cal.camera.center, sigma)
+    top = find_table_top(cloud.points, cal.camera.center, sigma, table=table)
     A, o = level_transform(top)
     name = capture.folder.name if capture.folder is not None else "capture"
     info = {"capture": name, "table_top_mm": [round(v, 1) for v in top.size_mm],
             "top_rms_mm": top.rms_mm, "top_points": top.n_points,
+            "table_size_mm": [table.length_mm, table.width_mm],
             "previous_frame_R": A.T.tolist(), "previous_frame_origin": o.tolist()}
     return apply_level(cal, A, o, info), top

@@ -184,6 +184,7 @@ def import_opencv_calibration(path, projector_size: tuple[int, int], camera_size
     extra = {"source": f"imported from OpenCV FileStorage {path.name}",
              "frame": ("camera (not levelled: run 'anklescan calibrate level' before measuring angles)"
                        if world is None else "the exporting tool's world frame (R_world_camera, t_world_camera)"),
+             "frame_source": "camera" if world is None else "unknown",  # core.calibration.frame.FrameSource
              "imported": {"keys": [kc, kcd, kp, kpd, kr, kt], "unit": unit, "rms_px": rms}}
     # through the JSON form once: the same validation as a loaded calibration file
     return calibration_from_dict(calibration_to_dict(Calibration(camera, projector, extra)))

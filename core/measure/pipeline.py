@@ -25,6 +25,7 @@ from anklescan.core.measure.uncertainty import MarkUncertainty, position_uncerta
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
+from anklescan.core.calibration.frame import frame_warnings
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -121,6 +122,7 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     motion = estimate_motion(capture, calibration, decoded, cloud)
     angles, shares, joint = honest_angles(marks, calibration, motion)
     warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
+    warnings += frame_warnings(calibration.extra, cloud.points, calibration.camera.center)
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
                          scan_duration_s(capture), warnings, shares, joint)
 
