@@ -4,7 +4,7 @@
 
 Each drawn set-up (``hardware/sim_variety.py``) at the five sweep postures, measured with the
 size unknown and given; every mark fit is re-run with no edge-RMS limit, and one that then
-passes every other check but scatters more than the limit (``MAX_CIRCLE_RMS_MM``) is printed
+passes every other check but scatters more than the limit (``MarkConfig.max_circle_rms_mm``) is printed
 with its edge RMS, free radius, view and light angles and its distance to the nearest true
 mark. The limit keeps out poor fits of true marks as well as false disks; this shows which.
 ``--variants`` may be left out: every variant up to 288 whose marks are over
@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_marks  # noqa: E402
 import anklescan.core.measure.mark_fit as mark_fit  # noqa: E402
+from anklescan.core.measure.mark_config import CONFIG  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 
 POSTURES = [(0, -20), (0, 20), (10, 0), (20, -20), (20, 20)]  # the held-out sweeps' five; seed = index
@@ -36,7 +37,7 @@ _LIMIT_AT = list(inspect.signature(_fit_kind).parameters).index("max_edge_rms")
 def _fit_kind_unlimited(*args, **kw):
     """``_fit_kind`` with no edge-RMS limit; a fit over the caller's limit is recorded and refused
     as before, so that the search itself runs unchanged."""
-    limit = kw.pop("max_edge_rms", args[_LIMIT_AT] if len(args) > _LIMIT_AT else mark_fit.MAX_CIRCLE_RMS_MM)
+    limit = kw.pop("max_edge_rms", args[_LIMIT_AT] if len(args) > _LIMIT_AT else CONFIG.max_circle_rms_mm)
     mark, reason = _fit_kind(*args[:_LIMIT_AT], **kw, max_edge_rms=np.inf)
     if mark is None or mark.circle_rms <= limit:
         return mark, reason

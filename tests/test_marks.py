@@ -529,7 +529,8 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     region (a table's edge against the floor) makes a bright streak, which once passed as an
     eighth mark (10 mm plates, 0/+20, 0.75 scale); half its border has no 3-D point, a disk's
     none."""
-    from anklescan.core.measure.marks import SECOND_LOOK_MAX_BORDER_UNDECODED, border_undecoded
+    from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.marks import border_undecoded
 
     decoded = np.zeros((60, 60), bool)
     decoded[30:] = True
@@ -537,7 +538,7 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     region[3:6, 2:13] = True
     streak = {"slice": (slice(27, 36), slice(20, 35)), "region": region}
     disk = {"slice": (slice(40, 49), slice(20, 35)), "region": region}
-    assert border_undecoded(streak, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED
+    assert border_undecoded(streak, decoded) > CONFIG.second_look_max_border_undecoded
     assert border_undecoded(disk, decoded) == 0.0
 
 
@@ -564,7 +565,7 @@ def test_ankle_marks_at_the_terminator_or_the_silhouette(inv, pf, kind, diameter
     look cuts the lit image's seeds against the surface round them too.
     10 mm at 10/10: lit at 71°, its shadow leaves the ring round it 78 % decoded, and the
     normal of a quadric through that ring was 4.6° off; weighted with the face's it moved the
-    plate from 0.20 to 0.34 mm off. Such a surface is no longer used (SURFACE_RING_MIN_DECODED).
+    plate from 0.20 to 0.34 mm off. Such a surface is no longer used (``MarkConfig.surface_ring_min_decoded``).
     20 mm lateral ankle sticker at 20/10: beside the leg's silhouette, its edges in the shading-
     corrected image gave an edge RMS of 0.77 mm and it was refused; the lit image's edges fit it."""
     res, truth = _measured(inv, pf, 0.75, seed, mark_type=kind, mark_radius=diameter / 2)
@@ -634,18 +635,19 @@ def test_no_doubtful_mark_is_kept_beside_seven_sure_ones():
 
 
 def test_face_smoothness_limit_scales_with_the_points_noise():
-    """The fixed 0.2 mm face RMS limit is raised to FACE_RMS_PER_SIGMA times the face points'
+    """The fixed 0.2 mm face RMS limit is raised to ``face_rms_per_sigma`` times the face points'
     median predicted SD where that is larger: with read noise 4/255 a sticker's face had 0.21
     mm at a predicted 0.19 mm and was refused."""
-    from anklescan.core.measure.mark_fit import FACE_RMS_PER_SIGMA, MAX_TOP_FACE_RMS_MM, face_rms_limit
+    from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.mark_fit import face_rms_limit
 
     uv = np.array([[1, 1], [2, 2], [3, 3]])
     quiet = np.full((5, 5), 0.03)
     noisy = np.full((5, 5), 0.19)
     noisy[2, 2] = np.nan
-    assert face_rms_limit(quiet, uv) == MAX_TOP_FACE_RMS_MM
-    assert face_rms_limit(noisy, uv) == pytest.approx(FACE_RMS_PER_SIGMA * 0.19)
-    assert face_rms_limit(None, uv) == MAX_TOP_FACE_RMS_MM
+    assert face_rms_limit(quiet, uv) == CONFIG.max_top_face_rms_mm
+    assert face_rms_limit(noisy, uv) == pytest.approx(CONFIG.face_rms_per_sigma * 0.19)
+    assert face_rms_limit(None, uv) == CONFIG.max_top_face_rms_mm
 
 
 @pytest.mark.parametrize("optics,inv,pf,kind,label", [({"camera_blur_px": 0.9}, 0, -20, "plate", "5"),
