@@ -1,7 +1,7 @@
 """Mark candidates: compact bright blobs in the projector-lit image, over a size range.
 
 Also the per-pixel inputs of the mark stage: the world points and predicted noise per camera
-pixel, the image noise, and the shading-corrected (albedo-like) image. docs/marks.md, step 1.
+pixel, the image noise, and the shading-corrected (albedo-like) image. docs/marks.md, "Candidates".
 """
 
 from __future__ import annotations
@@ -137,21 +137,24 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     tophat = smooth - background
     k = int(2 * math.ceil(0.6 * r_min) + 1)
     peaks = ((smooth >= cv2.dilate(smooth, np.ones((k, k), np.uint8)))
-             & (tophat > CONFIG.min_relative_contrast * np.maximum(background, 0)) & (tophat > CONFIG.min_contrast_sigmas * noise))
+             & (tophat > CONFIG.min_relative_contrast * np.maximum(background, 0))
+             & (tophat > CONFIG.min_contrast_sigmas * noise))
     vs, us = np.nonzero(peaks)
     order = np.argsort(-tophat[vs, us])
     taken = np.zeros(image.shape, bool)
     blobs = []
     half = int(math.ceil(2.5 * r_max))
     outlined = None  # (smooth without the outline pixels, depth steps): built for the first seed that leaks
-    for v, u in zip(vs[order], us[order]):
+    for v, u in zip(vs[order], us[order], strict=True):
         if taken[v, u]:
             continue  # inside a blob already cut from a brighter seed
         blob = cut_blob(smooth, (u, v), background[v, u], half)
         if blob is None and ring_background:
             bg = ring_level(smooth, valid, (u, v), cal, points, r_lo)
             # the seed must stand out from that surround as seeds do from the opening
-            if bg is not None and smooth[v, u] - bg > max(CONFIG.min_relative_contrast * bg, CONFIG.min_contrast_sigmas * noise):
+            stands = bg is not None and smooth[v, u] - bg > max(CONFIG.min_relative_contrast * bg,
+                                                                 CONFIG.min_contrast_sigmas * noise)
+            if stands:
                 blob = cut_blob(smooth, (u, v), bg, half)
                 if blob is not None:
                     blob["ring_cut"] = True
@@ -177,11 +180,9 @@ def _without_outlines(smooth, points, valid, cal):
 def _depth_cut(masked, jump, seed, bg, half):
     """``cut_blob`` again in ``masked`` (``_without_outlines``): a mark on the leg's outline,
     seen against a table about as bright as its face far behind, leaks into the table at any
-    brightness cut (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at
-    70-73°: no blob).
-    The blob must be bounded by a depth step on CONFIG.depth_step_min_border of its outline; a band
-    cut out of a smoothly receding floor by a depth window was taken for two marks (variant
-    187 at 20/+20)."""
+    brightness cut (lateral ankle plates seen at 70-73° at 20/+20 had no blob).
+    The blob must be bounded by a depth step on CONFIG.depth_step_min_border of its outline: a
+    band cut out of a smoothly receding floor by a depth window is no disk."""
     blob = cut_blob(masked, seed, bg, half)
     if blob is None:
         return None
@@ -195,8 +196,8 @@ def _depth_cut(masked, jump, seed, bg, half):
 def _depth_steps(depth) -> np.ndarray:
     """(h, w) bool: pixels within CONFIG.depth_step_reach_px of decoded depths more than CONFIG.depth_step_mm
     apart. Not neighbours alone: the pixels at an outline mix the two surfaces and are mostly
-    undecoded (variant 160: half the ring round the plate, a band 3-4 px wide; with 2 px of
-    reach no step was seen)."""
+    undecoded (up to half the ring round a plate there, a band 3-4 px wide, which 2 px of
+    reach does not cross)."""
     k = np.ones((2 * CONFIG.depth_step_reach_px + 1,) * 2, np.uint8)
     ok = np.isfinite(depth)
     hi = cv2.dilate(np.where(ok, depth, -1e9).astype(np.float32), k)  # a window with no decoded pixel: -2e9
@@ -245,7 +246,8 @@ def cut_blob(smooth, seed, bg, half):
     region, wider = regions
     if region is None:
         return None
-    blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0), "centre": (float(u), float(v))}
+    blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
+            "centre": (float(u), float(v))}
     if wider is not None and wider.sum() >= CONFIG.wider_min_growth * region.sum():
         blob["wider"] = {**blob, "region": wider}
     return blob
@@ -280,8 +282,8 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float, thickness
     ``thickness`` > 0: a plate standing that high, its face and side wall: ``mask`` is the
     outline of both (the hull of face and base), ``face`` that of the face alone, in the same
     frame. A thick plate lit at a grazing angle images as a bright wall under a dim face
-    (held-out variant 76 at 0/-20, 13.2 x 2.9 mm table plates lit at 67°): the disk alone
-    stood out most over the wall, 3.7 px from the face, where its fit failed."""
+    (13 x 3 mm table plates lit at 67°): the disk alone stands out most over the wall, a few
+    pixels from the face, where its fit fails."""
     u, v = int(round(centre[0])), int(round(centre[1]))
     H, W = points.shape[:2]
     near = points[max(v - 3, 0):v + 4, max(u - 3, 0):u + 4].reshape(-1, 3)

@@ -1,6 +1,6 @@
 """Edges of a mark in the image: radial profiles and their half-contrast crossings, the
 plate-rim geometry (side wall, projector-shadow sliver), clean-edge masks and the sliver
-edges re-found at the level the sliver predicts. docs/marks.md, "Noise and shadow slivers".
+edges re-found at the level the sliver predicts. docs/history-marks.md, "Noise and shadow slivers".
 """
 
 from __future__ import annotations
@@ -71,8 +71,9 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
     the edge. The outside level is re-read at the edge found, because the blob's ellipse
     (which includes any visible side wall) is only a rough guide to where the rim is.
     ``local_level``: the first outside level is read just past where the profile first falls
-    clearly (CONFIG.leave_plateau) below the disk's level, not at its darkest (in the shading-corrected image a sticker's surround can be half its
-    level, and the darkest is past the leg's silhouette).
+    clearly (CONFIG.leave_plateau) below the disk's level, not at its darkest (in the
+    shading-corrected image a sticker's surround can be half its level, and the darkest is past
+    the leg's silhouette).
     ``clipped``: (H, W) bool, where the camera saturated. On a profile whose disk level is
     clipped, half-way down from that level is outside the true half-way point (the disk is
     brighter than it reads), by up to the width of the fall: ``s_span`` says how far
@@ -106,9 +107,9 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
         level = near_level
     else:
         # a clear fall onto the surface just past the disk is its edge, whatever darker lies
-        # farther out: a 20 mm plate beside the leg's silhouette (variant 42 at 20/20), its
-        # face at 240 DN and the skin at 150, had the half-way level to the background beyond
-        # the silhouette (126), and its outline on that side there, edge RMS 1.9 mm
+        # farther out: beside the leg's silhouette (a plate's face at 240 DN, the skin at 150)
+        # the half-way level to the background beyond the silhouette lies on the skin, and the
+        # outline on that side with it
         level = np.where((k0 > 0) & (near_level < 0.5 * (1.0 + CONFIG.surface_step_level) * inner), near_level, level)
     for _ in range(2):
         k = _first_below(prof, level, after)
@@ -149,7 +150,8 @@ def _clipped_span(prof, sat, start, x, inner, outer) -> np.ndarray:
     last = n_s - 1 - np.argmax(on_plateau[:, ::-1], axis=1)  # the plateau's last sample
     # a plateau, not a speckle of noise round the clip level (a disk just at it)
     upto = before & (j <= last[:, None])
-    solid = on_plateau.any(axis=1) & ((sat & upto).sum(axis=1) >= CONFIG.clipped_solid * np.maximum(upto.sum(axis=1), 1))
+    solid = on_plateau.any(axis=1) & ((sat & upto).sum(axis=1)
+                                      >= CONFIG.clipped_solid * np.maximum(upto.sum(axis=1), 1))
     return np.where(solid, np.clip(x - last, 0.0, None), 0.0)
 
 
@@ -347,15 +349,15 @@ def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
     rows = pr.rows[clean]
     if len(rows) < CONFIG.min_blur_edges:
         return CONFIG.default_blur_px
-    vals, A, O = pr.values[rows], pr.inner[rows], pr.outer[rows]
+    vals, A, Z = pr.values[rows], pr.inner[rows], pr.outer[rows]
     after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
-    k75 = _first_below(vals, O + 0.75 * (A - O), after)
-    k25 = _first_below(vals, O + 0.25 * (A - O), after)
+    k75 = _first_below(vals, Z + 0.75 * (A - Z), after)
+    k25 = _first_below(vals, Z + 0.25 * (A - Z), after)
     good = (k75 > pr.start[rows]) & (k25 >= k75)
     if good.sum() < CONFIG.min_blur_edges:
         return CONFIG.default_blur_px
-    x75 = _crossing(vals[good], (O + 0.75 * (A - O))[good], k75[good])
-    x25 = _crossing(vals[good], (O + 0.25 * (A - O))[good], k25[good])
+    x75 = _crossing(vals[good], (Z + 0.75 * (A - Z))[good], k75[good])
+    x25 = _crossing(vals[good], (Z + 0.25 * (A - Z))[good], k25[good])
     return float(np.median((x25 - x75) * CONFIG.profile_step_px * cos_b[clean][good]) / 1.349)
 
 

@@ -5,6 +5,8 @@ local quadric), its checks and covariance; the plane and circle fits they use. d
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from anklescan.core.calibration.file import Calibration
@@ -17,6 +19,7 @@ from anklescan.core.measure.mark_candidates import (
 )
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import (
+    EdgeProfiles,
     clean_edge_mask,
     edge_profiles,
     face_shape,
@@ -25,15 +28,20 @@ from anklescan.core.measure.mark_edges import (
     sliver_edges,
     top_face_pixels,
 )
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 
+if TYPE_CHECKING:
+    from anklescan.core.measure.marks import Mark
 
-def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
-             prior_sd: float | None = CONFIG.radius_prior_sd_mm, radius_bounds=None, albedo=None,
+
+def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
+             sigma: np.ndarray | None = None, *, prior_sd: float | None = CONFIG.radius_prior_sd_mm,
+             radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
-             clipped=None, max_edge_rms: float = CONFIG.max_circle_rms_mm):
-    """Fit one candidate; (Mark, '') or (None, reason).
+             clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm) -> Mark | Refusal:
+    """Fit one candidate: the ``Mark``, or the ``Refusal`` of the first check it failed.
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
     ``prior_sd``: how well it is known (None: no prior, the radius is free); ``radius_bounds``
@@ -58,30 +66,35 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     """
     shape = blob_shape(blob)
     if shape is None:
-        return None, "too small to fit"
+        return Refusal(RefusalReason.TOO_SMALL, "too small to fit")
     # a predicted disk's outline is an ellipse by construction; rasterised a few pixels across
-    # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87 (held-out variant 221)
-    if not blob.get("predicted") and not (CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill and shape["solidity"] >= CONFIG.min_solidity):
-        return None, f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})"
+    # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87
+    elliptical = CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill and shape["solidity"] >= CONFIG.min_solidity
+    if not blob.get("predicted") and not elliptical:
+        return Refusal(RefusalReason.NOT_ELLIPTICAL,
+                       f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})")
     interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
     cam_c = cal.camera.center
     plane = plane_from_pixels(points, sigma, interior, cam_c, consensus=True)
     if plane is None:
         n_dec = int(np.isfinite(points[interior[:, 1], interior[:, 0], 0]).sum())
-        return None, f"only {n_dec} decoded 3-D points on the mark"
+        return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {n_dec} decoded 3-D points on the mark")
     centroid, normal, plane_rms, n_in = plane
     if plane_rms > CONFIG.max_plane_rms_mm:
-        return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
+        return Refusal(RefusalReason.NOT_FLAT, f"not flat (plane RMS {plane_rms:.2f} mm)")
     depth = camera_depth(cal, centroid[None])[0]
     px_per_mm = float(plate_radius_px(cal, depth, 1.0))
     if radius_mm is None:
         radius_mm = max(shape["axes"]) / px_per_mm  # the ellipse's long axis is not foreshortened
     lo, hi = radius_bounds or (radius_mm, radius_mm)
-    if not (CONFIG.area_range[0] * math.pi * (lo * px_per_mm) ** 2 <= shape["area"] <= CONFIG.area_range[1] * math.pi * (hi * px_per_mm) ** 2):
-        return None, f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
+    area_lo = CONFIG.area_range[0] * math.pi * (lo * px_per_mm) ** 2
+    area_hi = CONFIG.area_range[1] * math.pi * (hi * px_per_mm) ** 2
+    if not area_lo <= shape["area"] <= area_hi:
+        return Refusal(RefusalReason.WRONG_AREA,
+                       f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)")
     profiles = edge_profiles(image, shape, clipped=clipped)
     if len(profiles.rows) < CONFIG.min_edge_points:
-        return None, "no clear edge"
+        return Refusal(RefusalReason.NO_EDGE, "no clear edge")
     frame = local_frame(centroid, normal)
     step = surface_step(points, sigma, shape, centroid, frame)
     # the surface's normal, for a plate's; not from a ring with a gap (an extrapolation on a curved surface)
@@ -101,16 +114,17 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     if any(k == "sticker" for k, _ in tries) and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded:
         tries = [t for t in tries if t[0] != "sticker"]
         if not tries:
-            return None, "no decoded surface around it, and a sticker lies on one"
-    first_reason = None
+            return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
+    cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
+                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms)
+    first: Refusal | None = None
     for kind, alb in tries:
-        mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
-                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, alb, surface,
-                                 clipped, max_edge_rms)
-        if mark is not None:
-            return mark, ""
-        first_reason = first_reason or reason
-    return None, first_reason
+        out = _fit_kind(kind, cand, alb)
+        if not isinstance(out, Refusal):
+            return out
+        first = first or out
+    assert first is not None
+    return first
 
 
 def step_kind(step_mm, step_sd) -> str | None:
@@ -130,64 +144,99 @@ def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) ->
     return float(shape["area"]) / disk_px
 
 
-def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
-              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None, clipped=None,
-              max_edge_rms=CONFIG.max_circle_rms_mm):
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    """What ``fit_mark`` measured of one blob before a model is fitted, and the size it is fitted with."""
+
+    image: np.ndarray  # (H, W) lit image
+    points: np.ndarray  # (H, W, 3) decoded world points
+    sigma: np.ndarray | None  # (H, W) their predicted SD, mm
+    shape: dict  # the blob's image ellipse (``blob_shape``)
+    profiles: EdgeProfiles  # radial edge profiles in the lit image
+    cal: Calibration
+    centroid: np.ndarray  # first plane: a point on it ...
+    normal: np.ndarray  # ... and its normal
+    plane_rms: float
+    n_in: int  # interior points of the first plane
+    px_per_mm: float  # at the blob's depth
+    step: tuple | None  # ``surface_step``: (step, sd, normal, slope cov, ring decoded) or None
+    surface: tuple | None  # (normal, basis, slope cov) of the surface round a plate, or None
+    clipped: np.ndarray | None  # (H, W) bool, camera saturated
+    radius_mm: float  # the marks' radius (the free fit's start where the size is not known)
+    prior_sd: float | None  # its SD (None: a free radius)
+    thickness: float  # a plate's step over the surface, mm
+    radius_bounds: tuple[float, float] | None  # the size is not known: the radius must lie in this range
+    max_edge_rms: float  # mm, edges about the circle
+
+
+def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
+    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
+
+    image, points, sigma, shape, profiles = cand.image, cand.points, cand.sigma, cand.shape, cand.profiles
+    cal, centroid, normal, plane_rms, n_in0 = cand.cal, cand.centroid, cand.normal, cand.plane_rms, cand.n_in
+    radius_mm, prior_sd, thickness, clipped = cand.radius_mm, cand.prior_sd, cand.thickness, cand.clipped
+    px_per_mm, step = cand.px_per_mm, cand.step
+    max_edge_rms = cand.max_edge_rms
     cam_c = cal.camera.center
-    n_in0 = n_in
     lit_profiles = profiles
     interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
 
-    def fit(edges):  # this kind's fit on the given edge profiles
+    def fit(edges: EdgeProfiles) -> DiskFit | Refusal:  # this kind's fit on the given edge profiles
         if kind == "sticker":
             return fit_on_surface(points, sigma, shape, edges, cal, centroid, normal, radius_mm, prior_sd)
         return _fit_plate(image, points, sigma, edges, cal, centroid, normal, plane_rms, n_in0, radius_mm, prior_sd,
-                          px_per_mm, thickness, interior, surface)
+                          px_per_mm, thickness, interior, cand.surface)
 
     if kind == "sticker" and albedo is not None:
         pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
         profiles = pa if len(pa.rows) >= CONFIG.min_edge_points else profiles
     out = fit(profiles)
-    if isinstance(out, str):
-        return None, out
+    if isinstance(out, Refusal):
+        return out
     if kind == "plate":
         out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
-    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
-
-    centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
-    n_in = n_in0
+    centre, normal, radius, radius_sd = out.centre, out.normal, out.radius, out.radius_sd
+    rms, surf_rms, cov, n_edge, n_in = out.edge_rms, out.face_rms, out.covariance, out.n_edge, n_in0
     what = f"{kind}, seen at {view_deg(cam_c, centre, normal):.0f}°"
     if _runaway(radius, radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
-        return None, f"edge points lie on a line, not a circle ({what})"
-    if radius_bounds is not None:
+        return Refusal(RefusalReason.EDGES_ON_A_LINE, f"edge points lie on a line, not a circle ({what})")
+    if cand.radius_bounds is not None:
+        lo, hi = cand.radius_bounds
         if not (lo <= radius <= hi) or rms > max_edge_rms:
-            return None, f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})"
+            return Refusal(RefusalReason.RADIUS_OUT_OF_RANGE if not lo <= radius <= hi else RefusalReason.EDGES_SCATTER,
+                           f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})")
     else:
         # The free radius is a size check; on the short arc of an oblique plate it is itself
         # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the
         # fixed one, but not without bound: a straight edge (radius_sd huge) is no mark.
         tol = min(max(CONFIG.radius_tolerance_mm, 3.0 * radius_sd), CONFIG.max_radius_tolerance_mm)
         if abs(radius - radius_mm) > tol or rms > max_edge_rms:
-            return None, (f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
-                          f"edge RMS {rms:.2f} mm, {what})")
+            return Refusal(RefusalReason.WRONG_RADIUS if abs(radius - radius_mm) > tol else RefusalReason.EDGES_SCATTER,
+                           f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
+                           f"edge RMS {rms:.2f} mm, {what})")
     if radius_sd > CONFIG.max_radius_sd_mm:
-        return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
+        return Refusal(RefusalReason.SHORT_ARC,
+                       f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})")
     light_deg = view_deg(cal.projector.center, centre, normal)
     if light_deg > CONFIG.max_light_deg:
-        return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
+        return Refusal(RefusalReason.GRAZING_LIGHT,
+                       f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})")
     seen = _seen_share(shape, radius, px_per_mm, view_deg(cam_c, centre, normal))
     if light_deg <= CONFIG.seen_max_light_deg and seen < CONFIG.min_seen_share:
-        return None, (f"only {100 * seen:.0f} % of its face is bright though it is lit at {light_deg:.0f}°: "
-                      f"partly in a shadow or hidden ({what})")
+        return Refusal(RefusalReason.PARTLY_HIDDEN,
+                       f"only {100 * seen:.0f} % of its face is bright though it is lit at {light_deg:.0f}°: "
+                       f"partly in a shadow or hidden ({what})")
     off = _face_off_surface(points, cal, centre, normal, radius)
     if off > CONFIG.face_off_share:
-        return None, f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})"
+        return Refusal(RefusalReason.OUTLINE_THROUGH,
+                       f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})")
     limit = face_rms_limit(sigma, interior)
     if surf_rms > limit:
-        return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})"
+        return Refusal(RefusalReason.FACE_NOT_SMOOTH,
+                       f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})")
     if prior_sd is not None:
         # The fit's centre assumes the nominal radius; a free radius off by Δ means the edge
         # points are biased (side wall, blur at a grazing view) and the centre moves with them:
@@ -199,11 +248,13 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
                                     centre)
         lit_enough = light_deg <= CONFIG.lit_shift_max_light_deg
         if spread is None and lit_enough:
-            return None, f"the lit image's edges here lie on a line, not round a disk ({what})"
+            return Refusal(RefusalReason.LIT_EDGES_ON_A_LINE,
+                           f"the lit image's edges here lie on a line, not round a disk ({what})")
         spread = np.zeros((3, 3)) if spread is None else spread
         shift = 2.0 * math.sqrt(float(np.trace(spread)))
         if shift > CONFIG.lit_shift_max_radii * radius_mm and lit_enough:
-            return None, f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})"
+            return Refusal(RefusalReason.IMAGES_DISAGREE,
+                           f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})")
         cov = cov + spread
     clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
     if clipped_rim:
@@ -211,15 +262,15 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
         # the fit with all of them there, and a third of the centre's move squared (the RMS
         # offset of a point spread evenly over the span from its outer end)
         other = fit(profiles.inward())
-        if not isinstance(other, str):
-            cov = cov + np.outer(other[0] - centre, other[0] - centre) / 3.0
+        if not isinstance(other, Refusal):
+            cov = cov + np.outer(other.centre - centre, other.centre - centre) / 3.0
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step[0]),
                 step_sd=float("nan") if step is None else float(step[1]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
-                clipped=clipped_rim), ""
+                clipped=clipped_rim)
 
 
 def _face_off_surface(points, cal, centre, normal, radius) -> float:
@@ -251,28 +302,29 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     inside the face, short of the far rim (a 14.2 x 2.1 mm table plate seen at 70° kept 8 edges,
     0.93 mm off; profiled from its face, 25 edges, 0.19 mm). But on other plates the second
     origin moved a good centre off (0.09 -> 0.31 mm with 24 edges at 0.05 mm RMS), and no fit
-    statistic told the two apart (docs/marks.md, "Two profile origins, averaged"): where the
+    statistic told the two apart (docs/history-marks.md, "Two profile origins, averaged"): where the
     profiles start is itself an uncertainty, so both fits count and their spread goes into the
     SD. The first fit stands alone where the second's edges scatter more
     (``CONFIG.reprofile_max_rms_ratio``) or either fit's radius disagrees with a given size (a doubtful
     fit is kept for the second look of ``_wider_fit``)."""
-    if prior_sd is not None and radius_disagrees(out[2], out[3], radius_mm, prior_sd):
+    if prior_sd is not None and radius_disagrees(out.radius, out.radius_sd, radius_mm, prior_sd):
         return out
-    if _runaway(out[2], radius_mm):
+    if _runaway(out.radius, radius_mm):
         return out  # refused by the checks that follow
-    shape = face_shape(cal, out[0], out[1], radius_mm if prior_sd is not None else out[2])
+    shape = face_shape(cal, out.centre, out.normal, radius_mm if prior_sd is not None else out.radius)
     if shape is None:
         return out
     again = edge_profiles(image, shape, clipped=clipped)
     if len(again.rows) < CONFIG.min_edge_points:
         return out
     other = fit(again)
-    if isinstance(other, str) or other[4] > CONFIG.reprofile_max_rms_ratio * max(out[4], CONFIG.edge_noise_floor_mm):
+    if isinstance(other, Refusal) or other.edge_rms > CONFIG.reprofile_max_rms_ratio * max(out.edge_rms,
+                                                                                          CONFIG.edge_noise_floor_mm):
         return out
-    if prior_sd is not None and radius_disagrees(other[2], other[3], radius_mm, prior_sd):
+    if prior_sd is not None and radius_disagrees(other.radius, other.radius_sd, radius_mm, prior_sd):
         return out
-    half = 0.5 * (np.asarray(other[0]) - np.asarray(out[0]))
-    return (out[0] + half, *out[1:6], out[6] + np.outer(half, half), out[7])
+    half = 0.5 * (np.asarray(other.centre) - np.asarray(out.centre))
+    return out.moved(out.centre + half, out.covariance + np.outer(half, half))
 
 
 def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):
@@ -284,16 +336,15 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
 
     None where the lit image's edges run away (``_runaway``): the lit image shows a straight edge
     there, not a disk, whatever the corrected image made of it (a bright table seen past the
-    foot's silhouette, variant 168 at 20/+20: a sticker 'found' on the foot, SD 1.6 mm, that took
-    the ankle's lost front mark's label and put the leg's angles 5-14° off)."""
+    foot's silhouette can pass for a sticker on the foot in the corrected image)."""
     if len(lit_profiles.rows) < CONFIG.min_edge_points:
         return np.zeros((3, 3))
     other = fit_on_surface(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd)
-    if isinstance(other, str):
+    if isinstance(other, Refusal):
         return np.zeros((3, 3))
-    if _runaway(other[2], radius_mm):
+    if _runaway(other.radius, radius_mm):
         return None
-    half = 0.5 * (other[0] - centre)
+    half = 0.5 * (other.centre - centre)
     return np.outer(half, half)
 
 
@@ -318,7 +369,9 @@ def face_rms_limit(sigma, uv) -> float:
         return CONFIG.max_top_face_rms_mm
     s = sigma[uv[:, 1], uv[:, 0]]
     s = s[np.isfinite(s)]
-    return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.median(s))) if len(s) else CONFIG.max_top_face_rms_mm
+    if not len(s):
+        return CONFIG.max_top_face_rms_mm
+    return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.median(s)))
 
 
 def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
@@ -349,7 +402,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     for i in range(CONFIG.plane_passes + 1):
         fit = circle(rays, normal)
         if fit is None:
-            return "edge points do not form a circle"
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         if i == CONFIG.plane_passes or (last is not None and np.linalg.norm(fit[0] - last) < CONFIG.plane_converged_mm):
             break
         last = fit[0]
@@ -368,7 +421,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         normal, tilt = combined_normal(normal, tilt, surface)
         fit = circle(rays, normal)
         if fit is None:
-            return "edge points do not form a circle"
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
     for _ in range(CONFIG.sliver_passes if thickness > 0 else 0):
         # re-find the edges that have a shadow sliver beside them (dropped so far), now that
         # the plate's plane and centre say how wide each sliver is
@@ -393,9 +446,10 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         shift = shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)
         return circle(cal.camera.rays(profiles.points(s_used + shift)), normal, relocated)
 
-    level_px = CONFIG.edge_level_sd_px / max(math.cos(math.radians(view_deg(cam_c, centre, normal))), CONFIG.cos_view_min)
-    return (centre, normal, radius, radius_sd, rms, plane_rms, cov + _edge_level_covariance(refit_edges, level_px),
-            n_edge)
+    cos_view = math.cos(math.radians(view_deg(cam_c, centre, normal)))
+    level_px = CONFIG.edge_level_sd_px / max(cos_view, CONFIG.cos_view_min)
+    return DiskFit(centre, normal, radius, radius_sd, rms, plane_rms,
+                   cov + _edge_level_covariance(refit_edges, level_px), n_edge)
 
 
 def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
@@ -403,17 +457,16 @@ def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
     edges scatter more than a mark's may (CONFIG.max_circle_rms_mm) and that scatters less; else
     ``out`` and ``profiles`` as they are. ``fit``: the plate's fit on given profiles.
 
-    A rim partly hidden or shadowed (held-out variant 138 at 20/+20: a 24.5 mm table plate a
-    quarter in the leg's shadow, whose straight edge was that much of its outline: edge RMS
-    1.0 mm, 1.1-1.6 mm off, refused) is outlined along two curves, which least squares and a
+    A rim partly hidden or shadowed (a large table plate a quarter in the leg's shadow, whose
+    straight edge is that much of its outline) is outlined along two curves, which least squares and a
     residual cut both average. The circle through three edges that most of them lie within a
     tolerance of (``_circle_consensus``), in the plane found, is the rim, where it holds at
     least CONFIG.stray_arc_min_share of them; the rest are dropped (a plate's near side, off that
     circle by its side wall, is dropped by ``clean_edge_mask`` in any case). Only a fit that
     would be refused is looked at again."""
-    if out[4] <= CONFIG.max_circle_rms_mm:
+    if out.edge_rms <= CONFIG.max_circle_rms_mm:
         return out, profiles
-    centre, normal = out[0], out[1]
+    centre, normal = out.centre, out.normal
     E = ray_plane(cal.camera.center, cal.camera.rays(profiles.points()), centre, normal)
     idx = np.flatnonzero(np.isfinite(E[:, 0]))
     if len(idx) < 2 * CONFIG.min_edge_points:
@@ -426,7 +479,7 @@ def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
     keep[idx[~on]] = False
     fewer = profiles.subset(keep)
     again = fit(fewer)
-    if isinstance(again, str) or again[4] >= out[4]:
+    if isinstance(again, Refusal) or again.edge_rms >= out.edge_rms:
         return out, profiles
     return again, fewer
 
@@ -458,8 +511,7 @@ def _edge_level_covariance(refit_edges, level_px) -> np.ndarray:
     level error, foreshortened 1/cos(view) times in the face's plane. The error itself grows at a
     grazing view, where a pixel spans face, rim and what lies past it: plates seen at 11-43°
     have free radii within 0.16 px of the truth, while the edges of a 2.9 mm plate seen at 68°
-    were about 0.5 px inside its rim, its centre 0.71 mm off (docs/marks.md, "A third held-out
-    set")."""
+    were about 0.5 px inside its rim, its centre 0.71 mm off."""
     ends = [refit_edges(s * level_px) for s in (1.0, -1.0)]
     if any(e is None for e in ends):
         return np.zeros((3, 3))

@@ -1,5 +1,5 @@
 """Labelling the marks 1-7 (SPEC §2): the table triple (5, 6, 7 in a rule of their own layout),
-knee above ankle, front vs lateral by the normal round the leg. docs/marks.md, step 6.
+knee above ankle, front vs lateral by the normal round the leg. docs/marks.md, "Labels".
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ def label_marks(ms: MarkSet) -> None:
         ms.problems.append(f"expected 7 marks, found {len(marks)}")
     table = _table_triple(marks, ms.problems)
     if table is not None:
-        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
+        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table]), strict=True):
             m.label = lab
         # a leg mark faces sideways: a bright patch on the floor or the foot's top that passed
-        # as a mark must not take a leg label (variant 64 at 0/20: one did, as the lateral ankle
-        # mark, the true one became the front, and the leg's angles were 6° and 16° off)
+        # as a mark must not take a leg label (as the lateral ankle mark it turns the true one
+        # into the front, and the leg's angles go several degrees off)
         leg = [m for i, m in enumerate(marks) if i not in table and abs(m.normal[2]) < CONFIG.leg_normal_max_z]
         if len(leg) <= 4:
             _label_leg(leg, ms.problems, _table_plane([marks[i] for i in table]))
@@ -61,7 +61,8 @@ def _triple_score(ms) -> float:
     if np.linalg.norm(n) < 1e-9:
         return 180.0
     n /= np.linalg.norm(n)
-    return max([_angle_deg(m.normal, n) for m in ms] + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
+    return max([_angle_deg(m.normal, n) for m in ms]
+               + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
 
 
 def _table_triple(marks, problems):
@@ -161,7 +162,7 @@ def _label_leg(leg, problems, table=None):
         for m in leg:
             m.label = None
         return
-    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
+    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1], strict=True):
         if len(pair) == 1:
             label = _lone_label(pair[0], other, axis, front, lateral)
             if label is None:
@@ -221,8 +222,8 @@ def _label_pair(pair, axis, front, lateral, where, problems):
     if abs(_wrap_deg(a[0] - a[1])) < CONFIG.side_margin_deg:  # 50-90° apart; a tie means no decision
         problems.append(f"cannot tell the front from the lateral {where} mark")
         return
-    f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
-    f.label, l.label = front, lateral
+    f, lat = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
+    f.label, lat.label = front, lateral
 
 
 def _lone_label(m, other, axis, front, lateral):

@@ -51,6 +51,7 @@ from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, step_kind
 from anklescan.core.measure.mark_labels import LABELS, label_marks
+from anklescan.core.measure.mark_types import Refusal
 from anklescan.core.scan.pointcloud import PointCloud
 
 
@@ -99,6 +100,11 @@ class Mark:
                 "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
                 "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1),
                 "overexposed": self.clipped}
+
+
+def fitted(out: Mark | Refusal) -> Mark | None:
+    """The mark of ``fit_mark``'s result, or None where it was refused."""
+    return out if isinstance(out, Mark) else None
 
 
 @dataclass
@@ -192,8 +198,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     bounds = CONFIG.size_range_mm
     blobs = candidate_blobs(image, points, cal, noise, bounds, ring_background=True)
     albedo = shading_corrected(image, points, cal)
-    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
-                     clipped=clipped)[0]
+    free = [fitted(fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
+                            clipped=clipped))
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
     steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
@@ -202,10 +208,11 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     prefer = _common_kind([m.kind for m in free if m is not None])
     if mark_diameter_mm is not None:
         r0, sd0 = 0.5 * float(mark_diameter_mm), CONFIG.radius_prior_sd_mm
-        if sizes and sizes[0]["n"] >= 3 and abs(sizes[0]["radius"] - r0) > max(CONFIG.given_size_tolerance_mm, 3 * sizes[0]["sd"]):
-            result.size_error = (f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen "
-                                 + ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
-                                             for g in sizes[:3]))
+        far = sizes and abs(sizes[0]["radius"] - r0) > max(CONFIG.given_size_tolerance_mm, 3 * sizes[0]["sd"])
+        if far and sizes[0]["n"] >= 3:
+            seen = ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
+                             for g in sizes[:3])
+            result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
             result.problems.append(result.size_error)
             return result
         result.diameter, result.diameter_given = (float(mark_diameter_mm), 0.0), True
@@ -217,12 +224,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         return result
     refused = []
     for blob in blobs:
-        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
-                                prefer_kind=prefer, clipped=clipped)
+        out = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
+                       prefer_kind=prefer, clipped=clipped)
+        mark, reason = fitted(out), str(out)
         if mark is not None and blob.get("ring_cut") and not radius_clearly_measured(mark.radius_sd, r0):
             # cut against the surface round it, not the opening: kept here only if clearly a disk
-            # (held-out variant 42 at 20/20: a plate's cut with its side wall, radius ± 0.54 mm,
-            # 0.58 mm off; the later looks find it 0.14 mm off)
+            # (a plate's cut with its side wall measures its radius to ± 0.5 mm and its centre
+            # ~0.6 mm off; the later looks find the face alone)
             mark, reason = None, (f"cut against its surround and not clearly a disk (radius {mark.radius:.2f} ± "
                                   f"{mark.radius_sd:.2f} mm)")
         if mark is None:
@@ -246,8 +254,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         for blob in refused:
             if not _away(blob["centre"], result.marks, r_px):
                 continue
-            mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True,
-                               clipped=clipped)
+            mark = fitted(fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo,
+                                   lit_sticker_edges=True, clipped=clipped))
             if mark is not None and _of_capture_kind(mark, prefer):
                 result.marks.append(mark)
                 r_px.append(_radius_px(cal, mark, r0))
@@ -299,7 +307,7 @@ def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
 
 def _away(pixel, marks, r_px) -> bool:
     """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
-    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px))
+    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px, strict=True))
 
 
 def _restore_held(result: MarkSet, held, cal: Calibration, radius_mm: float) -> None:
@@ -309,10 +317,9 @@ def _restore_held(result: MarkSet, held, cal: Calibration, radius_mm: float) -> 
     among those the one with the most edge points. Its covariance carries the radius's
     disagreement ((Δ/2)², ``_fit_kind``). Under camera blur 0.9 px a 10 mm plate fitted 2.56 mm
     off (z 4.7) was replaced by the second look's fit 0.11 mm off; a plate 0.15 mm off (z 4.4)
-    with nothing better there is kept (docs/marks.md). None is kept once seven marks are kept:
-    a doubtful fit there can only be an eighth (held-out variant 344 at 20/-20, seen from
-    another viewpoint: skin by the leg's outline fitted 6.3 mm against 7.15, which left five leg
-    marks and the trial unlabelled)."""
+    with nothing better there is kept. None is kept once seven marks are kept: a doubtful fit
+    there can only be an eighth (skin by the leg's outline, which leaves five leg marks and the
+    trial unlabelled)."""
     late = [m for m in result.marks if m.doubtful]
     result.marks = [m for m in result.marks if not m.doubtful]
     for group in (held, late):
@@ -341,7 +348,8 @@ def _wider_look(result: MarkSet, refused, image, points, cal: Calibration, radiu
         wider = blob.get("wider")
         if wider is None or not _away(blob["centre"], result.marks, r_px):
             continue
-        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
+        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
+                          clipped)
         if mark is not None:
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
@@ -350,22 +358,22 @@ def _wider_look(result: MarkSet, refused, image, points, cal: Calibration, radiu
 def _shape_look(result: MarkSet, refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
                 thickness, prefer_kind, clipped=None) -> None:
     """Last of all, where a refused blob's cut is not the disk (a thick plate's lit side wall,
-    brighter than its face, which is no brighter than the skin on the wall's side: variant 28
-    at 10/0, a 13.4 x 2 mm lateral ankle plate, every cut the wall's crescent alone): the disk
+    brighter than its face, which is no brighter than the skin on the wall's side: every cut
+    is then the wall's crescent alone): the disk
     as it must image, the marks' size on the surface round the blob (``predicted_disk``), slid
     over the blob's surround to where it stands out most (``disk_contrast_peak``), and fitted as
     a blob of that outline. Kept where the fit is clearly a disk, as the wider look's.
     Where the capture's plates have a thickness, the disk is also slid as a plate that thick,
     face and side wall together, and its face fitted: a thick plate lit at a grazing angle is a
-    bright wall under a dim face, and the disk alone stands out most over the wall (held-out
-    variant 76 at 0/-20: two of its table plates found only so). Which fit is kept:
-    ``_surer_shape_fit``."""
+    bright wall under a dim face, and the disk alone stands out most over the wall. Which fit
+    is kept: ``_surer_shape_fit``."""
     r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
         if not _away(blob["centre"], result.marks, r_px):
             continue
-        def away_fit(height):  # _shape_fit, None where it lands on a mark already found
-            m = _shape_fit(image, points, cal, blob["centre"], radius_mm, height, sigma, prior_sd, albedo, thickness,
+        def away_fit(height: float, pixel: tuple = blob["centre"]) -> Mark | None:
+            # _shape_fit, None where it lands on a mark already found
+            m = _shape_fit(image, points, cal, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
                            prefer_kind, clipped)
             return m if m is not None and _away(m.pixel, result.marks, r_px) else None
 
@@ -380,10 +388,10 @@ def _surer_shape_fit(alone, plate):
     be None), the one to keep: a sure one before a doubtful one; then the disk's, unless the
     plate's rests on CONFIG.shape_plate_edge_ratio times its edges or more. Where the plate outline is
     the right model, its face's profiles reach the far rim the disk alone, cut over the wall,
-    misses: table plates at 0/-20 of held-out variants 39, 50 and 76 had 14-32 edges against
-    8-13, 0.02-0.17 mm off against 0.16-0.72. Where both see the same rim the counts are close
-    and the disk alone was as good or better: front plates lit at 78-85° (variants 28, 59, 73,
-    92) had 17-34 edges against 12-33, 0.23-0.55 mm off against 0.17-0.28 (docs/marks.md)."""
+    misses (thick table plates seen obliquely: 14-32 edges against 8-13, 0.02-0.17 mm off
+    against 0.16-0.72). Where both see the same rim the counts are close and the disk alone was
+    as good or better (front plates lit at 78-85°: 17-34 edges against 12-33, 0.23-0.55 mm off
+    against 0.17-0.28)."""
     if alone is None or plate is None:
         return alone or plate
     if alone.doubtful != plate.doubtful:
@@ -406,13 +414,12 @@ def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_s
                clipped=None):
     """A blob's wider cut fitted, kept only where the fit is clearly a disk (see ``_wider_look``):
     a short arc's free radius well measured, and, where that radius is far from the size
-    (doubtful), clean edges, as for a doubtful mark restored (``_restore_held``). Held-out
-    variant 92 at 0/+20: a 10 mm front ankle plate lit at 79°, radius 4.63 ± 0.05 mm against
-    4.99, edge RMS 0.14 mm, 0.17 mm off at an SD of 0.29 mm (the radius's disagreement is in
-    it), was refused as doubtful and the trial was left incomplete."""
-    mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                       plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped)
-    if mark is None or not radius_clearly_measured(mark.radius_sd, radius_mm) or not _of_capture_kind(mark, prefer_kind):
+    (doubtful), clean edges, as for a doubtful mark restored (``_restore_held``): a small front
+    plate lit at 79° measures a free radius 7 % short on clean edges and its centre within its
+    SD (the radius's disagreement is in it); refused, the trial would be incomplete."""
+    mark = fitted(fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                           plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped))
+    if mark is None or not (radius_clearly_measured(mark.radius_sd, radius_mm) and _of_capture_kind(mark, prefer_kind)):
         return None
     return mark if not mark.doubtful or mark.circle_rms <= CONFIG.doubtful_max_edge_rms_mm else None
 
@@ -440,12 +447,11 @@ def _common_kind(kinds: list) -> str | None:
 def _of_capture_kind(mark: Mark, prefer_kind) -> bool:
     """False where the capture's marks are plates (``_common_kind``; a clinic sticks one kind)
     and a later look's fit has a face clearly flush with the surface. Those looks search weaker
-    contrast, where a bright patch of skin can pass for a sticker: by the leg's outline among
-    2.1 mm plates, held-out variant 378 at 0/+20 kept one (step -0.03 mm, edge RMS 0.22 mm)
-    beside the lateral ankle plate, and the true lateral mark was labelled the front one. Not
-    the other way round: a step is measured over a quadric, which a large sticker on a bony
-    ankle can leave, and variant 381's 24.4 mm lateral ankle sticker measured a step of
-    1.82 ± 0.13 mm, 0.14 mm off. An unclear step (a small disk at a grazing view) does not refuse."""
+    contrast, where a bright patch of skin can pass for a sticker (by the leg's outline, beside
+    a lateral ankle plate, one would take the front mark's label). Not the other way round: a
+    step is measured over a quadric, which a large sticker on a bony ankle can leave, so a
+    sticker may measure a step of a plate. An unclear step (a small disk at a grazing view) does
+    not refuse."""
     return not (prefer_kind == "plate" and step_kind(mark.step_mm, mark.step_sd) == "sticker")
 
 
@@ -480,8 +486,8 @@ def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: fl
             continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
         if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
-        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped)
+        mark = fitted(fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                               plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped))
         if mark is not None and not _of_capture_kind(mark, prefer_kind):
             mark = None
         if mark is None and blob.get("wider") is not None:
@@ -489,7 +495,6 @@ def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: fl
                               prefer_kind, clipped)
         if mark is not None:
             # two blobs can fit one disk: the blob is checked above, not where its fit lands
-            # (held-out variant 287 at 20/+20: a knee sticker twice, 0.01 mm apart)
             result.marks = _distinct(result.marks + [mark], cal, radius_mm)
             found = [m.pixel for m in result.marks]
 
@@ -536,7 +541,8 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     at a grazing angle). Each is fitted as the search fits its marks, with the given size as a
     prior, or with its own free radius (a fit whose radius disagrees with the given size, a
     doubtful one, is passed over); the corrected image's blobs, and edges scattering up to
-    CONFIG.snap_max_edge_rms_mm, only where the lit image's blobs give no mark. ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
+    CONFIG.snap_max_edge_rms_mm, only where the lit image's blobs give no mark.
+    ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
     """
     image = np.asarray(lit, np.float32)
     point = np.asarray(point, float).reshape(3)
@@ -556,8 +562,8 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     best = _nearest_fit(tried, point, search_mm, fit, CONFIG.max_circle_rms_mm)
     if best is None:
         # the search alone would not have it either: a sticker that stands out only once the
-        # shading is corrected, or edges that scatter more (variants 155 and 177 at 0/±20). Only
-        # now, as it doubles the time of a click.
+        # shading is corrected, or edges that scatter more (a large sticker on a curved leg).
+        # Only now, as it doubles the time of a click.
         more = _near_blobs(albedo, points, cal, uv, reach, bounds, px_per_mm)
         best = _nearest_fit(tried + more, point, search_mm, fit, CONFIG.snap_max_edge_rms_mm)
     return best
@@ -579,21 +585,21 @@ def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
     best = None
     for blob in blobs:
         if mark_diameter_mm is None:
-            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds, clipped=clipped,
-                               albedo=albedo, max_edge_rms=max_edge_rms)
+            mark = fitted(fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds,
+                                   clipped=clipped, albedo=albedo, max_edge_rms=max_edge_rms))
         else:
-            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma, clipped=clipped, albedo=albedo,
-                               max_edge_rms=max_edge_rms)
+            mark = fitted(fit_mark(image, points, blob, cal, bounds[0], sigma, clipped=clipped, albedo=albedo,
+                                   max_edge_rms=max_edge_rms))
         if mark is None or mark.doubtful:
             # doubtful: its free radius is far from the marks' size. A click is not moved onto
-            # such a fit: front plates lit at 77-78° (held-out variants 173 and 224 at 20/+20)
-            # were fitted on their lit side wall, clean edges and a radius 7 % short, 2.7 and
-            # 3.9 mm off along the view at an SD of 0.24-0.31 mm; the click 3 mm off was kept
+            # such a fit: front plates lit at 77-78° can be fitted on their lit side wall, with
+            # clean edges and a radius 7 % short, millimetres off along the view at an SD of
+            # 0.3 mm; a click a few mm off is better kept
             continue
         if mark.circle_rms > CONFIG.max_circle_rms_mm:
             # edges that scatter past the search's limit are likely off the rim somewhere (the
             # foot over a sticker's lower part), not at random: the centre may be off by their
-            # RMS in the disk's plane (variant 177's, 0.31 mm off at 3.5 SD without it)
+            # RMS in the disk's plane
             B = plane_basis(mark.normal)
             mark.covariance = mark.covariance + mark.circle_rms ** 2 * (B.T @ B)
         d = float(np.linalg.norm(mark.centre - point))

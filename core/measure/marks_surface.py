@@ -1,5 +1,5 @@
 """A mark's disk on its local surface: the step under a plate, the quadric under a sticker,
-and the circle fitted *on* that surface (docs/marks.md, "Stickers and sizes").
+and the circle fitted *on* that surface (docs/marks.md, "The model").
 
 A sticker follows the skin: its boundary is the set of skin points a fixed distance from its
 centre *along the skin*, on a leg of 32-48 mm radius not a plane circle (a 20 mm disk wrapped
@@ -22,6 +22,7 @@ from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, plane_basis
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
@@ -171,7 +172,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         F = local_frame(origin, n)
         q = fit_quadric((P - origin) @ F.T, w)
         if q is None:
-            return f"only {len(P)} decoded 3-D points on the mark"
+            return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {len(P)} decoded 3-D points on the mark")
         coef, surf_rms, keep, _ = q
         D = rays_all @ F.T
         E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
@@ -182,10 +183,10 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
         use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(CONFIG.max_edge_view_deg))) & lit_edge
         if use.sum() < CONFIG.min_edge_points:
-            return "edge points do not form a circle"
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
         if fit is None:
-            return "edge points do not form a circle"
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         for _ in range(2):
             resid = fit[2]
             bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
@@ -194,7 +195,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
             use[np.flatnonzero(use)[bad]] = False
             fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
             if fit is None:
-                return "edge points do not form a circle"
+                return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         c2, r, resid, cov2, _ = fit
         g = quadric_grad(coef, c2[0], c2[1])
         centre = origin + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
@@ -217,7 +218,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
     var_offset = surf_rms**2 * 6.0 / max(int(keep.sum()), 1)
     cov = in_surface + var_offset * np.outer(gv, gv) + CONFIG.sd_floor_mm**2 * np.eye(3)
     n = n if n @ (cam_c - centre) >= 0 else -n
-    return centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum())
+    return DiskFit(centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum()))
 
 
 def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | None:
