@@ -86,19 +86,33 @@ def camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
     return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
 
 
+def depth_image(cal: Calibration, points: np.ndarray) -> np.ndarray:
+    """(H, W) float64 camera depth (mm) of the decoded points of ``points`` (H, W, 3), NaN
+    elsewhere: computed once per image and shared by the candidate searches (a full-image
+    transform is ~0.05 s at 1600 x 1200)."""
+    valid = np.isfinite(points[..., 0])
+    depth = np.full(points.shape[:2], np.nan)
+    depth[valid] = camera_depth(cal, points[valid])
+    return depth
 
 
-def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+
+
+def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False,
+                    depth: np.ndarray | None = None) -> list[dict]:
     """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii CONFIG.scale_step apart
     (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
-    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept."""
+    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept.
+    ``depth``: ``depth_image(cal, points)`` where the caller has it."""
+    if depth is None:
+        depth = depth_image(cal, points)
     if np.isscalar(radius_mm):
-        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background)
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth)
     lo, hi = radius_mm
     n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
     kept, taken = [], np.zeros(image.shape, bool)
     for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth):
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue
@@ -107,7 +121,8 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
     return kept
 
 
-def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False,
+                       depth_img: np.ndarray | None = None) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -117,12 +132,14 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     ``ring_background``: where the cut over the opening leaks into the surround (the opening's
     minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
     the shading-corrected image), cut again at half-way over the median of the decoded surface
-    in a ring around the seed.
+    in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it.
     """
     valid = np.isfinite(points[..., 0])
     if valid.sum() < 10:
         return []
-    depth = camera_depth(cal, points[valid])
+    if depth_img is None:
+        depth_img = depth_image(cal, points)
+    depth = depth_img[valid]
     r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
     r_max = float(plate_radius_px(cal, np.percentile(depth, 1), r_hi))
     r_min = float(plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
@@ -159,7 +176,7 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
                 if blob is not None:
                     blob["ring_cut"] = True
         if blob is None and valid[v, u]:
-            outlined = outlined or _without_outlines(smooth, points, valid, cal)
+            outlined = outlined or _without_outlines(smooth, valid, depth_img)
             blob = _depth_cut(*outlined, (u, v), background[v, u], half)
         if blob is None:
             continue
@@ -168,11 +185,9 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     return blobs
 
 
-def _without_outlines(smooth, points, valid, cal):
+def _without_outlines(smooth: np.ndarray, valid: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(``smooth`` with the undecoded pixels and those at a depth step set to -inf, the depth
-    steps): what ``_depth_cut`` cuts in, for the whole image at once."""
-    depth = np.full(smooth.shape, np.nan)
-    depth[valid] = camera_depth(cal, points[valid])
+    steps): what ``_depth_cut`` cuts in, for the whole image at once. ``depth``: ``depth_image``."""
     jump = _depth_steps(depth)
     return np.where(valid & ~jump, smooth, -np.inf).astype(np.float32), jump
 

@@ -40,7 +40,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
              sigma: np.ndarray | None = None, *, prior_sd: float | None = CONFIG.radius_prior_sd_mm,
              radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
-             clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm) -> Mark | Refusal:
+             clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm,
+             covariance: bool = True) -> Mark | Refusal:
     """Fit one candidate: the ``Mark``, or the ``Refusal`` of the first check it failed.
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -63,6 +64,9 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
     ``max_edge_rms``: how far the rim's edges may scatter about the fitted circle (a disk a
     clinician clicked on may be fitted on looser edges than one the search found alone).
+    ``covariance``: False where only the fit's size, kind and step are used (the free pass of
+    ``find_marks``): the refits that only carry errors into the covariance are skipped, and the
+    mark's ``covariance`` is NaN.
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -116,7 +120,7 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         if not tries:
             return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
     cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
-                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms)
+                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance)
     first: Refusal | None = None
     for kind, alb in tries:
         out = _fit_kind(kind, cand, alb)
@@ -167,6 +171,7 @@ class _Candidate:
     thickness: float  # a plate's step over the surface, mm
     radius_bounds: tuple[float, float] | None  # the size is not known: the radius must lie in this range
     max_edge_rms: float  # mm, edges about the circle
+    covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
 
 
 def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
@@ -182,11 +187,12 @@ def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | 
     lit_profiles = profiles
     interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
 
-    def fit(edges: EdgeProfiles) -> DiskFit | Refusal:  # this kind's fit on the given edge profiles
+    def fit(edges: EdgeProfiles, covariance: bool = cand.covariance) -> DiskFit | Refusal:
+        # this kind's fit on the given edge profiles; ``covariance``: with the plate's refits for it
         if kind == "sticker":
             return fit_on_surface(points, sigma, shape, edges, cal, centroid, normal, radius_mm, prior_sd)
         return _fit_plate(image, points, sigma, edges, cal, centroid, normal, plane_rms, n_in0, radius_mm, prior_sd,
-                          px_per_mm, thickness, interior, cand.surface)
+                          px_per_mm, thickness, interior, cand.surface, covariance=covariance)
 
     if kind == "sticker" and albedo is not None:
         pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
@@ -257,11 +263,11 @@ def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | 
                            f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})")
         cov = cov + spread
     clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
-    if clipped_rim:
+    if clipped_rim and cand.covariance:
         # the clipped rim's edges may lie anywhere up to their span inwards (``edge_profiles``):
         # the fit with all of them there, and a third of the centre's move squared (the RMS
         # offset of a point spread evenly over the span from its outer end)
-        other = fit(profiles.inward())
+        other = fit(profiles.inward(), covariance=False)  # its centre only
         if not isinstance(other, Refusal):
             cov = cov + np.outer(other.centre - centre, other.centre - centre) / 3.0
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
@@ -317,7 +323,7 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     again = edge_profiles(image, shape, clipped=clipped)
     if len(again.rows) < CONFIG.min_edge_points:
         return out
-    other = fit(again)
+    other = fit(again, covariance=False)  # its centre, radius and edges; the covariance is ``out``'s
     if isinstance(other, Refusal) or other.edge_rms > CONFIG.reprofile_max_rms_ratio * max(out.edge_rms,
                                                                                           CONFIG.edge_noise_floor_mm):
         return out
@@ -375,7 +381,7 @@ def face_rms_limit(sigma, uv) -> float:
 
 
 def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
-               px_per_mm, thickness, plane_px, surface=None):
+               px_per_mm, thickness, plane_px, surface=None, *, covariance: bool = True):
     """A rigid plate: plane + far-side edge circle; returns the fit tuple or a reason.
 
     The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
@@ -389,7 +395,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     basis (2, 3), slope covariance) of the surface around the plate (``surface_step``), combined
     with the face's own normal (``combined_normal``).
     The covariance includes the plane's tilt error carried to the centre (``_tilt_covariance``)
-    and the rim's edge level error (``_edge_level_covariance``).
+    and the rim's edge level error (``_edge_level_covariance``); ``covariance`` False: neither
+    (their six refits), and the covariance is NaN (a fit whose centre alone is used).
     """
     cam_c, proj_c = cal.camera.center, cal.projector.center
     rays = cal.camera.rays(profiles.points())
@@ -436,6 +443,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
             break
         fit, relocated, s_used = better, moved, s_new
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
+    if not covariance:
+        return DiskFit(centre, normal, radius, radius_sd, rms, plane_rms, np.full((3, 3), np.nan), n_edge)
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
 
     if tilt is not None:
@@ -718,29 +727,37 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     """
     p = np.array([c0[0], c0[1], r0], float)
     scale = CONFIG.edge_noise_floor_mm
+    n = len(q)
+    J = np.empty((n + (prior is not None), 3))  # filled in place: one allocation per fit, not per iteration
+    J[:n, 2] = -1.0
+    r = np.empty(len(J))
 
-    def system(p):
+    def prior_row(p: np.ndarray) -> None:
+        w = scale / prior[1]
+        J[n] = (0.0, 0.0, w)
+        r[n] = w * (p[2] - prior[0])
+
+    def system(p: np.ndarray) -> np.ndarray:  # J and r at p; returns the distances |q - c|
         d = q - p[:2]
         rho = np.linalg.norm(d, axis=1)
-        J = np.column_stack([-d / rho[:, None], -np.ones(len(q))])
-        r = rho - p[2]
-        if prior is None:
-            return J, r, rho
-        w = scale / prior[1]
-        return np.vstack([J, [0.0, 0.0, w]]), np.r_[r, w * (p[2] - prior[0])], rho
+        J[:n, :2] = -d / rho[:, None]
+        r[:n] = rho - p[2]
+        if prior is not None:
+            prior_row(p)
+        return rho
 
     for _ in range(iterations):
-        J, r, rho = system(p)
+        rho = system(p)
         if np.any(rho < 1e-9):
             return None
         if prior is not None:
-            scale = max(float(np.sqrt(np.mean(r[: len(q)] ** 2))), CONFIG.edge_noise_floor_mm)
-            J, r, rho = system(p)
+            scale = max(float(np.sqrt(np.mean(r[:n] ** 2))), CONFIG.edge_noise_floor_mm)
+            prior_row(p)
         step, *_ = np.linalg.lstsq(J, -r, rcond=None)
         p += step
         if np.abs(step).max() < 1e-7:
             break
-    J, r, rho = system(p)
+    rho = system(p)
     resid = rho - p[2]
     dof = max(len(q) - 3, 1)
     try:

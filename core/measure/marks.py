@@ -38,6 +38,7 @@ from anklescan.core.measure.mark_candidates import (
     camera_depth,
     candidate_blobs,
     cut_blob,
+    depth_image,
     disk_contrast_peak,
     noise_sigma,
     plate_radius_px,
@@ -198,8 +199,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     bounds = CONFIG.size_range_mm
     blobs = candidate_blobs(image, points, cal, noise, bounds, ring_background=True)
     albedo = shading_corrected(image, points, cal)
+    # the sizes seen, the plates' thickness and the capture's kind: no fit's covariance is used
     free = [fitted(fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
-                            clipped=clipped))
+                            clipped=clipped, covariance=False))
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
     steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
@@ -476,10 +478,12 @@ def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: fl
     if albedo is None:
         albedo = shading_corrected(image, points, cal)
     found = [m.pixel for m in result.marks]
-    r_px = float(plate_radius_px(cal, np.median(camera_depth(cal, points[decoded])), radius_mm))
+    depth = depth_image(cal, points)
+    r_px = float(plate_radius_px(cal, np.median(depth[decoded]), radius_mm))
     size = (radius_mm, radius_mm)
-    blobs = candidate_blobs(albedo, points, cal, noise_sigma(albedo), size, ring_background=True)
-    for blob in blobs + candidate_blobs(image, points, cal, noise_sigma(image), size, ring_background=True):
+    blobs = candidate_blobs(albedo, points, cal, noise_sigma(albedo), size, ring_background=True, depth=depth)
+    for blob in blobs + candidate_blobs(image, points, cal, noise_sigma(image), size, ring_background=True,
+                                        depth=depth):
         if any(np.hypot(*(np.asarray(blob["centre"]) - p)) < 2 * r_px for p in found):
             continue
         if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
