@@ -7,6 +7,7 @@ pixel, the image noise, and the shading-corrected (albedo-like) image. docs/mark
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -92,7 +93,7 @@ def depth_image(cal: Calibration, points: np.ndarray) -> np.ndarray:
     transform is ~0.05 s at 1600 x 1200)."""
     valid = np.isfinite(points[..., 0])
     depth = np.full(points.shape[:2], np.nan)
-    depth[valid] = camera_depth(cal, points[valid])
+    depth[valid] = points[valid].astype(np.float64) @ cal.camera.R[2] + cal.camera.t[2]  # z alone
     return depth
 
 
@@ -106,13 +107,20 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
     ``depth``: ``depth_image(cal, points)`` where the caller has it."""
     if depth is None:
         depth = depth_image(cal, points)
+    steps: list[np.ndarray] = []
+
+    def jump() -> np.ndarray:  # the depth steps, the same at every radius: found once, where a seed needs them
+        if not steps:
+            steps.append(_depth_steps(depth))
+        return steps[0]
+
     if np.isscalar(radius_mm):
-        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth)
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump)
     lo, hi = radius_mm
     n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
     kept, taken = [], np.zeros(image.shape, bool)
     for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump):
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue
@@ -122,7 +130,8 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
 
 
 def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False,
-                       depth_img: np.ndarray | None = None) -> list[dict]:
+                       depth_img: np.ndarray | None = None,
+                       jump: Callable[[], np.ndarray] | None = None) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -132,7 +141,8 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     ``ring_background``: where the cut over the opening leaks into the surround (the opening's
     minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
     the shading-corrected image), cut again at half-way over the median of the decoded surface
-    in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it.
+    in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it;
+    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them.
     """
     valid = np.isfinite(points[..., 0])
     if valid.sum() < 10:
@@ -176,7 +186,7 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
                 if blob is not None:
                     blob["ring_cut"] = True
         if blob is None and valid[v, u]:
-            outlined = outlined or _without_outlines(smooth, valid, depth_img)
+            outlined = outlined or _without_outlines(smooth, valid, jump() if jump else _depth_steps(depth_img))
             blob = _depth_cut(*outlined, (u, v), background[v, u], half)
         if blob is None:
             continue
@@ -185,10 +195,9 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     return blobs
 
 
-def _without_outlines(smooth: np.ndarray, valid: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(``smooth`` with the undecoded pixels and those at a depth step set to -inf, the depth
-    steps): what ``_depth_cut`` cuts in, for the whole image at once. ``depth``: ``depth_image``."""
-    jump = _depth_steps(depth)
+def _without_outlines(smooth: np.ndarray, valid: np.ndarray, jump: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(``smooth`` with the undecoded pixels and those at a depth step (``jump``, ``_depth_steps``)
+    set to -inf, the depth steps): what ``_depth_cut`` cuts in, for the whole image at once."""
     return np.where(valid & ~jump, smooth, -np.inf).astype(np.float32), jump
 
 
