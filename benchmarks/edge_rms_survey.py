@@ -4,7 +4,7 @@
 
 Each drawn set-up (``hardware/sim_variety.py``) at the five sweep postures, measured with the
 size unknown and given; every mark fit is re-run with no edge-RMS limit, and one that then
-passes every other check but scatters more than the limit (``MAX_CIRCLE_RMS_MM``) is printed
+passes every other check but scatters more than the limit (``MarkConfig.max_circle_rms_mm``) is printed
 with its edge RMS, free radius, view and light angles and its distance to the nearest true
 mark. The limit keeps out poor fits of true marks as well as false disks; this shows which.
 ``--variants`` may be left out: every variant up to 288 whose marks are over
@@ -14,7 +14,7 @@ mark. The limit keeps out poor fits of true marks as well as false disks; this s
 from __future__ import annotations
 
 import argparse
-import inspect
+import dataclasses
 import multiprocessing
 import sys
 from pathlib import Path
@@ -23,27 +23,27 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import bench_marks  # noqa: E402
 import anklescan.core.measure.mark_fit as mark_fit  # noqa: E402
+import bench_marks  # noqa: E402
+from anklescan.core.measure.mark_types import Refusal, RefusalReason  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 
 POSTURES = [(0, -20), (0, 20), (10, 0), (20, -20), (20, 20)]  # the held-out sweeps' five; seed = index
 _FOUND, _TRUTH = [], {}
 _fit_kind = mark_fit._fit_kind
-_LIMIT_AT = list(inspect.signature(_fit_kind).parameters).index("max_edge_rms")
 
 
-def _fit_kind_unlimited(*args, **kw):
+def _fit_kind_unlimited(kind, cand, albedo):
     """``_fit_kind`` with no edge-RMS limit; a fit over the caller's limit is recorded and refused
     as before, so that the search itself runs unchanged."""
-    limit = kw.pop("max_edge_rms", args[_LIMIT_AT] if len(args) > _LIMIT_AT else mark_fit.MAX_CIRCLE_RMS_MM)
-    mark, reason = _fit_kind(*args[:_LIMIT_AT], **kw, max_edge_rms=np.inf)
-    if mark is None or mark.circle_rms <= limit:
-        return mark, reason
+    limit = cand.max_edge_rms
+    mark = _fit_kind(kind, dataclasses.replace(cand, max_edge_rms=np.inf), albedo)
+    if isinstance(mark, Refusal) or mark.circle_rms <= limit:
+        return mark
     off = min(float(np.linalg.norm(mark.centre - t)) for t in _TRUTH["marks"].values())
     _FOUND.append({"rms": mark.circle_rms, "limit": limit, "radius": mark.radius, "view": mark.view_deg,
                    "lit": mark.light_deg, "kind": mark.kind, "off_mm": off, **_TRUTH["trial"]})
-    return None, f"edge RMS {mark.circle_rms:.2f} mm"
+    return Refusal(RefusalReason.EDGES_SCATTER, f"edge RMS {mark.circle_rms:.2f} mm")
 
 
 def _trial(job):

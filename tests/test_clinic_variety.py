@@ -5,7 +5,8 @@ the change its docstring names (docs/marks.md, "Beyond our own scene")."""
 import numpy as np
 import pytest
 
-from anklescan.core.measure.mark_fit import MIN_INTERIOR_POINTS, plane_from_pixels
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_fit import plane_from_pixels
 from anklescan.core.scan.camera_response import GAMMA_GRID, response_gamma
 from anklescan.hardware.sim_variety import DIAMETER_RANGE_MM, draw_variant, variant_rig
 
@@ -99,7 +100,7 @@ def test_a_plane_through_one_row_of_points_is_refused():
     assert plane_from_pixels(points, None, uv, np.array([0.0, 1000.0, 800.0])) is None
     points[0, :7] = row + [0.0, 0.0, 1.0]  # a second row 1 mm away: a plane again
     uv2 = np.concatenate([uv, np.stack([np.arange(7), np.zeros(7, int)], axis=1)])
-    assert len(uv2) >= MIN_INTERIOR_POINTS and plane_from_pixels(points, None, uv2, np.array([0.0, 1000.0, 800.0]))
+    assert len(uv2) >= CONFIG.min_interior_points and plane_from_pixels(points, None, uv2, np.array([0.0, 1000.0, 800.0]))
 
 
 # (variant, inversion, plantar flexion, type, diameter): the type and size drawn unless given
@@ -187,7 +188,7 @@ def test_a_bright_patch_between_depth_steps_is_not_an_eighth_mark():
     """Variant 25 at 20/20, full resolution: a lit sliver of floor between the leg's shadows,
     its border 98 % undecoded, passed as a 17.5 mm sticker on 9 edge points; with eight marks
     the table triple was ambiguous and the trial lost 5-7. A sticker lies on the skin, so the
-    skin round it is decoded (``STICKER_MAX_BORDER_UNDECODED``)."""
+    skin round it is decoded (``MarkConfig.sticker_max_border_undecoded``)."""
     rig = variant_rig(draw_variant(25), 20, 20, scale=1.0, seed=4)
     res, truth = _measured(rig)
     assert res.complete, res.marks.message()

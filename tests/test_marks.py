@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-
 from anklescan.core.measure.mark_fit import circle_geometric, fit_plane, plane_from_pixels
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.marks import Mark, MarkSet
@@ -299,8 +298,8 @@ def test_leg_marks_labelled_without_the_table_triple(inv, pf, drop):
 def test_shading_correction_recovers_albedo_on_a_curved_surface():
     """A cylinder lit from the side: the lit image falls with cos(incidence) / d², the
     corrected one is flat (∝ albedo) wherever the light reaches at a usable angle."""
-    from anklescan.core.calibration.file import Calibration
     from anklescan.core.calibration.device_model import Device, look_at
+    from anklescan.core.calibration.file import Calibration
     from anklescan.core.measure.mark_candidates import shading_corrected
 
     R, t = look_at([0.0, 1000.0, 0.0], [0.0, 0.0, 0.0])
@@ -440,10 +439,10 @@ def test_a_given_size_that_fits_no_mark_names_the_sizes_seen():
 def test_click_snaps_to_the_sticker_centre():
     """Manual placement: a click 4 mm off a sticker's centre snaps to it; a click on bare skin
     far from any disk gives None (the click is kept as it is)."""
-    from anklescan.core.scan.decode import decode
-    from anklescan.core.scan.lit_image import averaged_lit
     from anklescan.core.measure.mark_candidates import points_image
     from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.scan.decode import decode
+    from anklescan.core.scan.lit_image import averaged_lit
     from anklescan.core.scan.reconstruct import cloud_from_decoded
 
     rig, cap = _sized_scan("sticker", 12.0)
@@ -529,7 +528,8 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     region (a table's edge against the floor) makes a bright streak, which once passed as an
     eighth mark (10 mm plates, 0/+20, 0.75 scale); half its border has no 3-D point, a disk's
     none."""
-    from anklescan.core.measure.marks import SECOND_LOOK_MAX_BORDER_UNDECODED, border_undecoded
+    from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.marks import border_undecoded
 
     decoded = np.zeros((60, 60), bool)
     decoded[30:] = True
@@ -537,7 +537,7 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     region[3:6, 2:13] = True
     streak = {"slice": (slice(27, 36), slice(20, 35)), "region": region}
     disk = {"slice": (slice(40, 49), slice(20, 35)), "region": region}
-    assert border_undecoded(streak, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED
+    assert border_undecoded(streak, decoded) > CONFIG.second_look_max_border_undecoded
     assert border_undecoded(disk, decoded) == 0.0
 
 
@@ -564,7 +564,7 @@ def test_ankle_marks_at_the_terminator_or_the_silhouette(inv, pf, kind, diameter
     look cuts the lit image's seeds against the surface round them too.
     10 mm at 10/10: lit at 71°, its shadow leaves the ring round it 78 % decoded, and the
     normal of a quadric through that ring was 4.6° off; weighted with the face's it moved the
-    plate from 0.20 to 0.34 mm off. Such a surface is no longer used (SURFACE_RING_MIN_DECODED).
+    plate from 0.20 to 0.34 mm off. Such a surface is no longer used (``MarkConfig.surface_ring_min_decoded``).
     20 mm lateral ankle sticker at 20/10: beside the leg's silhouette, its edges in the shading-
     corrected image gave an edge RMS of 0.77 mm and it was refused; the lit image's edges fit it."""
     res, truth = _measured(inv, pf, 0.75, seed, mark_type=kind, mark_radius=diameter / 2)
@@ -634,18 +634,19 @@ def test_no_doubtful_mark_is_kept_beside_seven_sure_ones():
 
 
 def test_face_smoothness_limit_scales_with_the_points_noise():
-    """The fixed 0.2 mm face RMS limit is raised to FACE_RMS_PER_SIGMA times the face points'
+    """The fixed 0.2 mm face RMS limit is raised to ``face_rms_per_sigma`` times the face points'
     median predicted SD where that is larger: with read noise 4/255 a sticker's face had 0.21
     mm at a predicted 0.19 mm and was refused."""
-    from anklescan.core.measure.mark_fit import FACE_RMS_PER_SIGMA, MAX_TOP_FACE_RMS_MM, face_rms_limit
+    from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.mark_fit import face_rms_limit
 
     uv = np.array([[1, 1], [2, 2], [3, 3]])
     quiet = np.full((5, 5), 0.03)
     noisy = np.full((5, 5), 0.19)
     noisy[2, 2] = np.nan
-    assert face_rms_limit(quiet, uv) == MAX_TOP_FACE_RMS_MM
-    assert face_rms_limit(noisy, uv) == pytest.approx(FACE_RMS_PER_SIGMA * 0.19)
-    assert face_rms_limit(None, uv) == MAX_TOP_FACE_RMS_MM
+    assert face_rms_limit(quiet, uv) == CONFIG.max_top_face_rms_mm
+    assert face_rms_limit(noisy, uv) == pytest.approx(CONFIG.face_rms_per_sigma * 0.19)
+    assert face_rms_limit(None, uv) == CONFIG.max_top_face_rms_mm
 
 
 @pytest.mark.parametrize("optics,inv,pf,kind,label", [({"camera_blur_px": 0.9}, 0, -20, "plate", "5"),
@@ -668,7 +669,7 @@ def test_a_pair_spread_along_the_leg_is_left_unlabelled():
     scene = leg_scene(10, 10)
     for shift, labelled in ((90.0, False), (30.0, True)):
         marks = _truth_marks(scene)
-        front_ankle = next(m for m, lab in zip(marks, scene.marks) if lab == "2")
+        front_ankle = next(m for m, lab in zip(marks, scene.marks, strict=True) if lab == "2")
         front_ankle.centre = front_ankle.centre - np.array([0.0, 0.0, shift])
         ms = MarkSet(marks=marks)
         label_marks(ms)
@@ -705,7 +706,7 @@ def test_a_false_mark_beside_the_lateral_ankle_mark_leaves_the_leg_unlabelled():
     must face round the leg nearer its own role's mark of the other pair."""
     scene = leg_scene(0, 20)
     marks = _truth_marks(scene)
-    by = dict(zip(scene.marks, marks))
+    by = dict(zip(scene.marks, marks, strict=True))
     by["2"].normal = _turned(by["4"].normal, -40.0)
     by["2"].centre = by["4"].centre + 20.0 * (by["2"].normal - by["4"].normal)
     ms = MarkSet(marks=marks)
@@ -722,7 +723,7 @@ def test_an_ankle_pair_turned_as_a_twisted_tibia_turns_it_is_labelled(twist):
     scene = leg_scene(10, 0)
     truth = {tuple(np.round(m.centre, 6)): lab for lab, m in scene.marks.items()}
     marks = _truth_marks(scene)
-    for m, lab in zip(marks, scene.marks):
+    for m, lab in zip(marks, scene.marks, strict=True):
         if lab in ("2", "4"):
             m.normal = _turned(m.normal, twist)
     ms = MarkSet(marks=marks)
@@ -730,3 +731,86 @@ def test_an_ankle_pair_turned_as_a_twisted_tibia_turns_it_is_labelled(twist):
     assert ms.complete, ms.message()
     for m in ms.marks:
         assert m.label == truth[tuple(np.round(m.centre, 6))]
+
+
+def test_every_threshold_of_the_detector_is_a_documented_config_field():
+    """No module-level numeric constant is left in the detector's modules: every threshold is a
+    ``MarkConfig`` field, and each field is listed in docs/marks.md's parameter table."""
+    import ast
+    import dataclasses
+    from pathlib import Path
+
+    from anklescan.core.measure.mark_config import MarkConfig
+
+    root = Path(__file__).resolve().parents[1]
+    numeric = []
+    for path in sorted((root / "core" / "measure").glob("mark*.py")):
+        if path.name == "mark_config.py":
+            continue
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign | ast.AnnAssign) and node.value is not None:
+                parts = list(ast.walk(node.value))
+                literal = all(isinstance(n, ast.Constant | ast.Tuple | ast.BinOp | ast.UnaryOp | ast.operator
+                                         | ast.unaryop | ast.expr_context) for n in parts)
+                if literal and any(isinstance(n, ast.Constant) and isinstance(n.value, int | float) for n in parts):
+                    numeric.append(f"{path.name}:{node.lineno}")
+    assert numeric == []
+    doc = (root / "docs" / "marks.md").read_text(encoding="utf-8")
+    assert [f.name for f in dataclasses.fields(MarkConfig) if f"`{f.name}`" not in doc] == []
+
+
+def _lit_points(rig, cap):
+    """(lit image, points image, sigma image, calibration) of a simulated capture, as ``measure`` has them."""
+    from anklescan.core.measure.mark_candidates import points_image, sigma_image
+    from anklescan.core.scan.decode import decode
+    from anklescan.core.scan.lit_image import averaged_lit
+    from anklescan.core.scan.reconstruct import cloud_from_decoded
+
+    cal = rig.true_calibration()
+    decoded = decode(cap)
+    cloud = cloud_from_decoded(cap, cal, decoded)
+    lit = np.asarray(averaged_lit(cap, decoded.thresholds.get("camera_gamma")), np.float32)
+    return lit, points_image(cloud, lit.shape), sigma_image(cloud, lit.shape), cal
+
+
+def test_a_candidate_is_a_mark_or_a_typed_refusal_and_the_free_pass_skips_only_the_covariance():
+    """``fit_mark`` returns the Mark or a Refusal naming the failed check (an enum) with its
+    figures: a true plate with the marks' size fits; the same blob searched for at 12-13.5 mm
+    radius is refused for its free radius (7.5 mm); an L-shaped blob is not elliptical. A fit without its
+    covariance (the free pass) has the same centre, radius, kind and step as the full one."""
+    from anklescan.core.measure.mark_candidates import candidate_blobs, noise_sigma
+    from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.mark_fit import fit_mark
+    from anklescan.core.measure.mark_types import Refusal, RefusalReason
+
+    rig, cap = _sized_scan("plate", 15.0)
+    lit, points, sigma, cal = _lit_points(rig, cap)
+    truth = rig.truth().marks
+    blobs = candidate_blobs(lit, points, cal, noise_sigma(lit), CONFIG.size_range_mm, ring_background=True)
+    fits = [(b, fit_mark(lit, points, b, cal, 7.5, sigma)) for b in blobs]
+    plates = [(b, m) for b, m in fits if isinstance(m, Mark)]
+    assert len(plates) >= 6
+    for _, m in plates:
+        assert min(np.linalg.norm(m.centre - t) for t in truth.values()) < 0.3
+        assert np.isfinite(m.covariance).all()
+    blob, mark = plates[0]
+    too_big = fit_mark(lit, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=(12.0, 13.5))
+    assert isinstance(too_big, Refusal) and too_big.reason is RefusalReason.RADIUS_OUT_OF_RANGE, too_big
+    assert f"radius {mark.radius:.1f}" in str(too_big)[:-1] or "radius 7." in str(too_big)
+    ell = dict(blob)
+    region = blob["region"].copy()
+    h, w = region.shape
+    region[: h // 2, : w // 2] = False  # an L, not an ellipse
+    ell["region"] = region
+    bent = fit_mark(lit, points, ell, cal, 7.5, sigma)
+    assert isinstance(bent, Refusal) and bent.reason is RefusalReason.NOT_ELLIPTICAL, bent
+    for b, _ in plates:
+        free_full = fit_mark(lit, points, b, cal, None, sigma, prior_sd=None, radius_bounds=CONFIG.size_range_mm)
+        free_fast = fit_mark(lit, points, b, cal, None, sigma, prior_sd=None, radius_bounds=CONFIG.size_range_mm,
+                             covariance=False)
+        assert isinstance(free_fast, Mark) == isinstance(free_full, Mark)
+        if isinstance(free_full, Mark):
+            assert np.array_equal(free_fast.centre, free_full.centre)
+            assert (free_fast.radius, free_fast.radius_sd, free_fast.kind, free_fast.step_mm) == (
+                free_full.radius, free_full.radius_sd, free_full.kind, free_full.step_mm)
+            assert np.isnan(free_fast.covariance).all()

@@ -1,28 +1,21 @@
 """Mark candidates: compact bright blobs in the projector-lit image, over a size range.
 
 Also the per-pixel inputs of the mark stage: the world points and predicted noise per camera
-pixel, the image noise, and the shading-corrected (albedo-like) image. docs/marks.md, step 1.
+pixel, the image noise, and the shading-corrected (albedo-like) image. docs/marks.md, "Candidates".
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
-
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
-from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.robust import robust_sigma
-
-# Detection. A plate (albedo ~0.9) on skin (~0.45) or the table (~0.55) has a top-hat of
-# 0.6–1.0 x its surround; 0.3 leaves room for shading differences without admitting the
-# smooth skin-albedo variation (±5 %).
-MIN_RELATIVE_CONTRAST = 0.1
-MIN_CONTRAST_SIGMAS = 8.0  # and well above the noise in dark regions
-
-NORMAL_WINDOW_PX = 7  # points averaged before differencing: a plate is ~20 px across
+from anklescan.core.scan.pointcloud import PointCloud
 
 
 def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -> np.ndarray:
@@ -35,10 +28,10 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
     box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the reconstructed region only
     P, ok_pts = points[box], valid[box].astype(np.float32)
-    k = (NORMAL_WINDOW_PX, NORMAL_WINDOW_PX)
+    k = (CONFIG.normal_window_px, CONFIG.normal_window_px)
     count = cv2.boxFilter(ok_pts, -1, k, normalize=False)
     mean = cv2.boxFilter(np.nan_to_num(P).astype(np.float32), -1, k, normalize=False) / np.maximum(count, 1)[..., None]
-    h = NORMAL_WINDOW_PX // 2
+    h = CONFIG.normal_window_px // 2
     dx, dy = np.zeros_like(mean), np.zeros_like(mean)
     dx[:, h:-h] = mean[:, 2 * h:] - mean[:, :-2 * h]
     dy[h:-h] = mean[2 * h:] - mean[:-2 * h]
@@ -49,7 +42,7 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     to_light = cal.projector.center.astype(np.float32) - mean
     dist = np.sqrt(np.einsum("ijk,ijk->ij", to_light, to_light)) + np.float32(1e-9)
     cos_i = facing * np.einsum("ijk,ijk->ij", n, to_light) / (n_len * dist)
-    ok = (count >= 0.5 * NORMAL_WINDOW_PX**2) & (cos_i > 0.05)
+    ok = (count >= 0.5 * CONFIG.normal_window_px**2) & (cos_i > 0.05)
     if not ok.any():
         return image.astype(np.float32)
     d0 = float(np.median(dist[ok]))
@@ -94,25 +87,40 @@ def camera_depth(cal: Calibration, pts: np.ndarray) -> np.ndarray:
     return cal.camera.to_device(pts.reshape(-1, 3).astype(np.float64))[:, 2]
 
 
-SCALE_STEP = 1.6  # candidate searches at radii this factor apart span a size range
-# ``_depth_cut``: depths over this apart within DEPTH_STEP_REACH_PX of a pixel are an outline,
-# not a surface seen obliquely (a plate's face at 73° recedes ~2 mm per pixel, 12 mm over the
-# window; the table behind the leg's outline lies 100 mm and more further), and a blob cut so
-# must have one on DEPTH_STEP_MIN_BORDER of its outline
-DEPTH_STEP_MM, DEPTH_STEP_REACH_PX, DEPTH_STEP_MIN_BORDER = 20.0, 3, 0.1
+def depth_image(cal: Calibration, points: np.ndarray) -> np.ndarray:
+    """(H, W) float64 camera depth (mm) of the decoded points of ``points`` (H, W, 3), NaN
+    elsewhere: computed once per image and shared by the candidate searches (a full-image
+    transform is ~0.05 s at 1600 x 1200)."""
+    valid = np.isfinite(points[..., 0])
+    depth = np.full(points.shape[:2], np.nan)
+    depth[valid] = points[valid].astype(np.float64) @ cal.camera.R[2] + cal.camera.t[2]  # z alone
+    return depth
 
 
-def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
-    """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii SCALE_STEP apart
+
+
+def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False,
+                    depth: np.ndarray | None = None) -> list[dict]:
+    """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii CONFIG.scale_step apart
     (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
-    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept."""
+    blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept.
+    ``depth``: ``depth_image(cal, points)`` where the caller has it."""
+    if depth is None:
+        depth = depth_image(cal, points)
+    steps: list[np.ndarray] = []
+
+    def jump() -> np.ndarray:  # the depth steps, the same at every radius: found once, where a seed needs them
+        if not steps:
+            steps.append(_depth_steps(depth))
+        return steps[0]
+
     if np.isscalar(radius_mm):
-        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background)
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump)
     lo, hi = radius_mm
-    n = max(int(math.ceil(math.log(hi / lo) / math.log(SCALE_STEP))), 0) + 1
+    n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
     kept, taken = [], np.zeros(image.shape, bool)
     for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump):
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue
@@ -121,7 +129,9 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
     return kept
 
 
-def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False) -> list[dict]:
+def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False,
+                       depth_img: np.ndarray | None = None,
+                       jump: Callable[[], np.ndarray] | None = None) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -131,12 +141,15 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     ``ring_background``: where the cut over the opening leaks into the surround (the opening's
     minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
     the shading-corrected image), cut again at half-way over the median of the decoded surface
-    in a ring around the seed.
+    in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it;
+    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them.
     """
     valid = np.isfinite(points[..., 0])
     if valid.sum() < 10:
         return []
-    depth = camera_depth(cal, points[valid])
+    if depth_img is None:
+        depth_img = depth_image(cal, points)
+    depth = depth_img[valid]
     r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
     r_max = float(plate_radius_px(cal, np.percentile(depth, 1), r_hi))
     r_min = float(plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
@@ -151,26 +164,29 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     tophat = smooth - background
     k = int(2 * math.ceil(0.6 * r_min) + 1)
     peaks = ((smooth >= cv2.dilate(smooth, np.ones((k, k), np.uint8)))
-             & (tophat > MIN_RELATIVE_CONTRAST * np.maximum(background, 0)) & (tophat > MIN_CONTRAST_SIGMAS * noise))
+             & (tophat > CONFIG.min_relative_contrast * np.maximum(background, 0))
+             & (tophat > CONFIG.min_contrast_sigmas * noise))
     vs, us = np.nonzero(peaks)
     order = np.argsort(-tophat[vs, us])
     taken = np.zeros(image.shape, bool)
     blobs = []
     half = int(math.ceil(2.5 * r_max))
     outlined = None  # (smooth without the outline pixels, depth steps): built for the first seed that leaks
-    for v, u in zip(vs[order], us[order]):
+    for v, u in zip(vs[order], us[order], strict=True):
         if taken[v, u]:
             continue  # inside a blob already cut from a brighter seed
         blob = cut_blob(smooth, (u, v), background[v, u], half)
         if blob is None and ring_background:
             bg = ring_level(smooth, valid, (u, v), cal, points, r_lo)
             # the seed must stand out from that surround as seeds do from the opening
-            if bg is not None and smooth[v, u] - bg > max(MIN_RELATIVE_CONTRAST * bg, MIN_CONTRAST_SIGMAS * noise):
+            stands = bg is not None and smooth[v, u] - bg > max(CONFIG.min_relative_contrast * bg,
+                                                                 CONFIG.min_contrast_sigmas * noise)
+            if stands:
                 blob = cut_blob(smooth, (u, v), bg, half)
                 if blob is not None:
                     blob["ring_cut"] = True
         if blob is None and valid[v, u]:
-            outlined = outlined or _without_outlines(smooth, points, valid, cal)
+            outlined = outlined or _without_outlines(smooth, valid, jump() if jump else _depth_steps(depth_img))
             blob = _depth_cut(*outlined, (u, v), background[v, u], half)
         if blob is None:
             continue
@@ -179,43 +195,38 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     return blobs
 
 
-def _without_outlines(smooth, points, valid, cal):
-    """(``smooth`` with the undecoded pixels and those at a depth step set to -inf, the depth
-    steps): what ``_depth_cut`` cuts in, for the whole image at once."""
-    depth = np.full(smooth.shape, np.nan)
-    depth[valid] = camera_depth(cal, points[valid])
-    jump = _depth_steps(depth)
+def _without_outlines(smooth: np.ndarray, valid: np.ndarray, jump: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(``smooth`` with the undecoded pixels and those at a depth step (``jump``, ``_depth_steps``)
+    set to -inf, the depth steps): what ``_depth_cut`` cuts in, for the whole image at once."""
     return np.where(valid & ~jump, smooth, -np.inf).astype(np.float32), jump
 
 
 def _depth_cut(masked, jump, seed, bg, half):
     """``cut_blob`` again in ``masked`` (``_without_outlines``): a mark on the leg's outline,
     seen against a table about as bright as its face far behind, leaks into the table at any
-    brightness cut (held-out variants 156 and 160 at 20/+20, lateral ankle plates seen at
-    70-73°: no blob).
-    The blob must be bounded by a depth step on DEPTH_STEP_MIN_BORDER of its outline; a band
-    cut out of a smoothly receding floor by a depth window was taken for two marks (variant
-    187 at 20/+20)."""
+    brightness cut (lateral ankle plates seen at 70-73° at 20/+20 had no blob).
+    The blob must be bounded by a depth step on CONFIG.depth_step_min_border of its outline: a
+    band cut out of a smoothly receding floor by a depth window is no disk."""
     blob = cut_blob(masked, seed, bg, half)
     if blob is None:
         return None
     ring = cv2.dilate(blob["region"].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob["region"]
-    if jump[blob["slice"]][ring].mean() < DEPTH_STEP_MIN_BORDER:
+    if jump[blob["slice"]][ring].mean() < CONFIG.depth_step_min_border:
         return None
     blob["depth_cut"] = True
     return blob
 
 
 def _depth_steps(depth) -> np.ndarray:
-    """(h, w) bool: pixels within DEPTH_STEP_REACH_PX of decoded depths more than DEPTH_STEP_MM
+    """(h, w) bool: pixels within CONFIG.depth_step_reach_px of decoded depths more than CONFIG.depth_step_mm
     apart. Not neighbours alone: the pixels at an outline mix the two surfaces and are mostly
-    undecoded (variant 160: half the ring round the plate, a band 3-4 px wide; with 2 px of
-    reach no step was seen)."""
-    k = np.ones((2 * DEPTH_STEP_REACH_PX + 1,) * 2, np.uint8)
+    undecoded (up to half the ring round a plate there, a band 3-4 px wide, which 2 px of
+    reach does not cross)."""
+    k = np.ones((2 * CONFIG.depth_step_reach_px + 1,) * 2, np.uint8)
     ok = np.isfinite(depth)
     hi = cv2.dilate(np.where(ok, depth, -1e9).astype(np.float32), k)  # a window with no decoded pixel: -2e9
     lo = cv2.erode(np.where(ok, depth, 1e9).astype(np.float32), k)
-    return (hi - lo) > DEPTH_STEP_MM
+    return (hi - lo) > CONFIG.depth_step_mm
 
 
 def ring_level(smooth, valid, seed, cal, points, radius_mm):
@@ -237,27 +248,19 @@ def ring_level(smooth, valid, seed, cal, points, radius_mm):
     return float(np.median(smooth[win][ok]))
 
 
-# The first cut, at this fraction of the seed's contrast, finds the blob's own level (its median).
-# A thick plate seen at a grazing angle has a side wall several times brighter than its face
-# (a 15 x 3 mm table plate at 0/-20: wall ~3x the table, face ~1.6x): cut at 0.35 the blob was the
-# wall alone and no fit passed. The cut from 0.2 (face and wall) is kept as the blob's "wider"
-# alternative, fitted last, for blobs still refused (``find_marks``' wider look); tried first, it
-# moved a 10 mm plate seen at 72° from 0.05 to 0.43 mm off.
-FIRST_CUT, WIDER_FIRST_CUT = 0.35, 0.2
-WIDER_MIN_GROWTH = 1.3  # x the blob's area: a wider cut that adds less is the same blob
 
 
 def cut_blob(smooth, seed, bg, half):
     """The connected region around ``seed`` above half-way between its level and the
     background; None where it reaches its window's border inside the image. ``blob["wider"]``,
-    where present: the same from a lower first cut (see FIRST_CUT)."""
+    where present: the same from a lower first cut (see CONFIG.first_cut)."""
     u, v = seed
     H, W = smooth.shape
     y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
     roi = smooth[y0:y1, x0:x1]
     peak, bg = float(smooth[v, u]), float(bg)
     regions = []
-    for first in (FIRST_CUT, WIDER_FIRST_CUT):
+    for first in (CONFIG.first_cut, CONFIG.wider_first_cut):
         region = _region_at(roi, (u - x0, v - y0), bg + first * (peak - bg))
         # The seed may be a brightly lit sliver of side wall; the plate's own level is its median.
         region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(float(np.median(roi[region])), peak) - bg))
@@ -267,8 +270,9 @@ def cut_blob(smooth, seed, bg, half):
     region, wider = regions
     if region is None:
         return None
-    blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0), "centre": (float(u), float(v))}
-    if wider is not None and wider.sum() >= WIDER_MIN_GROWTH * region.sum():
+    blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
+            "centre": (float(u), float(v))}
+    if wider is not None and wider.sum() >= CONFIG.wider_min_growth * region.sum():
         blob["wider"] = {**blob, "region": wider}
     return blob
 
@@ -302,8 +306,8 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float, thickness
     ``thickness`` > 0: a plate standing that high, its face and side wall: ``mask`` is the
     outline of both (the hull of face and base), ``face`` that of the face alone, in the same
     frame. A thick plate lit at a grazing angle images as a bright wall under a dim face
-    (held-out variant 76 at 0/-20, 13.2 x 2.9 mm table plates lit at 67°): the disk alone
-    stood out most over the wall, 3.7 px from the face, where its fit failed."""
+    (13 x 3 mm table plates lit at 67°): the disk alone stands out most over the wall, a few
+    pixels from the face, where its fit fails."""
     u, v = int(round(centre[0])), int(round(centre[1]))
     H, W = points.shape[:2]
     near = points[max(v - 3, 0):v + 4, max(u - 3, 0):u + 4].reshape(-1, 3)

@@ -1,6 +1,6 @@
 """Edges of a mark in the image: radial profiles and their half-contrast crossings, the
 plate-rim geometry (side wall, projector-shadow sliver), clean-edge masks and the sliver
-edges re-found at the level the sliver predicts. docs/marks.md, "Noise and shadow slivers".
+edges re-found at the level the sliver predicts. docs/history-marks.md, "Noise and shadow slivers".
 """
 
 from __future__ import annotations
@@ -13,19 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.special
-
 from anklescan.core.calibration.file import Calibration
-
-PROFILE_STEP_PX = 0.2
-TOP_MARGIN_PX = 2.0  # the refined plane uses pixels this far inside the top face's image
-EDGE_OUTSIDE_PX = 2.5  # the outside level is the darkest within this of the edge (a thin shadow)
-WALL_SHIFT_MAX_MM = 0.03  # a side wall h tall shifts the outline by h |a_c|: keep points below this
-SLIVER_MAX_PX = 0.0  # a projector-shadow sliver beside the rim biases the edge inwards ...
-SLIVER_RESOLVED_PX = 3.0  # ... unless it is resolved, several pixels wide
-
-SLIVER_LEVEL_MAX = 0.8  # x the plate's level: above, the rim is no clear fall (surface as bright)
-MIN_BLUR_EDGES = 5  # clean edges needed to measure the blur; else DEFAULT_BLUR_PX
-DEFAULT_BLUR_PX = 0.8
+from anklescan.core.measure.mark_config import CONFIG
 
 
 def ray_plane(origin, rays, point, normal) -> np.ndarray:
@@ -39,7 +28,7 @@ class EdgeProfiles:
 
     origin: np.ndarray  # (2,) blob centre, px
     dirs: np.ndarray  # (n, 2) origin -> blob ellipse: the profile reaches s = 1 there
-    step: np.ndarray  # (n,) s per sample (PROFILE_STEP_PX along the profile)
+    step: np.ndarray  # (n,) s per sample (CONFIG.profile_step_px along the profile)
     values: np.ndarray  # (n, n_s) image along the profiles, +inf past s = 2
     start: np.ndarray  # (n,) first sample outside the plate's interior window
     inner: np.ndarray  # (n,) the plate's level
@@ -50,13 +39,13 @@ class EdgeProfiles:
     # level is clipped and the true half-way point is not known (``_clipped_bound``)
     s_span: np.ndarray | None = None
 
-    def inward(self) -> "EdgeProfiles":
+    def inward(self) -> EdgeProfiles:
         """The same profiles with each edge at the inner end of its span."""
         if self.s_span is None:
             return self
         return dataclasses.replace(self, s_edge=self.s_edge - self.s_span, s_span=None)
 
-    def subset(self, keep) -> "EdgeProfiles":
+    def subset(self, keep) -> EdgeProfiles:
         """The same profiles with only the edges ``keep`` ((len(rows),) bool)."""
         return dataclasses.replace(self, rows=self.rows[keep], s_edge=self.s_edge[keep],
                                    s_span=None if self.s_span is None else self.s_span[keep])
@@ -74,8 +63,6 @@ def _no_profiles(cx, cy) -> EdgeProfiles:
                         none, np.zeros(0, int), none)
 
 
-LEAVE_PLATEAU = 0.85
-SURFACE_STEP_LEVEL = 0.8  # x the disk's level: the surface just past a clear edge is at most this
 
 
 def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, clipped=None) -> EdgeProfiles:
@@ -84,14 +71,15 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
     the edge. The outside level is re-read at the edge found, because the blob's ellipse
     (which includes any visible side wall) is only a rough guide to where the rim is.
     ``local_level``: the first outside level is read just past where the profile first falls
-    clearly (LEAVE_PLATEAU) below the disk's level, not at its darkest (in the shading-corrected image a sticker's surround can be half its
-    level, and the darkest is past the leg's silhouette).
+    clearly (CONFIG.leave_plateau) below the disk's level, not at its darkest (in the
+    shading-corrected image a sticker's surround can be half its level, and the darkest is past
+    the leg's silhouette).
     ``clipped``: (H, W) bool, where the camera saturated. On a profile whose disk level is
     clipped, half-way down from that level is outside the true half-way point (the disk is
     brighter than it reads), by up to the width of the fall: ``s_span`` says how far
     (``_clipped_bound``), and the fit carries that into the mark's covariance."""
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
-    if not (np.isfinite([cx, cy, a, b]).all() and 0 < min(a, b) and max(a, b) <= max(image.shape)):
+    if not (np.isfinite([cx, cy, a, b]).all() and min(a, b) > 0 and max(a, b) <= max(image.shape)):
         # no outline on this image (the face of a runaway circle fit, millions of pixels
         # across: its profiles would not fit in memory)
         return _no_profiles(cx, cy)
@@ -100,8 +88,8 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
     n_dir = int(np.clip(2 * math.pi * max(a, b), 48, 240))  # ~1 profile per outline pixel
     phi = np.arange(n_dir) * (2 * math.pi / n_dir)
     rim = a * np.cos(phi)[:, None] * ea + b * np.sin(phi)[:, None] * eb  # (n, 2) centre → ellipse
-    step = PROFILE_STEP_PX / np.linalg.norm(rim, axis=1)  # profile step in units of s, per direction
-    k_out = int(math.ceil(EDGE_OUTSIDE_PX / PROFILE_STEP_PX))
+    step = CONFIG.profile_step_px / np.linalg.norm(rim, axis=1)  # profile step in units of s, per direction
+    k_out = int(math.ceil(CONFIG.edge_outside_px / CONFIG.profile_step_px))
     n_s = int(math.ceil(2.0 / step.min()))
     s = np.arange(n_s)[None, :] * step[:, None]  # (n, n_s)
     pts = np.array([cx, cy]) + s[..., None] * rim[:, None, :]
@@ -112,17 +100,17 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
     start = np.argmax(s >= 0.6, axis=1)
     after = np.arange(n_s)[None, :] >= start[:, None]
     level = 0.5 * (inner + np.min(np.where(after, prof, np.inf), axis=1))
-    k0 = _first_below(prof, LEAVE_PLATEAU * inner, after)  # the first clear fall off the disk
+    k0 = _first_below(prof, CONFIG.leave_plateau * inner, after)  # the first clear fall off the disk
     near = after & (np.arange(n_s)[None, :] >= k0[:, None]) & (np.arange(n_s)[None, :] <= k0[:, None] + k_out)
     near_level = 0.5 * (inner + np.min(np.where(near, prof, np.inf), axis=1))
     if local_level:
         level = near_level
     else:
         # a clear fall onto the surface just past the disk is its edge, whatever darker lies
-        # farther out: a 20 mm plate beside the leg's silhouette (variant 42 at 20/20), its
-        # face at 240 DN and the skin at 150, had the half-way level to the background beyond
-        # the silhouette (126), and its outline on that side there, edge RMS 1.9 mm
-        level = np.where((k0 > 0) & (near_level < 0.5 * (1.0 + SURFACE_STEP_LEVEL) * inner), near_level, level)
+        # farther out: beside the leg's silhouette (a plate's face at 240 DN, the skin at 150)
+        # the half-way level to the background beyond the silhouette lies on the skin, and the
+        # outline on that side with it
+        level = np.where((k0 > 0) & (near_level < 0.5 * (1.0 + CONFIG.surface_step_level) * inner), near_level, level)
     for _ in range(2):
         k = _first_below(prof, level, after)
         window = after & (np.arange(n_s)[None, :] >= k[:, None]) & (np.arange(n_s)[None, :] <= k[:, None] + k_out)
@@ -139,7 +127,7 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
         sat = cv2.remap(clipped.astype(np.float32), pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32),
                         cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) > 0.5
         inner_sat = np.mean(np.where((s >= 0.15) & (s <= 0.6), sat, False), axis=1) \
-            >= CLIPPED_SOLID * np.mean((s >= 0.15) & (s <= 0.6), axis=1)
+            >= CONFIG.clipped_solid * np.mean((s >= 0.15) & (s <= 0.6), axis=1)
         on = inner_sat[rows]
         if on.any():
             r = rows[on]
@@ -148,36 +136,30 @@ def edge_profiles(image: np.ndarray, shape: dict, local_level: bool = False, cli
                         span * step[rows])
 
 
-CLIPPED_SOLID = 0.9  # of a disk's samples at the clip level: its level is clipped (fewer: noise round it)
-PLATEAU_DROP = 0.03  # x the contrast: a clipped plateau's own noise
 
 
 def _clipped_span(prof, sat, start, x, inner, outer) -> np.ndarray:
     """How far inside the half-way crossing ``x`` of a clipped disk level its true half-way
     point may lie (samples): as far as where the profile leaves the clipped plateau (within
-    PLATEAU_DROP of its contrast; the disk twice as bright over its surround as it reads);
+    CONFIG.plateau_drop of its contrast; the disk twice as bright over its surround as it reads);
     0 where no solid plateau (``sat``, the clip mask along the profile) reaches ``x``."""
     n_s = sat.shape[1]
     j = np.arange(n_s)[None, :]
     before = (j >= start[:, None]) & (j <= np.floor(x)[:, None])
-    on_plateau = before & (prof >= (inner - PLATEAU_DROP * (inner - outer))[:, None])
+    on_plateau = before & (prof >= (inner - CONFIG.plateau_drop * (inner - outer))[:, None])
     last = n_s - 1 - np.argmax(on_plateau[:, ::-1], axis=1)  # the plateau's last sample
     # a plateau, not a speckle of noise round the clip level (a disk just at it)
     upto = before & (j <= last[:, None])
-    solid = on_plateau.any(axis=1) & ((sat & upto).sum(axis=1) >= CLIPPED_SOLID * np.maximum(upto.sum(axis=1), 1))
+    solid = on_plateau.any(axis=1) & ((sat & upto).sum(axis=1)
+                                      >= CONFIG.clipped_solid * np.maximum(upto.sum(axis=1), 1))
     return np.where(solid, np.clip(x - last, 0.0, None), 0.0)
 
 
-LOW_FRACTION = 0.1  # of the clipped contrast: the fall's lower reference crossing
-# For a blurred step clipped at half its contrast or more, the half-way crossing of the clipped
-# level is outside the true one by at most 0.69 x its distance to the LOW_FRACTION crossing
-# (-Φ⁻¹(f/2) / (Φ⁻¹(f/2) - Φ⁻¹(f/10)) for f = 0.5; less for a disk nearer the clip)
-MAX_BIAS_PER_FALL = 0.69
 
 
 def _clipped_bound(prof, sat, start, x, inner, outer) -> np.ndarray:
     """How far inside ``x`` a clipped profile's true half-way point may lie (samples): back to
-    the plateau's end (``_clipped_span``), and no more than MAX_BIAS_PER_FALL of the fall below
+    the plateau's end (``_clipped_span``), and no more than CONFIG.max_bias_per_fall of the fall below
     ``x`` where that is read (a disk brighter than twice its reading over its surround is not
     bounded). The edge itself is not moved: a correction for the clip fraction, estimated from
     the fall's shape above and below ``x``, was tried and was off by up to 0.8 px on synthetic
@@ -185,14 +167,14 @@ def _clipped_bound(prof, sat, start, x, inner, outer) -> np.ndarray:
     n_s = prof.shape[1]
     up = _clipped_span(prof, sat, start, x, inner, outer)
     j = np.arange(n_s)[None, :]
-    low_level = outer + LOW_FRACTION * (inner - outer)
+    low_level = outer + CONFIG.low_fraction * (inner - outer)
     k_low = _first_below(prof, low_level, j >= np.ceil(x)[:, None])
     ok = (up > 0) & (k_low > 0)
     below = np.where(ok, _crossing(prof, low_level, np.maximum(k_low, 1)) - x, np.inf)
-    return np.where(below > 0, np.minimum(up, MAX_BIAS_PER_FALL * below), up)
+    return np.where(below > 0, np.minimum(up, CONFIG.max_bias_per_fall * below), up)
 
 
-def decoded_across(profiles: EdgeProfiles, points: np.ndarray, reach_px: float = EDGE_OUTSIDE_PX) -> np.ndarray:
+def decoded_across(profiles: EdgeProfiles, points: np.ndarray, reach_px: float = CONFIG.edge_outside_px) -> np.ndarray:
     """(len(rows),) True where the surface is decoded ``reach_px`` inside and outside each edge
     point along its profile. Where the projector's light ends on the skin (the terminator of a
     curved leg, a cast shadow) the image falls there whatever the disk does: a 25 mm sticker
@@ -260,10 +242,10 @@ def clean_edge_mask(E, rays, centre, normal, cam_c, proj_c, px_per_mm, relocated
     # first order, and not foreshortened: "resolved" keeps more of the outline for the first
     # fit (foreshortened, a grazing plate was left with 8 points and one fit 2 mm off)
     sliver_px = thickness * (a_p - a_c) * px_per_mm
-    ok = (sliver_px <= SLIVER_MAX_PX) | (sliver_px >= SLIVER_RESOLVED_PX)
+    ok = (sliver_px <= CONFIG.sliver_max_px) | (sliver_px >= CONFIG.sliver_resolved_px)
     if relocated is not None:
         ok |= relocated
-    return (thickness * -a_c <= WALL_SHIFT_MAX_MM) & ok
+    return (thickness * -a_c <= CONFIG.wall_shift_max_mm) & ok
 
 
 def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, radius_mm, thickness):
@@ -286,16 +268,16 @@ def sliver_edges(pr: EdgeProfiles, cal: Calibration, E, centre, normal, proj_c, 
     sliver = w_prof > 0
     blur_prof = _edge_blur_px(pr, ~sliver & (a_c >= 0), cos_b) / cos_b  # along the profile, px
     k_edge = pr.s_edge / pr.step[rows]
-    surface = _level_beyond(vals, k_edge + (w_prof + 2 * blur_prof) / PROFILE_STEP_PX,
-                            np.maximum(2 * blur_prof, 1.0) / PROFILE_STEP_PX)
+    surface = _level_beyond(vals, k_edge + (w_prof + 2 * blur_prof) / CONFIG.profile_step_px,
+                            np.maximum(2 * blur_prof, 1.0) / CONFIG.profile_step_px)
     A = pr.inner[rows]
     level = 0.5 * A + surface * scipy.special.ndtr(-np.where(sliver, w_prof / blur_prof, -np.inf))
-    ok = sliver & np.isfinite(surface) & (level <= SLIVER_LEVEL_MAX * A)
+    ok = sliver & np.isfinite(surface) & (level <= CONFIG.sliver_level_max * A)
     after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
     k = _first_below(vals, np.where(ok, level, -np.inf), after)
     ok &= k > pr.start[rows]
     x = _crossing(vals, level, np.maximum(k, 1))
-    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / PROFILE_STEP_PX
+    ok &= np.abs(x - k_edge) <= (w_prof + 3 * blur_prof) / CONFIG.profile_step_px
     return np.where(ok, x * pr.step[rows], pr.s_edge), ok
 
 
@@ -365,18 +347,18 @@ def _edge_blur_px(pr: EdgeProfiles, clean, cos_b) -> float:
     """Image blur σ (px, across the outline) from the plate's clean edges: a blurred step
     falls from 75 % to 25 % of its contrast over 1.349 σ."""
     rows = pr.rows[clean]
-    if len(rows) < MIN_BLUR_EDGES:
-        return DEFAULT_BLUR_PX
-    vals, A, O = pr.values[rows], pr.inner[rows], pr.outer[rows]
+    if len(rows) < CONFIG.min_blur_edges:
+        return CONFIG.default_blur_px
+    vals, A, Z = pr.values[rows], pr.inner[rows], pr.outer[rows]
     after = np.arange(vals.shape[1])[None, :] >= pr.start[rows][:, None]
-    k75 = _first_below(vals, O + 0.75 * (A - O), after)
-    k25 = _first_below(vals, O + 0.25 * (A - O), after)
+    k75 = _first_below(vals, Z + 0.75 * (A - Z), after)
+    k25 = _first_below(vals, Z + 0.25 * (A - Z), after)
     good = (k75 > pr.start[rows]) & (k25 >= k75)
-    if good.sum() < MIN_BLUR_EDGES:
-        return DEFAULT_BLUR_PX
-    x75 = _crossing(vals[good], (O + 0.75 * (A - O))[good], k75[good])
-    x25 = _crossing(vals[good], (O + 0.25 * (A - O))[good], k25[good])
-    return float(np.median((x25 - x75) * PROFILE_STEP_PX * cos_b[clean][good]) / 1.349)
+    if good.sum() < CONFIG.min_blur_edges:
+        return CONFIG.default_blur_px
+    x75 = _crossing(vals[good], (Z + 0.75 * (A - Z))[good], k75[good])
+    x25 = _crossing(vals[good], (Z + 0.25 * (A - Z))[good], k25[good])
+    return float(np.median((x25 - x75) * CONFIG.profile_step_px * cos_b[clean][good]) / 1.349)
 
 
 def rim_image(cal: Calibration, centre, normal, radius_mm, n: int = 96) -> np.ndarray:
@@ -397,7 +379,7 @@ def face_shape(cal: Calibration, centre, normal, radius_mm) -> dict | None:
 
 
 def top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> np.ndarray:
-    """Integer (u, v) pixels at least TOP_MARGIN_PX inside the image of the circle (centre,
+    """Integer (u, v) pixels at least CONFIG.top_margin_px inside the image of the circle (centre,
     normal, radius): pixels that see only the plate's top face, clear of the blurred rim."""
     uv = rim_image(cal, centre, normal, radius_mm)
     if not np.isfinite(uv).all():
@@ -413,5 +395,5 @@ def top_face_pixels(cal: Calibration, centre, normal, radius_mm, img_shape) -> n
     poly = np.round((uv - [x0, y0]) * 8).astype(np.int32)
     cv2.fillPoly(mask, [poly], 1, lineType=cv2.LINE_8, shift=3)
     dist = cv2.distanceTransform(np.pad(mask, 1), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
-    v, u = np.nonzero(dist > TOP_MARGIN_PX)
+    v, u = np.nonzero(dist > CONFIG.top_margin_px)
     return np.stack([u + x0, v + y0], axis=1)

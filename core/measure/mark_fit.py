@@ -5,145 +5,44 @@ local quadric), its checks and covariance; the plane and circle fits they use. d
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-
 from anklescan.core.calibration.file import Calibration
-from anklescan.core.measure.mark_candidates import (blob_shape, border_undecoded, camera_depth, ellipse_pixels,
-                                                    plate_radius_px)
-from anklescan.core.measure.mark_edges import (clean_edge_mask, edge_profiles, face_shape, plane_basis, ray_plane, sliver_edges,
-                                              top_face_pixels)
+from anklescan.core.measure.mark_candidates import (
+    blob_shape,
+    border_undecoded,
+    camera_depth,
+    ellipse_pixels,
+    plate_radius_px,
+)
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_edges import (
+    EdgeProfiles,
+    clean_edge_mask,
+    edge_profiles,
+    face_shape,
+    plane_basis,
+    ray_plane,
+    sliver_edges,
+    top_face_pixels,
+)
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 
-# A face standing less than this over the surface around it is a sticker (no side wall, no
-# shadow sliver; fitted on the local quadric); plates are 1-3 mm thick (SPEC §2). The step of
-# a sticker measures 0.0 ± 0.1 mm (docs/marks.md).
-STICKER_MAX_STEP_MM = 0.5
-
-AREA_RANGE = (0.12, 1.8)  # x pi r_px^2: from grazing views (cos ~0.15) to face-on plus side wall
-MIN_FILL, MAX_FILL = 0.80, 1.15  # blob area / fitted ellipse area
-MIN_SOLIDITY = 0.88
-
-# 3-D checks: a plate is flat and round with the nominal radius.
-RADIUS_TOLERANCE_MM = 1.5
-MAX_RADIUS_TOLERANCE_MM = 3.0  # real plates' free radius: within 0.65 mm over 735 simulated (docs/marks.md)
-MAX_PLANE_RMS_MM = 0.6  # first plane, on the blob's interior: rim and side wall still in it
-# The plane refitted to the top face: accepted plates <= 0.082 mm (full resolution) and
-# <= 0.096 mm (0.75 scale) over the 15 benchmark postures; fits that locked onto side wall and
-# shadow edge at a grazing-lit plate, 1.6-2.6 mm off, had 0.33-0.46 mm (docs/marks.md).
-MAX_TOP_FACE_RMS_MM = 0.2
-# ... raised where the face's decoded points are noisier than that (``face_rms_limit``): the
-# limit is at least this many times their median predicted SD (the cloud's sigma). With read
-# noise 4/255 a 10 mm sticker (20/0) had a face RMS of 0.21 mm at a predicted 0.19 mm and was
-# refused; plates fitted as stickers (the wrong model) had 1.8-4.2 times their sigma (docs/marks.md).
-FACE_RMS_PER_SIGMA = 1.5
-MAX_CIRCLE_RMS_MM = 0.35
-# the free radius's SD: real marks' 0.01-0.3 mm (docs/marks.md); a short arc of something else
-# (8 edge points on a lit patch of the foot) 1.4 mm
-MAX_RADIUS_SD_MM = 0.6
-# The free radius against the marks' size (second pass), in units of both SDs (the size's is at
-# least RADIUS_PRIOR_SD_MM, so 4 SD is at least 0.2 mm): a fit whose free radius is further than this may not
-# be the disk (a short arc locked onto side wall or blur: camera blur 0.9 px, a 10 mm plate
-# 2.56 mm off, free radius 4.46 ± 0.05 mm against 4.86 ± 0.07, z 4.7). It is held back
-# (``Mark.doubtful``) while the second look searches its place; kept only if nothing better is
-# found there: good marks reached z 4.4 under that blur (3.5 on the default optics), so a
-# refusal alone lost marks (docs/marks.md).
-MAX_RADIUS_Z = 4.0
-# A blob's wider cut (``find_marks``' wider look) is a last chance, so its fit must be clearly a disk: the 10 mm
-# front plate at 10/+20, lit at 76°, passed on 8 edge points, radius 4.24 ± 0.56 mm, 0.71 mm off;
-# the 15 x 3 mm table plates it is for had 7.16-7.51 ± 0.07-0.13 mm.
-# On large marks the bound is a share of the size instead (WIDER_MAX_RADIUS_SD_REL): a 23.6 mm
-# lateral plate seen at 73°, its disk's outline fitted on 30 edges, radius 11.59 ± 0.32 mm (2.8 %),
-# 0.12 mm off, was refused at 0.3 (held-out variant 120 at 20/+20); a 20.4 mm plate's cut with its
-# side wall, ± 0.54 mm (5.3 %), was 0.58 mm off (variant 42 at 20/+20).
-WIDER_MAX_RADIUS_SD_MM, WIDER_MAX_RADIUS_SD_REL = 0.3, 0.04
-MIN_INTERIOR_POINTS = 6
-# A disk lit more obliquely than this gets cos 85° = 9 % of the light: a front knee sticker lit at
-# 88° (a variant with the projector diagonal to the camera) was fitted 0.45 mm off at 7 SD. The
-# marks of the default posture sweep are lit at up to 77°.
-MAX_LIGHT_DEG = 85.0
-# A plane's points must span two directions: its tilt about their long axis has an SD of about
-# (point SD) / (their RMS spread across it · √n); above this it is no plane (the top face of an
-# 8 mm plate seen at 66° left 7 pixels in one image row: RMS 0.000 mm, 3.7 mm off).
-MAX_PLANE_TILT_SD_RAD = 0.1
-MIN_EDGE_POINTS = 8
-# A sticker lies on the skin, lit as the skin round it is, so the skin round it is decoded;
-# fits with more than this of their blob's border undecoded were bright patches seen between
-# depth steps (a lit sliver of floor between the leg's shadows, 0.98; a strip along the
-# malleolus's silhouette, 0.90), each an eighth mark that cost a trial its labels. Real
-# stickers in the variant sweep (docs/marks.md): at most 0.73. A plate's surround may be dark
-# or shadowed all round (up to 1.0).
-STICKER_MAX_BORDER_UNDECODED = 0.8
-
-# A plate's normal is steadied by that of the surface round it (``combined_normal``) only where
-# the ring of surface_step is this well decoded: the front ankle plate lit at a grazing angle
-# (10/10, 10 mm, 0.75 scale) had 78 % of it (its shadow), and that surface's normal was 4.6°
-# off, pulling the plate 0.34 mm off; rings of 92-100 % gave 0.04-2.2° (docs/marks.md).
-SURFACE_RING_MIN_DECODED = 0.9
-
-# Geometry of the fit.
-INTERIOR_FRACTION = 0.55  # of the image ellipse: a first plane, clear of most of the rim
-PLANE_PASSES = 6  # at most: plane from the top face <-> circle in that plane, until the
-PLANE_CONVERGED_MM = 0.005  # centre moves less than this
-CONSENSUS_TRIALS = 150  # first plane: the largest consensus among the blob's interior points
-
-SLIVER_PASSES = 2  # re-find the sliver edges with the centre found, refit; once more
-
-RADIUS_PRIOR_SD_MM = 0.05  # plates are cut to 15.0 ± 0.1 mm; the prior steadies short-arc fits
-EDGE_NOISE_FLOOR_MM = 0.03  # lower bound of the edge-point scatter used for weights and SDs
-# Fit-based SDs miss systematic errors (calibration, decoding biases near the plate); this
-# floor is the RMS centre error measured on the simulated rig with a true calibration
-# (docs/marks.md), added in quadrature.
-SD_FLOOR_MM = 0.05
-# The half-contrast edge's systematic offset from the true rim, common to one rim, image px, at
-# a face-on view; it grows as 1/cos(view) (``_edge_level_covariance``).
-EDGE_LEVEL_SD_PX = 0.1
-COS_VIEW_MIN = 0.2  # ... up to this grazing a view (78°)
-# A plate is fitted a second time on edges profiled across the image of the face its first fit
-# found (``_with_face_profiles``); the second fit counts if its edges fit a circle nearly as well:
-# where they scatter more than this x the first edges' RMS, the profiles crossed something else
-# than the rim (front plates lit at 77-84°: RMS 0.12 -> 0.21 mm); where they helped, 0.83-1.2 x.
-REPROFILE_MAX_RMS_RATIO = 1.25
-# A stray arc in a plate's outline (``_without_stray_arc``): the rim is the circle that at least
-# this share of its edges lie on, within the larger of these of it (good rims: RMS 0.03-0.1 mm
-# at full resolution), found among this many triples of them.
-STRAY_ARC_MIN_SHARE = 0.6
-STRAY_ARC_TOL_MM, STRAY_ARC_TOL_PX = 0.15, 0.3
-STRAY_ARC_TRIALS = 200
-# A sticker is fitted on the shading-corrected image's edges and again on the lit image's
-# (``_edge_disagreement``); where it is lit at up to LIT_SHIFT_MAX_LIGHT_DEG and the two centres
-# lie more than LIT_SHIFT_MAX_RADII x the radius apart, the two images do not see one disk: a
-# shadow edge on the leg, lit at 52°, passed as a sticker at 1.24 (variant 195 at 0/+20); true
-# stickers lit at 47-52° part by up to ~0.4 (23 mm on a curved leg, variant 155). Lit more
-# grazingly the lit image's own edges drift with the shading: a true 17.6 mm sticker lit at 85°
-# parted by 1.19 (variant 175 at 0/+20), 0.34 mm off. The same limit holds for the lit image's
-# edges lying on a line (``_edge_disagreement`` None): a false sticker on the table past the foot
-# lit at 58° is refused so (variant 168 at 20/+20), while a true 24.9 mm front sticker lit at 77°,
-# whose lit image keeps only its near rim, is fitted 0.06 mm off on the corrected image's edges
-# (variant 36 at 0/+20).
-LIT_SHIFT_MAX_RADII, LIT_SHIFT_MAX_LIGHT_DEG = 0.75, 75.0
-# A disk's face is one surface: of the decoded points within FACE_SPAN_FRACTION of its fitted
-# outline, at most FACE_OFF_SHARE may lie further off its plane than FACE_OFF_MM or
-# FACE_OFF_RADII x its radius (a sticker's sag on the leg is under a fifth of its radius there).
-# More is an outline through it: the bright table's edge over the dark floor 105 mm below it
-# passed as a 'sticker', 63 % of its face on the floor (held-out variant 234 at 20/+20).
-FACE_SPAN_FRACTION, FACE_OFF_SHARE, FACE_OFF_MM, FACE_OFF_RADII = 0.7, 0.1, 3.0, 0.3
-# A face lit within SEEN_MAX_LIGHT_DEG gets at least cos 50° = 64 % of the light all across, so
-# its bright blob covers the whole disk; a blob of less than MIN_SEEN_SHARE of the fitted disk's
-# image is a disk partly in a cast shadow or hidden, whose visible rim is in part the shadow's
-# edge: a 14 mm table sticker lit at 12° half under the leg's shadow was fitted 0.84 mm off at
-# 9.3 SD from a sliver of 0.18 of its disk, and one at 0.33 0.54 mm off at 3.4 SD (held-out
-# variants 297 and 296 at 20/+20). Lit more obliquely, the light's fall-off across the disk
-# leaves true stickers 0.40-0.50 of their disk above the threshold (lit at 63-83°).
-SEEN_MAX_LIGHT_DEG, MIN_SEEN_SHARE = 50.0, 0.5
+if TYPE_CHECKING:
+    from anklescan.core.measure.marks import Mark
 
 
-def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sigma=None, *,
-             prior_sd: float | None = RADIUS_PRIOR_SD_MM, radius_bounds=None, albedo=None,
+def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
+             sigma: np.ndarray | None = None, *, prior_sd: float | None = CONFIG.radius_prior_sd_mm,
+             radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
-             clipped=None, max_edge_rms: float = MAX_CIRCLE_RMS_MM):
-    """Fit one candidate; (Mark, '') or (None, reason).
+             clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm,
+             covariance: bool = True) -> Mark | Refusal:
+    """Fit one candidate: the ``Mark``, or the ``Refusal`` of the first check it failed.
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
     ``prior_sd``: how well it is known (None: no prior, the radius is free); ``radius_bounds``
@@ -165,40 +64,48 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
     ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
     ``max_edge_rms``: how far the rim's edges may scatter about the fitted circle (a disk a
     clinician clicked on may be fitted on looser edges than one the search found alone).
+    ``covariance``: False where only the fit's size, kind and step are used (the free pass of
+    ``find_marks``): the refits that only carry errors into the covariance are skipped, and the
+    mark's ``covariance`` is NaN.
     """
     shape = blob_shape(blob)
     if shape is None:
-        return None, "too small to fit"
+        return Refusal(RefusalReason.TOO_SMALL, "too small to fit")
     # a predicted disk's outline is an ellipse by construction; rasterised a few pixels across
-    # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87 (held-out variant 221)
-    if not blob.get("predicted") and not (MIN_FILL <= shape["fill"] <= MAX_FILL and shape["solidity"] >= MIN_SOLIDITY):
-        return None, f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})"
-    interior = ellipse_pixels(shape, INTERIOR_FRACTION, image.shape)
+    # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87
+    elliptical = CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill and shape["solidity"] >= CONFIG.min_solidity
+    if not blob.get("predicted") and not elliptical:
+        return Refusal(RefusalReason.NOT_ELLIPTICAL,
+                       f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})")
+    interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
     cam_c = cal.camera.center
     plane = plane_from_pixels(points, sigma, interior, cam_c, consensus=True)
     if plane is None:
         n_dec = int(np.isfinite(points[interior[:, 1], interior[:, 0], 0]).sum())
-        return None, f"only {n_dec} decoded 3-D points on the mark"
+        return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {n_dec} decoded 3-D points on the mark")
     centroid, normal, plane_rms, n_in = plane
-    if plane_rms > MAX_PLANE_RMS_MM:
-        return None, f"not flat (plane RMS {plane_rms:.2f} mm)"
+    if plane_rms > CONFIG.max_plane_rms_mm:
+        return Refusal(RefusalReason.NOT_FLAT, f"not flat (plane RMS {plane_rms:.2f} mm)")
     depth = camera_depth(cal, centroid[None])[0]
     px_per_mm = float(plate_radius_px(cal, depth, 1.0))
     if radius_mm is None:
         radius_mm = max(shape["axes"]) / px_per_mm  # the ellipse's long axis is not foreshortened
     lo, hi = radius_bounds or (radius_mm, radius_mm)
-    if not (AREA_RANGE[0] * math.pi * (lo * px_per_mm) ** 2 <= shape["area"] <= AREA_RANGE[1] * math.pi * (hi * px_per_mm) ** 2):
-        return None, f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)"
+    area_lo = CONFIG.area_range[0] * math.pi * (lo * px_per_mm) ** 2
+    area_hi = CONFIG.area_range[1] * math.pi * (hi * px_per_mm) ** 2
+    if not area_lo <= shape["area"] <= area_hi:
+        return Refusal(RefusalReason.WRONG_AREA,
+                       f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)")
     profiles = edge_profiles(image, shape, clipped=clipped)
-    if len(profiles.rows) < MIN_EDGE_POINTS:
-        return None, "no clear edge"
+    if len(profiles.rows) < CONFIG.min_edge_points:
+        return Refusal(RefusalReason.NO_EDGE, "no clear edge")
     frame = local_frame(centroid, normal)
     step = surface_step(points, sigma, shape, centroid, frame)
     # the surface's normal, for a plate's; not from a ring with a gap (an extrapolation on a curved surface)
-    surface = None if step is None or step[4] < SURFACE_RING_MIN_DECODED else (step[2], frame[:2], step[3])
+    surface = None if step is None or step[4] < CONFIG.surface_ring_min_decoded else (step[2], frame[:2], step[3])
     clear = step is not None and step_kind(step[0], step[1]) is not None
     thickness = float(np.clip(step[0], 0.0, None)) if clear else (plate_thickness or 0.0)
-    kinds = ("sticker", "plate") if step is not None and step[0] < STICKER_MAX_STEP_MM else ("plate", "sticker")
+    kinds = ("sticker", "plate") if step is not None and step[0] < CONFIG.sticker_max_step_mm else ("plate", "sticker")
     if clear:
         kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
     elif prefer_kind in kinds:
@@ -208,29 +115,30 @@ def fit_mark(image, points, blob, cal: Calibration, radius_mm: float | None, sig
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
-    if any(k == "sticker" for k, _ in tries) and border_undecoded(blob, points) > STICKER_MAX_BORDER_UNDECODED:
+    if any(k == "sticker" for k, _ in tries) and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded:
         tries = [t for t in tries if t[0] != "sticker"]
         if not tries:
-            return None, "no decoded surface around it, and a sticker lies on one"
-    first_reason = None
+            return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
+    cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
+                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance)
+    first: Refusal | None = None
     for kind, alb in tries:
-        mark, reason = _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in,
-                                 radius_mm, prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, alb, surface,
-                                 clipped, max_edge_rms)
-        if mark is not None:
-            return mark, ""
-        first_reason = first_reason or reason
-    return None, first_reason
+        out = _fit_kind(kind, cand, alb)
+        if not isinstance(out, Refusal):
+            return out
+        first = first or out
+    assert first is not None
+    return first
 
 
 def step_kind(step_mm, step_sd) -> str | None:
     """"sticker" or "plate" where a face's measured step over the surface says so clearly (3 SD
-    from ``STICKER_MAX_STEP_MM``), else None."""
+    from ``CONFIG.sticker_max_step_mm``), else None."""
     if step_mm is None or not (np.isfinite(step_mm) and np.isfinite(step_sd)):
         return None
-    if abs(step_mm) + 3 * step_sd < STICKER_MAX_STEP_MM:
+    if abs(step_mm) + 3 * step_sd < CONFIG.sticker_max_step_mm:
         return "sticker"
-    return "plate" if step_mm - 3 * step_sd > STICKER_MAX_STEP_MM else None
+    return "plate" if step_mm - 3 * step_sd > CONFIG.sticker_max_step_mm else None
 
 
 def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) -> float:
@@ -240,64 +148,101 @@ def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) ->
     return float(shape["area"]) / disk_px
 
 
-def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm,
-              prior_sd, px_per_mm, thickness, step, lo, hi, radius_bounds, albedo, surface=None, clipped=None,
-              max_edge_rms=MAX_CIRCLE_RMS_MM):
-    """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
-    cam_c = cal.camera.center
-    n_in0 = n_in
-    lit_profiles = profiles
-    interior = ellipse_pixels(shape, INTERIOR_FRACTION, image.shape)
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    """What ``fit_mark`` measured of one blob before a model is fitted, and the size it is fitted with."""
 
-    def fit(edges):  # this kind's fit on the given edge profiles
+    image: np.ndarray  # (H, W) lit image
+    points: np.ndarray  # (H, W, 3) decoded world points
+    sigma: np.ndarray | None  # (H, W) their predicted SD, mm
+    shape: dict  # the blob's image ellipse (``blob_shape``)
+    profiles: EdgeProfiles  # radial edge profiles in the lit image
+    cal: Calibration
+    centroid: np.ndarray  # first plane: a point on it ...
+    normal: np.ndarray  # ... and its normal
+    plane_rms: float
+    n_in: int  # interior points of the first plane
+    px_per_mm: float  # at the blob's depth
+    step: tuple | None  # ``surface_step``: (step, sd, normal, slope cov, ring decoded) or None
+    surface: tuple | None  # (normal, basis, slope cov) of the surface round a plate, or None
+    clipped: np.ndarray | None  # (H, W) bool, camera saturated
+    radius_mm: float  # the marks' radius (the free fit's start where the size is not known)
+    prior_sd: float | None  # its SD (None: a free radius)
+    thickness: float  # a plate's step over the surface, mm
+    radius_bounds: tuple[float, float] | None  # the size is not known: the radius must lie in this range
+    max_edge_rms: float  # mm, edges about the circle
+    covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
+
+
+def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
+    """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
+    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
+
+    image, points, sigma, shape, profiles = cand.image, cand.points, cand.sigma, cand.shape, cand.profiles
+    cal, centroid, normal, plane_rms, n_in0 = cand.cal, cand.centroid, cand.normal, cand.plane_rms, cand.n_in
+    radius_mm, prior_sd, thickness, clipped = cand.radius_mm, cand.prior_sd, cand.thickness, cand.clipped
+    px_per_mm, step = cand.px_per_mm, cand.step
+    max_edge_rms = cand.max_edge_rms
+    cam_c = cal.camera.center
+    lit_profiles = profiles
+    interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
+
+    def fit(edges: EdgeProfiles, covariance: bool = cand.covariance) -> DiskFit | Refusal:
+        # this kind's fit on the given edge profiles; ``covariance``: with the plate's refits for it
         if kind == "sticker":
             return fit_on_surface(points, sigma, shape, edges, cal, centroid, normal, radius_mm, prior_sd)
         return _fit_plate(image, points, sigma, edges, cal, centroid, normal, plane_rms, n_in0, radius_mm, prior_sd,
-                          px_per_mm, thickness, interior, surface)
+                          px_per_mm, thickness, interior, cand.surface, covariance=covariance)
 
     if kind == "sticker" and albedo is not None:
         pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
-        profiles = pa if len(pa.rows) >= MIN_EDGE_POINTS else profiles
+        profiles = pa if len(pa.rows) >= CONFIG.min_edge_points else profiles
     out = fit(profiles)
-    if isinstance(out, str):
-        return None, out
+    if isinstance(out, Refusal):
+        return out
     if kind == "plate":
         out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
-    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
-
-    centre, normal, radius, radius_sd, rms, surf_rms, cov, n_edge = out
-    n_in = n_in0
+    centre, normal, radius, radius_sd = out.centre, out.normal, out.radius, out.radius_sd
+    rms, surf_rms, cov, n_edge, n_in = out.edge_rms, out.face_rms, out.covariance, out.n_edge, n_in0
     what = f"{kind}, seen at {view_deg(cam_c, centre, normal):.0f}°"
     if _runaway(radius, radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
-        return None, f"edge points lie on a line, not a circle ({what})"
-    if radius_bounds is not None:
+        return Refusal(RefusalReason.EDGES_ON_A_LINE, f"edge points lie on a line, not a circle ({what})")
+    if cand.radius_bounds is not None:
+        lo, hi = cand.radius_bounds
         if not (lo <= radius <= hi) or rms > max_edge_rms:
-            return None, f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})"
+            return Refusal(RefusalReason.RADIUS_OUT_OF_RANGE if not lo <= radius <= hi else RefusalReason.EDGES_SCATTER,
+                           f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})")
     else:
         # The free radius is a size check; on the short arc of an oblique plate it is itself
         # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the
         # fixed one, but not without bound: a straight edge (radius_sd huge) is no mark.
-        tol = min(max(RADIUS_TOLERANCE_MM, 3.0 * radius_sd), MAX_RADIUS_TOLERANCE_MM)
+        tol = min(max(CONFIG.radius_tolerance_mm, 3.0 * radius_sd), CONFIG.max_radius_tolerance_mm)
         if abs(radius - radius_mm) > tol or rms > max_edge_rms:
-            return None, (f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
-                          f"edge RMS {rms:.2f} mm, {what})")
-    if radius_sd > MAX_RADIUS_SD_MM:
-        return None, f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})"
+            return Refusal(RefusalReason.WRONG_RADIUS if abs(radius - radius_mm) > tol else RefusalReason.EDGES_SCATTER,
+                           f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
+                           f"edge RMS {rms:.2f} mm, {what})")
+    if radius_sd > CONFIG.max_radius_sd_mm:
+        return Refusal(RefusalReason.SHORT_ARC,
+                       f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})")
     light_deg = view_deg(cal.projector.center, centre, normal)
-    if light_deg > MAX_LIGHT_DEG:
-        return None, f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})"
+    if light_deg > CONFIG.max_light_deg:
+        return Refusal(RefusalReason.GRAZING_LIGHT,
+                       f"lit at {light_deg:.0f}° from the projector: too little light to measure ({what})")
     seen = _seen_share(shape, radius, px_per_mm, view_deg(cam_c, centre, normal))
-    if light_deg <= SEEN_MAX_LIGHT_DEG and seen < MIN_SEEN_SHARE:
-        return None, (f"only {100 * seen:.0f} % of its face is bright though it is lit at {light_deg:.0f}°: "
-                      f"partly in a shadow or hidden ({what})")
+    if light_deg <= CONFIG.seen_max_light_deg and seen < CONFIG.min_seen_share:
+        return Refusal(RefusalReason.PARTLY_HIDDEN,
+                       f"only {100 * seen:.0f} % of its face is bright though it is lit at {light_deg:.0f}°: "
+                       f"partly in a shadow or hidden ({what})")
     off = _face_off_surface(points, cal, centre, normal, radius)
-    if off > FACE_OFF_SHARE:
-        return None, f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})"
+    if off > CONFIG.face_off_share:
+        return Refusal(RefusalReason.OUTLINE_THROUGH,
+                       f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})")
     limit = face_rms_limit(sigma, interior)
     if surf_rms > limit:
-        return None, f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})"
+        return Refusal(RefusalReason.FACE_NOT_SMOOTH,
+                       f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})")
     if prior_sd is not None:
         # The fit's centre assumes the nominal radius; a free radius off by Δ means the edge
         # points are biased (side wall, blur at a grazing view) and the centre moves with them:
@@ -307,52 +252,50 @@ def _fit_kind(kind, image, points, sigma, shape, profiles, cal, centroid, normal
     if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
         spread = _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
                                     centre)
-        lit_enough = light_deg <= LIT_SHIFT_MAX_LIGHT_DEG
+        lit_enough = light_deg <= CONFIG.lit_shift_max_light_deg
         if spread is None and lit_enough:
-            return None, f"the lit image's edges here lie on a line, not round a disk ({what})"
+            return Refusal(RefusalReason.LIT_EDGES_ON_A_LINE,
+                           f"the lit image's edges here lie on a line, not round a disk ({what})")
         spread = np.zeros((3, 3)) if spread is None else spread
         shift = 2.0 * math.sqrt(float(np.trace(spread)))
-        if shift > LIT_SHIFT_MAX_RADII * radius_mm and lit_enough:
-            return None, f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})"
+        if shift > CONFIG.lit_shift_max_radii * radius_mm and lit_enough:
+            return Refusal(RefusalReason.IMAGES_DISAGREE,
+                           f"the lit image places this disk {shift:.1f} mm from the corrected image's ({what})")
         cov = cov + spread
     clipped_rim = profiles.s_span is not None and bool(np.any(profiles.s_span > 0))
-    if clipped_rim:
+    if clipped_rim and cand.covariance:
         # the clipped rim's edges may lie anywhere up to their span inwards (``edge_profiles``):
         # the fit with all of them there, and a third of the centre's move squared (the RMS
         # offset of a point spread evenly over the span from its outer end)
-        other = fit(profiles.inward())
-        if not isinstance(other, str):
-            clip = np.outer(other[0] - centre, other[0] - centre) / 3.0
+        other = fit(profiles.inward(), covariance=False)  # its centre only
+        if not isinstance(other, Refusal):
             # overexposed (said to the clinician) only where the clip makes the centre less
             # certain: a few clipped rim pixels on a face at the clip level move it by microns
             before = math.sqrt(max(float(np.trace(cov)), 0.0))
-            cov = cov + clip
-            clipped_rim = math.sqrt(max(float(np.trace(cov)), 0.0)) >= CLIP_SD_RISE * before
+            cov = cov + np.outer(other.centre - centre, other.centre - centre) / 3.0
+            clipped_rim = math.sqrt(max(float(np.trace(cov)), 0.0)) >= CONFIG.clip_sd_rise * before
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step[0]),
                 step_sd=float("nan") if step is None else float(step[1]), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
-                clipped=clipped_rim), ""
-
-
-CLIP_SD_RISE = 1.1  # a clip that raises the mark's SD by 10 % or more makes it "overexposed"
+                clipped=clipped_rim)
 
 
 def _face_off_surface(points, cal, centre, normal, radius) -> float:
-    """The share of decoded points within FACE_SPAN_FRACTION of the fitted disk's image that lie
-    off its plane by more than max(FACE_OFF_MM, FACE_OFF_RADII x radius); 0 where none is decoded."""
+    """The share of decoded points within CONFIG.face_span_fraction of the fitted disk's image that lie
+    off its plane by more than max(CONFIG.face_off_mm, CONFIG.face_off_radii x radius); 0 where none is decoded."""
     shape = face_shape(cal, centre, normal, radius)
     if shape is None:
         return 0.0
-    uv = ellipse_pixels(shape, FACE_SPAN_FRACTION, points.shape[:2])
+    uv = ellipse_pixels(shape, CONFIG.face_span_fraction, points.shape[:2])
     p = points[uv[:, 1], uv[:, 0]]
     p = p[np.isfinite(p[:, 0])]
     if not len(p):
         return 0.0
     height = np.abs((p - centre) @ normal)
-    return float(np.mean(height > max(FACE_OFF_MM, FACE_OFF_RADII * radius)))
+    return float(np.mean(height > max(CONFIG.face_off_mm, CONFIG.face_off_radii * radius)))
 
 
 def _runaway(radius, radius_mm) -> bool:
@@ -369,28 +312,29 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     inside the face, short of the far rim (a 14.2 x 2.1 mm table plate seen at 70° kept 8 edges,
     0.93 mm off; profiled from its face, 25 edges, 0.19 mm). But on other plates the second
     origin moved a good centre off (0.09 -> 0.31 mm with 24 edges at 0.05 mm RMS), and no fit
-    statistic told the two apart (docs/marks.md, "Two profile origins, averaged"): where the
+    statistic told the two apart (docs/history-marks.md, "Two profile origins, averaged"): where the
     profiles start is itself an uncertainty, so both fits count and their spread goes into the
     SD. The first fit stands alone where the second's edges scatter more
-    (``REPROFILE_MAX_RMS_RATIO``) or either fit's radius disagrees with a given size (a doubtful
+    (``CONFIG.reprofile_max_rms_ratio``) or either fit's radius disagrees with a given size (a doubtful
     fit is kept for the second look of ``_wider_fit``)."""
-    if prior_sd is not None and radius_disagrees(out[2], out[3], radius_mm, prior_sd):
+    if prior_sd is not None and radius_disagrees(out.radius, out.radius_sd, radius_mm, prior_sd):
         return out
-    if _runaway(out[2], radius_mm):
+    if _runaway(out.radius, radius_mm):
         return out  # refused by the checks that follow
-    shape = face_shape(cal, out[0], out[1], radius_mm if prior_sd is not None else out[2])
+    shape = face_shape(cal, out.centre, out.normal, radius_mm if prior_sd is not None else out.radius)
     if shape is None:
         return out
     again = edge_profiles(image, shape, clipped=clipped)
-    if len(again.rows) < MIN_EDGE_POINTS:
+    if len(again.rows) < CONFIG.min_edge_points:
         return out
-    other = fit(again)
-    if isinstance(other, str) or other[4] > REPROFILE_MAX_RMS_RATIO * max(out[4], EDGE_NOISE_FLOOR_MM):
+    other = fit(again, covariance=False)  # its centre, radius and edges; the covariance is ``out``'s
+    if isinstance(other, Refusal) or other.edge_rms > CONFIG.reprofile_max_rms_ratio * max(out.edge_rms,
+                                                                                          CONFIG.edge_noise_floor_mm):
         return out
-    if prior_sd is not None and radius_disagrees(other[2], other[3], radius_mm, prior_sd):
+    if prior_sd is not None and radius_disagrees(other.radius, other.radius_sd, radius_mm, prior_sd):
         return out
-    half = 0.5 * (np.asarray(other[0]) - np.asarray(out[0]))
-    return (out[0] + half, *out[1:6], out[6] + np.outer(half, half), out[7])
+    half = 0.5 * (np.asarray(other.centre) - np.asarray(out.centre))
+    return out.moved(out.centre + half, out.covariance + np.outer(half, half))
 
 
 def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):
@@ -402,51 +346,52 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
 
     None where the lit image's edges run away (``_runaway``): the lit image shows a straight edge
     there, not a disk, whatever the corrected image made of it (a bright table seen past the
-    foot's silhouette, variant 168 at 20/+20: a sticker 'found' on the foot, SD 1.6 mm, that took
-    the ankle's lost front mark's label and put the leg's angles 5-14° off)."""
-    if len(lit_profiles.rows) < MIN_EDGE_POINTS:
+    foot's silhouette can pass for a sticker on the foot in the corrected image)."""
+    if len(lit_profiles.rows) < CONFIG.min_edge_points:
         return np.zeros((3, 3))
     other = fit_on_surface(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd)
-    if isinstance(other, str):
+    if isinstance(other, Refusal):
         return np.zeros((3, 3))
-    if _runaway(other[2], radius_mm):
+    if _runaway(other.radius, radius_mm):
         return None
-    half = 0.5 * (other[0] - centre)
+    half = 0.5 * (other.centre - centre)
     return np.outer(half, half)
 
 
 def radius_clearly_measured(radius_sd, size) -> bool:
     """True if a free radius is known well enough for its fit to be clearly a disk, where the fit
     is a last chance (a blob's wider cut, a predicted outline): an SD of at most
-    WIDER_MAX_RADIUS_SD_MM, or WIDER_MAX_RADIUS_SD_REL of the marks' radius ``size`` if more."""
-    return bool(radius_sd <= max(WIDER_MAX_RADIUS_SD_MM, WIDER_MAX_RADIUS_SD_REL * float(size)))
+    CONFIG.wider_max_radius_sd_mm, or CONFIG.wider_max_radius_sd_rel of the marks' radius ``size`` if more."""
+    return bool(radius_sd <= max(CONFIG.wider_max_radius_sd_mm, CONFIG.wider_max_radius_sd_rel * float(size)))
 
 
 def radius_disagrees(radius, radius_sd, size, size_sd) -> bool:
-    """True if a free radius is further from the marks' size than ``MAX_RADIUS_Z`` SDs of the
+    """True if a free radius is further from the marks' size than ``CONFIG.max_radius_z`` SDs of the
     two (in quadrature): the edge points may not be the disk's rim, and the fit with the size as
     prior would hide it (a short arc trades centre for radius)."""
-    return bool(abs(float(radius) - float(size)) > MAX_RADIUS_Z * math.hypot(radius_sd, size_sd))
+    return bool(abs(float(radius) - float(size)) > CONFIG.max_radius_z * math.hypot(radius_sd, size_sd))
 
 
 def face_rms_limit(sigma, uv) -> float:
-    """The face-smoothness limit: ``MAX_TOP_FACE_RMS_MM``, or ``FACE_RMS_PER_SIGMA`` times the
+    """The face-smoothness limit: ``CONFIG.max_top_face_rms_mm``, or ``CONFIG.face_rms_per_sigma`` times the
     median predicted SD of the decoded points at pixels ``uv`` where that is larger."""
     if sigma is None or not len(uv):
-        return MAX_TOP_FACE_RMS_MM
+        return CONFIG.max_top_face_rms_mm
     s = sigma[uv[:, 1], uv[:, 0]]
     s = s[np.isfinite(s)]
-    return float(max(MAX_TOP_FACE_RMS_MM, FACE_RMS_PER_SIGMA * np.median(s))) if len(s) else MAX_TOP_FACE_RMS_MM
+    if not len(s):
+        return CONFIG.max_top_face_rms_mm
+    return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.median(s)))
 
 
 def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
-               px_per_mm, thickness, plane_px, surface=None):
+               px_per_mm, thickness, plane_px, surface=None, *, covariance: bool = True):
     """A rigid plate: plane + far-side edge circle; returns the fit tuple or a reason.
 
     The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
     holds side-wall and rim pixels), then refitted to the decoded points of the *top face*
-    only — the pixels at least ``TOP_MARGIN_PX`` inside the image of the circle found — and the
-    circle refitted in that plane (``PLANE_PASSES`` times). At the lateral plates' ~70° view a
+    only — the pixels at least ``CONFIG.top_margin_px`` inside the image of the circle found — and the
+    circle refitted in that plane (``CONFIG.plane_passes`` times). At the lateral plates' ~70° view a
     plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
     r·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
     ``thickness``: the face's measured height over the surface (side wall, shadow sliver);
@@ -454,7 +399,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     basis (2, 3), slope covariance) of the surface around the plate (``surface_step``), combined
     with the face's own normal (``combined_normal``).
     The covariance includes the plane's tilt error carried to the centre (``_tilt_covariance``)
-    and the rim's edge level error (``_edge_level_covariance``).
+    and the rim's edge level error (``_edge_level_covariance``); ``covariance`` False: neither
+    (their six refits), and the covariance is NaN (a fit whose centre alone is used).
     """
     cam_c, proj_c = cal.camera.center, cal.projector.center
     rays = cal.camera.rays(profiles.points())
@@ -464,11 +410,11 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         return far_side_circle(ray_plane(cam_c, r, centroid, n), r, centroid, n, cam_c, proj_c, px_per_mm, radius_mm,
                                reloc, prior_sd=prior_sd, thickness=thickness)
 
-    for i in range(PLANE_PASSES + 1):
+    for i in range(CONFIG.plane_passes + 1):
         fit = circle(rays, normal)
         if fit is None:
-            return "edge points do not form a circle"
-        if i == PLANE_PASSES or (last is not None and np.linalg.norm(fit[0] - last) < PLANE_CONVERGED_MM):
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
+        if i == CONFIG.plane_passes or (last is not None and np.linalg.norm(fit[0] - last) < CONFIG.plane_converged_mm):
             break
         last = fit[0]
         top = top_face_pixels(cal, fit[0], normal, fit[1] if prior_sd is None else radius_mm, image.shape)
@@ -486,8 +432,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         normal, tilt = combined_normal(normal, tilt, surface)
         fit = circle(rays, normal)
         if fit is None:
-            return "edge points do not form a circle"
-    for _ in range(SLIVER_PASSES if thickness > 0 else 0):
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
+    for _ in range(CONFIG.sliver_passes if thickness > 0 else 0):
         # re-find the edges that have a shadow sliver beside them (dropped so far), now that
         # the plate's plane and centre say how wide each sliver is
         E = ray_plane(cam_c, rays, centroid, normal)
@@ -501,6 +447,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
             break
         fit, relocated, s_used = better, moved, s_new
     centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
+    if not covariance:
+        return DiskFit(centre, normal, radius, radius_sd, rms, plane_rms, np.full((3, 3), np.nan), n_edge)
     cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
 
     if tilt is not None:
@@ -511,50 +459,50 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         shift = shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)
         return circle(cal.camera.rays(profiles.points(s_used + shift)), normal, relocated)
 
-    level_px = EDGE_LEVEL_SD_PX / max(math.cos(math.radians(view_deg(cam_c, centre, normal))), COS_VIEW_MIN)
-    return (centre, normal, radius, radius_sd, rms, plane_rms, cov + _edge_level_covariance(refit_edges, level_px),
-            n_edge)
+    cos_view = math.cos(math.radians(view_deg(cam_c, centre, normal)))
+    level_px = CONFIG.edge_level_sd_px / max(cos_view, CONFIG.cos_view_min)
+    return DiskFit(centre, normal, radius, radius_sd, rms, plane_rms,
+                   cov + _edge_level_covariance(refit_edges, level_px), n_edge)
 
 
 def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
     """(fit, profiles): the plate fit ``out`` made again without the edges off its rim, where its
-    edges scatter more than a mark's may (MAX_CIRCLE_RMS_MM) and that scatters less; else
+    edges scatter more than a mark's may (CONFIG.max_circle_rms_mm) and that scatters less; else
     ``out`` and ``profiles`` as they are. ``fit``: the plate's fit on given profiles.
 
-    A rim partly hidden or shadowed (held-out variant 138 at 20/+20: a 24.5 mm table plate a
-    quarter in the leg's shadow, whose straight edge was that much of its outline: edge RMS
-    1.0 mm, 1.1-1.6 mm off, refused) is outlined along two curves, which least squares and a
+    A rim partly hidden or shadowed (a large table plate a quarter in the leg's shadow, whose
+    straight edge is that much of its outline) is outlined along two curves, which least squares and a
     residual cut both average. The circle through three edges that most of them lie within a
     tolerance of (``_circle_consensus``), in the plane found, is the rim, where it holds at
-    least STRAY_ARC_MIN_SHARE of them; the rest are dropped (a plate's near side, off that
+    least CONFIG.stray_arc_min_share of them; the rest are dropped (a plate's near side, off that
     circle by its side wall, is dropped by ``clean_edge_mask`` in any case). Only a fit that
     would be refused is looked at again."""
-    if out[4] <= MAX_CIRCLE_RMS_MM:
+    if out.edge_rms <= CONFIG.max_circle_rms_mm:
         return out, profiles
-    centre, normal = out[0], out[1]
+    centre, normal = out.centre, out.normal
     E = ray_plane(cal.camera.center, cal.camera.rays(profiles.points()), centre, normal)
     idx = np.flatnonzero(np.isfinite(E[:, 0]))
-    if len(idx) < 2 * MIN_EDGE_POINTS:
+    if len(idx) < 2 * CONFIG.min_edge_points:
         return out, profiles
     p = (E[idx] - centre) @ plane_basis(normal).T
-    on = _circle_consensus(p, max(STRAY_ARC_TOL_MM, STRAY_ARC_TOL_PX / max(px_per_mm, 1e-9)))
-    if on.sum() < max(MIN_EDGE_POINTS, STRAY_ARC_MIN_SHARE * len(p)) or on.all():
+    on = _circle_consensus(p, max(CONFIG.stray_arc_tol_mm, CONFIG.stray_arc_tol_px / max(px_per_mm, 1e-9)))
+    if on.sum() < max(CONFIG.min_edge_points, CONFIG.stray_arc_min_share * len(p)) or on.all():
         return out, profiles
     keep = np.ones(len(E), bool)
     keep[idx[~on]] = False
     fewer = profiles.subset(keep)
     again = fit(fewer)
-    if isinstance(again, str) or again[4] >= out[4]:
+    if isinstance(again, Refusal) or again.edge_rms >= out.edge_rms:
         return out, profiles
     return again, fewer
 
 
 def _circle_consensus(p, tol) -> np.ndarray:
     """(n,) bool: the points of ``p`` (n, 2) within ``tol`` of the circle through three of them
-    that the most lie near (a fixed sample of STRAY_ARC_TRIALS triples: the same capture gives
+    that the most lie near (a fixed sample of CONFIG.stray_arc_trials triples: the same capture gives
     the same marks)."""
     rng = np.random.default_rng(0)
-    P = p[np.array([rng.choice(len(p), 3, replace=False) for _ in range(STRAY_ARC_TRIALS)])]  # (t, 3, 2)
+    P = p[np.array([rng.choice(len(p), 3, replace=False) for _ in range(CONFIG.stray_arc_trials)])]  # (t, 3, 2)
     A = np.concatenate([2 * P, np.ones((len(P), 3, 1))], axis=2)
     ok = np.abs(np.linalg.det(A)) > 1e-9  # not three points on a line
     A, P = A[ok], P[ok]
@@ -576,8 +524,7 @@ def _edge_level_covariance(refit_edges, level_px) -> np.ndarray:
     level error, foreshortened 1/cos(view) times in the face's plane. The error itself grows at a
     grazing view, where a pixel spans face, rim and what lies past it: plates seen at 11-43°
     have free radii within 0.16 px of the truth, while the edges of a 2.9 mm plate seen at 68°
-    were about 0.5 px inside its rim, its centre 0.71 mm off (docs/marks.md, "A third held-out
-    set")."""
+    were about 0.5 px inside its rim, its centre 0.71 mm off."""
     ends = [refit_edges(s * level_px) for s in (1.0, -1.0)]
     if any(e is None for e in ends):
         return np.zeros((3, 3))
@@ -592,19 +539,19 @@ def _plane_tilt(points, uv, centroid, normal):
     only a strip of the face, and the slope across it is weakly measured."""
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64) if len(uv) else np.zeros((0, 3))
     P = P[np.isfinite(P[:, 0])]
-    if len(P) < MIN_INTERIOR_POINTS:
+    if len(P) < CONFIG.min_interior_points:
         return None
     B = plane_basis(normal)
     h = (P - centroid) @ normal
     mad = robust_sigma(h)
     keep = np.abs(h - np.median(h)) <= max(3.5 * mad, 0.05)
-    if keep.sum() < MIN_INTERIOR_POINTS:
+    if keep.sum() < CONFIG.min_interior_points:
         return None
     d, h = (P[keep] - centroid) @ B.T, h[keep]
     d = d - d.mean(axis=0)
     A = np.column_stack([d, np.ones(len(d))])
     coef, *_ = np.linalg.lstsq(A, h, rcond=None)
-    s2 = max(float(np.sum((h - A @ coef) ** 2)) / max(len(h) - 3, 1), EDGE_NOISE_FLOOR_MM**2)
+    s2 = max(float(np.sum((h - A @ coef) ** 2)) / max(len(h) - 3, 1), CONFIG.edge_noise_floor_mm**2)
     try:
         return B, np.linalg.inv(d.T @ d) * s2
     except np.linalg.LinAlgError:
@@ -639,29 +586,29 @@ def view_deg(cam_c, centre, normal) -> float:
 def plane_from_pixels(points, sigma, uv, cam_c, consensus=False):
     """Robust plane (weighted by the points' predicted noise ``sigma`` where given) through the
     decoded points at pixels ``uv``, its normal towards the camera; None if fewer than
-    MIN_INTERIOR_POINTS. ``consensus``: first keep only the largest set of points within
+    CONFIG.min_interior_points. ``consensus``: first keep only the largest set of points within
     3 sigma of one plane (at an oblique view the blob's interior is up to ~40 % side wall and
     rim, too many for the MAD rejection alone)."""
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
     ok = np.isfinite(P[:, 0])
-    if ok.sum() < MIN_INTERIOR_POINTS:
+    if ok.sum() < CONFIG.min_interior_points:
         return None
     P = P[ok]
     s = (sigma[uv[ok, 1], uv[ok, 0]].astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
     s = np.maximum(np.nan_to_num(s, nan=0.5), 0.01)
     w = 1.0 / s**2
-    if consensus and len(P) > MIN_INTERIOR_POINTS:
+    if consensus and len(P) > CONFIG.min_interior_points:
         sel = _plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
-        if sel.sum() >= MIN_INTERIOR_POINTS:
+        if sel.sum() >= CONFIG.min_interior_points:
             P, w = P[sel], w[sel]
-    c, n, rms, k = fit_plane(P, weights=w, min_keep=MIN_INTERIOR_POINTS)
-    if _tilt_sd(P, c, n, max(rms, float(np.median(s)))) > MAX_PLANE_TILT_SD_RAD:
+    c, n, rms, k = fit_plane(P, weights=w, min_keep=CONFIG.min_interior_points)
+    if _tilt_sd(P, c, n, max(rms, float(np.median(s)))) > CONFIG.max_plane_tilt_sd_rad:
         return None
     return c, (n if n @ (cam_c - c) >= 0 else -n), rms, k
 
 
 def _tilt_sd(P, c, n, point_sd) -> float:
-    """The SD (rad) of a plane's tilt about the long axis of its points (see MAX_PLANE_TILT_SD_RAD)."""
+    """The SD (rad) of a plane's tilt about the long axis of its points (see CONFIG.max_plane_tilt_sd_rad)."""
     d = (P - c) @ plane_basis(n).T
     minor = float(np.sqrt(max(np.linalg.eigvalsh(d.T @ d / len(d))[0], 0.0)))
     return point_sd / max(minor * math.sqrt(len(d)), 1e-12)
@@ -673,7 +620,7 @@ def _plane_consensus(P: np.ndarray, tol: float) -> np.ndarray:
     rng = np.random.default_rng(len(P))
     best = np.ones(len(P), bool)
     best_n = -1
-    for _ in range(CONSENSUS_TRIALS):
+    for _ in range(CONFIG.consensus_trials):
         a, b, c = P[rng.choice(len(P), 3, replace=False)]
         n = np.cross(b - a, c - a)
         norm = np.linalg.norm(n)
@@ -714,7 +661,7 @@ def fit_plane(P: np.ndarray, iterations: int = 3, weights=None, min_keep: int = 
 
 
 def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated=None, *,
-                    prior_sd=RADIUS_PRIOR_SD_MM, thickness):
+                    prior_sd=CONFIG.radius_prior_sd_mm, thickness):
     """Circle through the clean edge points (``clean_edge_mask``), in the plate's plane.
 
     Returns the centre from a fit with the radius prior, and the free fit's radius (a check
@@ -729,16 +676,16 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
     for _ in range(3):
         use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, px_per_mm, relocated,
                               thickness=thickness)
-        if use.sum() < MIN_EDGE_POINTS:
+        if use.sum() < CONFIG.min_edge_points:
             use = clean_edge_mask(E, rays, origin_pt + centre2 @ B, normal, cam_c, proj_c, 0.0, thickness=thickness)
-        if use.sum() < MIN_EDGE_POINTS:
+        if use.sum() < CONFIG.min_edge_points:
             return None
         res = circle_geometric(q[use], centre2, radius_mm, prior)
         if res is None:
             return None
         centre2, _, resid, cov2 = res
         bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
-        if bad.any() and (~bad).sum() >= MIN_EDGE_POINTS:
+        if bad.any() and (~bad).sum() >= CONFIG.min_edge_points:
             use[np.flatnonzero(use)[bad]] = False
             res = circle_geometric(q[use], centre2, radius_mm, prior)
             if res is None:
@@ -754,13 +701,13 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
 
 def _radius_sd(q, c, r) -> float:
     """SD of the *free* circle fit's radius (Gauss-Newton covariance at the solution, scaled
-    by the residual scatter, at least EDGE_NOISE_FLOOR_MM): small on a long arc, large on the
+    by the residual scatter, at least CONFIG.edge_noise_floor_mm): small on a long arc, large on the
     short arc of an obliquely seen plate, where centre and radius trade off."""
     d = q - c
     rho = np.linalg.norm(d, axis=1)
     J = np.column_stack([-d / np.maximum(rho, 1e-9)[:, None], -np.ones(len(q))])
     resid = rho - r
-    s2 = max(float(resid @ resid) / max(len(q) - 3, 1), EDGE_NOISE_FLOOR_MM**2)
+    s2 = max(float(resid @ resid) / max(len(q) - 3, 1), CONFIG.edge_noise_floor_mm**2)
     try:
         return float(math.sqrt(max(np.linalg.inv(J.T @ J)[2, 2] * s2, 0.0)))
     except np.linalg.LinAlgError:
@@ -779,38 +726,46 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     ``prior = (R, sd)`` adds the observation r = R ± sd: a short arc leaves centre and radius
     strongly correlated, and the plate's radius is known to a tenth of a mm. The prior's weight
     is relative to the edge points' own scatter (their RMS residual, at least
-    EDGE_NOISE_FLOOR_MM), re-estimated every iteration: a fixed weight would let noisier edges
+    CONFIG.edge_noise_floor_mm), re-estimated every iteration: a fixed weight would let noisier edges
     outvote it and trade the centre against the radius again.
     """
     p = np.array([c0[0], c0[1], r0], float)
-    scale = EDGE_NOISE_FLOOR_MM
+    scale = CONFIG.edge_noise_floor_mm
+    n = len(q)
+    J = np.empty((n + (prior is not None), 3))  # filled in place: one allocation per fit, not per iteration
+    J[:n, 2] = -1.0
+    r = np.empty(len(J))
 
-    def system(p):
+    def prior_row(p: np.ndarray) -> None:
+        w = scale / prior[1]
+        J[n] = (0.0, 0.0, w)
+        r[n] = w * (p[2] - prior[0])
+
+    def system(p: np.ndarray) -> np.ndarray:  # J and r at p; returns the distances |q - c|
         d = q - p[:2]
         rho = np.linalg.norm(d, axis=1)
-        J = np.column_stack([-d / rho[:, None], -np.ones(len(q))])
-        r = rho - p[2]
-        if prior is None:
-            return J, r, rho
-        w = scale / prior[1]
-        return np.vstack([J, [0.0, 0.0, w]]), np.r_[r, w * (p[2] - prior[0])], rho
+        J[:n, :2] = -d / rho[:, None]
+        r[:n] = rho - p[2]
+        if prior is not None:
+            prior_row(p)
+        return rho
 
     for _ in range(iterations):
-        J, r, rho = system(p)
+        rho = system(p)
         if np.any(rho < 1e-9):
             return None
         if prior is not None:
-            scale = max(float(np.sqrt(np.mean(r[: len(q)] ** 2))), EDGE_NOISE_FLOOR_MM)
-            J, r, rho = system(p)
+            scale = max(float(np.sqrt(np.mean(r[:n] ** 2))), CONFIG.edge_noise_floor_mm)
+            prior_row(p)
         step, *_ = np.linalg.lstsq(J, -r, rcond=None)
         p += step
         if np.abs(step).max() < 1e-7:
             break
-    J, r, rho = system(p)
+    rho = system(p)
     resid = rho - p[2]
     dof = max(len(q) - 3, 1)
     try:
-        cov = np.linalg.inv(J.T @ J) * max(float(resid @ resid) / dof, EDGE_NOISE_FLOOR_MM**2)
+        cov = np.linalg.inv(J.T @ J) * max(float(resid @ resid) / dof, CONFIG.edge_noise_floor_mm**2)
     except np.linalg.LinAlgError:
         return None
     return p[:2], float(p[2]), resid, cov[:2, :2]
@@ -823,5 +778,5 @@ def _centre_covariance(cov2, basis, normal, rays, plane_rms, n_interior) -> np.n
     in_plane = basis.T @ cov2 @ basis
     g = (rays / (rays @ normal)[:, None]).mean(axis=0)
     var_offset = plane_rms**2 / max(n_interior, 1)
-    return in_plane + var_offset * np.outer(g, g) + SD_FLOOR_MM**2 * np.eye(3)
+    return in_plane + var_offset * np.outer(g, g) + CONFIG.sd_floor_mm**2 * np.eye(3)
 

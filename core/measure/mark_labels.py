@@ -1,5 +1,5 @@
 """Labelling the marks 1-7 (SPEC §2): the table triple (5, 6, 7 in a rule of their own layout),
-knee above ankle, front vs lateral by the normal round the leg. docs/marks.md, step 6.
+knee above ankle, front vs lateral by the normal round the leg. docs/marks.md, "Labels".
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-
+from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS  # the detector keys marks by the labels' text form
 from anklescan.core.vocabulary import TABLE_LABEL_KEYS as TABLE_LABELS
@@ -18,31 +18,6 @@ if TYPE_CHECKING:
     from anklescan.core.measure.marks import MarkSet
 
 
-# Labelling.
-TABLE_NORMAL_SPREAD_DEG = 8.0  # the three table plates' normals agree within this
-AMBIGUITY_MARGIN_DEG = 10.0  # the second-best table triple must be this much worse
-PARTIAL_LEG_GAP_MM = 100.0  # with < 4 leg plates: knee and ankle groups this far apart in z
-# A pair's two marks (front and lateral, SPEC §2) lie about one level of the leg: their spread
-# along it, over the knee-to-ankle distance, is at most this. A hand-stuck pair may differ by
-# 20-40 mm (0.05-0.15 of a 250-450 mm shank); a bright patch on the foot that passed as a mark,
-# paired with the true lateral ankle mark, was 91 mm (0.26) from it (variant 168 at 20/+20: the
-# leg's angles 5-14° off, said complete). Such a set is left unlabelled, with a message.
-PAIR_MAX_SPREAD = 0.2
-SIDE_MARGIN_DEG = 20.0  # front and lateral normals must be this far apart round the leg to be told apart
-# Both pairs labelled: each mark faces round the leg nearer its own role's mark of the other pair
-# than the other role's, or not more than this worse (a tibia twisted 20-30° between knee and
-# ankle turns the ankle pair that much). A bright patch by the leg's outline kept as a mark
-# beside the true lateral ankle mark made that one the "front": it faced 0.5° from the lateral
-# knee mark and 51° from the front one, and the leg's angles were 8° off, said complete
-# (held-out variant 378 at 0/+20).
-CROSS_PAIR_MARGIN_DEG = 20.0
-# Without the other pair: front plates face ~90° round the leg (0 = lateral), lateral ones 0°
-# (straight lateral) to ~40° (35° forward of it, the simulated clinic's placement).
-LONE_SPLIT_DEG = 65.0
-# With one leg pair lost, the other is the knee's if it is this far over the table top: ankle
-# marks sit 50-100 mm over the sole, knee marks 300-500 mm (a child's to an adult's shank).
-KNEE_MIN_HEIGHT_MM = 200.0
-LEG_NORMAL_MAX_Z = 0.7  # leg plates face sideways: |n_z| < this (the leg stands; z is up, SPEC §1)
 
 
 def label_marks(ms: MarkSet) -> None:
@@ -54,12 +29,12 @@ def label_marks(ms: MarkSet) -> None:
         ms.problems.append(f"expected 7 marks, found {len(marks)}")
     table = _table_triple(marks, ms.problems)
     if table is not None:
-        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table])):
+        for lab, m in zip(TABLE_LABELS, _table_order([marks[i] for i in table]), strict=True):
             m.label = lab
         # a leg mark faces sideways: a bright patch on the floor or the foot's top that passed
-        # as a mark must not take a leg label (variant 64 at 0/20: one did, as the lateral ankle
-        # mark, the true one became the front, and the leg's angles were 6° and 16° off)
-        leg = [m for i, m in enumerate(marks) if i not in table and abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
+        # as a mark must not take a leg label (as the lateral ankle mark it turns the true one
+        # into the front, and the leg's angles go several degrees off)
+        leg = [m for i, m in enumerate(marks) if i not in table and abs(m.normal[2]) < CONFIG.leg_normal_max_z]
         if len(leg) <= 4:
             _label_leg(leg, ms.problems, _table_plane([marks[i] for i in table]))
         else:
@@ -68,7 +43,7 @@ def label_marks(ms: MarkSet) -> None:
         # No table triple: the leg plates still label themselves if exactly four plates face
         # sideways (leg plates' normals are perpendicular to the near-vertical leg axis; the
         # table plates' are within ~30° of +z), so a lost table plate does not cost the leg.
-        leg = [m for m in marks if abs(m.normal[2]) < LEG_NORMAL_MAX_Z]
+        leg = [m for m in marks if abs(m.normal[2]) < CONFIG.leg_normal_max_z]
         if len(leg) == 4:
             _label_leg(leg, ms.problems)
     order = {lab: i for i, lab in enumerate(LABELS)}
@@ -86,7 +61,8 @@ def _triple_score(ms) -> float:
     if np.linalg.norm(n) < 1e-9:
         return 180.0
     n /= np.linalg.norm(n)
-    return max([_angle_deg(m.normal, n) for m in ms] + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
+    return max([_angle_deg(m.normal, n) for m in ms]
+               + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
 
 
 def _table_triple(marks, problems):
@@ -100,10 +76,10 @@ def _table_triple(marks, problems):
         return None
     scored = sorted((_triple_score([marks[i] for i in t]), t) for t in itertools.combinations(range(len(marks)), 3))
     best, t = scored[0]
-    if best > TABLE_NORMAL_SPREAD_DEG:
+    if best > CONFIG.table_normal_spread_deg:
         problems.append(f"no three marks lie flat in one plane (best {best:.1f}°): table marks not identified")
         return None
-    if len(scored) > 1 and scored[1][0] - best < AMBIGUITY_MARGIN_DEG:
+    if len(scored) > 1 and scored[1][0] - best < CONFIG.ambiguity_margin_deg:
         problems.append(f"two candidate sets of table marks ({best:.1f}° vs {scored[1][0]:.1f}°): ambiguous")
         return None
     return set(t)
@@ -159,7 +135,7 @@ def _label_leg(leg, problems, table=None):
     else:
         gaps = np.diff(z[idx])
         k = int(np.argmax(gaps))
-        if gaps[k] < PARTIAL_LEG_GAP_MM:
+        if gaps[k] < CONFIG.partial_leg_gap_mm:
             if len(leg) == 2 and table is not None:
                 _label_lone_pair(leg, table, problems)
                 return
@@ -174,7 +150,7 @@ def _label_leg(leg, problems, table=None):
     axis /= length
     for pair, where in ((knee, "knee"), (ankle, "ankle")):
         spread = abs(float((pair[0].centre - pair[-1].centre) @ axis))
-        if spread > PAIR_MAX_SPREAD * length:
+        if spread > CONFIG.pair_max_spread * length:
             problems.append(f"the two {where} marks are {spread:.0f} mm apart along the leg (one level expected): "
                             "one of them may not be a mark; leg marks not labelled")
             return
@@ -186,7 +162,7 @@ def _label_leg(leg, problems, table=None):
         for m in leg:
             m.label = None
         return
-    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1]):
+    for (pair, (front, lateral), where), (other, _, _) in zip(groups, groups[::-1], strict=True):
         if len(pair) == 1:
             label = _lone_label(pair[0], other, axis, front, lateral)
             if label is None:
@@ -196,7 +172,7 @@ def _label_leg(leg, problems, table=None):
 
 def _pairs_agree(knee, ankle, axis, problems) -> bool:
     """False (with a message) if a mark of one labelled pair faces round the leg clearly nearer
-    the other role's mark of the other pair than its own role's (``CROSS_PAIR_MARGIN_DEG``)."""
+    the other role's mark of the other pair than its own role's (``CONFIG.cross_pair_margin_deg``)."""
     marks = knee + ankle
     if len(marks) != 4 or any(m.label is None for m in marks):
         return True
@@ -205,7 +181,7 @@ def _pairs_agree(knee, ankle, axis, problems) -> bool:
     partner = {"2": ("1", "3"), "4": ("3", "1"), "1": ("2", "4"), "3": ("4", "2")}
     for lab, (same, other) in partner.items():
         d_same, d_other = (abs(_wrap_deg(az[lab] - az[k])) for k in (same, other))
-        if d_other + CROSS_PAIR_MARGIN_DEG < d_same:
+        if d_other + CONFIG.cross_pair_margin_deg < d_same:
             where = "knee" if lab in ("1", "3") else "ankle"
             role = "front" if lab in ("1", "2") else "lateral"
             problems.append(f"the {where}'s {role} mark faces round the leg {d_other:.0f}° from the other pair's "
@@ -217,7 +193,7 @@ def _pairs_agree(knee, ankle, axis, problems) -> bool:
 
 def _label_lone_pair(pair, table, problems):
     """Two leg plates at one height, the other pair lost: knee or ankle by their height over
-    the table top (``KNEE_MIN_HEIGHT_MM``), front or lateral by which way round the leg their
+    the table top (``CONFIG.knee_min_height_mm``), front or lateral by which way round the leg their
     normals point (about z: the leg stands, SPEC §1)."""
     (front, lateral), where = _by_height(pair, table)
     _label_pair(pair, np.array([0.0, 0.0, 1.0]), front, lateral, where, problems)
@@ -237,35 +213,35 @@ def _by_height(marks, table):
     """((front, lateral) labels, "knee"/"ankle") of leg marks by their mean height over the table top."""
     point, up = table
     height = float(np.mean([(m.centre - point) @ up for m in marks]))
-    return (("1", "3"), "knee") if height >= KNEE_MIN_HEIGHT_MM else (("2", "4"), "ankle")
+    return (("1", "3"), "knee") if height >= CONFIG.knee_min_height_mm else (("2", "4"), "ankle")
 
 
 def _label_pair(pair, axis, front, lateral, where, problems):
     """Front and lateral of one pair by which way round ``axis`` their normals point."""
     a = [_azimuth_about(m.normal, axis) for m in pair]
-    if abs(_wrap_deg(a[0] - a[1])) < SIDE_MARGIN_DEG:  # 50-90° apart; a tie means no decision
+    if abs(_wrap_deg(a[0] - a[1])) < CONFIG.side_margin_deg:  # 50-90° apart; a tie means no decision
         problems.append(f"cannot tell the front from the lateral {where} mark")
         return
-    f, l = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
-    f.label, l.label = front, lateral
+    f, lat = (pair[0], pair[1]) if _wrap_deg(a[0] - a[1]) > 0 else (pair[1], pair[0])
+    f.label, lat.label = front, lateral
 
 
 def _lone_label(m, other, axis, front, lateral):
     """A lone knee (ankle) plate is front or lateral by which plate of the labelled ankle
     (knee) pair its normal is nearer to, around the leg axis: the leg carries both pairs,
     wherever round its side the marks were stuck. Without that pair, by which side of
-    ``LONE_SPLIT_DEG`` its normal points round the leg (front marks face 90°, lateral ones
+    ``CONFIG.lone_split_deg`` its normal points round the leg (front marks face 90°, lateral ones
     0-40°: docs/marks.md), at least half the margin clear of it."""
     if len(other) == 2 and all(o.label is not None for o in other):
         ref = sorted(other, key=lambda o: o.label)  # front ("1"/"2") before lateral ("3"/"4")
         a = [abs(_wrap_deg(_azimuth_about(m.normal, axis) - _azimuth_about(o.normal, axis))) for o in ref]
-        if abs(a[0] - a[1]) >= SIDE_MARGIN_DEG:
+        if abs(a[0] - a[1]) >= CONFIG.side_margin_deg:
             return front if a[0] < a[1] else lateral
         return None
     a = _azimuth_about(m.normal, axis)
-    if a >= LONE_SPLIT_DEG + SIDE_MARGIN_DEG / 2:
+    if a >= CONFIG.lone_split_deg + CONFIG.side_margin_deg / 2:
         return front
-    if a <= LONE_SPLIT_DEG - SIDE_MARGIN_DEG / 2:
+    if a <= CONFIG.lone_split_deg - CONFIG.side_margin_deg / 2:
         return lateral
     return None
 

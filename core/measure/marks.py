@@ -32,29 +32,28 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-
 from anklescan.core.calibration.file import Calibration
-from anklescan.core.measure.mark_candidates import (border_undecoded, camera_depth, candidate_blobs, cut_blob,
-                                  disk_contrast_peak, noise_sigma, plate_radius_px, predicted_disk,
-                                  points_image, ring_level, shading_corrected, sigma_image)
+from anklescan.core.measure.mark_candidates import (
+    border_undecoded,
+    camera_depth,
+    candidate_blobs,
+    cut_blob,
+    depth_image,
+    disk_contrast_peak,
+    noise_sigma,
+    plate_radius_px,
+    points_image,
+    predicted_disk,
+    ring_level,
+    shading_corrected,
+    sigma_image,
+)
+from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
-from anklescan.core.measure.mark_fit import (MAX_CIRCLE_RMS_MM, RADIUS_PRIOR_SD_MM, STICKER_MAX_STEP_MM,
-                                             fit_mark, radius_clearly_measured, step_kind)
+from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, step_kind
 from anklescan.core.measure.mark_labels import LABELS, label_marks
+from anklescan.core.measure.mark_types import Refusal
 from anklescan.core.scan.pointcloud import PointCloud
-
-PLATE_RADIUS_MM = 7.5  # the plates of the paper's clinic; no longer assumed (find_marks measures the size)
-# SPEC §2: a mark is 8-25 mm across. The search spans that with a margin (a disk seen at a
-# grazing angle, or blurred, measures a little off); the common size is then measured.
-SIZE_RANGE_MM = (3.5, 13.5)  # radius
-SIZE_CLUSTER_REL = 0.08  # free radii within this fraction (or 3 SD) of each other are one size
-GIVEN_SIZE_TOLERANCE_MM = 0.75  # a given radius this far (or 3 SD) from the measured one fits no mark
-# A doubtful mark (``_restore_held``) is kept only with clean edges: under camera blur 0.9 px a
-# 10 mm front plate, radius 4.51 +- 0.08 against 4.98 mm, edge RMS 0.30 mm, was kept 4.0 mm off
-# at 14 SD; good plates have 0.05-0.15 mm, and an 8 mm table plate seen at 69°, doubtful but
-# 0.18 mm off, 0.22 mm (at 0.2 it was lost).
-DOUBTFUL_MAX_EDGE_RMS_MM = 0.25
-COMMON_KIND_SHARE = 0.75  # of the first pass's fits: the capture's kind of mark, the only one fitted where a step is unclear
 
 
 @dataclass(eq=False)
@@ -66,7 +65,7 @@ class Mark:
     radius: float  # mm, fitted (nominal 7.5)
     circle_rms: float  # mm, edge points about the circle
     plane_rms: float  # mm, interior points about the plane
-    covariance: np.ndarray  # (3, 3) mm^2, fit + SD_FLOOR_MM
+    covariance: np.ndarray  # (3, 3) mm^2, fit + CONFIG.sd_floor_mm
     pixel: tuple  # (u, v) camera pixel of the centre
     n_edge: int
     n_interior: int
@@ -102,6 +101,11 @@ class Mark:
                 "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
                 "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1),
                 "overexposed": self.clipped}
+
+
+def fitted(out: Mark | Refusal) -> Mark | None:
+    """The mark of ``fit_mark``'s result, or None where it was refused."""
+    return out if isinstance(out, Mark) else None
 
 
 @dataclass
@@ -192,40 +196,43 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     sigma = sigma_image(cloud, image.shape)
     noise = noise_sigma(image)
     result = MarkSet()
-    bounds = SIZE_RANGE_MM
+    bounds = CONFIG.size_range_mm
     blobs = candidate_blobs(image, points, cal, noise, bounds, ring_background=True)
     albedo = shading_corrected(image, points, cal)
-    free = [fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
-                     clipped=clipped)[0]
+    # the sizes seen, the plates' thickness and the capture's kind: no fit's covariance is used
+    free = [fitted(fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
+                            clipped=clipped, covariance=False))
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
     steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
-             and m.step_mm > STICKER_MAX_STEP_MM]
+             and m.step_mm > CONFIG.sticker_max_step_mm]
     thick = float(np.median(steps)) if steps else None
     prefer = _common_kind([m.kind for m in free if m is not None])
     if mark_diameter_mm is not None:
-        r0, sd0 = 0.5 * float(mark_diameter_mm), RADIUS_PRIOR_SD_MM
-        if sizes and sizes[0]["n"] >= 3 and abs(sizes[0]["radius"] - r0) > max(GIVEN_SIZE_TOLERANCE_MM, 3 * sizes[0]["sd"]):
-            result.size_error = (f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen "
-                                 + ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
-                                             for g in sizes[:3]))
+        r0, sd0 = 0.5 * float(mark_diameter_mm), CONFIG.radius_prior_sd_mm
+        far = sizes and abs(sizes[0]["radius"] - r0) > max(CONFIG.given_size_tolerance_mm, 3 * sizes[0]["sd"])
+        if far and sizes[0]["n"] >= 3:
+            seen = ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
+                             for g in sizes[:3])
+            result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
             result.problems.append(result.size_error)
             return result
         result.diameter, result.diameter_given = (float(mark_diameter_mm), 0.0), True
     elif sizes:
-        r0, sd0 = sizes[0]["radius"], max(sizes[0]["sd"], RADIUS_PRIOR_SD_MM)
+        r0, sd0 = sizes[0]["radius"], max(sizes[0]["sd"], CONFIG.radius_prior_sd_mm)
         result.diameter = (2 * r0, 2 * sd0)
     else:
         label_marks(result)
         return result
     refused = []
     for blob in blobs:
-        mark, reason = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
-                                prefer_kind=prefer, clipped=clipped)
+        out = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
+                       prefer_kind=prefer, clipped=clipped)
+        mark, reason = fitted(out), str(out)
         if mark is not None and blob.get("ring_cut") and not radius_clearly_measured(mark.radius_sd, r0):
             # cut against the surface round it, not the opening: kept here only if clearly a disk
-            # (held-out variant 42 at 20/20: a plate's cut with its side wall, radius ± 0.54 mm,
-            # 0.58 mm off; the later looks find it 0.14 mm off)
+            # (a plate's cut with its side wall measures its radius to ± 0.5 mm and its centre
+            # ~0.6 mm off; the later looks find the face alone)
             mark, reason = None, (f"cut against its surround and not clearly a disk (radius {mark.radius:.2f} ± "
                                   f"{mark.radius_sd:.2f} mm)")
         if mark is None:
@@ -249,8 +256,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         for blob in refused:
             if not _away(blob["centre"], result.marks, r_px):
                 continue
-            mark, _ = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, lit_sticker_edges=True,
-                               clipped=clipped)
+            mark = fitted(fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo,
+                                   lit_sticker_edges=True, clipped=clipped))
             if mark is not None and _of_capture_kind(mark, prefer):
                 result.marks.append(mark)
                 r_px.append(_radius_px(cal, mark, r0))
@@ -268,19 +275,19 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
 
 
 def size_groups(marks) -> list[dict]:
-    """Groups of marks whose free radii agree (within SIZE_CLUSTER_REL of the radius or 3 SD),
+    """Groups of marks whose free radii agree (within CONFIG.size_cluster_rel of the radius or 3 SD),
     largest first: {"radius", "sd", "n"} with the inverse-variance mean and its SD (scaled up by
     the scatter where the radii disagree more than their SDs say). SPEC §2: all seven are one
     size, so the largest group is the marks' size."""
     r = np.array([m.radius for m in marks], float)
     s = np.array([m.radius_sd for m in marks], float)
     ok = np.isfinite(r) & np.isfinite(s)
-    r, s = r[ok], np.maximum(s[ok], RADIUS_PRIOR_SD_MM)
+    r, s = r[ok], np.maximum(s[ok], CONFIG.radius_prior_sd_mm)
     groups, used = [], np.zeros(len(r), bool)
     while not used.all():
         best = None
         for i in np.flatnonzero(~used):
-            mem = ~used & (np.abs(r - r[i]) <= np.maximum(SIZE_CLUSTER_REL * r[i], 3 * np.hypot(s, s[i])))
+            mem = ~used & (np.abs(r - r[i]) <= np.maximum(CONFIG.size_cluster_rel * r[i], 3 * np.hypot(s, s[i])))
             key = (int(mem.sum()), float(np.sum(1 / s[mem] ** 2)))
             if best is None or key > best[0]:
                 best = (key, mem)
@@ -295,32 +302,31 @@ def size_groups(marks) -> list[dict]:
     return sorted(groups, key=lambda g: -g["n"])
 
 
-def _radius_px(cal: Calibration, mark: "Mark", radius_mm: float) -> float:
+def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     """A disk of ``radius_mm`` at the mark's depth, in camera pixels."""
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
 
 
 def _away(pixel, marks, r_px) -> bool:
     """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
-    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px))
+    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px, strict=True))
 
 
-def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -> None:
+def _restore_held(result: MarkSet, held, cal: Calibration, radius_mm: float) -> None:
     """The doubtful marks (free radius far from the size, ``Mark.doubtful``) after the second
     look: one is kept where no other mark lies within two radii, the first pass's (``held``)
     before the second look's own doubtful fits (a doubtful fit is no better than another), and
     among those the one with the most edge points. Its covariance carries the radius's
     disagreement ((Δ/2)², ``_fit_kind``). Under camera blur 0.9 px a 10 mm plate fitted 2.56 mm
     off (z 4.7) was replaced by the second look's fit 0.11 mm off; a plate 0.15 mm off (z 4.4)
-    with nothing better there is kept (docs/marks.md). None is kept once seven marks are kept:
-    a doubtful fit there can only be an eighth (held-out variant 344 at 20/-20, seen from
-    another viewpoint: skin by the leg's outline fitted 6.3 mm against 7.15, which left five leg
-    marks and the trial unlabelled)."""
+    with nothing better there is kept. None is kept once seven marks are kept: a doubtful fit
+    there can only be an eighth (skin by the leg's outline, which leaves five leg marks and the
+    trial unlabelled)."""
     late = [m for m in result.marks if m.doubtful]
     result.marks = [m for m in result.marks if not m.doubtful]
     for group in (held, late):
         for m in sorted(group, key=lambda m: -m.n_edge):
-            if m.circle_rms > DOUBTFUL_MAX_EDGE_RMS_MM:
+            if m.circle_rms > CONFIG.doubtful_max_edge_rms_mm:
                 continue
             if len(result.marks) >= len(LABELS):
                 result.rejected.append({"pixel": m.pixel, "reason": (
@@ -332,7 +338,7 @@ def _restore_held(result: "MarkSet", held, cal: Calibration, radius_mm: float) -
                 result.marks.append(m)
 
 
-def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
+def _wider_look(result: MarkSet, refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
                 thickness, prefer_kind, clipped=None) -> None:
     """Last of all, the refused blobs' wider cuts (``cut_blob``), away from the marks found, kept
     where the fit is clearly a disk (``radius_clearly_measured``, not doubtful): a
@@ -344,31 +350,32 @@ def _wider_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
         wider = blob.get("wider")
         if wider is None or not _away(blob["centre"], result.marks, r_px):
             continue
-        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
+        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
+                          clipped)
         if mark is not None:
             result.marks.append(mark)
             r_px.append(_radius_px(cal, mark, radius_mm))
 
 
-def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
+def _shape_look(result: MarkSet, refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
                 thickness, prefer_kind, clipped=None) -> None:
     """Last of all, where a refused blob's cut is not the disk (a thick plate's lit side wall,
-    brighter than its face, which is no brighter than the skin on the wall's side: variant 28
-    at 10/0, a 13.4 x 2 mm lateral ankle plate, every cut the wall's crescent alone): the disk
+    brighter than its face, which is no brighter than the skin on the wall's side: every cut
+    is then the wall's crescent alone): the disk
     as it must image, the marks' size on the surface round the blob (``predicted_disk``), slid
     over the blob's surround to where it stands out most (``disk_contrast_peak``), and fitted as
     a blob of that outline. Kept where the fit is clearly a disk, as the wider look's.
     Where the capture's plates have a thickness, the disk is also slid as a plate that thick,
     face and side wall together, and its face fitted: a thick plate lit at a grazing angle is a
-    bright wall under a dim face, and the disk alone stands out most over the wall (held-out
-    variant 76 at 0/-20: two of its table plates found only so). Which fit is kept:
-    ``_surer_shape_fit``."""
+    bright wall under a dim face, and the disk alone stands out most over the wall. Which fit
+    is kept: ``_surer_shape_fit``."""
     r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
     for blob in refused:
         if not _away(blob["centre"], result.marks, r_px):
             continue
-        def away_fit(height):  # _shape_fit, None where it lands on a mark already found
-            m = _shape_fit(image, points, cal, blob["centre"], radius_mm, height, sigma, prior_sd, albedo, thickness,
+        def away_fit(height: float, pixel: tuple = blob["centre"]) -> Mark | None:
+            # _shape_fit, None where it lands on a mark already found
+            m = _shape_fit(image, points, cal, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
                            prefer_kind, clipped)
             return m if m is not None and _away(m.pixel, result.marks, r_px) else None
 
@@ -381,17 +388,17 @@ def _shape_look(result: "MarkSet", refused, image, points, cal: Calibration, rad
 def _surer_shape_fit(alone, plate):
     """Of ``_shape_look``'s fits of the disk ``alone`` and of the ``plate`` outline (either may
     be None), the one to keep: a sure one before a doubtful one; then the disk's, unless the
-    plate's rests on SHAPE_PLATE_EDGE_RATIO times its edges or more. Where the plate outline is
+    plate's rests on CONFIG.shape_plate_edge_ratio times its edges or more. Where the plate outline is
     the right model, its face's profiles reach the far rim the disk alone, cut over the wall,
-    misses: table plates at 0/-20 of held-out variants 39, 50 and 76 had 14-32 edges against
-    8-13, 0.02-0.17 mm off against 0.16-0.72. Where both see the same rim the counts are close
-    and the disk alone was as good or better: front plates lit at 78-85° (variants 28, 59, 73,
-    92) had 17-34 edges against 12-33, 0.23-0.55 mm off against 0.17-0.28 (docs/marks.md)."""
+    misses (thick table plates seen obliquely: 14-32 edges against 8-13, 0.02-0.17 mm off
+    against 0.16-0.72). Where both see the same rim the counts are close and the disk alone was
+    as good or better (front plates lit at 78-85°: 17-34 edges against 12-33, 0.23-0.55 mm off
+    against 0.17-0.28)."""
     if alone is None or plate is None:
         return alone or plate
     if alone.doubtful != plate.doubtful:
         return plate if alone.doubtful else alone
-    return plate if plate.n_edge >= SHAPE_PLATE_EDGE_RATIO * alone.n_edge else alone
+    return plate if plate.n_edge >= CONFIG.shape_plate_edge_ratio * alone.n_edge else alone
 
 
 def _shape_fit(image, points, cal: Calibration, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
@@ -409,15 +416,14 @@ def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_s
                clipped=None):
     """A blob's wider cut fitted, kept only where the fit is clearly a disk (see ``_wider_look``):
     a short arc's free radius well measured, and, where that radius is far from the size
-    (doubtful), clean edges, as for a doubtful mark restored (``_restore_held``). Held-out
-    variant 92 at 0/+20: a 10 mm front ankle plate lit at 79°, radius 4.63 ± 0.05 mm against
-    4.99, edge RMS 0.14 mm, 0.17 mm off at an SD of 0.29 mm (the radius's disagreement is in
-    it), was refused as doubtful and the trial was left incomplete."""
-    mark, _ = fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                       plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped)
-    if mark is None or not radius_clearly_measured(mark.radius_sd, radius_mm) or not _of_capture_kind(mark, prefer_kind):
+    (doubtful), clean edges, as for a doubtful mark restored (``_restore_held``): a small front
+    plate lit at 79° measures a free radius 7 % short on clean edges and its centre within its
+    SD (the radius's disagreement is in it); refused, the trial would be incomplete."""
+    mark = fitted(fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                           plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped))
+    if mark is None or not (radius_clearly_measured(mark.radius_sd, radius_mm) and _of_capture_kind(mark, prefer_kind)):
         return None
-    return mark if not mark.doubtful or mark.circle_rms <= DOUBTFUL_MAX_EDGE_RMS_MM else None
+    return mark if not mark.doubtful or mark.circle_rms <= CONFIG.doubtful_max_edge_rms_mm else None
 
 
 def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
@@ -433,26 +439,25 @@ def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
 
 
 def _common_kind(kinds: list) -> str | None:
-    """The kind ("plate" / "sticker") of at least COMMON_KIND_SHARE of three or more fitted marks, else None."""
+    """The kind ("plate" / "sticker") of at least CONFIG.common_kind_share of three or more fitted marks, else None."""
     for kind in ("plate", "sticker"):
-        if len(kinds) >= 3 and kinds.count(kind) >= COMMON_KIND_SHARE * len(kinds):
+        if len(kinds) >= 3 and kinds.count(kind) >= CONFIG.common_kind_share * len(kinds):
             return kind
     return None
 
 
-def _of_capture_kind(mark: "Mark", prefer_kind) -> bool:
+def _of_capture_kind(mark: Mark, prefer_kind) -> bool:
     """False where the capture's marks are plates (``_common_kind``; a clinic sticks one kind)
     and a later look's fit has a face clearly flush with the surface. Those looks search weaker
-    contrast, where a bright patch of skin can pass for a sticker: by the leg's outline among
-    2.1 mm plates, held-out variant 378 at 0/+20 kept one (step -0.03 mm, edge RMS 0.22 mm)
-    beside the lateral ankle plate, and the true lateral mark was labelled the front one. Not
-    the other way round: a step is measured over a quadric, which a large sticker on a bony
-    ankle can leave, and variant 381's 24.4 mm lateral ankle sticker measured a step of
-    1.82 ± 0.13 mm, 0.14 mm off. An unclear step (a small disk at a grazing view) does not refuse."""
+    contrast, where a bright patch of skin can pass for a sticker (by the leg's outline, beside
+    a lateral ankle plate, one would take the front mark's label). Not the other way round: a
+    step is measured over a quadric, which a large sticker on a bony ankle can leave, so a
+    sticker may measure a step of a plate. An unclear step (a small disk at a grazing view) does
+    not refuse."""
     return not (prefer_kind == "plate" and step_kind(mark.step_mm, mark.step_sd) == "sticker")
 
 
-def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
+def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
                  albedo=None, plate_thickness=None, prefer_kind=None, clipped=None) -> None:
     """Candidates in the shading-corrected image, where fewer than seven plates were found.
 
@@ -473,18 +478,20 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
     if albedo is None:
         albedo = shading_corrected(image, points, cal)
     found = [m.pixel for m in result.marks]
-    r_px = float(plate_radius_px(cal, np.median(camera_depth(cal, points[decoded])), radius_mm))
+    depth = depth_image(cal, points)
+    r_px = float(plate_radius_px(cal, np.median(depth[decoded]), radius_mm))
     size = (radius_mm, radius_mm)
-    blobs = candidate_blobs(albedo, points, cal, noise_sigma(albedo), size, ring_background=True)
-    for blob in blobs + candidate_blobs(image, points, cal, noise_sigma(image), size, ring_background=True):
+    blobs = candidate_blobs(albedo, points, cal, noise_sigma(albedo), size, ring_background=True, depth=depth)
+    for blob in blobs + candidate_blobs(image, points, cal, noise_sigma(image), size, ring_background=True,
+                                        depth=depth):
         if any(np.hypot(*(np.asarray(blob["centre"]) - p)) < 2 * r_px for p in found):
             continue
-        if decoded[blob["slice"]][blob["region"]].mean() < SECOND_LOOK_MIN_DECODED:
+        if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
             continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
-        if border_undecoded(blob, decoded) > SECOND_LOOK_MAX_BORDER_UNDECODED:
+        if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
             continue  # a streak along the edge of the reconstruction, where the normals are mixed
-        mark, _ = fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped)
+        mark = fitted(fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
+                               plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped))
         if mark is not None and not _of_capture_kind(mark, prefer_kind):
             mark = None
         if mark is None and blob.get("wider") is not None:
@@ -492,23 +499,11 @@ def _second_look(result: "MarkSet", image, points, cal: Calibration, radius_mm: 
                               prefer_kind, clipped)
         if mark is not None:
             # two blobs can fit one disk: the blob is checked above, not where its fit lands
-            # (held-out variant 287 at 20/+20: a knee sticker twice, 0.01 mm apart)
             result.marks = _distinct(result.marks + [mark], cal, radius_mm)
             found = [m.pixel for m in result.marks]
 
 
-# ``_surer_shape_fit``: the plate outline's fit replaces the disk's where it has this many times its edges
-SHAPE_PLATE_EDGE_RATIO = 1.5
 
-# Plates found by the second look had >= 93 % of their blob decoded; the corrected image of the
-# sparsely decoded far floor is a patchwork (~40-60 %) whose bits can pass for a plate.
-SECOND_LOOK_MIN_DECODED = 0.8
-# The corrected image divides by the irradiance of a normal estimated over 7 x 7 points; where
-# that window straddles the edge of the reconstruction (a table's edge against the floor) the
-# normal is wrong and the "albedo" a bright streak, 4-6x the table's: at 0/+20 with 10 mm
-# plates one passed as an eighth mark (a sticker, edge RMS 0.27 mm) and the table triple was
-# ambiguous. Such a streak has about half its border undecoded; a disk on a surface ~none.
-SECOND_LOOK_MAX_BORDER_UNDECODED = 1 / 3
 
 
 
@@ -520,10 +515,6 @@ def _pixel_distance(blob, uv) -> float:
     return float(np.min(np.hypot(u + blob["origin"][0] - uv[0], v + blob["origin"][1] - uv[1])))
 
 
-# A clicked disk is fitted on edges that may scatter this much (the search alone: MAX_CIRCLE_RMS_MM,
-# 0.35 mm): the click says a disk is there, and the fit's SD carries the scatter. Held-out
-# stickers the search refused on their edges alone: 0.35-0.40 mm (variants 155 and 177).
-SNAP_MAX_EDGE_RMS_MM = 0.7
 
 
 def _brightest_cut(image, points, cal, uv, reach, r_max_mm, px_per_mm):
@@ -554,7 +545,8 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     at a grazing angle). Each is fitted as the search fits its marks, with the given size as a
     prior, or with its own free radius (a fit whose radius disagrees with the given size, a
     doubtful one, is passed over); the corrected image's blobs, and edges scattering up to
-    SNAP_MAX_EDGE_RMS_MM, only where the lit image's blobs give no mark. ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
+    CONFIG.snap_max_edge_rms_mm, only where the lit image's blobs give no mark.
+    ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
     """
     image = np.asarray(lit, np.float32)
     point = np.asarray(point, float).reshape(3)
@@ -567,17 +559,17 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
         return None
     px_per_mm = float(plate_radius_px(cal, depth, 1.0))
     reach = search_mm * px_per_mm
-    bounds = SIZE_RANGE_MM if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
+    bounds = CONFIG.size_range_mm if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
     albedo = shading_corrected(image, points, cal)
     fit = (image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo)
     tried = _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm)
-    best = _nearest_fit(tried, point, search_mm, fit, MAX_CIRCLE_RMS_MM)
+    best = _nearest_fit(tried, point, search_mm, fit, CONFIG.max_circle_rms_mm)
     if best is None:
         # the search alone would not have it either: a sticker that stands out only once the
-        # shading is corrected, or edges that scatter more (variants 155 and 177 at 0/±20). Only
-        # now, as it doubles the time of a click.
+        # shading is corrected, or edges that scatter more (a large sticker on a curved leg).
+        # Only now, as it doubles the time of a click.
         more = _near_blobs(albedo, points, cal, uv, reach, bounds, px_per_mm)
-        best = _nearest_fit(tried + more, point, search_mm, fit, SNAP_MAX_EDGE_RMS_MM)
+        best = _nearest_fit(tried + more, point, search_mm, fit, CONFIG.snap_max_edge_rms_mm)
     return best
 
 
@@ -597,21 +589,21 @@ def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
     best = None
     for blob in blobs:
         if mark_diameter_mm is None:
-            mark, _ = fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds, clipped=clipped,
-                               albedo=albedo, max_edge_rms=max_edge_rms)
+            mark = fitted(fit_mark(image, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=bounds,
+                                   clipped=clipped, albedo=albedo, max_edge_rms=max_edge_rms))
         else:
-            mark, _ = fit_mark(image, points, blob, cal, bounds[0], sigma, clipped=clipped, albedo=albedo,
-                               max_edge_rms=max_edge_rms)
+            mark = fitted(fit_mark(image, points, blob, cal, bounds[0], sigma, clipped=clipped, albedo=albedo,
+                                   max_edge_rms=max_edge_rms))
         if mark is None or mark.doubtful:
             # doubtful: its free radius is far from the marks' size. A click is not moved onto
-            # such a fit: front plates lit at 77-78° (held-out variants 173 and 224 at 20/+20)
-            # were fitted on their lit side wall, clean edges and a radius 7 % short, 2.7 and
-            # 3.9 mm off along the view at an SD of 0.24-0.31 mm; the click 3 mm off was kept
+            # such a fit: front plates lit at 77-78° can be fitted on their lit side wall, with
+            # clean edges and a radius 7 % short, millimetres off along the view at an SD of
+            # 0.3 mm; a click a few mm off is better kept
             continue
-        if mark.circle_rms > MAX_CIRCLE_RMS_MM:
+        if mark.circle_rms > CONFIG.max_circle_rms_mm:
             # edges that scatter past the search's limit are likely off the rim somewhere (the
             # foot over a sticker's lower part), not at random: the centre may be off by their
-            # RMS in the disk's plane (variant 177's, 0.31 mm off at 3.5 SD without it)
+            # RMS in the disk's plane
             B = plane_basis(mark.normal)
             mark.covariance = mark.covariance + mark.circle_rms ** 2 * (B.T @ B)
         d = float(np.linalg.norm(mark.centre - point))

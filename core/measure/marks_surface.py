@@ -1,5 +1,5 @@
 """A mark's disk on its local surface: the step under a plate, the quadric under a sticker,
-and the circle fitted *on* that surface (docs/marks.md, "Stickers and sizes").
+and the circle fitted *on* that surface (docs/marks.md, "The model").
 
 A sticker follows the skin: its boundary is the set of skin points a fixed distance from its
 centre *along the skin*, on a leg of 32-48 mm radius not a plane circle (a 20 mm disk wrapped
@@ -18,20 +18,16 @@ import math
 
 import numpy as np
 import scipy.optimize
-
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
+from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, plane_basis
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
 _GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
-MIN_SURFACE_POINTS = 12  # a quadric has 6 parameters
-STEP_FACE_FRACTION = 0.55  # the face's points: within this fraction of the blob's ellipse ...
-STEP_RING = (1.35, 1.9)  # ... the surface's: in this ring (x the ellipse), clear of rim and shadow
-MAX_EDGE_VIEW_DEG = 80.0  # a sticker's edge point seen more obliquely than this is on the limb
-SURFACE_REACH = 1.25  # x the blob's ellipse: the decoded points a sticker's quadric is fitted to
 
 
 def local_frame(centre, normal) -> np.ndarray:
@@ -49,7 +45,7 @@ def _design(x, y):
 def fit_quadric(L: np.ndarray, weights=None, extra=None, iterations: int = 4):
     """Robust weighted least squares z = a x² + b xy + c y² + d x + e y + g (+ Σ k_j extra_j) on
     local points L (N, 3). Returns (coef, rms, kept mask, covariance of coef) or None."""
-    if len(L) < MIN_SURFACE_POINTS:
+    if len(L) < CONFIG.min_surface_points:
         return None
     A = _design(L[:, 0], L[:, 1])
     if extra is not None:
@@ -159,13 +155,11 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
     quadric fitted to the decoded points of the disk and just around it (a sticker has no
     edge of its own in 3-D), its edge points the camera rays of the image outline cut with that
     quadric. Every edge point is usable: there is no side wall and no shadow. The frame is
-    re-centred on the centre found until it moves < PLANE_CONVERGED_MM."""
-    from anklescan.core.measure.mark_fit import MIN_EDGE_POINTS, PLANE_CONVERGED_MM, SD_FLOOR_MM  # noqa: PLC0415 (it imports this module)
-
+    re-centred on the centre found until it moves < CONFIG.plane_converged_mm."""
     cam_c = cal.camera.center
     rays_all = cal.camera.rays(profiles.points())
     lit_edge = decoded_across(profiles, points)  # not where the light ends
-    uv = ellipse_pixels(shape, SURFACE_REACH, points.shape[:2])
+    uv = ellipse_pixels(shape, CONFIG.surface_reach, points.shape[:2])
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
     ok = np.isfinite(P[:, 0])
     P = P[ok]
@@ -178,7 +172,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         F = local_frame(origin, n)
         q = fit_quadric((P - origin) @ F.T, w)
         if q is None:
-            return f"only {len(P)} decoded 3-D points on the mark"
+            return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {len(P)} decoded 3-D points on the mark")
         coef, surf_rms, keep, _ = q
         D = rays_all @ F.T
         E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
@@ -187,21 +181,21 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         gE = quadric_grad(coef, E[:, 0], E[:, 1])
         nE = np.column_stack([-gE, np.ones(len(E))])
         cos_v = np.abs(np.einsum("ij,ij->i", nE, D)) / np.linalg.norm(nE, axis=1)
-        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(MAX_EDGE_VIEW_DEG))) & lit_edge
-        if use.sum() < MIN_EDGE_POINTS:
-            return "edge points do not form a circle"
+        use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(CONFIG.max_edge_view_deg))) & lit_edge
+        if use.sum() < CONFIG.min_edge_points:
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
         if fit is None:
-            return "edge points do not form a circle"
+            return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         for _ in range(2):
             resid = fit[2]
             bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
-            if not bad.any() or (~bad).sum() < MIN_EDGE_POINTS:
+            if not bad.any() or (~bad).sum() < CONFIG.min_edge_points:
                 break
             use[np.flatnonzero(use)[bad]] = False
             fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
             if fit is None:
-                return "edge points do not form a circle"
+                return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         c2, r, resid, cov2, _ = fit
         g = quadric_grad(coef, c2[0], c2[1])
         centre = origin + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
@@ -210,7 +204,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         moved = float(np.linalg.norm(centre - origin))
         origin, n = centre, n_new
         c2 = np.zeros(2)
-        if moved < PLANE_CONVERGED_MM:
+        if moved < CONFIG.plane_converged_mm:
             break
     free = circle_on_surface(coef, E[use, :2], fit[0], fit[1]) if prior is not None else fit
     radius, radius_sd = (free[1], free[4]) if free is not None else (float("nan"), float("inf"))
@@ -222,14 +216,14 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
     rays_used = rays_all[use]
     gv = (rays_used / (rays_used @ n)[:, None]).mean(axis=0)
     var_offset = surf_rms**2 * 6.0 / max(int(keep.sum()), 1)
-    cov = in_surface + var_offset * np.outer(gv, gv) + SD_FLOOR_MM**2 * np.eye(3)
+    cov = in_surface + var_offset * np.outer(gv, gv) + CONFIG.sd_floor_mm**2 * np.eye(3)
     n = n if n @ (cam_c - centre) >= 0 else -n
-    return centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum())
+    return DiskFit(centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum()))
 
 
 def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | None:
     """Height (mm) of a disk's face over the surface around it, and its SD: one quadric through
-    the face's points (within STEP_FACE_FRACTION of the blob's ellipse) and the ring's (STEP_RING),
+    the face's points (within CONFIG.step_face_fraction of the blob's ellipse) and the ring's (CONFIG.step_ring),
     with a free offset for the face. A rigid plate stands its thickness proud; a sticker ~0.
     Also that surface's unit normal at ``frame_origin`` and the covariance (2, 2) of its slope
     along the frame's first two axes (radians²; the fit's, without model error): a plate rests
@@ -243,9 +237,9 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | Non
     7 SD; its neighbours' RMS 0.05-0.09). As a full SD it cost 1.5 mm table plates under camera
     blur their plate fit (step 0.99 mm, RMS 0.15)."""
     H, W = points.shape[:2]
-    face = ellipse_pixels(shape, STEP_FACE_FRACTION, (H, W))
-    outer = ellipse_pixels(shape, STEP_RING[1], (H, W))
-    inner = ellipse_pixels(shape, STEP_RING[0], (H, W))
+    face = ellipse_pixels(shape, CONFIG.step_face_fraction, (H, W))
+    outer = ellipse_pixels(shape, CONFIG.step_ring[1], (H, W))
+    inner = ellipse_pixels(shape, CONFIG.step_ring[0], (H, W))
     ring_mask = np.zeros((H, W), bool)
     ring_mask[outer[:, 1], outer[:, 0]] = True
     ring_mask[inner[:, 1], inner[:, 0]] = False
@@ -254,7 +248,7 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | Non
     is_face = np.r_[np.ones(len(face)), np.zeros(len(ur))]
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
     ok = np.isfinite(P[:, 0])
-    if ok[: len(face)].sum() < 6 or ok[len(face):].sum() < MIN_SURFACE_POINTS:
+    if ok[: len(face)].sum() < 6 or ok[len(face):].sum() < CONFIG.min_surface_points:
         return None
     s = sigma[uv[ok, 1], uv[ok, 0]] if sigma is not None else np.full(ok.sum(), 0.05)
     w = 1.0 / np.maximum(np.nan_to_num(s, nan=0.5), 0.01) ** 2
@@ -269,27 +263,19 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | Non
     return float(coef[6]), step_sd, n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded
 
 
-# A plate does not lie exactly in the tangent plane of the quadric fitted round it (the skin
-# under it is curved, it rests on its rim), and that quadric's own fit SD (0.1-0.2°) leaves
-# this out: on the face-on leg plates of 0/-20 its normal was 0.5-1.2° off where the face gave
-# 0.1-0.4°. Added to the surface's slope SD before weighting, so that the surface decides the
-# weakly seen tilt of a grazing plate's face (SD 1-5°) and hardly moves a face-on one's. With
-# 1° a table plate seen at 72° stayed 0.38 mm off; with none, a plate beside the foot whose
-# surround held part of it moved from 0.07 to 0.23 mm (docs/marks.md).
-SURFACE_NORMAL_FLOOR_DEG = 0.5
 
 
 def combined_normal(normal, tilt, surface):
     """The plate's normal from its face (``normal``, slope covariance ``tilt``) and from the
     surface it rests on (``surface``: normal, basis, slope covariance, plus
-    SURFACE_NORMAL_FLOOR_DEG), inverse-variance weighted. Returns the normal and its (basis,
+    CONFIG.surface_normal_floor_deg), inverse-variance weighted. Returns the normal and its (basis,
     slope covariance). No consistency gate: the face's SD comes from its points' scatter and
     misses their bias (rim pixels in the strip seen at a grazing view); a chi² gate at 99 %
     kept a face 3.6° off (SD 0.7°) against a surface 0.6° off, and that plate 0.53 mm off."""
     B, C1 = tilt
     n2, F2, C2 = surface
     R = B @ F2.T  # the surface's slope axes into the face's
-    C2 = R @ C2 @ R.T + math.radians(SURFACE_NORMAL_FLOOR_DEG) ** 2 * np.eye(2)
+    C2 = R @ C2 @ R.T + math.radians(CONFIG.surface_normal_floor_deg) ** 2 * np.eye(2)
     a2 = -(B @ n2) / float(n2 @ normal)  # the surface's slope in the face's frame (the face's is 0)
     try:
         W1, W2 = np.linalg.inv(C1), np.linalg.inv(C2)

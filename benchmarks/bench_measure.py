@@ -1,0 +1,74 @@
+"""``anklescan measure`` side by side with ``anklescan reconstruct`` and a bare process that only
+reads the same PNGs, each timed as a fresh subprocess (interpreter start, imports, everything),
+on a simulated full-resolution capture with the default scene's seven marks.
+
+    python benchmarks/bench_measure.py [--runs 5] [--layout side] [--axes column,row] [--keep DIR] [--profile]
+
+The capture and its calibration are made as ``bench_command.py`` makes them (``--keep DIR``
+keeps and reuses them). Runs alternate bare / reconstruct / measure so that a busy machine slows
+all three alike; medians and minima are printed, and the measure / bare ratio (issue 41's
+target: at most 2). ``--profile`` also runs ``measure`` once under cProfile and prints where
+its time goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_command import BARE, ROOT, make_capture, timed  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--layout", default="side")
+    ap.add_argument("--axes", help="stripe axes of the capture (default: what the rig needs)")
+    ap.add_argument("--keep", type=Path)
+    ap.add_argument("--profile", action="store_true")
+    args = ap.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-measure-"))
+    work.mkdir(parents=True, exist_ok=True)
+    axes = tuple(args.axes.split(",")) if args.axes else None
+    folder, cal_path = make_capture(work, args.layout, axes, 1.0)
+    n_frames = sum(1 for p in folder.iterdir() if p.suffix == ".png")
+    cli = [sys.executable, "-m", "anklescan.app.cli", "-q"]
+    commands = {
+        "bare PNG read (2 threads)": [sys.executable, "-c", BARE, str(folder), "2"],
+        "anklescan reconstruct": cli + ["reconstruct", str(folder), "--calibration", str(cal_path),
+                                        "--out", str(work / "cloud.ply")],
+        "anklescan measure": cli + ["measure", str(folder), "--calibration", str(cal_path),
+                                    "--out", str(work / "result.json")],
+    }
+    for cmd in commands.values():
+        timed(cmd)  # warm the page cache and the interpreter's bytecode
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in commands}
+    for _ in range(args.runs):
+        for name, cmd in commands.items():
+            times[name].append(timed(cmd))
+    print(f"capture: {n_frames} PNG frames (1600x1200), {folder}; {args.runs} alternating runs each")
+    for name, t in times.items():
+        wall, cpu = [x[0] for x in t], [x[1] for x in t]
+        print(f"{name:28s} wall median {statistics.median(wall):.2f} s, min {min(wall):.2f} s; "
+              f"CPU median {statistics.median(cpu):.2f} s")
+    keys = ("bare PNG read (2 threads)", "anklescan measure")
+    wall_b, wall_m = (statistics.median(x[0] for x in times[k]) for k in keys)
+    cpu_b, cpu_m = (statistics.median(x[1] for x in times[k]) for k in keys)
+    print(f"measure / bare read: wall medians {wall_m / wall_b:.2f}, CPU medians {cpu_m / cpu_b:.2f} (target <= 2)")
+    if args.profile:
+        prof = work / "measure.prof"
+        subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof)] + commands["anklescan measure"][1:],
+                       check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        import pstats
+
+        pstats.Stats(str(prof)).sort_stats("cumulative").print_stats(30)
+
+
+if __name__ == "__main__":
+    main()

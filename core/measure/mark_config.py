@@ -1,0 +1,259 @@
+"""Every parameter of the marks detector, in one frozen dataclass (docs/marks.md, "Parameters").
+
+Each field says what it is, in which unit, and why it has its value: a physical property of
+a mark (SPEC §2: a white disk 8-25 mm across, a plate up to 3 mm thick or a sticker on the
+skin), of the imaging (blur, noise, the projector's light) or of a fit's statistics. The
+detector's modules read ``CONFIG``, the default instance; no numeric threshold lives in them.
+
+Units: ``_mm`` millimetres in the world, ``_px`` camera pixels, ``_deg`` degrees, ``_rad``
+radians; a bare number is a ratio (its docstring says of what) or a count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class MarkConfig:
+    """The marks detector's parameters. Defaults are the values the accuracy table of
+    docs/marks.md was measured with."""
+
+    # ------------------------------------------------------------------ candidates (mark_candidates.py)
+    # A white disk (albedo ~0.9) on skin (~0.45) or the table (~0.55) has a top-hat of 0.6-1.0 x
+    # its surround; this lower bound leaves room for shading without admitting the smooth
+    # variation of the skin's own albedo.
+    min_relative_contrast: float = 0.1
+    #: and the top-hat must stand this many noise SDs above zero (dark regions)
+    min_contrast_sigmas: float = 8.0
+    #: px: decoded points averaged before differencing for a normal (a disk is ~20 px across)
+    normal_window_px: int = 7
+    #: candidate searches at radii this factor apart span a size range (one opening wide enough for
+    #: the largest disk swallows a leg as narrow as three disks)
+    scale_step: float = 1.6
+    #: mm: depths further apart than this within ``depth_step_reach_px`` are an outline (the table
+    #: behind the leg lies 100 mm and more further), not a surface seen obliquely (a face at 73°
+    #: recedes ~2 mm per pixel)
+    depth_step_mm: float = 20.0
+    depth_step_reach_px: int = 3
+    #: a blob cut at a depth step must have one along at least this share of its outline
+    depth_step_min_border: float = 0.1
+    #: the first cut, at this fraction of the seed's contrast, finds the blob's own level; a thick
+    #: plate seen at a grazing angle has a side wall several times brighter than its face, and a
+    #: cut this high keeps the face's level, not the wall's
+    first_cut: float = 0.35
+    #: the blob's wider alternative (face and lit wall together), fitted only where the first
+    #: cut is refused
+    wider_first_cut: float = 0.2
+    #: x the blob's area: a wider cut that adds less than this is the same blob
+    wider_min_growth: float = 1.3
+
+    # ------------------------------------------------------------------ edges (mark_edges.py)
+    #: px: sample spacing along a radial edge profile
+    profile_step_px: float = 0.2
+    #: px: the refined plane uses pixels at least this far inside the image of the top face
+    top_margin_px: float = 2.0
+    #: px: the outside level is the darkest sample within this of the edge (a thin shadow)
+    edge_outside_px: float = 2.5
+    #: mm: a side wall h tall shifts the outline by h |a_c|; edge points shifted more are dropped
+    wall_shift_max_mm: float = 0.03
+    #: px: a projector-shadow sliver wider than this beside the rim biases the edge inwards ...
+    sliver_max_px: float = 0.0
+    #: px: ... unless it is resolved, several pixels wide
+    sliver_resolved_px: float = 3.0
+    #: x the plate's level: a surface brighter than this beside the rim makes no clear fall
+    sliver_level_max: float = 0.8
+    #: clean edges needed to measure the blur; else ``default_blur_px``
+    min_blur_edges: int = 5
+    #: px: the optics' blur SD assumed where it cannot be measured on the rim
+    default_blur_px: float = 0.8
+    #: x the disk's level: a profile leaves the disk's plateau below this
+    leave_plateau: float = 0.85
+    #: x the disk's level: the surface just past a clear edge is at most this bright
+    surface_step_level: float = 0.8
+    #: share of a disk's samples at the clip level for its level to count as clipped (fewer: noise)
+    clipped_solid: float = 0.9
+    #: x the mark's SD: a clipped rim that raises it this much or more makes the mark "overexposed"
+    clip_sd_rise: float = 1.1
+    #: x the contrast: a clipped plateau's own noise
+    plateau_drop: float = 0.03
+    #: x the clipped contrast: the fall's lower reference crossing
+    low_fraction: float = 0.1
+    #: for a blurred step clipped at half its contrast or more, the half-way crossing of the clipped
+    #: level lies outside the true one by at most this x its distance to the ``low_fraction``
+    #: crossing: -Φ⁻¹(f/2) / (Φ⁻¹(f/2) - Φ⁻¹(f/10)) for f = 0.5
+    max_bias_per_fall: float = 0.69
+
+    # ------------------------------------------------------------------ one disk's fit (mark_fit.py)
+    #: mm: a face standing less than this over the surface round it is a sticker (no side wall, no
+    #: shadow sliver); plates are 1-3 mm thick (SPEC §2) and a sticker's step measures 0.0 ± 0.1 mm
+    sticker_max_step_mm: float = 0.5
+    #: x π r_px²: a blob's area, from a grazing view (cos ~0.15) to face-on plus a side wall
+    area_range: tuple[float, float] = (0.12, 1.8)
+    #: blob area / area of its fitted ellipse: an ellipse's image
+    min_fill: float = 0.80
+    max_fill: float = 1.15
+    min_solidity: float = 0.88
+    #: mm: a free radius this far from the marks' size is another object (3 SD of the fit where
+    #: larger, up to ``max_radius_tolerance_mm``: a straight edge's SD is huge)
+    radius_tolerance_mm: float = 1.5
+    max_radius_tolerance_mm: float = 3.0
+    #: mm: the first plane, on the blob's interior, still holds rim and side wall
+    max_plane_rms_mm: float = 0.6
+    #: mm: the plane refitted to the top face alone is flat to the decoding noise; a fit locked
+    #: onto side wall and shadow edge scatters 0.3-0.5 mm
+    max_top_face_rms_mm: float = 0.2
+    #: ... raised to this many times the face points' median predicted SD where they are noisier
+    #: (a wrong model leaves 1.8-4.2 times their SD)
+    face_rms_per_sigma: float = 1.5
+    #: mm: edge points about the fitted circle, at most (a rim is sharp to the edge noise)
+    max_circle_rms_mm: float = 0.35
+    #: mm: the free radius's SD; a real rim's arc measures it to 0.01-0.3 mm, a short arc of
+    #: something else (a lit patch of skin) to ~1.4 mm
+    max_radius_sd_mm: float = 0.6
+    #: SDs of the free radius and the size, in quadrature: a free radius further than this from
+    #: the marks' size may not be the disk's rim (a short arc on a side wall or in blur); the fit is
+    #: held back (``Mark.doubtful``) while the later looks search its place
+    max_radius_z: float = 4.0
+    #: mm, and share of the size: a last-chance fit (a wider cut, a predicted outline) must measure
+    #: its free radius at least this well (the larger of the two) to be clearly a disk
+    wider_max_radius_sd_mm: float = 0.3
+    wider_max_radius_sd_rel: float = 0.04
+    #: decoded points for a plane (3 are always coplanar; 6 leave a tilt to measure)
+    min_interior_points: int = 6
+    #: deg: a disk lit more obliquely gets under cos 85° = 9 % of the light, too little to
+    #: place its rim
+    max_light_deg: float = 85.0
+    #: rad: a plane's tilt SD about the long axis of its points, (point SD) / (spread · √n);
+    #: above this its points lie on a line, not a face
+    max_plane_tilt_sd_rad: float = 0.1
+    #: edge points for a circle
+    min_edge_points: int = 8
+    #: share of a blob's border left undecoded, at most, for a sticker: a sticker lies on the skin,
+    #: lit as the skin round it, so that skin is decoded; a bright patch seen between depth steps
+    #: is not (0.9-1.0). A plate's surround may be shadowed all round.
+    sticker_max_border_undecoded: float = 0.8
+    #: share of the ring round a plate that must be decoded for the surface's normal to steady the
+    #: plate's: a ring with a gap (a shadow) extrapolates on a curved surface
+    surface_ring_min_decoded: float = 0.9
+    #: of the image ellipse: the first plane's pixels, clear of most of the rim
+    interior_fraction: float = 0.55
+    #: at most this many alternations of plane (from the top face) and circle (in that plane) ...
+    plane_passes: int = 6
+    #: mm: ... until the centre moves less than this
+    plane_converged_mm: float = 0.005
+    #: triples tried for the first plane's largest consensus among the interior points
+    consensus_trials: int = 150
+    #: re-find the shadow-sliver edges with the centre found, refit; this many times
+    sliver_passes: int = 2
+    #: mm: SD of the marks' radius where it is given (a cut disk is true to ~0.1 mm in diameter);
+    #: the prior steadies a short arc's centre
+    radius_prior_sd_mm: float = 0.05
+    #: mm: lower bound of the edge-point scatter used for weights and SDs
+    edge_noise_floor_mm: float = 0.03
+    #: mm: added in quadrature to every centre's SD: the RMS centre error with a true calibration
+    #: (decoding biases near the disk, which a fit's own scatter does not show)
+    sd_floor_mm: float = 0.05
+    #: px: the half-contrast edge's systematic offset from the true rim, common to one rim, at a
+    #: face-on view; it grows as 1/cos(view) ...
+    edge_level_sd_px: float = 0.1
+    #: ... up to this grazing a view (cos 78°)
+    cos_view_min: float = 0.2
+    #: a plate refitted on edges profiled across its found face counts only where those edges
+    #: scatter at most this x the first edges' RMS (more: the profiles crossed something else)
+    reprofile_max_rms_ratio: float = 1.25
+    #: a stray arc in a plate's outline (a straight shadow edge): the rim is the circle at least
+    #: this share of the edges lie on ...
+    stray_arc_min_share: float = 0.6
+    #: mm and px: ... within the larger of these (good rims scatter 0.03-0.1 mm) ...
+    stray_arc_tol_mm: float = 0.15
+    stray_arc_tol_px: float = 0.3
+    #: ... found among this many triples of edges (a fixed sample: the same capture, the same marks)
+    stray_arc_trials: int = 200
+    #: x the radius: a sticker's centres from the shading-corrected and the lit image's edges lie
+    #: at most this far apart, where it is lit within ``lit_shift_max_light_deg`` (beyond, the lit
+    #: image's own edges drift with the shading); further, the two images do not see one disk
+    lit_shift_max_radii: float = 0.75
+    lit_shift_max_light_deg: float = 75.0
+    #: a disk's face is one surface: of the decoded points within ``face_span_fraction`` of its
+    #: outline, at most ``face_off_share`` lie off its plane by more than the larger of
+    #: ``face_off_mm`` and ``face_off_radii`` x its radius (a sticker's sag on the leg is under a
+    #: fifth of its radius); more is an outline through it (a table's edge over the floor)
+    face_span_fraction: float = 0.7
+    face_off_share: float = 0.1
+    face_off_mm: float = 3.0
+    face_off_radii: float = 0.3
+    #: deg: a face lit within this gets at least cos 50° = 64 % of the light all across, so its
+    #: blob covers the whole disk; a blob of less than ``min_seen_share`` of the disk's image is
+    #: partly in a cast shadow or hidden, and its visible rim is in part the shadow's edge
+    seen_max_light_deg: float = 50.0
+    min_seen_share: float = 0.5
+
+    # ------------------------------------------------------------------ sticker surface (marks_surface.py)
+    #: decoded points for the local quadric (6 parameters)
+    min_surface_points: int = 12
+    #: the face's points for the step: within this fraction of the blob's ellipse ...
+    step_face_fraction: float = 0.55
+    #: ... the surface's: in this ring (x the ellipse), clear of rim and shadow
+    step_ring: tuple[float, float] = (1.35, 1.9)
+    #: deg: a sticker's edge point seen more obliquely than this is on the limb
+    max_edge_view_deg: float = 80.0
+    #: x the blob's ellipse: the decoded points a sticker's quadric is fitted to
+    surface_reach: float = 1.25
+    #: deg: added to the surface's slope SD before it is combined with a plate's own normal: a plate
+    #: rests on its rim, not in the quadric's tangent plane
+    surface_normal_floor_deg: float = 0.5
+
+    # ------------------------------------------------------------------ labels (mark_labels.py)
+    #: deg: the three table marks' normals agree within this
+    table_normal_spread_deg: float = 8.0
+    #: deg: the second-best table triple must be this much worse
+    ambiguity_margin_deg: float = 10.0
+    #: mm: with fewer than four leg marks, knee and ankle groups lie this far apart in z
+    partial_leg_gap_mm: float = 100.0
+    #: a pair's two marks lie about one level of the leg: their spread along it, over the
+    #: knee-to-ankle distance, is at most this (hand-stuck pairs: 0.05-0.15 of the shank)
+    pair_max_spread: float = 0.2
+    #: deg: front and lateral normals must be this far apart round the leg to be told apart
+    side_margin_deg: float = 20.0
+    #: deg: with both pairs labelled, each mark faces round the leg nearer its own role's mark of the
+    #: other pair, or not more than this worse (a tibia twists 20-30° between knee and ankle)
+    cross_pair_margin_deg: float = 20.0
+    #: deg: without the other pair, front marks face ~90° round the leg (0 = lateral), lateral
+    #: ones 0-40°; this splits them
+    lone_split_deg: float = 65.0
+    #: mm: with one leg pair lost, the other is the knee's if it is this far over the table top
+    #: (ankle marks sit 50-100 mm over the sole, knee marks 300-500 mm)
+    knee_min_height_mm: float = 200.0
+    #: leg marks face sideways: |n_z| below this (the leg stands; z is up, SPEC §1)
+    leg_normal_max_z: float = 0.7
+
+    # ------------------------------------------------------------------ the search (marks.py)
+    #: mm: radii searched where the size is not given: SPEC §2's 8-25 mm diameters with a margin
+    #: (a disk seen at a grazing angle, or blurred, measures a little off)
+    size_range_mm: tuple[float, float] = (3.5, 13.5)
+    #: free radii within this fraction of each other (or 3 SD) are one size
+    size_cluster_rel: float = 0.08
+    #: mm: a given radius this far (or 3 SD) from the measured one fits no mark
+    given_size_tolerance_mm: float = 0.75
+    #: mm: a doubtful mark (free radius far from the size) is kept only with edges this clean
+    #: (good rims: 0.05-0.2 mm)
+    doubtful_max_edge_rms_mm: float = 0.25
+    #: of the first pass's fits: the capture's kind of mark (a clinic sticks one kind), the only
+    #: one fitted where a disk's step is unclear
+    common_kind_share: float = 0.75
+    #: the plate outline's fit replaces the disk's in the shape look where it has this many
+    #: times its edges (it reaches the far rim the disk alone, cut over the wall, misses)
+    shape_plate_edge_ratio: float = 1.5
+    #: share of a second-look blob that must be decoded: a sparsely decoded far surface's
+    #: corrected image is a patchwork whose bits can pass for a disk
+    second_look_min_decoded: float = 0.8
+    #: share of a second-look blob's border left undecoded, at most: along the edge of the
+    #: reconstruction the normal (over 7 x 7 points) is wrong and the corrected image a streak
+    second_look_max_border_undecoded: float = 1 / 3
+    #: mm: a clicked disk may be fitted on edges that scatter this much (the click says a disk
+    #: is there, and the fit's SD carries the scatter)
+    snap_max_edge_rms_mm: float = 0.7
+
+
+CONFIG = MarkConfig()
