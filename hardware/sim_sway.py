@@ -7,9 +7,11 @@ marks stuck on them; never the tables, stand or floor) is displaced at time ``t`
 
 a translation ``s(t)`` along the unit direction ``u`` plus a tilt ``R(t)`` about the ankle
 (axis z x u, angle ``tilt_deg_per_mm * s(t)``), so the knee moves further than the ankle, as in
-ankle-strategy sway. ``s(t) = A (sin(w t + phase) - sin(phase))`` with ``w = speed / A``: an
-oscillation of half-range ``amplitude_mm`` whose peak speed is ``speed_mm_s``;
-``amplitude_mm = inf`` is a steady drift ``speed * t``.
+ankle-strategy sway. The shape of ``s(t)`` (``SwayShape``): ``A (sin(w t + phase) - sin(phase))``
+with ``w = speed / A``, an oscillation of half-range ``amplitude_mm`` whose peak speed is
+``speed_mm_s``; ``amplitude_mm = inf``, a steady drift ``speed * t``; or a twitch out by ``A``
+and back (``Sway.twitch_of``). ``Sway.rotation`` keeps only the tilt (a rotation about the ankle:
+the ankle stays), and ``CombinedSway`` composes several.
 
 The camera sets the time between frames (``FRAME_S``): a synchronised webcam takes a frame
 every ~30 ms, a DSLR every ~2 s, so the same patient moves ~60 times further during a DSLR
