@@ -118,6 +118,8 @@ def test_drift_is_measured_and_flagged(moved):
     assert out["motion_mm"]["value"] == pytest.approx(m.value_mm, abs=1e-3)
     assert out["motion"]["flagged"] is True and out["motion"]["scan_duration_s"] > 0.5
     assert "MOVED" in result.format_text()
+    assert [w for w in out["warnings"] if "during the scan" in w] == [
+        f"the subject moved {m.value_mm:.1f} mm during the scan (more than the 0.5 mm threshold: scan again)"]
     json.dumps(out)  # RESULT.json stays serialisable
 
 
@@ -248,25 +250,39 @@ def test_sway_shapes_move_as_described():
     assert np.allclose(R2, R) and np.allclose(T2, [0.0, 1.0, 0.0])
 
 
+@pytest.fixture(scope="module")
+def shape_scan(tmp_path_factory):
+    """Each shape's scan, made once for the module (the rotation serves two tests)."""
+    done = {}
+
+    def get(shape):
+        if shape not in done:
+            make, camera = SHAPES[shape]
+            done[shape] = _shape_scan(tmp_path_factory.mktemp("shape"), "c", make, camera)
+        return done[shape]
+
+    return get
+
+
 @pytest.mark.parametrize("shape", list(SHAPES))
-def test_motion_of_any_shape_is_measured(tmp_path, shape):
-    make, camera = SHAPES[shape]
-    _, _, m, true = _shape_scan(tmp_path, "c", make, camera)
+def test_motion_of_any_shape_is_measured(shape_scan, shape):
+    _, _, m, true = shape_scan(shape)
     print(f"{shape}: true {true:.2f} mm, estimate {m.value_mm:.2f} ± {m.sd_mm:.2f} mm")
     assert true > 0.7
     assert abs(m.value_mm - true) <= 0.3 * true
     assert m.flagged(0.5)
 
 
-def test_marks_lost_to_motion_say_how_far_it_moved(tmp_path):
+def test_marks_lost_to_motion_say_how_far_it_moved(shape_scan, tmp_path):
     """A rotation about the ankle that moves the top of the leg 3 mm: the marks are lost, and the
     one-line error says the subject moved, by the motion measured without them."""
-    rig, capture, m, true = _shape_scan(tmp_path, "c", SHAPES["rotation about the ankle"][0])
+    rig, capture, m, true = shape_scan("rotation about the ankle")
     save_calibration(rig.true_calibration(), tmp_path / "cal.json")
     try:
-        result = run_measure(tmp_path / "c", tmp_path / "cal.json", tmp_path / "RESULT.json")
+        result = run_measure(capture.folder, tmp_path / "cal.json", tmp_path / "RESULT.json")
     except AnkleScanError as e:
         msg = str(e)
+        print(msg[:160])
         assert "\n" not in msg and "nothing written" in msg and not (tmp_path / "RESULT.json").exists()
         moved = float(msg.split("moved ")[1].split(" mm during the scan")[0])
         assert moved == pytest.approx(m.value_mm, abs=0.05)
