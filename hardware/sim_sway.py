@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
+
 from anklescan.core.vocabulary import LEG_LABEL_KEYS, LEG_LABELS
 from anklescan.hardware.sim_scene import ObjectId, Scene, SimMark
 
@@ -249,6 +250,7 @@ def frame_transport(still, posed):
     Every row of the transport holds exactly 4 taps per sub-sample, so a pixel's row is a fixed
     slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
     import scipy.sparse
+
     from anklescan.hardware.simrig import LightTransport, single_threaded_blas
 
     still.prepare()

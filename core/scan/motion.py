@@ -2,8 +2,8 @@
 
 A standing patient sways, and a scan is a sequence of frames taken over ~1 s (webcam) to a
 minute (DSLR). A capture made with motion references (``make_pattern_set(motion_refs=...)``)
-shows a quadrature pair of its phase frames again at the start, at evenly spaced times and at
-the end (manifest ``kind: "repeat"``). The method:
+shows a quadrature pair of its phase frames again at the start, at evenly spaced times (by
+default every ~4 main frames) and at the end (manifest ``kind: "repeat"``). The method:
 
 1. Per pixel, the first-harmonic phase of a look is fitted from its samples ``I_j`` at the pattern
    shifts ``d_j``, with the background ``A`` (mean of the main phase frames) known:
@@ -21,8 +21,9 @@ the end (manifest ``kind: "repeat"``). The method:
    normals of a curved patch span the directions a sway moves it in; a direction no normal sees
    shrinks towards 0 rather than inventing motion). Static surfaces give 0 without being told.
 4. The subject's largest displacement is the largest distance between any two of a patch's
-   positions at the looks, debiased for noise, over the patches with enough points (ranked by
-   their lower confidence bound; the second is taken), with its standard deviation from the fit,
+   positions at the looks (every pair: a sway that comes back is read at its far end), debiased
+   for noise, over the patches with enough points (ranked by their lower confidence bound, whose
+   width grows with the number of pairs compared; the second is taken), with its standard deviation from the fit,
    the disagreement of the top patches and a model term.
 
 Nothing about the scene is assumed: what moves, where, and in which direction all come from
@@ -38,6 +39,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
