@@ -106,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="default; paper (the paper's 18 frames); short (fewer frames, for slow cameras)")
     pt.add_argument("--motion-refs", type=bounded_int(0, MAX_MOTION_REFS), default=None,
                     help="repeats of a phase-frame pair spread over the scan, to measure how far the subject moved "
-                         "(default: 3 for default, 2 for short, 0 for paper; 0 = none)")
+                         "(default: 9 for default, 7 for short, 0 for paper; 0 = none)")
     pt.add_argument("--axes", default=None,
                     help="column, row or column,row (default: both, which work whatever side of the camera the "
                          "projector stands on; with --calibration, what that rig needs; the paper preset: column)")

@@ -2,12 +2,16 @@
 still postures, and what the motion-reference frames and the short preset cost.
 
     python benchmarks/bench_motion.py [--scale 0.5] [--camera webcam|dslr] [--drifts 0,0.5,1,2,5]
-                                      [--axes sideways,forward] [--sweep] [--cost] [--preset default]
+                                      [--axes sideways,forward] [--sweep] [--cost] [--shapes] [--preset default]
 
 * drift: the ankle drifts the given mm over the scan (plus the tilt about the ankle that goes with
   it, hardware/sim_sway.py); "true" is the largest distance any seen point of the subject travels
   between two frames; the estimate must be within 30 % or 0.2 mm of it.
 * --sweep: the still posture sweep (table inversion 0, 10, 20 x plantar flexion -20..20): no flags.
+* --shapes: motion of other shapes (issue 37): a 1 mm sway back and forth, a 1 mm twitch that
+  returns within the Gray-code frames (held as long as the widest gap between two looks, and a
+  short one held 1 frame: the limit), a rotation about the ankle moving the top of the leg 3 mm,
+  and a sway with a twitch on top; per camera kind (--camera), with the preset's looks and with 3.
 * --cost: frames, scan time per camera and accuracy (RMS over the subject, against the truth) of
   the default set without and with the references, and of the short preset, on a still scene;
   plus the accuracy of a swaying scan against its mid-scan truth.
@@ -28,12 +32,24 @@ sys.path.insert(0, str(ROOT))
 
 from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
 from anklescan.core.scan.decode import decode  # noqa: E402
-from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, default_motion_refs, estimate_motion  # noqa: E402
+from anklescan.core.scan.motion import (  # noqa: E402
+    DEFAULT_THRESHOLD_MM,
+    default_motion_refs,
+    estimate_motion,
+    motion_looks,  # noqa: E402
+)
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
 from anklescan.core.scan.reconstruct import cloud_from_decoded  # noqa: E402
 from anklescan.hardware.sim_accuracy import evaluate  # noqa: E402
-from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
-from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement  # noqa: E402
+from anklescan.hardware.sim_scene import ObjectId, leg_scene  # noqa: E402
+from anklescan.hardware.sim_sway import (  # noqa: E402
+    FRAME_S,
+    CombinedSway,
+    Sway,
+    SwayClock,
+    swaying_capture,
+    true_largest_displacement,
+)
 from anklescan.hardware.simrig import SimRig  # noqa: E402
 
 
@@ -104,14 +120,53 @@ def variety(args, work):
         "drift 3 mm with a vertical part, table 15/-10": (leg_scene(15, -10), Sway((0.8, 0.3, 0.3), math.inf, 3.0 / (36 * 0.03)), "webcam"),
         "DSLR, +-1 mm at 0.5 mm/s forward": (leg_scene(), Sway((0, 1, 0), 1.0, 0.5, 1.0), "dslr"),
     }
-    print(f"\n[variety] scale {args.scale}, default set + 3 looks")
+    print(f"\n[variety] scale {args.scale}, default set + {args.refs} looks")
     for name, (scene, sway, camera) in cases.items():
         rig = SimRig(scene, scale=args.scale, seed=11)
-        pset = make_pattern_set("default", rig.projector.width, rig.projector.height, motion_refs=3)
+        pset = make_pattern_set("default", rig.projector.width, rig.projector.height, motion_refs=args.refs)
         _, _, m, times = scan(rig, pset, sway, FRAME_S[camera], work / "variety")
         true = true_largest_displacement(rig, sway, times)
         print(f"  {name:52s} true {true:5.2f}  estimate {m.value_mm:5.2f} ± {m.sd_mm:4.2f} mm  "
               f"{'within' if ok(m.value_mm, true) else 'OUTSIDE'}  flagged {m.flagged()}", flush=True)
+
+
+def _twitch(pset, frame_s: float, height_mm: float, hold_frames: int | None = None, axis="sideways") -> Sway:
+    """Out and back within the Gray-code frames; held ``hold_frames`` (default: the widest gap between looks)."""
+    gray = [i for i, f in enumerate(pset.frames) if f.kind == "gray"]
+    starts = [lk[0] for lk in motion_looks(pset)]
+    gap = max(b - a for a, b in zip(starts, starts[1:], strict=False))
+    hold = gap if hold_frames is None else hold_frames
+    return Sway.twitch_of(height_mm, gray[len(gray) // 4] * frame_s, hold * frame_s, frame_s, axis, tilt_deg_per_mm=0.0)
+
+
+def shapes(args, work):
+    fs = FRAME_S[args.camera]
+    print(f"\n[shapes] scale {args.scale}, {args.camera} ({fs} s/frame), preset {args.preset}")
+    print("shape                                     looks frames  scan s   true  estimate          error")
+    for refs in dict.fromkeys((args.refs, 3)):
+        rig = SimRig(leg_scene(*args.posture), scale=args.scale, seed=3)
+        pset = make_pattern_set(args.preset, rig.projector.width, rig.projector.height, motion_refs=refs)
+        n = len(pset.frames)
+        dur = n * fs
+        top = next(o for o in rig.scene.objects if o.kind == ObjectId.LEG).length
+        cases = {
+            "still": Sway(),
+            "sway 1 mm peak to peak, once": Sway.back_and_forth(1.0, dur, "sideways", tilt_deg_per_mm=0.0),
+            "sway 1 mm p-p, 2.3 times, forward": Sway.back_and_forth(1.0, dur / 2.3, "forward", phase_rad=0.7,
+                                                                      tilt_deg_per_mm=0.0),
+            "twitch 1 mm in the Gray code": _twitch(pset, fs, 1.0),
+            "twitch 1 mm, held 1 frame (limit)": _twitch(pset, fs, 1.0, 1),
+            "rotation about the ankle, top 3 mm": Sway.rotation(top, Sway.drift(3.0, dur, "forward")),
+            "rotation, top 3 mm sideways": Sway.rotation(top, Sway.drift(3.0, dur, "sideways")),
+            "sway 0.8 mm x2 + twitch 0.8 mm": CombinedSway((
+                Sway.back_and_forth(0.8, dur / 2, "forward", phase_rad=0.5), _twitch(pset, fs, 0.8))),
+        }
+        for name, sway in cases.items():
+            _, _, m, times = scan(rig, pset, sway, fs, work / f"shape_{refs}")
+            true = true_largest_displacement(rig, sway, times)
+            err = f"{100 * (m.value_mm - true) / true:+4.0f} %" if true else "     "
+            print(f"{name:40s} {refs:5d} {n:6d} {dur:7.2f}  {true:5.2f}  {m.value_mm:5.2f} ± {m.sd_mm:4.2f} mm  {err}"
+                  f"{'  flagged' if m.flagged() else ''}", flush=True)
 
 
 def cost(args, work):
@@ -119,7 +174,8 @@ def cost(args, work):
     rig = SimRig(leg_scene(*args.posture), scale=args.scale, seed=3)
     truth = rig.truth()
     print("set                      frames  webcam s  DSLR s   subject accuracy (still)")
-    for preset, refs in (("default", 0), ("default", 3), ("short", 0), ("short", 2)):
+    for preset, refs in (("default", 0), ("default", 3), ("default", default_motion_refs("default")),
+                         ("short", 0), ("short", 2), ("short", default_motion_refs("short"))):
         pset = make_pattern_set(preset, rig.projector.width, rig.projector.height, motion_refs=refs)
         _, cloud, m, _ = scan(rig, pset, Sway(), FRAME_S["webcam"], work / f"cost_{preset}_{refs}")
         acc = evaluate(cloud, truth)["subject"]
@@ -153,6 +209,7 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true")
     ap.add_argument("--cost", action="store_true")
     ap.add_argument("--variety", action="store_true", help="sways the method was not tuned on")
+    ap.add_argument("--shapes", action="store_true", help="sway back and forth, twitch, rotation, combined")
     ap.add_argument("--no-drift", action="store_true")
     ap.add_argument("--sway-drifts", default="0,1,5", help="--cost: drifts of the swaying scans (\"\" for none)")
     args = ap.parse_args()
@@ -166,6 +223,8 @@ def main() -> None:
         sweep(args, work)
     if args.variety:
         variety(args, work)
+    if args.shapes:
+        shapes(args, work)
     if args.cost:
         cost(args, work)
 

@@ -7,9 +7,11 @@ marks stuck on them; never the tables, stand or floor) is displaced at time ``t`
 
 a translation ``s(t)`` along the unit direction ``u`` plus a tilt ``R(t)`` about the ankle
 (axis z x u, angle ``tilt_deg_per_mm * s(t)``), so the knee moves further than the ankle, as in
-ankle-strategy sway. ``s(t) = A (sin(w t + phase) - sin(phase))`` with ``w = speed / A``: an
-oscillation of half-range ``amplitude_mm`` whose peak speed is ``speed_mm_s``;
-``amplitude_mm = inf`` is a steady drift ``speed * t``.
+ankle-strategy sway. The shape of ``s(t)`` (``SwayShape``): ``A (sin(w t + phase) - sin(phase))``
+with ``w = speed / A``, an oscillation of half-range ``amplitude_mm`` whose peak speed is
+``speed_mm_s``; ``amplitude_mm = inf``, a steady drift ``speed * t``; or a twitch out by ``A``
+and back (``Sway.twitch_of``). ``Sway.rotation`` keeps only the tilt (a rotation about the ankle:
+the ankle stays), and ``CombinedSway`` composes several.
 
 The camera sets the time between frames (``FRAME_S``): a synchronised webcam takes a frame
 every ~30 ms, a DSLR every ~2 s, so the same patient moves ~60 times further during a DSLR
@@ -26,7 +28,8 @@ time, and the clock advances one frame.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from enum import Enum
 
 import numpy as np
 
@@ -39,19 +42,56 @@ AXES = {"sideways": (1.0, 0.0, 0.0), "forward": (0.0, 1.0, 0.0)}
 DEFAULT_TILT_DEG_PER_MM = 0.04  # 5 mm at the ankle tilts the leg by 0.2 deg: +1.3 mm at the knee
 
 
+class SwayShape(Enum):
+    """How the subject's offset ``s(t)`` along its direction evolves during the scan."""
+
+    DRIFT = "drift"  # s = speed * t
+    OSCILLATION = "oscillation"  # s = A (sin(w t + phase) - sin phase), w = speed / A: back and forth
+    TWITCH = "twitch"  # out by A at start_s (ramp at the peak speed), held for hold_s, back again
+
+
 @dataclass(frozen=True)
 class Sway:
     direction: tuple = (1.0, 0.0, 0.0)  # world direction of the translation (normalised)
-    amplitude_mm: float = math.inf  # half-range of the oscillation; inf = steady drift
+    amplitude_mm: float = math.inf  # half-range of the oscillation (a twitch's height); inf = steady drift
     speed_mm_s: float = 0.0  # peak speed of the ankle
     phase_rad: float = 0.0  # where in its cycle the sway is when the scan starts
     tilt_deg_per_mm: float = DEFAULT_TILT_DEG_PER_MM
+    translates: bool = True  # False: the subject only tilts about the ankle by tilt_deg_per_mm * s(t)
+    twitch: tuple[float, float] | None = None  # (start_s, hold_s): a twitch that returns (SwayShape.TWITCH)
 
     @classmethod
-    def drift(cls, total_mm: float, duration_s: float, axis="sideways", **kw) -> "Sway":
+    def drift(cls, total_mm: float, duration_s: float, axis="sideways", **kw) -> Sway:
         """A steady drift of ``total_mm`` over ``duration_s`` along a named axis or a vector."""
         d = AXES[axis] if isinstance(axis, str) else tuple(axis)
         return cls(direction=d, amplitude_mm=math.inf, speed_mm_s=float(total_mm) / float(duration_s), **kw)
+
+    @classmethod
+    def back_and_forth(cls, peak_to_peak_mm: float, period_s: float, axis="sideways", **kw) -> Sway:
+        """An oscillation of ``peak_to_peak_mm`` (at the ankle) with period ``period_s``."""
+        d = AXES[axis] if isinstance(axis, str) else tuple(axis)
+        a = 0.5 * float(peak_to_peak_mm)
+        return cls(direction=d, amplitude_mm=a, speed_mm_s=a * 2 * math.pi / float(period_s), **kw)
+
+    @classmethod
+    def twitch_of(cls, height_mm: float, start_s: float, hold_s: float, rise_s: float, axis="sideways",
+                  **kw) -> Sway:
+        """A twitch: out by ``height_mm`` from ``start_s`` over ``rise_s``, held ``hold_s``, back over ``rise_s``."""
+        d = AXES[axis] if isinstance(axis, str) else tuple(axis)
+        return cls(direction=d, amplitude_mm=float(height_mm), speed_mm_s=float(height_mm) / max(float(rise_s), 1e-9),
+                   twitch=(float(start_s), float(hold_s)), **kw)
+
+    @classmethod
+    def rotation(cls, at_height_mm: float, sway: Sway) -> Sway:
+        """A pure rotation about the ankle with ``sway``'s shape in time: the point ``at_height_mm``
+        above the ankle travels (an arc of) ``sway``'s offset; the ankle itself stays."""
+        return replace(sway, translates=False, tilt_deg_per_mm=math.degrees(1.0 / float(at_height_mm)))
+
+    @property
+    def shape(self) -> SwayShape:
+        if self.twitch is not None:
+            return SwayShape.TWITCH
+        return SwayShape.DRIFT if not math.isfinite(self.amplitude_mm) else SwayShape.OSCILLATION
 
     @property
     def still(self) -> bool:
@@ -61,9 +101,15 @@ class Sway:
         """Translation along ``direction`` at time t (s), mm; 0 at t = 0."""
         if self.still:
             return 0.0
-        if not math.isfinite(self.amplitude_mm):
+        shape = self.shape
+        if shape is SwayShape.DRIFT:
             return self.speed_mm_s * t
         A = self.amplitude_mm
+        if shape is SwayShape.TWITCH:
+            start, hold = self.twitch
+            rise = A / self.speed_mm_s
+            ramp = lambda x: 0.5 - 0.5 * math.cos(math.pi * min(max(x, 0.0), 1.0))  # noqa: E731
+            return A * (ramp((t - start) / rise) - ramp((t - start - rise - hold) / rise))
         w = self.speed_mm_s / A
         return A * (math.sin(w * t + self.phase_rad) - math.sin(self.phase_rad))
 
@@ -76,7 +122,25 @@ class Sway:
         R = np.eye(3)
         if np.linalg.norm(k) > 1e-12 and self.tilt_deg_per_mm:
             R = _rotation(k / np.linalg.norm(k), math.radians(self.tilt_deg_per_mm * s))
-        return R, s * u
+        return R, (s * u if self.translates else np.zeros(3))
+
+
+@dataclass(frozen=True)
+class CombinedSway:
+    """Several sways at once (a drift with a twitch on top, a sway and a rotation): the poses compose."""
+
+    parts: tuple[Sway, ...]
+
+    @property
+    def still(self) -> bool:
+        return all(p.still for p in self.parts)
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        R, T = np.eye(3), np.zeros(3)
+        for p in self.parts:  # X -> R2 (R1 (X - a) + T1) + a + T2
+            R2, T2 = p.pose(t)
+            R, T = R2 @ R, R2 @ T + T2
+        return R, T
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -107,7 +171,7 @@ def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -
             o.centre = R @ (np.asarray(o.centre) - pivot) + pivot + T
             o.axes = R @ np.asarray(o.axes)
         objs.append(o)
-    moved = {id(a): b for a, b in zip(scene.objects, objs)}
+    moved = {id(a): b for a, b in zip(scene.objects, objs, strict=True)}
     marks = {}
     for k, m in scene.marks.items():
         plate = moved[id(m.plate)]
@@ -119,7 +183,7 @@ def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -
 class SwayClock:
     """Simulated time for ``SimRig.motion``: frame n is photographed at ``start_s + n * frame_s``."""
 
-    sway: Sway
+    sway: Sway | CombinedSway
     frame_s: float = FRAME_S["webcam"]
     start_s: float = 0.0
     frames_taken: int = 0
@@ -187,7 +251,7 @@ def frame_transport(still, posed):
     slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
     import scipy.sparse
 
-    from anklescan.hardware.simrig import single_threaded_blas, LightTransport
+    from anklescan.hardware.simrig import LightTransport, single_threaded_blas
 
     still.prepare()
     tr = still._transport
@@ -226,7 +290,7 @@ def frame_transport(still, posed):
     return LightTransport(matrix, ambient, tr.pad, tr.padded_shape)
 
 
-def swaying_capture(rig, images, sway: Sway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:
+def swaying_capture(rig, images, sway: Sway | CombinedSway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:
     """Photograph ``images`` in order with the subject swaying; returns (frames, frame times)."""
     if sway.still and rig.motion is None:
         return rig.capture_many(images), [start_s + n * frame_s for n in range(len(images))]
@@ -240,7 +304,7 @@ def swaying_capture(rig, images, sway: Sway, frame_s: float, start_s: float = 0.
     return frames, list(clock.times)
 
 
-def true_largest_displacement(rig, sway: Sway, times) -> float:
+def true_largest_displacement(rig, sway: Sway | CombinedSway, times) -> float:
     """The truth the motion estimate is judged against: the largest distance any seen point of
     the subject (leg, foot, leg marks, as the camera sees them at t = 0) travels between any two
     frames of the capture, mm."""

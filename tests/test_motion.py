@@ -8,16 +8,26 @@ import math
 import numpy as np
 import pytest
 
+from anklescan.core.calibration.file import save_calibration
+from anklescan.core.errors import AnkleScanError, CaptureError
+from anklescan.core.measure.pipeline import measure_capture, run_measure
+from anklescan.core.records.store import Store
 from anklescan.core.scan.capture import load_capture, save_capture
 from anklescan.core.scan.decode import decode
-from anklescan.core.errors import CaptureError
-from anklescan.core.measure.pipeline import measure_capture
-from anklescan.core.scan.motion import estimate_motion, motion_looks, scan_duration_s
+from anklescan.core.scan.motion import default_motion_refs, estimate_motion, motion_looks, scan_duration_s
 from anklescan.core.scan.patterns import PatternSet, make_pattern_set, render_all
 from anklescan.core.scan.reconstruct import cloud_from_decoded
-from anklescan.core.records.store import Store
-from anklescan.hardware.sim_scene import leg_scene
-from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock, swaying_capture, true_largest_displacement
+from anklescan.hardware.sim_scene import ObjectId, leg_scene
+from anklescan.hardware.sim_sway import (
+    FRAME_S,
+    CombinedSway,
+    Sway,
+    SwayClock,
+    SwayShape,
+    ankle_of,
+    swaying_capture,
+    true_largest_displacement,
+)
 from anklescan.hardware.simrig import SimRig
 
 SCALE = 0.25
@@ -25,7 +35,8 @@ SCALE = 0.25
 
 def _scan(tmp_path, name, sway_mm, axis="forward", posture=(0.0, 0.0), seed=5):
     rig = SimRig(leg_scene(*posture), scale=SCALE, seed=seed)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, motion_refs=3)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height,
+                            motion_refs=default_motion_refs("default"))
     sway = Sway.drift(sway_mm, len(pset.frames) * FRAME_S["webcam"], axis)
     frames, times = swaying_capture(rig, render_all(pset), sway, FRAME_S["webcam"])
     capture = load_capture(save_capture(tmp_path / name, pset, frames, metadata={"duration_s": times[-1]}))
@@ -90,7 +101,7 @@ def test_still_scan_is_not_flagged(still):
     cal = rig.true_calibration()
     decoded = decode(capture)
     m = estimate_motion(capture, cal, decoded, cloud_from_decoded(capture, cal, decoded))
-    assert true == 0.0 and m.measured and m.looks == 3
+    assert true == 0.0 and m.measured and m.looks == default_motion_refs("default")
     assert m.value_mm <= 0.2 and not m.flagged(0.5)
     assert 0.0 <= m.sd_mm < 0.5
 
@@ -108,6 +119,8 @@ def test_drift_is_measured_and_flagged(moved):
     assert out["motion_mm"]["value"] == pytest.approx(m.value_mm, abs=1e-3)
     assert out["motion"]["flagged"] is True and out["motion"]["scan_duration_s"] > 0.5
     assert "MOVED" in result.format_text()
+    assert [w for w in out["warnings"] if "during the scan" in w] == [
+        f"the subject moved {m.value_mm:.1f} mm during the scan (more than the 0.5 mm threshold: scan again)"]
     json.dumps(out)  # RESULT.json stays serialisable
 
 
@@ -171,3 +184,109 @@ def test_report_shows_motion(tmp_path):
         write_csv(s.study_rows(), tmp_path / "t.csv")
         text = (tmp_path / "t.csv").read_text()
         assert "motion_mm" in text.splitlines()[0] and "1.8" in text
+
+
+# ---------------------------------------------------------------- motion of any shape (issue 37)
+def _shape_scan(tmp_path, name, make_sway, camera="webcam", seed=3):
+    """A scan of the default set (its default looks) with the sway ``make_sway(pset, rig, frame_s)``."""
+    rig = SimRig(leg_scene(), scale=SCALE, seed=seed)
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height,
+                            motion_refs=default_motion_refs("default"))
+    frame_s = FRAME_S[camera]
+    sway = make_sway(pset, rig, frame_s)
+    frames, times = swaying_capture(rig, render_all(pset), sway, frame_s)
+    capture = load_capture(save_capture(tmp_path / name, pset, frames, metadata={"duration_s": times[-1]}))
+    cal = rig.true_calibration()
+    decoded = decode(capture)
+    m = estimate_motion(capture, cal, decoded, cloud_from_decoded(capture, cal, decoded))
+    return rig, capture, m, true_largest_displacement(rig, sway, times)
+
+
+def _leg_length(rig) -> float:
+    return next(o for o in rig.scene.objects if o.kind == ObjectId.LEG).length
+
+
+def _twitch_in_gray(pset, frame_s, height_mm=1.0, axis="sideways") -> Sway:
+    """A twitch out and back within the Gray-code frames, held as long as the widest gap between two looks."""
+    gray = [i for i, f in enumerate(pset.frames) if f.kind == "gray"]
+    starts = [lk[0] for lk in motion_looks(pset)]
+    gap = max(b - a for a, b in zip(starts, starts[1:], strict=False))
+    start = gray[len(gray) // 4]
+    return Sway.twitch_of(height_mm, start * frame_s, gap * frame_s, frame_s, axis, tilt_deg_per_mm=0.0)
+
+
+SHAPES = {
+    # 1 mm peak to peak, back and forth once over the scan, no tilt: the tester's sway
+    "sway back and forth": (lambda p, r, fs: Sway.back_and_forth(1.0, len(p.frames) * fs, "sideways",
+                                                                 tilt_deg_per_mm=0.0), "webcam"),
+    "twitch during the Gray code": (lambda p, r, fs: _twitch_in_gray(p, fs), "webcam"),
+    # about the ankle only: the top of the leg moves 3 mm, the ankle stays
+    "rotation about the ankle": (lambda p, r, fs: Sway.rotation(_leg_length(r), Sway.drift(3.0, len(p.frames) * fs,
+                                                                                          "forward")), "webcam"),
+    # a sway forward twice over the scan and a sideways twitch on top, with a DSLR's timing
+    "sway and twitch, DSLR": (lambda p, r, fs: CombinedSway((
+        Sway.back_and_forth(0.8, len(p.frames) * fs / 2, "forward", phase_rad=0.5),
+        _twitch_in_gray(p, fs, 0.8))), "dslr"),
+}
+
+
+def test_sway_shapes_move_as_described():
+    twitch = Sway.twitch_of(1.0, 1.0, 0.5, 0.1)
+    assert twitch.shape is SwayShape.TWITCH and twitch.offset(0.9) == 0.0
+    assert twitch.offset(1.3) == pytest.approx(1.0) and twitch.offset(1.75) == pytest.approx(0.0, abs=1e-12)
+    sway = Sway.back_and_forth(1.0, 2.0, phase_rad=0.3)
+    offs = [sway.offset(t) for t in np.linspace(0, 2, 401)]
+    assert sway.shape is SwayShape.OSCILLATION and max(offs) - min(offs) == pytest.approx(1.0, abs=1e-3)
+    rig = SimRig(leg_scene(), scale=SCALE)
+    length = _leg_length(rig)
+    rot = Sway.rotation(length, Sway.drift(3.0, 1.0, "sideways"))
+    R, T = rot.pose(1.0)
+    ankle = ankle_of(rig.scene)
+    leg = next(o for o in rig.scene.objects if o.kind == ObjectId.LEG)
+    top = ankle + np.asarray(leg.axes)[:, 2] * length
+    assert np.allclose(T, 0.0)  # the ankle stays
+    assert np.linalg.norm(R @ (top - ankle) - (top - ankle)) == pytest.approx(3.0, rel=0.01)
+    both = CombinedSway((rot, Sway.drift(1.0, 1.0, "forward", tilt_deg_per_mm=0.0)))
+    R2, T2 = both.pose(1.0)
+    assert np.allclose(R2, R) and np.allclose(T2, [0.0, 1.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def shape_scan(tmp_path_factory):
+    """Each shape's scan, made once for the module (the rotation serves two tests)."""
+    done = {}
+
+    def get(shape):
+        if shape not in done:
+            make, camera = SHAPES[shape]
+            done[shape] = _shape_scan(tmp_path_factory.mktemp("shape"), "c", make, camera)
+        return done[shape]
+
+    return get
+
+
+@pytest.mark.parametrize("shape", list(SHAPES))
+def test_motion_of_any_shape_is_measured(shape_scan, shape):
+    _, _, m, true = shape_scan(shape)
+    print(f"{shape}: true {true:.2f} mm, estimate {m.value_mm:.2f} ± {m.sd_mm:.2f} mm")
+    assert true > 0.7
+    assert abs(m.value_mm - true) <= 0.3 * true
+    assert m.flagged(0.5)
+
+
+def test_marks_lost_to_motion_say_how_far_it_moved(shape_scan, tmp_path):
+    """A rotation about the ankle that moves the top of the leg 3 mm: the marks are lost, and the
+    one-line error says the subject moved, by the motion measured without them."""
+    rig, capture, m, true = shape_scan("rotation about the ankle")
+    save_calibration(rig.true_calibration(), tmp_path / "cal.json")
+    try:
+        result = run_measure(capture.folder, tmp_path / "cal.json", tmp_path / "RESULT.json")
+    except AnkleScanError as e:
+        msg = str(e)
+        print(msg[:160])
+        assert "\n" not in msg and "nothing written" in msg and not (tmp_path / "RESULT.json").exists()
+        moved = float(msg.split("moved ")[1].split(" mm during the scan")[0])
+        assert moved == pytest.approx(m.value_mm, abs=0.05)
+    else:  # the marks survived: RESULT.json says it moved
+        out = json.loads((tmp_path / "RESULT.json").read_text())
+        assert result.motion_flagged and any("during the scan" in w for w in out["warnings"])

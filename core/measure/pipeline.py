@@ -63,7 +63,7 @@ class MeasureResult:
             "reconstruction": self.reconstruction,
             "motion_mm": (self.motion or MotionEstimate(None, None)).to_dict(),
             "motion": self._motion_details(),
-            "warnings": list(self.warnings),
+            "warnings": list(self.warnings) + ([self.motion_message()] if self.motion_flagged else []),
             "mark_uncertainty": {str(k): v.to_dict() for k, v in sorted(self.mark_uncertainty.items())},
         }
 
@@ -73,6 +73,13 @@ class MeasureResult:
         if d is None:
             return None
         return {"value": round(d[0], 3), "sd": round(d[1], 3), "given": self.marks.diameter_given}
+    def motion_message(self) -> str:
+        """One line for a trial that moved more than the threshold (SPEC §6: ``moved 3.2 mm during the scan``)."""
+        if not self.motion_flagged:
+            return ""
+        return (f"the subject moved {self.motion.value_mm:.1f} mm during the scan "
+                f"(more than the {self.motion_threshold_mm:g} mm threshold: scan again)")
+
     def _motion_details(self) -> dict:
         m = self.motion or MotionEstimate(None, None, reason="not estimated")
         out = {"flagged": self.motion_flagged, "threshold_mm": self.motion_threshold_mm,
@@ -146,10 +153,12 @@ def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float
     cal = load_calibration(calibration_path)
     capture = load_capture(capture_dir)
     result = measure_capture(capture, cal, mark_diameter_mm, motion_threshold_mm=motion_threshold_mm)
+    # marks lost on a trial that moved: the motion (measured without the marks) is the likely cause
+    moved = f"{result.motion_message()}, the likely cause; " if result.motion_flagged else ""
     if result.marks.size_error:
-        raise AnkleScanError(f"{capture_dir}: {result.marks.size_error}; nothing written")
+        raise AnkleScanError(f"{capture_dir}: {moved}{result.marks.size_error}; nothing written")
     if not result.complete:
-        raise AnkleScanError(f"{capture_dir}: marks not found: {result.marks.message()}; nothing written")
+        raise AnkleScanError(f"{capture_dir}: marks not found: {moved}{result.marks.message()}; nothing written")
     write_json_atomic(Path(out_path), result.to_dict())  # refuses NaN/inf: never a nonsense result
     return result
 

@@ -2,8 +2,8 @@
 
 A standing patient sways, and a scan is a sequence of frames taken over ~1 s (webcam) to a
 minute (DSLR). A capture made with motion references (``make_pattern_set(motion_refs=...)``)
-shows a quadrature pair of its phase frames again at the start, at evenly spaced times and at
-the end (manifest ``kind: "repeat"``). The method:
+shows a quadrature pair of its phase frames again at the start, at evenly spaced times (by
+default every ~4 main frames) and at the end (manifest ``kind: "repeat"``). The method:
 
 1. Per pixel, the first-harmonic phase of a look is fitted from its samples ``I_j`` at the pattern
    shifts ``d_j``, with the background ``A`` (mean of the main phase frames) known:
@@ -21,8 +21,9 @@ the end (manifest ``kind: "repeat"``). The method:
    normals of a curved patch span the directions a sway moves it in; a direction no normal sees
    shrinks towards 0 rather than inventing motion). Static surfaces give 0 without being told.
 4. The subject's largest displacement is the largest distance between any two of a patch's
-   positions at the looks, debiased for noise, over the patches with enough points (ranked by
-   their lower confidence bound; the second is taken), with its standard deviation from the fit,
+   positions at the looks (every pair: a sway that comes back is read at its far end), debiased
+   for noise, over the patches with enough points (ranked by their lower confidence bound, whose
+   width grows with the number of pairs compared; the second is taken), with its standard deviation from the fit,
    the disagreement of the top patches and a model term.
 
 Nothing about the scene is assumed: what moves, where, and in which direction all come from
@@ -61,7 +62,9 @@ MODEL_SD_FRACTION = 0.1  # relative model uncertainty added to the noise (docs/p
 CONFIDENCE_Z = 2.0
 
 
-MOTION_REFS = {"default": 3, "short": 2, "paper": 0}  # looks per preset: start, (middle,) end
+MOTION_REFS = {"default": 9, "short": 7, "paper": 0}  # looks per preset: start, evenly between, end.
+# One look (a quadrature pair) every ~4 main frames: a sway back and forth, or a twitch that comes back
+# within the capture, is sampled while it is out (docs/motion.md: the cost in frames and seconds).
 
 
 def default_motion_refs(preset: str) -> int:
@@ -114,7 +117,8 @@ class MotionEstimate:
     def format_text(self) -> str:
         if not self.measured:
             return f"motion: not measured ({self.reason})"
-        return f"motion during the scan: {self.value_mm:.2f} ± {self.sd_mm:.2f} mm ({self.patches} patches, {self.looks} looks)"
+        return (f"motion during the scan: {self.value_mm:.2f} ± {self.sd_mm:.2f} mm "
+                f"({self.patches} patches, {self.looks} looks)")
 
 
 def motion_looks(pattern_set) -> list[list[int]]:
@@ -199,9 +203,9 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
     fits = None
     for offset in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
         patch = _patch_ids(cloud.points[sub], patch_mm, offset)
-        grid = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights)]
-        fits = grid if fits is None else [tuple(np.concatenate([a, b]) for a, b in zip(f, g))
-                                          for f, g in zip(fits, grid)]
+        grid = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights, strict=True)]
+        fits = grid if fits is None else [tuple(np.concatenate([a, b]) for a, b in zip(f, g, strict=True))
+                                          for f, g in zip(fits, grid, strict=True)]
     est = _largest(fits)
     if est is None:
         return MotionEstimate(None, None, len(looks), reason="no surface patch had enough measured points",
@@ -355,7 +359,10 @@ def _largest(fits):
     # conditioned normals, the dim floor far away) cannot win on noise; and the second-ranked
     # one is taken: one patch alone (a silhouette, a mark's rim) can be an outlier, while the
     # part of the subject that moved most spans several patches.
-    score = np.where(usable, best - CONFIDENCE_Z * sd_pair, -np.inf)
+    # the largest of n_pairs noisy distances: its noise tail grows ~ sqrt(2 ln n_pairs) standard deviations
+    n_pairs = len(positions) * (len(positions) - 1) // 2
+    z = max(CONFIDENCE_Z, 1.0 + math.sqrt(2.0 * math.log(max(n_pairs, 1))))
+    score = np.where(usable, best - z * sd_pair, -np.inf)
     order = np.argsort(score)[::-1]
     k = int(order[min(1, int(usable.sum()) - 1)])
     value = float(best[k])
