@@ -26,6 +26,7 @@ from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import AxisCode, PatternSet
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import Axis
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
 REASON_NAMES = ("valid", "shadow", "low_contrast", "saturated", "inconsistent",
@@ -61,12 +62,12 @@ class DecodeResult:
     column_sigma: np.ndarray | None = field(repr=False, default=None)
     row_sigma: np.ndarray | None = field(repr=False, default=None)  # the same for rows
 
-    def axis_map(self, axis: str) -> np.ndarray | None:
+    def axis_map(self, axis: Axis) -> np.ndarray | None:
         """The decoded map of ``axis`` ("column" or "row"), None if the set has no such axis."""
-        return self.column if axis == "column" else self.row
+        return self.column if axis == Axis.COLUMN else self.row
 
-    def axis_sigma(self, axis: str) -> np.ndarray | None:
-        return self.column_sigma if axis == "column" else self.row_sigma
+    def axis_sigma(self, axis: Axis) -> np.ndarray | None:
+        return self.column_sigma if axis == Axis.COLUMN else self.row_sigma
 
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
@@ -205,8 +206,8 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
         # each axis is NaN where its own tests (or the shared shadow / white tests) fail: a pixel
         # whose rows are washed out keeps its column; ``valid`` is every axis valid
         cv2.copyTo(nan, axis_flags[axis], coord)
-    return DecodeResult(coords.get("column"), coords.get("row"), flags == 0, reason, thr,
-                        white, black, sigmas.get("column"), sigmas.get("row"))
+    return DecodeResult(coords.get(Axis.COLUMN), coords.get(Axis.ROW), flags == 0, reason, thr,
+                        white, black, sigmas.get(Axis.COLUMN), sigmas.get(Axis.ROW))
 
 
 def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
