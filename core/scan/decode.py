@@ -24,7 +24,7 @@ import numpy as np
 from anklescan.core.scan.camera_response import gamma_from_frames, linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
-from anklescan.core.scan.patterns import AxisCode, PatternSet
+from anklescan.core.scan.patterns import AxisCode, FrameKind, PatternSet
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import Axis
 
@@ -170,8 +170,8 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
         frames, full = linear_unit(frames, gamma, full), 1.0
     if saturation is None:
         saturation = full
-    white = frames[pset.index("white")]
-    black = frames[pset.index("black")]
+    white = frames[pset.index(FrameKind.WHITE)]
+    black = frames[pset.index(FrameKind.BLACK)]
     first = pset.axis_code(pset.axes[0])
     if sigma is None:
         sigma = estimate_sigma(white, black, frames[first.gray[0]],
@@ -211,8 +211,8 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
 
 
 def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
-    white = frames[pset.index("white")]
-    black = frames[pset.index("black")]
+    white = frames[pset.index(FrameKind.WHITE)]
+    black = frames[pset.index(FrameKind.BLACK)]
     # white - black saturates at 0 for integers, which is what a shadow test wants
     shadow = _cmp(cv2.subtract(white, black), thr["shadow"], cv2.CMP_LT)
     flags = cv2.bitwise_and(shadow, _FLAG[SHADOW])
