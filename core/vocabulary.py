@@ -50,7 +50,7 @@ LEG_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in LEG_LABELS)
 TABLE_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in TABLE_LABELS)
 
 
-def parse_label(key) -> MarkLabel:
+def parse_label(key: MarkLabel | str) -> MarkLabel:
     """A label from either form (``5``, ``"5"``, ``" 5 "``); AnkleScanError for anything else."""
     try:
         lab = int(str(key).strip())
