@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private,
                                    seal_output_dir, write_text_atomic)
-from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS, MarkSource
+from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS, Axis, MarkSource
 from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
 
 # The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
@@ -143,7 +143,7 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
     from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=(Axis.COLUMN, Axis.ROW))
     folder = save_capture(out / "calibration_box_capture", pset, rig.capture_many(render_all(pset)),
                           metadata={"device": "simulated rig", "scene": "calibration box"})
     cal, report = calibrate_from_box_capture(folder)
