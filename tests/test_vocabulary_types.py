@@ -111,3 +111,17 @@ def test_text_enums_print_as_their_values():
     for member in (*FrameKind, *Axis, *MarkKind, *MarkSource, *TrialState, *Severity):
         assert str(member) == f"{member}" == member.value and repr(member) == repr(member.value)
         assert json.dumps(member) == json.dumps(member.value)
+
+
+def test_device_kind_accepts_the_text_and_reports_the_name_users_know():
+    from anklescan.core.calibration.calibrate import DeviceKind, validate_points
+    from anklescan.core.errors import CalibrationError
+
+    X = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [0, 0, 100], [100, 100, 0], [100, 0, 100], [0, 100, 100],
+                  [100, 100, 100]], float)
+    uv = np.column_stack([X[:, 0] + 10, X[:, 1] + 20])
+    for kind in ("projector2d", DeviceKind.PROJECTOR_2D):
+        Xv, o = validate_points(X, uv, kind, (1024, 768))
+        assert o.shape == (8, 2)
+    with pytest.raises(CalibrationError, match="^projector calibration needs at least 6 control points, got 3$"):
+        validate_points(X[:3], uv[:3], "projector2d", (1024, 768))
