@@ -218,7 +218,8 @@ class StudyGui(QObject):
     def _written(self, result) -> None:
         self._end_progress()
         self.last_result = result
-        self.win.banner.show_message(Severity.INFO, f"Study report saved in {result.folder}: report.pdf ({result.pages} "
+        self.win.banner.show_message(Severity.INFO,
+                                     f"Study report saved in {result.folder}: report.pdf ({result.pages} "
                                              f"pages), trials.csv/.xlsx, position_sense.csv, reliability.csv")
         self.win.reportWritten.emit(str(result.folder / "report.pdf"))
 

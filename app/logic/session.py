@@ -52,7 +52,8 @@ class SessionLogic:
                 return
             self.store = Store.open(data_dir=self.folder)
             if self.store.read_only:
-                self.notice.emit(Severity.WARNING, f"The sessions database is read-only ({self.store.read_only_reason}): "
+                self.notice.emit(Severity.WARNING,
+                                 f"The sessions database is read-only ({self.store.read_only_reason}): "
                                  "you can review it, but changes cannot be saved.")
         except Exception as exc:
             self.store = None

@@ -405,7 +405,8 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
              DeviceKind.PROJECTOR_2D: "paper camera model on the projector (11)"}[problem.kind]
     if v.size in (10, 12):
         model = model.replace(")", " + k2)")
-    q = DeviceQuality(problem.kind if problem.kind != DeviceKind.PROJECTOR_2D else DeviceKind.PROJECTOR, model, params, std, r, dof,
+    device = DeviceKind.PROJECTOR if problem.kind == DeviceKind.PROJECTOR_2D else problem.kind
+    q = DeviceQuality(device, model, params, std, r, dof,
                       sigma, robust, flagged, warnings, notes, nfev)
     if "cov" in locals() and np.isfinite(cov).all():
         q.covariance, q.covariance_index = cov, idx
@@ -491,7 +492,8 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     columns and rows (N, 2), when horizontal stripes were captured too: then the projector gets
     the camera's full 2-D model.
     """
-    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, DeviceKind.CAMERA, camera_size, radial_terms, loss, f_scale, exclude_flagged)
+    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, DeviceKind.CAMERA, camera_size, radial_terms, loss, f_scale,
+                                 exclude_flagged)
     pu = np.asarray(proj_u, dtype=np.float64)
     two_d = pu.ndim == 2 and pu.shape[1] == 2
     kind = DeviceKind.PROJECTOR_2D if two_d else DeviceKind.PROJECTOR

@@ -118,7 +118,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [(MarkKind.STICKER, None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
-    if any(k == MarkKind.STICKER for k, _ in tries) and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded:
+    if (any(k == MarkKind.STICKER for k, _ in tries)
+            and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded):
         tries = [t for t in tries if t[0] != MarkKind.STICKER]
         if not tries:
             return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")

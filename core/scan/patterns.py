@@ -381,7 +381,8 @@ def _with_motion_refs(specs: list, axis: Axis, n_refs: int, steps: int) -> list:
     """Insert ``n_refs`` quadrature pairs of ``axis``' phase frames, evenly spread in time."""
     pair = [s for s in specs if s[0] == FrameKind.PHASE and s[1]["axis"] == axis
             and s[1]["shift"] in tuple(q * steps // 4 for q in MOTION_REF_SHIFTS_QUARTER)]
-    keys = [(FrameKind.REPEAT, {"of": (FrameKind.PHASE, tuple(sorted(kw.items()))), "ref": j}) for _, kw in pair for j in [0]]
+    keys = [(FrameKind.REPEAT, {"of": (FrameKind.PHASE, tuple(sorted(kw.items()))), "ref": j})
+            for _, kw in pair for j in [0]]
     n_main = len(specs)
     out, at = [], [round(j * n_main / (n_refs - 1)) for j in range(n_refs)]
     for i in range(n_main + 1):
