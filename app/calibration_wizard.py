@@ -49,6 +49,7 @@ from anklescan.app.calibration_manual import ManualCalibration
 from anklescan.app.calibration_pages import PAGE_MANUAL, PAGE_PLACE, PAGE_REPORT, PAGE_SCAN, PAGE_VERIFY, WizardPages
 from anklescan.app.calibration_views import draw_outlines, gray_rgb
 from anklescan.app.settings import Settings
+from anklescan.core.vocabulary import Axis
 
 # The current calibration's functions (app.logic.calibration) and the page numbers are also
 # reached through this module: the main window and the tests import them from here.
@@ -222,7 +223,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self._timer.stop()
         self._scan_purpose = purpose
         w, h = self.projector.projector_size
-        pset = make_pattern_set("default", w, h, axes=("column", "row"))
+        pset = make_pattern_set("default", w, h, axes=(Axis.COLUMN, Axis.ROW))
         stamp = time.strftime("%Y%m%d-%H%M%S")
         folder = self.data_folder / "calibrations" / "captures" / f"{purpose}_{stamp}"
         n = 1

@@ -40,6 +40,7 @@ def cmd_gui(args) -> int:
 
 def cmd_patterns(args) -> int:
     from anklescan.core.scan.patterns import make_pattern_set, write_patterns
+    from anklescan.core.vocabulary import Axis
 
     args.projector_default = args.projector is None
     width, height = args.projector or (1024, 768)
@@ -57,9 +58,9 @@ def cmd_patterns(args) -> int:
         axes, why = scan_axes(cal), f"what the rig of {Path(args.calibration).name} needs"
         check_geometry(cal, axes)
     elif args.preset == "paper":
-        axes, why = ("column",), "the paper's 18 sheets; --axes column,row for a projector above the camera"
+        axes, why = (Axis.COLUMN,), "the paper's 18 sheets; --axes column,row for a projector above the camera"
     else:
-        axes, why = ("column", "row"), "for a projector on any side of the camera; --calibration picks fewer"
+        axes, why = (Axis.COLUMN, Axis.ROW), "for a projector on any side of the camera; --calibration picks fewer"
     from anklescan.core.scan.motion import default_motion_refs
 
     refs = default_motion_refs(args.preset) if args.motion_refs is None else args.motion_refs
@@ -132,10 +133,11 @@ def cmd_calibrate_box(args) -> int:
 
 def cmd_import_opencv_graycode(args) -> int:
     from anklescan.core.scan.opencv_graycode import import_opencv_graycode
+    from anklescan.core.vocabulary import Axis
 
     width, height = args.projector
     pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
-    ac, ar = pset.axis_code("column"), pset.axis_code("row")
+    ac, ar = pset.axis_code(Axis.COLUMN), pset.axis_code(Axis.ROW)
     print(f"imported {len(pset.frames)} frames ({ac.bits} column bits, {ar.bits} row bits, step {args.step}) "
           f"as a capture in {args.out}")
     return 0

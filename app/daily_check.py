@@ -27,6 +27,7 @@ from PySide6.QtWidgets import (
     QVBoxLayout,
     QWidget,
 )
+from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
 if TYPE_CHECKING:
@@ -171,7 +172,7 @@ class DailyCheckDialog(QDialog):
         self.verdict.setStyleSheet(f"font-weight: bold; color: {'#1b7a1b' if ok else '#b00020'};")
         self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
         if not ok:
-            self.win.banner.show_message("warning", f"The daily check failed: {result.details()}.")
+            self.win.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.")
         if self.record is not None:
             self._show_history()
         self.checkDone.emit(result)
@@ -219,7 +220,7 @@ def open_daily_check(win: MainWindow) -> None:
     """Scan ▸ Daily check…"""
     if win.rig is None or win.rig_setup.projector is None or win.scan_flow.busy:
         if win.rig is None:
-            win.banner.show_message("info", "The camera is still connecting; try again in a moment.")
+            win.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
         return
     dlg = DailyCheckDialog(win)
     dlg.exec()

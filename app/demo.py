@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private,
                                    seal_output_dir, write_text_atomic)
-from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS
+from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS, Axis, MarkSource
 from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
 
 # The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
@@ -143,7 +143,7 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
     from anklescan.hardware.simrig import SimRig
 
     rig = SimRig(quad_scene(box_scene_objects()), scale=scale, seed=1)
-    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))
+    pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=(Axis.COLUMN, Axis.ROW))
     folder = save_capture(out / "calibration_box_capture", pset, rig.capture_many(render_all(pset)),
                           metadata={"device": "simulated rig", "scene": "calibration box"})
     cal, report = calibrate_from_box_capture(folder)
@@ -218,10 +218,10 @@ def _record(store, trial_id: int, job: dict, res: dict) -> None:
         joint = res.get("joint")
         if joint is not None:
             from anklescan.core.measure.angles import JointCovariance
-            store.update_marks(trial_id, res["marks"], "auto", "anklescan demo", sigma_mm=0.0,
+            store.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo", sigma_mm=0.0,
                                joint=JointCovariance(tuple(joint["labels"]), np.asarray(joint["matrix"])))
         else:
-            store.update_marks(trial_id, res["marks"], "auto", "anklescan demo",
+            store.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo",
                                sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
 
 

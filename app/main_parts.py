@@ -9,6 +9,7 @@ from PySide6.QtWidgets import (QComboBox, QDialog, QDialogButtonBox, QFormLayout
 
 from anklescan.app import resources
 from anklescan.app.trial_form import TrialForm
+from anklescan.core.vocabulary import Severity
 
 PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT, PAGE_MARKS, PAGE_SESSION = range(5)
 
@@ -51,20 +52,20 @@ class Banner(QWidget):
         row.addWidget(self.label, 1)
         row.addWidget(self.action)
         row.addWidget(close)
-        self.kind = ""
+        self.kind: Severity | None = None
         self._slot = None
         self.hide()
 
-    def show_message(self, kind: str, text: str, action: tuple[str, object] | None = None) -> None:
-        self.kind = kind
+    def show_message(self, kind: Severity, text: str, action: tuple[str, object] | None = None) -> None:
+        self.kind = Severity(kind)
         self.label.setText(text)
-        self.label.setStyleSheet(resources.BANNER_STYLE[kind])
+        self.label.setStyleSheet(resources.BANNER_STYLE[self.kind])
         self._slot = action[1] if action else None
         self.action.setText(action[0] if action else "")
         self.action.setVisible(action is not None)
         self.show()
 
-    def clear(self, kind: str | None = None) -> None:
+    def clear(self, kind: Severity | None = None) -> None:
         """Hide the banner (only if it shows ``kind``, when given)."""
         if kind is None or self.kind == kind:
             self.hide()
@@ -161,7 +162,7 @@ class ScanPage(QWidget):
         self.needs_calibration = QLabel("This scanner has no calibration yet: scans cannot be measured. "
                                         "Calibrate it first.")
         self.needs_calibration.setWordWrap(True)
-        self.needs_calibration.setStyleSheet(resources.BANNER_STYLE["warning"])
+        self.needs_calibration.setStyleSheet(resources.BANNER_STYLE[Severity.WARNING])
         self.calibrate_button = QPushButton("Calibrate…")
         self.scan_button = QPushButton("Start scan")
         self.scan_button.setObjectName("primary")

@@ -10,7 +10,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDialog, QHBoxLayout, QInpu
                                QListWidgetItem, QMessageBox, QPushButton, QVBoxLayout, QWidget)
 
 from anklescan.app.main_parts import NewPatientDialog, deg, no_args
-from anklescan.core.vocabulary import CONDITION_TITLES
+from anklescan.core.vocabulary import CONDITION_TITLES, Severity
 
 ID = Qt.ItemDataRole.UserRole
 
@@ -221,7 +221,7 @@ class RecordsPanel(QWidget):
     def exclude_trial(self) -> None:
         tid = self.current_trial_id()
         if tid is None or self.logic.store is None:
-            self.logic.notice.emit("warning", "Select a trial first.")
+            self.logic.notice.emit(Severity.WARNING, "Select a trial first.")
             return
         reason, ok = QInputDialog.getText(self.window(), "Exclude trial",
                                           f"Why is trial {tid} left out of the statistics?")
@@ -240,7 +240,7 @@ class RecordsPanel(QWidget):
     def archive_session(self) -> None:
         sid = self.current_session_id()
         if sid is None or self.logic.store is None:
-            self.logic.notice.emit("warning", "Select a session first.")
+            self.logic.notice.emit(Severity.WARNING, "Select a session first.")
         elif self._confirm("Archive session", "Archive this session? It leaves the working lists; "
                            "nothing is deleted and “Show archived” brings it back.") and self.logic.archive_session(sid):
             self.refresh_patients()
@@ -248,7 +248,7 @@ class RecordsPanel(QWidget):
     def archive_patient(self) -> None:
         pid = self.current_patient_id()
         if pid is None or self.logic.store is None:
-            self.logic.notice.emit("warning", "Select a patient first.")
+            self.logic.notice.emit(Severity.WARNING, "Select a patient first.")
         elif self._confirm("Archive patient", f"Archive patient {self.current_code()}? The patient leaves the "
                            "working lists; nothing is deleted and “Show archived” brings them back.") \
                 and self.logic.archive_patient(pid):

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from PySide6.QtGui import QIcon
 
+from anklescan.core.vocabulary import Severity
+
 ICONS = Path(str(files("anklescan.resources")))  # package data (resources/), so installed copies have it
 
 ACCENT = "#1f5f8b"
@@ -33,10 +35,10 @@ QLabel#heading {{ font-size: 13pt; font-weight: 600; color: #22303c; }}
 QLabel#hint {{ color: #5f6b76; }}
 """
 
-BANNER_STYLE = {
-    "error": f"background: {ERROR_BG}; color: {ERROR_FG}; border: 1px solid #e3a5a0; border-radius: 5px; padding: 8px 12px;",
-    "warning": f"background: {WARN_BG}; color: {WARN_FG}; border: 1px solid #e6c76a; border-radius: 5px; padding: 8px 12px;",
-    "info": f"background: {INFO_BG}; color: {INFO_FG}; border: 1px solid #a9c6dd; border-radius: 5px; padding: 8px 12px;",
+BANNER_STYLE: dict[Severity, str] = {
+    Severity.ERROR: f"background: {ERROR_BG}; color: {ERROR_FG}; border: 1px solid #e3a5a0; border-radius: 5px; padding: 8px 12px;",
+    Severity.WARNING: f"background: {WARN_BG}; color: {WARN_FG}; border: 1px solid #e6c76a; border-radius: 5px; padding: 8px 12px;",
+    Severity.INFO: f"background: {INFO_BG}; color: {INFO_FG}; border: 1px solid #a9c6dd; border-radius: 5px; padding: 8px 12px;",
 }
 
 

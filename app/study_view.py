@@ -27,6 +27,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from anklescan.core.vocabulary import Severity
+
 ALL_PATIENTS = "All patients"
 
 
@@ -147,7 +149,7 @@ class StudyGui(QObject):
     def _store_paths(self):
         store = self.win.session.store
         if store is None:
-            self.win.banner.show_message("warning", "No database is open: choose a data folder first.")
+            self.win.banner.show_message(Severity.WARNING, "No database is open: choose a data folder first.")
             return None
         return store.path, store.data_dir
 
@@ -179,7 +181,7 @@ class StudyGui(QObject):
         try:
             guard_output(out, [paths[1]], what="the study report folder")
         except Exception as exc:   # one line in the banner, the folder untouched
-            win.banner.show_message("error", f"The study report was not written: {exc}")
+            win.banner.show_message(Severity.ERROR, f"The study report was not written: {exc}")
             return None
         whole = flt.patient is None and flt.date_from is None and flt.date_to is None
 
@@ -195,7 +197,7 @@ class StudyGui(QObject):
         self.progress = QProgressBar()
         self.progress.setRange(0, 3)
         win.statusBar().addPermanentWidget(self.progress)
-        win.banner.show_message("info", f"Writing the study report to {out}…")
+        win.banner.show_message(Severity.INFO, f"Writing the study report to {out}…")
         job = run_in_background(render, self._written, self._failed, on_progress=self._progress, pass_job=True,
                                 name="anklescan-study")
         self.jobs = [j for j in self.jobs if j.running] + [job]
@@ -216,13 +218,14 @@ class StudyGui(QObject):
     def _written(self, result) -> None:
         self._end_progress()
         self.last_result = result
-        self.win.banner.show_message("info", f"Study report saved in {result.folder}: report.pdf ({result.pages} "
+        self.win.banner.show_message(Severity.INFO,
+                                     f"Study report saved in {result.folder}: report.pdf ({result.pages} "
                                              f"pages), trials.csv/.xlsx, position_sense.csv, reliability.csv")
         self.win.reportWritten.emit(str(result.folder / "report.pdf"))
 
     def _failed(self, error: str) -> None:
         self._end_progress()
-        self.win.banner.show_message("error", f"The study report could not be written: {error}")
+        self.win.banner.show_message(Severity.ERROR, f"The study report could not be written: {error}")
 
     def open_patient_history(self) -> PatientHistoryDialog | None:
         from anklescan.core.records.study import study_tables
@@ -232,7 +235,7 @@ class StudyGui(QObject):
         if paths is None:
             return None
         if code is None:
-            self.win.banner.show_message("warning", "Select a patient first.")
+            self.win.banner.show_message(Severity.WARNING, "Select a patient first.")
             return None
         tables = study_tables(self._report_input(paths), data_dir=paths[1])
         self.history = PatientHistoryDialog(tables, code, self.win)

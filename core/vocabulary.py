@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import TypeAlias
 
 from anklescan.core.errors import AnkleScanError
 
 # ------------------------------------------------------------------ the seven marks
 
-MarkLabel = int  # 1-7, SPEC §2
+MarkLabel: TypeAlias = int  # 1-7, SPEC §2: the one type of a mark label wherever one is passed
 
 LABELS: tuple[MarkLabel, ...] = (1, 2, 3, 4, 5, 6, 7)
 KNEE_LABELS: tuple[MarkLabel, ...] = (1, 3)   # front, lateral
@@ -48,7 +50,7 @@ LEG_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in LEG_LABELS)
 TABLE_LABEL_KEYS: tuple[str, ...] = tuple(label_key(lab) for lab in TABLE_LABELS)
 
 
-def parse_label(key) -> MarkLabel:
+def parse_label(key: MarkLabel | str) -> MarkLabel:
     """A label from either form (``5``, ``"5"``, ``" 5 "``); AnkleScanError for anything else."""
     try:
         lab = int(str(key).strip())
@@ -61,11 +63,54 @@ def parse_label(key) -> MarkLabel:
 
 # ------------------------------------------------------------------ closed sets
 
+class TextEnum(StrEnum):
+    """A closed set of names written as their plain text (files, the database, JSON, CSV, messages):
+    ``str()``, ``format()`` and ``repr()`` all give what the plain string gave, so outputs and error
+    messages are byte-identical to before the names were typed."""
+
+    def __repr__(self) -> str:
+        return repr(self.value)
+
+
+class Axis(TextEnum):
+    """A projector axis a pattern encodes (``BOTH``: a scan option, never a frame's axis)."""
+    COLUMN = "column"
+    ROW = "row"
+    BOTH = "both"
+
+
+class MarkKind(TextEnum):
+    """What a mark is: a flat printed sticker or a plate with a raised step."""
+    STICKER = "sticker"
+    PLATE = "plate"
+
+
+class MarkSource(TextEnum):
+    """Who placed a stored mark (the database's ``marks.source``)."""
+    AUTO = "auto"
+    MANUAL = "manual"
+
+
+class TrialState(TextEnum):
+    """A trial's state (the database's ``trials.status``)."""
+    SCANNING = "scanning"
+    COMPLETE = "complete"
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+
+
+class Severity(TextEnum):
+    """How serious a banner or a note is."""
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
+
+
 CONDITIONS: tuple[str, ...] = ("barefoot", "shoes")
 CONDITION_TITLES: dict[str, str] = {"barefoot": "Barefoot", "shoes": "Shoes"}
 SIDES = ("left", "right", "both")
-MARK_SOURCES = ("auto", "manual")
-TRIAL_STATES = ("scanning", "complete", "cancelled", "failed")
+MARK_SOURCES: tuple[MarkSource, ...] = tuple(MarkSource)
+TRIAL_STATES: tuple[TrialState, ...] = tuple(TrialState)
 ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
 
@@ -124,7 +169,7 @@ class MarkRecord:
     x: float
     y: float
     z: float
-    source: str
+    source: MarkSource
     placed_by: str
     updated: str
     sd_mm: float | None = None  # the automatic mark's position SD (None: not measured, e.g. placed by hand)
@@ -155,7 +200,7 @@ class Trial:
     cloud_path: str | None = None
     cloud_sha256: str | None = None
     notes: str = ""
-    status: str = "complete"
+    status: TrialState = TrialState.COMPLETE
     status_note: str = ""
     excluded_reason: str | None = None
     calibration_id: int | None = None
@@ -173,14 +218,14 @@ class Trial:
     @property
     def counted(self) -> bool:
         """Whether the trial enters a session's statistics: complete and not excluded."""
-        return self.status == "complete" and self.excluded_reason is None and not self.excluded_for_motion
+        return self.status == TrialState.COMPLETE and self.excluded_reason is None and not self.excluded_for_motion
 
     @property
     def state_text(self) -> str:
         """How lists and reports name the trial's state."""
         if self.excluded_reason is not None:
             return f"excluded: {self.excluded_reason}"
-        if self.excluded_for_motion and self.status == "complete":
+        if self.excluded_for_motion and self.status == TrialState.COMPLETE:
             return f"moved {self.motion_mm:.1f} mm during the scan (not kept)"
         return self.status if not self.status_note else f"{self.status}: {self.status_note}"
 

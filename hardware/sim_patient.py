@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from anklescan.core.vocabulary import CONDITIONS
+from anklescan.core.vocabulary import CONDITIONS, MarkKind
 
 
 @dataclass(frozen=True)
@@ -30,14 +30,14 @@ class SimPatient:
     shoes_factor: float  # shoes give the ankle a better sense of the angle (the paper's finding)
     # the clinic's marks for this patient: type, diameter (mm), and whether the session is told
     # the size (else measured from each capture)
-    marks: tuple = ("plate", 15.0, False)
+    marks: tuple[MarkKind, float, bool] = (MarkKind.PLATE, 15.0, False)
 
 
 PATIENTS = (
     SimPatient("SIM-01", 3, "2026-08-14", "simulated: recurrent sprains, right ankle", (1.5, -1.0), (0.12, 0.0),
-               (0.05, -0.08), 1.6, 0.55, ("sticker", 12.0, False)),
+               (0.05, -0.08), 1.6, 0.55, (MarkKind.STICKER, 12.0, False)),
     SimPatient("SIM-02", 0, None, "simulated: no sprain history", (0.2, 0.1), (0.02, 0.0), (0.0, -0.01), 0.7, 0.8,
-               ("plate", 15.0, True)),
+               (MarkKind.PLATE, 15.0, True)),
 )
 
 
@@ -79,7 +79,7 @@ class Stance:
     reference: tuple[float, float]
     table: tuple[float, float]
     condition: str
-    mark_type: str
+    mark_type: MarkKind
     mark_diameter_mm: float
 
     @property

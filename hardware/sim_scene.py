@@ -19,6 +19,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from anklescan.core.vocabulary import MarkKind
+
 _EPS_T = 1e-7  # mm: a hit nearer than this to the ray origin is the origin's own surface
 
 
@@ -541,7 +543,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               ankle_back=55.0, ankle_height=20.0,
               knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG,
               lateral_mark_offsets=(0.0, 0.0), table_marks=None,
-              mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type="plate",
+              mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type: MarkKind | str = MarkKind.PLATE,
               floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
 
@@ -556,8 +558,9 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     on the skin and the table top, no thickness); ``mark_radius`` is either's radius (SPEC §2:
     4-12.5 mm).
     """
-    if mark_type not in ("plate", "sticker"):
+    if mark_type not in tuple(MarkKind):
         raise ValueError(f"mark_type must be 'plate' or 'sticker', not {mark_type!r}")
+    mark_type = MarkKind(mark_type)
     if leg_inversion is None:
         leg_inversion = table_inversion + leg_offset_deg[0]
     if leg_plantar_flexion is None:
@@ -586,11 +589,11 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
                           ("3", math.radians(lateral_mark_deg), knee_mark_height + knee_off),
                           ("4", math.radians(lateral_mark_deg), ankle_mark_height + ankle_off)):
         X, nrm = leg.point(ang, z)
-        marks[label] = (_plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo) if mark_type == "plate"
+        marks[label] = (_plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo) if mark_type == MarkKind.PLATE
                         else _sticker(label, leg, X, nrm, mark_radius, mark_albedo))
     for label, (a, b) in (table_marks or DEFAULT_TABLE_MARKS).items():
         X = top_c + T @ np.array([a, b, 0.0])
-        marks[label] = (_plate(label, X, n, mark_radius, mark_thickness, mark_albedo) if mark_type == "plate"
+        marks[label] = (_plate(label, X, n, mark_radius, mark_thickness, mark_albedo) if mark_type == MarkKind.PLATE
                         else _sticker(label, table, X, n, mark_radius, mark_albedo))
     objs.extend(m.plate for m in marks.values() if m.plate is not None)
     stickers = [m.sticker for m in marks.values() if m.sticker is not None]

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
 from anklescan.hardware.simrig import (
     CAMERA_DISTANCE_MM, CAMERA_F_PX, Optics, SimRig, camera_eye, default_camera, default_projector)
@@ -41,7 +42,7 @@ class Variant:
     """One drawn set-up: keyword arguments for ``leg_scene`` and ``Optics``, and the layout."""
 
     seed: int
-    mark_type: str
+    mark_type: MarkKind
     diameter: float
     layout: str
     scene: dict = field(default_factory=dict)
@@ -51,7 +52,7 @@ class Variant:
     def describe(self) -> str:
         s, o = self.scene, self.optics
         return (f"variant {self.seed}: {self.mark_type} {self.diameter:.1f} mm"
-                + (f" x {s['mark_thickness']:.1f}" if self.mark_type == "plate" else "")
+                + (f" x {s['mark_thickness']:.1f}" if self.mark_type == MarkKind.PLATE else "")
                 + f", {self.layout}, ankle {s['ankle_semi_axes'][0]:.0f}x{s['ankle_semi_axes'][1]:.0f} mm"
                 f", lateral marks {s['lateral_mark_deg']:.0f} deg"
                 + (" {:+.0f}/{:+.0f} mm".format(*s["lateral_mark_offsets"]) if "lateral_mark_offsets" in s else "")
@@ -72,12 +73,12 @@ class Variant:
                 default_projector(scale, camera_eye=eye, baseline=v["baseline_mm"], layout=self.layout))
 
 
-def draw_variant(seed: int, mark_type: str | None = None, diameter: float | None = None,
+def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: float | None = None,
                  layout: str | None = None) -> Variant:
     """A reproducible clinic-like set-up; unset type, diameter and layout are drawn too."""
     rng = np.random.default_rng([seed, 16])
     u = rng.uniform
-    mark_type = mark_type or ("plate", "sticker")[int(rng.integers(2))]
+    mark_type = MarkKind(mark_type or (MarkKind.PLATE, MarkKind.STICKER)[int(rng.integers(2))])
     diameter = float(diameter if diameter is not None else round(u(*DIAMETER_RANGE_MM), 1))
     layout = layout or LAYOUTS[int(rng.integers(len(LAYOUTS)))]
     ankle = (u(31.0, 44.0), u(26.0, 36.0))

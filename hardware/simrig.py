@@ -25,6 +25,7 @@ from anklescan.core.calibration.device_model import Device, look_at
 from anklescan.core.vocabulary import LABEL_KEYS
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
+from anklescan.core.vocabulary import Axis
 
 __all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
@@ -135,7 +136,7 @@ def default_camera(scale: float = 1.0, *, eye=None, target=None, f=CAMERA_F_PX, 
     W, H = round(1600 * scale), round(1200 * scale)
     K = _scaled_K(f, f * 1.0004, 799.5 + 6.3, 599.5 - 4.1, scale)
     R, t = _aim(CAMERA_EYE if eye is None else eye, RIG_TARGET if target is None else target, K, W, H)
-    return Device(W, H, K, np.asarray(dist, float), R, t, "both")
+    return Device(W, H, K, np.asarray(dist, float), R, t, Axis.BOTH)
 
 
 # Where the projector stands round the camera, as the angle of the baseline from the camera's
@@ -172,7 +173,7 @@ def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=BASELINE_
     W, H = round(1024 * scale), round(768 * scale)
     K = _scaled_K(f, f, 511.5 + 3.0, 0.8 * 768, scale)
     R, t = _aim(eye, tgt, K, W, H)
-    return Device(W, H, K, np.asarray(dist, float), R, t, "both")
+    return Device(W, H, K, np.asarray(dist, float), R, t, Axis.BOTH)
 
 
 # ---- ground truth -------------------------------------------------------------------------

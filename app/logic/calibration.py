@@ -257,8 +257,9 @@ def decode_folder(folder):
 
 def white_frame(folder):
     from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.patterns import FrameKind
     cap = load_capture(folder)
-    return cap.frame(cap.pattern_set.files[cap.pattern_set.index("white")])
+    return cap.frame(cap.pattern_set.files[cap.pattern_set.index(FrameKind.WHITE)])
 
 
 def calibrate_folder(folder, camera_size, projector_size):

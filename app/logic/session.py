@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from anklescan.app.logic.events import Event
+from anklescan.core.vocabulary import Severity
 
 
 class SessionLogic:
@@ -20,7 +21,7 @@ class SessionLogic:
         self.folder: Path | None = None
         self.calibration = None           # the accepted calibration scans are measured with (None: blocked)
         self.calibration_id = None        # its row in this data folder's database
-        self.notice = Event()             # (kind, text): "info" | "warning" | "error"
+        self.notice = Event()             # (Severity, text)
         self.storeOpened = Event()        # () after a (re)open, the lists must be rebuilt
         # asked when another AnkleScan holds the data folder: the message -> open it read-only?
         # (the window asks the user; None: refuse to open it)
@@ -41,21 +42,22 @@ class SessionLogic:
                 text = (f"The data folder {self.folder} is in use by {holder.describe()}. Two copies writing "
                         "one folder could lose a clinic's data.")
                 if self.ask_read_only is None or not self.ask_read_only(text):
-                    self.notice.emit("error", f"{text} It was not opened: close the other AnkleScan first.")
+                    self.notice.emit(Severity.ERROR, f"{text} It was not opened: close the other AnkleScan first.")
                     self.storeOpened.emit()
                     return
                 self.store = Store.open(data_dir=self.folder, read_only=True)
-                self.notice.emit("warning", f"{text} Opened read-only: you can review it, but changes "
+                self.notice.emit(Severity.WARNING, f"{text} Opened read-only: you can review it, but changes "
                                  "cannot be saved.")
                 self.storeOpened.emit()
                 return
             self.store = Store.open(data_dir=self.folder)
             if self.store.read_only:
-                self.notice.emit("warning", f"The sessions database is read-only ({self.store.read_only_reason}): "
+                self.notice.emit(Severity.WARNING,
+                                 f"The sessions database is read-only ({self.store.read_only_reason}): "
                                  "you can review it, but changes cannot be saved.")
         except Exception as exc:
             self.store = None
-            self.notice.emit("error", f"The sessions database could not be opened: {exc}")
+            self.notice.emit(Severity.ERROR, f"The sessions database could not be opened: {exc}")
         self.storeOpened.emit()
 
     def close(self) -> None:
@@ -106,7 +108,7 @@ class SessionLogic:
         try:
             return write()
         except Exception as exc:
-            self.notice.emit("error", f"{what}: {exc}" if what else str(exc))
+            self.notice.emit(Severity.ERROR, f"{what}: {exc}" if what else str(exc))
             return None
 
     # ---- reading ----------------------------------------------------------------------
@@ -147,7 +149,7 @@ class SessionLogic:
     def require_store(self) -> bool:
         """True when there is a database to write to; otherwise say how to get one."""
         if self.store is None:
-            self.notice.emit("error", "No sessions database: choose a data folder first (File ▸ Data folder).")
+            self.notice.emit(Severity.ERROR, "No sessions database: choose a data folder first (File ▸ Data folder).")
         return self.store is not None
 
     def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None, last_sprain: str | None = None):
@@ -158,7 +160,7 @@ class SessionLogic:
 
     def start_session(self, patient_id: int | None, condition: str):
         if patient_id is None or self.store is None:
-            self.notice.emit("warning", "Select or add a patient first (File ▸ New patient…).")
+            self.notice.emit(Severity.WARNING, "Select or add a patient first (File ▸ New patient…).")
             return None
         return self._write("The session could not be started", lambda: self.store.start_session(
             patient_id, condition=condition, calibration_id=self.calibration_id, operator=self.operator))
@@ -184,7 +186,7 @@ class SessionLogic:
     # ---- trial states -----------------------------------------------------------------
     def exclude_trial(self, trial_id: int, reason: str) -> bool:
         if not reason.strip():
-            self.notice.emit("warning", "A trial is excluded only with a reason; nothing was changed.")
+            self.notice.emit(Severity.WARNING, "A trial is excluded only with a reason; nothing was changed.")
             return False
         return self._write("", lambda: self.store.exclude_trial(trial_id, reason, who=self.operator) or True) is not None
 

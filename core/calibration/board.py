@@ -38,6 +38,8 @@ from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.uncertainty import CalibratedVolume, devices_form_covariance
 from anklescan.core.errors import CalibrationError, GeometryError
+from anklescan.core.scan.patterns import FrameKind
+from anklescan.core.vocabulary import Axis
 
 DIST_MODELS = {  # which of k1, k2, p1, p2, k3 are free
     "k1": (0,), "k1k2": (0, 1), "k1k2p": (0, 1, 2, 3), "full": (0, 1, 2, 3, 4)}
@@ -175,13 +177,13 @@ def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
     from anklescan.core.scan.decode import decode
 
     pset = capture.pattern_set
-    if "row" not in pset.axes or "column" not in pset.axes:
+    if Axis.ROW not in pset.axes or Axis.COLUMN not in pset.axes:
         raise CalibrationError("board calibration needs a capture with both column and row patterns "
                                "(anklescan patterns --axes column,row)")
     if decoded is None:  # a board that is not there fails before the (slower) decoding
-        find_corners(capture.frames[pset.index("white")], cols, rows)
+        find_corners(capture.frames[pset.index(FrameKind.WHITE)], cols, rows)
     d = decode(capture) if decoded is None else decoded
-    stripe = float(min(pset.axis_code("column").stripe, pset.axis_code("row").stripe))
+    stripe = float(min(pset.axis_code(Axis.COLUMN).stripe, pset.axis_code(Axis.ROW).stripe))
     name = capture.folder.name if capture.folder is not None else "capture"
     return observe_board_maps(d.white_raw, d.column, d.row, cols, rows, stripe, name)
 

@@ -37,11 +37,22 @@ from anklescan.core.calibration.uncertainty import (PAPER_MODEL_ERROR, Calibrate
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import TextEnum
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
 DEFAULT_PROJECTOR_SIZE = (1024, 768)  # the paper's ELP-70
 
-MIN_POINTS = {"camera": 6, "projector": 8, "projector2d": 6}
+
+
+class DeviceKind(TextEnum):
+    """The device a set of control points calibrates: the camera, the projector from its columns
+    only (1-D, the paper's model) or the projector from columns and rows (the camera model)."""
+    CAMERA = "camera"
+    PROJECTOR = "projector"
+    PROJECTOR_2D = "projector2d"
+
+
+MIN_POINTS: dict[DeviceKind, int] = {DeviceKind.CAMERA: 6, DeviceKind.PROJECTOR: 8, DeviceKind.PROJECTOR_2D: 6}
 MIN_RELATIVE_SPREAD = 0.02  # smallest / largest singular value of the centred 3-D points
 DUPLICATE_TOL_MM = 1e-6
 IMAGE_MARGIN_PX = 2.0  # picked points may sit a little outside the pixel-centre range
@@ -51,8 +62,9 @@ COVERAGE_WARN = 0.15
 RMS_WARN_PX = 1.0
 LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
-CSV_COLUMNS = {"camera": ("X", "Y", "Z", "u", "v"), "projector": ("X", "Y", "Z", "u"),
-               "projector2d": ("X", "Y", "Z", "u", "v")}
+CSV_COLUMNS: dict[DeviceKind, tuple[str, ...]] = {
+    DeviceKind.CAMERA: ("X", "Y", "Z", "u", "v"), DeviceKind.PROJECTOR: ("X", "Y", "Z", "u"),
+    DeviceKind.PROJECTOR_2D: ("X", "Y", "Z", "u", "v")}
 
 
 # ==== input validation =====================================================================
@@ -70,10 +82,10 @@ def _as_points(xyz, obs, kind: str, width: int) -> tuple[np.ndarray, np.ndarray]
     return X, o
 
 
-def validate_points(xyz, obs, kind: str, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def validate_points(xyz, obs, kind: DeviceKind, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Checked copies of (N, 3) world points and (N, 2) or (N, 1) observations."""
-    n_min, width = MIN_POINTS[kind], 1 if kind == "projector" else 2
-    kind = "projector" if kind == "projector2d" else kind  # the name users know
+    n_min, width = MIN_POINTS[kind], 1 if kind == DeviceKind.PROJECTOR else 2
+    kind = DeviceKind.PROJECTOR if kind == DeviceKind.PROJECTOR_2D else kind  # the name users know
     X, o = _as_points(xyz, obs, kind, width)
     if not (np.isfinite(X).all() and np.isfinite(o).all()):
         bad = int(np.flatnonzero(~(np.isfinite(X).all(1) & np.isfinite(o).all(1)))[0])
@@ -142,7 +154,7 @@ def dlt_camera(X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
     zeros = np.zeros_like(Xn)
     rows_u = np.hstack([Xn, zeros, -xn[:, :1] * Xn])
     rows_v = np.hstack([zeros, Xn, -xn[:, 1:2] * Xn])
-    p = _null_vector(np.vstack([rows_u, rows_v]), "camera")
+    p = _null_vector(np.vstack([rows_u, rows_v]), DeviceKind.CAMERA)
     P = np.linalg.inv(T) @ np.vstack([p[:8].reshape(2, 4), p[8:].reshape(1, 4)]) @ U
     if np.linalg.det(P[:, :3]) < 0:  # the sign that puts the points in front of the camera
         P = -P
@@ -164,7 +176,7 @@ def dlt_projector_1d(X: np.ndarray, u: np.ndarray) -> tuple[float, float, np.nda
     mu, su = float(u.mean()), max(float(np.abs(u - u.mean()).mean()), 1e-12)
     Xn = _homogeneous(X) @ U.T
     un = ((u - mu) / su).reshape(-1, 1)
-    p = _null_vector(np.hstack([Xn, -un * Xn]), "projector")
+    p = _null_vector(np.hstack([Xn, -un * Xn]), DeviceKind.PROJECTOR)
     a_n, c_n = p[:4], p[4:]
     a, c = U.T @ (su * a_n + mu * c_n), U.T @ c_n
     if np.median(_homogeneous(X) @ c) < 0:
@@ -201,7 +213,7 @@ def initial_projector_vector(X: np.ndarray, u: np.ndarray, terms: int) -> np.nda
 class _Problem:
     """Least squares in a local rotation vector (no gimbal lock) plus the vector's other entries."""
 
-    kind: str  # "camera", "projector" (1-D) or "projector2d"
+    kind: DeviceKind
     X: np.ndarray
     obs: np.ndarray  # (N, 2) or (N, 1)
     v0: np.ndarray  # initial paper vector
@@ -209,7 +221,7 @@ class _Problem:
 
     def __post_init__(self):
         self.R0 = pm.rotation_from_rpy(*self.v0[:3])
-        fixed = {4} if self.kind == "projector" else set()  # ty: the 1-D projector's gauge
+        fixed = {4} if self.kind == DeviceKind.PROJECTOR else set()  # ty: the 1-D projector's gauge
         self.free = np.array([i for i in range(3, self.v0.size) if i not in fixed])
 
     def vector(self, p: np.ndarray) -> np.ndarray:
@@ -222,7 +234,7 @@ class _Problem:
         return np.concatenate([np.zeros(3), self.v0[self.free]])
 
     def residuals_of_vector(self, v: np.ndarray) -> np.ndarray:
-        if self.kind == "projector":
+        if self.kind == DeviceKind.PROJECTOR:
             pred = pm.project_projector(v, self.X)[:, None]
         else:
             pred = pm.project_camera(v, self.X)
@@ -260,7 +272,7 @@ def _fix_projector_gauge(v: np.ndarray, X: np.ndarray) -> np.ndarray:
 # ==== quality report =======================================================================
 @dataclass
 class DeviceQuality:
-    device: str
+    device: DeviceKind
     model: str
     parameters: dict  # name -> value (angles in degrees)
     std_errors: dict  # name -> 1-sigma (angles in degrees); None where fixed by the gauge
@@ -365,7 +377,7 @@ def _coverage(obs: np.ndarray, size: tuple[int, int]) -> float:
 
 
 def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev: int) -> DeviceQuality:
-    names = pm.CAMERA_NAMES if problem.kind != "projector" else pm.PROJECTOR_NAMES
+    names = pm.CAMERA_NAMES if problem.kind != DeviceKind.PROJECTOR else pm.PROJECTOR_NAMES
     names = names[: v.size]
     r = problem.residuals_of_vector(v)
     idx = np.array([0, 1, 2, *problem.free])
@@ -387,12 +399,14 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
     params = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(params.items())}
     std = {(f"{n}_deg" if i < 3 else n): val for i, (n, val) in enumerate(std.items())}
     warnings += _geometry_warnings(problem, v, r, dof, size, flagged)
-    if problem.kind == "projector":
+    if problem.kind == DeviceKind.PROJECTOR:
         notes.append("ty is a gauge (not observable from columns): the centre is placed level with the points' centroid")
-    model = {"camera": "paper camera (11)", "projector": "paper projector 1-D (9)", "projector2d": "paper camera model on the projector (11)"}[problem.kind]
+    model = {DeviceKind.CAMERA: "paper camera (11)", DeviceKind.PROJECTOR: "paper projector 1-D (9)",
+             DeviceKind.PROJECTOR_2D: "paper camera model on the projector (11)"}[problem.kind]
     if v.size in (10, 12):
         model = model.replace(")", " + k2)")
-    q = DeviceQuality(problem.kind if problem.kind != "projector2d" else "projector", model, params, std, r, dof,
+    device = DeviceKind.PROJECTOR if problem.kind == DeviceKind.PROJECTOR_2D else problem.kind
+    q = DeviceQuality(device, model, params, std, r, dof,
                       sigma, robust, flagged, warnings, notes, nfev)
     if "cov" in locals() and np.isfinite(cov).all():
         q.covariance, q.covariance_index = cov, idx
@@ -429,7 +443,7 @@ def _geometry_warnings(problem: _Problem, v, r, dof, size, flagged) -> list:
 
 
 # ==== one device ===========================================================================
-def calibrate_device(xyz, obs, kind: str, size: tuple[int, int], radial_terms: int = 1,
+def calibrate_device(xyz, obs, kind: DeviceKind | str, size: tuple[int, int], radial_terms: int = 1,
                      loss: str = "linear", f_scale: float = 1.0,
                      exclude_flagged: bool = False) -> tuple[np.ndarray, DeviceQuality]:
     """Paper vector (Cn, Pn, or Cn for "projector2d") and its quality for one device.
@@ -449,19 +463,21 @@ def calibrate_device(xyz, obs, kind: str, size: tuple[int, int], radial_terms: i
     return v, q
 
 
-def _calibrate_device_once(xyz, obs, kind, size, radial_terms, loss, f_scale) -> tuple[np.ndarray, DeviceQuality]:
+def _calibrate_device_once(xyz, obs, kind: DeviceKind | str, size, radial_terms, loss,
+                           f_scale) -> tuple[np.ndarray, DeviceQuality]:
     if kind not in MIN_POINTS:
         raise CalibrationError(f"unknown device kind {kind!r}")
+    kind = DeviceKind(kind)
     if radial_terms not in (1, 2):
         raise CalibrationError("radial_terms must be 1 (the paper's k1) or 2 (k1, k2)")
     X, o = validate_points(xyz, obs, kind, size)
-    if kind == "projector":
+    if kind == DeviceKind.PROJECTOR:
         v0 = initial_projector_vector(X, o[:, 0], radial_terms)
     else:
         v0 = initial_camera_vector(X, o, radial_terms)
     problem = _Problem(kind, X, o, v0)
     v, nfev = refine(problem, loss, f_scale)
-    if kind == "projector":
+    if kind == DeviceKind.PROJECTOR:
         v = _fix_projector_gauge(v, X)
         problem = _Problem(kind, X, o, v)
     return v, quality_report(problem, v, size, nfev)
@@ -476,10 +492,11 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     columns and rows (N, 2), when horizontal stripes were captured too: then the projector gets
     the camera's full 2-D model.
     """
-    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, "camera", camera_size, radial_terms, loss, f_scale, exclude_flagged)
+    Cn, cam_q = calibrate_device(cam_xyz, cam_uv, DeviceKind.CAMERA, camera_size, radial_terms, loss, f_scale,
+                                 exclude_flagged)
     pu = np.asarray(proj_u, dtype=np.float64)
     two_d = pu.ndim == 2 and pu.shape[1] == 2
-    kind = "projector2d" if two_d else "projector"
+    kind = DeviceKind.PROJECTOR_2D if two_d else DeviceKind.PROJECTOR
     Pn, proj_q = calibrate_device(proj_xyz, pu, kind, projector_size, radial_terms, loss, f_scale, exclude_flagged)
     camera = pm.camera_to_device(Cn, *camera_size)
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
@@ -549,7 +566,7 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
         raise CalibrationError(f"{path}: no control points after the header")
     _check_csv_range(path, data, [line for line, _ in body])
     _check_csv_duplicates(path, data, [line for line, _ in body])
-    return data[:, :3], (data[:, 3] if kind == "projector" else data[:, 3:])
+    return data[:, :3], (data[:, 3] if kind == DeviceKind.PROJECTOR else data[:, 3:])
 
 
 def _check_csv_range(path: Path, data: np.ndarray, lines: list[int]) -> None:
@@ -611,8 +628,8 @@ def run_calibrate_points(cam_csv: str | Path | list[str | Path], proj_csv: str |
                          radial_terms: int = 1, loss: str = "linear") -> CalibrationReport:
     """Read the CSVs (one or several per device), calibrate and save atomically; on any error
     nothing is written."""
-    cam_xyz, cam_uv = read_control_point_files(cam_csv, "camera")
-    proj_xyz, proj_u = read_control_point_files(proj_csv, "projector")
+    cam_xyz, cam_uv = read_control_point_files(cam_csv, DeviceKind.CAMERA)
+    proj_xyz, proj_u = read_control_point_files(proj_csv, DeviceKind.PROJECTOR)
     cal, report = calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, camera_size=camera_size,
                                    projector_size=projector_size, radial_terms=radial_terms, loss=loss)
 

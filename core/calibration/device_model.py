@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from anklescan.core.errors import CalibrationError
+from anklescan.core.vocabulary import Axis
 
-AXES = ("both", "column")
+AXES: tuple[Axis, ...] = (Axis.BOTH, Axis.COLUMN)  # a projector's calibrated axes
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,7 +29,7 @@ class Device:
     dist: np.ndarray
     R: np.ndarray
     t: np.ndarray
-    axis: str = "both"
+    axis: Axis = Axis.BOTH
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
@@ -74,7 +75,7 @@ class Device:
     def distort(self, xu: np.ndarray, yu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted normalised coordinates to distorted ones (OpenCV's model)."""
         k1, k2, p1, p2, k3 = self.dist
-        if self.axis == "column":
+        if self.axis == Axis.COLUMN:
             yu = np.zeros_like(xu)
         r2 = xu * xu + yu * yu
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -96,7 +97,7 @@ class Device:
         k1, k2, p1, p2, k3 = self.dist
         xu, yu = xd.copy(), yd.copy()
         for _ in range(iterations):
-            y_for_r = np.zeros_like(xu) if self.axis == "column" else yu
+            y_for_r = np.zeros_like(xu) if self.axis == Axis.COLUMN else yu
             r2 = xu * xu + y_for_r * y_for_r
             radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
             dx = 2.0 * p1 * xu * y_for_r + p2 * (r2 + 2.0 * xu * xu)
@@ -150,7 +151,7 @@ class Device:
         depend on the row (column devices, distortion-free ones).
         """
         columns = np.asarray(columns, dtype=np.float64)
-        if rows is not None and self.axis == "both":
+        if rows is not None and self.axis == Axis.BOTH:
             xu, _ = self.normalized_from_pixels(np.stack([columns, np.asarray(rows, dtype=np.float64)], axis=-1))
         else:
             xd = (columns - self.K[0, 2]) / self.K[0, 0]

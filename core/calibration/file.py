@@ -28,6 +28,7 @@ from anklescan.core.limits import (
     MIN_FOCAL_PX,
     load_json,
 )
+from anklescan.core.vocabulary import Axis
 
 ORTHONORMAL_TOL = 1e-4
 
@@ -58,16 +59,17 @@ def _matrix(obj: dict, device: str, key: str, shape: tuple[int, ...], allow_null
 def device_from_dict(obj: dict, device: str) -> Device:
     if not isinstance(obj, dict):
         raise CalibrationError(f"calibration: '{device}' must be an object")
-    axis = obj.get("axis", "both")
+    axis = obj.get("axis", Axis.BOTH)
     if axis not in AXES:
         raise CalibrationError(f"calibration: {device}.axis must be one of {list(AXES)}, not {axis!r}")
+    axis = Axis(axis)
     for key in ("width", "height"):
         if key not in obj:
             raise CalibrationError(f"calibration: {device} is missing '{key}'")
         if not isinstance(obj[key], int) or obj[key] <= 0:
             raise CalibrationError(f"calibration: {device}.{key} must be a positive integer, not {obj[key]!r}")
-    K = _matrix(obj, device, "K", (3, 3), allow_null_row=1 if axis == "column" else None)
-    if axis == "column" and not np.isfinite(K[1]).all():
+    K = _matrix(obj, device, "K", (3, 3), allow_null_row=1 if axis == Axis.COLUMN else None)
+    if axis == Axis.COLUMN and not np.isfinite(K[1]).all():
         # Row intrinsics unknown: nominal values, used only to name rows; never for geometry.
         K[1] = [0.0, K[0, 0], (obj["height"] - 1) / 2.0]
     if not np.isfinite(K).all():
@@ -122,7 +124,7 @@ def _numeric_list(value) -> bool:
 def device_to_dict(dev: Device) -> dict:
     out = {"width": dev.width, "height": dev.height, "K": dev.K.tolist(), "dist": dev.dist.tolist(),
            "R": dev.R.tolist(), "t": dev.t.tolist()}
-    if dev.axis != "both":
+    if dev.axis != Axis.BOTH:
         out["axis"] = dev.axis
     return out
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
+from anklescan.core.vocabulary import Axis
 
 PAPER_FOCAL_MM = 1.0
 FLIP = np.diag([-1.0, -1.0, 1.0])  # paper device frame <-> OpenCV device frame (its own inverse)
@@ -209,7 +210,7 @@ def camera_to_device(Cn, width: int, height: int) -> Device:
     xd, yd = _normalised_grid(width, height, fx, fy, u0, v0, column=False)
     dist = fit_opencv_radial(k1 * PAPER_FOCAL_MM**2, k2 * PAPER_FOCAL_MM**4, xd, yd)
     K = np.array([[fx, 0.0, u0], [0.0, fy, v0], [0.0, 0.0, 1.0]])
-    return Device(width, height, K, dist, FLIP @ R, FLIP @ t, "both")
+    return Device(width, height, K, dist, FLIP @ R, FLIP @ t, Axis.BOTH)
 
 
 def projector_to_device(Pn, width: int, height: int) -> Device:
@@ -219,7 +220,7 @@ def projector_to_device(Pn, width: int, height: int) -> Device:
     xd, yd = _normalised_grid(width, height, fx, fx, u0, 0.0, column=True)
     dist = fit_opencv_radial(k1 * PAPER_FOCAL_MM**2, k2 * PAPER_FOCAL_MM**4, xd, yd)
     K = np.array([[fx, 0.0, u0], [0.0, fx, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-    return Device(width, height, K, dist, FLIP @ R, FLIP @ t, "column")
+    return Device(width, height, K, dist, FLIP @ R, FLIP @ t, Axis.COLUMN)
 
 
 # ---- conversion: Device -> paper ----------------------------------------------------------
@@ -242,7 +243,7 @@ def device_to_projector(dev: Device, terms: int = 1) -> np.ndarray:
     """Pn (9 elements; 10 with terms=2) of a Device: its columns only, distortion on y = 0."""
     rpy, t = _pose_to_paper(dev)
     xd, yd = _normalised_grid(dev.width, dev.height, dev.fx, dev.fx, dev.cx, 0.0, column=True)
-    column_dev = Device(dev.width, dev.height, dev.K, dev.dist, dev.R, dev.t, "column")
+    column_dev = Device(dev.width, dev.height, dev.K, dev.dist, dev.R, dev.t, Axis.COLUMN)
     k1, k2 = fit_paper_radial(column_dev, xd, yd, terms)
     f = PAPER_FOCAL_MM
     vec = [*rpy, *t, dev.cx, dev.fx / f, k1 / f**2]

@@ -18,7 +18,7 @@ import numpy as np
 
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import AnkleScanError, GeometryError
-from anklescan.core.vocabulary import TABLE_LABELS, parse_label
+from anklescan.core.vocabulary import TABLE_LABELS, MarkLabel, parse_label
 
 
 # Mark-centre localisation is worse than the paper's 0.2 mm surface accuracy (a mark is
@@ -135,15 +135,15 @@ class JointCovariance:
     """Covariance (mm²) of several marks' positions together, cross terms included: ``matrix`` is
     (3L, 3L) over ``labels`` in order, x, y, z per mark (core/measure/uncertainty.py builds it)."""
 
-    labels: tuple[int, ...]
+    labels: tuple[MarkLabel, ...]
     matrix: np.ndarray
 
-    def block(self, labels: tuple[int, ...]) -> np.ndarray:
+    def block(self, labels: tuple[MarkLabel, ...]) -> np.ndarray:
         idx = [3 * self.labels.index(lab) + k for lab in labels for k in range(3)]
         return self.matrix[np.ix_(idx, idx)]
 
-def _normalise_marks(marks: Mapping) -> dict[int, np.ndarray]:
-    out: dict[int, np.ndarray] = {}
+def _normalise_marks(marks: Mapping) -> dict[MarkLabel, np.ndarray]:
+    out: dict[MarkLabel, np.ndarray] = {}
     for key, p in marks.items():
         lab = parse_label(key)
         if lab in out:
@@ -152,7 +152,7 @@ def _normalise_marks(marks: Mapping) -> dict[int, np.ndarray]:
     return out
 
 
-def _covariance(sigma, label: int) -> np.ndarray:
+def _covariance(sigma, label: MarkLabel) -> np.ndarray:
     """3x3 covariance for one mark from a scalar sigma, a per-mark dict, or a matrix."""
     s = sigma.get(label, sigma.get(str(label))) if isinstance(sigma, Mapping) else sigma
     if s is None:

@@ -28,9 +28,10 @@ from anklescan.core.measure.mark_edges import (
     sliver_edges,
     top_face_pixels,
 )
-from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import MarkKind
 
 if TYPE_CHECKING:
     from anklescan.core.measure.marks import Mark
@@ -39,7 +40,7 @@ if TYPE_CHECKING:
 def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
              sigma: np.ndarray | None = None, *, prior_sd: float | None = CONFIG.radius_prior_sd_mm,
              radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
-             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: str | None = None,
+             plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: MarkKind | None = None,
              clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm,
              covariance: bool = True) -> Mark | Refusal:
     """Fit one candidate: the ``Mark``, or the ``Refusal`` of the first check it failed.
@@ -102,10 +103,12 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     frame = local_frame(centroid, normal)
     step = surface_step(points, sigma, shape, centroid, frame)
     # the surface's normal, for a plate's; not from a ring with a gap (an extrapolation on a curved surface)
-    surface = None if step is None or step[4] < CONFIG.surface_ring_min_decoded else (step[2], frame[:2], step[3])
-    clear = step is not None and step_kind(step[0], step[1]) is not None
-    thickness = float(np.clip(step[0], 0.0, None)) if clear else (plate_thickness or 0.0)
-    kinds = ("sticker", "plate") if step is not None and step[0] < CONFIG.sticker_max_step_mm else ("plate", "sticker")
+    surface = (None if step is None or step.ring_decoded < CONFIG.surface_ring_min_decoded
+               else (step.normal, frame[:2], step.slope_cov))
+    clear = step is not None and step_kind(step.step_mm, step.step_sd) is not None
+    thickness = float(np.clip(step.step_mm, 0.0, None)) if clear else (plate_thickness or 0.0)
+    kinds = ((MarkKind.STICKER, MarkKind.PLATE) if step is not None and step.step_mm < CONFIG.sticker_max_step_mm
+             else (MarkKind.PLATE, MarkKind.STICKER))
     if clear:
         kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
     elif prefer_kind in kinds:
@@ -114,9 +117,10 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         # 0.68 mm at 4.6 SD (full resolution, step 0.08 mm but unclear)
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
-    tries = [("sticker", None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
-    if any(k == "sticker" for k, _ in tries) and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded:
-        tries = [t for t in tries if t[0] != "sticker"]
+    tries = [(MarkKind.STICKER, None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
+    if (any(k == MarkKind.STICKER for k, _ in tries)
+            and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded):
+        tries = [t for t in tries if t[0] != MarkKind.STICKER]
         if not tries:
             return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
     cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
@@ -131,14 +135,14 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     return first
 
 
-def step_kind(step_mm, step_sd) -> str | None:
+def step_kind(step_mm: float | None, step_sd: float) -> MarkKind | None:
     """"sticker" or "plate" where a face's measured step over the surface says so clearly (3 SD
     from ``CONFIG.sticker_max_step_mm``), else None."""
     if step_mm is None or not (np.isfinite(step_mm) and np.isfinite(step_sd)):
         return None
     if abs(step_mm) + 3 * step_sd < CONFIG.sticker_max_step_mm:
-        return "sticker"
-    return "plate" if step_mm - 3 * step_sd > CONFIG.sticker_max_step_mm else None
+        return MarkKind.STICKER
+    return MarkKind.PLATE if step_mm - 3 * step_sd > CONFIG.sticker_max_step_mm else None
 
 
 def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) -> float:
@@ -163,7 +167,7 @@ class _Candidate:
     plane_rms: float
     n_in: int  # interior points of the first plane
     px_per_mm: float  # at the blob's depth
-    step: tuple | None  # ``surface_step``: (step, sd, normal, slope cov, ring decoded) or None
+    step: SurfaceStep | None  # ``surface_step``, or None
     surface: tuple | None  # (normal, basis, slope cov) of the surface round a plate, or None
     clipped: np.ndarray | None  # (H, W) bool, camera saturated
     radius_mm: float  # the marks' radius (the free fit's start where the size is not known)
@@ -174,7 +178,7 @@ class _Candidate:
     covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
 
 
-def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
+def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
     from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
 
@@ -189,18 +193,18 @@ def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | 
 
     def fit(edges: EdgeProfiles, covariance: bool = cand.covariance) -> DiskFit | Refusal:
         # this kind's fit on the given edge profiles; ``covariance``: with the plate's refits for it
-        if kind == "sticker":
+        if kind == MarkKind.STICKER:
             return fit_on_surface(points, sigma, shape, edges, cal, centroid, normal, radius_mm, prior_sd)
         return _fit_plate(image, points, sigma, edges, cal, centroid, normal, plane_rms, n_in0, radius_mm, prior_sd,
                           px_per_mm, thickness, interior, cand.surface, covariance=covariance)
 
-    if kind == "sticker" and albedo is not None:
+    if kind == MarkKind.STICKER and albedo is not None:
         pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
         profiles = pa if len(pa.rows) >= CONFIG.min_edge_points else profiles
     out = fit(profiles)
     if isinstance(out, Refusal):
         return out
-    if kind == "plate":
+    if kind == MarkKind.PLATE:
         out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
     centre, normal, radius, radius_sd = out.centre, out.normal, out.radius, out.radius_sd
@@ -249,7 +253,7 @@ def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | 
         # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
         B = plane_basis(normal)
         cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
-    if kind == "sticker" and profiles is not lit_profiles and prior_sd is not None:
+    if kind == MarkKind.STICKER and profiles is not lit_profiles and prior_sd is not None:
         spread = _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
                                     centre)
         lit_enough = light_deg <= CONFIG.lit_shift_max_light_deg
@@ -277,8 +281,8 @@ def _fit_kind(kind: str, cand: _Candidate, albedo: np.ndarray | None) -> Mark | 
     pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
-                kind=kind, step_mm=None if step is None else float(step[0]),
-                step_sd=float("nan") if step is None else float(step[1]), radius_sd=radius_sd,
+                kind=kind, step_mm=None if step is None else float(step.step_mm),
+                step_sd=float("nan") if step is None else float(step.step_sd), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim)
 

@@ -35,6 +35,17 @@ class RefusalReason(enum.Enum):
     IMAGES_DISAGREE = "the lit and corrected images place it apart"
 
 
+@dataclass(frozen=True, eq=False)
+class SurfaceStep:
+    """A disk's face over the surface around it (``marks_surface.surface_step``)."""
+
+    step_mm: float  # height of the face over the surface (a plate's thickness; a sticker ~0)
+    step_sd: float  # its SD, mm (with the quadric's RMS misfit as a 3-SD bound)
+    normal: np.ndarray  # (3,) unit normal of the surrounding surface at the disk's centre
+    slope_cov: np.ndarray  # (2, 2) covariance of that surface's slope along the local frame's axes, rad²
+    ring_decoded: float  # share of the ring around the disk with a 3-D point
+
+
 @dataclass(frozen=True)
 class Refusal:
     """A candidate refused: ``reason`` the check, ``detail`` the one-line message with figures."""

@@ -54,6 +54,7 @@ from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, s
 from anklescan.core.measure.mark_labels import LABELS, label_marks
 from anklescan.core.measure.mark_types import Refusal
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import MarkKind
 
 
 @dataclass(eq=False)
@@ -74,7 +75,7 @@ class Mark:
     # past ~70° a plate's centre is less accurate (docs/marks.md), a reason to re-stick it
     view_deg: float | None = None
     light_deg: float | None = None
-    kind: str = "plate"  # "plate" (a face standing step_mm proud) or "sticker" (on the surface)
+    kind: MarkKind = MarkKind.PLATE  # a plate (a face standing step_mm proud) or a sticker (on the surface)
     step_mm: float | None = None  # measured height of the face over the surface around it
     step_sd: float = float("nan")  # its SD
     radius_sd: float = float("nan")  # SD of the free fit's radius
@@ -204,7 +205,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
                             clipped=clipped, covariance=False))
             for b in blobs]
     sizes = size_groups([m for m in free if m is not None])
-    steps = [m.step_mm for m in free if m is not None and m.kind == "plate" and m.step_mm is not None
+    steps = [m.step_mm for m in free if m is not None and m.kind == MarkKind.PLATE and m.step_mm is not None
              and m.step_mm > CONFIG.sticker_max_step_mm]
     thick = float(np.median(steps)) if steps else None
     prefer = _common_kind([m.kind for m in free if m is not None])
@@ -438,15 +439,15 @@ def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
     return [m for m in marks if any(m is k for k in kept)]
 
 
-def _common_kind(kinds: list) -> str | None:
+def _common_kind(kinds: list[MarkKind]) -> MarkKind | None:
     """The kind ("plate" / "sticker") of at least CONFIG.common_kind_share of three or more fitted marks, else None."""
-    for kind in ("plate", "sticker"):
+    for kind in (MarkKind.PLATE, MarkKind.STICKER):
         if len(kinds) >= 3 and kinds.count(kind) >= CONFIG.common_kind_share * len(kinds):
             return kind
     return None
 
 
-def _of_capture_kind(mark: Mark, prefer_kind) -> bool:
+def _of_capture_kind(mark: Mark, prefer_kind: MarkKind | None) -> bool:
     """False where the capture's marks are plates (``_common_kind``; a clinic sticks one kind)
     and a later look's fit has a face clearly flush with the surface. Those looks search weaker
     contrast, where a bright patch of skin can pass for a sticker (by the leg's outline, beside
@@ -454,7 +455,7 @@ def _of_capture_kind(mark: Mark, prefer_kind) -> bool:
     step is measured over a quadric, which a large sticker on a bony ankle can leave, so a
     sticker may measure a step of a plate. An unclear step (a small disk at a grazing view) does
     not refuse."""
-    return not (prefer_kind == "plate" and step_kind(mark.step_mm, mark.step_sd) == "sticker")
+    return not (prefer_kind == MarkKind.PLATE and step_kind(mark.step_mm, mark.step_sd) == MarkKind.STICKER)
 
 
 def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,

@@ -22,7 +22,7 @@ from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, plane_basis
-from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason
+from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
@@ -221,7 +221,8 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
     return DiskFit(centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum()))
 
 
-def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | None:
+def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, frame_origin: np.ndarray,
+                 frame: np.ndarray) -> SurfaceStep | None:
     """Height (mm) of a disk's face over the surface around it, and its SD: one quadric through
     the face's points (within CONFIG.step_face_fraction of the blob's ellipse) and the ring's (CONFIG.step_ring),
     with a free offset for the face. A rigid plate stands its thickness proud; a sticker ~0.
@@ -260,7 +261,7 @@ def surface_step(points, sigma, shape: dict, frame_origin, frame) -> tuple | Non
     n = np.array([-coef[3], -coef[4], 1.0]) @ frame
     ring_decoded = float(ok[len(face):].mean())
     step_sd = math.sqrt(max(cov[6, 6], 0.0) + (rms / 3.0) ** 2)
-    return float(coef[6]), step_sd, n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded
+    return SurfaceStep(float(coef[6]), step_sd, n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded)
 
 
 

@@ -36,6 +36,7 @@ from anklescan.core.calibration.uncertainty import ModelError, ParameterCovarian
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
 from anklescan.core.vocabulary import parse_label
+from anklescan.core.vocabulary import Axis
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
 
@@ -58,7 +59,7 @@ def mark_observations(cal: Calibration, centres: np.ndarray) -> tuple[np.ndarray
     """Camera pixels (N, 2) and projector coordinates ((N,) columns, or (N, 2) for a 2-D projector)."""
     uv = cal.camera.project(centres)
     proj = cal.projector.project(centres)
-    return uv, (proj[:, 0] if cal.projector.axis == "column" else proj)
+    return uv, (proj[:, 0] if cal.projector.axis == Axis.COLUMN else proj)
 
 
 def calibration_jacobian(cal: Calibration, cov: ParameterCovariance, centres: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import TrialState
 
 SNOMED = "http://snomed.info/sct"
 UCUM = "http://unitsofmeasure.org"
@@ -94,7 +95,7 @@ def observation(trial: Mapping, patient_ref: str, side: str) -> dict:
 def session_bundle(trials: Sequence[Mapping], patient_code: str, affected_side: str | None) -> dict:
     """A ``collection`` Bundle: the Patient (its pseudonymous code only) and one Observation per
     complete trial of ``trials`` (one session's export rows) with any measured value."""
-    done = [t for t in trials if t["status"] == "complete" and any(
+    done = [t for t in trials if t["status"] == TrialState.COMPLETE and any(
         t.get(k) is not None for k in COMPONENTS if not k.startswith("reference_"))]
     if not done:
         raise AnkleScanError("the session has no complete trial with a measured angle; nothing to export")

@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from anklescan.core.records import study_stats as st
 from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary
+from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary, TrialState
 
 A4 = (8.27, 11.69)
 FOOT_SIZE = 7
@@ -141,9 +141,9 @@ def _trials_text(trials, no_mismatch: list) -> str:
     counted = [t for t in trials if t.counted]
     left_out = [("excluded", sum(t.excluded_reason is not None for t in trials))] + [
         (state, sum(t.excluded_reason is None and t.status == state for t in trials))
-        for state in ("cancelled", "failed", "scanning")]
+        for state in (TrialState.CANCELLED, TrialState.FAILED, TrialState.SCANNING)]
     text = f"{len(trials)} in all, {len(counted)} counted (complete and not excluded)"
-    out = [f"{n} {'still scanning' if state == 'scanning' else state}" for state, n in left_out if n]
+    out = [f"{n} {'still scanning' if state == TrialState.SCANNING else state}" for state, n in left_out if n]
     if out:
         text += "; left out of plots and statistics: " + ", ".join(out)
     leg_missing = sum(t.leg_inversion is None or t.leg_plantar_flexion is None for t in counted)
@@ -157,22 +157,22 @@ def _trials_text(trials, no_mismatch: list) -> str:
 def _state_cell(r: dict) -> str:
     if r.get("excluded_reason") is not None:
         return "excluded"
-    state = r.get("status") or "complete"
-    if state == "complete" and r.get("motion_excluded"):
+    state = r.get("status") or TrialState.COMPLETE
+    if state == TrialState.COMPLETE and r.get("motion_excluded"):
         return "moved"
-    if state == "complete" and not r.get("marks_confirmed", 1):
+    if state == TrialState.COMPLETE and not r.get("marks_confirmed", 1):
         return "complete*"
-    return state
+    return str(state)
 
 
 def _left_out_why(r: dict) -> tuple[str, str] | None:
     """(state, reason) of a trial that is shown but not counted; None for a counted one."""
     if r.get("excluded_reason") is not None:
         return "excluded", r["excluded_reason"]
-    state = r.get("status") or "complete"
-    if state == "complete" and r.get("motion_excluded"):
+    state = r.get("status") or TrialState.COMPLETE
+    if state == TrialState.COMPLETE and r.get("motion_excluded"):
         return "moved", f"{r['motion_mm']:.1f} mm during the scan, not kept"
-    return None if state == "complete" else (state, r.get("status_note") or "")
+    return None if state == TrialState.COMPLETE else (str(state), r.get("status_note") or "")
 
 
 def _trial_cells(i: int, r: dict) -> list[str]:

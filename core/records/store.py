@@ -40,6 +40,7 @@ from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, com
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, MARK_SOURCES, SIDES, TRIAL_STATES, AxisSummary,
+                                       MarkSource, TrialState,
                                        CalibrationRecord, Event, MarkRecord, Patient, ReportInput, Session, SessionSummary, Trial,
                                        parse_label)
 
@@ -935,13 +936,14 @@ class Store:
 
     def add_trial(self, session_id: int, *, ref_inversion: float | None,
                   ref_plantar_flexion: float | None, notes: str = "",
-                  calibration_id: int | None = None, status: str = "complete") -> Trial:
+                  calibration_id: int | None = None,
+                  status: TrialState | str = TrialState.COMPLETE) -> Trial:
         """A trial with the operator's reference-table set angles (degrees), the calibration
         it is measured with and its state (a scan in progress starts as ``scanning``)."""
         session = self.get_session(session_id)
         ri = _opt_float(ref_inversion, "reference inversion")
         rp = _opt_float(ref_plantar_flexion, "reference plantar flexion")
-        _check_state(status)
+        status = _check_state(status)
         cid = session.calibration_id if calibration_id is None else calibration_id
         if cid is not None:
             self.get_calibration(cid)
@@ -959,9 +961,10 @@ class Store:
             c.execute("UPDATE trials SET simulated = ? WHERE id = ?", (int(bool(simulated)), t.id))
         return self.get_trial(t.id)
 
-    def set_trial_status(self, trial_id: int, status: str, note: str = "", *, who: str = "") -> Trial:
+    def set_trial_status(self, trial_id: int, status: TrialState | str, note: str = "", *,
+                         who: str = "") -> Trial:
         """Move a trial to ``complete``, ``cancelled`` or ``failed`` (with a short note why)."""
-        _check_state(status)
+        status = _check_state(status)
         t = self.get_trial(trial_id)
         with self._write() as c:
             c.execute("UPDATE trials SET status = ?, status_note = ? WHERE id = ?", (status, note or "", t.id))
@@ -1128,7 +1131,7 @@ class Store:
 
     # ------------------------------------------------------------ marks
 
-    def update_marks(self, trial_id: int, marks: Mapping, source: str, placed_by: str = "",
+    def update_marks(self, trial_id: int, marks: Mapping, source: MarkSource | str, placed_by: str = "",
                      *, sigma_mm=DEFAULT_SIGMA_MM, recompute: bool = True,
                      joint: JointCovariance | None = None) -> list[MarkRecord]:
         """Insert or replace marks (label → xyz mm) and, by default, recompute the trial's
@@ -1137,6 +1140,7 @@ class Store:
         (``MeasureResult.position_covariance``; then ``sigma_mm`` adds to it, give 0)."""
         if source not in MARK_SOURCES:
             raise AnkleScanError(f"mark source must be 'auto' or 'manual', got {source!r}")
+        source = MarkSource(source)
         trial = self.get_trial(trial_id)
         clean = {}
         for key, p in marks.items():
@@ -1169,7 +1173,7 @@ class Store:
 
     def get_marks(self, trial_id: int) -> list[MarkRecord]:
         rows = self._all("SELECT * FROM marks WHERE trial_id = ? ORDER BY label", (trial_id,))
-        return [MarkRecord(**dict(r)) for r in rows]
+        return [MarkRecord(**{**dict(r), "source": MarkSource(r["source"])}) for r in rows]
 
     # ------------------------------------------------------------ summaries
 
@@ -1222,6 +1226,7 @@ def _trial(row) -> Trial:
     d = dict(row)
     for k in ("motion_flagged", "motion_keep", "simulated"):
         d[k] = bool(d.get(k) or 0)
+    d["status"] = TrialState(d["status"])
     return Trial(**d)
 
 
@@ -1235,9 +1240,10 @@ def _axis_summary(values: list[float | None]) -> AxisSummary:
     return AxisSummary(n, mean, sum(abs(x) for x in v) / n, sd, min(v), max(v))
 
 
-def _check_state(status: str) -> None:
+def _check_state(status: TrialState | str) -> TrialState:
     if status not in TRIAL_STATES:
         raise AnkleScanError(f"trial state must be one of {', '.join(TRIAL_STATES)}, got {status!r}")
+    return TrialState(status)
 
 
 def _log(c: sqlite3.Connection, kind: str, entity: str, entity_id: int, detail: str, who: str) -> None:

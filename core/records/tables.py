@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from anklescan.core.records import study_stats as st
+from anklescan.core.vocabulary import TrialState
 
 BOM = "\ufeff"
 TRUE, FALSE = "true", "false"
@@ -84,7 +85,7 @@ def trial_rows(rows: Sequence[Mapping]) -> list[dict]:
     for r in rows:
         excluded = r.get("excluded_reason") is not None or bool(r.get("motion_excluded"))
         d = {"patient": r["patient_code"], "session": r["session_id"], "visit_date": r["session_date"],
-             "condition": r["condition"], "trial": r["trial_id"], "status": r.get("status") or "complete",
+             "condition": r["condition"], "trial": r["trial_id"], "status": str(r.get("status") or TrialState.COMPLETE),
              "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
              "marks_confirmed": TRUE if r.get("marks_confirmed", 1) else FALSE,
              "reference_inversion": r["ref_inversion"], "reference_plantar_flexion": r["ref_plantar_flexion"],
@@ -100,7 +101,7 @@ def trial_rows(rows: Sequence[Mapping]) -> list[dict]:
 
 def included(trials: Sequence[Mapping]) -> list[Mapping]:
     """Export rows that enter the statistics (status complete, not excluded)."""
-    return [t for t in trials if t["status"] == "complete" and t["excluded"] == FALSE]
+    return [t for t in trials if t["status"] == TrialState.COMPLETE and t["excluded"] == FALSE]
 
 
 def mismatch(t: Mapping, axis: str) -> float | None:

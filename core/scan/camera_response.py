@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from anklescan.core.scan.capture import Capture
-from anklescan.core.scan.patterns import PatternSet
+from anklescan.core.scan.patterns import FrameKind, PatternSet
 
 GAMMA_GRID = np.round(np.arange(1.0, 3.0001, 0.05), 2)  # a camera's curve lies in here (sRGB ≈ 2.2)
 MIN_SPLIT_PIXELS = 2000  # fewer pixels where a pair splits the light: assume a linear camera
@@ -44,12 +44,12 @@ def response_gamma(capture: Capture) -> float:
 
 
 def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -> float:
-    if "white" not in (f.kind for f in pset.frames) or "black" not in (f.kind for f in pset.frames):
+    if FrameKind.WHITE not in (f.kind for f in pset.frames) or FrameKind.BLACK not in (f.kind for f in pset.frames):
         return 1.0
     step = max(1, int(np.sqrt(frames.shape[1] * frames.shape[2] / SAMPLE_GRID_PIXELS)))
     sub = (slice(None, None, step), slice(None, None, step))  # a grid of pixels is plenty, and fast
-    w = frames[pset.index("white")][sub].astype(np.float32) / np.float32(full_scale)
-    b = frames[pset.index("black")][sub].astype(np.float32) / np.float32(full_scale)
+    w = frames[pset.index(FrameKind.WHITE)][sub].astype(np.float32) / np.float32(full_scale)
+    b = frames[pset.index(FrameKind.BLACK)][sub].astype(np.float32) / np.float32(full_scale)
     lit = (w - b > MIN_LIGHT) & (w < SATURATED)
     span = np.maximum(w - b, 1e-6)
     samples = []

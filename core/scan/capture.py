@@ -31,7 +31,7 @@ import numpy as np
 from anklescan.core.atomic import atomic_paths, check_replaceable_dir, make_private_dir, mkdtemp_beside, write_json_atomic
 from anklescan.core.errors import CaptureError
 from anklescan.core.limits import capture_memory_limit, check_image_side, image_size, load_json
-from anklescan.core.scan.patterns import PatternSet, imwrite_checked, is_pattern_output, replace_dir
+from anklescan.core.scan.patterns import FrameKind, PatternSet, imwrite_checked, is_pattern_output, replace_dir
 
 MANIFEST = "manifest.json"
 IMAGE_EXTS = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm",
@@ -134,7 +134,7 @@ def load_capture(folder) -> Capture:
 
     paths = [folder / f for f in pset.files]
     _check_sizes(paths)
-    stack, color = _load_frames(paths, pset.index("white"))
+    stack, color = _load_frames(paths, pset.index(FrameKind.WHITE))
     capture = Capture(folder, pset, stack, color, metadata)
     check_lit(capture)
     return capture
@@ -227,8 +227,8 @@ def _read(path: Path) -> np.ndarray:
 def check_lit(capture: "Capture") -> None:
     """Refuse a capture whose white frame is not brighter than its black one: nothing can
     be decoded from it, and an empty result would look like a successful scan."""
-    white = capture.frame(capture.pattern_set.files[capture.pattern_set.index("white")])
-    black = capture.frame(capture.pattern_set.files[capture.pattern_set.index("black")])
+    white = capture.frame(capture.pattern_set.files[capture.pattern_set.index(FrameKind.WHITE)])
+    black = capture.frame(capture.pattern_set.files[capture.pattern_set.index(FrameKind.BLACK)])
     # contrast relative to the brightest pixels actually recorded, not to the integer type's
     # range: a 12-bit camera stored in 16-bit PNGs never goes past 4095
     brightest = np.maximum(white, black).ravel()
@@ -289,7 +289,7 @@ def capture_from_images(pattern_set: PatternSet, images, metadata=None) -> Captu
     for img, name in zip(images, names):
         if not isinstance(img, np.ndarray) or img.dtype not in MAX_VALUE:
             raise CaptureError(f"frame {name}: need an 8- or 16-bit numpy image")
-    stack, color = _stack(images, names, pattern_set.index("white"))
+    stack, color = _stack(images, names, pattern_set.index(FrameKind.WHITE))
     return Capture(None, pattern_set, stack, color, dict(metadata or {}))
 
 

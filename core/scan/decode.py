@@ -24,8 +24,9 @@ import numpy as np
 from anklescan.core.scan.camera_response import gamma_from_frames, linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.errors import CaptureError
-from anklescan.core.scan.patterns import AxisCode, PatternSet
+from anklescan.core.scan.patterns import AxisCode, FrameKind, PatternSet
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import Axis
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
 REASON_NAMES = ("valid", "shadow", "low_contrast", "saturated", "inconsistent",
@@ -61,12 +62,12 @@ class DecodeResult:
     column_sigma: np.ndarray | None = field(repr=False, default=None)
     row_sigma: np.ndarray | None = field(repr=False, default=None)  # the same for rows
 
-    def axis_map(self, axis: str) -> np.ndarray | None:
+    def axis_map(self, axis: Axis) -> np.ndarray | None:
         """The decoded map of ``axis`` ("column" or "row"), None if the set has no such axis."""
-        return self.column if axis == "column" else self.row
+        return self.column if axis == Axis.COLUMN else self.row
 
-    def axis_sigma(self, axis: str) -> np.ndarray | None:
-        return self.column_sigma if axis == "column" else self.row_sigma
+    def axis_sigma(self, axis: Axis) -> np.ndarray | None:
+        return self.column_sigma if axis == Axis.COLUMN else self.row_sigma
 
     # float copies cost ~1 ms each at 1600x1200, so they are made on first use only
     @property
@@ -169,8 +170,8 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
         frames, full = linear_unit(frames, gamma, full), 1.0
     if saturation is None:
         saturation = full
-    white = frames[pset.index("white")]
-    black = frames[pset.index("black")]
+    white = frames[pset.index(FrameKind.WHITE)]
+    black = frames[pset.index(FrameKind.BLACK)]
     first = pset.axis_code(pset.axes[0])
     if sigma is None:
         sigma = estimate_sigma(white, black, frames[first.gray[0]],
@@ -205,13 +206,13 @@ def decode(capture_or_frames, pattern_set: PatternSet | None = None, *,
         # each axis is NaN where its own tests (or the shared shadow / white tests) fail: a pixel
         # whose rows are washed out keeps its column; ``valid`` is every axis valid
         cv2.copyTo(nan, axis_flags[axis], coord)
-    return DecodeResult(coords.get("column"), coords.get("row"), flags == 0, reason, thr,
-                        white, black, sigmas.get("column"), sigmas.get("row"))
+    return DecodeResult(coords.get(Axis.COLUMN), coords.get(Axis.ROW), flags == 0, reason, thr,
+                        white, black, sigmas.get(Axis.COLUMN), sigmas.get(Axis.ROW))
 
 
 def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
-    white = frames[pset.index("white")]
-    black = frames[pset.index("black")]
+    white = frames[pset.index(FrameKind.WHITE)]
+    black = frames[pset.index(FrameKind.BLACK)]
     # white - black saturates at 0 for integers, which is what a shadow test wants
     shadow = _cmp(cv2.subtract(white, black), thr["shadow"], cv2.CMP_LT)
     flags = cv2.bitwise_and(shadow, _FLAG[SHADOW])

@@ -24,7 +24,7 @@ import numpy as np
 
 from anklescan.core.scan.camera_response import SATURATED, linearised, response_gamma
 from anklescan.core.scan.capture import Capture
-from anklescan.core.scan.patterns import PatternSet
+from anklescan.core.scan.patterns import FrameKind, PatternSet
 
 DECISIVE_FRACTION = 0.85  # lower lets stripe-edge pixels in; higher selects pairs by their noise
 REFERENCE_BITS = 5  # the coarsest bits per axis: stripes of >= 1/32 of the projector
@@ -42,7 +42,7 @@ def clipped_white(capture: Capture) -> np.ndarray:
     """(H, W) bool: where the white frame is saturated (at least ``SATURATED`` of full scale).
     There the lit image reads less than the light: a white mark exposed for the skin beside it
     clips first, and its rim must then be found by its steepest fall (``edge_profiles``)."""
-    white = capture.frames[capture.pattern_set.index("white")]
+    white = capture.frames[capture.pattern_set.index(FrameKind.WHITE)]
     return np.asarray(white) >= SATURATED * capture.max_value
 
 
@@ -50,8 +50,8 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, fu
     """``averaged_lit`` of ``frames``, first linearised with the camera's tone-curve exponent ``gamma``."""
     if gamma != 1.0:
         frames = _LinearFrames(frames, gamma, full_scale)
-    white = frames[pset.index("white")]
-    black = frames[pset.index("black")]
+    white = frames[pset.index(FrameKind.WHITE)]
+    black = frames[pset.index(FrameKind.BLACK)]
     pairs = [(g, gi) for axis in pset.axes
              for g, gi in zip(pset.axis_code(axis).gray, pset.axis_code(axis).gray_inv)]
     total = cv2.subtract(white.astype(np.float32), black.astype(np.float32))

@@ -45,6 +45,8 @@ from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import DecodeResult
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import Axis
+from anklescan.core.scan.patterns import FrameKind
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
 PATCH_MM = (200.0, 200.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway
@@ -125,9 +127,9 @@ def motion_looks(pattern_set) -> list[list[int]]:
     """Runs of consecutive repeat frames (one look each) that repeat column phase frames."""
     looks, run = [], []
     for i, f in enumerate(pattern_set.frames):
-        if f.kind == "repeat":
+        if f.kind == FrameKind.REPEAT:
             of = pattern_set.frames[pattern_set.files.index(f.of)]
-            if of.kind == "phase" and of.axis == "column":
+            if of.kind == FrameKind.PHASE and of.axis == Axis.COLUMN:
                 run.append(i)
                 continue
         if run:
@@ -151,7 +153,7 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         return MotionEstimate(None, None, len(looks), reason="the capture has no motion reference frames "
                                                              "(make patterns with motion references)" if not looks
                               else "one motion reference look: nothing to compare it with")
-    code = pset.axis_code("column")
+    code = pset.axis_code(Axis.COLUMN)
     if not code.phase or len(cloud) == 0 or cloud.pixels is None:
         return MotionEstimate(None, None, len(looks), reason="no phase-decoded points to compare")
     frames = capture.frames

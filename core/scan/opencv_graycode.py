@@ -26,6 +26,7 @@ from anklescan.core.atomic import copy_private, mkdtemp_beside, write_json_atomi
 from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import Frame, PatternSet, replace_dir
+from anklescan.core.vocabulary import Axis
 
 PRESET = "opencv-graycode"
 
@@ -50,12 +51,12 @@ def opencv_pattern_set(width: int, height: int, step: int, files: list[str]) -> 
             f"has {need} frames ({cb} column bits, {rb} row bits, each with its inverse, then white, black): "
             f"check --projector and --step")
     frames, it = [], iter(files)
-    for axis, bits in (("column", cb), ("row", rb)):
+    for axis, bits in ((Axis.COLUMN, cb), (Axis.ROW, rb)):
         for b in range(bits):
             for inv in (False, True):
                 frames.append(Frame(next(it), "gray", axis, b, bits, step, inv))
     frames += [Frame(next(it), "white"), Frame(next(it), "black")]
-    pset = PatternSet(PRESET, width, height, frames, ("column", "row"))
+    pset = PatternSet(PRESET, width, height, frames, (Axis.COLUMN, Axis.ROW))
     pset.validate("opencv-graycode import")
     return pset
 

@@ -30,12 +30,26 @@ from anklescan.core.atomic import (PRIVATE_FILE_MODE, check_replaceable_dir, mkd
 from anklescan.core.errors import CaptureError
 from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_MOTION_REFS, MAX_PHASE_STEPS,
                          check_image_side, load_json)
+from anklescan.core.vocabulary import Axis, TextEnum
 
 FORMAT = "anklescan-patterns"
 VERSION = 1
-KINDS = ("white", "black", "gray", "phase", "repeat")
-AXES = ("column", "row")
-AXIS_TAG = {"column": "col", "row": "row"}
+
+
+class FrameKind(TextEnum):
+    """What a projected frame shows (the manifest's ``kind``)."""
+    WHITE = "white"
+    BLACK = "black"
+    GRAY = "gray"
+    PHASE = "phase"
+    REPEAT = "repeat"
+
+
+KINDS: tuple[FrameKind, ...] = tuple(FrameKind)
+CODED_KINDS: tuple[FrameKind, ...] = (FrameKind.GRAY, FrameKind.PHASE)  # the kinds that encode an axis
+FLAT_KINDS: tuple[FrameKind, ...] = (FrameKind.WHITE, FrameKind.BLACK)
+AXES: tuple[Axis, ...] = (Axis.COLUMN, Axis.ROW)  # the axes a frame encodes
+AXIS_TAG: dict[Axis, str] = {Axis.COLUMN: "col", Axis.ROW: "row"}
 PRESETS = ("default", "paper", "short")
 PAPER_BITS = 8  # the paper projects 8 Gray sheets (+ inverses, white, black): 18 frames
 DEFAULT_PERIOD = 8  # projector px; column noise scales with the period, and at 8 px projector defocus
@@ -59,8 +73,8 @@ class Frame:
     """
 
     file: str
-    kind: str
-    axis: str | None = None
+    kind: FrameKind
+    axis: Axis | None = None
     bit: int | None = None
     bits: int | None = None
     stripe: int | None = None
@@ -72,12 +86,12 @@ class Frame:
 
     def to_dict(self) -> dict:
         d = {"file": self.file, "kind": self.kind}
-        if self.kind == "gray":
+        if self.kind == FrameKind.GRAY:
             d.update(axis=self.axis, bit=self.bit, bits=self.bits, stripe=self.stripe,
                      inverse=self.inverse)
-        elif self.kind == "phase":
+        elif self.kind == FrameKind.PHASE:
             d.update(axis=self.axis, period=self.period, shift=self.shift, steps=self.steps)
-        elif self.kind == "repeat":
+        elif self.kind == FrameKind.REPEAT:
             d.update(of=self.of)
         return d
 
@@ -86,7 +100,7 @@ class Frame:
 class AxisCode:
     """The frames that encode one axis, as indices into ``PatternSet.frames``."""
 
-    axis: str
+    axis: Axis
     size: int  # projector width (column) or height (row)
     bits: int
     stripe: int
@@ -112,7 +126,7 @@ class PatternSet:
     width: int
     height: int
     frames: list[Frame]
-    axes: tuple[str, ...] = ("column",)
+    axes: tuple[Axis, ...] = (Axis.COLUMN,)
     _codes: dict = field(default=None, init=False, repr=False, compare=False)
 
     # ----------------------------------------------------------------- structure
@@ -120,14 +134,14 @@ class PatternSet:
     def files(self) -> list[str]:
         return [f.file for f in self.frames]
 
-    def index(self, kind: str) -> int:
+    def index(self, kind: FrameKind) -> int:
         """Frame index of the (single) white or black frame."""
         for i, f in enumerate(self.frames):
             if f.kind == kind:
                 return i
         raise CaptureError(f"pattern set has no {kind} frame")
 
-    def axis_code(self, axis: str) -> AxisCode | None:
+    def axis_code(self, axis: Axis) -> AxisCode | None:
         if self._codes is None:
             self._codes = {a: _axis_code(self, a) for a in self.axes}
         return self._codes.get(axis)
@@ -182,7 +196,7 @@ class PatternSet:
                                f"(at most {MAX_FRAMES})")
         frames = [_frame_from_dict(d, i, source) for i, d in enumerate(m["frames"])]
         pset = cls(str(m["preset"]), int(proj["width"]), int(proj["height"]), frames,
-                   tuple(axes))
+                   tuple(Axis(a) for a in axes))
         pset.validate(source)
         return pset
 
@@ -195,16 +209,16 @@ class PatternSet:
             if not name or os.path.basename(name) != name or name.startswith("."):
                 raise CaptureError(f"{source}: frame file name '{name}' must be a plain name")
             seen.add(name)
-        for kind in ("white", "black"):
+        for kind in FLAT_KINDS:
             n = sum(f.kind == kind for f in self.frames)
             if n != 1:
                 raise CaptureError(f"{source}: expected exactly one {kind} frame, found {n}")
         for f in self.frames:
-            if f.kind == "repeat" and (f.of not in seen or f.of == f.file
-                                       or self.frames[files.index(f.of)].kind == "repeat"):
+            if f.kind == FrameKind.REPEAT and (f.of not in seen or f.of == f.file
+                                               or self.frames[files.index(f.of)].kind == FrameKind.REPEAT):
                 raise CaptureError(f"{source}: repeat frame '{f.file}' must name another, "
                                    f"non-repeat frame of the set in 'of' (got {f.of!r})")
-            if f.kind in ("gray", "phase") and f.axis not in self.axes:
+            if f.kind in CODED_KINDS and f.axis not in self.axes:
                 raise CaptureError(f"{source}: frame '{f.file}' encodes axis {f.axis!r} "
                                    f"not listed in axes {list(self.axes)}")
         self._codes = None
@@ -216,7 +230,7 @@ def _is_pos_int(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v > 0
 
 
-def _frame_from_dict(d, i: int, source: str) -> Frame:
+def _frame_from_dict(d: object, i: int, source: str) -> Frame:
     if not isinstance(d, dict):
         raise CaptureError(f"{source}: frame #{i} is not an object")
     for key in ("file", "kind"):
@@ -228,26 +242,28 @@ def _frame_from_dict(d, i: int, source: str) -> Frame:
     if kind not in KINDS:
         raise CaptureError(f"{source}: frame '{name}' has unknown kind {kind!r} "
                            f"(expected one of {KINDS})")
-    if kind in ("white", "black"):
+    kind = FrameKind(kind)
+    if kind in FLAT_KINDS:
         return Frame(name, kind)
-    if kind == "repeat":
+    if kind == FrameKind.REPEAT:
         if not isinstance(d.get("of"), str):
             raise CaptureError(f"{source}: repeat frame '{name}' needs 'of', the file name it repeats")
         return Frame(name, kind, of=d["of"])
-    need = ("axis", "bit", "bits", "stripe", "inverse") if kind == "gray" else \
+    need = ("axis", "bit", "bits", "stripe", "inverse") if kind == FrameKind.GRAY else \
         ("axis", "period", "shift", "steps")
     for key in need:
         if key not in d:
             raise CaptureError(f"{source}: {kind} frame '{name}' is missing '{key}'")
     if d["axis"] not in AXES:
         raise CaptureError(f"{source}: frame '{name}' has unknown axis {d['axis']!r}")
-    if kind == "gray":
+    axis = Axis(d["axis"])
+    if kind == FrameKind.GRAY:
         if not (_is_pos_int(d["bits"]) and d["bits"] <= MAX_GRAY_BITS and _is_pos_int(d["stripe"])
                 and d["stripe"] <= MAX_IMAGE_SIDE and isinstance(d["bit"], int) and 0 <= d["bit"] < d["bits"]
                 and isinstance(d["inverse"], bool)):
             raise CaptureError(f"{source}: gray frame '{name}' has bad bit/bits/stripe/inverse "
                                f"({d['bit']!r}/{d['bits']!r}/{d['stripe']!r}/{d['inverse']!r})")
-        return Frame(name, kind, d["axis"], d["bit"], d["bits"], d["stripe"], d["inverse"])
+        return Frame(name, kind, axis, d["bit"], d["bits"], d["stripe"], d["inverse"])
     period, shift, steps = d["period"], d["shift"], d["steps"]
     if not (isinstance(period, (int, float)) and not isinstance(period, bool)
             and 0 < period <= 2 * MAX_IMAGE_SIDE and math.isfinite(period)
@@ -255,12 +271,12 @@ def _frame_from_dict(d, i: int, source: str) -> Frame:
             and isinstance(shift, int) and 0 <= shift < steps):
         raise CaptureError(f"{source}: phase frame '{name}' has bad period/shift/steps "
                            f"({period!r}/{shift!r}/{steps!r})")
-    return Frame(name, kind, d["axis"], period=float(period), shift=shift, steps=steps)
+    return Frame(name, kind, axis, period=float(period), shift=shift, steps=steps)
 
 
-def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> AxisCode:
-    size = pset.width if axis == "column" else pset.height
-    gray = [f for f in pset.frames if f.kind == "gray" and f.axis == axis]
+def _axis_code(pset: PatternSet, axis: Axis, source: str = "pattern set") -> AxisCode:
+    size = pset.width if axis == Axis.COLUMN else pset.height
+    gray = [f for f in pset.frames if f.kind == FrameKind.GRAY and f.axis == axis]
     if not gray:
         raise CaptureError(f"{source}: axis '{axis}' has no gray frames")
     bits = {f.bits for f in gray}
@@ -272,7 +288,7 @@ def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> Axis
         raise CaptureError(f"{source}: {axis} code of {nbits} bits x stripe {stripe} covers "
                            f"{stripe * 2 ** nbits} < projector size {size}")
     idx = {(f.bit, f.inverse): i for i, f in enumerate(pset.frames)
-           if f.kind == "gray" and f.axis == axis}
+           if f.kind == FrameKind.GRAY and f.axis == axis}
     if len(idx) != len(gray):
         raise CaptureError(f"{source}: {axis} has a repeated gray bit")
     for b in range(nbits):
@@ -280,7 +296,7 @@ def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> Axis
             if (b, inv) not in idx:
                 raise CaptureError(f"{source}: {axis} gray bit {b}"
                                    f"{' inverse' if inv else ''} frame is missing")
-    phase = [(i, f) for i, f in enumerate(pset.frames) if f.kind == "phase" and f.axis == axis]
+    phase = [(i, f) for i, f in enumerate(pset.frames) if f.kind == FrameKind.PHASE and f.axis == axis]
     period = steps = None
     order = ()
     if phase:
@@ -306,7 +322,7 @@ def _axis_code(pset: PatternSet, axis: str, source: str = "pattern set") -> Axis
 
 # ---------------------------------------------------------------------- building
 def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 768,
-                     axes=("column",), period: float = DEFAULT_PERIOD,
+                     axes: tuple[Axis | str, ...] = (Axis.COLUMN,), period: float = DEFAULT_PERIOD,
                      steps: int = DEFAULT_STEPS, motion_refs: int = 0) -> PatternSet:
     """``paper``: white, black, 8 Gray bits + inverses (18 frames for one axis).
     ``default``: Gray code down to single pixels + inverses, white, black, and
@@ -323,22 +339,23 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
     axes = tuple(axes)
     if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
         raise CaptureError(f"axes must be a non-empty subset of {AXES}, got {axes!r}")
-    specs = [("white", {}), ("black", {})]
+    axes = tuple(Axis(a) for a in axes)
+    specs = [(FrameKind.WHITE, {}), (FrameKind.BLACK, {})]
     for axis in axes:
-        size = width if axis == "column" else height
+        size = width if axis == Axis.COLUMN else height
         full = max(1, math.ceil(math.log2(size)))
         nbits = min(PAPER_BITS, full) if preset == "paper" else max(1, full - 1) if preset == "short" else full
         # paper: 8 bits whatever the size, so stripes are 2**(full-8) wide (4 for 1024)
         stripe = 2 ** (full - nbits)
         for b in range(nbits):
             for inv in (False, True):
-                specs.append(("gray", dict(axis=axis, bit=b, bits=nbits, stripe=stripe,
+                specs.append((FrameKind.GRAY, dict(axis=axis, bit=b, bits=nbits, stripe=stripe,
                                            inverse=inv)))
         if preset == "short" and steps == DEFAULT_STEPS:
             steps = SHORT_STEPS
         if preset in ("default", "short"):
             for k in range(steps):
-                specs.append(("phase", dict(axis=axis, period=float(period), shift=k,
+                specs.append((FrameKind.PHASE, dict(axis=axis, period=float(period), shift=k,
                                             steps=steps)))
     n_refs = int(motion_refs)
     if n_refs:
@@ -351,39 +368,41 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
         specs = _with_motion_refs(specs, axes[0], n_refs, steps)
     digits = max(2, len(str(len(specs) - 1)))
     names = [_file_name(i, digits, kind, kw) for i, (kind, kw) in enumerate(specs)]
-    by_spec = {(kind, tuple(sorted(kw.items()))): n for n, (kind, kw) in zip(names, specs) if kind != "repeat"}
-    frames = [Frame(n, kind, of=by_spec[kw["of"]]) if kind == "repeat" else Frame(n, kind, **kw)
-              for n, (kind, kw) in zip(names, specs)]
+    by_spec = {(kind, tuple(sorted(kw.items()))): n for n, (kind, kw) in zip(names, specs, strict=True)
+               if kind != FrameKind.REPEAT}
+    frames = [Frame(n, kind, of=by_spec[kw["of"]]) if kind == FrameKind.REPEAT else Frame(n, kind, **kw)
+              for n, (kind, kw) in zip(names, specs, strict=True)]
     pset = PatternSet(preset, width, height, frames, axes)
     pset.validate()
     return pset
 
 
-def _with_motion_refs(specs: list, axis: str, n_refs: int, steps: int) -> list:
+def _with_motion_refs(specs: list, axis: Axis, n_refs: int, steps: int) -> list:
     """Insert ``n_refs`` quadrature pairs of ``axis``' phase frames, evenly spread in time."""
-    pair = [s for s in specs if s[0] == "phase" and s[1]["axis"] == axis
+    pair = [s for s in specs if s[0] == FrameKind.PHASE and s[1]["axis"] == axis
             and s[1]["shift"] in tuple(q * steps // 4 for q in MOTION_REF_SHIFTS_QUARTER)]
-    keys = [("repeat", {"of": ("phase", tuple(sorted(kw.items()))), "ref": j}) for _, kw in pair for j in [0]]
+    keys = [(FrameKind.REPEAT, {"of": (FrameKind.PHASE, tuple(sorted(kw.items()))), "ref": j})
+            for _, kw in pair for j in [0]]
     n_main = len(specs)
     out, at = [], [round(j * n_main / (n_refs - 1)) for j in range(n_refs)]
     for i in range(n_main + 1):
         for j, pos in enumerate(at):
             if pos == i:
-                out.extend(("repeat", {"of": k[1]["of"], "ref": j}) for k in keys)
+                out.extend((FrameKind.REPEAT, {"of": k[1]["of"], "ref": j}) for k in keys)
         if i < n_main:
             out.append(specs[i])
     return out
 
 
-def _file_name(i: int, digits: int, kind: str, kw: dict) -> str:
+def _file_name(i: int, digits: int, kind: FrameKind, kw: dict) -> str:
     head = f"{i:0{digits}d}_"
-    if kind in ("white", "black"):
+    if kind in FLAT_KINDS:
         return f"{head}{kind}.png"
-    if kind == "repeat":
+    if kind == FrameKind.REPEAT:
         of = dict(kw["of"][1])
         return f"{head}ref{kw['ref']}_{AXIS_TAG[of['axis']]}_phase_s{of['shift']}.png"
     tag = AXIS_TAG[kw["axis"]]
-    if kind == "gray":
+    if kind == FrameKind.GRAY:
         return f"{head}{tag}_gray_b{kw['bit']:02d}{'_inv' if kw['inverse'] else ''}.png"
     return f"{head}{tag}_phase_p{kw['period']:g}_s{kw['shift']}.png"
 
@@ -413,14 +432,14 @@ def phase_profile(n: int, period: float, shift: int, steps: int) -> np.ndarray:
 def render_frame(pset: PatternSet, frame: Frame) -> np.ndarray:
     """The projector image (uint8, height x width) of one frame."""
     h, w = pset.height, pset.width
-    if frame.kind == "repeat":
+    if frame.kind == FrameKind.REPEAT:
         return render_frame(pset, pset.frames[pset.files.index(frame.of)])
-    if frame.kind == "white":
+    if frame.kind == FrameKind.WHITE:
         return np.full((h, w), 255, np.uint8)
-    if frame.kind == "black":
+    if frame.kind == FrameKind.BLACK:
         return np.zeros((h, w), np.uint8)
-    n = w if frame.axis == "column" else h
-    if frame.kind == "gray":
+    n = w if frame.axis == Axis.COLUMN else h
+    if frame.kind == FrameKind.GRAY:
         prof = gray_profile(n, frame.bit, frame.bits, frame.stripe) * np.uint8(255)
         if frame.inverse:
             prof = 255 - prof
@@ -428,7 +447,7 @@ def render_frame(pset: PatternSet, frame: Frame) -> np.ndarray:
         prof = np.rint(255.0 * phase_profile(n, frame.period, frame.shift, frame.steps))
         prof = prof.astype(np.uint8)
     # build from a 1-D profile: broadcasting is far cheaper than evaluating per pixel
-    if frame.axis == "column":
+    if frame.axis == Axis.COLUMN:
         return np.ascontiguousarray(np.broadcast_to(prof[None, :], (h, w)))
     return np.ascontiguousarray(np.broadcast_to(prof[:, None], (h, w)))
 
@@ -443,13 +462,13 @@ def pattern_value(frame: Frame, u: np.ndarray) -> np.ndarray:
     Gray stripes switch at pixel boundaries (``c + 0.5``); the phase frames are the
     continuous cosine, which is what a box-pixel projector shows once its optics blur
     the pixel grid (box filtering keeps the phase, only the amplitude drops)."""
-    if frame.kind == "repeat":
+    if frame.kind == FrameKind.REPEAT:
         raise CaptureError("pattern_value: resolve a repeat frame to the frame it repeats first")
-    if frame.kind == "white":
+    if frame.kind == FrameKind.WHITE:
         return np.ones_like(u, dtype=np.float32)
-    if frame.kind == "black":
+    if frame.kind == FrameKind.BLACK:
         return np.zeros_like(u, dtype=np.float32)
-    if frame.kind == "gray":
+    if frame.kind == FrameKind.GRAY:
         code = np.floor((u + 0.5) / frame.stripe).astype(np.int64)
         code = np.clip(code, 0, 2 ** frame.bits - 1)
         bit = ((code ^ (code >> 1)) >> (frame.bits - 1 - frame.bit)) & 1
@@ -484,9 +503,9 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
     albedo = extend(albedo, mode="edge")
     out = np.empty((len(pset.frames),) + shape, dtype)
     for i, f in enumerate(pset.frames):
-        if f.kind == "repeat":
+        if f.kind == FrameKind.REPEAT:
             f = pset.frames[pset.files.index(f.of)]
-        if f.kind in ("gray", "phase") and f.axis == "row":
+        if f.kind in CODED_KINDS and f.axis == Axis.ROW:
             if row_map is None:
                 raise CaptureError("simulate_frames needs a row map for row patterns")
             u = np.asarray(row_map, np.float32)

@@ -11,6 +11,7 @@ from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, decode
 from anklescan.core.errors import CaptureError, GeometryError
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
+from anklescan.core.vocabulary import Axis
 
 # A phase-decoded point is kept when its predicted noise along the camera ray (from the local
 # pattern modulation, the sensor noise and the ray/plane geometry) is at most this: Gaussian
@@ -104,7 +105,7 @@ _D2_V = _D2_H.T.copy()
 
 
 def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult, *,
-                       axes: tuple[str, ...] | None = None) -> PointCloud:
+                       axes: tuple[Axis, ...] | None = None) -> PointCloud:
     """Triangulate a decoded capture with every stripe axis it has that the rig can use (or
     ``axes``); raises a one-line error instead of returning an empty cloud."""
     if axes is None:
@@ -160,7 +161,7 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
         "points": len(cloud),
         "axes": list(axes),
         "points_by_axes": {name: int(per_axis[code]) for name, code in
-                           (("column", 1), ("row", 2), ("both", 3)) if per_axis[code]},
+                           ((Axis.COLUMN, 1), (Axis.ROW, 2), (Axis.BOTH, 3)) if per_axis[code]},
         "sigma_limit_mm": MAX_POINT_SIGMA_MM if has_phase else None,
         "rejected": rejected,
         "thresholds": decoded.thresholds,
@@ -181,7 +182,7 @@ def _undecodable_reason(decoded: DecodeResult) -> str:
     return f"{share:.0f} % of the pixels are {REASON_NAMES[worst].replace('_', ' ')}: {what}"
 
 
-def reconstruct(capture: Capture, cal: Calibration, *, axes: tuple[str, ...] | None = None) -> PointCloud:
+def reconstruct(capture: Capture, cal: Calibration, *, axes: tuple[Axis, ...] | None = None) -> PointCloud:
     """Decode and triangulate with every stripe axis the capture has and the rig can use (or
     ``axes``)."""
     check_compatible(capture, cal)

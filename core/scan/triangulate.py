@@ -53,8 +53,9 @@ import numpy as np
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import AnkleScanError, GeometryError
+from anklescan.core.vocabulary import Axis
 
-AXES = ("column", "row")
+AXES: tuple[Axis, ...] = (Axis.COLUMN, Axis.ROW)
 TABLE_MARGIN = 64  # projector pixels of table beyond the image, for coordinates decoded at its edge
 # Interpolated lens maps: nodes every GRID_NORMALISED_STEP of normalised image coordinate (4 px of
 # a 1600-px camera with f = 1750 px, 3 px of the 1024-px projector; 1 px at quarter scale): the
@@ -127,7 +128,7 @@ class TriangulationCache:
             self._tables = projector_tables(self.calibration.projector, step=self.table_step)
         return self._tables
 
-    def epipolar(self, axis: str) -> np.ndarray:
+    def epipolar(self, axis: Axis) -> np.ndarray:
         """(Hc, Wc, 3) float32 on a grid of nodes every ``epipolar_step`` camera px: the other
         coordinate as a quadratic of ``axis``'s."""
         if axis not in self._epipolar:
@@ -243,7 +244,7 @@ def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[
     return x, y, inv
 
 
-def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
+def _epipolar_curves(cal: Calibration, axis: Axis) -> np.ndarray:
     """Per node of a camera grid, its epipolar curve in the projector image as a quadratic: the row as a
     function of the column (``axis="column"``) or the column of the row (``"row"``).
 
@@ -260,7 +261,7 @@ def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
     d = cam.rays(np.stack(np.meshgrid(gu, gv), axis=-1)).reshape(-1, 3)
     o = proj.to_device(cam.center)  # camera centre in the projector's frame
     e = d @ proj.R.T
-    k = 0 if axis == "column" else 1  # the coordinate sampled, and the one fitted
+    k = 0 if axis == Axis.COLUMN else 1  # the coordinate sampled, and the one fitted
     j = 1 - k
     m = TABLE_MARGIN
     size_k = proj.width if k == 0 else proj.height
@@ -303,7 +304,7 @@ def _epipolar_curves(cal: Calibration, axis: str) -> np.ndarray:
 def calibrated_axes(cal: Calibration) -> tuple[str, ...]:
     """The projector axes the calibration can triangulate with: rows need the projector's row
     intrinsics, which a column-only calibration (SPEC §4, ``"axis": "column"``) lacks."""
-    return ("column", "row") if cal.projector.axis == "both" else ("column",)
+    return (Axis.COLUMN, Axis.ROW) if cal.projector.axis == Axis.BOTH else (Axis.COLUMN,)
 
 
 def build_cache(cal: Calibration) -> TriangulationCache:
@@ -321,7 +322,7 @@ def build_cache(cal: Calibration) -> TriangulationCache:
         R_c=cam.R.copy(),
         R_p=proj.R.copy(),
         D=proj.R @ delta,
-        f={"column": proj.fx, "row": proj.fy},
+        f={Axis.COLUMN: proj.fx, Axis.ROW: proj.fy},
         axes=calibrated_axes(cal),
         cos_limit=float(np.sin(np.radians(MIN_TRIANGULATION_ANGLE_DEG))),
         table_step=grid_step(proj),
@@ -377,18 +378,18 @@ def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     return out.reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
 
 
-def _undistorted(cache: TriangulationCache, axis: str, value: np.ndarray, other: np.ndarray) -> np.ndarray:
+def _undistorted(cache: TriangulationCache, axis: Axis, value: np.ndarray, other: np.ndarray) -> np.ndarray:
     """x_u (``axis="column"``: value = column, other = row) or y_u (rows) at distorted projector
     coordinates, from the table."""
     xt, yt = cache.tables
     scale = np.float32(1.0 / cache.table_step)
     off = np.float32(TABLE_MARGIN / cache.table_step)
-    if axis == "column":
+    if axis == Axis.COLUMN:
         return sample_bilinear(xt, value * scale + off, other * scale + off)
     return sample_bilinear(yt, other * scale + off, value * scale + off)
 
 
-def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, idx: np.ndarray,
+def _other_coordinate(cache: TriangulationCache, axis: Axis, value: np.ndarray, idx: np.ndarray,
                       uv=None) -> np.ndarray:
     """The other projector coordinate on pixel ``idx``'s epipolar curve at ``value`` of ``axis``."""
     field_ = cache.epipolar_field.get(axis)
@@ -396,7 +397,7 @@ def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, i
         q = [f[idx] for f in field_]
     else:
         q = _interpolated_curves(cache, axis, _pixel_coords(cache, idx) if uv is None else uv).T
-    half = np.float32((cache.calibration.projector.width if axis == "column" else
+    half = np.float32((cache.calibration.projector.width if axis == Axis.COLUMN else
                        cache.calibration.projector.height) - 1) / np.float32(2.0)
     w = (value - half) * (np.float32(1.0) / half)
     out = w * q[2]
@@ -406,7 +407,7 @@ def _other_coordinate(cache: TriangulationCache, axis: str, value: np.ndarray, i
     return out
 
 
-def _interpolated_curves(cache: TriangulationCache, axis: str, uv) -> np.ndarray:
+def _interpolated_curves(cache: TriangulationCache, axis: Axis, uv) -> np.ndarray:
     u, v = uv
     scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
     return sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
@@ -427,13 +428,13 @@ class Triangulated:
         return iter((self.points, self.index, self.sigma))
 
 
-AXIS_BITS = {"column": 1, "row": 2}
+AXIS_BITS: dict[Axis, int] = {Axis.COLUMN: 1, Axis.ROW: 2}
 
 
 def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np.ndarray | None = None,
                      valid: np.ndarray | None = None, *, column_sigma: np.ndarray | None = None,
                      row_sigma: np.ndarray | None = None, max_sigma_mm: float | None = None,
-                     axes=("column", "row")) -> Triangulated:
+                     axes=(Axis.COLUMN, Axis.ROW)) -> Triangulated:
     """World points for camera pixels with decoded projector columns and/or rows.
 
     ``column``, ``row``: (H, W) float32 decoded maps (NaN where undecoded), either may be None.
@@ -446,8 +447,8 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
     """
     cache = cache_for(cal)
     H, W = cache.shape
-    maps = {"column": column, "row": row}
-    sigmas = {"column": column_sigma, "row": row_sigma}
+    maps = {Axis.COLUMN: column, Axis.ROW: row}
+    sigmas = {Axis.COLUMN: column_sigma, Axis.ROW: row_sigma}
     for name, m in list(maps.items()) + [(f"{k} sigma", v) for k, v in sigmas.items()]:
         if m is not None and np.shape(m) != (H, W):
             raise GeometryError(f"decoded map is {np.shape(m)[1]}x{np.shape(m)[0]} but the calibrated camera is {W}x{H}")
@@ -471,7 +472,7 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
         idx = np.flatnonzero(finite)
     alone = []  # axes decoded without the other somewhere: they need the epipolar curves
     for a in use:  # lazy parts of the cache, built here once rather than racing in the threads
-        o = flat["row" if a == "column" else "column"]
+        o = flat[Axis.ROW if a == Axis.COLUMN else Axis.COLUMN]
         if o is None or not np.isfinite(o[idx]).all():
             cache.epipolar(a)
             alone.append(a)
@@ -507,7 +508,7 @@ def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray 
     sigma_mm (N,) float32 or None)``. :func:`triangulate_maps` takes rows as well.
     """
     res = triangulate_maps(cal, column, row, valid, column_sigma=column_sigma, max_sigma_mm=max_sigma_mm,
-                           axes=("column",))
+                           axes=(Axis.COLUMN,))
     return res.points, res.index, res.sigma
 
 
@@ -524,7 +525,7 @@ def _pool() -> ThreadPoolExecutor:
 
 def _axis_depth(cache, axis, rays, value, other, idx, uv):
     """s along the ray, ds/d(projector px) and the grazing test for one axis."""
-    k = 0 if axis == "column" else 1
+    k = 0 if axis == Axis.COLUMN else 1
     if other is None:
         if uv is None and cache.epipolar_field.get(axis) is None:
             uv = _pixel_coords(cache, idx)
@@ -557,7 +558,7 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
     est = {}
     for a in use:
         value = flat[a][idx]
-        o = "row" if a == "column" else "column"
+        o = Axis.ROW if a == Axis.COLUMN else Axis.COLUMN
         other = None
         if flat[o] is not None:
             other = flat[o][idx]
@@ -577,7 +578,7 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
         (a, (s_all, sigma, _, ok)), = est.items()
         axes_code = None
     else:
-        (s1, sd1, g1, ok1), (s2, sd2, g2, ok2) = est["column"], est["row"]
+        (s1, sd1, g1, ok1), (s2, sd2, g2, ok2) = est[Axis.COLUMN], est[Axis.ROW]
         v1, v2 = sd1 * sd1 + np.float32(1e-20), sd2 * sd2 + np.float32(1e-20)
         both = ok1 & ok2
         # a wrong code on one axis: the two depths disagree far beyond their noise
@@ -616,7 +617,7 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
 class AxisGeometry:
     """How well one stripe axis triangulates at the rig's working point."""
 
-    axis: str
+    axis: Axis
     angle_deg: float  # between the camera ray and the stripe plane through the working point
     mm_per_px: float  # depth along the ray per projector pixel of that axis
 
@@ -655,13 +656,13 @@ def axis_geometry(cal: Calibration, point: np.ndarray | None = None) -> dict[str
     D = proj.R @ (proj.center - cam.center)
     out = {}
     for axis in calibrated_axes(cal):
-        k = 0 if axis == "column" else 1
+        k = 0 if axis == Axis.COLUMN else 1
         xu = Xp[k] / Xp[2]
         n = np.zeros(3)
         n[k], n[2] = 1.0, -xu
         den = float(n @ e)
         sin = abs(den) / float(np.linalg.norm(n))
-        f = proj.fx if axis == "column" else proj.fy
+        f = proj.fx if axis == Axis.COLUMN else proj.fy
         g = abs((dist * e[2] - D[2]) / den) / f if abs(den) > 1e-12 else math.inf
         out[axis] = AxisGeometry(axis, math.degrees(math.asin(min(1.0, sin))), g)
     return out
@@ -718,7 +719,7 @@ def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -
     d = cam.rays(np.asarray(cam_uv, dtype=np.float64).reshape(-1, 2))
     proj = np.asarray(proj, dtype=np.float64)
     C = cam.center
-    if proj.ndim == 1 or p.axis != "both":
+    if proj.ndim == 1 or p.axis != Axis.BOTH:
         cols = proj if proj.ndim == 1 else proj[:, 0]
         planes = p.column_plane(cols, None if proj.ndim == 1 else proj[:, 1])
         n, off = planes[:, :3], planes[:, 3]
