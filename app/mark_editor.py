@@ -214,6 +214,18 @@ class MarkEditor(QWidget):
     def load_trial(self, store, trial_id: int) -> None:
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
 
+    def show_measured(self, store, trial_id: int, warnings: tuple[str, ...] = (), covariance=None) -> None:
+        """A finished scan's automatic marks, already stored (app.logic.scan records them with the
+        trial), shown to confirm, with the measurement's warnings beside the marks they name and its
+        JointCovariance for the angles' ±. Nothing is written; undo starts here."""
+        from anklescan.core.measure.measure_warnings import warnings_by_mark
+
+        self.load_trial(store, trial_id)
+        self.mark_notes = warnings_by_mark(list(warnings))
+        self.position_covariance = covariance
+        self._refresh(save=False)
+        self.pick_label.setText("Click the cloud to place the selected mark.")
+
     def propose_auto(self, detected: dict, quality: dict | None = None, warnings: list[str] | None = None,
                      covariance=None) -> None:
         """Detected marks (label → xyz) to confirm, saved as 'auto', with their SD and warnings

@@ -5,11 +5,12 @@ to the pages and the banner."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 from PySide6.QtCore import QObject
 
-from anklescan.app.logic.scan import ScanLogic, ScanRefused, frames_in
+from anklescan.app.logic.scan import NoteAction, ScanLogic, ScanNote, ScanRefused, TrialFinished, frames_in
 from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, no_args
 
 
@@ -19,6 +20,7 @@ class ScanFlow(QObject):
         self.win, self.logic = win, logic
         self.controller = None
         self.last_result = None
+        logic.trial_finished.connect(self._show_finished)
         page = win.scan_page
         page.scan_button.clicked.connect(no_args(self.start_scan))
         page.cancel_button.clicked.connect(no_args(self.cancel_scan))
@@ -99,10 +101,7 @@ class ScanFlow(QObject):
         """On the simulated rig: the reference table set to the typed angles, the simulated patient
         setting the adjustable one, and the trial recorded as simulated. The Stance, or None."""
         stance = self.win.rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
-        store, tid = self.win.session.store, self.logic.trial_id
-        if stance is not None and store is not None and tid is not None:
-            store.set_trial_simulated(tid)
-        self.mixed_note = mixed_warning(store, tid, stance is not None)
+        self.logic.mark_simulated(stance is not None)
         return stance
 
     def scan_job(self, plan):
@@ -152,41 +151,25 @@ class ScanFlow(QObject):
         self.win.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
 
     def _finished(self, result) -> None:
-        win = self.win
+        """The worker's result: recorded by the logic in one transaction (ScanLogic.finish), then shown."""
         self.last_result = result
-        tid = self.logic.trial_id
-        has_cloud = self.logic.finished(result)
-        self._show_result(result)
-        notes = []  # (kind, text, action): one banner, of the most severe kind, says them all
-        if result.save_error:
-            notes.append(("error", result.save_error, None))
-        if result.motion_flagged:
-            notes.append(("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
-                          "(The trial is flagged and left out of the statistics unless kept.)",
-                          ("Scan again", self._scan_again)))
-        if result.overexposed:
-            many = len(result.overexposed) > 1
-            notes.append(("warning", f"Mark{'s' * many} {', '.join(result.overexposed)} "
-                          f"{'are' if many else 'is'} overexposed, so {'their' if many else 'its'} position is "
-                          "less certain: lower the exposure in the camera panel and scan again.", None))
-        if has_cloud and tid is not None:
+        self.logic.finish(result)  # -> self._show_finished, through logic.trial_finished
+
+    def _show_finished(self, event: TrialFinished) -> None:
+        """Show a recorded trial: the result page, the cloud with its stored automatic marks, the notes."""
+        win, result, tid = self.win, self.last_result, event.trial_id
+        if result is not None:
+            self._show_result(result)
+        notes = list(event.notes)
+        if event.complete and tid is not None and result is not None:
             win.review.show_cloud(result.cloud, tid)
-            if result.marks:
-                # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks, result.quality, warnings=result.warnings,
-                                                              covariance=result.position_covariance)
-            volume_notes = [w for w in result.warnings if "outside the calibrated volume" in w]
-            if volume_notes:
-                notes.append(("warning", "; ".join(volume_notes) + ".", None))
-            if result.marks_note:
-                notes.append(("info", "Some marks were not found automatically: place them in the "
-                              f"3-D view ({result.marks_note}).", None))
+            if event.has_marks and win.session.store is not None:
+                # shown for confirmation in the 3-D view; undo stops here
+                win.review.marks_page.editor.show_measured(win.session.store, tid, event.warnings, event.covariance)
         store = win.session.store
         win.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
-        if getattr(self, "mixed_note", ""):
-            notes.append(("warning", self.mixed_note, None))
         if notes:
-            show_notes(win.banner, notes)
+            show_notes(win.banner, notes, {NoteAction.SCAN_AGAIN: self._scan_again})
         win.scan_page.form.clear_notes()
         win.scan_page.progress.setFormat("Done")
         win.records.show_session(select_trial=tid)
@@ -225,30 +208,14 @@ class ScanFlow(QObject):
                                      f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
 
 
-def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
-    """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
-    if store is None or trial_id is None:
-        return ""
-    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
-    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
-              if t.id != trial_id and t.simulated != simulated]
-    if not others:
-        return ""
-    kind, other = ("simulated", "real") if simulated else ("real", "simulated")
-    return (f"This {kind} trial joins {len(others)} {other} trial(s) of the same patient: reports and the CSV mark "
-            "them, but keep simulated patients apart from real ones.")
-
-
 def stance_profile(rig) -> str:
     return rig.sim_patient.profile.value if rig.sim_patient is not None else ""
 
 
-SEVERITY = ("info", "warning", "error")
-
-
-def show_notes(banner, notes: list) -> None:
-    """One banner for a scan's notes, [(kind, text, action or None)]: the most severe kind, every
-    text in the order given, and the first action offered."""
-    kind = max((k for k, _, _ in notes), key=SEVERITY.index)
-    action = next((a for _, _, a in notes if a is not None), None)
-    banner.show_message(kind, " ".join(t for _, t, _ in notes), action)
+def show_notes(banner, notes: list[ScanNote], actions: dict[NoteAction, Callable[[], object]]) -> None:
+    """One banner for a scan's notes: the most severe kind, every text in the order given, and the
+    first action offered (``actions``: what each NoteAction does here)."""
+    severity = max(n.severity for n in notes)
+    action = next((n.action for n in notes if n.action is not None and n.action in actions), None)
+    banner.show_message(severity.kind, " ".join(n.text for n in notes),
+                        None if action is None else (action.value, actions[action]))
