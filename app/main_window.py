@@ -34,7 +34,7 @@ from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage
 from anklescan.app.records_panel import RecordsPanel, confirm
 from anklescan.app.review import Review
 from anklescan.app.rig_setup import RigSetup
-from anklescan.app.scan_flow import ScanFlow
+from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
 from anklescan.app.study_view import StudyGui
 
@@ -53,8 +53,10 @@ class MainWindow(QMainWindow):
         self._build()
         self.review = Review(self)
         self.study = StudyGui(self)
-        self.scan_flow = ScanFlow(self, ScanLogic(self.session, self.settings))
         self.rig_setup = RigSetup(self)
+        self.scan_flow = ScanFlow(ScanParts(self.scan_page, self.result_page, self.tabs, self.banner, self.session,
+                                            self.records, self.review, self.rig_setup, lambda: open_daily_check(self)),
+                                  ScanLogic(self.session, self.settings), self)
         self._build_menus()
         self._wire()
         self.session.ask_read_only = self._ask_read_only
@@ -148,6 +150,8 @@ class MainWindow(QMainWindow):
         self.scan_action = act(scan, "&Start scan", self.scan_flow.start_scan, "F5")
         self.cancel_action = act(scan, "&Cancel scan", self.scan_flow.cancel_scan, "Esc")
         self.cancel_action.setEnabled(False)
+        self.scan_flow.canScanChanged.connect(self.scan_action.setEnabled)
+        self.scan_flow.busyChanged.connect(self.cancel_action.setEnabled)
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
         self.daily_check_action = act(scan, "&Daily check…", lambda: open_daily_check(self))

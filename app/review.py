@@ -95,6 +95,11 @@ class Review(QObject):
             page.editor.load({})
             page.editor.set_snapper(None)
 
+    def show_measured_marks(self, trial_id: int, warnings: tuple[str, ...], covariance) -> None:
+        """A finished scan's automatic marks (already stored with the trial) in the 3-D view, to confirm."""
+        if self.win.session.store is not None:
+            self.ensure_marks_page().editor.show_measured(self.win.session.store, trial_id, warnings, covariance)
+
     def trial_title(self, trial, full: bool = False) -> str:
         """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
         its reference angles and any state that leaves it out of the statistics."""
