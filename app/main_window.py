@@ -27,7 +27,7 @@ from PySide6.QtWidgets import (QApplication, QFileDialog, QLabel, QMainWindow, Q
                                QStackedWidget, QTabWidget, QVBoxLayout, QWidget)
 
 from anklescan.app import resources
-from anklescan.app.daily_check import open_daily_check
+from anklescan.app.daily_check import DailyCheckParts, open_daily_check
 from anklescan.app.logic.scan import ScanLogic
 from anklescan.app.logic.session import SessionLogic
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
@@ -54,9 +54,12 @@ class MainWindow(QMainWindow):
         self.review = Review(self)
         self.study = StudyGui(self)
         self.rig_setup = RigSetup(self)
+        scan_logic = ScanLogic(self.session, self.settings)
+        self.daily_check_parts = DailyCheckParts(self.session, self.settings, self.banner, self.rig_setup, scan_logic,
+                                                 self.data_folder, lambda: self.scan_flow.busy)
         self.scan_flow = ScanFlow(ScanParts(self.scan_page, self.result_page, self.tabs, self.banner, self.session,
-                                            self.records, self.review, self.rig_setup, lambda: open_daily_check(self)),
-                                  ScanLogic(self.session, self.settings), self)
+                                            self.records, self.review, self.rig_setup, self.open_daily_check),
+                                  scan_logic, self)
         self._build_menus()
         self._wire()
         self.session.ask_read_only = self._ask_read_only
@@ -154,7 +157,7 @@ class MainWindow(QMainWindow):
         self.scan_flow.busyChanged.connect(self.cancel_action.setEnabled)
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
-        self.daily_check_action = act(scan, "&Daily check…", lambda: open_daily_check(self))
+        self.daily_check_action = act(scan, "&Daily check…", self.open_daily_check)
         act(scan, "C&hoose calibration…", rig.choose_calibration)
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
@@ -213,6 +216,9 @@ class MainWindow(QMainWindow):
     marks_page = property(lambda self: self.review.marks_page)
     session_view = property(lambda self: self.review.session_view)
     show_projector = property(lambda self: self.rig_setup.show_projector)  # the camera panel's self-test asks for it
+
+    def open_daily_check(self) -> None:
+        open_daily_check(self.daily_check_parts, self)
 
     def data_folder(self):
         return self.settings.data_folder
