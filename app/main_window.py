@@ -36,7 +36,7 @@ from anklescan.app.review import Review
 from anklescan.app.rig_setup import RigSetup
 from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
-from anklescan.app.study_view import StudyGui
+from anklescan.app.study_view import StudyGui, StudyParts
 
 log = logging.getLogger("anklescan.gui")
 
@@ -52,7 +52,8 @@ class MainWindow(QMainWindow):
         self.setWindowIcon(resources.app_icon())
         self._build()
         self.review = Review(self)
-        self.study = StudyGui(self)
+        self.study = StudyGui(StudyParts(self.session, self.records, self.banner, self.statusBar(), self.data_folder,
+                                         self.reportWritten.emit, self), self)
         self.rig_setup = RigSetup(self)
         scan_logic = ScanLogic(self.session, self.settings)
         self.daily_check_parts = DailyCheckParts(self.session, self.settings, self.banner, self.rig_setup, scan_logic,
