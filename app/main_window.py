@@ -33,7 +33,7 @@ from anklescan.app.logic.session import SessionLogic
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
 from anklescan.app.records_panel import RecordsPanel, confirm
 from anklescan.app.review import Review
-from anklescan.app.rig_setup import RigSetup
+from anklescan.app.rig_setup import RigParts, RigSetup
 from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
 from anklescan.app.study_view import StudyGui, StudyParts
@@ -54,13 +54,16 @@ class MainWindow(QMainWindow):
         self.review = Review(self)
         self.study = StudyGui(StudyParts(self.session, self.records, self.banner, self.statusBar(), self.data_folder,
                                          self.reportWritten.emit, self), self)
-        self.rig_setup = RigSetup(self)
+        self.rig_setup = RigSetup(RigParts(self.settings, self.session, self.banner, self.tabs, self.records,
+                                           self.review, self.camera_holder, self.rig_label, self.projector_label,
+                                           self.data_folder, self), self)
         scan_logic = ScanLogic(self.session, self.settings)
         self.daily_check_parts = DailyCheckParts(self.session, self.settings, self.banner, self.rig_setup, scan_logic,
                                                  self.data_folder, lambda: self.scan_flow.busy)
         self.scan_flow = ScanFlow(ScanParts(self.scan_page, self.result_page, self.tabs, self.banner, self.session,
                                             self.records, self.review, self.rig_setup, self.open_daily_check),
                                   scan_logic, self)
+        self.rig_setup.scan_flow = self.scan_flow
         self._build_menus()
         self._wire()
         self.session.ask_read_only = self._ask_read_only
