@@ -32,7 +32,7 @@ from anklescan.app.logic.scan import ScanLogic
 from anklescan.app.logic.session import SessionLogic
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
 from anklescan.app.records_panel import RecordsPanel, confirm
-from anklescan.app.review import Review
+from anklescan.app.review import Review, ReviewParts
 from anklescan.app.rig_setup import RigParts, RigSetup
 from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
@@ -51,7 +51,9 @@ class MainWindow(QMainWindow):
         self.setWindowTitle("AnkleScan")
         self.setWindowIcon(resources.app_icon())
         self._build()
-        self.review = Review(self)
+        self.review = Review(ReviewParts(self.session, self.records, self.banner, self.tabs, self.marks_holder,
+                                         self.session_holder, lambda: self.rig, self.data_folder,
+                                         self.reportWritten.emit, self), self)
         self.study = StudyGui(StudyParts(self.session, self.records, self.banner, self.statusBar(), self.data_folder,
                                          self.reportWritten.emit, self), self)
         self.rig_setup = RigSetup(RigParts(self.settings, self.session, self.banner, self.tabs, self.records,
@@ -151,6 +153,7 @@ class MainWindow(QMainWindow):
         edit = self.menuBar().addMenu("&Edit")  # the mark editor's undo stack (app.review)
         self.undo_action = act(edit, "&Undo", review.undo, QKeySequence.StandardKey.Undo)
         self.redo_action = act(edit, "&Redo", review.redo, QKeySequence.StandardKey.Redo)
+        review.undo_action, review.redo_action = self.undo_action, self.redo_action
         edit.aboutToShow.connect(review.update_edit_actions)
         review.update_edit_actions()
         scan = self.menuBar().addMenu("&Scan")
