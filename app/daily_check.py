@@ -16,8 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from anklescan.app.background import run_in_background
-from anklescan.app.main_parts import no_args
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (
     QDialog,
@@ -30,6 +28,9 @@ from PySide6.QtWidgets import (
     QVBoxLayout,
     QWidget,
 )
+
+from anklescan.app.background import run_in_background
+from anklescan.app.main_parts import no_args
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
 if TYPE_CHECKING:

@@ -99,10 +99,11 @@ class PatientHistoryDialog(QDialog):
 
     def __init__(self, tables, patient: str, parent=None):
         super().__init__(parent)
-        from anklescan.core.records import report
-        from anklescan.core.records.study import patient_visits
         from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
         from matplotlib.figure import Figure
+
+        from anklescan.core.records import report
+        from anklescan.core.records.study import patient_visits
 
         self.setWindowTitle(f"Patient history — {patient}")
         self.resize(820, 760)
