@@ -169,3 +169,20 @@ def test_a_finished_scan_is_recorded_at_once_and_told_as_typed_notes(logic, tmp_
     assert severities == [Severity.WARNING, Severity.WARNING, Severity.WARNING]
     assert event.notes[0].action is NoteAction.SCAN_AGAIN and "moved 0.9 mm" in event.notes[0].text
     assert "Mark 3 is overexposed" in event.notes[1].text and "outside the calibrated volume" in event.notes[2].text
+
+
+def test_a_finish_the_store_refuses_leaves_no_half_recorded_trial(logic):
+    """A mark the store refuses (not a number): nothing of the outcome is kept, the trial is failed
+    rather than left 'scanning', and the clinician is told in one notice."""
+    _calibrated(logic)
+    session = logic.start_session(logic.add_patient("P-006").id, "barefoot")
+    scan = ScanLogic(logic, logic.settings)
+    scan.begin(session.id, Entry(), None)
+    plan = scan.plan((64, 48), "test rig")
+    plan.folder.mkdir(parents=True, exist_ok=True)
+    event = scan.finish(Result(folder=plan.folder, cloud=[(0.0, 0.0, 0.0)], marks={1: (float("nan"), 0.0, 0.0)}))
+    assert not event.complete and not event.has_marks and scan.trial_id is None
+    (trial,) = logic.trials(session.id)
+    assert trial.status == "failed" and trial.capture_path is None and trial.motion_mm is None
+    assert logic.store.get_marks(trial.id) == []
+    assert logic.notices[-1][0] == "error" and "could not be recorded" in logic.notices[-1][1]

@@ -383,7 +383,8 @@ def test_finish_trial_records_a_scans_end_in_one_transaction(tmp_path, db):
     assert stored[3].warning == "overexposed" and stored[5].sd_mm == pytest.approx(0.25)
     truth = compute_angles(marks, sigma_mm=0.5)
     assert done.table_inversion == pytest.approx(truth["table_inversion"]["value"])
-    assert done.table_inversion == pytest.approx(10.0, abs=1e-6) and done.mismatch_inversion == pytest.approx(0.0, abs=1e-6)
+    assert done.table_inversion == pytest.approx(10.0, abs=1e-6)
+    assert done.mismatch_inversion == pytest.approx(0.0, abs=1e-6)
     assert len(db.events("trial", t.id)) == events_before + 1
 
 

@@ -70,7 +70,7 @@ class TrialFinished:
     """A scan that ran to the end, recorded (``Store.finish_trial``): what the windows show."""
 
     trial_id: int | None
-    complete: bool                      # it gave a cloud: the trial is complete
+    complete: bool                      # it gave a cloud, recorded: the trial is complete
     notes: tuple[ScanNote, ...] = ()    # in the order the clinician reads them
     warnings: tuple[str, ...] = ()      # the measurement's one-line warnings (SPEC §6), beside their marks
     covariance: object = None           # the marks' JointCovariance: the angles' honest ± (SPEC §3)
@@ -173,10 +173,11 @@ class ScanLogic:
                                TrialMotion(result.motion_mm, result.motion_sd_mm, result.duration_s,
                                            self.settings.get("motion_threshold_mm")),
                                marks, joint)
-        recorded = self._finish(outcome)
-        event = TrialFinished(tid, has_cloud, tuple(self.notes(result, has_cloud)),
+        recorded = self._finish(outcome)  # False: the store refused it (said in a notice; the trial failed)
+        complete = has_cloud and recorded
+        event = TrialFinished(tid, complete, tuple(self.notes(result, has_cloud)),
                               tuple(result.warnings), joint, bool(marks) and recorded)
-        self.trial_id = tid if has_cloud and store is not None else None
+        self.trial_id = tid if complete and store is not None else None
         self.trial_finished.emit(event)
         return event
 
@@ -280,4 +281,6 @@ def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
 def frames_in(folder) -> int:
     """How many frames a (possibly interrupted) capture folder holds."""
     p = Path(folder)
-    return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json") if p.is_dir() else 0
+    if not p.is_dir():
+        return 0
+    return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json")
