@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import QTabWidget
 
-from anklescan.app.logic.scan import NoteAction, ScanLogic, ScanNote, ScanRefused, TrialFinished, frames_in
+from anklescan.app.logic.scan import NoteAction, ScanLogic, ScanNote, ScanRefused, TrialFinished
 from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, Banner, ResultPage, ScanPage, no_args
 
 if TYPE_CHECKING:
@@ -221,18 +221,16 @@ class ScanFlow(QObject):
         self.parts.tabs.setCurrentIndex(PAGE_RESULT)
 
     def _failed(self, message: str, folder: str) -> None:
-        self.logic.failed(message, folder)
+        note = self.logic.failed(message, folder)
         self.parts.records.show_session()
         self.parts.scan_page.progress.setFormat("Stopped")
-        self.parts.banner.show_message("error", f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial "
-                                     "is marked failed. The session is intact; check the device and scan again.")
+        show_notes(self.parts.banner, [note], {})
 
     def _cancelled(self, folder: str) -> None:
-        self.logic.cancelled(folder)
+        note = self.logic.cancelled(folder)
         self.parts.records.show_session()
         self.parts.scan_page.progress.setFormat("Cancelled")
-        self.parts.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
-                                     f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
+        show_notes(self.parts.banner, [note], {})
 
 
 def stance_profile(rig) -> str:

@@ -111,7 +111,9 @@ def test_another_condition_starts_its_own_session(logic):
     scan = ScanLogic(logic, logic.settings)
     shoes_id = scan.begin(barefoot.id, Entry(condition="shoes"), None)
     assert shoes_id != barefoot.id and logic.session(shoes_id).condition == "shoes"
-    scan.cancelled(logic.store.trial_dir(scan.trial_id) / "capture")
+    note = scan.cancelled(logic.store.trial_dir(scan.trial_id) / "capture")
+    from anklescan.app.logic.scan import Severity
+    assert note.severity is Severity.INFO and "marked cancelled" in note.text
     (trial,) = logic.trials(shoes_id)
     assert trial.status == "cancelled" and logic.trials(barefoot.id) == []
 

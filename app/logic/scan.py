@@ -236,11 +236,17 @@ class ScanLogic:
             store.set_trial_simulated(tid)
         self.mixed_note = mixed_warning(store, tid, simulated)
 
-    def failed(self, message: str, folder) -> None:
+    def failed(self, message: str, folder) -> ScanNote:
+        """Record a scan the worker stopped (a device error); what the clinician is told."""
         self._stop("failed", message, Path(folder))
+        return ScanNote(Severity.ERROR, f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial is "
+                        "marked failed. The session is intact; check the device and scan again.")
 
-    def cancelled(self, folder) -> None:
+    def cancelled(self, folder) -> ScanNote:
+        """Record a scan the operator cancelled; what the clinician is told."""
         self._stop("cancelled", "stopped by the operator", Path(folder))
+        return ScanNote(Severity.INFO, "Scan cancelled: the trial is marked cancelled and left out of the "
+                        f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
 
     def abandon(self, note: str) -> None:
         """The app closes during the scan: keep what was captured, the trial cancelled."""
