@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 from PySide6.QtCore import Qt
 
-from anklescan.app.logic.calibration import BoxPoints, cam_pixels_of, refine_click
 from anklescan.app.calibration_pages import PAGE_MANUAL, PAGE_REPORT
 from anklescan.app.calibration_views import gray_rgb
+from anklescan.app.logic.calibration import BoxPoints, cam_pixels_of, refine_click
 
 
 class ManualCalibration:

@@ -9,12 +9,27 @@ import cv2
 import numpy as np
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QKeySequence, QShortcut
-from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QGroupBox, QHBoxLayout, QLabel, QListWidget, QPlainTextEdit,
-                               QProgressBar, QPushButton, QSpinBox, QSplitter, QStackedWidget, QTableWidget,
-                               QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QCheckBox,
+    QDoubleSpinBox,
+    QGroupBox,
+    QHBoxLayout,
+    QLabel,
+    QListWidget,
+    QPlainTextEdit,
+    QProgressBar,
+    QPushButton,
+    QSpinBox,
+    QSplitter,
+    QStackedWidget,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
 
-from anklescan.app.logic.calibration import kept
 from anklescan.app.calibration_views import ZoomView, arrow_gain, gray_rgb, residual_overlay
+from anklescan.app.logic.calibration import kept
 
 STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")
 PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)

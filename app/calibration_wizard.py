@@ -40,14 +40,26 @@ from PySide6.QtWidgets import QDialog
 
 from anklescan.app.acquisition import Acquisition, WindowOutput
 from anklescan.app.background import run_in_background
-from anklescan.app.logic.calibration import (BoxPoints, accept_calibration, board_camera, box_camera,
-                                             calibrate_board_folders, calibrate_folders, calibration_warning,
-                                             camera_size, check_board_folder, current_calibration_info, level_folder,
-                                             load_current_calibration, manual_points, record_verification,
-                                             verify_folder)
 from anklescan.app.calibration_manual import ManualCalibration
 from anklescan.app.calibration_pages import PAGE_MANUAL, PAGE_PLACE, PAGE_REPORT, PAGE_SCAN, PAGE_VERIFY, WizardPages
 from anklescan.app.calibration_views import draw_outlines, gray_rgb
+from anklescan.app.logic.calibration import (
+    BoxPoints,
+    accept_calibration,
+    board_camera,
+    box_camera,
+    calibrate_board_folders,
+    calibrate_folders,
+    calibration_warning,
+    camera_size,
+    check_board_folder,
+    current_calibration_info,
+    level_folder,
+    load_current_calibration,
+    manual_points,
+    record_verification,
+    verify_folder,
+)
 from anklescan.app.settings import Settings
 from anklescan.core.vocabulary import Axis
 

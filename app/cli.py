@@ -23,13 +23,36 @@ import signal
 import sys
 import warnings
 
-from anklescan.app.cli_commands import (cmd_angles, cmd_calibrate_board, cmd_calibrate_box, cmd_calibrate_export,
-                                        cmd_calibrate_import, cmd_calibrate_level, cmd_calibrate_points, cmd_check,
-                                        cmd_demo, cmd_gui, cmd_import_opencv_graycode, cmd_measure, cmd_patterns,
-                                        cmd_reconstruct, set_verbose)
+from anklescan.app.cli_commands import (
+    cmd_angles,
+    cmd_calibrate_board,
+    cmd_calibrate_box,
+    cmd_calibrate_export,
+    cmd_calibrate_import,
+    cmd_calibrate_level,
+    cmd_calibrate_points,
+    cmd_check,
+    cmd_demo,
+    cmd_gui,
+    cmd_import_opencv_graycode,
+    cmd_measure,
+    cmd_patterns,
+    cmd_reconstruct,
+    set_verbose,
+)
 from anklescan.app.study_commands import cmd_export, cmd_report
-from anklescan.core.limits import (MAX_BOARD_CORNERS, MAX_IMAGE_SIDE, MAX_MARK_DIAMETER_MM, MAX_MOTION_REFS,
-                                   MAX_OPTION_MM, MAX_SWAY_MM, bounded_float, bounded_int, date_type, size_type)
+from anklescan.core.limits import (
+    MAX_BOARD_CORNERS,
+    MAX_IMAGE_SIDE,
+    MAX_MARK_DIAMETER_MM,
+    MAX_MOTION_REFS,
+    MAX_OPTION_MM,
+    MAX_SWAY_MM,
+    bounded_float,
+    bounded_int,
+    date_type,
+    size_type,
+)
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1

@@ -72,11 +72,11 @@ def cmd_patterns(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
+    from concurrent.futures import ThreadPoolExecutor
+
     from anklescan.core.calibration.file import load_calibration
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.pointcloud import write_ply
-    from concurrent.futures import ThreadPoolExecutor
-
     from anklescan.core.scan.reconstruct import reconstruct
     from anklescan.core.scan.triangulate import prepare
 
@@ -189,8 +189,8 @@ def cmd_calibrate_board(args) -> int:
 
 def cmd_calibrate_level(args) -> int:
     from anklescan.core.calibration.file import load_calibration, save_calibration
-    from anklescan.core.scan.capture import load_capture
     from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
+    from anklescan.core.scan.capture import load_capture
 
     table = DEFAULT_TABLE if args.table_size is None else parse_table_size(args.table_size)
     cal = load_calibration(args.calibration)
@@ -243,8 +243,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_angles(args) -> int:
-    from anklescan.core.measure.angles import compute_angles, format_angles, read_marks_csv
     from anklescan.core.limits import require_finite
+    from anklescan.core.measure.angles import compute_angles, format_angles, read_marks_csv
 
     marks = read_marks_csv(args.marks)
     angles = compute_angles(marks, sigma_mm=args.sigma)
@@ -258,9 +258,7 @@ def cmd_angles(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from anklescan.app.demo import run_demo
-
-    from anklescan.app.demo import DEMO_SCALE
+    from anklescan.app.demo import DEMO_SCALE, run_demo
 
     if not (0 <= args.sway < 50):
         from anklescan.core.errors import AnkleScanError

@@ -11,10 +11,11 @@ data folder's database with its date; a scan then warns or is refused on the las
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-from anklescan.app.background import run_in_background
-from anklescan.app.main_parts import no_args
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (
     QDialog,
@@ -27,14 +28,34 @@ from PySide6.QtWidgets import (
     QVBoxLayout,
     QWidget,
 )
+
+from anklescan.app.background import run_in_background
+from anklescan.app.main_parts import no_args
 from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
 if TYPE_CHECKING:
-    from anklescan.app.main_window import MainWindow
+    from anklescan.app.logic.scan import ScanLogic
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.main_parts import Banner
+    from anklescan.app.rig_setup import RigSetup
+    from anklescan.app.settings import Settings
     from anklescan.core.calibration.daily_check import CheckResult
 
 HISTORY_ROWS = 5
+
+
+@dataclass(frozen=True, eq=False)
+class DailyCheckParts:
+    """What the daily check works with, built by the main window (not the window itself)."""
+
+    session: SessionLogic
+    settings: Settings
+    banner: Banner
+    rig_setup: RigSetup                    # the rig, its projector window and camera panel
+    scan_logic: ScanLogic                  # the patterns a scan of this rig projects
+    data_folder: Callable[[], Path]
+    scan_busy: Callable[[], bool]          # a patient scan is running
 
 
 def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "°") -> QDoubleSpinBox:
@@ -51,10 +72,10 @@ def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "
 class DailyCheckDialog(QDialog):
     checkDone = Signal(object)  # anklescan.core.calibration.daily_check.CheckResult
 
-    def __init__(self, win: MainWindow, parent: QWidget | None = None):
-        super().__init__(parent or win)
+    def __init__(self, parts: DailyCheckParts, parent: QWidget | None = None):
+        super().__init__(parent)
         self.setWindowTitle("Daily check")
-        self.win, self.settings = win, win.settings
+        self.parts, self.settings = parts, parts.settings
         self.result = None  # the last CheckResult
         self.record = None  # its database row (core.records.daily_checks.DailyCheckRecord)
         self._folder = None
@@ -93,7 +114,7 @@ class DailyCheckDialog(QDialog):
         lay.addWidget(buttons)
         self.resize(560, 420)
         from anklescan.app.scan_worker import ScanController
-        self.controller = ScanController(win.rig_setup.projector, self)
+        self.controller = ScanController(parts.rig_setup.projector, self)
         self.controller.progress.connect(self._progress)
         self.controller.finished.connect(self._captured)
         self.controller.failed.connect(lambda message, _folder: self._failed(message))
@@ -107,11 +128,11 @@ class DailyCheckDialog(QDialog):
 
     def start(self) -> bool:
         """Scan the object; False (with the reason shown) when it cannot start."""
-        win = self.win
-        cal = win.session.calibration
+        parts, rig = self.parts, self.parts.rig_setup.rig
+        cal = parts.session.calibration
         if self.busy:
             return False
-        if win.rig is None or win.rig_setup.projector is None:
+        if rig is None or parts.rig_setup.projector is None:
             return self._say("The camera is still connecting; try again in a moment.", False)
         if cal is None:
             return self._say("No calibration yet: calibrate the scanner first (Scan ▸ Calibration…).", False)
@@ -123,14 +144,14 @@ class DailyCheckDialog(QDialog):
         from anklescan.app.logic.daily_check import check_camera, new_check_folder
         from anklescan.app.scan_worker import ScanJob
         try:
-            self._folder = new_check_folder(win.data_folder())
-            job = ScanJob(win.scan_flow.logic.pattern_set(win.rig.projector_size), check_camera(win.rig, inv, pf),
+            self._folder = new_check_folder(parts.data_folder())
+            job = ScanJob(parts.scan_logic.pattern_set(rig.projector_size), check_camera(rig, inv, pf),
                           self._folder, settle_s=self.settings.get("settle_ms") / 1000.0,
                           metadata={"purpose": "daily check", "set_inversion": inv, "set_plantar_flexion": pf})
         except Exception as exc:
             return self._say(f"The check could not start: {exc}", False)
-        if not win.rig_setup.projector.isVisible():
-            win.rig_setup.show_projector()
+        if not parts.rig_setup.projector.isVisible():
+            parts.rig_setup.show_projector()
         self.verdict.setText("Scanning the object…")
         self.verdict.setStyleSheet("")
         self.controller.start(job)
@@ -140,7 +161,7 @@ class DailyCheckDialog(QDialog):
     def _busy(self, busy: bool) -> None:
         self.scan_button.setEnabled(not busy)
         self.progress.setVisible(busy)
-        panel = getattr(self.win, "camera_panel", None)
+        panel = self.parts.rig_setup.camera_panel
         if panel is not None:
             panel.set_busy(busy)
 
@@ -152,7 +173,7 @@ class DailyCheckDialog(QDialog):
     def _captured(self, _scan_result: object) -> None:
         from anklescan.app.logic.daily_check import check_folder
         inv, pf, tol = self._set
-        folder, cal = self._folder, self.win.session.calibration
+        folder, cal = self._folder, self.parts.session.calibration
         self.verdict.setText("Measuring the object's top…")
         self.scan_button.setEnabled(False)
         self._job = run_in_background(lambda: check_folder(folder, cal, inv, pf, tol), self._checked,
@@ -164,7 +185,7 @@ class DailyCheckDialog(QDialog):
         self.scan_button.setEnabled(True)
         self.result = result
         try:
-            self.record = record_check(self.win.session, result)
+            self.record = record_check(self.parts.session, result)
         except Exception as exc:
             self.record = None
             self.history.setText(f"The result could not be kept in the database: {exc}")
@@ -172,7 +193,7 @@ class DailyCheckDialog(QDialog):
         self.verdict.setStyleSheet(f"font-weight: bold; color: {'#1b7a1b' if ok else '#b00020'};")
         self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
         if not ok:
-            self.win.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.")
+            self.parts.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.")
         if self.record is not None:
             self._show_history()
         self.checkDone.emit(result)
@@ -188,7 +209,7 @@ class DailyCheckDialog(QDialog):
         return value
 
     def _show_history(self) -> None:
-        store = self.win.session.store
+        store = self.parts.session.store
         if store is None:
             self.history.setText("No database: results are not kept.")
             return
@@ -216,14 +237,13 @@ class DailyCheckDialog(QDialog):
         super().done(code)
 
 
-def open_daily_check(win: MainWindow) -> None:
+def open_daily_check(parts: DailyCheckParts, parent: QWidget | None = None) -> None:
     """Scan ▸ Daily check…"""
-    if win.rig is None or win.rig_setup.projector is None or win.scan_flow.busy:
-        if win.rig is None:
-            win.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
+    rig_setup = parts.rig_setup
+    if rig_setup.rig is None or rig_setup.projector is None or parts.scan_busy():
+        if rig_setup.rig is None:
+            parts.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
         return
-    dlg = DailyCheckDialog(win)
+    dlg = DailyCheckDialog(parts, parent)
     dlg.exec()
-    restore = getattr(win.rig_setup, "_restore_projector", None)
-    if restore is not None:
-        restore()
+    rig_setup._restore_projector()

@@ -22,8 +22,8 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from anklescan.core.atomic import (claim_output_dir, copy_private, make_tree_private,
-                                   seal_output_dir, write_text_atomic)
+
+from anklescan.core.atomic import claim_output_dir, copy_private, make_tree_private, seal_output_dir, write_text_atomic
 from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS, Axis, MarkSource
 from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
 

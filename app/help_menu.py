@@ -7,15 +7,24 @@ files the clinician saves are proposed (the user's documents folder, named by pa
 from __future__ import annotations
 
 import datetime as _dt
-import re
 import importlib.util
+import re
 from importlib import metadata
 from pathlib import Path
 
 from PySide6.QtCore import QStandardPaths, Qt, QUrl
 from PySide6.QtGui import QKeySequence, QPainter
-from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QMainWindow, QMenu, QTableWidget, QTableWidgetItem,
-                               QTextBrowser, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QDialog,
+    QDialogButtonBox,
+    QMainWindow,
+    QMenu,
+    QTableWidget,
+    QTableWidgetItem,
+    QTextBrowser,
+    QVBoxLayout,
+    QWidget,
+)
 
 GUIDE = "gui.md"
 # keys that act without a menu entry (their widgets' own shortcuts), as a person needs to know them

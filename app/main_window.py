@@ -23,20 +23,31 @@ import traceback
 
 from PySide6.QtCore import QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import (QApplication, QFileDialog, QLabel, QMainWindow, QMessageBox, QSplitter,
-                               QStackedWidget, QTabWidget, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QApplication,
+    QFileDialog,
+    QLabel,
+    QMainWindow,
+    QMessageBox,
+    QSplitter,
+    QStackedWidget,
+    QTabWidget,
+    QVBoxLayout,
+    QWidget,
+)
 
 from anklescan.app import resources
-from anklescan.app.daily_check import open_daily_check
+from anklescan.app.daily_check import DailyCheckParts, open_daily_check
 from anklescan.app.logic.scan import ScanLogic
 from anklescan.app.logic.session import SessionLogic
 from anklescan.app.main_parts import PAGE_SCAN, PAGE_SESSION, Banner, ResultPage, ScanPage, no_args
 from anklescan.app.records_panel import RecordsPanel, confirm
-from anklescan.app.review import Review
-from anklescan.app.rig_setup import RigSetup
-from anklescan.app.scan_flow import ScanFlow
+from anklescan.app.review import Review, ReviewParts
+from anklescan.app.rig_setup import RigParts, RigSetup
+from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
-from anklescan.app.study_view import StudyGui
+from anklescan.app.study_view import StudyGui, StudyParts
+from anklescan.core.vocabulary import Severity
 
 log = logging.getLogger("anklescan.gui")
 
@@ -51,10 +62,21 @@ class MainWindow(QMainWindow):
         self.setWindowTitle("AnkleScan")
         self.setWindowIcon(resources.app_icon())
         self._build()
-        self.review = Review(self)
-        self.study = StudyGui(self)
-        self.scan_flow = ScanFlow(self, ScanLogic(self.session, self.settings))
-        self.rig_setup = RigSetup(self)
+        self.review = Review(ReviewParts(self.session, self.records, self.banner, self.tabs, self.marks_holder,
+                                         self.session_holder, lambda: self.rig, self.data_folder,
+                                         self.reportWritten.emit, self), self)
+        self.study = StudyGui(StudyParts(self.session, self.records, self.banner, self.statusBar(), self.data_folder,
+                                         self.reportWritten.emit, self), self)
+        self.rig_setup = RigSetup(RigParts(self.settings, self.session, self.banner, self.tabs, self.records,
+                                           self.review, self.camera_holder, self.rig_label, self.projector_label,
+                                           self.data_folder, self), self)
+        scan_logic = ScanLogic(self.session, self.settings)
+        self.daily_check_parts = DailyCheckParts(self.session, self.settings, self.banner, self.rig_setup, scan_logic,
+                                                 self.data_folder, lambda: self.scan_flow.busy)
+        self.scan_flow = ScanFlow(ScanParts(self.scan_page, self.result_page, self.tabs, self.banner, self.session,
+                                            self.records, self.review, self.rig_setup, self.open_daily_check),
+                                  scan_logic, self)
+        self.rig_setup.scan_flow = self.scan_flow
         self._build_menus()
         self._wire()
         self.session.ask_read_only = self._ask_read_only
@@ -103,7 +125,7 @@ class MainWindow(QMainWindow):
             # a banner of its own: the next notice (e.g. "No calibration") must not take it away
             self.settings_banner = Banner()
             self.banner.parentWidget().layout().insertWidget(0, self.settings_banner)
-            self.settings_banner.show_message("error", problem)
+            self.settings_banner.show_message(Severity.ERROR, problem)
             self.settings_label = QLabel("Settings are NOT saved")
             self.settings_label.setToolTip(problem)
             self.settings_label.setStyleSheet("color: #b3261e; font-weight: bold;")
@@ -142,15 +164,18 @@ class MainWindow(QMainWindow):
         edit = self.menuBar().addMenu("&Edit")  # the mark editor's undo stack (app.review)
         self.undo_action = act(edit, "&Undo", review.undo, QKeySequence.StandardKey.Undo)
         self.redo_action = act(edit, "&Redo", review.redo, QKeySequence.StandardKey.Redo)
+        review.undo_action, review.redo_action = self.undo_action, self.redo_action
         edit.aboutToShow.connect(review.update_edit_actions)
         review.update_edit_actions()
         scan = self.menuBar().addMenu("&Scan")
         self.scan_action = act(scan, "&Start scan", self.scan_flow.start_scan, "F5")
         self.cancel_action = act(scan, "&Cancel scan", self.scan_flow.cancel_scan, "Esc")
         self.cancel_action.setEnabled(False)
+        self.scan_flow.canScanChanged.connect(self.scan_action.setEnabled)
+        self.scan_flow.busyChanged.connect(self.cancel_action.setEnabled)
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
-        self.daily_check_action = act(scan, "&Daily check…", lambda: open_daily_check(self))
+        self.daily_check_action = act(scan, "&Daily check…", self.open_daily_check)
         act(scan, "C&hoose calibration…", rig.choose_calibration)
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
@@ -209,6 +234,9 @@ class MainWindow(QMainWindow):
     marks_page = property(lambda self: self.review.marks_page)
     session_view = property(lambda self: self.review.session_view)
     show_projector = property(lambda self: self.rig_setup.show_projector)  # the camera panel's self-test asks for it
+
+    def open_daily_check(self) -> None:
+        open_daily_check(self.daily_check_parts, self)
 
     def data_folder(self):
         return self.settings.data_folder
@@ -273,7 +301,7 @@ def install_excepthook(window_getter) -> None:
         print(text, file=sys.stderr)
         window = window_getter()
         if window is not None:
-            window.banner.show_message("error", f"Unexpected error: {exc_type.__name__}: {exc}. "
+            window.banner.show_message(Severity.ERROR, f"Unexpected error: {exc_type.__name__}: {exc}. "
                                        "It was logged; your data is safe. Please report it.")
     sys.excepthook = hook
 

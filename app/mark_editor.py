@@ -10,15 +10,25 @@ a "?" until the operator confirms it) or ``manual`` (placed or moved by the oper
 from __future__ import annotations
 
 import re
-
 from dataclasses import dataclass, replace
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QColor, QKeySequence, QShortcut, QUndoCommand, QUndoStack
-from PySide6.QtWidgets import (QAbstractItemView, QButtonGroup, QGridLayout, QGroupBox, QHBoxLayout,
-                               QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
-                               QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QButtonGroup,
+    QGridLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
 
 from anklescan.app.main_parts import signed
 from anklescan.core.measure.angles import compute_angles
@@ -213,6 +223,18 @@ class MarkEditor(QWidget):
 
     def load_trial(self, store, trial_id: int) -> None:
         self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
+
+    def show_measured(self, store, trial_id: int, warnings: tuple[str, ...] = (), covariance=None) -> None:
+        """A finished scan's automatic marks, already stored (app.logic.scan records them with the
+        trial), shown to confirm, with the measurement's warnings beside the marks they name and its
+        JointCovariance for the angles' ±. Nothing is written; undo starts here."""
+        from anklescan.core.measure.measure_warnings import warnings_by_mark
+
+        self.load_trial(store, trial_id)
+        self.mark_notes = warnings_by_mark(list(warnings))
+        self.position_covariance = covariance
+        self._refresh(save=False)
+        self.pick_label.setText("Click the cloud to place the selected mark.")
 
     def propose_auto(self, detected: dict, quality: dict | None = None, warnings: list[str] | None = None,
                      covariance=None) -> None:
@@ -472,6 +494,7 @@ class MarksPage(QWidget):
     def __init__(self, operator: str = "", parent=None):
         super().__init__(parent)
         from PySide6.QtWidgets import QComboBox, QSplitter
+
         from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, CloudViewer
         self.viewer = CloudViewer()
         self.editor = MarkEditor(self.viewer, operator)

@@ -27,9 +27,9 @@ class TrialSnapper:
     def _images(self):
         with self._lock:
             if self._lit is None:
+                from anklescan.core.measure.marks import points_image
                 from anklescan.core.scan.capture import load_capture
                 from anklescan.core.scan.lit_image import averaged_lit, clipped_white
-                from anklescan.core.measure.marks import points_image
                 capture = load_capture(self.capture_folder)
                 lit = averaged_lit(capture)
                 self._points = points_image(self.cloud, lit.shape)

@@ -23,7 +23,6 @@ from PySide6.QtCore import QPoint, QRect, Qt, QTimer, Signal
 from PySide6.QtGui import QColor, QGuiApplication, QImage, QKeyEvent, QPainter, QScreen
 from PySide6.QtWidgets import QWidget
 
-
 PREVIEW_TITLE = "Projector preview — scaled, one monitor only"
 NATIVE_TITLE = "AnkleScan projector"
 SPOT_RADIUS = 4

@@ -5,35 +5,65 @@ first needed: the OpenGL viewer and pyqtgraph are slow to load."""
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import QObject, Qt
 from PySide6.QtWidgets import QApplication, QFileDialog
 
 from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION, deg
+from anklescan.core.vocabulary import Severity
+
+if TYPE_CHECKING:
+    from PySide6.QtGui import QAction
+    from PySide6.QtWidgets import QStackedWidget, QTabWidget, QWidget
+
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.main_parts import Banner
+    from anklescan.app.records_panel import RecordsPanel
+
+
+@dataclass(frozen=True, eq=False)
+class ReviewParts:
+    """What the review works with, built by the main window (not the window itself)."""
+
+    session: SessionLogic
+    records: RecordsPanel
+    banner: Banner
+    tabs: QTabWidget
+    marks_holder: QStackedWidget       # where the 3-D marks page goes once built
+    session_holder: QStackedWidget     # where the session plots go once built
+    rig: Callable[[], object]          # the open rig (app.rig.Rig) or None: its calibration frames a cloud
+    data_folder: Callable[[], Path]
+    report_written: Callable[[str], object]  # a report's PDF path, once on disk (the window's reportWritten)
+    dialog_parent: QWidget             # the file, print and history dialogs' parent window
 
 
 class Review(QObject):
-    def __init__(self, win):
-        super().__init__(win)
-        self.win = win
+    def __init__(self, parts: ReviewParts, parent: QObject | None = None):
+        super().__init__(parent)
+        self.parts = parts
+        self.undo_action: QAction | None = None  # Edit ▸ Undo / Redo, set by the main window with its menus
+        self.redo_action: QAction | None = None
         self.marks_page = None
         self.session_view = None
         self.viewer_trial = None  # the trial whose cloud the viewer shows
         self.jobs = []            # background jobs (reports) still running
         self.last_report = None
-        win.tabs.currentChanged.connect(self._tab_changed)
+        parts.tabs.currentChanged.connect(self._tab_changed)
 
     def ensure_marks_page(self):
         if self.marks_page is None:
             from anklescan.app.mark_editor import MarksPage
-            win = self.win
-            self.marks_page = MarksPage(operator=win.session.operator or os_user())
-            self.marks_page.editor.saveFailed.connect(lambda text: win.banner.show_message("error", text))
+            parts = self.parts
+            self.marks_page = MarksPage(operator=parts.session.operator or os_user())
+            self.marks_page.editor.saveFailed.connect(lambda text: parts.banner.show_message(Severity.ERROR, text))
             self.marks_page.editor.marksChanged.connect(lambda _: self.refresh_plots_if_shown())
-            win.marks_holder.addWidget(self.marks_page)
-            win.marks_holder.setCurrentWidget(self.marks_page)
-            self.marks_page.editor.setEnabled(not win.session.read_only)
+            parts.marks_holder.addWidget(self.marks_page)
+            parts.marks_holder.setCurrentWidget(self.marks_page)
+            self.marks_page.editor.setEnabled(not parts.session.read_only)
             self.marks_page.editor.undo_stack.indexChanged.connect(lambda _: self.update_edit_actions())
             self.marks_page.editor.undo_stack.cleanChanged.connect(lambda _: self.update_edit_actions())
             self.update_edit_actions()
@@ -50,8 +80,8 @@ class Review(QObject):
             finally:
                 QApplication.restoreOverrideCursor()
             self.session_view.trialActivated.connect(self.open_trial)
-            self.win.session_holder.addWidget(self.session_view)
-            self.win.session_holder.setCurrentWidget(self.session_view)
+            self.parts.session_holder.addWidget(self.session_view)
+            self.parts.session_holder.setCurrentWidget(self.session_view)
         return self.session_view
 
     def _tab_changed(self, index: int) -> None:
@@ -63,11 +93,11 @@ class Review(QObject):
 
     def refresh_plots_if_shown(self) -> None:
         # The store recomputed the trial's angles; the trial list and plots show them.
-        if self.session_view is not None and self.win.tabs.currentIndex() == PAGE_SESSION:
+        if self.session_view is not None and self.parts.tabs.currentIndex() == PAGE_SESSION:
             self.refresh_plots()
 
     def refresh_plots(self) -> None:
-        sid, logic = self.win.records.current_session_id(), self.win.session
+        sid, logic = self.parts.records.current_session_id(), self.parts.session
         if self.session_view is None or logic.store is None:
             return
         rows = logic.session_rows(sid)
@@ -78,9 +108,10 @@ class Review(QObject):
 
     # ---- the 3-D view ---------------------------------------------------------------------
     def show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:
-        page, logic = self.ensure_marks_page(), self.win.session
+        page, logic = self.ensure_marks_page(), self.parts.session
         self.viewer_trial = trial_id
-        rig_cal = getattr(self.win.rig, "calibration", None) if self.win.rig is not None else None
+        rig = self.parts.rig()
+        rig_cal = getattr(rig, "calibration", None) if rig is not None else None
         if title is None and trial_id is not None and logic.store is not None:
             title = self.trial_title(logic.trial(trial_id))
         page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or "Point cloud")
@@ -95,11 +126,16 @@ class Review(QObject):
             page.editor.load({})
             page.editor.set_snapper(None)
 
+    def show_measured_marks(self, trial_id: int, warnings: tuple[str, ...], covariance) -> None:
+        """A finished scan's automatic marks (already stored with the trial) in the 3-D view, to confirm."""
+        if self.parts.session.store is not None:
+            self.ensure_marks_page().editor.show_measured(self.parts.session.store, trial_id, warnings, covariance)
+
     def trial_title(self, trial, full: bool = False) -> str:
         """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
         its reference angles and any state that leaves it out of the statistics."""
         from anklescan.app.records_panel import trial_number
-        text = f"Trial {trial_number(self.win.session.store, trial)}"
+        text = f"Trial {trial_number(self.parts.session.store, trial)}"
         if full:
             text += f" · reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
         if trial.simulated:
@@ -111,34 +147,36 @@ class Review(QObject):
     def _snapper(self, trial, cloud, session):
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
         from anklescan.app.mark_snap import TrialSnapper
-        cal = self.win.session.trial_calibration(trial, session)
+        cal = self.parts.session.trial_calibration(trial, session)
         if not trial.capture_path or cal is None:
             return None
-        return TrialSnapper(self.win.session.store.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
+        return TrialSnapper(self.parts.session.store.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
 
     def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
         from anklescan.core.scan.pointcloud import read_ply
-        win, logic = self.win, self.win.session
+        parts, logic = self.parts, self.parts.session
         trial = logic.trial(trial_id)
         if trial is None:
             return False
-        win.records.select_trial_item(trial.id)
+        parts.records.select_trial_item(trial.id)
         if not trial.cloud_path:
-            win.banner.show_message("info", f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
+            parts.banner.show_message(Severity.INFO, f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
             cloud = read_ply(logic.store.resolve(trial.cloud_path))
         except Exception as exc:
-            win.banner.show_message("error", f"The point cloud of trial {trial.id} could not be read: {exc}")
+            parts.banner.show_message(Severity.ERROR, f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False
         self.show_cloud(cloud, trial.id, self.trial_title(trial, full=True))
         if switch_tab:
-            win.tabs.setCurrentIndex(PAGE_MARKS)
+            parts.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
     def open_cloud_file(self) -> bool:
-        path, _ = QFileDialog.getOpenFileName(self.win, "Open point cloud", str(self.win.data_folder()), "PLY (*.ply)")
+        path, _ = QFileDialog.getOpenFileName(self.parts.dialog_parent, "Open point cloud",
+                                              str(self.parts.data_folder()),
+                                              "PLY (*.ply)")
         return bool(path) and self.open_cloud_path(path)
 
     def open_cloud_path(self, path: str) -> bool:
@@ -147,10 +185,10 @@ class Review(QObject):
         try:
             cloud = read_ply(path)
         except Exception as exc:
-            self.win.banner.show_message("error", str(exc))
+            self.parts.banner.show_message(Severity.ERROR, str(exc))
             return False
         self.show_cloud(cloud, None, f"{Path(path).name} (not part of a trial: marks are not saved)")
-        self.win.tabs.setCurrentIndex(PAGE_MARKS)
+        self.parts.tabs.setCurrentIndex(PAGE_MARKS)
         return True
 
     # ---- Edit ▸ Undo / Redo: the mark editor's undo stack -------------------------------
@@ -164,18 +202,16 @@ class Review(QObject):
 
     def update_edit_actions(self) -> None:
         """Edit ▸ Undo / Redo say what they undo ("Undo place mark 1") and are enabled when they can."""
-        win = self.win
-        if not hasattr(win, "undo_action"):
+        if self.undo_action is None or self.redo_action is None:
             return
         stack = None if self.marks_page is None else self.marks_page.editor.undo_stack
         with contextlib.suppress(RuntimeError):  # the window is closing: its undo stack is already gone
-            self._show_edit_actions(win, stack)
+            self._show_edit_actions(stack)
 
-    @staticmethod
-    def _show_edit_actions(win, stack) -> None:
+    def _show_edit_actions(self, stack) -> None:
         for action, can, text, verb in (
-                (win.undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
-                (win.redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
+                (self.undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
+                (self.redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
             action.setEnabled(bool(can))
             action.setText(f"&{verb} {text}" if can and text else f"&{verb}")
 
@@ -183,10 +219,10 @@ class Review(QObject):
     def _proposed(self, kind: str, suffix: str) -> str:
         """The documents folder, named by the selected patient's code and the session's date."""
         from anklescan.app.help_menu import proposed_path
-        win, logic = self.win, self.win.session
-        sid = win.records.current_session_id()
+        parts, logic = self.parts, self.parts.session
+        sid = parts.records.current_session_id()
         session = logic.session(sid) if sid is not None else None
-        path = proposed_path(kind, win.records.current_code(), session.date if session is not None else None, suffix)
+        path = proposed_path(kind, parts.records.current_code(), session.date if session is not None else None, suffix)
         with contextlib.suppress(OSError):  # the dialog lets the clinician choose another folder
             path.parent.mkdir(parents=True, exist_ok=True)
         return str(path)
@@ -199,7 +235,7 @@ class Review(QObject):
         if not QPrinterInfo.availablePrinterNames():
             printer.setOutputFormat(QPrinter.OutputFormat.PdfFormat)
             printer.setOutputFileName(self._proposed("print", ".pdf"))
-        dialog = QPrintDialog(printer, self.win)
+        dialog = QPrintDialog(printer, self.parts.dialog_parent)
         dialog.setWindowTitle("Print")
         if dialog.exec() != QPrintDialog.DialogCode.Accepted:
             return False
@@ -207,29 +243,30 @@ class Review(QObject):
 
     def print_to(self, printer) -> bool:
         from anklescan.app.help_menu import print_widget_pages
-        win = self.win
-        if win.tabs.currentIndex() == PAGE_MARKS and self.marks_page is not None:
+        parts = self.parts
+        if parts.tabs.currentIndex() == PAGE_MARKS and self.marks_page is not None:
             widget, what = self.marks_page, "3-D marks"
         else:
             self.ensure_session_view()
             self.refresh_plots()
             widget, what = self.session_view, "Session plots"
-        sid = win.records.current_session_id()
-        title = win.session.session_title(sid) if sid is not None and win.session.store is not None else ""
-        simulated = sid is not None and any(t.simulated for t in win.session.trials(sid))
+        sid = parts.records.current_session_id()
+        title = parts.session.session_title(sid) if sid is not None and parts.session.store is not None else ""
+        simulated = sid is not None and any(t.simulated for t in parts.session.trials(sid))
         heading = f"AnkleScan — {what}" + (f" — {title}" if title else "") + (
             "\nSIMULATED — a simulated patient on the built-in simulated rig, not patient data" if simulated else "")
         try:
             print_widget_pages(printer, [widget], heading)
         except Exception as exc:
-            win.banner.show_message("error", f"Printing failed: {exc}")
+            parts.banner.show_message(Severity.ERROR, f"Printing failed: {exc}")
             return False
         target = printer.outputFileName()
-        win.banner.show_message("info", f"{what} printed" + (f" to {target}" if target else "") + ".")
+        parts.banner.show_message(Severity.INFO, f"{what} printed" + (f" to {target}" if target else "") + ".")
         return True
 
     def export_plots(self) -> Path | None:
-        path, _ = QFileDialog.getSaveFileName(self.win, "Export session plots", self._proposed("plots", ".png"),
+        path, _ = QFileDialog.getSaveFileName(self.parts.dialog_parent, "Export session plots",
+                                              self._proposed("plots", ".png"),
                                               "PNG image (*.png);;SVG vector (*.svg)")
         return self.export_plots_to(path) if path else None
 
@@ -239,17 +276,18 @@ class Review(QObject):
         try:
             out = self.session_view.export(path)
         except Exception as exc:
-            self.win.banner.show_message("error", f"The plots could not be exported: {exc}")
+            self.parts.banner.show_message(Severity.ERROR, f"The plots could not be exported: {exc}")
             return None
-        self.win.banner.show_message("info", f"Session plots saved to {out}")
+        self.parts.banner.show_message(Severity.INFO, f"Session plots saved to {out}")
         return out
 
     def export_session_report(self) -> None:
-        sid = self.win.records.current_session_id()
-        if self.win.session.store is None or sid is None:
-            self.win.banner.show_message("warning", "Select a session first.")
+        sid = self.parts.records.current_session_id()
+        if self.parts.session.store is None or sid is None:
+            self.parts.banner.show_message(Severity.WARNING, "Select a session first.")
             return
-        path, _ = QFileDialog.getSaveFileName(self.win, "Session report", self._proposed("report", ".pdf"),
+        path, _ = QFileDialog.getSaveFileName(self.parts.dialog_parent, "Session report",
+                                              self._proposed("report", ".pdf"),
                                               "PDF (*.pdf)")
         if path:
             self.write_session_report_to(path)
@@ -257,10 +295,10 @@ class Review(QObject):
     def write_session_report_to(self, pdf_path: str):
         """Render the selected session's PDF + CSV in the background; the banner says when it is saved."""
         from anklescan.app.background import run_in_background
-        win, store = self.win, self.win.session.store
-        sid = win.records.current_session_id()
+        parts, store = self.parts, self.parts.session.store
+        sid = parts.records.current_session_id()
         if store is None or sid is None:
-            win.banner.show_message("warning", "Select a session first.")
+            parts.banner.show_message(Severity.WARNING, "Select a session first.")
             return None
         pdf = Path(pdf_path).with_suffix(".pdf")
         db_path, data_dir = store.path, store.data_dir
@@ -271,17 +309,17 @@ class Review(QObject):
             with Store.open(db_path, data_dir=data_dir) as own:
                 return write_session_report(own.report_input([sid]), pdf, pdf.with_suffix(".csv"))
 
-        win.banner.show_message("info", f"Writing the session report to {pdf}…")
+        parts.banner.show_message(Severity.INFO, f"Writing the session report to {pdf}…")
         job = run_in_background(render, lambda result: self._report_written(pdf, result),
-                                lambda error: win.banner.show_message(
+                                lambda error: parts.banner.show_message(
                                     "error", f"The session report could not be written: {error}"))
         self.jobs = [j for j in self.jobs if j.thread.is_alive()] + [job]
         return job
 
     def _report_written(self, pdf: Path, result) -> None:
         self.last_report = result
-        self.win.banner.show_message("info", f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
-        self.win.reportWritten.emit(str(pdf))
+        self.parts.banner.show_message(Severity.INFO, f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
+        self.parts.report_written(str(pdf))
 
     def wait_for_jobs(self) -> None:
         for job in self.jobs:

@@ -4,17 +4,51 @@ are measured with (loading it, the wizard, its age)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 from PySide6.QtCore import QObject, QTimer
 from PySide6.QtGui import QAction, QActionGroup, QGuiApplication
 
 from anklescan.app.main_parts import PAGE_SCAN
+from anklescan.core.vocabulary import Severity
+
+if TYPE_CHECKING:
+    from PySide6.QtWidgets import QLabel, QStackedWidget, QTabWidget, QWidget
+
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.main_parts import Banner
+    from anklescan.app.records_panel import RecordsPanel
+    from anklescan.app.review import Review
+    from anklescan.app.scan_flow import ScanFlow
+    from anklescan.app.settings import Settings
+
+
+@dataclass(frozen=True, eq=False)
+class RigParts:
+    """What the rig setup works with, built by the main window (not the window itself)."""
+
+    settings: Settings
+    session: SessionLogic
+    banner: Banner
+    tabs: QTabWidget
+    records: RecordsPanel
+    review: Review                 # its 3-D page is built once the rig is open
+    camera_holder: QStackedWidget  # where the camera panel goes
+    rig_label: QLabel              # the status bar's rig and projector words
+    projector_label: QLabel
+    data_folder: Callable[[], Path]
+    dialog_parent: QWidget         # the wizard's and the chooser's parent window
 
 
 class RigSetup(QObject):
-    def __init__(self, win):
-        super().__init__(win)
-        self.win = win
-        self.settings = win.settings
+    def __init__(self, parts: RigParts, parent: QObject | None = None):
+        super().__init__(parent)
+        self.parts = parts
+        self.settings = parts.settings
+        self.scan_flow: ScanFlow | None = None  # set by the main window once made (it needs this rig)
         self.rig = None
         self.projector = None
         self.camera_panel = None
@@ -38,25 +72,25 @@ class RigSetup(QObject):
         profile = s.get("sim_patient")
         if not in_background:
             self._rig_opened(open_rig_safely(backend, scale, device, size, profile=profile))
-            self.win.review.ensure_marks_page()
+            self.parts.review.ensure_marks_page()
             return
         from anklescan.app.background import run_in_background
         run_in_background(lambda: open_rig_safely(backend, scale, device, size, warm=True, profile=profile),
                           self._rig_opened,
-                          lambda error: self.win.banner.show_message("error",
+                          lambda error: self.parts.banner.show_message(Severity.ERROR,
                                                                      f"The camera could not be opened: {error}"))
 
     def _rig_opened(self, opened) -> None:
         rig, problem = opened
         self._starting = False
         if problem:
-            self.win.banner.show_message("warning", problem)
+            self.parts.banner.show_message(Severity.WARNING, problem)
         self._build_camera_panel()
         self.rig = rig
         self.settings.set("camera_backend", rig.backend)
         self._rig_ready()
         # one widget-building step per event-loop turn, with room for paints in between
-        QTimer.singleShot(50, self.win.review.ensure_marks_page)
+        QTimer.singleShot(50, self.parts.review.ensure_marks_page)
         QTimer.singleShot(100, settle_memory)
 
     def _build_camera_panel(self) -> None:
@@ -72,15 +106,15 @@ class RigSetup(QObject):
         panel.profileChanged.connect(self.choose_profile)
         panel.set_sway(self.settings.get("sim_sway_mm"))
         panel.swayChanged.connect(self.choose_sway)
-        self.win.camera_holder.addWidget(panel)
-        self.win.camera_holder.setCurrentWidget(panel)
+        self.parts.camera_holder.addWidget(panel)
+        self.parts.camera_holder.setCurrentWidget(panel)
 
     def _choose_device(self, backend: str, device: str) -> None:
         self.settings.set("camera_device", device)
         self.switch_backend(backend)
 
     def switch_backend(self, backend: str) -> None:
-        if self.win.scan_flow.busy:
+        if self.scan_flow.busy:
             return
         old, self.rig = self.rig, None
         if old is not None:
@@ -90,7 +124,7 @@ class RigSetup(QObject):
         self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"),
                                             projector_resolution(s), profile=s.get("sim_patient"))
         if problem:
-            self.win.banner.show_message("warning", problem)
+            self.parts.banner.show_message(Severity.WARNING, problem)
         self.settings.set("camera_backend", self.rig.backend)
         self._rig_ready()
 
@@ -108,14 +142,14 @@ class RigSetup(QObject):
             self.rig.set_sway(mm)
 
     def _show_rig_label(self) -> None:
-        win = self.win
-        win.rig_label.setText(self.rig.description)
-        win.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
-        win.rig_label.setStyle(win.rig_label.style())  # re-polish: the object name picks the style
+        parts = self.parts
+        parts.rig_label.setText(self.rig.description)
+        parts.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
+        parts.rig_label.setStyle(parts.rig_label.style())  # re-polish: the object name picks the style
 
     def _rig_ready(self) -> None:
         from anklescan.app.rig import camera_name
-        win = self.win
+        parts = self.parts
         self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
         self._apply_stored_controls()
         self.camera_panel.show_profile(self.rig.simulated)
@@ -127,8 +161,8 @@ class RigSetup(QObject):
             self.show_projector()
         self._update_projector_label()
         self.load_calibration()
-        if win.session.calibration is None:  # first start: lead to calibration before anything is measured
-            win.tabs.setCurrentIndex(PAGE_SCAN)
+        if parts.session.calibration is None:  # first start: lead to calibration before anything is measured
+            parts.tabs.setCurrentIndex(PAGE_SCAN)
 
     def _apply_stored_controls(self) -> None:
         stored = {"exposure": "camera_exposure_ms", "gain": "camera_gain"}
@@ -150,46 +184,47 @@ class RigSetup(QObject):
             cal, cid = load_current_calibration(self.settings)
         except Exception as exc:
             cal, cid = None, None
-            self.win.banner.show_message("error", f"The current calibration could not be read: {exc}")
-        self.win.session.use_calibration(cal, cid)
-        self.win.scan_flow.update_enabled()
+            self.parts.banner.show_message(Severity.ERROR, f"The current calibration could not be read: {exc}")
+        self.parts.session.use_calibration(cal, cid)
+        self.scan_flow.update_enabled()
         self.check_calibration_age()
 
     def choose_calibration(self) -> bool:
         """Scan ▸ Choose calibration…: one of the database's calibrations becomes the current one."""
         from anklescan.app.calibration_chooser import CalibrationChooser
         from anklescan.app.logic.calibration import use_stored_calibration
-        win = self.win
-        store = win.session.store
-        if store is None or win.scan_flow.busy:
+        parts = self.parts
+        store = parts.session.store
+        if store is None or self.scan_flow.busy:
             return False
         records = store.list_calibrations()
         if not records:
-            win.banner.show_message("info", "This data folder's database keeps no calibration yet: run Calibration….")
+            parts.banner.show_message(Severity.INFO, "This data folder's database keeps no calibration yet: run Calibration….")
             return False
-        dialog = CalibrationChooser(records, win.session.calibration_id, win)
+        dialog = CalibrationChooser(records, parts.session.calibration_id, parts.dialog_parent)
         if dialog.exec() != CalibrationChooser.DialogCode.Accepted or dialog.chosen() is None:
             return False
         record = dialog.chosen()
         try:
-            use_stored_calibration(record, win.data_folder(), self.settings)
+            use_stored_calibration(record, parts.data_folder(), self.settings)
         except Exception as exc:
-            win.banner.show_message("error", f"Calibration #{record.id} could not be used: {exc}")
+            parts.banner.show_message(Severity.ERROR, f"Calibration #{record.id} could not be used: {exc}")
             return False
         self.load_calibration()
-        if win.session.calibration_id == record.id:
-            win.banner.show_message("info", f"Calibration #{record.id} ({record.created[:10]}) is now the current one.")
+        if parts.session.calibration_id == record.id:
+            parts.banner.show_message(Severity.INFO,
+                                      f"Calibration #{record.id} ({record.created[:10]}) is now the current one.")
         return True
 
     def open_calibration(self) -> None:
         from anklescan.app.calibration_wizard import CalibrationWizard
-        win = self.win
-        if self.rig is None or self.projector is None or win.scan_flow.busy:
+        parts = self.parts
+        if self.rig is None or self.projector is None or self.scan_flow.busy:
             if self.rig is None:
-                win.banner.show_message("info", "The camera is still connecting; try again in a moment.")
+                parts.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
             return
-        dlg = CalibrationWizard(self.rig, self.projector, store=win.session.store, data_folder=win.data_folder(),
-                                settle_s=self.settings.get("settle_ms") / 1000.0, parent=win)
+        dlg = CalibrationWizard(self.rig, self.projector, store=parts.session.store, data_folder=parts.data_folder(),
+                                settle_s=self.settings.get("settle_ms") / 1000.0, parent=parts.dialog_parent)
         dlg.calibrationAccepted.connect(self._calibration_accepted)
         dlg.verificationDone.connect(lambda _r: self.check_calibration_age())
         dlg.exec()
@@ -197,25 +232,25 @@ class RigSetup(QObject):
         self.check_calibration_age()
 
     def _calibration_accepted(self, cal, cid, path) -> None:
-        self.win.session.use_calibration(cal, cid)
-        self.win.banner.clear("warning")
-        self.win.scan_flow.update_enabled()
-        if not self.win.session.operator:  # who calibrated: asked now, not only at the first session
-            self.win.banner.show_message("info", "Calibration saved. Who is operating? Your name or initials sign "
+        self.parts.session.use_calibration(cal, cid)
+        self.parts.banner.clear("warning")
+        self.scan_flow.update_enabled()
+        if not self.parts.session.operator:  # who calibrated: asked now, not only at the first session
+            self.parts.banner.show_message(Severity.INFO, "Calibration saved. Who is operating? Your name or initials sign "
                                          "the sessions, marks and reports.",
-                                         ("Operator…", self.win.records.ask_operator))
+                                         ("Operator…", self.parts.records.ask_operator))
 
     def check_calibration_age(self) -> None:
         from anklescan.app.logic.calibration import calibration_warning
-        win = self.win
+        parts = self.parts
         text = calibration_warning(self.settings)
-        if win.session.read_only or win.session.store is None:  # review only, or no database: its notice stays
+        if parts.session.read_only or parts.session.store is None:  # review only, or no database: its notice stays
             return
-        if win.session.calibration is None:
-            win.banner.show_message("warning", "No calibration yet: calibrate the scanner before measuring patients.",
+        if parts.session.calibration is None:
+            parts.banner.show_message(Severity.WARNING, "No calibration yet: calibrate the scanner before measuring patients.",
                                     ("Calibrate…", self.open_calibration))
         elif text:
-            win.banner.show_message("warning", text, ("Calibrate…", self.open_calibration))
+            parts.banner.show_message(Severity.WARNING, text, ("Calibrate…", self.open_calibration))
 
     # ---- the projector window -------------------------------------------------------------
     def _ensure_projector(self) -> None:
@@ -224,7 +259,7 @@ class RigSetup(QObject):
         if self.projector is None:
             self.projector = ProjectorWindow(self.rig.projector_size)
             self.projector.screenLost.connect(self._projector_lost)
-            self.win.scan_flow.attach(ScanController(self.projector, self.win))
+            self.scan_flow.attach(ScanController(self.projector, self))
             self.projector.frameShown.connect(self._feed_simulated_projector)
             if self.camera_panel is not None:
                 self.camera_panel.set_projector(self.projector)
@@ -253,7 +288,7 @@ class RigSetup(QObject):
             return
         w, h = self.projector.projector_size
         where = "own monitor, 1:1" if self.projector.is_native else "preview window (one monitor)"
-        self.win.projector_label.setText(f"Projector {w}×{h} · {where}")
+        self.parts.projector_label.setText(f"Projector {w}×{h} · {where}")
 
     def fill_screen_menu(self, menu) -> None:
         menu.clear()
@@ -271,7 +306,7 @@ class RigSetup(QObject):
         self.show_projector()
 
     def projector_show(self, what: str) -> None:
-        if self.projector is None or self.win.scan_flow.busy:
+        if self.projector is None or self.scan_flow.busy:
             return
         self.show_projector()
         {"white": self.projector.show_white, "black": self.projector.show_black,
@@ -280,10 +315,10 @@ class RigSetup(QObject):
 
     def _projector_lost(self, name: str) -> None:
         message = f"The projector monitor ({name}) was disconnected."
-        if self.win.scan_flow.busy:
-            self.win.scan_flow.controller.abort(message + " The scan stopped; the frames captured so far are kept.")
+        if self.scan_flow.busy:
+            self.scan_flow.controller.abort(message + " The scan stopped; the frames captured so far are kept.")
         else:
-            self.win.banner.show_message("warning", message + " The projector window moved to a preview.")
+            self.parts.banner.show_message(Severity.WARNING, message + " The projector window moved to a preview.")
         QTimer.singleShot(0, self._update_projector_label)
 
     def close(self) -> None:

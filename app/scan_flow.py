@@ -5,25 +5,56 @@ to the pages and the banner."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
+from typing import TYPE_CHECKING
 
-from PySide6.QtCore import QObject
+from PySide6.QtCore import QObject, Signal
+from PySide6.QtWidgets import QTabWidget
 
-from anklescan.app.logic.scan import ScanLogic, ScanRefused, frames_in
-from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, no_args
+from anklescan.app.logic.scan import NoteAction, ScanLogic, ScanNote, ScanRefused, TrialFinished
+from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, Banner, ResultPage, ScanPage, no_args
+from anklescan.core.vocabulary import Severity
+
+if TYPE_CHECKING:
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.records_panel import RecordsPanel
+    from anklescan.app.review import Review
+    from anklescan.app.rig_setup import RigSetup
+
+
+@dataclass(frozen=True, eq=False)
+class ScanParts:
+    """What the scan flow works with, built by the main window: its pages, the banner, the records
+    it refreshes, the 3-D review it hands a finished trial to, and the rig."""
+
+    scan_page: ScanPage
+    result_page: ResultPage
+    tabs: QTabWidget
+    banner: Banner
+    session: SessionLogic
+    records: RecordsPanel
+    review: Review
+    rig_setup: RigSetup                       # the rig, its projector window and camera panel
+    open_daily_check: Callable[[], object]    # the daily check's dialog (the banner's action)
 
 
 class ScanFlow(QObject):
-    def __init__(self, win, logic: ScanLogic):
-        super().__init__(win)
-        self.win, self.logic = win, logic
+    canScanChanged = Signal(bool)   # a scan may start now (the Start scan action follows it)
+    busyChanged = Signal(bool)      # a scan is running (the Cancel scan action follows it)
+
+    def __init__(self, parts: ScanParts, logic: ScanLogic, parent: QObject | None = None):
+        super().__init__(parent)
+        self.parts, self.logic = parts, logic
         self.controller = None
         self.last_result = None
-        page = win.scan_page
+        logic.trial_finished.connect(self._show_finished)
+        page = parts.scan_page
         page.scan_button.clicked.connect(no_args(self.start_scan))
         page.cancel_button.clicked.connect(no_args(self.cancel_scan))
         page.form.mark_diameter.edit.editingFinished.connect(no_args(self.save_mark_diameter))
-        win.result_page.new_trial.clicked.connect(lambda: win.tabs.setCurrentIndex(PAGE_SCAN))
+        parts.result_page.new_trial.clicked.connect(lambda: parts.tabs.setCurrentIndex(PAGE_SCAN))
 
     @property
     def busy(self) -> bool:
@@ -40,74 +71,70 @@ class ScanFlow(QObject):
         controller.busyChanged.connect(self._busy)
 
     def update_enabled(self) -> None:
-        win, page = self.win, self.win.scan_page
-        ready = win.session.calibration is not None and not win.session.read_only
+        parts, page = self.parts, self.parts.scan_page
+        ready = parts.session.calibration is not None and not parts.session.read_only
         page.needs_calibration.setVisible(not ready)
         page.calibrate_button.setVisible(not ready)
         page.scan_button.setEnabled(ready and not self.busy)
         page.scan_button.setToolTip("" if ready else "Calibrate the scanner first (Scan ▸ Calibration…)")
-        win.scan_action.setEnabled(ready and not self.busy)
+        self.canScanChanged.emit(ready and not self.busy)
 
     def save_mark_diameter(self) -> bool:
         """Keep the mark diameter typed on the Scan page with the session (empty: measured)."""
-        field = self.win.scan_page.form.mark_diameter
-        return field.check() and self.win.session.set_mark_diameter(self.win.records.current_session_id(), field.value())
+        field, parts = self.parts.scan_page.form.mark_diameter, self.parts
+        return field.check() and parts.session.set_mark_diameter(parts.records.current_session_id(), field.value())
 
     # ---- start and stop ---------------------------------------------------------------
     def start_scan(self) -> bool:
         """Create the trial, then project and capture in the worker. False if it cannot start."""
-        win = self.win
-        if win.rig is None or self.controller is None or self.busy:
+        parts, rig = self.parts, self.parts.rig_setup.rig
+        if rig is None or self.controller is None or self.busy:
             return False
-        if win.session.calibration is None:
-            win.rig_setup.check_calibration_age()
+        if parts.session.calibration is None:
+            parts.rig_setup.check_calibration_age()
             return False
-        form = win.scan_page.form
+        form = parts.scan_page.form
         try:
             entry = form.entry()
             if not form.mark_diameter.check():
                 raise ValueError(form.mark_diameter.problem())
-            session_id = self.logic.begin(win.records.current_session_id(), entry, form.mark_diameter.value())
+            session_id = self.logic.begin(parts.records.current_session_id(), entry, form.mark_diameter.value())
         except (ValueError, ScanRefused) as exc:  # a field shows the same message
-            win.banner.show_message("warning", f"The scan did not start: {exc}")
+            parts.banner.show_message(Severity.WARNING, f"The scan did not start: {exc}")
             return False
         stance = self._stand_simulated_patient(entry)
-        win.records.show_patient(select_session=session_id)
+        parts.records.show_patient(select_session=session_id)
         try:
-            plan = self.logic.plan(win.rig.projector_size, win.rig.description)
+            plan = self.logic.plan(rig.projector_size, rig.description)
             if stance is not None:  # the capture says who stood there and how: the simulator's truth
                 plan.metadata["simulated_patient"] = {
-                    "profile": stance_profile(win.rig), "reference_deg": list(stance.reference),
+                    "profile": stance_profile(rig), "reference_deg": list(stance.reference),
                     "table_deg": list(stance.table), "condition": stance.condition,
                     "mark_type": stance.mark_type, "mark_diameter_mm": stance.mark_diameter_mm}
             job = self.scan_job(plan)
         except Exception as exc:
             self.logic.end_unstarted(str(exc))
-            win.banner.show_message("error", f"The scan could not start: {exc}")
+            parts.banner.show_message(Severity.ERROR, f"The scan could not start: {exc}")
             return False
-        win.banner.hide()
+        parts.banner.hide()
         if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
-            from anklescan.app.daily_check import open_daily_check
-            win.banner.show_message("warning", self.logic.check_warning,
-                                    ("Daily check…", lambda: open_daily_check(win)))
-        if not win.projector.isVisible():
-            win.rig_setup.show_projector()
+            parts.banner.show_message(Severity.WARNING, self.logic.check_warning, ("Daily check…", parts.open_daily_check))
+        if not parts.rig_setup.projector.isVisible():
+            parts.rig_setup.show_projector()
         self.controller.start(job)
         return True
 
     def _stand_simulated_patient(self, entry):
         """On the simulated rig: the reference table set to the typed angles, the simulated patient
         setting the adjustable one, and the trial recorded as simulated. The Stance, or None."""
-        stance = self.win.rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
-        store, tid = self.win.session.store, self.logic.trial_id
-        if stance is not None and store is not None and tid is not None:
-            store.set_trial_simulated(tid)
-        self.mixed_note = mixed_warning(store, tid, stance is not None)
+        rig = self.parts.rig_setup.rig
+        stance = rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
+        self.logic.mark_simulated(stance is not None)
         return stance
 
     def scan_job(self, plan):
         from anklescan.app.scan_worker import ScanJob, measure_folder
-        return ScanJob(plan.pattern_set, self.win.rig.camera, plan.folder, settle_s=plan.settle_s,
+        return ScanJob(plan.pattern_set, self.parts.rig_setup.rig.camera, plan.folder, settle_s=plan.settle_s,
                        calibration=plan.calibration,
                        reconstruct=partial(measure_folder, mark_diameter_mm=plan.mark_diameter_mm,
                                            motion_threshold_mm=plan.motion_threshold_mm),
@@ -115,7 +142,7 @@ class ScanFlow(QObject):
 
     def cancel_scan(self) -> None:
         if self.busy:
-            self.win.scan_page.progress.setFormat("Cancelling…")
+            self.parts.scan_page.progress.setFormat("Cancelling…")
             self.controller.cancel()
 
     def stop_for_exit(self) -> None:
@@ -133,71 +160,54 @@ class ScanFlow(QObject):
     def _busy(self, busy: bool) -> None:
         self.update_enabled()
         if not busy:  # the scan is over, however it ended: the projector leaves its last stripe pattern
-            self.win.rig_setup._restore_projector()
-        self.win.scan_page.cancel_button.setEnabled(busy)
-        self.win.cancel_action.setEnabled(busy)
-        if self.win.camera_panel is not None:
-            self.win.camera_panel.set_busy(busy)
+            self.parts.rig_setup._restore_projector()
+        self.parts.scan_page.cancel_button.setEnabled(busy)
+        self.busyChanged.emit(busy)
+        if self.parts.rig_setup.camera_panel is not None:
+            self.parts.rig_setup.camera_panel.set_busy(busy)
         if busy:
-            self.win.tabs.setCurrentIndex(PAGE_SCAN)
+            self.parts.tabs.setCurrentIndex(PAGE_SCAN)
 
     def _progress(self, done: int, total: int, text: str) -> None:
-        bar = self.win.scan_page.progress
+        bar = self.parts.scan_page.progress
         bar.setMaximum(total)
         bar.setValue(done)
         bar.setFormat(text)
 
     def _frame_captured(self, index: int, image) -> None:
         from anklescan.app.camera_panel import to_display
-        self.win.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
+        self.parts.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
 
     def _finished(self, result) -> None:
-        win = self.win
+        """The worker's result: recorded by the logic in one transaction (ScanLogic.finish), then shown."""
         self.last_result = result
-        tid = self.logic.trial_id
-        has_cloud = self.logic.finished(result)
-        self._show_result(result)
-        notes = []  # (kind, text, action): one banner, of the most severe kind, says them all
-        if result.save_error:
-            notes.append(("error", result.save_error, None))
-        if result.motion_flagged:
-            notes.append(("warning", f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
-                          "(The trial is flagged and left out of the statistics unless kept.)",
-                          ("Scan again", self._scan_again)))
-        if result.overexposed:
-            many = len(result.overexposed) > 1
-            notes.append(("warning", f"Mark{'s' * many} {', '.join(result.overexposed)} "
-                          f"{'are' if many else 'is'} overexposed, so {'their' if many else 'its'} position is "
-                          "less certain: lower the exposure in the camera panel and scan again.", None))
-        if has_cloud and tid is not None:
-            win.review.show_cloud(result.cloud, tid)
-            if result.marks:
-                # shown for confirmation in the 3-D view and saved as automatic; undo stops here
-                win.review.marks_page.editor.propose_auto(result.marks, result.quality, warnings=result.warnings,
-                                                              covariance=result.position_covariance)
-            volume_notes = [w for w in result.warnings if "outside the calibrated volume" in w]
-            if volume_notes:
-                notes.append(("warning", "; ".join(volume_notes) + ".", None))
-            if result.marks_note:
-                notes.append(("info", "Some marks were not found automatically: place them in the "
-                              f"3-D view ({result.marks_note}).", None))
-        store = win.session.store
-        win.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
-        if getattr(self, "mixed_note", ""):
-            notes.append(("warning", self.mixed_note, None))
+        self.logic.finish(result)  # -> self._show_finished, through logic.trial_finished
+
+    def _show_finished(self, event: TrialFinished) -> None:
+        """Show a recorded trial: the result page, the cloud with its stored automatic marks, the notes."""
+        parts, result, tid = self.parts, self.last_result, event.trial_id
+        if result is not None:
+            self._show_result(result)
+        notes = list(event.notes)
+        if event.complete and tid is not None and result is not None:
+            parts.review.show_cloud(result.cloud, tid)
+            if event.has_marks:  # shown for confirmation in the 3-D view; undo stops here
+                parts.review.show_measured_marks(tid, event.warnings, event.covariance)
+        store = parts.session.store
+        parts.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
         if notes:
-            show_notes(win.banner, notes)
-        win.scan_page.form.clear_notes()
-        win.scan_page.progress.setFormat("Done")
-        win.records.show_session(select_trial=tid)
+            show_notes(parts.banner, notes, {NoteAction.SCAN_AGAIN: self._scan_again})
+        parts.scan_page.form.clear_notes()
+        parts.scan_page.progress.setFormat("Done")
+        parts.records.show_session(select_trial=tid)
 
     def _scan_again(self) -> None:
-        self.win.tabs.setCurrentIndex(PAGE_SCAN)
+        self.parts.tabs.setCurrentIndex(PAGE_SCAN)
         self.start_scan()
 
     def _show_result(self, result) -> None:
         from anklescan.app.projector_window import array_to_qimage
-        page = self.win.result_page
+        page = self.parts.result_page
         if result.preview is not None:
             page.image.set_image(array_to_qimage(result.preview))
         if result.cloud is not None and len(result.cloud) > 0:
@@ -207,48 +217,31 @@ class ScanFlow(QObject):
                                  f"reconstruction {result.process_s:.1f} s")
         else:
             page.summary.setText(result.note)
-            self.win.banner.show_message("warning", f"{result.note} The trial is marked failed. Frames: {result.folder}")
-        self.win.tabs.setCurrentIndex(PAGE_RESULT)
+            self.parts.banner.show_message(Severity.WARNING, f"{result.note} The trial is marked failed. "
+                                           f"Frames: {result.folder}")
+        self.parts.tabs.setCurrentIndex(PAGE_RESULT)
 
     def _failed(self, message: str, folder: str) -> None:
-        self.logic.failed(message, folder)
-        self.win.records.show_session()
-        self.win.scan_page.progress.setFormat("Stopped")
-        self.win.banner.show_message("error", f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial "
-                                     "is marked failed. The session is intact; check the device and scan again.")
+        note = self.logic.failed(message, folder)
+        self.parts.records.show_session()
+        self.parts.scan_page.progress.setFormat("Stopped")
+        show_notes(self.parts.banner, [note], {})
 
     def _cancelled(self, folder: str) -> None:
-        self.logic.cancelled(folder)
-        self.win.records.show_session()
-        self.win.scan_page.progress.setFormat("Cancelled")
-        self.win.banner.show_message("info", "Scan cancelled: the trial is marked cancelled and left out of the "
-                                     f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
-
-
-def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
-    """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
-    if store is None or trial_id is None:
-        return ""
-    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
-    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
-              if t.id != trial_id and t.simulated != simulated]
-    if not others:
-        return ""
-    kind, other = ("simulated", "real") if simulated else ("real", "simulated")
-    return (f"This {kind} trial joins {len(others)} {other} trial(s) of the same patient: reports and the CSV mark "
-            "them, but keep simulated patients apart from real ones.")
+        note = self.logic.cancelled(folder)
+        self.parts.records.show_session()
+        self.parts.scan_page.progress.setFormat("Cancelled")
+        show_notes(self.parts.banner, [note], {})
 
 
 def stance_profile(rig) -> str:
     return rig.sim_patient.profile.value if rig.sim_patient is not None else ""
 
 
-SEVERITY = ("info", "warning", "error")
-
-
-def show_notes(banner, notes: list) -> None:
-    """One banner for a scan's notes, [(kind, text, action or None)]: the most severe kind, every
-    text in the order given, and the first action offered."""
-    kind = max((k for k, _, _ in notes), key=SEVERITY.index)
-    action = next((a for _, _, a in notes if a is not None), None)
-    banner.show_message(kind, " ".join(t for _, t, _ in notes), action)
+def show_notes(banner, notes: list[ScanNote], actions: dict[NoteAction, Callable[[], object]]) -> None:
+    """One banner for a scan's notes: the most severe kind, every text in the order given, and the
+    first action offered (``actions``: what each NoteAction does here)."""
+    severity = max(n.severity for n in notes)
+    action = next((n.action for n in notes if n.action is not None and n.action in actions), None)
+    banner.show_message(severity.kind, " ".join(n.text for n in notes),
+                        None if action is None else (action.value, actions[action]))

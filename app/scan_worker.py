@@ -47,7 +47,7 @@ class ScanJob:
     calibration: object = None          # anklescan.core.calibration.file.Calibration or None: capture only
     metadata: dict = field(default_factory=dict)
     render: Callable | None = None      # (pattern_set, frame) -> uint8 array; anklescan.core.scan.patterns.render_frame
-    reconstruct: Callable | None = None  # (folder, calibration) -> PointCloud, or a anklescan.core.measure.pipeline result
+    reconstruct: Callable | None = None  # (folder, calibration) -> core.measure.pipeline.MeasureResult (measure_folder)
     cloud_path: Path | None = None      # where to write the cloud (PLY), in the worker thread
 
 
@@ -135,22 +135,18 @@ class _Scan:
         n = len(self.job.pattern_set.frames)
         self.bg.progress(n, n, "Decoding and reconstructing…")
         t1 = time.perf_counter()
-        out = self.job.reconstruct(self.job.folder, self.job.calibration)
-        if hasattr(out, "marks"):  # a measurement: the cloud plus the marks found on it
-            result.cloud = out.cloud
-            result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
-            result.marks_note = "" if out.complete else out.marks.message()
-            result.overexposed = out.marks.overexposed()
-            result.warnings = list(getattr(out, "warnings", []))
-            result.position_covariance = getattr(out, "position_covariance", None)
-            result.quality = {int(k): mark_quality(m) for k, m in out.marks.labelled.items()}
-            motion = getattr(out, "motion", None)
-            if motion is not None:
-                result.motion_mm, result.motion_sd_mm = motion.value_mm, motion.sd_mm
-                result.motion_flagged = bool(out.motion_flagged)
-                result.motion_note = "" if motion.measured else motion.reason
-        else:
-            result.cloud = out
+        out = self.job.reconstruct(self.job.folder, self.job.calibration)  # the cloud and the marks on it
+        result.cloud = out.cloud
+        result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
+        result.marks_note = "" if out.complete else out.marks.message()
+        result.overexposed = out.marks.overexposed()
+        result.warnings = list(out.warnings)
+        result.position_covariance = out.position_covariance
+        result.quality = {int(k): mark_quality(m) for k, m in out.marks.labelled.items()}
+        if out.motion is not None:
+            result.motion_mm, result.motion_sd_mm = out.motion.value_mm, out.motion.sd_mm
+            result.motion_flagged = bool(out.motion_flagged)
+            result.motion_note = "" if out.motion.measured else out.motion.reason
         result.process_s = time.perf_counter() - t1
         self.bg.check_cancel()
         if result.cloud is not None and len(result.cloud) > 0:
@@ -252,8 +248,8 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     white = [f.file for f in pattern_set.frames if f.kind == "white"]
     if not white:
         return None
-    from anklescan.core.scan.capture import read_image  # any path, even one that is not valid UTF-8
     from anklescan.core.errors import CaptureError
+    from anklescan.core.scan.capture import read_image  # any path, even one that is not valid UTF-8
 
     try:
         img = read_image(Path(folder) / white[0])
@@ -270,8 +266,8 @@ def measure_folder(folder, calibration, mark_diameter_mm: float | None = None,
                    motion_threshold_mm: float | None = None):
     """Reconstruct the saved frames, find the seven marks on them and how far the subject moved
     (``anklescan measure``); the marks' size is the session's setting, or measured when None."""
-    from anklescan.core.scan.capture import load_capture
     from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM
     return measure_capture(load_capture(folder), calibration, mark_diameter_mm,
                            motion_threshold_mm=DEFAULT_THRESHOLD_MM if motion_threshold_mm is None else motion_threshold_mm)

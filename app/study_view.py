@@ -4,7 +4,10 @@ patient's visits over time: AE per axis per visit, barefoot against shoes, with 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import QDate, QObject, Qt
 from PySide6.QtGui import QAction
@@ -98,10 +101,11 @@ class PatientHistoryDialog(QDialog):
 
     def __init__(self, tables, patient: str, parent=None):
         super().__init__(parent)
-        from anklescan.core.records import report
-        from anklescan.core.records.study import patient_visits
         from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
         from matplotlib.figure import Figure
+
+        from anklescan.core.records import report
+        from anklescan.core.records.study import patient_visits
 
         self.setWindowTitle(f"Patient history — {patient}")
         self.resize(820, 760)
@@ -129,27 +133,48 @@ class PatientHistoryDialog(QDialog):
         lay.addWidget(close)
 
 
+if TYPE_CHECKING:
+    from PySide6.QtWidgets import QStatusBar, QWidget
+
+    from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.main_parts import Banner
+    from anklescan.app.records_panel import RecordsPanel
+
+
+@dataclass(frozen=True, eq=False)
+class StudyParts:
+    """What the study actions work with, built by the main window (not the window itself)."""
+
+    session: SessionLogic
+    records: RecordsPanel
+    banner: Banner
+    status_bar: QStatusBar                     # where the report's progress shows
+    data_folder: Callable[[], Path]
+    report_written: Callable[[str], object]    # the PDF's path, once on disk (the window's reportWritten)
+    dialog_parent: QWidget                     # the dialogs' parent window
+
+
 class StudyGui(QObject):
     """The two actions, wired by the main window."""
 
-    def __init__(self, win):
-        super().__init__(win)
-        self.win = win
+    def __init__(self, parts: StudyParts, parent: QObject | None = None):
+        super().__init__(parent)
+        self.parts = parts
         self.jobs: list = []
         self.last_result = None
         self.progress: QProgressBar | None = None
         self.history: PatientHistoryDialog | None = None
         # the records sidebar: right-click a patient for the history (the File menu has it too)
-        patients = win.records.patients
+        patients = parts.records.patients
         self.history_action = QAction("Patient history…", patients)
         self.history_action.triggered.connect(lambda _checked=False: self.open_patient_history())
         patients.addAction(self.history_action)
         patients.setContextMenuPolicy(Qt.ContextMenuPolicy.ActionsContextMenu)
 
     def _store_paths(self):
-        store = self.win.session.store
+        store = self.parts.session.store
         if store is None:
-            self.win.banner.show_message(Severity.WARNING, "No database is open: choose a data folder first.")
+            self.parts.banner.show_message(Severity.WARNING, "No database is open: choose a data folder first.")
             return None
         return store.path, store.data_dir
 
@@ -164,8 +189,9 @@ class StudyGui(QObject):
         paths = self._store_paths()
         if paths is None:
             return
-        codes = [p.code for p in self.win.session.store.list_patients()]
-        dialog = StudyReportDialog(codes, Path(self.win.data_folder()).parent / "study-report", self.win)
+        codes = [p.code for p in self.parts.session.store.list_patients()]
+        dialog = StudyReportDialog(codes, Path(self.parts.data_folder()).parent / "study-report",
+                                   self.parts.dialog_parent)
         if dialog.exec() != QDialog.DialogCode.Accepted:
             return
         self.write_study_report(dialog.choice(), Path(dialog.out.text()))
@@ -177,11 +203,11 @@ class StudyGui(QObject):
         paths = self._store_paths()
         if paths is None:
             return None
-        win = self.win
+        parts = self.parts
         try:
             guard_output(out, [paths[1]], what="the study report folder")
         except Exception as exc:   # one line in the banner, the folder untouched
-            win.banner.show_message(Severity.ERROR, f"The study report was not written: {exc}")
+            parts.banner.show_message(Severity.ERROR, f"The study report was not written: {exc}")
             return None
         whole = flt.patient is None and flt.date_from is None and flt.date_to is None
 
@@ -196,8 +222,8 @@ class StudyGui(QObject):
 
         self.progress = QProgressBar()
         self.progress.setRange(0, 3)
-        win.statusBar().addPermanentWidget(self.progress)
-        win.banner.show_message(Severity.INFO, f"Writing the study report to {out}…")
+        parts.status_bar.addPermanentWidget(self.progress)
+        parts.banner.show_message(Severity.INFO, f"Writing the study report to {out}…")
         job = run_in_background(render, self._written, self._failed, on_progress=self._progress, pass_job=True,
                                 name="anklescan-study")
         self.jobs = [j for j in self.jobs if j.running] + [job]
@@ -211,34 +237,33 @@ class StudyGui(QObject):
 
     def _end_progress(self) -> None:
         if self.progress is not None:
-            self.win.statusBar().removeWidget(self.progress)
+            self.parts.status_bar.removeWidget(self.progress)
             self.progress.deleteLater()
             self.progress = None
 
     def _written(self, result) -> None:
         self._end_progress()
         self.last_result = result
-        self.win.banner.show_message(Severity.INFO,
-                                     f"Study report saved in {result.folder}: report.pdf ({result.pages} "
+        self.parts.banner.show_message(Severity.INFO, f"Study report saved in {result.folder}: report.pdf ({result.pages} "
                                              f"pages), trials.csv/.xlsx, position_sense.csv, reliability.csv")
-        self.win.reportWritten.emit(str(result.folder / "report.pdf"))
+        self.parts.report_written(str(result.folder / "report.pdf"))
 
     def _failed(self, error: str) -> None:
         self._end_progress()
-        self.win.banner.show_message(Severity.ERROR, f"The study report could not be written: {error}")
+        self.parts.banner.show_message(Severity.ERROR, f"The study report could not be written: {error}")
 
     def open_patient_history(self) -> PatientHistoryDialog | None:
         from anklescan.core.records.study import study_tables
 
         paths = self._store_paths()
-        code = self.win.records.current_code()
+        code = self.parts.records.current_code()
         if paths is None:
             return None
         if code is None:
-            self.win.banner.show_message(Severity.WARNING, "Select a patient first.")
+            self.parts.banner.show_message(Severity.WARNING, "Select a patient first.")
             return None
         tables = study_tables(self._report_input(paths), data_dir=paths[1])
-        self.history = PatientHistoryDialog(tables, code, self.win)
+        self.history = PatientHistoryDialog(tables, code, self.parts.dialog_parent)
         self.history.show()
         return self.history
 

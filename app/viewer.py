@@ -41,8 +41,19 @@ from PySide6.QtOpenGLWidgets import QOpenGLWidget
 
 from anklescan.app import picking, splat
 from anklescan.app.background import run_in_background
-from anklescan.app.viewer_gl import (COLOR_DEPTH, COLOR_WHITE, LOD_POINTS, RENDER_CLASSIC, RENDER_SPLAT, Colours,
-                                     GLDrawing, default_format, depth_levels, depth_palette, white_colours)
+from anklescan.app.viewer_gl import (
+    COLOR_DEPTH,
+    COLOR_WHITE,
+    LOD_POINTS,
+    RENDER_CLASSIC,
+    RENDER_SPLAT,
+    Colours,
+    GLDrawing,
+    default_format,
+    depth_levels,
+    depth_palette,
+    white_colours,
+)
 from anklescan.app.viewer_labels import Overlay, OverlayPainting
 
 RENDER_PATH_ENV = "ANKLESCAN_VIEWER_PATH"  # "classic" forces the fixed-function path

@@ -6,7 +6,7 @@ windows.
 """
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -45,6 +45,14 @@ class Result:  # what the acquisition worker reports at the end of a scan
     motion_sd_mm: float | None = 0.05
     duration_s: float | None = 3.0
     note: str = "no surface was decoded"
+    save_error: str = ""
+    motion_flagged: bool = False
+    overexposed: tuple = ()
+    warnings: tuple = ()
+    marks: dict = field(default_factory=dict)
+    marks_note: str = ""
+    quality: dict = field(default_factory=dict)
+    position_covariance: object = None
 
 
 @pytest.fixture
@@ -103,7 +111,9 @@ def test_another_condition_starts_its_own_session(logic):
     scan = ScanLogic(logic, logic.settings)
     shoes_id = scan.begin(barefoot.id, Entry(condition="shoes"), None)
     assert shoes_id != barefoot.id and logic.session(shoes_id).condition == "shoes"
-    scan.cancelled(logic.store.trial_dir(scan.trial_id) / "capture")
+    note = scan.cancelled(logic.store.trial_dir(scan.trial_id) / "capture")
+    from anklescan.app.logic.scan import Severity
+    assert note.severity is Severity.INFO and "marked cancelled" in note.text
     (trial,) = logic.trials(shoes_id)
     assert trial.status == "cancelled" and logic.trials(barefoot.id) == []
 
@@ -123,3 +133,58 @@ def test_a_refused_patient_code_is_reported_not_raised(logic):
     kind, text = logic.notices[-1]
     assert kind == "error" and text
     assert logic.patients() == []
+
+
+def test_a_finished_scan_is_recorded_at_once_and_told_as_typed_notes(logic, tmp_path):
+    """One call records files, motion, the automatic marks and their angles and the state; the
+    windows hear a TrialFinished with the clinical notes as (severity, text) they only display."""
+    from anklescan.app.logic.scan import NoteAction, Severity, TrialFinished
+    from anklescan.core.measure.angles import compute_angles
+
+    @dataclass(frozen=True)
+    class Quality:
+        sd_mm: float
+        warning: str = ""
+
+    _calibrated(logic)
+    session = logic.start_session(logic.add_patient("P-005").id, "barefoot")
+    scan = ScanLogic(logic, logic.settings)
+    heard = []
+    scan.trial_finished.connect(heard.append)
+    scan.begin(session.id, Entry(ref_inversion=0.0, ref_plantar_flexion=0.0), None)
+    plan = scan.plan((64, 48), "test rig")
+    plan.folder.mkdir(parents=True, exist_ok=True)
+    marks = {1: (0.0, 40.0, 480.0), 2: (0.0, 40.0, 80.0), 3: (35.0, 0.0, 485.0), 4: (35.0, 0.0, 85.0),
+             5: (-40.0, -60.0, 50.0), 6: (45.0, -50.0, 50.0), 7: (5.0, 90.0, 50.0)}
+    result = Result(folder=plan.folder, cloud=[(0.0, 0.0, 0.0)], motion_mm=0.9, motion_flagged=True,
+                    overexposed=("3",), marks=marks, quality={3: Quality(0.4, "overexposed")},
+                    warnings=("mark 1 lies 114 mm outside the calibrated volume (above it): check",))
+    event = scan.finish(result)
+    assert heard == [event] and isinstance(event, TrialFinished) and event.complete and event.has_marks
+    trial = logic.trial(event.trial_id)
+    assert trial.status == "complete" and trial.motion_flagged and trial.capture_path is not None
+    stored = {m.label: m for m in logic.store.get_marks(trial.id)}
+    assert sorted(stored) == list(range(1, 8)) and stored[3].warning == "overexposed" and stored[3].sd_mm == 0.4
+    truth = compute_angles(marks, sigma_mm=0.5)
+    assert trial.leg_inversion == truth["leg_inversion"]["value"]
+    severities = [n.severity for n in event.notes]
+    assert severities == [Severity.WARNING, Severity.WARNING, Severity.WARNING]
+    assert event.notes[0].action is NoteAction.SCAN_AGAIN and "moved 0.9 mm" in event.notes[0].text
+    assert "Mark 3 is overexposed" in event.notes[1].text and "outside the calibrated volume" in event.notes[2].text
+
+
+def test_a_finish_the_store_refuses_leaves_no_half_recorded_trial(logic):
+    """A mark the store refuses (not a number): nothing of the outcome is kept, the trial is failed
+    rather than left 'scanning', and the clinician is told in one notice."""
+    _calibrated(logic)
+    session = logic.start_session(logic.add_patient("P-006").id, "barefoot")
+    scan = ScanLogic(logic, logic.settings)
+    scan.begin(session.id, Entry(), None)
+    plan = scan.plan((64, 48), "test rig")
+    plan.folder.mkdir(parents=True, exist_ok=True)
+    event = scan.finish(Result(folder=plan.folder, cloud=[(0.0, 0.0, 0.0)], marks={1: (float("nan"), 0.0, 0.0)}))
+    assert not event.complete and not event.has_marks and scan.trial_id is None
+    (trial,) = logic.trials(session.id)
+    assert trial.status == "failed" and trial.capture_path is None and trial.motion_mm is None
+    assert logic.store.get_marks(trial.id) == []
+    assert logic.notices[-1][0] == "error" and "could not be recorded" in logic.notices[-1][1]

@@ -154,4 +154,9 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     trial = win.store.get_trial(win.scan_flow.logic.trial_id)
     assert trial.table_inversion is not None and trial.leg_inversion is not None
     assert set(win.marks_page.editor.marks) == set(range(1, 8))
+    # recorded with the trial in one transaction (ScanLogic.finish), the editor only shows them
+    editor = win.marks_page.editor
+    assert all(m.sd_mm is not None for m in stored) and trial.status == "complete"
+    assert {lab: m.xyz for lab, m in editor.marks.items()} == {m.label: (m.x, m.y, m.z) for m in stored}
+    assert editor.position_covariance is result.position_covariance and editor.undo_stack.count() == 0
     win.close()

@@ -358,3 +358,46 @@ def test_session_mark_diameter_setting(tmp_path, db):
     with Store.open(tmp_path / "a.sqlite") as s:
         assert s.get_session(ses.id).mark_diameter_mm == 12.5
         assert s.set_session_mark_diameter(ses.id, None).mark_diameter_mm is None
+
+
+def test_finish_trial_records_a_scans_end_in_one_transaction(tmp_path, db):
+    """Files, motion, the automatic marks with their SD and warning, the angles from them and the
+    state: all there after one call, and the angles those of compute_angles on the same marks."""
+    from anklescan.core.measure.angles import compute_angles
+    from anklescan.core.records.store import MarkMeasured, TrialMotion, TrialOutcome
+    *_, t = populate(db)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    (capture / "f.png").write_bytes(b"frame")
+    marks = marks_for(10.0, 20.0)
+    outcome = TrialOutcome("complete", capture=capture, capture_sha256="",
+                           motion=TrialMotion(0.8, 0.1, 3.5, threshold_mm=0.5),
+                           marks={lab: MarkMeasured(tuple(xyz), 0.2 + lab / 100, "overexposed" if lab == 3 else "")
+                                  for lab, xyz in marks.items()})
+    events_before = len(db.events("trial", t.id))
+    done = db.finish_trial(t.id, outcome, who="op1")
+    assert done.status == "complete" and done.capture_sha256 == sha256_path(capture)
+    assert done.motion_mm == 0.8 and done.motion_flagged and done.scan_duration_s == 3.5
+    stored = {m.label: m for m in db.get_marks(t.id)}
+    assert sorted(stored) == list(range(1, 8)) and {m.source for m in stored.values()} == {"auto"}
+    assert stored[3].warning == "overexposed" and stored[5].sd_mm == pytest.approx(0.25)
+    truth = compute_angles(marks, sigma_mm=0.5)
+    assert done.table_inversion == pytest.approx(truth["table_inversion"]["value"])
+    assert done.table_inversion == pytest.approx(10.0, abs=1e-6)
+    assert done.mismatch_inversion == pytest.approx(0.0, abs=1e-6)
+    assert len(db.events("trial", t.id)) == events_before + 1
+
+
+def test_finish_trial_writes_nothing_when_any_part_is_refused(tmp_path, db):
+    """A bad mark after good files and motion: the trial stays as it was (no half-recorded end)."""
+    from anklescan.core.records.store import MarkMeasured, TrialMotion, TrialOutcome
+    *_, t = populate(db)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    bad = TrialOutcome("complete", capture=capture, motion=TrialMotion(0.1),
+                       marks={1: MarkMeasured((0.0, 0.0, 0.0)), 2: MarkMeasured((float("nan"), 0.0, 0.0))})
+    with pytest.raises(AnkleScanError):
+        db.finish_trial(t.id, bad)
+    after = db.get_trial(t.id)
+    assert after.status == t.status and after.capture_path is None and after.motion_mm is None
+    assert db.get_marks(t.id) == []

@@ -9,10 +9,16 @@ device or a window.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from anklescan.app.logic.events import Event
 from anklescan.app.logic.session import SessionLogic
+
+if TYPE_CHECKING:
+    from anklescan.core.records.store import MarkMeasured, TrialOutcome
 
 
 class ScanRefused(Exception):
@@ -31,6 +37,46 @@ class ScanPlan:
     metadata: dict = field(default_factory=dict)
 
 
+class Severity(enum.IntEnum):
+    """How much a scan's note matters; the banner takes the most severe of them."""
+
+    INFO = 0
+    WARNING = 1
+    ERROR = 2
+
+    @property
+    def kind(self) -> str:
+        """The banner's word for it ("info", "warning", "error")."""
+        return self.name.lower()
+
+
+class NoteAction(enum.Enum):
+    """What a note offers the clinician to do (the window provides the button)."""
+
+    SCAN_AGAIN = "Scan again"
+
+
+@dataclass(frozen=True)
+class ScanNote:
+    """One thing the clinician is told about a finished scan: the window only displays it."""
+
+    severity: Severity
+    text: str
+    action: NoteAction | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class TrialFinished:
+    """A scan that ran to the end, recorded (``Store.finish_trial``): what the windows show."""
+
+    trial_id: int | None
+    complete: bool                      # it gave a cloud, recorded: the trial is complete
+    notes: tuple[ScanNote, ...] = ()    # in the order the clinician reads them
+    warnings: tuple[str, ...] = ()      # the measurement's one-line warnings (SPEC §6), beside their marks
+    covariance: object = None           # the marks' JointCovariance: the angles' honest ± (SPEC §3)
+    has_marks: bool = False             # automatic marks were recorded for the 3-D view to show
+
+
 class ScanLogic:
     def __init__(self, session: SessionLogic, settings):
         self.session = session
@@ -38,6 +84,8 @@ class ScanLogic:
         self.trial_id: int | None = None   # the trial being scanned (or just finished)
         self.notice = session.notice
         self.check_warning = ""  # why the rig is not known good, when a scan starts anyway (daily check)
+        self.mixed_note = ""     # the trial joins trials of the other kind (simulated / real): said at its end
+        self.trial_finished = Event()  # (TrialFinished): a scan ran to the end and is recorded
 
     def begin(self, session_id: int | None, entry, mark_diameter_mm: float | None) -> int:
         """Create the scan's trial; returns the session it belongs to (a new one when the entry's
@@ -48,6 +96,7 @@ class ScanLogic:
         if s.store is None or session_id is None:
             raise ScanRefused("Select a patient and a session first (File ▸ New patient…, then New session).")
         self.check_warning = self._daily_check()
+        self.mixed_note = ""
         if not s.set_mark_diameter(session_id, mark_diameter_mm):
             raise ScanRefused("the mark diameter was not saved")
         session = s.store.get_session(session_id)
@@ -105,66 +154,139 @@ class ScanLogic:
     # ---- outcomes -----------------------------------------------------------------------
     def finished(self, result) -> bool:
         """Record a scan that ran to the end; True when it gave a cloud (the trial is complete)."""
+        return self.finish(result).complete
+
+    def finish(self, result) -> TrialFinished:
+        """Record a scan that ran to the end (an app.scan_worker.ScanResult) in one transaction:
+        files, motion, automatic marks and their angles, and the state; then tell the windows."""
+        from anklescan.core.records.store import MarkMeasured, TrialMotion, TrialOutcome
         has_cloud = result.cloud is not None and len(result.cloud) > 0
-        self._record_files(result.folder, result.cloud_path, result.capture_sha256, result.cloud_sha256)
-        self._record_motion(result)
-        self._end("complete" if has_cloud else "failed", "" if has_cloud else result.note)
-        return has_cloud
+        tid, store = self.trial_id, self.session.store
+        marks = {int(k): measured_mark(MarkMeasured, v, result.quality.get(int(k)))
+                 for k, v in result.marks.items()} if has_cloud else {}
+        joint = result.position_covariance if has_cloud else None
+        capture = Path(result.folder)
+        outcome = TrialOutcome("complete" if has_cloud else "failed", "" if has_cloud else result.note,
+                               capture if capture.exists() else None,
+                               result.cloud_path if capture.exists() else None,
+                               result.capture_sha256, result.cloud_sha256,
+                               TrialMotion(result.motion_mm, result.motion_sd_mm, result.duration_s,
+                                           self.settings.get("motion_threshold_mm")),
+                               marks, joint)
+        recorded = self._finish(outcome)  # False: the store refused it (said in a notice; the trial failed)
+        complete = has_cloud and recorded
+        event = TrialFinished(tid, complete, tuple(self.notes(result, has_cloud)),
+                              tuple(result.warnings), joint, bool(marks) and recorded)
+        self.trial_id = tid if complete and store is not None else None
+        self.trial_finished.emit(event)
+        return event
 
-    def failed(self, message: str, folder) -> None:
-        self._record_files(Path(folder))
-        self._end("failed", message)
+    def _finish(self, outcome: TrialOutcome) -> bool:
+        """``Store.finish_trial``; when it fails, the trial still leaves 'scanning' (failed, saying why)."""
+        tid, store = self.trial_id, self.session.store
+        self.trial_id = None
+        if tid is None or store is None:
+            return False
+        try:
+            store.finish_trial(tid, outcome, who=self.session.operator)
+            return True
+        except Exception as exc:
+            self.notice.emit("error", f"Trial {tid} could not be recorded: {exc}")
+        try:
+            status = "failed" if outcome.status == "complete" else outcome.status
+            store.set_trial_status(tid, status, outcome.note or "its outcome could not be recorded",
+                                   who=self.session.operator)
+        except Exception as exc:
+            self.notice.emit("error", f"Trial {tid} could not be updated: {exc}")
+        return False
 
-    def cancelled(self, folder) -> None:
-        self._record_files(Path(folder))
-        self._end("cancelled", "stopped by the operator")
+    def notes(self, result, has_cloud: bool) -> list[ScanNote]:
+        """What the clinician is told about a finished scan, most urgent kinds first in each case:
+        a cloud that was not saved, motion, overexposed marks, marks outside the calibrated volume,
+        marks not found, and a trial that mixes simulated and real patients."""
+        notes = []
+        if result.save_error:
+            notes.append(ScanNote(Severity.ERROR, result.save_error))
+        if result.motion_flagged:
+            notes.append(ScanNote(Severity.WARNING, f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
+                                  "(The trial is flagged and left out of the statistics unless kept.)",
+                                  NoteAction.SCAN_AGAIN))
+        overexposed = list(result.overexposed)
+        if overexposed:
+            many = len(overexposed) > 1
+            notes.append(ScanNote(Severity.WARNING, f"Mark{'s' * many} {', '.join(overexposed)} "
+                                  f"{'are' if many else 'is'} overexposed, so {'their' if many else 'its'} position "
+                                  "is less certain: lower the exposure in the camera panel and scan again."))
+        if has_cloud:
+            volume = [w for w in result.warnings if "outside the calibrated volume" in w]
+            if volume:
+                notes.append(ScanNote(Severity.WARNING, "; ".join(volume) + "."))
+            if result.marks_note:
+                notes.append(ScanNote(Severity.INFO, "Some marks were not found automatically: place them in the "
+                                      f"3-D view ({result.marks_note})."))
+        if self.mixed_note:
+            notes.append(ScanNote(Severity.WARNING, self.mixed_note))
+        return notes
+
+    def mark_simulated(self, simulated: bool) -> None:
+        """The begun trial was scanned on the simulated rig (or not): record it, and note when the
+        patient already has trials of the other kind."""
+        store, tid = self.session.store, self.trial_id
+        if simulated and store is not None and tid is not None:
+            store.set_trial_simulated(tid)
+        self.mixed_note = mixed_warning(store, tid, simulated)
+
+    def failed(self, message: str, folder) -> ScanNote:
+        """Record a scan the worker stopped (a device error); what the clinician is told."""
+        self._stop("failed", message, Path(folder))
+        return ScanNote(Severity.ERROR, f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial is "
+                        "marked failed. The session is intact; check the device and scan again.")
+
+    def cancelled(self, folder) -> ScanNote:
+        """Record a scan the operator cancelled; what the clinician is told."""
+        self._stop("cancelled", "stopped by the operator", Path(folder))
+        return ScanNote(Severity.INFO, "Scan cancelled: the trial is marked cancelled and left out of the "
+                        f"statistics. {frames_in(folder)} frame(s) kept in {folder}.")
 
     def abandon(self, note: str) -> None:
         """The app closes during the scan: keep what was captured, the trial cancelled."""
         if self.trial_id is not None and self.session.store is not None:
-            self._record_files(self.session.store.trial_dir(self.trial_id) / "capture")
-            self._end("cancelled", note)
+            self._stop("cancelled", note, self.session.store.trial_dir(self.trial_id) / "capture")
 
     def end_unstarted(self, note: str) -> None:
-        self._end("failed", note)
+        self._stop("failed", note, None)
 
-    def _record_files(self, capture: Path, cloud: Path | None = None, capture_sha256: str = "",
-                      cloud_sha256: str = "") -> None:
-        store = self.session.store
-        if self.trial_id is None or store is None or not Path(capture).exists():
-            return
-        try:
-            store.set_trial_files(self.trial_id, capture=capture, cloud=cloud,
-                                  capture_sha256=capture_sha256, cloud_sha256=cloud_sha256)
-        except Exception as exc:
-            self.notice.emit("error", f"The trial's files could not be recorded: {exc}")
+    def _stop(self, status: str, note: str, capture: Path | None) -> None:
+        """A scan that did not run to the end: the trial leaves 'scanning' (cancelled or failed) with
+        whatever was captured, in one transaction, so no trial is left half-made."""
+        from anklescan.core.records.store import TrialOutcome
+        self._finish(TrialOutcome(status, note, capture if capture is not None and capture.exists() else None))
 
-    def _record_motion(self, result) -> None:
-        """Motion and duration into the trial (flagged over the threshold)."""
-        store = self.session.store
-        if self.trial_id is None or store is None:
-            return
-        try:
-            store.set_trial_motion(self.trial_id, result.motion_mm, result.motion_sd_mm,
-                                   scan_duration_s=result.duration_s,
-                                   threshold_mm=self.settings.get("motion_threshold_mm"))
-        except Exception as exc:
-            self.notice.emit("error", f"The trial's motion could not be recorded: {exc}")
 
-    def _end(self, status: str, note: str = "") -> None:
-        """The trial leaves 'scanning' (complete, cancelled or failed), so no trial is left half-made."""
-        tid, self.trial_id = self.trial_id, None
-        store = self.session.store
-        if tid is None or store is None:
-            return
-        try:
-            store.set_trial_status(tid, status, note, who=self.session.operator)
-        except Exception as exc:
-            self.notice.emit("error", f"Trial {tid} could not be updated: {exc}")
-        self.trial_id = tid if status == "complete" else None
+def measured_mark(kind: type[MarkMeasured], xyz, quality) -> MarkMeasured:
+    """An automatic mark (``kind``: core.records.store.MarkMeasured, imported where the store is)
+    with its quality (app.scan_worker.MarkQuality, or None: not measured)."""
+    return kind(tuple(float(v) for v in xyz), None if quality is None else quality.sd_mm,
+                "" if quality is None else quality.warning)
+
+
+def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
+    """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
+    if store is None or trial_id is None:
+        return ""
+    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
+    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
+              if t.id != trial_id and t.simulated != simulated]
+    if not others:
+        return ""
+    kind, other = ("simulated", "real") if simulated else ("real", "simulated")
+    return (f"This {kind} trial joins {len(others)} {other} trial(s) of the same patient: reports and the CSV mark "
+            "them, but keep simulated patients apart from real ones.")
 
 
 def frames_in(folder) -> int:
     """How many frames a (possibly interrupted) capture folder holds."""
     p = Path(folder)
-    return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json") if p.is_dir() else 0
+    if not p.is_dir():
+        return 0
+    return sum(1 for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix != ".json")

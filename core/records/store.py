@@ -32,6 +32,7 @@ import stat
 import urllib.parse
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import platformdirs
@@ -39,10 +40,9 @@ import platformdirs
 from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, MARK_SOURCES, SIDES, TRIAL_STATES, AxisSummary,
-                                       MarkSource, TrialState,
-                                       CalibrationRecord, Event, MarkRecord, Patient, ReportInput, Session, SessionSummary, Trial,
-                                       parse_label)
+from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, LABELS, MARK_SOURCES, SIDES, TRIAL_STATES,
+                                       AxisSummary, CalibrationRecord, Event, MarkRecord, MarkSource, Patient,
+                                       ReportInput, Session, SessionSummary, Trial, TrialState, parse_label)
 
 DB_FILENAME = "anklescan.sqlite"
 DEFAULT_TIMEOUT_S = 10.0
@@ -587,6 +587,45 @@ def _create_private(path: Path) -> None:
             pass  # not ours to change (another owner) or gone: leave it
 
 
+# -------------------------------------------------------------------- a trial's end
+
+@dataclass(frozen=True)
+class TrialMotion:
+    """How far the subject moved during the scan (None: not measured) and the scan's duration;
+    over ``threshold_mm`` the trial is flagged (SPEC: out of the statistics unless kept)."""
+
+    motion_mm: float | None
+    motion_sd_mm: float | None = None
+    duration_s: float | None = None
+    threshold_mm: float = MOTION_THRESHOLD_MM
+
+
+@dataclass(frozen=True)
+class MarkMeasured:
+    """An automatic mark as the measurement found it: position (mm), SD (mm) and warning."""
+
+    xyz: tuple[float, float, float]
+    sd_mm: float | None = None
+    warning: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class TrialOutcome:
+    """Everything a scan's end records, written by ``Store.finish_trial`` in one transaction:
+    files with their hashes, motion, the automatic marks (with the joint covariance their angles'
+    SD come from), the angles, and the trial's state."""
+
+    status: str                                     # complete | failed | cancelled (TRIAL_STATES)
+    note: str = ""
+    capture: Path | None = None                     # the capture folder (recorded when it exists)
+    cloud: Path | None = None
+    capture_sha256: str = ""                        # made in the worker thread: taken as given
+    cloud_sha256: str = ""
+    motion: TrialMotion | None = None               # None: leave the motion columns as they are
+    marks: Mapping[int, MarkMeasured] = field(default_factory=dict)  # label -> automatic mark
+    joint: JointCovariance | None = None            # the marks' covariance (the angles' honest ±)
+
+
 # -------------------------------------------------------------------- store
 
 class Store:
@@ -1083,6 +1122,58 @@ class Store:
             sets = ", ".join(f"{k} = ?" for k in cols)
             c.execute(f"UPDATE trials SET {sets} WHERE id = ?", (*cols.values(), trial_id))
         return self.get_trial(trial_id)
+
+    def finish_trial(self, trial_id: int, outcome: TrialOutcome, *, who: str = "") -> Trial:
+        """A scan's end in ONE transaction: files and hashes, motion, the automatic marks with their
+        SD and warning, the angles from them, and the state, so a trial is never left half-recorded."""
+        _check_state(outcome.status)
+        trial = self.get_trial(trial_id)
+        files: dict[str, str] = {}
+        known = {"capture": outcome.capture_sha256, "cloud": outcome.cloud_sha256}
+        for name, p in (("capture", outcome.capture), ("cloud", outcome.cloud)):
+            if p is not None:
+                files[f"{name}_sha256"] = known[name] or sha256_path(p)
+                files[f"{name}_path"] = self._relative(Path(p))
+        motion = None
+        if outcome.motion is not None:
+            m = outcome.motion
+            mm, sd = _opt_float(m.motion_mm, "motion"), _opt_float(m.motion_sd_mm, "motion SD")
+            dur, thr = _opt_float(m.duration_s, "scan duration"), _opt_float(m.threshold_mm, "motion threshold")
+            if thr is None or thr <= 0:
+                raise AnkleScanError(f"motion threshold must be a positive number of mm, got {m.threshold_mm!r}")
+            if (mm is not None and mm < 0) or (sd is not None and sd < 0) or (dur is not None and dur < 0):
+                raise AnkleScanError("motion, its SD and the scan duration cannot be negative")
+            motion = (mm, sd, dur, int(mm is not None and mm > thr))
+        marks = []
+        for key, mark in outcome.marks.items():
+            lab = parse_label(key)
+            xyz = [_opt_float(v, f"mark {lab} coordinate") for v in mark.xyz]
+            if len(xyz) != 3 or None in xyz:
+                raise AnkleScanError(f"mark {lab} must have 3 coordinates")
+            marks.append((lab, xyz, _opt_float(mark.sd_mm, f"mark {lab} SD"), str(mark.warning or "")))
+        joint = outcome.joint
+        # the joint covariance holds the measured marks' own SD; any other mark gets the default
+        sigma = {lab: 0.0 if joint is not None and lab in joint.labels else DEFAULT_SIGMA_MM for lab in LABELS}
+        now = _now()
+        with self._write() as c:
+            if files:
+                c.execute(f"UPDATE trials SET {', '.join(f'{k} = ?' for k in files)} WHERE id = ?",
+                          (*files.values(), trial.id))
+            if motion is not None:
+                c.execute("UPDATE trials SET motion_mm = ?, motion_sd_mm = ?, scan_duration_s = ?, motion_flagged = ?"
+                          " WHERE id = ?", (*motion, trial.id))
+            if marks:
+                c.executemany(
+                    "INSERT OR REPLACE INTO marks (trial_id, label, x, y, z, source, placed_by, updated, sd_mm,"
+                    " warning) VALUES (?, ?, ?, ?, ?, 'auto', '', ?, ?, ?)",
+                    [(trial.id, lab, *xyz, now, sd, warning) for lab, xyz, sd, warning in marks])
+                allm = {r[0]: r[1:] for r in c.execute("SELECT label, x, y, z FROM marks WHERE trial_id = ?",
+                                                       (trial.id,))}
+                self._store_angles(c, trial, compute_angles(allm, sigma_mm=sigma, joint=joint), None)
+            c.execute("UPDATE trials SET status = ?, status_note = ? WHERE id = ?",
+                      (outcome.status, outcome.note or "", trial.id))
+            _log(c, outcome.status, "trial", trial.id, outcome.note, who)
+        return self.get_trial(trial.id)
 
     def _relative(self, p: Path) -> str:
         try:
