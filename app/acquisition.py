@@ -25,6 +25,7 @@ two users (a preview and a scan) from grabbing at once.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 import weakref
@@ -60,7 +61,7 @@ class _WindowBridge(QObject):
         window.painted.connect(self._painted)
 
     @Slot(object, object, str)
-    def _show(self, pending: "_Pending", image, mode: str) -> None:
+    def _show(self, pending: _Pending, image, mode: str) -> None:
         if pending.abandoned:
             return
         if self.window is None:
@@ -89,10 +90,8 @@ class _WindowBridge(QObject):
     def detach(self) -> None:
         if self.window is None:
             return
-        try:
+        with contextlib.suppress(RuntimeError, TypeError):
             self.window.painted.disconnect(self._painted)
-        except (RuntimeError, TypeError):
-            pass
         self.window = None
 
 
@@ -147,10 +146,8 @@ class WindowOutput(ProjectorOutput):
     def close(self) -> None:
         self._bridge.detach()
         if self._mirror is not None:
-            try:
+            with contextlib.suppress(RuntimeError, TypeError):
                 self.window.frameShown.disconnect(self._mirror)
-            except (RuntimeError, TypeError):
-                pass
             self._mirror = None
 
 
@@ -160,7 +157,7 @@ def as_output(projector) -> ProjectorOutput:
 
 
 # ---- one lock per camera ------------------------------------------------------------------------
-_LOCKS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_LOCKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _LOCKS_GUARD = threading.Lock()
 _FALLBACK_LOCK = threading.RLock()
 

@@ -23,7 +23,7 @@ from collections.abc import Callable
 
 from PySide6.QtCore import QObject, Signal, Slot
 
-_running: set["BackgroundJob"] = set()  # keeps each job (and its signal) alive until delivered
+_running: set[BackgroundJob] = set()  # keeps each job (and its signal) alive until delivered
 
 
 class Cancelled(Exception):

@@ -62,7 +62,7 @@ def residual_overlay(image: np.ndarray, cam_uv, cam_res, proj_uv_cam, proj_res, 
         res = res.reshape(len(pts), -1)
         if res.shape[1] == 1:  # a column-only projector: horizontal arrows
             res = np.hstack([res, np.zeros_like(res)])
-        for i, (p, r) in enumerate(zip(pts, res)):
+        for i, (p, r) in enumerate(zip(pts, res, strict=False)):
             a, b = tuple(np.round(p).astype(int)), tuple(np.round(p + gain * r).astype(int))
             cv2.arrowedLine(out, a, b, colour, t, cv2.LINE_AA, tipLength=0.25)
             if i in flagged:

@@ -18,6 +18,7 @@ so that ``anklescan gui`` starts without loading the reconstruction stack and ``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -360,10 +361,8 @@ def _run(args) -> int:
     except BrokenPipeError:
         # stdout closed early (``| head``): end quietly like other tools, and keep Python
         # from printing a second error when it flushes stdout at exit
-        try:
+        with contextlib.suppress(OSError, ValueError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        except (OSError, ValueError):
-            pass
         return 128 + signal.SIGPIPE
     except MemoryError:
         _say("error: out of memory: the input is larger than this computer can process "

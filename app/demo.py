@@ -386,7 +386,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
                           "table": t["table"], "scale": scale, "seed": t["seed"], "capture": str(folder / "capture"),
                           "cloud": str(folder / "cloud.ply"), "calibration": cal["calibration"],
                           "accuracy": False, "marks": p.marks, "mark_diameter": mark_diameter}, trial.id))
-        for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs])), 1):
+        for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]), strict=False), 1):
             _record(store, trial_id, job, res)
             results.append(res)
             m = store.get_trial(trial_id)

@@ -67,7 +67,7 @@ PlacedMarks = dict[int, PlacedMark]
 class _SetMarks(QUndoCommand):
     """Replace some labels' marks (None = absent). Every edit is one of these."""
 
-    def __init__(self, editor: "MarkEditor", text: str, after: dict[int, PlacedMark | None]):
+    def __init__(self, editor: MarkEditor, text: str, after: dict[int, PlacedMark | None]):
         super().__init__(text)
         self.editor = editor
         self.after = after
@@ -284,7 +284,7 @@ class MarkEditor(QWidget):
             if centre is None:
                 self.show_pick(f"No white disk under the click: mark {label} placed where clicked.")
             else:
-                shift = sum((a - b) ** 2 for a, b in zip(centre, raw)) ** 0.5
+                shift = sum((a - b) ** 2 for a, b in zip(centre, raw, strict=False)) ** 0.5
                 self.show_pick(f"Mark {label} placed at the disk's centre ({shift:.1f} mm from the click).")
             self.place(label, raw if centre is None else centre)
             self.snapped.emit(label)

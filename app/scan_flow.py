@@ -5,6 +5,7 @@ to the pages and the banner."""
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -149,10 +150,8 @@ class ScanFlow(QObject):
         """Cancel the scan, wait for the worker to leave, and close its trial as cancelled, before
         the database closes (its signals are cut first: nothing may arrive after)."""
         for signal in (self.controller.finished, self.controller.failed, self.controller.cancelled):
-            try:
+            with contextlib.suppress(RuntimeError, TypeError):
                 signal.disconnect()
-            except (RuntimeError, TypeError):
-                pass
         self.controller.stop()
         self.logic.abandon("the application was closed during the scan")
 

@@ -222,7 +222,7 @@ class SessionView(QWidget):
         p.plot([], [], pen=pg.mkPen("#59636e", width=1.2), name="min – max")
         self._add_trial_points(p, per_pf, 1.4, "#59636e", axis)  # the single trials beside each bar
         self._legend_unconfirmed(p, {inv: per_pf})
-        for xi, top, v in zip(x, np.maximum(hi, mean + sd), values):
+        for xi, top, v in zip(x, np.maximum(hi, mean + sd), values, strict=False):
             t = pg.TextItem(f"n={v.size}", color="#59636e", anchor=(0.5, 1.2))
             t.setPos(xi, top)
             p.addItem(t)

@@ -43,7 +43,7 @@ class OverlayPainting:
         painter.setFont(font)
         metrics = painter.fontMetrics()
         taken: list[QRectF] = []
-        for label, (x, y, _) in zip(labels, pos):
+        for label, (x, y, _) in zip(labels, pos, strict=False):
             text = f"{label}?" if label in self.unconfirmed else str(label)
             note = getattr(self, "mark_notes", {}).get(label, "")
             if note:  # its SD and any warning: an uncertain mark is shown as one where it is

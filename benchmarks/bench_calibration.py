@@ -22,8 +22,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from anklescan.core.calibration import paper_model as pm
-from anklescan.core.calibration.calibrate import calibrate_device  # noqa: E402
 from anklescan.core.calibration.box import face_grid_points  # noqa: E402
+from anklescan.core.calibration.calibrate import calibrate_device  # noqa: E402
 from anklescan.core.calibration.device_model import Device, look_at  # noqa: E402
 
 CAMERA_SIZE, PROJECTOR_SIZE = (1600, 1200), (1024, 768)
@@ -135,12 +135,23 @@ def trial(seed: int, noise: float, per_side: int = 7, size: float = 400.0) -> di
     ours_dev = pm.camera_to_device(cam, *CAMERA_SIZE)
     proj_dev = pm.projector_to_device(proj, *PROJECTOR_SIZE)
     cv_dev, cv_rms = opencv_camera(X, uv, initial_camera_vector(X, uv, 1))
-    return {"ours_3d": reconstruction_error_mm(ours_dev, proj_dev, Cn, Pn),
-            "cv_3d": reconstruction_error_mm(cv_dev, proj_dev, Cn, Pn),
-            "se_cam": cq.std_errors, "se_proj": pq.std_errors,"cam": camera_errors(cam, Cn), "proj": projector_errors(proj, gauge_fixed(Pn, X)),
-            "cam_sigma": cq.sigma_px, "proj_sigma": pq.sigma_px, "cam_rms": cq.rms_px, "proj_rms": pq.rms_px,
-            "cv": opencv_vs_truth(cv_dev, Cn), "cv_rms": cv_rms, "t_cam": t_cam,
-            "ours_img": image_error_px(ours_dev, Cn), "cv_img": image_error_px(cv_dev, Cn)}
+    return {
+        "ours_3d": reconstruction_error_mm(ours_dev, proj_dev, Cn, Pn),
+        "cv_3d": reconstruction_error_mm(cv_dev, proj_dev, Cn, Pn),
+        "se_cam": cq.std_errors,
+        "se_proj": pq.std_errors,
+        "cam": camera_errors(cam, Cn),
+        "proj": projector_errors(proj, gauge_fixed(Pn, X)),
+        "cam_sigma": cq.sigma_px,
+        "proj_sigma": pq.sigma_px,
+        "cam_rms": cq.rms_px,
+        "proj_rms": pq.rms_px,
+        "cv": opencv_vs_truth(cv_dev, Cn),
+        "cv_rms": cv_rms,
+        "t_cam": t_cam,
+        "ours_img": image_error_px(ours_dev, Cn),
+        "cv_img": image_error_px(cv_dev, Cn),
+    }
 
 
 def main(argv=None) -> None:
@@ -167,6 +178,7 @@ def main(argv=None) -> None:
     print(f"{'':24}{'ours camera':>14}{'cv2 camera':>14}{'ours projector':>16}")
     rows = [("focal rel. error (max)", "fx_rel", "{:.2e}"), ("principal pt px (max)", "pp_px", "{:.3f}"),
             ("rotation deg (max)", "rot_deg", "{:.4f}"), ("translation mm (max)", "t_mm", "{:.3f}")]
+
     def rms(path):
         return float(np.sqrt(np.mean([r[path[0]][path[1]] ** 2 for r in runs])))
 
@@ -178,10 +190,13 @@ def main(argv=None) -> None:
         print(f"{label:24}{fmt.format(rms(['cam', key])):>14}{fmt.format(rms(['cv', key])):>14}"
               f"{fmt.format(rms(['proj', key])):>16}")
     se = runs[0]["se_cam"], runs[0]["se_proj"]
-    print(f"predicted 1-sigma (trial 0): camera ku/ku {se[0]['ku'] / 2400:.1e}, u0 {se[0]['u0']:.2f} px, v0 {se[0]['v0']:.2f} px, "
+    print(f"predicted 1-sigma (trial 0): camera ku/ku {se[0]['ku'] / 2400:.1e}, u0 {se[0]['u0']:.2f} px, "
+          f"v0 {se[0]['v0']:.2f} px, "
           f"tz {se[0]['tz']:.2f} mm; projector ku/ku {se[1]['ku'] / 1700:.1e}, u0 {se[1]['u0']:.2f} px, tz {se[1]['tz']:.2f} mm")
-    print(f"{'camera image error vs truth, px RMS over the volume (mean)':60}{mean(['ours_img']):.4f} ours, {mean(['cv_img']):.4f} cv2")
-    print(f"{'3-D error of triangulation, mm RMS over the volume (mean)':60}{mean(['ours_3d']):.4f} ours, {mean(['cv_3d']):.4f} cv2 camera")
+    print(f"{'camera image error vs truth, px RMS over the volume (mean)':60}{mean(['ours_img']):.4f} ours, "
+          f"{mean(['cv_img']):.4f} cv2")
+    print(f"{'3-D error of triangulation, mm RMS over the volume (mean)':60}{mean(['ours_3d']):.4f} ours, "
+          f"{mean(['cv_3d']):.4f} cv2 camera")
     print(f"{'3-D error (worst trial)':60}{worst(['ours_3d']):.4f} ours, {worst(['cv_3d']):.4f} cv2 camera")
     print(f"camera solve time {mean(['t_cam']) * 1000:.0f} ms mean")
 

@@ -30,13 +30,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from anklescan.core.scan.capture import capture_from_images  # noqa: E402
 from anklescan.core.measure.mark_fit import view_deg  # noqa: E402
 from anklescan.core.measure.marks import LABELS  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
+from anklescan.core.scan.capture import capture_from_images  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
-from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
 from anklescan.core.scan.triangulate import scan_axes  # noqa: E402
+from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 from anklescan.hardware.simrig import Optics, SimRig  # noqa: E402
 
@@ -107,7 +107,7 @@ def _trial_figures(job):
     overrides = optics or {}
     optics = Optics(**overrides) if overrides and variant is None else (overrides or None)
     out = []
-    for mode, (res, me, ae, dt) in zip(modes, trial(inv, pf, scale, seed, optics, mtype, diam, modes, variant)):
+    for mode, (res, me, ae, dt) in zip(modes, trial(inv, pf, scale, seed, optics, mtype, diam, modes, variant), strict=False):
         z_by = {k: float(np.sqrt(e @ np.linalg.solve(m.covariance, e)))
                 for k, m in res.marks.labelled.items() for e in [m.centre - res.truth_marks[k]]}
         z = list(z_by.values())
@@ -120,12 +120,29 @@ def _trial_figures(job):
         doubtful = [(k, float(np.linalg.norm(e)), float(np.sqrt(e @ np.linalg.solve(m.covariance, e))))
                     for k, m in res.marks.labelled.items() if m.doubtful for e in [m.centre - res.truth_marks[k]]]
         past_sd = [(k, me[k], zk) for k, zk in z_by.items() if zk > Z_1PCT]  # printed, so a sweep says which
-        out.append({"sds": sds, "doubtful": doubtful, "past_sd": past_sd, "inv": inv, "pf": pf, "seed": seed, "complete": res.complete, "found": res.found_truth,
-                    "marks": me, "angles": ae, "dt": dt, "z": z, "message": "" if res.complete else res.marks.message(),
-                    "type": mtype, "diameter": diam, "mode": mode,
-                    "measured": None if d is None or mode == "given" else d,
-                    "variant": None if variant is None else variant.describe(),
-                    "geometry": res.truth_angles})
+        out.append(
+            {
+                "sds": sds,
+                "doubtful": doubtful,
+                "past_sd": past_sd,
+                "inv": inv,
+                "pf": pf,
+                "seed": seed,
+                "complete": res.complete,
+                "found": res.found_truth,
+                "marks": me,
+                "angles": ae,
+                "dt": dt,
+                "z": z,
+                "message": "" if res.complete else res.marks.message(),
+                "type": mtype,
+                "diameter": diam,
+                "mode": mode,
+                "measured": None if d is None or mode == "given" else d,
+                "variant": None if variant is None else variant.describe(),
+                "geometry": res.truth_angles,
+            }
+        )
     return out
 
 
@@ -211,7 +228,8 @@ def main(argv=None):
                     + (f" (measured {r['measured'][0]:.2f} ± {r['measured'][1]:.2f})" if r["measured"] else ""))
             if r["variant"]:
                 print(r["variant"], flush=True)
-            print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {'7/7' if r['complete'] else 'INCOMPLETE' + ' IN REACH' * in_reach}  "
+            state = '7/7' if r['complete'] else 'INCOMPLETE' + ' IN REACH' * in_reach
+            print(f"{size} inv {r['inv']:3d} pf {r['pf']:4d} seed {r['seed']:3d}  {state}  "
                   f"marks(mm) {marks}  angles(deg) {angles}  [{r['dt']:.1f} s]", flush=True)
             for sd, true, what in r["sds"]:
                 if sd > WIDE_SD_MM or not true:

@@ -116,8 +116,14 @@ def variety(args, work):
         "oscillation +-1.5 mm at 6 mm/s, diagonal, webcam": (leg_scene(), Sway((s2, s2, 0), 1.5, 6.0, 0.3), "webcam"),
         "another leg, drift 1.5 mm back-left, tilt 0.08/mm": (
             leg_scene(5, 10, ankle_semi_axes=(45, 36), knee_scale=1.25, leg_length=420),
-            Sway((-s2, s2, 0), math.inf, 1.5 / (36 * 0.03), 0.0, 0.08), "webcam"),
-        "drift 3 mm with a vertical part, table 15/-10": (leg_scene(15, -10), Sway((0.8, 0.3, 0.3), math.inf, 3.0 / (36 * 0.03)), "webcam"),
+            Sway((-s2, s2, 0), math.inf, 1.5 / (36 * 0.03), 0.0, 0.08),
+            "webcam",
+        ),
+        "drift 3 mm with a vertical part, table 15/-10": (
+            leg_scene(15, -10),
+            Sway((0.8, 0.3, 0.3), math.inf, 3.0 / (36 * 0.03)),
+            "webcam",
+        ),
         "DSLR, +-1 mm at 0.5 mm/s forward": (leg_scene(), Sway((0, 1, 0), 1.0, 0.5, 1.0), "dslr"),
     }
     print(f"\n[variety] scale {args.scale}, default set + {args.refs} looks")

@@ -44,8 +44,7 @@ def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
 
 def box_calibration(rig: SimRig, work: Path):
     from anklescan.core.calibration.box import calibrate_from_box_capture
-    from anklescan.hardware.sim_scene import box_scene_objects
-    from anklescan.hardware.sim_scene import quad_scene
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
     box = rig.with_scene(quad_scene(box_scene_objects()))
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))

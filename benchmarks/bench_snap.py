@@ -26,13 +26,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_marks import captured  # noqa: E402
+
 from anklescan.core.measure.mark_candidates import points_image  # noqa: E402
 from anklescan.core.measure.marks import LABELS  # noqa: E402
 from anklescan.core.measure.marks_surface import snap_to_disk  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
 from anklescan.core.scan.lit_image import averaged_lit, clipped_white  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
-from bench_marks import captured  # noqa: E402
 
 POSTURE_SEEDS = {(0, -20): 0, (0, 20): 1, (10, 0): 2, (20, -20): 3, (20, 20): 4}  # bench_marks' sweep
 GOOD_MM, GOOD_Z = 0.35, 3.37
@@ -88,7 +89,7 @@ def main(argv=None):
     jobs = [(_parse(t), a.scale, a.offset, a.size == "given") for t in a.trials.split(",")]
     missed = good = 0
     with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
-        for describe, (v, inv, pf, seed), rows in (pool.imap(_trial, jobs) if pool else map(_trial, jobs)):
+        for describe, (_v, inv, pf, seed), rows in (pool.imap(_trial, jobs) if pool else map(_trial, jobs)):
             print(describe, flush=True)
             print(f"  inv {inv:3d} pf {pf:4d} seed {seed}: " + ("every mark found" if not rows else
                                                                f"{len(rows)} mark(s) missed"), flush=True)

@@ -95,6 +95,7 @@ def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Genera
     corners and projector points projected through the true rig with noise; and (B, b): the
     board calibration's world = B @ (true world) + b (its frame is the first board's)."""
     import cv2
+
     from anklescan.core.calibration.board import BoardView, board_points, board_world_frame, calibrate_board_views
     from anklescan.hardware.sim_board import board_views
 

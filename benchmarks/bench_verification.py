@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from anklescan.core.calibration import box as cb
+from anklescan.core.calibration.verification import verify_box_capture  # noqa: E402
 from anklescan.core.scan.capture import save_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
-from anklescan.core.calibration.verification import verify_box_capture  # noqa: E402
 from anklescan.hardware.sim_scene import box_scene_objects, quad_scene  # noqa: E402
 from anklescan.hardware.simrig import SimRig  # noqa: E402
 

@@ -100,6 +100,7 @@ def main() -> None:
 
 def bench(app, cloud, eye, w, h, args, path) -> None:
     from OpenGL import GL
+
     from anklescan.app.viewer import RENDER_CLASSIC, CloudViewer
 
     load_before = load_average()
@@ -118,7 +119,7 @@ def bench(app, cloud, eye, w, h, args, path) -> None:
     t1 = time.perf_counter()
     viewer.grabFramebuffer()  # renders the first frame synchronously
     t2 = time.perf_counter()
-    viewer.snapper  # waits for the KD-tree built in the background
+    _ = viewer.snapper  # waits for the KD-tree built in the background
     t3 = time.perf_counter()
 
     full_runs = []

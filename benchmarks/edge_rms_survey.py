@@ -23,8 +23,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import anklescan.core.measure.mark_fit as mark_fit  # noqa: E402
 import bench_marks  # noqa: E402
+
+import anklescan.core.measure.mark_fit as mark_fit  # noqa: E402
 from anklescan.core.measure.mark_types import Refusal, RefusalReason  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 

@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
 from anklescan.core.calibration.board import DEFAULT_DIST, calibrate_board_views, observe_board
+from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
+from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
 from anklescan.core.scan.capture import load_capture
 from anklescan.core.scan.decode import decode
-from anklescan.core.scan.reconstruct import cloud_from_decoded
-from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode
+from anklescan.core.scan.reconstruct import cloud_from_decoded
 
 COLS, ROWS, SQUARE, STEP = 9, 7, 75.0, 2
 PROJECTOR = (2048, 1536)
@@ -60,7 +60,10 @@ def main(src: Path, model: str = DEFAULT_DIST) -> None:
         return measure_board(cal, X, pix, noise, view.corners, cap.shape, COLS, ROWS, SQUARE)
 
     print(f"distortion model {model}")
-    print("| calibration | measured | distance m | pitch mm | pitch error % | pitch SD mm | flatness RMS mm | predicted mm | RMS cam / proj px |")
+    print(
+        "| calibration | measured | distance m | pitch mm | pitch error % | pitch SD mm | flatness RMS mm "
+        "| predicted mm | RMS cam / proj px |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for pair in itertools.combinations(range(3), 2):
         (k,) = set(range(3)) - set(pair)

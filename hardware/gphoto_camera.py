@@ -67,7 +67,7 @@ def list_devices(gp=None) -> list[DeviceInfo]:
     return [DeviceInfo(BACKEND, f"{model}@{port}", f"{model} ({port})") for model, port in found]
 
 
-def open_device(device: str = "", gp=None) -> "GPhotoCamera":
+def open_device(device: str = "", gp=None) -> GPhotoCamera:
     model, _, port = device.rpartition("@") if "@" in device else ("", "", "")
     return GPhotoCamera(model, port, gp=gp)
 

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration
 from anklescan.hardware.sim_scene import (
@@ -38,7 +40,6 @@ from anklescan.hardware.sim_scene import (
     frame_from_normal,
     table_normal,
 )
-from scipy.spatial.transform import Rotation
 
 
 class CheckObject(Enum):

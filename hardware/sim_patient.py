@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+
 from anklescan.core.vocabulary import CONDITIONS, MarkKind
 
 

@@ -443,7 +443,7 @@ class Scene:
         d = np.asarray(d, float)
         t_best = np.full(len(d), np.inf)
         idx = np.full(len(d), -1, dtype=np.int32)
-        for i, (obj, bnd) in enumerate(zip(self.objects, self._bounds)):
+        for i, (obj, bnd) in enumerate(zip(self.objects, self._bounds, strict=False)):
             sel = _may_hit(o, d, bnd)
             rows = slice(None) if sel is None else np.flatnonzero(sel)
             if sel is not None and rows.size == 0:
@@ -472,7 +472,7 @@ class Scene:
             if getattr(self.objects[i], "two_sided", False) and viewer is not None:
                 n = np.where((np.einsum("ij,ij->i", n, np.asarray(viewer) - X[rows]) < 0)[:, None], -n, n)
             normals[rows] = n
-        for st, h in zip(self.stickers, self._host):
+        for st, h in zip(self.stickers, self._host, strict=False):
             rows = np.flatnonzero(index == h)
             if rows.size:
                 albedo[rows[st.covers(X[rows], normals[rows])]] = st.albedo
@@ -485,7 +485,7 @@ class Scene:
                         for o in self.objects] or [0], dtype=np.int8)
         out = np.where(index >= 0, lut[np.maximum(index, 0)], 0).astype(np.int8)
         if X is not None and normals is not None:
-            for st, h in zip(self.stickers, self._host):
+            for st, h in zip(self.stickers, self._host, strict=False):
                 rows = np.flatnonzero(index == h)
                 if rows.size and str(st.label).isdigit():
                     out[rows[st.covers(X[rows], normals[rows])]] = int(st.label)
@@ -568,9 +568,9 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     top_c = np.asarray(table_centre, float)
     n = table_normal(table_inversion, table_plantar_flexion)
     T = frame_from_normal(n)  # columns: across (≈x), along (≈y), normal
-    w, l, th = table_size
+    w, length, th = table_size
     objs: list = [Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)]
-    table = Box(kind=ObjectId.TABLE, centre=top_c - n * th / 2, axes=T, half=(w / 2, l / 2, th / 2), albedo=table_albedo)
+    table = Box(kind=ObjectId.TABLE, centre=top_c - n * th / 2, axes=T, half=(w / 2, length / 2, th / 2), albedo=table_albedo)
     objs.append(table)
     if stand:  # a post so the board does not float; kept under the board's centre
         h = top_c[2] - th
@@ -597,9 +597,15 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
                         else _sticker(label, table, X, n, mark_radius, mark_albedo))
     objs.extend(m.plate for m in marks.values() if m.plate is not None)
     stickers = [m.sticker for m in marks.values() if m.sticker is not None]
-    info = {"kind": "leg", "mark_type": mark_type, "mark_radius": float(mark_radius), "table_angles": (float(table_inversion), float(table_plantar_flexion)),
-            "leg_axis_angles": (float(leg_inversion), float(leg_plantar_flexion)),
-            "table_normal": n, "table_top_centre": top_c}
+    info = {
+        "kind": "leg",
+        "mark_type": mark_type,
+        "mark_radius": float(mark_radius),
+        "table_angles": (float(table_inversion), float(table_plantar_flexion)),
+        "leg_axis_angles": (float(leg_inversion), float(leg_plantar_flexion)),
+        "table_normal": n,
+        "table_top_centre": top_c,
+    }
     return Scene(objs, marks, info, stickers)
 
 

@@ -18,7 +18,14 @@ import numpy as np
 from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene
 from anklescan.hardware.simrig import (
-    CAMERA_DISTANCE_MM, CAMERA_F_PX, Optics, SimRig, camera_eye, default_camera, default_projector)
+    CAMERA_DISTANCE_MM,
+    CAMERA_F_PX,
+    Optics,
+    SimRig,
+    camera_eye,
+    default_camera,
+    default_projector,
+)
 
 DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
 LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build

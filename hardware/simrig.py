@@ -20,12 +20,11 @@ import numpy as np
 import scipy.sparse
 from threadpoolctl import threadpool_limits
 
-from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device, look_at
-from anklescan.core.vocabulary import LABEL_KEYS
+from anklescan.core.calibration.file import Calibration
+from anklescan.core.vocabulary import LABEL_KEYS, Axis
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
-from anklescan.core.vocabulary import Axis
 
 __all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
@@ -207,7 +206,7 @@ class LightTransport:
     mean, as one sparse matrix (a frame is one matrix-vector product: 3x faster than gathering
     the taps with numpy, the same sums to float32 rounding)."""
 
-    matrix: "scipy.sparse.csr_matrix"  # (H*W, Hp*Wp) float32, 4*S entries per row
+    matrix: scipy.sparse.csr_matrix  # (H*W, Hp*Wp) float32, 4*S entries per row
     ambient: np.ndarray  # (H, W) float32 mean albedo * ambient
     pad: int
     padded_shape: tuple
@@ -244,7 +243,7 @@ class SimRig:
         """What a perfect calibration of this rig gives."""
         return Calibration(self.camera, self.projector, {"source": "simulated rig ground truth"})
 
-    def with_scene(self, scene: Scene) -> "SimRig":
+    def with_scene(self, scene: Scene) -> SimRig:
         """Same devices and optics looking at another scene (e.g. calibration box, then leg)."""
         return SimRig(scene, self.camera, self.projector, scale=self.scale, optics=self.optics,
                       seed=int(self.rng.integers(2**31)), layout=self.layout)
@@ -314,7 +313,7 @@ class SimRig:
         out = np.clip(np.rint(signal * full), 0, full)
         return out.astype(np.uint16 if depth == 16 else np.uint8)
 
-    def _still_rig(self) -> "SimRig":
+    def _still_rig(self) -> SimRig:
         """This rig without its motion (a swaying capture's frames at rest share its transport)."""
         if "still" not in self._cache:
             still = SimRig(self.scene, self.camera, self.projector, scale=self.scale, optics=self.optics, seed=None)
@@ -534,7 +533,7 @@ class SimulatedProjector(ProjectorOutput):
         self.shown = 0
 
     @classmethod
-    def for_rig(cls, rig: SimRig) -> "SimulatedProjector":
+    def for_rig(cls, rig: SimRig) -> SimulatedProjector:
         return cls(rig.projector.width, rig.projector.height)
 
     @property

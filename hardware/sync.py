@@ -153,7 +153,7 @@ class Settle:
     result: LatencyResult | None = None
 
 
-_SETTLE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_SETTLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def remember(camera, settle: Settle) -> None:

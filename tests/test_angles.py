@@ -6,11 +6,16 @@ import math
 import numpy as np
 import pytest
 
-from anklescan.core.measure.angles import (
-    compute_angles, leg_inversion, leg_plantar_flexion, mismatch, read_marks_csv,
-    table_angles, table_normal,
-)
 from anklescan.core.errors import AnkleScanError, GeometryError
+from anklescan.core.measure.angles import (
+    compute_angles,
+    leg_inversion,
+    leg_plantar_flexion,
+    mismatch,
+    read_marks_csv,
+    table_angles,
+    table_normal,
+)
 
 
 def rot_y(deg):
@@ -46,7 +51,7 @@ def leg_marks(inv_deg, pf_deg):
 
 def all_marks(leg_inv=7.0, leg_pf=-12.0, tab_inv=15.0, tab_pf=20.0):
     m = leg_marks(leg_inv, leg_pf)
-    m.update(dict(zip((5, 6, 7), table_marks(tab_inv, tab_pf))))
+    m.update(dict(zip((5, 6, 7), table_marks(tab_inv, tab_pf), strict=False)))
     return m
 
 
@@ -92,7 +97,8 @@ def test_table_sign_conventions_and_orientation():
 def test_table_rotated_normal():
     n = rot_y(12) @ rot_x(-8) @ np.array([0, 0, 1.0])
     # Build the plane from the normal: two in-plane vectors.
-    u = np.cross(n, [0, 1, 0]); u /= np.linalg.norm(u)
+    u = np.cross(n, [0, 1, 0])
+    u /= np.linalg.norm(u)
     v = np.cross(n, u)
     c = np.array([10.0, 20.0, 30.0])
     inv, pf = table_angles(c, c + 80 * u, c + 60 * v + 10 * u)
@@ -160,7 +166,7 @@ def _monte_carlo_sd(marks, covs, n=4000, seed=1):
          *table_angles(d[5][i], d[6][i], d[7][i]))
         for i in range(n)])
     names = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
-    return dict(zip(names, samples.std(axis=0, ddof=1)))
+    return dict(zip(names, samples.std(axis=0, ddof=1), strict=False))
 
 
 def test_sd_matches_monte_carlo_isotropic():

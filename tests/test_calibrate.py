@@ -9,6 +9,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_calibration as bench  # noqa: E402
+
 from anklescan.core.calibration import calibrate as cal
 from anklescan.core.calibration import paper_model as pm
 from anklescan.core.calibration.file import load_calibration  # noqa: E402
@@ -81,7 +82,9 @@ def test_at_least_as_good_as_opencv(noisy):
     # (Single-trial parameter errors of the two are equal within noise; see the benchmark.)
     assert bench.image_error_px(ours, Cn) <= bench.image_error_px(cv_dev, Cn)
     proj = pm.projector_to_device(noisy["proj"], *PROJ)
-    assert bench.reconstruction_error_mm(ours, proj, Cn, noisy["Pn"]) <= bench.reconstruction_error_mm(cv_dev, proj, Cn, noisy["Pn"])
+    assert bench.reconstruction_error_mm(ours, proj, Cn, noisy["Pn"]) <= bench.reconstruction_error_mm(
+        cv_dev, proj, Cn, noisy["Pn"]
+    )
 
 
 def test_calibrate_points_builds_spec_devices(noisy):

@@ -77,10 +77,9 @@ def test_local_homography_recovers_a_plane_map():
 @pytest.fixture(scope="module")
 def box_capture(tmp_path_factory):
     sim = pytest.importorskip("anklescan.hardware.simrig")
-    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
-
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
     rig = sim.SimRig(quad_scene(box_scene_objects(4.0)), scale=0.5)
     pset = make_pattern_set("default", 512, 384, axes=("column",))

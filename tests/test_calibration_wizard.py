@@ -57,8 +57,13 @@ def _leg_rms(rig, cal, folder):
 def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     from PySide6.QtCore import Qt
 
-    from anklescan.app.calibration_wizard import (PAGE_REPORT, PAGE_VERIFY, calibration_warning, current_calibration_info,
-                                        load_current_calibration)
+    from anklescan.app.calibration_wizard import (
+        PAGE_REPORT,
+        PAGE_VERIFY,
+        calibration_warning,
+        current_calibration_info,
+        load_current_calibration,
+    )
 
     rig, projector, store, wiz = setup
     qtbot.waitUntil(lambda: "markers found" in wiz.place_count.text(), timeout=20000)
@@ -255,7 +260,7 @@ def test_warning_banner_hook(tmp_path):
 
     qs = Settings()  # the calibration's keys are app.settings' like every other
     assert "No calibration" in calibration_warning(qs)
-    now = dt.datetime(2025, 3, 1, tzinfo=dt.timezone.utc)
+    now = dt.datetime(2025, 3, 1, tzinfo=dt.UTC)
     qs.set("calibration_path", str(tmp_path / "c.json"))
     qs.set("calibration_created", (now - dt.timedelta(days=10)).isoformat())
     assert calibration_warning(qs, now) == ""
@@ -298,7 +303,7 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     assert not wiz.calibrate_board_button.isEnabled()
     for n in (1, 2):
         qtbot.mouseClick(wiz.scan_board_button, Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: len(wiz.board_captures) == n and wiz.pages.currentIndex() == PAGE_PLACE,
+        qtbot.waitUntil(lambda n=n: len(wiz.board_captures) == n and wiz.pages.currentIndex() == PAGE_PLACE,
                         timeout=120000)
         assert f"Board view {n} scanned" in wiz.status.text()
     assert wiz.calibrate_board_button.isEnabled() and wiz.board_count.text().startswith("2 view")
@@ -323,8 +328,8 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     from scipy.spatial.transform import Rotation
 
     from anklescan.app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
-    from anklescan.core.measure.angles import compute_angles
     from anklescan.core.calibration.file import Calibration
+    from anklescan.core.measure.angles import compute_angles
     from anklescan.hardware.sim_scene import leg_scene
 
     rig, projector, store, wiz = setup

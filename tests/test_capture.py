@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import anklescan.core.scan.capture as capture_mod
-from anklescan.core.scan.capture import CaptureWriter, capture_from_images, load_capture, save_capture
 from anklescan.core.errors import CaptureError
+from anklescan.core.scan.capture import CaptureWriter, capture_from_images, load_capture, save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 
 H, W = 30, 40
@@ -169,7 +169,7 @@ def test_writer_keeps_frames_written_before_a_crash(tmp_path, pset, monkeypatch)
     imgs = _images(pset)
     folder = tmp_path / "cap"
     writer = CaptureWriter(folder, pset, {"device": "sim", "exposure_ms": 20})
-    for name, img in list(zip(pset.files, imgs))[:5]:
+    for name, img in list(zip(pset.files, imgs, strict=False))[:5]:
         writer.add(name, img)
     # the sixth frame dies half-way through writing
     real = capture_mod.imwrite_checked
@@ -184,7 +184,7 @@ def test_writer_keeps_frames_written_before_a_crash(tmp_path, pset, monkeypatch)
     del writer  # crash: finish() never runs
     names = sorted(p.name for p in folder.iterdir())
     assert names == sorted(pset.files[:5])  # no manifest, no temporaries
-    for name, img in list(zip(pset.files, imgs))[:5]:
+    for name, img in list(zip(pset.files, imgs, strict=False))[:5]:
         assert np.array_equal(cv2.imread(str(folder / name), cv2.IMREAD_UNCHANGED), img)
 
 
@@ -192,7 +192,7 @@ def test_writer_finish_writes_manifest_last(tmp_path, pset):
     imgs = _images(pset)
     folder = tmp_path / "cap"
     writer = CaptureWriter(folder, pset, {"device": "sim"})
-    for name, img in zip(pset.files[:-1], imgs[:-1]):
+    for name, img in zip(pset.files[:-1], imgs[:-1], strict=False):
         writer.add(name, img)
     with pytest.raises(CaptureError, match=pset.files[-1]):
         writer.finish()

@@ -47,7 +47,7 @@ def test_drawn_setups_are_reproducible_and_within_the_spec():
 
     assert "lateral_mark_offsets" not in draw_variant(HAND_PLACED_FROM_SEED - 1).scene
     for v in map(draw_variant, range(HAND_PLACED_FROM_SEED, HAND_PLACED_FROM_SEED + 20)):
-        for off, (lo, hi) in zip(v.scene["lateral_mark_offsets"], LATERAL_OFFSET_RANGES_MM):
+        for off, (lo, hi) in zip(v.scene["lateral_mark_offsets"], LATERAL_OFFSET_RANGES_MM, strict=False):
             assert lo <= off <= hi
 
 
@@ -498,10 +498,10 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
     Both were refused by the search, and a click beside either was kept as it was, 3 mm off.
     The snap now looks in both images, takes a blob that reaches the click, and lets a clicked
     disk's edges scatter more: within 0.35 mm, and within its SD."""
-    from anklescan.core.scan.lit_image import averaged_lit, clipped_white
     from anklescan.core.measure.mark_candidates import points_image
     from anklescan.core.measure.marks_surface import snap_to_disk
     from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 
     rig = variant_rig(draw_variant(variant), inv, pf, scale=1.0, seed=seed)
     cap = _capture(rig)
@@ -577,10 +577,10 @@ def test_a_click_is_not_moved_onto_a_doubtful_fit():
     side wall (clean edges, radius 7 % short of the size), 2.7 mm off along the view at an SD of
     0.24 mm: a confident wrong place. A fit whose radius disagrees with the size is passed
     over now, and the click is kept as it was."""
-    from anklescan.core.scan.lit_image import averaged_lit, clipped_white
     from anklescan.core.measure.mark_candidates import points_image
     from anklescan.core.measure.marks_surface import snap_to_disk
     from anklescan.core.measure.pipeline import measure_capture
+    from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 
     rig = variant_rig(draw_variant(173), 20, 20, scale=1.0, seed=4)
     cap = _capture(rig)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from anklescan.app.cli import main
 from anklescan.core.calibration.daily_check import CheckSettings, run_check, table_angles
 from anklescan.core.calibration.file import save_calibration

@@ -1,10 +1,9 @@
 import numpy as np
 import pytest
 
-from anklescan.core.scan.capture import capture_from_images
-from anklescan.core.scan.decode import (INCONSISTENT, LOW_CONTRAST, OUTSIDE, SATURATED, SHADOW, VALID,
-                         decode, estimate_sigma)
 from anklescan.core.errors import CaptureError
+from anklescan.core.scan.capture import capture_from_images
+from anklescan.core.scan.decode import INCONSISTENT, LOW_CONTRAST, OUTSIDE, SATURATED, SHADOW, VALID, decode, estimate_sigma
 from anklescan.core.scan.patterns import make_pattern_set, render_all, simulate_frames
 
 H, W = 120, 160

@@ -4,11 +4,12 @@ result is kept, and the next patient scan warns or is refused on a failed check.
 from __future__ import annotations
 
 import pytest
-from anklescan.core.records.daily_checks import list_checks
 from gui_actions import button, calibrated_window, click, menu_action, press_accept, with_dialog
 from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QDoubleSpinBox
+
+from anklescan.core.records.daily_checks import list_checks
 
 pytestmark = pytest.mark.gui
 

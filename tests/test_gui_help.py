@@ -6,11 +6,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from gui_actions import calibrated_window, dismiss, menu_action, press_accept, with_dialog
 from PySide6.QtWidgets import QMessageBox, QTextBrowser
 
 from anklescan.app.help_menu import version
 from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION
-from gui_actions import calibrated_window, dismiss, menu_action, press_accept, with_dialog
 
 pytestmark = pytest.mark.gui
 

@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from gui_actions import dismiss, press_accept, with_dialog
+
 from anklescan.app.main_window import MainWindow
 from anklescan.core.records.store import (
     APPLICATION_ID,
@@ -16,7 +18,6 @@ from anklescan.core.records.store import (
     SCHEMA_VERSION,
     Store,
 )
-from gui_actions import dismiss, press_accept, with_dialog
 
 pytestmark = pytest.mark.gui
 

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gui_actions import GapMeter, calibrated_window
 from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 
 from anklescan.app.main_window import MainWindow, run_gui  # noqa: F401  (run_gui: the gui entry exists)
-from gui_actions import GapMeter, calibrated_window
 
 pytestmark = pytest.mark.gui
 REPO = Path(__file__).resolve().parent.parent
@@ -69,6 +69,7 @@ def test_each_frame_shows_its_own_pattern(qtbot, window):
     """The camera never photographs the previous pattern: compare with the rig's noise-free image."""
     _run_scan(qtbot, window)
     import cv2
+
     from anklescan.core.scan.patterns import render_frame
     folder = window.last_result.folder
     pset = window.scan_flow.logic.pattern_set(window.rig.projector_size)

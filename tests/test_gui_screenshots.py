@@ -4,11 +4,11 @@ import os
 from pathlib import Path
 
 import pytest
+from gui_actions import use_true_calibration
 
 from anklescan.app import resources
 from anklescan.app.main_parts import PAGE_CAMERA, PAGE_MARKS, PAGE_RESULT, PAGE_SCAN
 from anklescan.app.main_window import MainWindow
-from gui_actions import use_true_calibration
 
 pytestmark = pytest.mark.gui
 OUT = Path(__file__).resolve().parent.parent / "docs" / "screenshots"

@@ -7,13 +7,13 @@ import subprocess
 
 import numpy as np
 import pytest
+from gui_actions import button, calibrated_window, click, menu_action, press_accept, save_as, with_dialog
 from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QLineEdit
 
 from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION
 from anklescan.hardware.sim_patient import PatientProfile, SimulatedPatient
-from gui_actions import button, calibrated_window, click, menu_action, press_accept, save_as, with_dialog
 
 pytestmark = pytest.mark.gui
 

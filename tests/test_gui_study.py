@@ -9,13 +9,14 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from anklescan.app.main_window import MainWindow
-from anklescan.core.records.store import Store
 from gui_actions import click, menu_action, press_accept, with_dialog
 from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QDialogButtonBox
 from test_study import PF_SETTINGS, table_marks
+
+from anklescan.app.main_window import MainWindow
+from anklescan.core.records.store import Store
 
 pytestmark = pytest.mark.gui
 SHOTS = Path(os.environ.get("ANKLESCAN_SHOTS", "/tmp/anklescan-study-shots"))

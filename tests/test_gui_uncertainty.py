@@ -13,11 +13,12 @@ from PySide6.QtTest import QTest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_uncertainty as bench  # noqa: E402
+from gui_actions import calibrated_window  # noqa: E402
+
 from anklescan.app.mark_editor import STATUS_COLUMN  # noqa: E402
 from anklescan.core.measure.angles import compute_angles  # noqa: E402
 from anklescan.core.measure.measure_warnings import WarningContext, measure_warnings  # noqa: E402
 from anklescan.core.measure.uncertainty import position_uncertainty  # noqa: E402
-from gui_actions import calibrated_window  # noqa: E402
 
 pytestmark = pytest.mark.gui
 

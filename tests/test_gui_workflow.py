@@ -9,14 +9,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gui_actions import (
+    all_menu_actions,
+    button,
+    calibrated_window,
+    click,
+    click_at,
+    dismiss,
+    fill_and_ok,
+    menu_action,
+    press_accept,
+    save_as,
+    use_true_calibration,
+    with_dialog,
+)
 from PySide6.QtCore import Qt, QTimer
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QApplication, QLineEdit, QSpinBox
 
 from anklescan.app.main_parts import PAGE_MARKS, PAGE_SCAN, PAGE_SESSION
 from anklescan.app.main_window import MainWindow
-from gui_actions import (all_menu_actions, button, calibrated_window, click, click_at, dismiss, fill_and_ok,
-                         menu_action, press_accept, save_as, use_true_calibration, with_dialog)
 
 pytestmark = pytest.mark.gui
 
@@ -417,7 +429,11 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
     assert win.read_only and "read-only" in win.banner.text
     item = win.records.patients.item(0)
-    QTest.mouseClick(win.records.patients.viewport(), Qt.MouseButton.LeftButton, pos=win.records.patients.visualItemRect(item).center())
+    QTest.mouseClick(
+        win.records.patients.viewport(),
+        Qt.MouseButton.LeftButton,
+        pos=win.records.patients.visualItemRect(item).center(),
+    )
     assert win.records.patients.count() == 1 and win.records.sessions.count() == 1
     new_patient = button(win, "New patient…")
     assert not new_patient.isEnabled() and "Read-only" in new_patient.toolTip()

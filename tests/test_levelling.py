@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from anklescan.core.calibration.file import Calibration, load_calibration, save_calibration
 from anklescan.core.measure.angles import compute_angles
 from anklescan.core.scan.capture import save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.hardware.sim_scene import Box, ObjectId, Plane, Scene, leg_scene
 from anklescan.hardware.simrig import SimRig
-from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE_TOP_Z = 120.0

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+
 from anklescan.core.measure.mark_fit import circle_geometric, fit_plane, plane_from_pixels
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.marks import Mark, MarkSet

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
+from anklescan.core.errors import CaptureError
 from anklescan.core.scan.capture import load_capture
 from anklescan.core.scan.decode import decode
-from anklescan.core.errors import CaptureError
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode
 from anklescan.hardware.simrig import SimRig
 

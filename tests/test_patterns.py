@@ -8,8 +8,7 @@ import pytest
 
 import anklescan.core.scan.patterns as patterns
 from anklescan.core.errors import AnkleScanError, CaptureError
-from anklescan.core.scan.patterns import (PatternSet, gray_profile, make_pattern_set, render_all, render_frame,
-                           write_patterns)
+from anklescan.core.scan.patterns import PatternSet, gray_profile, make_pattern_set, render_all, render_frame, write_patterns
 
 
 def test_paper_preset_is_the_papers_18_frames():
@@ -46,7 +45,7 @@ def test_gray_code_changes_one_bit_between_neighbours():
 
 def test_render_values_and_inverse():
     ps = make_pattern_set("default", 128, 16)
-    imgs = dict(zip(ps.files, render_all(ps)))
+    imgs = dict(zip(ps.files, render_all(ps), strict=False))
     g, gi = imgs["02_col_gray_b00.png"], imgs["03_col_gray_b00_inv.png"]
     assert g.shape == (16, 128) and g.dtype == np.uint8
     assert set(np.unique(g)) == {0, 255}

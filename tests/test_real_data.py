@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
 from anklescan.core.calibration.board import calibrate_board_views, observe_board, observe_board_maps
+from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
 from anklescan.core.scan.capture import load_capture
 from anklescan.core.scan.decode import decode
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode

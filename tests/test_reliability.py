@@ -23,12 +23,12 @@ import pytest
 from anklescan.app.cli import main
 from anklescan.core.atomic import guard_output, temp_affixes
 from anklescan.core.calibration.file import save_calibration
-from anklescan.core.scan.capture import CaptureWriter, save_capture
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.limits import MAX_IMAGE_SIDE, load_json
+from anklescan.core.records.store import APPLICATION_ID, Store
+from anklescan.core.scan.capture import CaptureWriter, save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.core.scan.pointcloud import read_ply
-from anklescan.core.records.store import APPLICATION_ID, Store
 from anklescan.hardware.simrig import SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -410,7 +410,7 @@ def test_patient_data_is_private_whatever_the_umask(tmp_path):
         trial_dir = store.trial_dir(trial.id, create=True)
         pset = make_pattern_set("paper", 16, 8)
         with CaptureWriter(trial_dir / "capture", pset) as writer:
-            for frame, img in zip(pset.frames, render_all(pset)):
+            for frame, img in zip(pset.frames, render_all(pset), strict=False):
                 writer.add(frame.file, img)
         assert (tmp_path / "data" / "anklescan.sqlite-wal").exists()
         for p in [tmp_path / "data", *(tmp_path / "data").rglob("*")]:
@@ -517,7 +517,7 @@ def test_damaged_database_is_one_line(tmp_path):
 
 
 def test_a_dim_12_bit_capture_in_16_bit_files_is_not_called_unlit(tmp_path):
-    from anklescan.core.scan.capture import check_lit, capture_from_images
+    from anklescan.core.scan.capture import capture_from_images, check_lit
 
     pset = make_pattern_set("paper", 64, 48)
     frames = [(img.astype(np.uint16) * 4 + 40) for img in render_all(pset)]  # 12-bit range, dim
@@ -548,7 +548,7 @@ def test_capture_metadata_with_nan_still_reads_back(tmp_path):
 
     pset = make_pattern_set("paper", 16, 8)
     with CaptureWriter(tmp_path / "cap", pset, {"gain": float("nan"), "exposure": np.float32(2.5)}) as w:
-        for frame, img in zip(pset.frames, render_all(pset)):
+        for frame, img in zip(pset.frames, render_all(pset), strict=False):
             w.add(frame.file, img)
     meta = load_capture(tmp_path / "cap").metadata
     assert meta["gain"] is None and meta["exposure"] == 2.5

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from anklescan.core.errors import AnkleScanError
 from anklescan.core.records import report
 from anklescan.core.records import study_stats as st
-from anklescan.core.errors import AnkleScanError
 from anklescan.core.records.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
 from anklescan.core.records.store import Store
 
@@ -78,7 +78,7 @@ def test_session_report_pdf_and_csv(study, tmp_path):
     rows = list(csv.DictReader(out_csv.open()))
     trials = store.list_trials(sessions[0])
     assert len(rows) == len(trials) and tuple(rows[0]) == CSV_COLUMNS
-    for r, t in zip(rows, trials):
+    for r, t in zip(rows, trials, strict=False):
         assert int(r["trial_id"]) == t.id and r["patient_code"] == "S-01"
         assert r["condition"] == "barefoot" and float(r["calibration_rms"]) == 0.21
         for k in ("ref_inversion", "table_inversion", "mismatch_plantar_flexion",
@@ -324,7 +324,9 @@ def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path
     # the overview (saying why there is no group comparison) and the one group that has a patient
     assert res.pages == 2
     assert "Group comparison" in [t.get_text() for t in figs[0].texts]
-    assert figs[1]._suptitle.get_text().endswith("sprain history") and any(t.get_text().startswith("1 patient;") for t in figs[1].texts)
+    assert figs[1]._suptitle.get_text().endswith("sprain history") and any(
+        t.get_text().startswith("1 patient;") for t in figs[1].texts
+    )
 
 
 def test_session_report_states_the_mark_diameter_setting():

@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from anklescan.app import cli
 from anklescan.core.atomic import (
     STALE_TEMP_AGE_S,

@@ -113,7 +113,12 @@ def test_every_mark_is_seen_and_lit(truth):
 def test_projector_shadow_behind_the_leg_is_dark_and_unlit(rig, truth):
     img = rig.capture(_frame(rig, 255))
     uv = truth.proj_uv
-    in_frame = (uv[..., 0] > 2) & (uv[..., 0] < rig.projector.width - 3) & (uv[..., 1] > 2) & (uv[..., 1] < rig.projector.height - 3)
+    in_frame = (
+        (uv[..., 0] > 2)
+        & (uv[..., 0] < rig.projector.width - 3)
+        & (uv[..., 1] > 2)
+        & (uv[..., 1] < rig.projector.height - 3)
+    )
     ground = (truth.object_id == ObjectId.FLOOR) | (truth.object_id == ObjectId.TABLE)
     shadow = ground & in_frame & ~truth.lit
     # Only the leg and foot stand between these points and the projector.
@@ -134,8 +139,7 @@ def test_projector_shadow_behind_the_leg_is_dark_and_unlit(rig, truth):
 
 def test_white_marks_are_brighter_than_skin(rig, truth):
     img = rig.capture(_frame(rig, 255)).astype(float)
-    from scipy.ndimage import binary_erosion
-    from scipy.ndimage import binary_dilation
+    from scipy.ndimage import binary_dilation, binary_erosion
     for k in range(1, 8):
         plate = truth.mark_label == k
         mark = binary_erosion(plate, iterations=1) & truth.lit
@@ -157,7 +161,7 @@ def test_fixed_seed_is_deterministic():
     b = SimRig(leg_scene(5, 5), scale=SCALE, seed=7)
     frames = [_frame(a, 200), _frame(a, 60)]
     fa, fb = a.capture_many(frames), b.capture_many(frames)
-    assert all(np.array_equal(x, y) for x, y in zip(fa, fb))
+    assert all(np.array_equal(x, y) for x, y in zip(fa, fb, strict=False))
     assert not np.array_equal(fa[0], a.capture(frames[0]))  # fresh noise per shot
 
 
@@ -171,9 +175,9 @@ def test_batched_frames_are_the_frames_taken_one_by_one(optics):
     frames = [_frame(SimRig(leg_scene(5, 5), scale=SCALE), v) for v in range(0, 256, 17)]
     one, many, still = (SimRig(leg_scene(5, 5), scale=SCALE, seed=9, optics=optics) for _ in range(3))
     expected = [one.capture(f) for f in frames]
-    assert all(np.array_equal(x, y) for x, y in zip(expected, many.capture_many(frames)))
+    assert all(np.array_equal(x, y) for x, y in zip(expected, many.capture_many(frames), strict=False))
     got, times = swaying_capture(still, frames, Sway.drift(0.0, 1.0), 0.25)
-    assert all(np.array_equal(x, y) for x, y in zip(expected, got))
+    assert all(np.array_equal(x, y) for x, y in zip(expected, got, strict=False))
     assert times == [0.25 * n for n in range(len(frames))]
 
 
@@ -192,7 +196,8 @@ def test_noise_matches_the_configured_sigma(sigma_dn):
 def test_grey_level_follows_the_projector_gamma(rig, truth):
     black, white = rig.render_linear(_frame(rig, 0)), rig.render_linear(_frame(rig, 255))
     uv = truth.proj_uv
-    inner = truth.lit & (uv[..., 0] > 4) & (uv[..., 0] < rig.projector.width - 5) & (uv[..., 1] > 4) & (uv[..., 1] < rig.projector.height - 5)
+    inner = (truth.lit & (uv[..., 0] > 4) & (uv[..., 0] < rig.projector.width - 5)
+             & (uv[..., 1] > 4) & (uv[..., 1] < rig.projector.height - 5))
     from scipy.ndimage import binary_erosion
     inner = binary_erosion(inner, iterations=3) & (white - black > 0.05)
     for g in (32, 128, 200):

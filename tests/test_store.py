@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from anklescan.core.records import store as store_mod
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.records import store as store_mod
 from anklescan.core.records.store import SCHEMA_VERSION, Store, sha256_path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,7 +21,7 @@ def marks_for(tab_inv, tab_pf):
     """Seven marks: a vertical leg and a table with the given slopes (see test_angles)."""
     sx, sy = math.tan(math.radians(tab_inv)), math.tan(math.radians(tab_pf))
     table = {k: [u, v, 50 - sx * u - sy * v] for k, (u, v) in
-             zip((5, 6, 7), [(-40, -60), (45, -50), (5, 90)])}
+             zip((5, 6, 7), [(-40, -60), (45, -50), (5, 90)], strict=False)}
     return {1: [0, 40, 480], 2: [0, 40, 80], 3: [35, 0, 485], 4: [35, 0, 85], **table}
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+
 from anklescan.app.cli import main
 from anklescan.core.records.store import Store
 
@@ -265,9 +266,10 @@ def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
     one trial is one point; legends sit above the axes, off the data."""
     import subprocess
 
-    from anklescan.core.records import report as rp
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from anklescan.core.records import report as rp
 
     assert rp.signed(-0.001) == "+0.00" and rp.signed(-0.006) == "-0.01"
     out = tmp_path / "all"
@@ -316,6 +318,7 @@ def test_c3d_keeps_seven_labels_when_marks_are_missing(tmp_path):
     import warnings
 
     import c3d
+
     from anklescan.core.records.c3d import write_c3d
 
     marks = {k: v for k, v in table_marks(5.0, 0.0).items() if k not in (3, 4)}

@@ -3,11 +3,11 @@ fake clock (instant and deterministic), must give back that delay; plus the sett
 
 import numpy as np
 import pytest
+from gui_actions import use_true_calibration
 
 from anklescan.core.errors import AnkleScanError
 from anklescan.hardware import sync
 from anklescan.hardware.simrig import SimRig, simulated_devices
-from gui_actions import use_true_calibration
 
 
 class FakeClock:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.core.calibration.file import Calibration
 from anklescan.core.errors import GeometryError
 from anklescan.core.scan.triangulate import triangulate_columns
 
@@ -83,8 +83,7 @@ def test_coincident_centres_refused():
 
 
 # ---- rows, both axes, any projector placement ------------------------------------------------
-from anklescan.core.scan.triangulate import (axis_geometry, check_geometry, scan_axes, triangulate_maps,  # noqa: E402
-                              triangulate_points)
+from anklescan.core.scan.triangulate import axis_geometry, check_geometry, scan_axes, triangulate_maps, triangulate_points  # noqa: E402
 
 
 def _placed_rig(offset, scale=0.25, axis="both"):

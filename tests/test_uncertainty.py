@@ -14,6 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_uncertainty as bench  # noqa: E402
+
 from anklescan.core.calibration.file import (  # noqa: E402
     Calibration,
     calibrated_volume,

@@ -38,10 +38,9 @@ def test_too_few_markers_is_one_line_error():
 def test_verification_scan_of_simulated_box_with_true_calibration(tmp_path):
     """The floor of the method at scale 0.5: the true calibration, a simulated scan of the box."""
     sim = pytest.importorskip("anklescan.hardware.simrig")
-    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
-
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
+    from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
     rig = sim.SimRig(quad_scene(box_scene_objects()), scale=0.5)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=("column", "row"))

@@ -6,9 +6,7 @@ import pytest
 from OpenGL import GL
 from PySide6.QtCore import QPoint, Qt
 
-from anklescan.app import picking
-
-from anklescan.app import splat
+from anklescan.app import picking, splat
 from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, RENDER_CLASSIC, RENDER_SPLAT, CloudViewer
 from anklescan.core.scan.pointcloud import PointCloud
 
@@ -149,11 +147,12 @@ def test_views_and_drag_orbit(viewer, qtbot):
 def test_screenshots(qtbot, qapp, tmp_path):
     """docs/screenshots/viewer_marks.png and session_plots.png."""
     from pathlib import Path
+
     from anklescan.app import resources
     from anklescan.app.mark_editor import MarksPage
     from anklescan.app.session_view import SessionView
-    from anklescan.hardware.simrig import SimRig
     from anklescan.core.records.store import Store
+    from anklescan.hardware.simrig import SimRig
     out = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
     qapp.setStyleSheet(resources.STYLE)
     from anklescan.hardware.sim_scene import leg_scene
@@ -284,7 +283,7 @@ def test_splat_colour_modes_match_classic(both, qtbot):
         depth_mode = _frame(v)[1]
         v.set_color_mode(COLOR_WHITE)
         frames.append((depth_mode, _frame(v)[1]))
-    for splat_rgba, classic_rgba in zip(*frames):
+    for splat_rgba, classic_rgba in zip(*frames, strict=False):
         assert np.mean(np.all(splat_rgba == classic_rgba, axis=-1)) > 0.999
     assert not np.array_equal(frames[0][0], frames[0][1])  # the modes do differ
 

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
 
@@ -48,7 +47,7 @@ def calibration_warning(settings, now: _dt.datetime | None = None) -> str:
     if not info["path"]:
         return "No calibration yet: run Calibration… (Scan menu) before measuring patients."
     max_age = s.get("calibration_max_age_days")
-    now = now or _dt.datetime.now(_dt.timezone.utc)
+    now = now or _dt.datetime.now(_dt.UTC)
     problems = []
     if info["verified"] == "fail":
         problems.append(f"its last verification failed ({info['verified_at'][:10]})")
@@ -64,7 +63,7 @@ def calibration_warning(settings, now: _dt.datetime | None = None) -> str:
 
 
 def _now_iso() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def accept_calibration(cal, report, data_folder: Path, store, settings,

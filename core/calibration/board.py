@@ -34,8 +34,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, flag_outliers
-from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.uncertainty import CalibratedVolume, devices_form_covariance
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.scan.patterns import FrameKind
@@ -251,7 +251,7 @@ class _Layout:
         def dev(K, d, free):
             return [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *[d[i] for i in free]]
         return np.concatenate([dev(Kc, dc, self.frees[0]), dev(Kp, dp, self.frees[1]), rrel, trel,
-                               *[np.r_[r, t] for r, t in zip(rvs, tvs)]])
+                               *[np.r_[r, t] for r, t in zip(rvs, tvs, strict=False)]])
 
     def device(self, v, which: int):
         a = v[self.offs[which]:self.offs[which + 1]]
@@ -269,7 +269,7 @@ class _Layout:
     def names(self) -> list[str]:
         dn = ["k1", "k2", "p1", "p2", "k3"]
         out = []
-        for dev, free in zip(("camera", "projector"), self.frees):
+        for dev, free in zip(("camera", "projector"), self.frees, strict=False):
             out += [f"{dev}.{n}" for n in ["fx", "fy", "cx", "cy", *[dn[i] for i in free]]]
         return out + ["rx_deg", "ry_deg", "rz_deg", "tx", "ty", "tz"]
 
@@ -328,7 +328,7 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
     obj = [X for _ in views]
     cam = [v.corners for v in views]
     masks = [np.isfinite(v.proj).all(axis=1) for v in views]
-    for v, m in zip(views, masks):
+    for v, m in zip(views, masks, strict=False):
         if m.sum() < 6:
             raise CalibrationError(f"{v.name}: the projector is decoded at only {int(m.sum())} of the "
                                    f"{len(m)} corners: is the board lit by the patterns?")
@@ -338,7 +338,7 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
     Kp, dp, rrel, trel = _init_projector(X, views, masks, rvs, tvs, projector_size, mp)
     lay = _Layout(model, len(views))
     v0 = lay.pack(Kc, dc, Kp, dp, rrel, trel, rvs, tvs)
-    proj = [np.where(m[:, None], v.proj, 0.0) for v, m in zip(views, masks)]
+    proj = [np.where(m[:, None], v.proj, 0.0) for v, m in zip(views, masks, strict=False)]
     keep_c = [np.ones(len(X), bool) for _ in views]
     keep_p = [m.copy() for m in masks]
     sig_c = sig_p = 1.0
@@ -353,8 +353,8 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
         ones = [np.ones(len(X)) for _ in views]
         r = _residuals(sol.x, lay, obj, cam, proj, masks, ones, [m.astype(float) for m in masks])
         rc, rp = _split(r, lay, cam, masks)
-        ec = np.concatenate([a[kc] for a, kc in zip(rc, keep_c)])
-        ep = np.concatenate([a[kp[m]] for a, kp, m in zip(rp, keep_p, masks)])
+        ec = np.concatenate([a[kc] for a, kc in zip(rc, keep_c, strict=False)])
+        ep = np.concatenate([a[kp[m]] for a, kp, m in zip(rp, keep_p, masks, strict=False)])
         sig_c = max(float(np.sqrt(np.mean(ec**2))), 1e-3)
         sig_p = max(float(np.sqrt(np.mean(ep**2))), 1e-3)
         if round_ == max_rounds - 1:
@@ -388,8 +388,8 @@ def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
     falls back on OpenCV's planar calibration."""
     from anklescan.core.calibration.calibrate import dlt_camera
 
-    P3 = np.concatenate([(cv2.Rodrigues(r)[0] @ X[m].T).T + t for r, t, m in zip(rvs, tvs, masks)])
-    uv = np.concatenate([v.proj[m] for v, m in zip(views, masks)])
+    P3 = np.concatenate([(cv2.Rodrigues(r)[0] @ X[m].T).T + t for r, t, m in zip(rvs, tvs, masks, strict=False)])
+    uv = np.concatenate([v.proj[m] for v, m in zip(views, masks, strict=False)])
     _, s, _ = np.linalg.svd(P3 - P3.mean(axis=0), full_matrices=False)
     if len(views) >= 2 and s[2] > 0.02 * s[0]:
         try:
@@ -398,7 +398,7 @@ def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
                 return K, np.zeros(5), cv2.Rodrigues(R)[0].ravel(), t
         except GeometryError:
             pass
-    Kp, dp, prv, ptv = _init_device([X[m] for m in masks], [v.proj[m] for v, m in zip(views, masks)],
+    Kp, dp, prv, ptv = _init_device([X[m] for m in masks], [v.proj[m] for v, m in zip(views, masks, strict=False)],
                                     projector_size, model)
     rrel, trel = _initial_relative(rvs, tvs, prv, ptv)
     return Kp, dp, rrel, trel
@@ -407,7 +407,7 @@ def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
 def _initial_relative(rvs, tvs, prv, ptv):
     """Camera -> projector pose averaged over the views (rotation by SVD of the sum)."""
     Rs, ts = [], []
-    for rc, tc, rp, tp in zip(rvs, tvs, prv, ptv):
+    for rc, tc, rp, tp in zip(rvs, tvs, prv, ptv, strict=False):
         Rc, _ = cv2.Rodrigues(rc)
         Rp, _ = cv2.Rodrigues(rp)
         R = Rp @ Rc.T
@@ -468,10 +468,10 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
     n_p = sum(int(k.sum()) for k in keep_p)
     dof = 2 * (n_c + n_p) - n_par
     qualities = []
-    for dev, rr, keeps, sig, excl, size, off, end in (
+    for dev, rr, keeps, sig, excl, _size, off, end in (
             ("camera", rc, keep_c, sig_c, excl_c, csize, 0, lay.offs[1]),
-            ("projector", rp, [kp[m] for kp, m in zip(keep_p, masks)], sig_p, excl_p, psize, lay.offs[1], lay.rel)):
-        res = np.concatenate([a[k] for a, k in zip(rr, keeps)])
+            ("projector", rp, [kp[m] for kp, m in zip(keep_p, masks, strict=False)], sig_p, excl_p, psize, lay.offs[1], lay.rel)):
+        res = np.concatenate([a[k] for a, k in zip(rr, keeps, strict=False)])
         params = {n.split(".", 1)[1]: float(val[off + i]) for i, n in enumerate(names[off:end])}
         stds = {n.split(".", 1)[1]: float(sev[off + i]) for i, n in enumerate(names[off:end])}
         if dev == "projector":
@@ -479,10 +479,10 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
             stds.update({n: float(sev[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
         flagged, robust = flag_outliers(res, sig)
         worst = np.argsort(-np.linalg.norm(res, axis=1))[:5]
-        point_names = [(v.name, int(j)) for v, k in zip(views, keeps) for j in np.flatnonzero(k)] \
+        point_names = [(v.name, int(j)) for v, k in zip(views, keeps, strict=False) for j in np.flatnonzero(k)] \
             if dev == "camera" else \
-            [(v.name, int(j)) for v, kp, m in zip(views, keep_p, masks) for j in np.flatnonzero(m)[kp[m]]]
-        notes = [f"worst points (capture, corner index, px): " + ", ".join(
+            [(v.name, int(j)) for v, kp, m in zip(views, keep_p, masks, strict=False) for j in np.flatnonzero(m)[kp[m]]]
+        notes = ["worst points (capture, corner index, px): " + ", ".join(
             f"{point_names[i][0]}#{point_names[i][1]} {np.linalg.norm(res[i]):.3f}" for i in worst)]
         if excl:
             notes.append("left out as mis-read: " + ", ".join(f"{views[k].name}#{j}" for k, j in excl))

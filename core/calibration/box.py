@@ -648,7 +648,9 @@ def box_svg() -> str:
     for n, face in enumerate(FACES):
         x0, y0 = gap + n * (size + gap), 1.5 * gap
         axes = {"top": ("+x", "-y"), "front": ("-x", "-z"), "right": ("+y", "-z")}[face.name]
-        out.append(f'<rect x="{x0:g}" y="{y0:g}" width="{size:g}" height="{size:g}" fill="none" stroke="black" stroke-width="0.5"/>')
+        out.append(
+            f'<rect x="{x0:g}" y="{y0:g}" width="{size:g}" height="{size:g}" fill="none" stroke="black" stroke-width="0.5"/>'
+        )
         out.append(f'<text x="{x0:g}" y="{y0 - 8:g}" font-size="12">{face.name} face (seen from outside): '
                    f'right = {axes[0]}, down = {axes[1]}; top-left corner at {tuple(float(v) for v in face.origin)}</text>')
         for k, (s, t) in enumerate(_marker_offsets_mm()):

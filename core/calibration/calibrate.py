@@ -32,8 +32,13 @@ from scipy.stats import norm
 from anklescan.core.calibration import paper_model as pm
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration, save_calibration
-from anklescan.core.calibration.uncertainty import (PAPER_MODEL_ERROR, CalibratedVolume, ParameterCovariance,
-                                                   form_covariance, joined)
+from anklescan.core.calibration.uncertainty import (
+    PAPER_MODEL_ERROR,
+    CalibratedVolume,
+    ParameterCovariance,
+    form_covariance,
+    joined,
+)
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
@@ -78,7 +83,9 @@ def _as_points(xyz, obs, kind: str, width: int) -> tuple[np.ndarray, np.ndarray]
         raise CalibrationError(f"{kind} 3-D points must be an (N, 3) array, not shape {list(X.shape)}")
     o = o.reshape(len(o), -1) if o.ndim else o
     if o.ndim != 2 or o.shape != (len(X), width):
-        raise CalibrationError(f"{kind} needs {width} image coordinate(s) per 3-D point; got shape {list(o.shape)} for {len(X)} points")
+        raise CalibrationError(
+            f"{kind} needs {width} image coordinate(s) per 3-D point; got shape {list(o.shape)} for {len(X)} points"
+        )
     return X, o
 
 
@@ -142,7 +149,8 @@ def _homogeneous(P: np.ndarray) -> np.ndarray:
 def _null_vector(A: np.ndarray, kind: str) -> np.ndarray:
     _, s, Vt = np.linalg.svd(A)
     if s[-2] <= 1e-12 * s[0]:
-        raise GeometryError(f"{kind} linear calibration is degenerate (more than one solution); add control points off the common planes")
+        raise GeometryError(f"{kind} linear calibration is degenerate (more than one solution); "
+                            "add control points off the common planes")
     return Vt[-1]
 
 
@@ -234,10 +242,7 @@ class _Problem:
         return np.concatenate([np.zeros(3), self.v0[self.free]])
 
     def residuals_of_vector(self, v: np.ndarray) -> np.ndarray:
-        if self.kind == DeviceKind.PROJECTOR:
-            pred = pm.project_projector(v, self.X)[:, None]
-        else:
-            pred = pm.project_camera(v, self.X)
+        pred = pm.project_projector(v, self.X)[:, None] if self.kind == DeviceKind.PROJECTOR else pm.project_camera(v, self.X)
         return pred - self.obs
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
@@ -257,7 +262,8 @@ def refine(problem: _Problem, loss: str = "linear", f_scale: float = 1.0) -> tup
     v = problem.vector(res.x)
     r = problem.residuals_of_vector(v)
     if res.status <= 0 or not np.isfinite(r).all() or not np.isfinite(v).all():
-        raise CalibrationError(f"{problem.kind} calibration did not converge ({res.message.rstrip('.')}); check the control points")
+        raise CalibrationError(f"{problem.kind} calibration did not converge ({res.message.rstrip('.')}); "
+                               "check the control points")
     return v, int(res.nfev)
 
 
@@ -561,7 +567,8 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
     if len(set(names)) != len(names):
         raise CalibrationError(f"{path}: the header repeats a column name")
     cols = [names.index(c) for c in wanted]
-    data = np.array([_parse_row(path, line, row, cols, len(names)) for line, row in body], dtype=np.float64).reshape(-1, len(wanted))
+    rows = [_parse_row(path, line, row, cols, len(names)) for line, row in body]
+    data = np.array(rows, dtype=np.float64).reshape(-1, len(wanted))
     if len(data) == 0:
         raise CalibrationError(f"{path}: no control points after the header")
     _check_csv_range(path, data, [line for line, _ in body])
@@ -602,7 +609,7 @@ def _parse_row(path: Path, line: int, row: list, cols: list, n_names: int) -> li
 
 def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list) -> None:
     seen: dict = {}
-    for line, xyz in zip(lines, map(tuple, data[:, :3])):
+    for line, xyz in zip(lines, map(tuple, data[:, :3]), strict=False):
         if xyz in seen:
             raise CalibrationError(f"{path}: line {line} repeats the point X,Y,Z of line {seen[xyz]}")
         seen[xyz] = line

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.robust import robust_sigma
 

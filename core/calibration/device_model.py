@@ -161,7 +161,7 @@ class Device:
         d = -(n @ self.center)
         return np.concatenate([n, d[..., None]], axis=-1)
 
-    def with_pose(self, R: np.ndarray, t: np.ndarray) -> "Device":
+    def with_pose(self, R: np.ndarray, t: np.ndarray) -> Device:
         return Device(self.width, self.height, self.K, self.dist, R, t, self.axis)
 
 

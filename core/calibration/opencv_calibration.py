@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
-from anklescan.core.calibration.file import Calibration, calibration_from_dict, calibration_to_dict
 from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.file import Calibration, calibration_from_dict, calibration_to_dict
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import MIN_BASELINE_MM
 

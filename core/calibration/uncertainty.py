@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
 

@@ -20,7 +20,6 @@ from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.vocabulary import TABLE_LABELS, MarkLabel, parse_label
 
-
 # Mark-centre localisation is worse than the paper's 0.2 mm surface accuracy (a mark is
 # picked on a few mm wide plate), so the default is deliberately more conservative.
 DEFAULT_SIGMA_MM = 0.5
@@ -61,8 +60,8 @@ class AngleResult(dict):
         """One line naming the angles not computed and why ('' if none)."""
         if not self.missing:
             return ""
-        parts = [f"{name} (needs mark{'s' if len(l) > 1 else ''} {', '.join(map(str, l))})"
-                 for name, l in self.missing.items()]
+        parts = [f"{name} (needs mark{'s' if len(labs) > 1 else ''} {', '.join(map(str, labs))})"
+                 for name, labs in self.missing.items()]
         return "not computed: " + "; ".join(parts)
 
 

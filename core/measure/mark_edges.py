@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.special
+
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 

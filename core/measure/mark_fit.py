@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import (
     blob_shape,

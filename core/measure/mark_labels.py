@@ -9,6 +9,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS  # the detector keys marks by the labels' text form

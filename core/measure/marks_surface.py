@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 import scipy.optimize
+
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG

@@ -11,6 +11,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from anklescan.core.calibration.file import Calibration, calibrated_volume
 from anklescan.core.calibration.uncertainty import Side
 from anklescan.core.vocabulary import KNEE_LABELS, parse_label

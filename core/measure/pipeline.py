@@ -12,20 +12,20 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
 from anklescan.core.atomic import write_json_atomic
 from anklescan.core.calibration.file import Calibration, load_calibration
-from anklescan.core.scan.capture import Capture, load_capture
-from anklescan.core.scan.decode import decode
+from anklescan.core.calibration.frame import frame_warnings
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.scan.lit_image import averaged_lit, clipped_white
+from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
 from anklescan.core.measure.marks import MarkSet, find_marks
 from anklescan.core.measure.measure_warnings import WarningContext, measure_warnings
 from anklescan.core.measure.uncertainty import MarkUncertainty, position_uncertainty
+from anklescan.core.scan.capture import Capture, load_capture
+from anklescan.core.scan.decode import decode
+from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
-from anklescan.core.calibration.frame import frame_warnings
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -102,7 +102,10 @@ class MeasureResult:
                 lines.append(f"{name:24s} {a['value']:8.2f}° ± {a['sd']:.2f}°")
         d = self.mark_diameter()
         if d is not None:
-            lines.append(f"mark diameter            {d['value']:8.2f} mm" + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm"))
+            lines.append(
+                f"mark diameter            {d['value']:8.2f} mm"
+                + (" (given)" if d["given"] else f" ± {d['sd']:.2f} mm")
+            )
         if over := self.marks.overexposed_message():
             lines.append(over)
         if self.motion is not None:

@@ -31,12 +31,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+
 from anklescan.core.calibration.file import Calibration, calibrated_volume, model_error, parameter_covariance
 from anklescan.core.calibration.uncertainty import ModelError, ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
-from anklescan.core.vocabulary import parse_label
-from anklescan.core.vocabulary import Axis
+from anklescan.core.vocabulary import Axis, parse_label
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
 

@@ -10,6 +10,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+
 from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.vocabulary import LABELS, MARK_NAMES, label_key

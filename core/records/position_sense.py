@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
 from anklescan.core.records.tables import AXES, Column, included, mismatch
 
 

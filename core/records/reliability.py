@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+
 from anklescan.core.atomic import write_json_atomic
 from anklescan.core.records.position_sense import SessionErrors
 from anklescan.core.records.tables import AXES, Column

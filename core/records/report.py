@@ -22,9 +22,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
 
-from anklescan.core.records import study_stats as st
 from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.records import study_stats as st
 from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary, TrialState
 
 A4 = (8.27, 11.69)
@@ -734,7 +734,7 @@ def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
         xs = i + rng.uniform(-0.12, 0.12, len(pts))
         col = COLOURS[0] if g == st.GROUPS[0] else COLOURS[2]
         ax.plot(xs, [v for _, v in pts], "o", color=col, ms=4, alpha=0.7)
-        for x, (p, v) in zip(xs, pts):
+        for x, (p, v) in zip(xs, pts, strict=False):
             if p in highlight:
                 ax.plot(x, v, "*", color=COLOURS[1], ms=12, mec="k", mew=0.5)
         if pts:

@@ -37,12 +37,29 @@ from pathlib import Path
 
 import platformdirs
 
-from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
 from anklescan.core.atomic import PRIVATE_DIR_MODE, PRIVATE_FILE_MODE, make_private, make_private_dir, make_tree_private
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.vocabulary import (ANGLE_FIELDS, CONDITIONS, LABELS, MARK_SOURCES, SIDES, TRIAL_STATES,
-                                       AxisSummary, CalibrationRecord, Event, MarkRecord, MarkSource, Patient,
-                                       ReportInput, Session, SessionSummary, Trial, TrialState, parse_label)
+from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
+from anklescan.core.vocabulary import (
+    ANGLE_FIELDS,
+    CONDITIONS,
+    LABELS,
+    MARK_SOURCES,
+    SIDES,
+    TRIAL_STATES,
+    AxisSummary,
+    CalibrationRecord,
+    Event,
+    MarkRecord,
+    MarkSource,
+    Patient,
+    ReportInput,
+    Session,
+    SessionSummary,
+    Trial,
+    TrialState,
+    parse_label,
+)
 
 DB_FILENAME = "anklescan.sqlite"
 DEFAULT_TIMEOUT_S = 10.0
@@ -210,7 +227,7 @@ def patient_code_problem(code: str) -> str:
 # ----------------------------------------------------------------- helpers
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def default_data_dir() -> Path:
@@ -653,7 +670,7 @@ class Store:
 
     @classmethod
     def open(cls, path=None, *, data_dir=None, timeout: float = DEFAULT_TIMEOUT_S,
-             read_only: bool = False) -> "Store":
+             read_only: bool = False) -> Store:
         """Open (creating and migrating as needed) the database.
 
         Files live in ``data_dir``: the argument, else the folder of an explicit ``path``,
@@ -708,7 +725,7 @@ class Store:
         return store
 
     @classmethod
-    def _open_read_only(cls, path: Path, data_dir: Path, timeout: float, reason: str) -> "Store":
+    def _open_read_only(cls, path: Path, data_dir: Path, timeout: float, reason: str) -> Store:
         conn = None
         # Without a -wal there is nothing but the file to read: immutable=1 reads it without
         # creating -wal/-shm next to an archive. A -wal a writer left behind needs mode=ro
@@ -786,7 +803,7 @@ class Store:
     def close(self) -> None:
         self._conn.close()
 
-    def __enter__(self) -> "Store":
+    def __enter__(self) -> Store:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -37,7 +37,7 @@ class Summary:
     mean_signed: float
 
     @classmethod
-    def of(cls, signed: Iterable[float]) -> "Summary":
+    def of(cls, signed: Iterable[float]) -> Summary:
         s = np.asarray(list(signed), dtype=float)
         if s.size == 0:
             return cls(0, math.nan, math.nan, math.nan, math.nan, math.nan)

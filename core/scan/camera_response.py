@@ -55,7 +55,7 @@ def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -
     samples = []
     for axis in pset.axes:
         code = pset.axis_code(axis)
-        for g, gi in list(zip(code.gray, code.gray_inv))[-FINE_BITS:]:
+        for g, gi in list(zip(code.gray, code.gray_inv, strict=False))[-FINE_BITS:]:
             p = frames[g][sub].astype(np.float32) / np.float32(full_scale)
             q = frames[gi][sub].astype(np.float32) / np.float32(full_scale)
             fp, fq = (p - b) / span, (q - b) / span

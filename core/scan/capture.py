@@ -22,7 +22,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import cv2
@@ -224,7 +224,7 @@ def _read(path: Path) -> np.ndarray:
     return img
 
 
-def check_lit(capture: "Capture") -> None:
+def check_lit(capture: Capture) -> None:
     """Refuse a capture whose white frame is not brighter than its black one: nothing can
     be decoded from it, and an empty result would look like a successful scan."""
     white = capture.frame(capture.pattern_set.files[capture.pattern_set.index(FrameKind.WHITE)])
@@ -261,7 +261,7 @@ def _check_files(folder: Path, pset: PatternSet) -> None:
 def _stack(images, paths, white_idx):
     stack = color = None
     first = None
-    for i, (img, path) in enumerate(zip(images, paths)):
+    for i, (img, path) in enumerate(zip(images, paths, strict=False)):
         if stack is None:
             first = (path.name, img)
             stack = np.empty((len(paths),) + img.shape[:2], img.dtype)
@@ -286,7 +286,7 @@ def capture_from_images(pattern_set: PatternSet, images, metadata=None) -> Captu
     """An in-memory capture (e.g. from a simulator), checked like a loaded one."""
     images = _as_list(pattern_set, images)
     names = [Path(n) for n in pattern_set.files]
-    for img, name in zip(images, names):
+    for img, name in zip(images, names, strict=False):
         if not isinstance(img, np.ndarray) or img.dtype not in MAX_VALUE:
             raise CaptureError(f"frame {name}: need an 8- or 16-bit numpy image")
     stack, color = _stack(images, names, pattern_set.index(FrameKind.WHITE))
@@ -340,7 +340,7 @@ def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path
     check_replaceable_dir(folder, lambda f: is_pattern_output(f, allow_capture=True))
     tmp = Path(mkdtemp_beside(folder))  # 0700
     try:
-        for name, img in zip(pattern_set.files, images):
+        for name, img in zip(pattern_set.files, images, strict=False):
             imwrite_checked(tmp / name, img)
         write_json_atomic(tmp / MANIFEST, _manifest_with(pattern_set, metadata))
         replace_dir(tmp, folder, lambda f: is_pattern_output(f, allow_capture=True))
@@ -351,7 +351,7 @@ def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
 class CaptureWriter:

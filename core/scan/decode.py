@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from anklescan.core.errors import CaptureError
+from anklescan.core.robust import robust_sigma
 from anklescan.core.scan.camera_response import gamma_from_frames, linear_unit
 from anklescan.core.scan.capture import Capture
-from anklescan.core.errors import CaptureError
 from anklescan.core.scan.patterns import AxisCode, FrameKind, PatternSet
-from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import Axis
 
 VALID, SHADOW, LOW_CONTRAST, SATURATED, INCONSISTENT, OUTSIDE = range(6)
@@ -83,7 +83,7 @@ class DecodeResult:
         n = int(self.reason.size)
         out = {"pixels": n, "valid": int(counts[VALID]),
                "valid_fraction": float(counts[VALID]) / n if n else 0.0,
-               "reasons": {name: int(c) for name, c in zip(REASON_NAMES, counts)},
+               "reasons": {name: int(c) for name, c in zip(REASON_NAMES, counts, strict=False)},
                "thresholds": dict(self.thresholds)}
         if counts[VALID]:
             cols = self.column[self.valid]
@@ -218,10 +218,7 @@ def _decode_block(frames, pset, thr, k_phase, tol, min_run, saturation, full):
     flags = cv2.bitwise_and(shadow, _FLAG[SHADOW])
     # A clipped white only matters where no phase says otherwise: with phase on every axis,
     # the phase frames' own clipping decides (see _too_clipped)
-    if all(pset.axis_code(axis).phase for axis in pset.axes):
-        sat = np.zeros_like(shadow)
-    else:
-        sat = _cmp(white, saturation, cv2.CMP_GE)
+    sat = np.zeros_like(shadow) if all(pset.axis_code(axis).phase for axis in pset.axes) else _cmp(white, saturation, cv2.CMP_GE)
     cv2.bitwise_or(flags, _FLAG[SATURATED], dst=flags, mask=sat)  # shared tests
     coords, sigmas, axis_flags, info = {}, {}, {}, {}
     for axis in pset.axes:
@@ -396,7 +393,7 @@ def _phase_sums(frames, order, n):
 def _weighted_sum(terms, weights):
     """sum w_k t_k as float32, one float pass per pair of distinct |w|."""
     groups: dict[float, np.ndarray] = {}
-    for t, w in zip(terms, weights):
+    for t, w in zip(terms, weights, strict=False):
         if abs(w) < 1e-9:
             continue
         key = round(abs(float(w)), 9)

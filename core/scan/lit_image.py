@@ -53,7 +53,7 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, fu
     white = frames[pset.index(FrameKind.WHITE)]
     black = frames[pset.index(FrameKind.BLACK)]
     pairs = [(g, gi) for axis in pset.axes
-             for g, gi in zip(pset.axis_code(axis).gray, pset.axis_code(axis).gray_inv)]
+             for g, gi in zip(pset.axis_code(axis).gray, pset.axis_code(axis).gray_inv, strict=False)]
     total = cv2.subtract(white.astype(np.float32), black.astype(np.float32))
     if not pairs:
         return total

@@ -44,9 +44,9 @@ from anklescan.core.calibration.file import Calibration
 from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import DecodeResult
+from anklescan.core.scan.patterns import FrameKind
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.vocabulary import Axis
-from anklescan.core.scan.patterns import FrameKind
 
 DEFAULT_THRESHOLD_MM = 0.5  # a trial that moved more is flagged (a setting: see the app's settings)
 PATCH_MM = (200.0, 200.0, 30.0)  # x, y, z (SPEC §1: z up): horizontal slabs. A standing subject's sway

@@ -23,8 +23,8 @@ import shutil
 from pathlib import Path
 
 from anklescan.core.atomic import copy_private, mkdtemp_beside, write_json_atomic
-from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
 from anklescan.core.errors import CaptureError
+from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
 from anklescan.core.scan.patterns import Frame, PatternSet, replace_dir
 from anklescan.core.vocabulary import Axis
 

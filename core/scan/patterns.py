@@ -16,6 +16,7 @@ Rows (axis ``"row"``) use the same formulas with the row index.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -25,11 +26,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from anklescan.core.atomic import (PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, release_temp_dir,
-                                   write_json_atomic)
+from anklescan.core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, release_temp_dir, write_json_atomic
 from anklescan.core.errors import CaptureError
-from anklescan.core.limits import (MAX_FRAMES, MAX_GRAY_BITS, MAX_IMAGE_SIDE, MAX_MOTION_REFS, MAX_PHASE_STEPS,
-                         check_image_side, load_json)
+from anklescan.core.limits import (
+    MAX_FRAMES,
+    MAX_GRAY_BITS,
+    MAX_IMAGE_SIDE,
+    MAX_MOTION_REFS,
+    MAX_PHASE_STEPS,
+    check_image_side,
+    load_json,
+)
 from anklescan.core.vocabulary import Axis, TextEnum
 
 FORMAT = "anklescan-patterns"
@@ -167,7 +174,7 @@ class PatternSet:
         }
 
     @classmethod
-    def from_manifest(cls, m: dict, source: str = "manifest") -> "PatternSet":
+    def from_manifest(cls, m: dict, source: str = "manifest") -> PatternSet:
         """Build and validate a pattern set; any defect raises a one-line CaptureError."""
         if not isinstance(m, dict):
             raise CaptureError(f"{source}: expected a JSON object, got {type(m).__name__}")
@@ -525,10 +532,8 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
 
 # ----------------------------------------------------------------------- writing
 def _unlink_quiet(p) -> None:
-    try:
+    with contextlib.suppress(OSError):
         os.unlink(p)
-    except OSError:
-        pass
 
 
 def imwrite_checked(path: Path, image: np.ndarray) -> None:

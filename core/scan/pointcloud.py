@@ -2,8 +2,8 @@
 
 Vertex properties: ``float x y z`` (world mm), ``uchar red green blue`` (from the white frame),
 ``ushort cam_u cam_v`` (the camera pixel each point came from), ``float quality`` (decoding
-contrast, 0..1), ``float sigma`` (predicted noise along the camera ray, mm) — the extra properties are scalar fields in CloudCompare and ignored by viewers
-that do not know them.
+contrast, 0..1), ``float sigma`` (predicted noise along the camera ray, mm) — the extra properties
+are scalar fields in CloudCompare and ignored by viewers that do not know them.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class PointCloud:
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
-    def subset(self, keep: np.ndarray) -> "PointCloud":
+    def subset(self, keep: np.ndarray) -> PointCloud:
         pick = lambda a: None if a is None else a[keep]  # noqa: E731
         return PointCloud(self.points[keep], pick(self.colors), pick(self.pixels), pick(self.quality),
                           pick(self.sigma), dict(self.meta))
@@ -136,7 +136,7 @@ def read_ply(path: str | os.PathLike) -> PointCloud:
     """Read the vertex element of a binary little-endian or ASCII PLY (faces are skipped)."""
     path = Path(path)
     try:
-        f = open(path, "rb")
+        f = open(path, "rb")  # noqa: SIM115 (closed by the `with f:` below; opened apart so its error reads plainly)
     except OSError as exc:
         raise AnkleScanError(f"cannot open {path}: {exc.strerror}") from None
     try:

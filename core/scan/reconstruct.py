@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
+from anklescan.core.errors import CaptureError, GeometryError
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, decode
-from anklescan.core.errors import CaptureError, GeometryError
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
 from anklescan.core.vocabulary import Axis

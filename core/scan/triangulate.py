@@ -50,8 +50,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.file import Calibration
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.vocabulary import Axis
 
@@ -162,7 +162,7 @@ def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[np.ndarray, i
     return np.stack([xg, yg], axis=-1).astype(np.float32), step
 
 
-def _pixel_coords(cache: "TriangulationCache", idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pixel_coords(cache: TriangulationCache, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (u, v), float32, of flat camera pixel indices.
 
     In float32, ~3x faster than an int64 divmod: below 2**24 pixels every index and coordinate
@@ -185,7 +185,7 @@ class _Rays:
     per-pixel field each is one gather; otherwise each is rotated from the interpolated
     camera-frame rays, only when asked for."""
 
-    def __init__(self, cache: "TriangulationCache", idx: np.ndarray, uv):
+    def __init__(self, cache: TriangulationCache, idx: np.ndarray, uv):
         self.field = cache.ray_field
         self.idx = idx
         self.cam = None if self.field is not None else camera_rays(cache, idx, uv)
@@ -215,7 +215,7 @@ class _Rays:
         return self._rotate(self.cam_kept, self.Rt[k])
 
 
-def _interpolated_rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list[np.ndarray]:
+def _interpolated_rays(cache: TriangulationCache, idx: np.ndarray, uv) -> list[np.ndarray]:
     r = camera_rays(cache, idx, uv)
     out = []
     for R in (cache.R_c.T, cache.R_p @ cache.R_c.T):  # camera frame -> world, -> projector frame
@@ -228,7 +228,7 @@ def _interpolated_rays(cache: "TriangulationCache", idx: np.ndarray, uv) -> list
     return out
 
 
-def camera_rays(cache: "TriangulationCache", idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_rays(cache: TriangulationCache, idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera-frame rays (x_u, y_u, 1) / |.| of flat pixel indices: 3 float32 arrays."""
     u, v = _pixel_coords(cache, idx) if uv is None else uv
     scale = np.float32(1.0 / cache.ray_step)
@@ -331,7 +331,7 @@ def build_cache(cal: Calibration) -> TriangulationCache:
 
 # One cache per calibration object, for as long as the object lives (weak keys: a calibration
 # that is dropped takes its cache with it; Calibration compares by identity).
-_CACHES: "weakref.WeakKeyDictionary[Calibration, TriangulationCache]" = weakref.WeakKeyDictionary()
+_CACHES: weakref.WeakKeyDictionary[Calibration, TriangulationCache] = weakref.WeakKeyDictionary()
 _CACHES_LOCK = threading.Lock()
 
 
@@ -449,7 +449,7 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
     H, W = cache.shape
     maps = {Axis.COLUMN: column, Axis.ROW: row}
     sigmas = {Axis.COLUMN: column_sigma, Axis.ROW: row_sigma}
-    for name, m in list(maps.items()) + [(f"{k} sigma", v) for k, v in sigmas.items()]:
+    for _name, m in list(maps.items()) + [(f"{k} sigma", v) for k, v in sigmas.items()]:
         if m is not None and np.shape(m) != (H, W):
             raise GeometryError(f"decoded map is {np.shape(m)[1]}x{np.shape(m)[0]} but the calibrated camera is {W}x{H}")
     use = tuple(a for a in AXES if a in axes and maps[a] is not None)
