@@ -1,6 +1,6 @@
 """Edges of a mark in the image: radial profiles and their half-contrast crossings, the
 plate-rim geometry (side wall, projector-shadow sliver), clean-edge masks and the sliver
-edges re-found at the level the sliver predicts. docs/history-marks.md, "Noise and shadow slivers".
+edges re-found at the level the sliver predicts. CHANGELOG.md (the marks detector's rounds), "Noise and shadow slivers".
 """
 
 from __future__ import annotations

@@ -317,7 +317,7 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     inside the face, short of the far rim (a 14.2 x 2.1 mm table plate seen at 70° kept 8 edges,
     0.93 mm off; profiled from its face, 25 edges, 0.19 mm). But on other plates the second
     origin moved a good centre off (0.09 -> 0.31 mm with 24 edges at 0.05 mm RMS), and no fit
-    statistic told the two apart (docs/history-marks.md, "Two profile origins, averaged"): where the
+    statistic told the two apart (CHANGELOG.md (the marks detector's rounds), "Two profile origins, averaged"): where the
     profiles start is itself an uncertainty, so both fits count and their spread goes into the
     SD. The first fit stands alone where the second's edges scatter more
     (``CONFIG.reprofile_max_rms_ratio``) or either fit's radius disagrees with a given size (a doubtful
