@@ -167,9 +167,9 @@ def volume_text(cal: Calibration) -> str:
     v = calibrated_volume(cal)
     if v is None:
         return "calibrated volume: not recorded"
-    spans = ", ".join(f"{a} {lo:.0f}..{hi:.0f}" for a, lo, hi in zip("xyz", v.min, v.max, strict=True))
+    spans = ", ".join(f"{a} {round(lo)}..{round(hi)}" for a, lo, hi in zip("xyz", v.min, v.max, strict=True))
     return (f"calibrated volume: {spans} mm; marks outside it are measured less well (measure warns): "
-            "place the box at the knee's height too if the knee is above it")
+            "place the box (or board) at the knee's height too if the knee is above it")
 
 
 def model_error(cal: Calibration) -> ModelError:
