@@ -240,7 +240,7 @@ def stance_profile(rig) -> str:
 def show_notes(banner, notes: list[ScanNote], actions: dict[NoteAction, Callable[[], object]]) -> None:
     """One banner for a scan's notes: the most severe kind, every text in the order given, and the
     first action offered (``actions``: what each NoteAction does here)."""
-    severity = max(n.severity for n in notes)
+    severity = max((n.severity for n in notes), key=lambda s: s.rank)
     action = next((n.action for n in notes if n.action is not None and n.action in actions), None)
-    banner.show_message(severity.kind, " ".join(n.text for n in notes),
+    banner.show_message(severity, " ".join(n.text for n in notes),
                         None if action is None else (action.value, actions[action]))

@@ -105,7 +105,13 @@ class Severity(TextEnum):
     WARNING = "warning"
     ERROR = "error"
 
+    @property
+    def rank(self) -> int:
+        """Least to most serious: a banner showing several notes takes the most serious one's kind."""
+        return _SEVERITY_ORDER.index(self)
 
+
+_SEVERITY_ORDER: tuple[Severity, ...] = (Severity.INFO, Severity.WARNING, Severity.ERROR)
 CONDITIONS: tuple[str, ...] = ("barefoot", "shoes")
 CONDITION_TITLES: dict[str, str] = {"barefoot": "Barefoot", "shoes": "Shoes"}
 SIDES = ("left", "right", "both")

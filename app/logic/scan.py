@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 from anklescan.app.logic.events import Event
 from anklescan.app.logic.session import SessionLogic
+from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
     from anklescan.core.records.store import MarkMeasured, TrialOutcome
@@ -35,19 +36,6 @@ class ScanPlan:
     motion_threshold_mm: float
     settle_s: float
     metadata: dict = field(default_factory=dict)
-
-
-class Severity(enum.IntEnum):
-    """How much a scan's note matters; the banner takes the most severe of them."""
-
-    INFO = 0
-    WARNING = 1
-    ERROR = 2
-
-    @property
-    def kind(self) -> str:
-        """The banner's word for it ("info", "warning", "error")."""
-        return self.name.lower()
 
 
 class NoteAction(enum.Enum):
