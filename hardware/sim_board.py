@@ -44,7 +44,8 @@ def rotation(tilt_x_deg: float, tilt_y_deg: float, turn_deg: float) -> np.ndarra
     return R
 
 
-def board_quad(cols: int, rows: int, square: float, centre: npt.ArrayLike, R: np.ndarray, margin: float | None = None) -> TexturedQuad:
+def board_quad(cols: int, rows: int, square: float, centre: npt.ArrayLike, R: np.ndarray,
+               margin: float | None = None) -> TexturedQuad:
     """The board with its corner grid centred on ``centre``; R's columns are the board's u, v, normal."""
     margin = square if margin is None else margin
     W = (cols + 1) * square + 2 * margin
