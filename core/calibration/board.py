@@ -504,7 +504,7 @@ def _finish(sol: OptimizeResult, lay: _Layout, views: list[BoardView], obj: list
              lay.offs[1], lay.rel)):
         res = np.concatenate([a[k] for a, k in zip(rr, keeps, strict=False)])
         params = {n.split(".", 1)[1]: float(val[off + i]) for i, n in enumerate(names[off:end])}
-        stds = {n.split(".", 1)[1]: float(sev[off + i]) for i, n in enumerate(names[off:end])}
+        stds: dict[str, float | None] = {n.split(".", 1)[1]: float(sev[off + i]) for i, n in enumerate(names[off:end])}
         if dev is DeviceKind.PROJECTOR:
             params.update({n: float(val[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
             stds.update({n: float(sev[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
