@@ -87,7 +87,7 @@ READ = {
 def test_a_settings_file_written_before_reads_the_same_and_is_written_byte_for_byte(tmp_path):
     before = tmp_path / "before.ini"
     before.write_text(WRITTEN_BEFORE, encoding="utf-8")
-    assert set(READ) == set(AppSettings.settings())  # every setting is in the file
+    assert set(READ) == set(AppSettings.all_settings())  # every setting is in the file
     old = Settings(before)
     read = {name: getattr(old, name) for name in READ}
     assert read == READ
@@ -113,7 +113,7 @@ def test_the_settings_file_is_the_one_ANKLESCAN_SETTINGS_names(tmp_path, monkeyp
 @pytest.mark.parametrize("kept", ["memory", "new file"])
 def test_unset_settings_read_their_defaults(tmp_path, kept):
     s = MemorySettings() if kept == "memory" else Settings(tmp_path / "new" / "s.ini")
-    for name, setting in AppSettings.settings().items():
+    for name, setting in AppSettings.all_settings().items():
         assert getattr(s, name) == setting.default, name
     assert s.daily_check_policy is CheckPolicy.WARN and s.sim_patient is PatientProfile.NO_SPRAIN
     assert s.calibration_verified is CalibrationVerdict.NONE and s.projector_size is None
@@ -134,7 +134,7 @@ def test_unset_settings_read_their_defaults(tmp_path, kept):
     ("chosen_data_folder", "", None),
 ])
 def test_a_hand_edited_value_that_cannot_be_read_is_the_default(tmp_path, name, stored, expected):
-    setting = AppSettings.settings()[name]
+    setting = AppSettings.all_settings()[name]
     group, key = setting.key.split("/")
     (tmp_path / "s.ini").write_text(f"[{group}]\n{key}={stored}\n")
     assert getattr(Settings(tmp_path / "s.ini"), name) == expected

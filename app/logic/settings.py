@@ -192,7 +192,7 @@ class AppSettings(ABC):
     operator = _text("clinic/operator")  # asked once, then signs sessions and marks
 
     @classmethod
-    def settings(cls) -> dict[str, Setting[object]]:
+    def all_settings(cls) -> dict[str, Setting[object]]:
         """Every setting by its attribute name."""
         return {name: value for name, value in vars(AppSettings).items() if isinstance(value, Setting)}
 
