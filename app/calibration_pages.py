@@ -300,7 +300,7 @@ class WizardPages:
         rows = res.worst(40)
         self.verify_table.setRowCount(len(rows))
         for r, p in enumerate(rows):
-            bad = abs(p.error_mm) > res.limits["max_mm"]
+            bad = abs(p.error_mm) > res.limits.max_mm
             for c, text in enumerate((f"{p.a} – {p.b}", f"{p.true_mm:.2f}", f"{p.measured_mm:.2f}",
                                       f"{p.error_mm:+.3f}", "over limit" if bad else "ok")):
                 item = QTableWidgetItem(text)

@@ -179,7 +179,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
 
     def _show_on_projector(self, what: str) -> None:
         if not self.projector.isVisible():
-            self.projector.place(self.settings.get("projector_screen"))
+            self.projector.place(self.settings.projector_screen)
         {"white": self.projector.show_white, "spot": self.projector.show_spot}[what]()
 
     def _pull_preview(self) -> None:
@@ -277,7 +277,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             return
         if self._scan_purpose == "level":
             cal = self.calibration
-            table_size = str(self.settings.get("table_size"))
+            table_size = str(self.settings.table_size)
             self.status.setText(f"Finding the table top ({table_size} mm)…")
             self._run(lambda: level_folder(folder, cal, table_size), self._levelled)
             return
@@ -373,7 +373,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         white, res = result
         self.verification = res
         record_verification(res, self.settings, calibration_path=str(self.accepted_path) if self.accepted_path else None)
-        cid = current_calibration_info(self.settings)["id"]
+        cid = self.settings.calibration_id
         if self.store is not None and cid is not None:
             self.store.set_calibration_verified(cid, res.passed)  # the database keeps the verdict too
         self.show_verification(white, res)

@@ -456,9 +456,9 @@ class CameraPanel(QWidget):
         self.settle.blockSignals(False)
 
     def _settle_typed(self, ms: int) -> None:
-        from anklescan.hardware.sync import Settle, remember
+        from anklescan.hardware.sync import Settle, SettleSource, remember
         if self._camera is not None:
-            remember(self._camera, Settle(ms / 1000.0, "manual"))
+            remember(self._camera, Settle(ms / 1000.0, SettleSource.MANUAL))
         self.settleChanged.emit(float(ms))
 
     def _show_settle_of(self, camera) -> None:
@@ -502,7 +502,7 @@ class CameraPanel(QWidget):
         return True
 
     def _latency_done(self, camera, result, message: str) -> None:
-        from anklescan.hardware.sync import Settle, remember
+        from anklescan.hardware.sync import Settle, SettleSource, remember
         self._runner = None
         self.latency_button.setEnabled(True)
         self.test_button.setEnabled(True)
@@ -511,7 +511,7 @@ class CameraPanel(QWidget):
         if result is None:
             self.latency_result.setText(f"Latency test failed: {message}")
             return
-        remember(camera, Settle(result.settle_s, "self-test", result))
+        remember(camera, Settle(result.settle_s, SettleSource.SELF_TEST, result))
         if camera is not self._camera:
             return
         self.set_settle_ms(result.settle_s * 1000)

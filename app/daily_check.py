@@ -82,9 +82,9 @@ class DailyCheckDialog(QDialog):
         self._job = None
         self._set = (0.0, 0.0, 0.3)
         s = self.settings
-        self.inversion = _angle_box("inversion", s.get("daily_check_inversion"), -45.0, 45.0)
-        self.plantar_flexion = _angle_box("plantar_flexion", s.get("daily_check_plantar_flexion"), -45.0, 45.0)
-        self.tolerance = _angle_box("tolerance", s.get("daily_check_tolerance"), 0.05, 5.0)
+        self.inversion = _angle_box("inversion", s.daily_check_inversion, -45.0, 45.0)
+        self.plantar_flexion = _angle_box("plantar_flexion", s.daily_check_plantar_flexion, -45.0, 45.0)
+        self.tolerance = _angle_box("tolerance", s.daily_check_tolerance, 0.05, 5.0)
         intro = QLabel("Set the known-angle object (the wedge block, or the reference table set on its own) "
                        "in the scanning volume, type the angles it is set to, and scan it. Its top must be "
                        "in view, standing clear of the floor.")
@@ -137,16 +137,15 @@ class DailyCheckDialog(QDialog):
         if cal is None:
             return self._say("No calibration yet: calibrate the scanner first (Scan ▸ Calibration…).", False)
         inv, pf, tol = self.inversion.value(), self.plantar_flexion.value(), self.tolerance.value()
-        for key, value in (("daily_check_inversion", inv), ("daily_check_plantar_flexion", pf),
-                           ("daily_check_tolerance", tol)):
-            self.settings.set(key, value)
+        s = self.settings
+        s.daily_check_inversion, s.daily_check_plantar_flexion, s.daily_check_tolerance = inv, pf, tol
         self._set = (inv, pf, tol)
         from anklescan.app.logic.daily_check import check_camera, new_check_folder
         from anklescan.app.scan_worker import ScanJob
         try:
             self._folder = new_check_folder(parts.data_folder())
             job = ScanJob(parts.scan_logic.pattern_set(rig.projector_size), check_camera(rig, inv, pf),
-                          self._folder, settle_s=self.settings.get("settle_ms") / 1000.0,
+                          self._folder, settle_s=self.settings.settle_ms / 1000.0,
                           metadata={"purpose": "daily check", "set_inversion": inv, "set_plantar_flexion": pf})
         except Exception as exc:
             return self._say(f"The check could not start: {exc}", False)

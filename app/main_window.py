@@ -20,6 +20,7 @@ import logging
 import sys
 import time
 import traceback
+from pathlib import Path
 
 from PySide6.QtCore import QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
@@ -244,7 +245,7 @@ class MainWindow(QMainWindow):
     def choose_data_folder(self) -> None:
         folder = QFileDialog.getExistingDirectory(self, "Data folder", str(self.data_folder()))
         if folder:
-            self.settings.set("data_folder", folder)
+            self.settings.chosen_data_folder = Path(folder)
             self.session.open_store(self.data_folder())
             self.rig_setup.load_calibration()
 
@@ -269,7 +270,7 @@ class MainWindow(QMainWindow):
 
     # ---- housekeeping -------------------------------------------------------------------
     def _restore_geometry(self) -> None:
-        geometry = self.settings.get("window_geometry")
+        geometry = self.settings.window_geometry
         if geometry:
             self.restoreGeometry(geometry)
         else:
@@ -284,7 +285,7 @@ class MainWindow(QMainWindow):
             self.scan_flow.stop_for_exit()
         self.review.wait_for_jobs()
         self.study.wait_for_jobs()
-        self.settings.set("window_geometry", bytes(self.saveGeometry()))
+        self.settings.window_geometry = bytes(self.saveGeometry())
         self.settings.sync()
         self.rig_setup.close()
         self.session.close()

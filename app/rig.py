@@ -9,6 +9,10 @@ modules are imported inside the functions so the window shows before they load.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from anklescan.app.logic.settings import AppSettings
 
 SIMULATED = "simulated"
 
@@ -103,16 +107,15 @@ def backend_problem(backend: str) -> str:
     return camera.backend_problem(backend)
 
 
-def projector_resolution(settings=None) -> tuple[int, int]:
+def projector_resolution(settings: AppSettings | None = None) -> tuple[int, int]:
     """The real projector's resolution: the ``projector_size`` setting when it is set, else that
     of the monitor the projector window goes to (the ``projector_screen`` setting, else the
-    second monitor; asked only on the UI thread, where Qt allows it), else the setting's fallback."""
+    second monitor; asked only on the UI thread, where Qt allows it), else FALLBACK_PROJECTOR_SIZE."""
+    from anklescan.app.logic.settings import FALLBACK_PROJECTOR_SIZE
     from anklescan.app.settings import Settings
 
     settings = settings or Settings()
-    if str(settings.get("projector_size")).strip():
-        return settings.projector_size
-    return _display_size(settings.get("projector_screen")) or settings.projector_size
+    return settings.projector_size or _display_size(settings.projector_screen) or FALLBACK_PROJECTOR_SIZE
 
 
 def _display_size(preferred: str) -> tuple[int, int] | None:

@@ -67,9 +67,9 @@ class RigSetup(QObject):
         from anklescan.app.rig import projector_resolution
         s = self.settings
         # the projector's resolution: the setting, else its monitor's (asked here: only the UI thread may)
-        backend, scale, device, size = (s.get("camera_backend"), s.get("sim_scale"), s.get("camera_device"),
+        backend, scale, device, size = (s.camera_backend, s.sim_scale, s.camera_device,
                                         projector_resolution(s))
-        profile = s.get("sim_patient")
+        profile = s.sim_patient.value
         if not in_background:
             self._rig_opened(open_rig_safely(backend, scale, device, size, profile=profile))
             self.parts.review.ensure_marks_page()
@@ -87,7 +87,7 @@ class RigSetup(QObject):
             self.parts.banner.show_message(Severity.WARNING, problem)
         self._build_camera_panel()
         self.rig = rig
-        self.settings.set("camera_backend", rig.backend)
+        self.settings.camera_backend = rig.backend
         self._rig_ready()
         # one widget-building step per event-loop turn, with room for paints in between
         QTimer.singleShot(50, self.parts.review.ensure_marks_page)
@@ -96,21 +96,24 @@ class RigSetup(QObject):
     def _build_camera_panel(self) -> None:
         from anklescan.app.camera_panel import CameraPanel
         from anklescan.app.rig import available_backends
-        panel = self.camera_panel = CameraPanel(available_backends(), self.settings.get("saturation_level"))
+        panel = self.camera_panel = CameraPanel(available_backends(), self.settings.saturation_level)
         panel.backendChanged.connect(self.switch_backend)
         panel.controlChanged.connect(self._remember_control)
-        panel.set_settle_ms(self.settings.get("settle_ms"))
-        panel.settleChanged.connect(lambda ms: self.settings.set("settle_ms", round(ms)))
+        panel.set_settle_ms(self.settings.settle_ms)
+        panel.settleChanged.connect(self._remember_settle)
         panel.deviceChanged.connect(self._choose_device)
-        panel.set_profile(self.settings.get("sim_patient"))
+        panel.set_profile(self.settings.sim_patient.value)
         panel.profileChanged.connect(self.choose_profile)
-        panel.set_sway(self.settings.get("sim_sway_mm"))
+        panel.set_sway(self.settings.sim_sway_mm)
         panel.swayChanged.connect(self.choose_sway)
         self.parts.camera_holder.addWidget(panel)
         self.parts.camera_holder.setCurrentWidget(panel)
 
+    def _remember_settle(self, ms: float) -> None:
+        self.settings.settle_ms = round(ms)
+
     def _choose_device(self, backend: str, device: str) -> None:
-        self.settings.set("camera_device", device)
+        self.settings.camera_device = device
         self.switch_backend(backend)
 
     def switch_backend(self, backend: str) -> None:
@@ -121,23 +124,24 @@ class RigSetup(QObject):
             old.close()
         from anklescan.app.rig import projector_resolution
         s = self.settings
-        self.rig, problem = open_rig_safely(backend, s.get("sim_scale"), s.get("camera_device"),
-                                            projector_resolution(s), profile=s.get("sim_patient"))
+        self.rig, problem = open_rig_safely(backend, s.sim_scale, s.camera_device,
+                                            projector_resolution(s), profile=s.sim_patient.value)
         if problem:
             self.parts.banner.show_message(Severity.WARNING, problem)
-        self.settings.set("camera_backend", self.rig.backend)
+        self.settings.camera_backend = self.rig.backend
         self._rig_ready()
 
     def choose_profile(self, profile: str) -> None:
         """The simulated patient chosen in Camera setup: kept, and standing on the rig from the next trial."""
-        self.settings.set("sim_patient", profile)
+        from anklescan.hardware.sim_patient import PatientProfile
+        self.settings.sim_patient = PatientProfile.parse(profile)
         if self.rig is not None and self.rig.simulated:
             self.rig.set_profile(profile)
             self._show_rig_label()
 
     def choose_sway(self, mm: float) -> None:
         """How far the simulated patient sways (Camera setup): kept, and from the next frame."""
-        self.settings.set("sim_sway_mm", float(mm))
+        self.settings.sim_sway_mm = float(mm)
         if self.rig is not None and self.rig.simulated:
             self.rig.set_sway(mm)
 
@@ -153,8 +157,8 @@ class RigSetup(QObject):
         self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
         self._apply_stored_controls()
         self.camera_panel.show_profile(self.rig.simulated)
-        if self.rig.simulated and self.settings.get("sim_sway_mm") > 0:
-            self.rig.set_sway(self.settings.get("sim_sway_mm"))
+        if self.rig.simulated and self.settings.sim_sway_mm > 0:
+            self.rig.set_sway(self.settings.sim_sway_mm)
         self._show_rig_label()
         self._ensure_projector()
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
@@ -165,16 +169,17 @@ class RigSetup(QObject):
             parts.tabs.setCurrentIndex(PAGE_SCAN)
 
     def _apply_stored_controls(self) -> None:
-        stored = {"exposure": "camera_exposure_ms", "gain": "camera_gain"}
+        s = self.settings
         for name in self.camera_panel.control_names:
-            key = next((k for n, k in stored.items() if n in name.lower()), None)
-            if key and self.settings.get(key):
-                self.camera_panel.set_control_value(name, self.settings.get(key))
+            value = s.camera_exposure_ms if "exposure" in name.lower() else s.camera_gain if "gain" in name.lower() else 0.0
+            if value:  # 0: the device's default
+                self.camera_panel.set_control_value(name, value)
 
     def _remember_control(self, name: str, value: float) -> None:
-        key = "camera_exposure_ms" if "exposure" in name.lower() else "camera_gain" if "gain" in name.lower() else None
-        if key:
-            self.settings.set(key, value)
+        if "exposure" in name.lower():
+            self.settings.camera_exposure_ms = value
+        elif "gain" in name.lower():
+            self.settings.camera_gain = value
 
     # ---- the calibration ------------------------------------------------------------------
     def load_calibration(self) -> None:
@@ -224,7 +229,7 @@ class RigSetup(QObject):
                 parts.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
             return
         dlg = CalibrationWizard(self.rig, self.projector, store=parts.session.store, data_folder=parts.data_folder(),
-                                settle_s=self.settings.get("settle_ms") / 1000.0, parent=parts.dialog_parent)
+                                settle_s=self.settings.settle_ms / 1000.0, parent=parts.dialog_parent)
         dlg.calibrationAccepted.connect(self._calibration_accepted)
         dlg.verificationDone.connect(lambda _r: self.check_calibration_age())
         dlg.exec()
@@ -280,7 +285,7 @@ class RigSetup(QObject):
 
     def show_projector(self) -> None:
         if self.projector is not None:
-            self.projector.place(self.settings.get("projector_screen"))
+            self.projector.place(self.settings.projector_screen)
             self._update_projector_label()
 
     def _update_projector_label(self) -> None:
@@ -293,7 +298,7 @@ class RigSetup(QObject):
     def fill_screen_menu(self, menu) -> None:
         menu.clear()
         group = QActionGroup(menu)
-        chosen = self.settings.get("projector_screen")
+        chosen = self.settings.projector_screen
         for name, label in [("", "Automatic (second monitor)")] + [
                 (s.name(), f"{s.name()}  {s.size().width()}×{s.size().height()}") for s in QGuiApplication.screens()]:
             a = QAction(label, menu, checkable=True, checked=(name == chosen))
@@ -302,7 +307,7 @@ class RigSetup(QObject):
             menu.addAction(a)
 
     def _choose_screen(self, name: str) -> None:
-        self.settings.set("projector_screen", name)
+        self.settings.projector_screen = name
         self.show_projector()
 
     def projector_show(self, what: str) -> None:

@@ -38,10 +38,11 @@ import socket
 import stat
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Any
 
 from anklescan.core.errors import AnkleScanError
 
@@ -100,7 +101,7 @@ def _read_temp_owner(folder: Path) -> TempOwner | None:
         return None
 
 
-def clean_stale_temporaries(folder: str | os.PathLike, now: float | None = None) -> list[Path]:
+def clean_stale_temporaries(folder: str | os.PathLike[str], now: float | None = None) -> list[Path]:
     """Remove, in ``folder``, the hidden temporary folders of runs that were killed: only those
     holding our TEMP_MARKER whose process is gone (same host) or that are older than
     STALE_TEMP_AGE_S. Anything without the marker is left alone. Returns what was removed."""
@@ -127,7 +128,7 @@ def clean_stale_temporaries(folder: str | os.PathLike, now: float | None = None)
     return removed
 
 
-def mkdtemp_beside(target: str | os.PathLike, tag: str = "tmp") -> Path:
+def mkdtemp_beside(target: str | os.PathLike[str], tag: str = "tmp") -> Path:
     """A new private (0700) hidden folder next to ``target``, named within NAME_MAX, holding
     TEMP_MARKER (remove it with ``release_temp_dir`` before renaming the folder into place).
     Killed runs' temporaries in the same folder are removed first (``clean_stale_temporaries``)."""
@@ -142,13 +143,13 @@ def mkdtemp_beside(target: str | os.PathLike, tag: str = "tmp") -> Path:
     return tmp
 
 
-def release_temp_dir(tmp: str | os.PathLike) -> None:
+def release_temp_dir(tmp: str | os.PathLike[str]) -> None:
     """Remove a temporary folder's TEMP_MARKER: it is about to become an output."""
     Path(tmp, TEMP_MARKER).unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------- privacy
-def make_private(path: str | os.PathLike) -> None:
+def make_private(path: str | os.PathLike[str]) -> None:
     """chmod a file 0600 or a folder 0700 (a no-op if it already is)."""
     p = Path(path)
     mode = PRIVATE_DIR_MODE if p.is_dir() else PRIVATE_FILE_MODE
@@ -156,7 +157,7 @@ def make_private(path: str | os.PathLike) -> None:
         os.chmod(p, mode)
 
 
-def make_private_dir(path: str | os.PathLike, *, tighten: bool = True) -> Path:
+def make_private_dir(path: str | os.PathLike[str], *, tighten: bool = True) -> Path:
     """Create ``path`` (and missing parents) as 0700 whatever the umask; with ``tighten``
     an existing ``path`` itself is made 0700 too (existing parents are left alone)."""
     path = Path(path)
@@ -178,7 +179,7 @@ def make_private_dir(path: str | os.PathLike, *, tighten: bool = True) -> Path:
     return path
 
 
-def make_tree_private(folder: str | os.PathLike) -> int:
+def make_tree_private(folder: str | os.PathLike[str]) -> int:
     """Make every folder (0700) and file (0600) under ``folder`` private, e.g. patient data
     written by an older version under a 022 umask; symlinks and entries we may not change
     are skipped. Returns the number of entries changed."""
@@ -255,7 +256,7 @@ def _clean_stale_temp_files(dir_fd: int, folder: Path, now: float | None = None)
     return removed
 
 
-def check_may_replace(path: str | os.PathLike, what: str = "output", dir_fd: int | None = None) -> None:
+def check_may_replace(path: str | os.PathLike[str], what: str = "output", dir_fd: int | None = None) -> None:
     """Refuse to replace an existing ``path`` the user could not write, as ``cp`` would: a
     read-only file of their own (a file with no write bit at all is refused even to root), or
     another user's file they have no write permission on (in a world-writable folder without
@@ -291,7 +292,7 @@ def _fd_path(dir_fd: int, folder: Path, name: str) -> Path:
 
 
 @contextmanager
-def atomic_paths(*targets: str | os.PathLike | None, what: str | None = None, keep_suffix: bool = False,
+def atomic_paths(*targets: str | os.PathLike[str] | None, what: str | None = None, keep_suffix: bool = False,
                  fsync: bool = True) -> Iterator[list[Path | None]]:
     """The one atomic-write mechanism: yields a private (0600) temporary sibling per target
     (``None`` for a ``None`` target), to be written by any means (an encoder, a PDF backend);
@@ -375,7 +376,7 @@ def _fsync(p: Path) -> None:
 
 
 @contextmanager
-def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None):
+def atomic_file(path: str | os.PathLike[str], mode: str = "wb", encoding: str | None = None) -> Iterator[IO[Any]]:
     """A file object on a private (0600) temporary sibling renamed over ``path`` once fully
     written (``atomic_paths``); a missing folder is created private."""
     path = Path(path)
@@ -390,12 +391,12 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             yield f
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
     with atomic_file(path, "w", encoding="utf-8") as f:
         f.write(text)
 
 
-def copy_private(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+def copy_private(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
     """Copy a file atomically to ``dst``, private (0600) from its creation whatever the umask."""
     with atomic_paths(dst) as (tmp,):
         assert tmp is not None
@@ -403,7 +404,7 @@ def copy_private(src: str | os.PathLike, dst: str | os.PathLike) -> None:
             shutil.copyfileobj(fin, fout, 1 << 20)
 
 
-def write_json_atomic(path: str | os.PathLike, obj) -> None:
+def write_json_atomic(path: str | os.PathLike[str], obj: object) -> None:
     """JSON with NaN/Infinity refused (they are not JSON, and mean a broken result)."""
     try:
         text = json.dumps(obj, indent=2, allow_nan=False)
@@ -428,7 +429,7 @@ def _inside(child: str, parent: str) -> bool:
         return False
 
 
-def guard_output(out: str | os.PathLike, inputs, *, what: str = "output") -> Path:
+def guard_output(out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str] | None], *, what: str = "output") -> Path:
     """Refuse an output that would overwrite, replace or land inside one of ``inputs``.
 
     Call it in every command (and GUI action) that writes a file or folder, before any
@@ -478,7 +479,7 @@ def guard_output(out: str | os.PathLike, inputs, *, what: str = "output") -> Pat
     return out_path
 
 
-def check_replaceable_dir(folder: str | os.PathLike, is_ours) -> None:
+def check_replaceable_dir(folder: str | os.PathLike[str], is_ours: Callable[[Path], bool]) -> None:
     """Refuse to replace an existing ``folder`` unless it is empty or ``is_ours(folder)``.
 
     ``is_ours`` decides whether every entry is an earlier output of the same kind (e.g. a
@@ -553,7 +554,7 @@ def _walk_output(folder: Path) -> tuple[list[str], list[str], list[str]]:
     return files, dirs, others
 
 
-def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
+def claim_output_dir(folder: str | os.PathLike[str], command: str) -> Path:
     """Make ``folder`` ready for ``command`` to fill: create it (0700, parents too) when it is
     missing; use it as it is when empty; when it holds an earlier complete output of the same
     command (``seal_output_dir``'s marker), remove exactly the files that run wrote, unchanged
@@ -605,7 +606,7 @@ def claim_output_dir(folder: str | os.PathLike, command: str) -> Path:
     return folder.resolve()
 
 
-def seal_output_dir(folder: str | os.PathLike, command: str) -> int:
+def seal_output_dir(folder: str | os.PathLike[str], command: str) -> int:
     """Write ``folder``'s marker listing every file in it as written by ``command`` (call it
     once the output is complete; the next ``claim_output_dir`` removes exactly these).
     Returns the number of files listed."""
@@ -619,7 +620,7 @@ def seal_output_dir(folder: str | os.PathLike, command: str) -> int:
     return len(entries)
 
 
-def is_output_of(folder: str | os.PathLike, command: str) -> bool:
+def is_output_of(folder: str | os.PathLike[str], command: str) -> bool:
     """True when ``folder`` holds a complete, unchanged output of ``command`` and nothing else."""
     folder = Path(folder)
     listed = _read_output_marker(folder, command)

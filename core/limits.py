@@ -36,6 +36,7 @@ import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, NoReturn
 
 from anklescan.core.errors import AnkleScanError
 
@@ -108,12 +109,12 @@ def _parse_float(text: str) -> float:
     return value
 
 
-def _parse_constant(name: str):
+def _parse_constant(name: str) -> NoReturn:
     raise _NumberError(f"{name} is not a finite number")
 
 
-def _depth_ok(obj) -> bool:
-    stack = [(obj, 1)]
+def _depth_ok(obj: object) -> bool:
+    stack: list[tuple[object, int]] = [(obj, 1)]
     while stack:
         node, depth = stack.pop()
         if depth > MAX_JSON_DEPTH:
@@ -125,8 +126,9 @@ def _depth_ok(obj) -> bool:
     return True
 
 
-def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanError):
-    """``json.loads`` for untrusted text: any defect raises ``error`` naming ``where``."""
+def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanError) -> Any:
+    """``json.loads`` for untrusted text: any defect raises ``error`` naming ``where``. The value
+    is JSON's (a dict, list, str, number, bool or None): the caller checks its shape."""
     try:
         obj = json.loads(text, parse_int=_parse_int, parse_float=_parse_float,
                          parse_constant=_parse_constant)
@@ -141,7 +143,7 @@ def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanErr
     return obj
 
 
-def check_input_file(path, what: str, error: type[AnkleScanError] = AnkleScanError,
+def check_input_file(path: str | os.PathLike[str], what: str, error: type[AnkleScanError] = AnkleScanError,
                      limit: int = MAX_INPUT_FILE_BYTES) -> None:
     """An input read whole must be a regular file (not /dev/zero, a FIFO, a socket) of at
     most ``limit`` bytes; folders pass (their files are checked by whoever reads them)."""
@@ -160,7 +162,7 @@ def check_input_file(path, what: str, error: type[AnkleScanError] = AnkleScanErr
                     f"({limit >> 20} MB at most)")
 
 
-def load_json(path, what: str, error: type[AnkleScanError] = AnkleScanError):
+def load_json(path: str | os.PathLike[str], what: str, error: type[AnkleScanError] = AnkleScanError) -> Any:
     """Read and parse a user's JSON file (``what`` names it in messages, e.g. 'manifest')."""
     path = Path(path)
     if path.is_dir():
@@ -261,7 +263,7 @@ class SizeType:
 
 def size_type(max_side: int = MAX_IMAGE_SIDE, example: str = "1024x768") -> Callable[[str], tuple[int, int]]:
     """argparse ``type=`` for WIDTHxHEIGHT, each side 1..``max_side``."""
-    return SizeType(max_side, example)  # type: ignore[return-value]
+    return SizeType(max_side, example)
 
 
 @dataclass(frozen=True)
@@ -284,11 +286,11 @@ class DateType:
 
 def date_type() -> Callable[[str], str]:
     """argparse ``type=`` for a calendar date (YYYY-MM-DD)."""
-    return DateType()  # type: ignore[return-value]
+    return DateType()
 
 
 # ---------------------------------------------------------------------------- images
-def check_image_side(width, height, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
+def check_image_side(width: int, height: int, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
     """Refuse a size no real camera or projector has (before anything is allocated)."""
     import numpy as np
 
@@ -306,7 +308,7 @@ def _png_size(head: bytes) -> tuple[int, int] | None:
     return None
 
 
-def image_size(path) -> tuple[int, int] | None:
+def image_size(path: str | os.PathLike[str]) -> tuple[int, int] | None:
     """(width, height) from an image file's header without decoding the pixels, or None
     when the format's header cannot be read this way (the caller then decodes one frame)."""
     path = Path(path)
@@ -340,12 +342,12 @@ def capture_memory_limit() -> int:
 
 
 # --------------------------------------------------------------------------- results
-def require_finite(obj, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
+def require_finite(obj: object, what: str, error: type[AnkleScanError] = AnkleScanError) -> None:
     """Raise ``error`` when a number anywhere in ``obj`` (dict/list/tuple/array) is NaN or
     infinite: a nonsense input must never surface as ``nan`` in a result."""
     import numpy as np
 
-    stack = [(obj, what)]
+    stack: list[tuple[object, str]] = [(obj, what)]
     while stack:
         node, where = stack.pop()
         if isinstance(node, Mapping):

@@ -21,12 +21,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import TypeAlias
+from typing import Any, TypeAlias
 
 from anklescan.core.errors import AnkleScanError
 
 # ------------------------------------------------------------------ the seven marks
 
+# a JSON object as a ``to_dict`` writes it and a ``from_dict`` reads it (values: str, numbers, lists, objects)
+JsonObject: TypeAlias = dict[str, Any]
 MarkLabel: TypeAlias = int  # 1-7, SPEC §2: the one type of a mark label wherever one is passed
 
 LABELS: tuple[MarkLabel, ...] = (1, 2, 3, 4, 5, 6, 7)
@@ -150,8 +152,9 @@ class CalibrationRecord:
     verified: bool
 
     @property
-    def data(self) -> dict:
-        return json.loads(self.json)
+    def data(self) -> JsonObject:
+        data: JsonObject = json.loads(self.json)
+        return data
 
 
 @dataclass(frozen=True)
@@ -274,7 +277,7 @@ class SessionSummary:
 class ReportInput:
     """Everything a report prints, read from the database in one go (``Store.report_input``):
     the reports take these records, never the database."""
-    rows: list[dict]  # Store.study_rows(): every trial joined with its session, patient and calibration
+    rows: list[JsonObject]  # Store.study_rows(): every trial joined with its session, patient and calibration
     patients: list[Patient]
     calibrations: dict[int, CalibrationRecord]
     sessions: list[SessionSummary] = field(default_factory=list)  # a session report's sessions, in order

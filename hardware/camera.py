@@ -11,10 +11,12 @@ from __future__ import annotations
 import importlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Protocol, Self, cast
 
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import JsonObject
 
 
 class CameraDisconnected(AnkleScanError):
@@ -108,7 +110,7 @@ class Camera(ABC):
         info, names = self.info, tuple(self.controls())
         return Capabilities((info.width, info.height), None, names, manual_exposure="exposure" in names)
 
-    def frame_info(self) -> dict:
+    def frame_info(self) -> JsonObject:
         """What the device knows about its last frame (driver timestamp, frames flushed, ...)."""
         return {}
 
@@ -117,22 +119,21 @@ class Camera(ABC):
         returns what was locked. Structured light needs every frame taken alike."""
         return {}
 
-    def metadata(self) -> dict:
+    def metadata(self) -> JsonObject:
         """What the capture manifest records about the device and its settings."""
         info = self.info
-        values = {}
+        values: JsonObject = {}
         for name, c in self.controls().items():
             values[name] = c.choices[int(c.value)] if c.choices else c.value
         return {"device": info.name, "backend": info.backend, "still_size": [info.width, info.height],
                 "controls": values}
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         self.open()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
-        return False
 
 
 class ProjectorOutput(ABC):
@@ -175,10 +176,20 @@ register_backend("opencv", "USB video camera (UVC, OpenCV)", "anklescan.hardware
 register_backend("gphoto2", "Tethered still camera (gphoto2)", "anklescan.hardware.gphoto_camera")
 
 
-def _backend_module(key: str):
+class _BackendModule(Protocol):
+    """What a backend's module provides (``register_backend``)."""
+
+    def list_devices(self) -> list[DeviceInfo]: ...
+
+    def open_device(self, device: str) -> Camera: ...
+
+    def unavailable_reason(self) -> str: ...
+
+
+def _backend_module(key: str) -> _BackendModule:
     if key not in _BACKENDS:
         raise AnkleScanError(f"unknown camera backend {key!r}; known: {', '.join(_BACKENDS)}")
-    return importlib.import_module(_BACKENDS[key].module)
+    return cast(_BackendModule, importlib.import_module(_BACKENDS[key].module))
 
 
 def backend_problem(key: str) -> str:

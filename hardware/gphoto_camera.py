@@ -14,11 +14,13 @@ where the camera has an ``imageformat`` setting.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any, TypeAlias
 
 import cv2
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import JsonObject
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
 
 BACKEND = "gphoto2"
@@ -37,8 +39,12 @@ LOCKED = {"focus_mode": ("Manual", "MF", "Manual Focus"),
           "white_balance": ("Daylight", "Fine Weather", "Sunlight")}
 JPEG_FORMATS = ("Large Fine JPEG", "JPEG Fine", "Large Normal JPEG", "JPEG Normal", "JPEG")
 
+# python-gphoto2 has no type stubs: its module (or a test's stand-in), camera and config widgets are Any
+GPhoto2: TypeAlias = Any
+GpObject: TypeAlias = Any
 
-def import_gp():
+
+def import_gp() -> GPhoto2 | None:
     try:
         import gphoto2
     except ImportError:
@@ -46,18 +52,18 @@ def import_gp():
     return gphoto2
 
 
-def unavailable_reason(gp=None) -> str:
+def unavailable_reason(gp: GPhoto2 | None = None) -> str:
     return "" if (gp or import_gp()) is not None else MISSING
 
 
-def _require(gp):
+def _require(gp: GPhoto2 | None) -> GPhoto2:
     gp = gp or import_gp()
     if gp is None:
         raise AnkleScanError(f"tethered still cameras: {MISSING}")
     return gp
 
 
-def list_devices(gp=None) -> list[DeviceInfo]:
+def list_devices(gp: GPhoto2 | None = None) -> list[DeviceInfo]:
     gp = _require(gp)
     try:
         cameras = gp.Camera.autodetect()
@@ -67,7 +73,7 @@ def list_devices(gp=None) -> list[DeviceInfo]:
     return [DeviceInfo(BACKEND, f"{model}@{port}", f"{model} ({port})") for model, port in found]
 
 
-def open_device(device: str = "", gp=None) -> GPhotoCamera:
+def open_device(device: str = "", gp: GPhoto2 | None = None) -> GPhotoCamera:
     model, _, port = device.rpartition("@") if "@" in device else ("", "", "")
     return GPhotoCamera(model, port, gp=gp)
 
@@ -76,15 +82,16 @@ class GPhotoCamera(Camera):
     """A libgphoto2 camera; ``model``/``port`` as ``Camera.autodetect`` reports them ("" = the
     first camera found). Controls are the camera's named settings (choices, value = index)."""
 
-    def __init__(self, model: str = "", port: str = "", *, gp=None, delete_after_download: bool = True):
+    def __init__(self, model: str = "", port: str = "", *, gp: GPhoto2 | None = None,
+                 delete_after_download: bool = True) -> None:
         self.gp = _require(gp)
         self.model, self.port = model, port
         self.delete_after_download = delete_after_download
-        self._cam = None
+        self._cam: GpObject | None = None
         self._size = (0, 0)  # known after the first capture: the camera does not say beforehand
         self._config_names: dict[str, str] = {}
         self._controls: dict[str, Control] = {}
-        self._last: dict = {}
+        self._last: JsonObject = {}
 
     @property
     def _name(self) -> str:
@@ -114,7 +121,7 @@ class GPhotoCamera(Camera):
         self._read_config()
         self._prefer_jpeg()
 
-    def _select(self, cam) -> None:
+    def _select(self, cam: GpObject) -> None:
         gp = self.gp
         if self.port:
             ports = gp.PortInfoList()
@@ -157,10 +164,10 @@ class GPhotoCamera(Camera):
             raise AnkleScanError(f"{self._name} gives no live view ({exc}); use Test capture") from None
         return _decode(data, "live view")
 
-    def frame_info(self) -> dict:
+    def frame_info(self) -> JsonObject:
         return dict(self._last)
 
-    def _opened(self):
+    def _opened(self) -> GpObject:
         if self._cam is None:
             raise CameraDisconnected(f"{self._name} is not open")
         return self._cam
@@ -174,7 +181,7 @@ class GPhotoCamera(Camera):
 
     # ---- configuration ----------------------------------------------------------------------
     def _read_config(self) -> None:
-        config = self._cam.get_config()
+        config = self._opened().get_config()
         self._config_names.clear()
         self._controls.clear()
         for ours, names in CONFIG_NAMES.items():
@@ -191,7 +198,8 @@ class GPhotoCamera(Camera):
 
     def _prefer_jpeg(self) -> None:
         try:
-            config = self._cam.get_config()
+            cam = self._opened()
+            config = cam.get_config()
             widget, _ = _child(config, ("imageformat", "imagequality"), self.gp)
             if widget is None:
                 return
@@ -199,7 +207,7 @@ class GPhotoCamera(Camera):
             jpeg = next((c for c in JPEG_FORMATS if c in choices), None)
             if jpeg and widget.get_value() != jpeg:
                 widget.set_value(jpeg)
-                self._cam.set_config(config)
+                cam.set_config(config)
         except self.gp.GPhoto2Error:
             pass  # the first capture says so clearly if the camera still shoots RAW
 
@@ -229,7 +237,7 @@ class GPhotoCamera(Camera):
         self._controls[name] = replace(control, value=index)
 
     def lock_settings(self) -> dict[str, bool]:
-        done = {}
+        done: dict[str, bool] = {}
         for name, wanted in LOCKED.items():
             control = self._controls.get(name)
             choice = next((c for c in wanted if control and c in control.choices), None)
@@ -248,13 +256,13 @@ class GPhotoCamera(Camera):
         return Capabilities(self._size, None, names, manual_exposure="shutter" in names,
                             focus_lock="focus_mode" in names, white_balance_lock="white_balance" in names)
 
-    def metadata(self) -> dict:
+    def metadata(self) -> JsonObject:
         meta = super().metadata()
         meta.update(model=self.model, port=self.port, config_names=dict(self._config_names))
         return meta
 
 
-def _child(config, names, gp):
+def _child(config: GpObject, names: tuple[str, ...], gp: GPhoto2) -> tuple[GpObject | None, str]:
     for name in names:
         try:
             return config.get_child_by_name(name), name
@@ -263,7 +271,7 @@ def _child(config, names, gp):
     return None, ""
 
 
-def _decode(data, what: str) -> np.ndarray:
+def _decode(data: GpObject, what: str) -> np.ndarray:
     buf = np.frombuffer(memoryview(data), np.uint8)
     image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if image is None:

@@ -23,13 +23,16 @@ import glob
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import NoReturn
 
 import cv2
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import JsonObject
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Capabilities, Control, DeviceInfo
 
 BACKEND = "opencv"
@@ -61,7 +64,8 @@ class OpenCVCamera(Camera):
 
     def __init__(self, source: int | str = 0, *, api: int | None = None, size: tuple[int, int] | None = (1920, 1080),
                  flush_frames: int = 4, fail_limit: int = 5, name: str | None = None,
-                 capture_factory=cv2.VideoCapture, clock=time.monotonic):
+                 capture_factory: Callable[..., cv2.VideoCapture] = cv2.VideoCapture,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.source = source
         self.api = _api_for(source) if api is None else api
         self.requested_size = size
@@ -69,12 +73,12 @@ class OpenCVCamera(Camera):
         self.fail_limit = max(1, int(fail_limit))
         self._factory, self._clock = capture_factory, clock
         self._name = name or _default_name(source)
-        self._cap = None
+        self._cap: cv2.VideoCapture | None = None
         self._size = (0, 0)
         self._notes: list[str] = []
         self._controls: dict[str, tuple[int, Control]] = {}
         self._stamps_monotonic = False
-        self._last: dict = {}
+        self._last: JsonObject = {}
 
     # ---- lifecycle --------------------------------------------------------------------------
     @property
@@ -110,10 +114,11 @@ class OpenCVCamera(Camera):
         if self.requested_size is None:
             return
         w, h = self.requested_size
+        cap = self._device()
         # Set before streaming starts: V4L2 only changes mode while the stream is stopped.
-        self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, w)
-        self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, h)
-        self._cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # fewer stale frames where the driver allows it
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, w)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, h)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # fewer stale frames where the driver allows it
 
     def _note_size_mismatch(self) -> None:
         if self.requested_size and tuple(self.requested_size) != self._size:
@@ -141,29 +146,34 @@ class OpenCVCamera(Camera):
         h = round(img.shape[0] * PREVIEW_WIDTH / img.shape[1])
         return cv2.resize(img, (PREVIEW_WIDTH, h), interpolation=cv2.INTER_AREA)
 
-    def frame_info(self) -> dict:
+    def frame_info(self) -> JsonObject:
         return dict(self._last)
 
     def _read_frame(self) -> np.ndarray:
         self._grab()
         return self._retrieve()
 
-    def _grab(self) -> None:
+    def _device(self) -> cv2.VideoCapture:
         if self._cap is None:
             raise CameraDisconnected(f"{self._name} is not open")
+        return self._cap
+
+    def _grab(self) -> None:
+        cap = self._device()
         # A single failed grab happens on a busy USB bus; several in a row mean the device is gone.
         for _ in range(self.fail_limit):
-            if self._cap.grab():
+            if cap.grab():
                 return
         self._lost()
 
     def _retrieve(self) -> np.ndarray:
-        ok, frame = self._cap.retrieve()
+        ok, frame = self._device().retrieve()
         if not ok or frame is None or frame.size == 0:
             self._lost()
-        return frame
+        image: np.ndarray = frame
+        return image
 
-    def _lost(self):
+    def _lost(self) -> NoReturn:
         self.close()
         raise CameraDisconnected(f"{self._name} stopped delivering frames (unplugged or driver error)")
 
@@ -181,16 +191,17 @@ class OpenCVCamera(Camera):
 
     # ---- controls ---------------------------------------------------------------------------
     def _probe_controls(self) -> dict[str, tuple[int, Control]]:
-        found = {}
+        found: dict[str, tuple[int, Control]] = {}
+        cap = self._device()
         for name, (prop, lo, hi, step, unit) in self._control_table().items():
-            value = self._cap.get(prop)
+            value = cap.get(prop)
             # Writing back the current value is harmless and is the only portable support test.
-            if value == -1 or not self._cap.set(prop, value):
+            if value == -1 or not cap.set(prop, value):
                 continue
             found[name] = (prop, Control(name, min(lo, value), max(hi, value), step, value, value, unit))
         return found
 
-    def _control_table(self) -> dict:
+    def _control_table(self) -> dict[str, tuple[int, float, float, float, str]]:
         lo, hi, step, unit = EXPOSURE_RANGE.get(self.api, (-13.0, 10000.0, 1.0, ""))
         return {"exposure": (cv2.CAP_PROP_EXPOSURE, lo, hi, step, unit), **OTHER_CONTROLS}
 
@@ -206,10 +217,11 @@ class OpenCVCamera(Camera):
             self._set_auto(cv2.CAP_PROP_AUTO_EXPOSURE, manual=True)
         elif name == "focus":
             self._set_auto(cv2.CAP_PROP_AUTOFOCUS, manual=True)
-        if not self._cap.set(prop, value):
+        cap = self._device()
+        if not cap.set(prop, value):
             raise AnkleScanError(f"{self._name} refused {name} = {value:g}")
         # Drivers round to what they support; remember what they actually took.
-        self._controls[name] = (prop, replace(control, value=float(self._cap.get(prop))))
+        self._controls[name] = (prop, replace(control, value=float(cap.get(prop))))
 
     def _set_auto(self, prop: int, manual: bool) -> bool:
         if prop == cv2.CAP_PROP_AUTO_EXPOSURE:
@@ -230,7 +242,7 @@ class OpenCVCamera(Camera):
                             manual_exposure="exposure" in self._controls, focus_lock="focus" in self._controls,
                             white_balance_lock="white_balance" in self._controls, notes=tuple(self._notes))
 
-    def metadata(self) -> dict:
+    def metadata(self) -> JsonObject:
         meta = super().metadata()
         meta.update(source=str(self.source), api=_api_name(self.api), flush_frames=self.flush_frames,
                     requested_size=list(self.requested_size) if self.requested_size else None,
@@ -241,7 +253,7 @@ class OpenCVCamera(Camera):
 # ---- devices -------------------------------------------------------------------------------
 
 
-def _api_for(source) -> int:
+def _api_for(source: int | str) -> int:
     if isinstance(source, str) and "%" in source:
         return cv2.CAP_IMAGES
     if isinstance(source, str) and not source.startswith("/dev/video"):
@@ -255,7 +267,7 @@ def _api_name(api: int) -> str:
     return names.get(api, str(api))
 
 
-def _default_name(source) -> str:
+def _default_name(source: int | str) -> str:
     if isinstance(source, int):
         return f"USB camera {source}"
     return f"Video source {Path(str(source)).name}"

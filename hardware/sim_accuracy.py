@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import JsonObject
 from anklescan.hardware.sim_scene import ObjectId
 from anklescan.hardware.simrig import Truth
 
@@ -83,5 +84,5 @@ def evaluate(cloud: PointCloud, truth: Truth) -> dict[str, Accuracy]:
     }
 
 
-def as_dict(result: dict[str, Accuracy]) -> dict:
+def as_dict(result: dict[str, Accuracy]) -> dict[str, JsonObject]:
     return {k: asdict(v) for k, v in result.items()}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.hardware.sim_scene import ObjectId, Plane, Scene, TexturedQuad
 from anklescan.hardware.simrig import RIG_TARGET
@@ -39,10 +40,12 @@ def rotation(tilt_x_deg: float, tilt_y_deg: float, turn_deg: float) -> np.ndarra
     Rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
     Ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
     Rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
+    R: np.ndarray = Rz @ Ry @ Rx
+    return R
 
 
-def board_quad(cols: int, rows: int, square: float, centre, R: np.ndarray, margin: float | None = None) -> TexturedQuad:
+def board_quad(cols: int, rows: int, square: float, centre: npt.ArrayLike, R: np.ndarray,
+               margin: float | None = None) -> TexturedQuad:
     """The board with its corner grid centred on ``centre``; R's columns are the board's u, v, normal."""
     margin = square if margin is None else margin
     W = (cols + 1) * square + 2 * margin
@@ -53,7 +56,7 @@ def board_quad(cols: int, rows: int, square: float, centre, R: np.ndarray, margi
                         kind=ObjectId.QUAD)
 
 
-def inner_corners_world(cols: int, rows: int, square: float, centre, R: np.ndarray) -> np.ndarray:
+def inner_corners_world(cols: int, rows: int, square: float, centre: npt.ArrayLike, R: np.ndarray) -> np.ndarray:
     """World positions of the inner corners, row by row (the board's own order)."""
     j, i = np.mgrid[0:rows, 0:cols]
     s = (i.ravel() - (cols - 1) / 2) * square

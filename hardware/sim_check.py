@@ -129,7 +129,8 @@ def check_scene(inversion_deg: float, plantar_flexion_deg: float, obj: CheckObje
     n = table_normal(inversion_deg, plantar_flexion_deg)
     T = frame_from_normal(n)
     top_c = np.asarray(centre, float)
-    objs: list = [Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)]
+    objs: list[SceneObject] = [Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)]
+    host: SceneObject  # what the marks are stuck on
     if obj is CheckObject.WEDGE:
         host, _ = wedge_block(inversion_deg, plantar_flexion_deg, centre_xy=(top_c[0], top_c[1]),
                               footprint=top_size, centre_height=top_c[2],
@@ -139,7 +140,7 @@ def check_scene(inversion_deg: float, plantar_flexion_deg: float, obj: CheckObje
         host = Box(kind=ObjectId.TABLE, centre=top_c - n * thickness / 2, axes=T,
                    half=(top_size[0] / 2, top_size[1] / 2, thickness / 2), albedo=albedo)
         h = top_c[2] - thickness
-        objs += [host, Box(kind=ObjectId.STAND, centre=(top_c[0], top_c[1], h / 2), half=(30.0, 30.0, h / 2),
+        objs += [host, Box(kind=ObjectId.STAND, centre=np.array([top_c[0], top_c[1], h / 2]), half=(30.0, 30.0, h / 2),
                            albedo=0.25)]
     sim_marks: dict[str, SimMark] = {}
     if marks is not MarkStyle.NONE:
@@ -162,7 +163,8 @@ def check_scene(inversion_deg: float, plantar_flexion_deg: float, obj: CheckObje
 def _rotation(deg: float, axis: str | np.ndarray) -> np.ndarray:
     vec = {"x": (1.0, 0, 0), "y": (0, 1.0, 0), "z": (0, 0, 1.0)}[axis] if isinstance(axis, str) else axis
     v = np.asarray(vec, float)
-    return Rotation.from_rotvec(math.radians(deg) * v / np.linalg.norm(v)).as_matrix()
+    R: np.ndarray = Rotation.from_rotvec(math.radians(deg) * v / np.linalg.norm(v)).as_matrix()
+    return R
 
 
 def rotated_frame(cal: Calibration, deg: float, axis: str | np.ndarray = "x") -> Calibration:

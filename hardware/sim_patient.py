@@ -11,10 +11,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from anklescan.core.vocabulary import CONDITIONS, MarkKind
+
+if TYPE_CHECKING:  # numpy is imported where a patient is made: the app's settings read PatientProfile at start-up
+    import numpy as np
+
+    from anklescan.hardware.sim_scene import Scene
 
 
 @dataclass(frozen=True)
@@ -24,9 +28,9 @@ class SimPatient:
     last_sprain: str | None
     notes: str
     # the table setting error, degrees: bias + gain_inv * inversion + gain_pf * plantar flexion + noise
-    bias: tuple  # (inversion, plantar flexion)
-    gain_inv: tuple
-    gain_pf: tuple
+    bias: tuple[float, float]  # (inversion, plantar flexion)
+    gain_inv: tuple[float, float]
+    gain_pf: tuple[float, float]
     noise: float
     shoes_factor: float  # shoes give the ankle a better sense of the angle (the paper's finding)
     # the clinic's marks for this patient: type, diameter (mm), and whether the session is told
@@ -42,7 +46,8 @@ PATIENTS = (
 )
 
 
-def table_setting(p: SimPatient, condition: str, inversion: float, pf: float, rng) -> tuple[float, float]:
+def table_setting(p: SimPatient, condition: str, inversion: float, pf: float,
+                  rng: np.random.Generator) -> tuple[float, float]:
     """The adjustable table's (inversion, plantar flexion) as ``p`` sets it to match the reference."""
     f = p.shoes_factor if condition == "shoes" else 1.0
     err = [f * (p.bias[i] + p.gain_inv[i] * inversion + p.gain_pf[i] * pf + rng.normal(0.0, p.noise)) for i in (0, 1)]
@@ -93,7 +98,9 @@ class SimulatedPatient:
     """A patient of ``profile`` answering the clinician's references, trial after trial (a seeded
     generator: the same seed gives the same settings)."""
 
-    def __init__(self, profile: PatientProfile = PatientProfile.NO_SPRAIN, seed: int | None = None):
+    def __init__(self, profile: PatientProfile = PatientProfile.NO_SPRAIN, seed: int | None = None) -> None:
+        import numpy as np
+
         self.profile = profile
         self._rng = np.random.default_rng(seed)
 
@@ -110,7 +117,7 @@ class SimulatedPatient:
         mark_type, diameter, _ = self.patient.marks
         return Stance((inv, pf), (float(table[0]), float(table[1])), condition, mark_type, float(diameter))
 
-    def scene(self, stance: Stance):
+    def scene(self, stance: Stance) -> Scene:
         """The simulated scene of ``stance``: the right leg on the adjustable table, its marks on."""
         from anklescan.hardware.sim_scene import leg_scene
 

@@ -28,13 +28,18 @@ time, and the clock advances one frame.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import Enum
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from anklescan.core.vocabulary import LEG_LABEL_KEYS, LEG_LABELS
-from anklescan.hardware.sim_scene import ObjectId, Scene, SimMark
+from anklescan.hardware.sim_scene import ObjectId, Scene, SceneObject, SimMark
+
+if TYPE_CHECKING:
+    from anklescan.hardware.simrig import LightTransport, SimRig
 
 FRAME_S = {"webcam": 0.030, "dslr": 2.0}  # seconds per frame (issue 18; docs/performance.md)
 SUBJECT_KINDS = (ObjectId.LEG, ObjectId.FOOT)
@@ -52,7 +57,7 @@ class SwayShape(Enum):
 
 @dataclass(frozen=True)
 class Sway:
-    direction: tuple = (1.0, 0.0, 0.0)  # world direction of the translation (normalised)
+    direction: tuple[float, ...] = (1.0, 0.0, 0.0)  # world direction of the translation (normalised)
     amplitude_mm: float = math.inf  # half-range of the oscillation (a twitch's height); inf = steady drift
     speed_mm_s: float = 0.0  # peak speed of the ankle
     phase_rad: float = 0.0  # where in its cycle the sway is when the scan starts
@@ -61,21 +66,22 @@ class Sway:
     twitch: tuple[float, float] | None = None  # (start_s, hold_s): a twitch that returns (SwayShape.TWITCH)
 
     @classmethod
-    def drift(cls, total_mm: float, duration_s: float, axis="sideways", **kw) -> Sway:
+    def drift(cls, total_mm: float, duration_s: float, axis: str | Sequence[float] = "sideways", **kw: Any) -> Sway:
         """A steady drift of ``total_mm`` over ``duration_s`` along a named axis or a vector."""
         d = AXES[axis] if isinstance(axis, str) else tuple(axis)
         return cls(direction=d, amplitude_mm=math.inf, speed_mm_s=float(total_mm) / float(duration_s), **kw)
 
     @classmethod
-    def back_and_forth(cls, peak_to_peak_mm: float, period_s: float, axis="sideways", **kw) -> Sway:
+    def back_and_forth(cls, peak_to_peak_mm: float, period_s: float, axis: str | Sequence[float] = "sideways",
+                       **kw: Any) -> Sway:
         """An oscillation of ``peak_to_peak_mm`` (at the ankle) with period ``period_s``."""
         d = AXES[axis] if isinstance(axis, str) else tuple(axis)
         a = 0.5 * float(peak_to_peak_mm)
         return cls(direction=d, amplitude_mm=a, speed_mm_s=a * 2 * math.pi / float(period_s), **kw)
 
     @classmethod
-    def twitch_of(cls, height_mm: float, start_s: float, hold_s: float, rise_s: float, axis="sideways",
-                  **kw) -> Sway:
+    def twitch_of(cls, height_mm: float, start_s: float, hold_s: float, rise_s: float,
+                  axis: str | Sequence[float] = "sideways", **kw: Any) -> Sway:
         """A twitch: out by ``height_mm`` from ``start_s`` over ``rise_s``, held ``hold_s``, back over ``rise_s``."""
         d = AXES[axis] if isinstance(axis, str) else tuple(axis)
         return cls(direction=d, amplitude_mm=float(height_mm), speed_mm_s=float(height_mm) / max(float(rise_s), 1e-9),
@@ -105,10 +111,10 @@ class Sway:
         if shape is SwayShape.DRIFT:
             return self.speed_mm_s * t
         A = self.amplitude_mm
-        if shape is SwayShape.TWITCH:
+        if shape is SwayShape.TWITCH and self.twitch is not None:
             start, hold = self.twitch
             rise = A / self.speed_mm_s
-            ramp = lambda x: 0.5 - 0.5 * math.cos(math.pi * min(max(x, 0.0), 1.0))  # noqa: E731
+            ramp: Callable[[float], float] = lambda x: 0.5 - 0.5 * math.cos(math.pi * min(max(x, 0.0), 1.0))  # noqa: E731
             return A * (ramp((t - start) / rise) - ramp((t - start - rise - hold) / rise))
         w = self.speed_mm_s / A
         return A * (math.sin(w * t + self.phase_rad) - math.sin(self.phase_rad))
@@ -145,7 +151,8 @@ class CombinedSway:
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+    R: np.ndarray = np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+    return R
 
 
 def ankle_of(scene: Scene) -> np.ndarray:
@@ -156,7 +163,7 @@ def ankle_of(scene: Scene) -> np.ndarray:
     return np.asarray(legs[0].centre, float).copy()
 
 
-def _moves(obj) -> bool:
+def _moves(obj: SceneObject) -> bool:
     return obj.kind in SUBJECT_KINDS or (obj.kind == ObjectId.MARK and str(obj.label) in LEG_LABEL_KEYS)
 
 
@@ -187,7 +194,7 @@ class SwayClock:
     frame_s: float = FRAME_S["webcam"]
     start_s: float = 0.0
     frames_taken: int = 0
-    times: list = field(default_factory=list)  # the time of every frame photographed
+    times: list[float] = field(default_factory=list)  # the time of every frame photographed
 
     def reset(self) -> None:
         self.frames_taken, self.times = 0, []
@@ -196,7 +203,7 @@ class SwayClock:
         R, T = self.sway.pose(t)
         return posed_scene(scene, R, T, ankle_of(scene))
 
-    def capture(self, rig, projector_image, **kw) -> np.ndarray:
+    def capture(self, rig: SimRig, projector_image: np.ndarray, **kw: Any) -> np.ndarray:
         """Photograph ``projector_image`` through ``rig``'s devices with the subject at this
         frame's pose; the rig's own noise generator keeps a seeded run reproducible."""
         from anklescan.hardware.simrig import SimRig
@@ -219,7 +226,7 @@ def _subject_scene(scene: Scene) -> Scene:
     return Scene([o for o in scene.objects if _moves(o)])
 
 
-def affected_pixels(still, posed, dilate_px: int = 2) -> np.ndarray:
+def affected_pixels(still: SimRig, posed: SimRig, dilate_px: int = 2) -> np.ndarray:
     """(H, W) bool: pixels whose light the subject can change between ``still`` and ``posed``:
     their ray meets the subject in either scene, or the subject shades the point they see."""
     import cv2
@@ -238,13 +245,13 @@ def affected_pixels(still, posed, dilate_px: int = 2) -> np.ndarray:
         dist = np.linalg.norm(to_x, axis=1)
         tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
         mask[rows[tp < dist - 1e-3]] = True
-    mask = mask.reshape(cam.height, cam.width).astype(np.uint8)
+    image: np.ndarray = mask.reshape(cam.height, cam.width).astype(np.uint8)
     if dilate_px:
-        mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
-    return mask.astype(bool)
+        image = cv2.dilate(image, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
+    return image.astype(bool)
 
 
-def frame_transport(still, posed):
+def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
     """``posed``'s light transport: ``still``'s, with the rows of the affected pixels recast.
 
     Every row of the transport holds exactly 4 taps per sub-sample, so a pixel's row is a fixed
@@ -255,9 +262,10 @@ def frame_transport(still, posed):
 
     still.prepare()
     tr = still._transport
+    assert tr is not None  # prepare() built it
     cam, o = still.camera, still.optics
     W = cam.width
-    with single_threaded_blas():
+    with single_threaded_blas():  # type: ignore[no-untyped-call]  # hardware.simrig is not typed yet
         rows = np.flatnonzero(affected_pixels(still, posed).ravel())
         offs = posed._subpixel_offsets()
         S = len(offs)
@@ -290,13 +298,14 @@ def frame_transport(still, posed):
     return LightTransport(matrix, ambient, tr.pad, tr.padded_shape)
 
 
-def swaying_capture(rig, images, sway: Sway | CombinedSway, frame_s: float, start_s: float = 0.0) -> tuple[list, list]:
+def swaying_capture(rig: SimRig, images: Sequence[np.ndarray], sway: Sway | CombinedSway, frame_s: float,
+                    start_s: float = 0.0) -> tuple[list[np.ndarray], list[float]]:
     """Photograph ``images`` in order with the subject swaying; returns (frames, frame times)."""
     if sway.still and rig.motion is None:
         return rig.capture_many(images), [start_s + n * frame_s for n in range(len(images))]
     clock = SwayClock(sway, frame_s, start_s)
     old = rig.motion
-    rig.motion = clock
+    rig.motion = clock  # type: ignore[assignment]  # SimRig.motion is untyped (None until set): simrig is not typed yet
     try:
         frames = [rig.capture(im) for im in images]
     finally:
@@ -304,7 +313,7 @@ def swaying_capture(rig, images, sway: Sway | CombinedSway, frame_s: float, star
     return frames, list(clock.times)
 
 
-def true_largest_displacement(rig, sway: Sway | CombinedSway, times) -> float:
+def true_largest_displacement(rig: SimRig, sway: Sway | CombinedSway, times: Sequence[float]) -> float:
     """The truth the motion estimate is judged against: the largest distance any seen point of
     the subject (leg, foot, leg marks, as the camera sees them at t = 0) travels between any two
     frames of the capture, mm."""

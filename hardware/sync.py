@@ -18,11 +18,15 @@ from __future__ import annotations
 import statistics
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import Protocol
 
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.vocabulary import JsonObject
 
 MIN_CONTRAST = 8.0  # 8-bit levels between black and white frames below which nothing is measurable
 
@@ -53,7 +57,7 @@ class LatencyResult:
         return (f"latency {self.latency_s * 1000:.0f} ms (median of {len(self.latencies_s)}, "
                 f"±{self.resolution_s * 1000:.0f} ms) → settle {self.settle_s * 1000:.0f} ms")
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> JsonObject:
         return {"latency_ms": round(self.latency_s * 1000, 1),
                 "latencies_ms": [round(x * 1000, 1) for x in self.latencies_s],
                 "settle_ms": round(self.settle_s * 1000, 1), "resolution_ms": round(self.resolution_s * 1000, 1),
@@ -79,16 +83,17 @@ def analyse(toggles: list[Toggle], samples: list[Sample], *, fraction: float = 0
         # (the camera would show an older toggle's level), so no partial answer is given.
         raise AnkleScanError(f"latency test: the camera did not see {missed} of {len(toggles)} changes within "
                              "the hold time; the latency is longer than that — run it with a longer hold")
-    median = statistics.median(found)
-    settle = max(median + max(margin_s, margin_frac * median), max(found))
-    return LatencyResult(median, tuple(found), settle, _step(samples), lo, hi)
+    latencies = [x for x in found if x is not None]
+    median = statistics.median(latencies)
+    settle = max(median + max(margin_s, margin_frac * median), max(latencies))
+    return LatencyResult(median, tuple(latencies), settle, _step(samples), lo, hi)
 
 
 def _next_time(toggles: list[Toggle], i: int) -> float:
     return toggles[i + 1].t if i + 1 < len(toggles) else float("inf")
 
 
-def _latency(toggle: Toggle, until: float, samples, lo: float, hi: float, fraction: float) -> float | None:
+def _latency(toggle: Toggle, until: float, samples: list[Sample], lo: float, hi: float, fraction: float) -> float | None:
     """None unless the window after the toggle ends at the new level."""
     bright_at, dark_at = lo + fraction * (hi - lo), hi - fraction * (hi - lo)
     window = [s for s in samples if toggle.t <= s.t_start < until]
@@ -96,7 +101,7 @@ def _latency(toggle: Toggle, until: float, samples, lo: float, hi: float, fracti
     if not arrived or not arrived[-1]:
         return None
     first = len(arrived) - arrived[::-1].index(False) if False in arrived else 0
-    return window[first].t_start - toggle.t
+    return float(window[first].t_start - toggle.t)
 
 
 def _step(samples: list[Sample]) -> float:
@@ -113,8 +118,20 @@ def mean_level(image: np.ndarray) -> float:
     return float(img[::step, ::step].mean()) * scale
 
 
-def run_latency_test(camera, show, *, toggles: int = 6, hold_s: float = 0.6, min_samples: int = 3,
-                     clock=time.monotonic, level=mean_level, cancelled=lambda: False, **analyse_kw) -> LatencyResult:
+class Capturing(Protocol):
+    """What the self-test photographs with: a camera, or the acquisition in front of one."""
+
+    def capture(self) -> np.ndarray: ...
+
+
+def _never() -> bool:
+    return False
+
+
+def run_latency_test(camera: Capturing, show: Callable[[bool], float], *, toggles: int = 6, hold_s: float = 0.6,
+                     min_samples: int = 3, clock: Callable[[], float] = time.monotonic,
+                     level: Callable[[np.ndarray], float] = mean_level, cancelled: Callable[[], bool] = _never,
+                     **analyse_kw: float) -> LatencyResult:
     """Project black, then alternate white/black ``toggles`` times; after each toggle capture
     for ``hold_s`` (and at least ``min_samples`` times, for slow still cameras).
 
@@ -131,7 +148,8 @@ def run_latency_test(camera, show, *, toggles: int = 6, hold_s: float = 0.6, min
     return analyse(events, samples, **analyse_kw)
 
 
-def _sample_for(camera, hold_s, min_samples, clock, level, out: list, cancelled) -> None:
+def _sample_for(camera: Capturing, hold_s: float, min_samples: int, clock: Callable[[], float],
+                level: Callable[[np.ndarray], float], out: list[Sample], cancelled: Callable[[], bool]) -> None:
     end, n = clock() + hold_s, 0
     while clock() < end or n < min_samples:
         if cancelled():
@@ -146,24 +164,32 @@ def _sample_for(camera, hold_s, min_samples, clock, level, out: list, cancelled)
 # Kept per camera object, so a self-test run on one camera never applies to another one the
 # user switches to, and nothing is kept alive after the camera is closed and dropped.
 
+class SettleSource(StrEnum):
+    """Where a settle time comes from (the capture manifest's ``settle_source``)."""
+
+    SELF_TEST = "self-test"
+    MANUAL = "manual"
+    SETTINGS = "settings"
+
+
 @dataclass(frozen=True)
 class Settle:
     seconds: float
-    source: str  # "self-test" or "manual"
+    source: SettleSource
     result: LatencyResult | None = None
 
 
-_SETTLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_SETTLE: weakref.WeakKeyDictionary[object, Settle] = weakref.WeakKeyDictionary()
 
 
-def remember(camera, settle: Settle) -> None:
+def remember(camera: object, settle: Settle) -> None:
     _SETTLE[camera] = settle
 
 
-def settle_for(camera, default_s: float) -> Settle:
+def settle_for(camera: object, default_s: float) -> Settle:
     """The measured (or manually set) settle time of ``camera``, else ``default_s`` from the settings."""
     try:
         found = _SETTLE.get(camera)
     except TypeError:  # not weak-referenceable: nothing can have been remembered
         found = None
-    return found or Settle(float(default_s), "settings")
+    return found or Settle(float(default_s), SettleSource.SETTINGS)

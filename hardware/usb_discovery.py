@@ -10,6 +10,7 @@ a short table of makers, with ``problem`` saying what to do.
 from __future__ import annotations
 
 import errno
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import usb.core
@@ -48,7 +49,7 @@ class UsbCamera:
         return KIND_FOR_CLASS[self.usb_class]
 
     @property
-    def key(self) -> tuple:
+    def key(self) -> tuple[int, int, int | None, int | None]:
         """Identity across polls: the same device on the same port (names may fail to read)."""
         return (self.vid, self.pid, self.bus, self.address)
 
@@ -60,10 +61,10 @@ class UsbUnavailable(Exception):
     """No libusb on this computer: discovery cannot run (the cameras may still work)."""
 
 
-def camera_class(dev) -> int | None:
+def camera_class(dev: usb.core.Device) -> int | None:
     """PTP or UVC when the device or one of its interfaces has that class, else None."""
     if dev.bDeviceClass in BACKEND_FOR_CLASS:
-        return dev.bDeviceClass
+        return int(dev.bDeviceClass)
     try:
         classes = {intf.bInterfaceClass for cfg in dev for intf in cfg}
     except usb.core.USBError:
@@ -76,12 +77,12 @@ def camera_class(dev) -> int | None:
     return None
 
 
-def describe_device(dev, usb_class: int) -> UsbCamera:
+def describe_device(dev: usb.core.Device, usb_class: int) -> UsbCamera:
     name, problem = _read_name(dev)
     return UsbCamera(int(dev.idVendor), int(dev.idProduct), dev.bus, dev.address, usb_class, name, problem)
 
 
-def _read_name(dev) -> tuple[str, str]:
+def _read_name(dev: usb.core.Device) -> tuple[str, str]:
     fallback = f"{VENDORS.get(int(dev.idVendor), 'Unknown maker')} device"
     try:
         # get_langids, unlike Device.langids, lets the USBError (errno 13) through.
@@ -99,7 +100,7 @@ def _read_name(dev) -> tuple[str, str]:
     return name or fallback, ""
 
 
-def discover(backend=None) -> list[UsbCamera]:
+def discover(backend: object | None = None) -> list[UsbCamera]:
     """Every PTP and UVC device; ``backend`` is a pyusb backend (tests pass a fake one)."""
     try:
         devices = list(usb.core.find(find_all=True, backend=backend))
@@ -130,9 +131,10 @@ class Change:
 class UsbWatcher:
     """Polled by the GUI (every 2 s): compares the set of cameras with the previous poll."""
 
-    def __init__(self, backend=None, discover_fn=discover):
+    def __init__(self, backend: object | None = None,
+                 discover_fn: Callable[[object | None], list[UsbCamera]] = discover) -> None:
         self._backend, self._discover = backend, discover_fn
-        self.cameras: dict[tuple, UsbCamera] = {}
+        self.cameras: dict[tuple[int, int, int | None, int | None], UsbCamera] = {}
         self.unavailable = ""
 
     def poll(self) -> Change:

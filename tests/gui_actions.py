@@ -191,7 +191,7 @@ def calibrated_window(qtbot, operator: str = "tester"):
     qtbot.addWidget(win)
     win.show()
     qtbot.waitExposed(win)
-    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
-    win.settings.set("operator", operator)
+    win.settings.settle_ms = 5  # the simulated projector has no LCD to settle
+    win.settings.operator = operator
     use_true_calibration(win)
     return win

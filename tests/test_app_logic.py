@@ -13,17 +13,7 @@ import pytest
 
 from anklescan.app.logic.scan import ScanLogic, ScanRefused
 from anklescan.app.logic.session import SessionLogic
-
-
-class DictSettings(dict):
-    DEFAULTS = {"operator": "", "pattern_preset": "default", "motion_threshold_mm": 0.5, "settle_ms": 30,
-                "daily_check_policy": "warn", "daily_check_max_age_hours": 24.0}
-
-    def get(self, key):
-        return super().get(key, self.DEFAULTS[key])
-
-    def set(self, key, value):
-        self[key] = value
+from anklescan.app.logic.settings import MemorySettings
 
 
 @dataclass
@@ -58,7 +48,9 @@ class Result:  # what the acquisition worker reports at the end of a scan
 @pytest.fixture
 def logic(tmp_path):
     notices = []
-    session = SessionLogic(DictSettings(operator="AB"))
+    settings = MemorySettings()
+    settings.operator = "AB"
+    session = SessionLogic(settings)
     session.notice.connect(lambda kind, text: notices.append((kind, text)))
     session.open_store(tmp_path / "data")
     session.notices = notices

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from anklescan.app.logic.settings import CalibrationVerdict
 from anklescan.app.settings import Settings
 
 pytestmark = pytest.mark.gui
@@ -87,10 +88,10 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
     info = current_calibration_info(Settings())
-    assert Path(info["path"]).exists() and info["id"] is not None
-    assert store.get_calibration(info["id"]).rms == pytest.approx(rep.camera.rms_px)
+    assert Path(info.path).exists() and info.id is not None
+    assert store.get_calibration(info.id).rms == pytest.approx(rep.camera.rms_px)
     cal, cid = load_current_calibration(Settings())
-    assert cid == info["id"] and np.allclose(cal.camera.K, wiz.calibration.camera.K)
+    assert cid == info.id and np.allclose(cal.camera.K, wiz.calibration.camera.K)
     session = store.start_session(store.add_patient("P1").id, condition="barefoot", calibration_id=cid)
     assert store.session_summary(session.id).calibration.id == cid
     assert calibration_warning(Settings()) == ""
@@ -106,13 +107,13 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     # issue #8: every control-point distance within 0.2 mm of the drawing (measured: 0.063 mm)
     assert res.passed and res.rms_mm <= 0.06 and res.max_abs_mm <= 0.2 and len(res.centres) >= 18
     assert "PASS" in wiz.verify_verdict.text() and wiz.verify_table.rowCount() > 0
-    assert current_calibration_info(Settings())["verified"] == "pass"
-    assert Path(info["path"]).with_suffix(".verification.json").exists()
+    assert current_calibration_info(Settings()).verified is CalibrationVerdict.PASS
+    assert Path(info.path).with_suffix(".verification.json").exists()
     _shot(wiz, "calib_verify.png")
 
     # a second accepted calibration is a new version; sessions keep theirs
     wiz.accept_current()
-    assert current_calibration_info(Settings())["id"] != cid
+    assert current_calibration_info(Settings()).id != cid
     assert store.get_session(session.id).calibration_id == cid
 
 
@@ -261,14 +262,14 @@ def test_warning_banner_hook(tmp_path):
     qs = Settings()  # the calibration's keys are app.settings' like every other
     assert "No calibration" in calibration_warning(qs)
     now = dt.datetime(2025, 3, 1, tzinfo=dt.UTC)
-    qs.set("calibration_path", str(tmp_path / "c.json"))
-    qs.set("calibration_created", (now - dt.timedelta(days=10)).isoformat())
+    qs.calibration_path = str(tmp_path / "c.json")
+    qs.calibration_created = (now - dt.timedelta(days=10)).isoformat()
     assert calibration_warning(qs, now) == ""
-    qs.set("calibration_created", (now - dt.timedelta(days=45)).isoformat())
+    qs.calibration_created = (now - dt.timedelta(days=45)).isoformat()
     assert "45 days old" in calibration_warning(qs, now)
-    qs.set("calibration_max_age_days", 60)
+    qs.calibration_max_age_days = 60
     assert calibration_warning(qs, now) == ""
-    qs.set("calibration_verified", "fail")
+    qs.calibration_verified = CalibrationVerdict.FAIL
     assert "verification failed" in calibration_warning(qs, now)
 
 
@@ -318,7 +319,7 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
     info = current_calibration_info(Settings())
-    assert Path(info["path"]).exists() and "chessboard" in store.get_calibration(info["id"]).source
+    assert Path(info.path).exists() and "chessboard" in store.get_calibration(info.id).source
 
 
 def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(setup, qtbot):

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from anklescan.app.cli import main
+from anklescan.app.logic.settings import CheckPolicy, MemorySettings
 from anklescan.core.calibration.daily_check import CheckSettings, run_check, table_angles
 from anklescan.core.calibration.file import save_calibration
 from anklescan.core.scan.capture import load_capture, save_capture
@@ -167,16 +168,6 @@ def test_command_exit_code_from_a_real_process(rig_files):
 
 
 # ---- the checks kept in the database, and what they say at the start of a scan ----------------
-class _Settings(dict):
-    DEFAULTS = {"operator": "AB", "pattern_preset": "default", "motion_threshold_mm": 0.5, "settle_ms": 30,
-                "daily_check_policy": "warn", "daily_check_max_age_hours": 24.0}
-
-    def get(self, key):
-        return super().get(key, self.DEFAULTS[key])
-
-    def set(self, key, value):
-        self[key] = value
-
 
 @pytest.fixture(scope="module")
 def results(rig_files):
@@ -233,7 +224,9 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         notes: str = ""
 
     good, bad = results
-    session = SessionLogic(_Settings())
+    settings = MemorySettings()
+    settings.operator = "AB"
+    session = SessionLogic(settings)
     session.open_store(tmp_path / "data")
     try:
         session.use_calibration(SimRig(scale=0.1).true_calibration(), None)
@@ -246,7 +239,7 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         scan.begin(sid, Entry(), None)
         assert "FAILED" in scan.check_warning and "plantar flexion" in scan.check_warning
         scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
-        session.settings.set("daily_check_policy", "block")
+        session.settings.daily_check_policy = CheckPolicy.BLOCK
         n_trials = len(session.trials(sid))
         with pytest.raises(ScanRefused, match="FAILED"):
             scan.begin(sid, Entry(), None)
@@ -255,7 +248,7 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         scan.begin(sid, Entry(), None)  # a passed check today: no word
         assert scan.check_warning == ""
         scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
-        session.settings.set("daily_check_policy", "off")
+        session.settings.daily_check_policy = CheckPolicy.OFF
         record_check(session, bad)
         scan.begin(sid, Entry(), None)
         assert scan.check_warning == ""

@@ -9,6 +9,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 from PySide6.QtWidgets import QDoubleSpinBox
 
+from anklescan.app.logic.settings import CheckPolicy
 from anklescan.core.records.daily_checks import list_checks
 
 pytestmark = pytest.mark.gui
@@ -45,7 +46,7 @@ def test_daily_check_from_the_menu_passes_the_true_rig_and_a_failed_one_warns_th
     assert verdict.startswith("PASSED"), verdict
     (kept,) = list_checks(win.store)
     assert kept.passed and abs(kept.measured_inversion - 10.0) < 0.1 and abs(kept.measured_plantar_flexion + 5.0) < 0.1
-    assert win.settings.get("daily_check_inversion") == 10.0  # offered again next time
+    assert win.settings.daily_check_inversion == 10.0  # offered again next time
     # a wrong levelling: the current calibration's frame turned 2° about y; it fails, naming the axis
     from anklescan.app.calibration_wizard import accept_calibration
     from anklescan.hardware.sim_check import rotated_frame
@@ -56,7 +57,7 @@ def test_daily_check_from_the_menu_passes_the_true_rig_and_a_failed_one_warns_th
     assert verdict.startswith("FAILED") and "inversion off by" in verdict, verdict
     assert [c.passed for c in list_checks(win.store)] == [False, True]
     # a patient scan after a failed check: refused when the setting says block
-    win.settings.set("daily_check_policy", "block")
+    win.settings.daily_check_policy = CheckPolicy.BLOCK
 
     def new_patient(dialog):
         QTest.keyClicks(dialog.code, "P-101")
@@ -67,7 +68,7 @@ def test_daily_check_from_the_menu_passes_the_true_rig_and_a_failed_one_warns_th
     assert "did not start" in win.banner.text and "daily check" in win.banner.text
     assert not win.controller.busy
     # warned (the scan runs) when it says warn
-    win.settings.set("daily_check_policy", "warn")
+    win.settings.daily_check_policy = CheckPolicy.WARN
     with qtbot.waitSignal(win.controller.busyChanged, timeout=60_000, check_params_cb=lambda b: b is False):
         click(win.scan_page.scan_button)
         assert win.controller.busy and "daily check" in win.banner.text and "FAILED" in win.banner.text

@@ -10,6 +10,7 @@ from gui_actions import calibrated_window, dismiss, menu_action, press_accept, w
 from PySide6.QtWidgets import QMessageBox, QTextBrowser
 
 from anklescan.app.help_menu import version
+from anklescan.app.logic.settings import CalibrationVerdict
 from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION
 
 pytestmark = pytest.mark.gui
@@ -112,8 +113,7 @@ def test_the_current_calibration_is_chosen_from_the_database(qtbot, win):
     with their date, RMS and verification, and one click makes one current again."""
     first_id = win.calibration_id
     win.store.set_calibration_verified(first_id, True)
-    for key in ("calibration_path", "calibration_id", "calibration_created"):
-        win.settings.set(key, "")
+    win.settings.calibration_path, win.settings.calibration_id, win.settings.calibration_created = "", None, ""
     win.rig_setup.load_calibration()
     assert win.calibration is None and not win.scan_page.scan_button.isEnabled()
     seen = {}
@@ -126,4 +126,4 @@ def test_the_current_calibration_is_chosen_from_the_database(qtbot, win):
     (row,) = seen["rows"]
     assert row[0].startswith(str(first_id)) and row[3] == "yes" and row[1][:4].isdigit()
     assert win.calibration is not None and win.calibration_id == first_id
-    assert win.settings.get("calibration_verified") == "pass" and win.scan_page.scan_button.isEnabled()
+    assert win.settings.calibration_verified is CalibrationVerdict.PASS and win.scan_page.scan_button.isEnabled()

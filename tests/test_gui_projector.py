@@ -90,12 +90,13 @@ def test_projector_resolution_from_settings_or_the_display(qtbot, monkeypatch):
     """The real projector's resolution: the setting when set; else the projector monitor's own
     (the second monitor, or the named one); with one monitor, the settings' fallback."""
     import anklescan.app.rig as rig
+    from anklescan.app.logic.settings import FALLBACK_PROJECTOR_SIZE
     from anklescan.app.settings import Settings
 
     settings = Settings()
-    settings.set("projector_size", "1280x800")
+    settings.projector_size = (1280, 800)
     assert rig.projector_resolution(settings) == (1280, 800)
-    settings.set("projector_size", "")
-    assert rig.projector_resolution(settings) == settings.projector_size  # Xvfb: one monitor
+    settings.projector_size = None
+    assert rig.projector_resolution(settings) == FALLBACK_PROJECTOR_SIZE  # Xvfb: one monitor
     monkeypatch.setattr(rig, "_display_size", lambda preferred: (1920, 1080))
     assert rig.projector_resolution(settings) == (1920, 1080)

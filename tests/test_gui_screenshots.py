@@ -28,8 +28,8 @@ def test_screenshots(qtbot, qapp, monkeypatch):
     win.resize(1280, 780)
     win.show()
     qtbot.waitExposed(win)
-    win.settings.set("settle_ms", 5)
-    win.settings.set("operator", "Dr. A. Clinician")
+    win.settings.settle_ms = 5
+    win.settings.operator = "Dr. A. Clinician"
     use_true_calibration(win)
     for code, n in (("P-014", 0), ("P-017", 3), ("P-021", 1)):
         win.records.add_patient(code, n, "right")

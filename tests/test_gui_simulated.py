@@ -53,7 +53,7 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
     panel = win.camera_panel
     assert panel.patient_box.isVisibleTo(panel)
     panel.profile.setCurrentIndex(panel.profile.findData(PatientProfile.SPRAIN_HISTORY.value))
-    assert win.settings.get("sim_patient") == "sprain history"
+    assert win.settings.sim_patient is PatientProfile.SPRAIN_HISTORY
     assert "SIMULATED" in win.rig_label.text() and "sprain history" in win.rig_label.text()
 
     def fill(dialog):
@@ -190,7 +190,7 @@ def test_the_simulated_patient_sways_as_set_in_camera_setup(qtbot):
     panel = win.camera_panel
     assert panel.sway.specialValueText() == "stands still" and win.rig.camera.rig.motion is None
     panel.sway.setValue(2.0)
-    assert win.settings.get("sim_sway_mm") == 2.0
+    assert win.settings.sim_sway_mm == 2.0
     assert win.rig.camera.rig.motion is not None and win.rig.camera.rig.motion.sway.amplitude_mm == 2.0
     # the next trial's stance keeps the sway
     win.rig.stand_patient((0.0, 0.0), "barefoot")

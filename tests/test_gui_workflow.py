@@ -46,7 +46,7 @@ def fresh(qtbot, request):
     win.show()
     qtbot.waitExposed(win)
     qtbot.waitUntil(lambda: win.rig is not None and win.marks_page is not None, timeout=60_000)
-    win.settings.set("settle_ms", 5)  # the simulated projector has no LCD to settle
+    win.settings.settle_ms = 5  # the simulated projector has no LCD to settle
     yield win
     if win.controller is not None and win.controller.busy:
         win.controller.stop()
@@ -312,7 +312,7 @@ def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
 def test_every_enabled_menu_action_runs_without_an_error(qtbot, fresh, tmp_path):
     win = fresh
     use_true_calibration(win)
-    win.settings.set("operator", "op")
+    win.settings.operator = "op"
     _add_patient(qtbot, win, "P-040")
     _new_session(qtbot, win)
     _scan(qtbot, win, "0", "0")
@@ -395,8 +395,8 @@ def test_start_up_and_report_export_keep_the_ui_responsive(qtbot, tmp_path):
     meter.stop()
     startup = meter.max_gap_ms
     use_true_calibration(win)
-    win.settings.set("operator", "op")
-    win.settings.set("settle_ms", 5)
+    win.settings.operator = "op"
+    win.settings.settle_ms = 5
     _add_patient(qtbot, win, "P-060")
     _new_session(qtbot, win)
     _scan(qtbot, win, "0", "0")

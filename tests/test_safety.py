@@ -330,7 +330,8 @@ def test_outputs_are_private_whatever_the_umask(tmp_path):
 def test_the_settings_file_is_private_whatever_the_umask(tmp_path):
     code = ("import os, sys; os.umask(0)\n"
             "from anklescan.app.settings import Settings\n"
-            "s = Settings(sys.argv[1]); s.set('data_folder', '/clinic/patients'); s.sync()\n")
+            "from pathlib import Path\n"
+            "s = Settings(sys.argv[1]); s.chosen_data_folder = Path('/clinic/patients'); s.sync()\n")
     path = tmp_path / "conf" / "anklescan.ini"
     done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=60,
                           env={**os.environ, "QT_QPA_PLATFORM": "offscreen"})

@@ -158,7 +158,7 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     win.resize(1200, 760)
     win.show()
     qtbot.waitExposed(win)
-    win.settings.set("operator", "tester")
+    win.settings.operator = "tester"
     win.records.add_patient("P-100", 1, "right")
     win.records.start_session("barefoot")
     sid = win.records.current_session_id()

@@ -136,7 +136,7 @@ def test_panel_self_test_sets_the_settle_time_the_scan_records(qtbot, tmp_path):
         assert "latency" in panel.latency_result.text()
         assert measured.seconds < 0.5  # the simulated camera sees a painted frame at once
 
-        win.settings.set("operator", "tester")
+        win.settings.operator = "tester"
         use_true_calibration(win)
         win.records.add_patient("P-002", 2, "right")
         win.records.start_session("barefoot")

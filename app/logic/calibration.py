@@ -12,31 +12,46 @@ import datetime as _dt
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from anklescan.app.logic.settings import AppSettings, CalibrationVerdict
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.file import Calibration
 
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
 
 # ==== the current calibration =============================================================
-def current_calibration_info(settings) -> dict:
+@dataclass(frozen=True)
+class CurrentCalibration:
+    """The current calibration as the settings keep it."""
+
+    path: str  # its file; "" when there is none
+    id: int | None  # its row in the data folder's database; None when not in one
+    created: str  # ISO 8601
+    verified: CalibrationVerdict
+    verified_at: str  # ISO 8601; "" when not verified
+
+
+def current_calibration_info(settings: AppSettings) -> CurrentCalibration:
     s = settings
-    cid = s.get("calibration_id")
-    return {"path": s.get("calibration_path"), "id": int(cid) if str(cid).isdigit() else None,
-            "created": s.get("calibration_created"), "verified": s.get("calibration_verified"),
-            "verified_at": s.get("calibration_verified_at")}
+    return CurrentCalibration(s.calibration_path, s.calibration_id, s.calibration_created, s.calibration_verified,
+                              s.calibration_verified_at)
 
 
-def load_current_calibration(settings):
+def load_current_calibration(settings: AppSettings) -> tuple[Calibration, int | None] | tuple[None, None]:
     """(Calibration, database id) of the current calibration, or (None, None)."""
     from anklescan.core.calibration.file import load_calibration
     info = current_calibration_info(settings)
-    if not info["path"] or not Path(info["path"]).exists():
+    if not info.path or not Path(info.path).exists():
         return None, None
-    return load_calibration(info["path"]), info["id"]
+    return load_calibration(info.path), info.id
 
 
-def calibration_warning(settings, now: _dt.datetime | None = None) -> str:
+def calibration_warning(settings: AppSettings, now: _dt.datetime | None = None) -> str:
     """The main window's banner text: "" when the current calibration is fine.
 
     Warns when there is none, when it is older than the ``calibration_max_age_days`` setting
@@ -44,15 +59,15 @@ def calibration_warning(settings, now: _dt.datetime | None = None) -> str:
     """
     s = settings
     info = current_calibration_info(s)
-    if not info["path"]:
+    if not info.path:
         return "No calibration yet: run Calibration… (Scan menu) before measuring patients."
-    max_age = s.get("calibration_max_age_days")
+    max_age = s.calibration_max_age_days
     now = now or _dt.datetime.now(_dt.UTC)
     problems = []
-    if info["verified"] == "fail":
-        problems.append(f"its last verification failed ({info['verified_at'][:10]})")
+    if info.verified is CalibrationVerdict.FAIL:
+        problems.append(f"its last verification failed ({info.verified_at[:10]})")
     try:
-        age = (now - _dt.datetime.fromisoformat(info["created"])).total_seconds() / 86400
+        age = (now - _dt.datetime.fromisoformat(info.created)).total_seconds() / 86400
     except ValueError:
         age = None
     if age is not None and age > max_age:
@@ -66,7 +81,7 @@ def _now_iso() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
-def accept_calibration(cal, report, data_folder: Path, store, settings,
+def accept_calibration(cal, report, data_folder: Path, store, settings: AppSettings,
                        source: str = "box") -> tuple[Path, int | None]:
     """Save atomically, add to the database (versioned: a new row each time), make current."""
     from anklescan.core.calibration.file import calibration_to_dict, save_calibration
@@ -84,16 +99,11 @@ def accept_calibration(cal, report, data_folder: Path, store, settings,
     if store is not None:
         rms = float(report.camera.rms_px) if report is not None else None
         cid = store.add_calibration(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
-    s = settings
-    for key, value in (("calibration_path", str(path)), ("calibration_id", "" if cid is None else str(cid)),
-                       ("calibration_created", created), ("calibration_verified", ""),
-                       ("calibration_verified_at", "")):
-        s.set(key, value)
-    s.sync()
+    _make_current(settings, path, cid, created, CalibrationVerdict.NONE)
     return path, cid
 
 
-def use_stored_calibration(record, data_folder: Path, settings) -> Path:
+def use_stored_calibration(record, data_folder: Path, settings: AppSettings) -> Path:
     """Make a calibration kept in the database (a CalibrationRecord) the current one: its own file
     when it is still in the data folder and the same, else the database's copy written next to
     the others. Its verification in the database is kept as the current verdict."""
@@ -107,14 +117,16 @@ def use_stored_calibration(record, data_folder: Path, settings) -> Path:
         path = folder / f"calibration_db{record.id}.json"
         write_text_atomic(path, json.dumps(record.data, indent=1) + "\n")
     created = str(record.data.get("created", "") or record.created)
-    s = settings
-    for key, value in (("calibration_path", str(path)), ("calibration_id", str(record.id)),
-                       ("calibration_created", created),
-                       ("calibration_verified", "pass" if record.verified else ""),
-                       ("calibration_verified_at", "")):
-        s.set(key, value)
-    s.sync()
+    _make_current(settings, path, record.id, created,
+                  CalibrationVerdict.PASS if record.verified else CalibrationVerdict.NONE)
     return path
+
+
+def _make_current(settings: AppSettings, path: Path, cid: int | None, created: str, verified: CalibrationVerdict) -> None:
+    s = settings
+    s.calibration_path, s.calibration_id, s.calibration_created = str(path), cid, created
+    s.calibration_verified, s.calibration_verified_at = verified, ""
+    s.sync()
 
 
 def _json_or_none(path: Path):
@@ -124,14 +136,14 @@ def _json_or_none(path: Path):
         return None
 
 
-def record_verification(result, settings, calibration_path: str | None = None) -> None:
+def record_verification(result, settings: AppSettings, calibration_path: str | None = None) -> None:
     """Remember the verdict (the banner reads it) and keep the report next to the file."""
     from anklescan.core.atomic import write_text_atomic
     s = settings
-    s.set("calibration_verified", "pass" if result.passed else "fail")
-    s.set("calibration_verified_at", _now_iso())
+    s.calibration_verified = CalibrationVerdict.PASS if result.passed else CalibrationVerdict.FAIL
+    s.calibration_verified_at = _now_iso()
     s.sync()
-    path = calibration_path or current_calibration_info(s)["path"]
+    path = calibration_path or s.calibration_path
     if path:
         write_text_atomic(Path(path).with_suffix(".verification.json"),
                           json.dumps({"verified_at": _now_iso(), **result.to_dict()}, indent=1) + "\n")

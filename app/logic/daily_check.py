@@ -9,10 +9,10 @@ The dialog (app.daily_check) scans the object through the ordinary acquisition p
 from __future__ import annotations
 
 import datetime as _dt
-from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
+from anklescan.app.logic.settings import AppSettings, CheckPolicy
 from anklescan.core.calibration.daily_check import CheckResult, CheckSettings, run_check
 from anklescan.core.records.daily_checks import (
     DEFAULT_MAX_AGE_HOURS,
@@ -29,19 +29,6 @@ if TYPE_CHECKING:
     from anklescan.hardware.camera import Camera
 
 CHECKS_FOLDER = "daily_checks"  # in the data folder: one capture per check, kept
-
-
-class CheckPolicy(Enum):
-    OFF = "off"  # no word at the start of a scan
-    WARN = "warn"  # the scan starts, the banner says why the rig is not known good
-    BLOCK = "block"  # the scan is refused until a check passes
-
-    @classmethod
-    def from_setting(cls, text: str) -> CheckPolicy:
-        try:
-            return cls(str(text).strip().lower())
-        except ValueError:
-            return cls.WARN  # a hand-edited value must not silently turn the check off
 
 
 class _RigView(Protocol):
@@ -90,10 +77,10 @@ def record_check(session: SessionLogic, result: CheckResult) -> DailyCheckRecord
     return add_check(store, result, calibration_id=session.calibration_id, who=session.operator or "")
 
 
-def check_standing(session: SessionLogic, settings: object) -> CheckStanding | None:
+def check_standing(session: SessionLogic, settings: AppSettings) -> CheckStanding | None:
     """What the last check says about scanning now; None when the policy is off or there is no database."""
-    if CheckPolicy.from_setting(settings.get("daily_check_policy")) is CheckPolicy.OFF or session.store is None:
+    if settings.daily_check_policy is CheckPolicy.OFF or session.store is None:
         return None
-    hours = settings.get("daily_check_max_age_hours")
+    hours = settings.daily_check_max_age_hours
     return standing(last_check(session.store), calibration_id=session.calibration_id,
                     max_age_hours=hours if hours > 0 else DEFAULT_MAX_AGE_HOURS)

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 from anklescan.app.logic.events import Event
 from anklescan.app.logic.session import SessionLogic
+from anklescan.app.logic.settings import AppSettings, CheckPolicy
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
@@ -66,7 +67,7 @@ class TrialFinished:
 
 
 class ScanLogic:
-    def __init__(self, session: SessionLogic, settings):
+    def __init__(self, session: SessionLogic, settings: AppSettings):
         self.session = session
         self.settings = settings
         self.trial_id: int | None = None   # the trial being scanned (or just finished)
@@ -104,8 +105,8 @@ class ScanLogic:
     def _daily_check(self) -> str:
         """The last daily check's word on this scan: "" when it passed recently; its message when the
         policy warns; ScanRefused when the policy blocks (the ``daily_check_policy`` setting)."""
-        from anklescan.app.logic.daily_check import CheckPolicy, check_standing
-        policy = CheckPolicy.from_setting(self.settings.get("daily_check_policy"))
+        from anklescan.app.logic.daily_check import check_standing
+        policy = self.settings.daily_check_policy
         if policy is CheckPolicy.OFF:
             return ""
         try:
@@ -125,7 +126,7 @@ class ScanLogic:
         from anklescan.core.scan.patterns import make_pattern_set
         from anklescan.core.scan.triangulate import scan_axes
         w, h = projector_size
-        preset = self.settings.get("pattern_preset")
+        preset = self.settings.pattern_preset.value
         return make_pattern_set(preset, w, h, axes=scan_axes(self.session.calibration),
                                 motion_refs=default_motion_refs(preset))
 
@@ -136,7 +137,7 @@ class ScanLogic:
         folder = store.trial_dir(trial.id, create=True) / "capture"
         return ScanPlan(self.pattern_set(projector_size), folder, folder.parent / "cloud.ply", s.calibration,
                         store.get_session(trial.session_id).mark_diameter_mm,
-                        self.settings.get("motion_threshold_mm"), self.settings.get("settle_ms") / 1000.0,
+                        self.settings.motion_threshold_mm, self.settings.settle_ms / 1000.0,
                         {"device": device, "trial": trial.id, "calibration_id": s.calibration_id})
 
     # ---- outcomes -----------------------------------------------------------------------
@@ -159,7 +160,7 @@ class ScanLogic:
                                result.cloud_path if capture.exists() else None,
                                result.capture_sha256, result.cloud_sha256,
                                TrialMotion(result.motion_mm, result.motion_sd_mm, result.duration_s,
-                                           self.settings.get("motion_threshold_mm")),
+                                           self.settings.motion_threshold_mm),
                                marks, joint)
         recorded = self._finish(outcome)  # False: the store refused it (said in a notice; the trial failed)
         complete = has_cloud and recorded

@@ -11,12 +11,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 from anklescan.app.logic.events import Event
+from anklescan.app.logic.settings import AppSettings
 from anklescan.core.vocabulary import Severity
 
 
 class SessionLogic:
+    settings: AppSettings  # app.settings.Settings, or app.logic.settings.MemorySettings
+
     def __init__(self, settings):
-        self.settings = settings          # get(key) / set(key, value): app.settings.Settings or a dict-like
+        self.settings = settings
         self.store = None
         self.folder: Path | None = None
         self.calibration = None           # the accepted calibration scans are measured with (None: blocked)
@@ -177,11 +180,11 @@ class SessionLogic:
 
     @property
     def operator(self) -> str:
-        return self.settings.get("operator")
+        return self.settings.operator
 
     def set_operator(self, name: str) -> None:
         if name.strip():
-            self.settings.set("operator", name.strip())
+            self.settings.operator = name.strip()
 
     # ---- trial states -----------------------------------------------------------------
     def exclude_trial(self, trial_id: int, reason: str) -> bool:

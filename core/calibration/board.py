@@ -26,20 +26,28 @@ parallel to it, therefore gives z vertical (docs/calibration.md); any other plac
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+import numpy.typing as npt
+from scipy.optimize import OptimizeResult, least_squares
 
-from anklescan.core.calibration.calibrate import CalibrationReport, DeviceQuality, flag_outliers
+from anklescan.core.calibration.calibrate import CalibrationReport, DeviceKind, DeviceQuality, flag_outliers
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.calibration.uncertainty import CalibratedVolume, devices_form_covariance
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.scan.patterns import FrameKind
-from anklescan.core.vocabulary import Axis
+from anklescan.core.vocabulary import Axis, JsonObject
+
+if TYPE_CHECKING:
+    from anklescan.core.scan.capture import Capture
+    from anklescan.core.scan.decode import DecodeResult
 
 DIST_MODELS = {  # which of k1, k2, p1, p2, k3 are free
     "k1": (0,), "k1k2": (0, 1), "k1k2p": (0, 1, 2, 3), "full": (0, 1, 2, 3, 4)}
@@ -70,7 +78,9 @@ def _to_8bit_percentiles(img: np.ndarray) -> np.ndarray:
     if img.dtype == np.uint8:
         return img
     lo, hi = np.percentile(img, (0.5, 99.5))
-    return np.clip((img.astype(np.float32) - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
+    stretched: np.ndarray = np.clip((img.astype(np.float32) - lo) * (255.0 / max(hi - lo, 1e-6)), 0,
+                                    255).astype(np.uint8)
+    return stretched
 
 
 def find_corners(white: np.ndarray, cols: int, rows: int) -> tuple[np.ndarray, float]:
@@ -98,8 +108,8 @@ def _saddle_scores(img: np.ndarray, pts: np.ndarray, ex: np.ndarray, ey: np.ndar
     """How much an X-corner each point is: diagonal squares alike, neighbouring ones opposite."""
     h, w = img.shape
 
-    def at(q):
-        q = np.round(q).astype(int)
+    def at(p: np.ndarray) -> np.ndarray:
+        q = np.round(p).astype(int)
         ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
         out = np.zeros(len(q))
         out[ok] = img[q[ok, 1], q[ok, 0]]
@@ -109,7 +119,8 @@ def _saddle_scores(img: np.ndarray, pts: np.ndarray, ex: np.ndarray, ey: np.ndar
     c, d = at(pts - 0.3 * (ex + ey)), at(pts - 0.3 * (ex - ey))
     # at an X-corner the diagonal pairs agree; at a board's edge (squares on one side, margin on
     # the other) one pair disagrees by the full contrast
-    return np.abs((a + c) - (b + d)) / 2 - (np.abs(a - c) + np.abs(b - d)) / 2
+    scores: np.ndarray = np.abs((a + c) - (b + d)) / 2 - (np.abs(a - c) + np.abs(b - d)) / 2
+    return scores
 
 
 def _check_no_larger_board(g: np.ndarray, grid: np.ndarray, cols: int, rows: int) -> None:
@@ -172,7 +183,7 @@ def local_homography_point(corner: np.ndarray, column: np.ndarray, row: np.ndarr
     return p, se
 
 
-def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
+def observe_board(capture: Capture, cols: int, rows: int, decoded: DecodeResult | None = None) -> BoardView:
     """Camera corners and their projector positions in one Gray-code capture of the board."""
     from anklescan.core.scan.decode import decode
 
@@ -183,12 +194,15 @@ def observe_board(capture, cols: int, rows: int, decoded=None) -> BoardView:
     if decoded is None:  # a board that is not there fails before the (slower) decoding
         find_corners(capture.frames[pset.index(FrameKind.WHITE)], cols, rows)
     d = decode(capture) if decoded is None else decoded
-    stripe = float(min(pset.axis_code(Axis.COLUMN).stripe, pset.axis_code(Axis.ROW).stripe))
+    column_code, row_code = pset.axis_code(Axis.COLUMN), pset.axis_code(Axis.ROW)
+    assert column_code is not None and row_code is not None and d.row is not None  # both axes: checked above
+    stripe = float(min(column_code.stripe, row_code.stripe))
     name = capture.folder.name if capture.folder is not None else "capture"
     return observe_board_maps(d.white_raw, d.column, d.row, cols, rows, stripe, name)
 
 
-def observe_board_maps(white, column, row, cols: int, rows: int, stripe: float, name: str) -> BoardView:
+def observe_board_maps(white: np.ndarray, column: np.ndarray, row: np.ndarray, cols: int, rows: int, stripe: float,
+                       name: str) -> BoardView:
     """The same from a white frame and decoded projector maps (NaN where undecoded)."""
     corners, spacing = find_corners(white, cols, rows)
     half = int(np.clip(round(WINDOW_OF_SQUARE * spacing), 6, 80))
@@ -214,7 +228,8 @@ def _flags_for(model: str) -> int:
     return f
 
 
-def _init_device(obj, img, size, model):
+def _init_device(obj: list[np.ndarray], img: list[np.ndarray], size: tuple[int, int],
+                 model: str) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
     err, K, dist, rv, tv = cv2.calibrateCamera([o.astype(np.float32) for o in obj],
                                                [i.astype(np.float32) for i in img], size, None, None,
                                                flags=_flags_for(model))
@@ -237,7 +252,7 @@ def _models(model: str) -> tuple[str, str]:
 class _Layout:
     """Parameter vector: camera (fx fy cx cy + free dist), projector (same), relative pose, board poses."""
 
-    def __init__(self, model: str, n_views: int):
+    def __init__(self, model: str, n_views: int) -> None:
         mc, mp = _models(model)
         self.frees = (DIST_MODELS[mc], DIST_MODELS[mp])
         self.offs = (0, 4 + len(self.frees[0]), 8 + len(self.frees[0]) + len(self.frees[1]))
@@ -247,20 +262,23 @@ class _Layout:
     def rel(self) -> int:
         return self.offs[2]
 
-    def pack(self, Kc, dc, Kp, dp, rrel, trel, rvs, tvs) -> np.ndarray:
-        def dev(K, d, free):
+    def pack(self, Kc: np.ndarray, dc: np.ndarray, Kp: np.ndarray, dp: np.ndarray, rrel: np.ndarray,
+             trel: np.ndarray, rvs: list[np.ndarray], tvs: list[np.ndarray]) -> np.ndarray:
+        def dev(K: np.ndarray, d: np.ndarray, free: tuple[int, ...]) -> list[float]:
             return [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *[d[i] for i in free]]
         return np.concatenate([dev(Kc, dc, self.frees[0]), dev(Kp, dp, self.frees[1]), rrel, trel,
                                *[np.r_[r, t] for r, t in zip(rvs, tvs, strict=False)]])
 
-    def device(self, v, which: int):
+    def device(self, v: np.ndarray, which: int) -> tuple[np.ndarray, np.ndarray]:
         a = v[self.offs[which]:self.offs[which + 1]]
         K = np.array([[a[0], 0, a[2]], [0, a[1], a[3]], [0, 0, 1.0]])
         d = np.zeros(5)
         d[list(self.frees[which])] = a[4:]
         return K, d
 
-    def unpack(self, v):
+    def unpack(self, v: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray],
+                                             np.ndarray, np.ndarray, np.ndarray]:
+        """(camera K, dist), (projector K, dist), relative rvec, relative t, board poses (views, 6)."""
         o = self.rel
         rrel, trel = v[o:o + 3], v[o + 3:o + 6]
         poses = v[o + 6:].reshape(self.n_views, 6)
@@ -274,7 +292,8 @@ class _Layout:
         return out + ["rx_deg", "ry_deg", "rz_deg", "tx", "ty", "tz"]
 
 
-def _residuals(v, lay: _Layout, obj, cam, proj, masks, w_cam, w_proj):
+def _residuals(v: np.ndarray, lay: _Layout, obj: list[np.ndarray], cam: list[np.ndarray], proj: list[np.ndarray],
+               masks: list[np.ndarray], w_cam: list[np.ndarray], w_proj: list[np.ndarray]) -> np.ndarray:
     (Kc, dc), (Kp, dp), rrel, trel, poses = lay.unpack(v)
     Rrel, _ = cv2.Rodrigues(rrel)
     out = []
@@ -292,9 +311,12 @@ def _residuals(v, lay: _Layout, obj, cam, proj, masks, w_cam, w_proj):
     return np.concatenate(out)
 
 
-def _split(r_px, lay, cam, masks):
+def _split(r_px: np.ndarray, lay: _Layout, cam: list[np.ndarray],
+           masks: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Unweighted residual vector -> per-device (N, 2) arrays in view order."""
-    rc, rp, i = [], [], 0
+    rc: list[np.ndarray] = []
+    rp: list[np.ndarray] = []
+    i = 0
     for k in range(lay.n_views):
         n = 2 * len(cam[k])
         rc.append(r_px[i:i + n].reshape(-1, 2))
@@ -309,7 +331,7 @@ def _split(r_px, lay, cam, masks):
 class BoardCalibration:
     calibration: Calibration
     report: CalibrationReport
-    views: list
+    views: list[BoardView]
     rms_camera_px: float
     rms_projector_px: float
 
@@ -342,8 +364,8 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
     keep_c = [np.ones(len(X), bool) for _ in views]
     keep_p = [m.copy() for m in masks]
     sig_c = sig_p = 1.0
-    excluded_c: list = []
-    excluded_p: list = []
+    excluded_c: list[tuple[int, int]] = []  # (view, corner)
+    excluded_p: list[tuple[int, int]] = []
     for round_ in range(max_rounds):  # weight by each device's noise, drop flagged points, refit
         w_c = [kc / sig_c for kc in keep_c]
         w_p = [np.where(kp, 1.0 / sig_p, 0.0) for kp in keep_p]
@@ -378,7 +400,9 @@ def calibrate_board_views(views: list[BoardView], cols: int, rows: int, square: 
                    csize, projector_size, cols, rows, square, model)
 
 
-def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
+def _init_projector(X: np.ndarray, views: list[BoardView], masks: list[np.ndarray], rvs: list[np.ndarray],
+                    tvs: list[np.ndarray], projector_size: tuple[int, int],
+                    model: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Projector intrinsics and pose relative to the camera.
 
     The camera's board poses put every corner in the camera's frame; corners of boards at
@@ -404,9 +428,11 @@ def _init_projector(X, views, masks, rvs, tvs, projector_size, model):
     return Kp, dp, rrel, trel
 
 
-def _initial_relative(rvs, tvs, prv, ptv):
+def _initial_relative(rvs: list[np.ndarray], tvs: list[np.ndarray], prv: list[np.ndarray],
+                      ptv: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Camera -> projector pose averaged over the views (rotation by SVD of the sum)."""
-    Rs, ts = [], []
+    Rs: list[np.ndarray] = []
+    ts: list[np.ndarray] = []
     for rc, tc, rp, tp in zip(rvs, tvs, prv, ptv, strict=False):
         Rc, _ = cv2.Rodrigues(rc)
         Rp, _ = cv2.Rodrigues(rp)
@@ -418,7 +444,8 @@ def _initial_relative(rvs, tvs, prv, ptv):
     return cv2.Rodrigues(R)[0].ravel(), np.median(ts, axis=0)
 
 
-def board_world_frame(rvec, tvec, cols: int, rows: int, square: float) -> tuple[np.ndarray, np.ndarray]:
+def board_world_frame(rvec: npt.ArrayLike, tvec: npt.ArrayLike, cols: int, rows: int,
+                      square: float) -> tuple[np.ndarray, np.ndarray]:
     """(A, o): board coordinates = A @ world + o, for the module docstring's world frame."""
     R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64))
     t = np.asarray(tvec, np.float64).ravel()
@@ -433,8 +460,11 @@ def board_world_frame(rvec, tvec, cols: int, rows: int, square: float) -> tuple[
     return A, centre_b
 
 
-def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p, excl_c, excl_p,
-            csize, psize, cols, rows, square, model) -> BoardCalibration:
+def _finish(sol: OptimizeResult, lay: _Layout, views: list[BoardView], obj: list[np.ndarray], cam: list[np.ndarray],
+            proj: list[np.ndarray], masks: list[np.ndarray], keep_c: list[np.ndarray], keep_p: list[np.ndarray],
+            sig_c: float, sig_p: float, excl_c: list[tuple[int, int]], excl_p: list[tuple[int, int]],
+            csize: tuple[int, int], psize: tuple[int, int], cols: int, rows: int, square: float,
+            model: str) -> BoardCalibration:
     (Kc, dc), (Kp, dp), rrel, trel, poses = lay.unpack(sol.x)
     ones = [np.ones(len(c)) for c in cam]
     r = _residuals(sol.x, lay, obj, cam, proj, masks, ones, [m.astype(float) for m in masks])
@@ -469,18 +499,19 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
     dof = 2 * (n_c + n_p) - n_par
     qualities = []
     for dev, rr, keeps, sig, excl, _size, off, end in (
-            ("camera", rc, keep_c, sig_c, excl_c, csize, 0, lay.offs[1]),
-            ("projector", rp, [kp[m] for kp, m in zip(keep_p, masks, strict=False)], sig_p, excl_p, psize, lay.offs[1], lay.rel)):
+            (DeviceKind.CAMERA, rc, keep_c, sig_c, excl_c, csize, 0, lay.offs[1]),
+            (DeviceKind.PROJECTOR, rp, [kp[m] for kp, m in zip(keep_p, masks, strict=False)], sig_p, excl_p, psize,
+             lay.offs[1], lay.rel)):
         res = np.concatenate([a[k] for a, k in zip(rr, keeps, strict=False)])
         params = {n.split(".", 1)[1]: float(val[off + i]) for i, n in enumerate(names[off:end])}
-        stds = {n.split(".", 1)[1]: float(sev[off + i]) for i, n in enumerate(names[off:end])}
-        if dev == "projector":
+        stds: dict[str, float | None] = {n.split(".", 1)[1]: float(sev[off + i]) for i, n in enumerate(names[off:end])}
+        if dev is DeviceKind.PROJECTOR:
             params.update({n: float(val[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
             stds.update({n: float(sev[lay.rel + i]) for i, n in enumerate(names[lay.rel:])})
         flagged, robust = flag_outliers(res, sig)
         worst = np.argsort(-np.linalg.norm(res, axis=1))[:5]
         point_names = [(v.name, int(j)) for v, k in zip(views, keeps, strict=False) for j in np.flatnonzero(k)] \
-            if dev == "camera" else \
+            if dev is DeviceKind.CAMERA else \
             [(v.name, int(j)) for v, kp, m in zip(views, keep_p, masks, strict=False) for j in np.flatnonzero(m)[kp[m]]]
         notes = ["worst points (capture, corner index, px): " + ", ".join(
             f"{point_names[i][0]}#{point_names[i][1]} {np.linalg.norm(res[i]):.3f}" for i in worst)]
@@ -491,8 +522,9 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
             warnings.append(f"only {dof} degrees of freedom: the standard errors are unreliable")
         if len(views) < 3:
             warnings.append(f"{len(views)} board views: intrinsics rest on few tilts; add views for a sturdier calibration")
-        q = DeviceQuality(dev, f"OpenCV pinhole, free distortion {_models(model)[dev == 'projector']}", params, stds, res, dof,
-                          sig, robust, flagged, warnings, notes, int(sol.nfev))
+        free = _models(model)[dev is DeviceKind.PROJECTOR]
+        q = DeviceQuality(dev, f"OpenCV pinhole, free distortion {free}", params, stds, res, dof, sig, robust,
+                          flagged, warnings, notes, int(sol.nfev))
         # left-out points as flat indices over the views' corners (capture k, corner j -> k * N + j)
         q.excluded = sorted(k * len(views[0].corners) + j for k, j in excl)
         qualities.append(q)
@@ -512,21 +544,21 @@ def _finish(sol, lay, views, obj, cam, proj, masks, keep_c, keep_p, sig_c, sig_p
                             float(np.sqrt(np.mean(np.concatenate(rp)**2) * 2)))
 
 
-def _board_corners(views: list, obj: list, poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def _board_corners(views: list[BoardView], obj: list[np.ndarray], poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Each view's board corners with its pose (rvec, tvec)."""
     return [(np.asarray(obj[k], np.float64), poses[k]) for k in range(len(views))]
 
 
 def _board_trust(x: np.ndarray, lay: _Layout, cov: np.ndarray | None, A: np.ndarray, o: np.ndarray,
                  boards: list[tuple[np.ndarray, np.ndarray]], Rc: np.ndarray, tc: np.ndarray,
-                 csize: tuple[int, int], psize: tuple[int, int]) -> dict:
+                 csize: tuple[int, int], psize: tuple[int, int]) -> JsonObject:
     """SPEC §4's ``volume`` (the span of every view's corners, world mm) and ``covariance`` (the
     fit's s² (JᵀJ)⁻¹ over every parameter, poses included, mapped to core/calibration/uncertainty.py's form)."""
     corners = []
     for X, pose in boards:
         R, _ = cv2.Rodrigues(np.asarray(pose[:3], np.float64))
         corners.append((X @ R.T + pose[3:] - tc) @ Rc)  # camera frame -> world: Rcᵀ (x - tc)
-    out = {"volume": CalibratedVolume.of_points(np.vstack(corners)).to_dict()}
+    out: JsonObject = {"volume": CalibratedVolume.of_points(np.vstack(corners)).to_dict()}
     if cov is None:
         return out
 
@@ -543,7 +575,7 @@ def _board_trust(x: np.ndarray, lay: _Layout, cov: np.ndarray | None, A: np.ndar
     return out
 
 
-def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: float,
+def calibrate_from_board_captures(capture_dirs: Sequence[str | os.PathLike[str]], cols: int, rows: int, square: float,
                                   model: str = DEFAULT_DIST) -> BoardCalibration:
     from anklescan.core.scan.capture import load_capture
 
@@ -554,7 +586,8 @@ def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: fl
     resolved = [Path(d).resolve() for d in capture_dirs]
     if len(set(resolved)) != len(resolved):
         raise CalibrationError("the same capture is given twice: each board view must be its own capture")
-    views, psize = [], None
+    views: list[BoardView] = []
+    psize: tuple[int, int] | None = None
     for d in capture_dirs:
         cap = load_capture(d)
         size = (cap.pattern_set.width, cap.pattern_set.height)
@@ -567,4 +600,6 @@ def calibrate_from_board_captures(capture_dirs, cols: int, rows: int, square: fl
         except CalibrationError as e:
             raise CalibrationError(f"{Path(d).name}: {e}") from None
         del cap
+    if psize is None:
+        raise CalibrationError("no board captures given")
     return calibrate_board_views(views, cols, rows, square, psize, model)

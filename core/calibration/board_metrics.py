@@ -22,6 +22,7 @@ import numpy as np
 from anklescan.core.calibration.file import Calibration
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import JsonObject
 
 
 @dataclass
@@ -35,7 +36,7 @@ class BoardMetrics:
     n_corners: int
     distance_mm: float  # camera to board centre
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in self.__dict__.items()}
 
 
@@ -55,7 +56,7 @@ def fit_plane(X: np.ndarray, rounds: int = 3, k: float = 5.0) -> tuple[np.ndarra
     return n, float(-n @ c), keep
 
 
-def board_mask(shape, corners: np.ndarray, cols: int, rows: int) -> np.ndarray:
+def board_mask(shape: tuple[int, ...], corners: np.ndarray, cols: int, rows: int) -> np.ndarray:
     """Camera pixels inside the quadrilateral of the outermost inner corners (all on the board)."""
     quad = corners[[0, cols - 1, cols * rows - 1, cols * (rows - 1)]].astype(np.int32)
     m = np.zeros(shape, np.uint8)
@@ -67,11 +68,12 @@ def corners_on_plane(cal: Calibration, corners: np.ndarray, n: np.ndarray, d: fl
     c = cal.camera.center
     r = cal.camera.rays(corners)
     s = -(n @ c + d) / (r @ n)
-    return c + s[:, None] * r
+    on_plane: np.ndarray = c + s[:, None] * r
+    return on_plane
 
 
 def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigma: np.ndarray | None,
-                  corners: np.ndarray, shape, cols: int, rows: int, square: float) -> BoardMetrics:
+                  corners: np.ndarray, shape: tuple[int, ...], cols: int, rows: int, square: float) -> BoardMetrics:
     """``points`` (N, 3) world mm seen at camera ``pixels`` (N, 2: column, row).
 
     ``sigma``: each point's predicted noise, None, (N,) mm taken as along the plane's normal,
@@ -98,13 +100,14 @@ def measure_board(cal: Calibration, points: np.ndarray, pixels: np.ndarray, sigm
                         int(cols * rows), dist_cam)
 
 
-def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray, proj_sigma: float):
+def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray,
+                     proj_sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Camera ray against projector ray, least squares (the midpoint), with each point's predicted
     noise as two displacement vectors (N, 2, 3): one projector coordinate's sigma (px) each.  A stand-in for
     measurements until anklescan.core.scan.reconstruct triangulates rows."""
     cc, pc = cal.camera.center, cal.projector.center
 
-    def tri(puv):
+    def tri(puv: np.ndarray) -> np.ndarray:
         a = cal.camera.rays(cam_uv)
         b = cal.projector.rays(puv)
         w0 = cc - pc
@@ -113,7 +116,8 @@ def triangulate_both(cal: Calibration, cam_uv: np.ndarray, proj_uv: np.ndarray, 
         den = 1 - ab**2
         s = (ab * bw - aw) / den
         t = (bw - ab * aw) / den
-        return 0.5 * ((cc + s[:, None] * a) + (pc + t[:, None] * b))
+        midpoint: np.ndarray = 0.5 * ((cc + s[:, None] * a) + (pc + t[:, None] * b))
+        return midpoint
 
     X = tri(proj_uv)
     vec = np.empty((len(X), 2, 3))

@@ -21,15 +21,25 @@ marker image, where "upright" on each face is given by the face's (u, v) axes be
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import CalibrationError
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import JsonObject
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.calibrate import CalibrationReport
+    from anklescan.core.calibration.device_model import Device
+    from anklescan.core.calibration.file import Calibration
 
 BOX_SIZE_MM = 400.0
 MARKER_MM = 90.0
@@ -53,15 +63,17 @@ class Face:
     v_axis: np.ndarray
     first_id: int
 
-    def point(self, s, t) -> np.ndarray:
-        s, t = np.asarray(s, dtype=np.float64), np.asarray(t, dtype=np.float64)
-        return self.origin + s[..., None] * self.u_axis + t[..., None] * self.v_axis
+    def point(self, s: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
+        sa, ta = np.asarray(s, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        X: np.ndarray = self.origin + sa[..., None] * self.u_axis + ta[..., None] * self.v_axis
+        return X
 
     @property
     def outward_normal(self) -> np.ndarray:
         # u × v points INTO the box: seen from outside, u runs right and v down, as in an image
         n = -np.cross(self.u_axis, self.v_axis)
-        return n / np.linalg.norm(n)
+        unit: np.ndarray = n / np.linalg.norm(n)
+        return unit
 
 
 def _faces(size: float = BOX_SIZE_MM) -> tuple[Face, ...]:
@@ -97,7 +109,7 @@ def _marker_offsets_mm() -> list[tuple[float, float]]:
 
 def marker_layout() -> dict[int, tuple[Face, float, float]]:
     """Marker id -> (face, s_mm, t_mm of its top-left corner)."""
-    out = {}
+    out: dict[int, tuple[Face, float, float]] = {}
     for face in FACES:
         for k, (s, t) in enumerate(_marker_offsets_mm()):
             out[face.first_id + k] = (face, s, t)
@@ -114,7 +126,7 @@ def marker_corners_world() -> dict[int, np.ndarray]:
     return out
 
 
-def aruco_dictionary():
+def aruco_dictionary() -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, ARUCO_DICTIONARY))
 
 
@@ -151,10 +163,11 @@ class BoxPose:
         return cls(R, np.array([shift_mm[0], shift_mm[1], lift_mm], float))
 
     def apply(self, X: np.ndarray) -> np.ndarray:
-        return np.asarray(X, np.float64) @ self.R.T + self.t
+        world: np.ndarray = np.asarray(X, np.float64) @ self.R.T + self.t
+        return world
 
 
-def face_placements(px_per_mm: float = 4.0, pose: BoxPose | None = None) -> list[dict]:
+def face_placements(px_per_mm: float = 4.0, pose: BoxPose | None = None) -> list[dict[str, Any]]:
     """Per visible face: origin, u_axis, v_axis (mm vectors) and albedo texture for a TexturedQuad,
     for the box at ``pose`` (default: its documented place)."""
     pose = pose or BoxPose()
@@ -162,7 +175,7 @@ def face_placements(px_per_mm: float = 4.0, pose: BoxPose | None = None) -> list
              "texture": face_texture(f, px_per_mm)} for f in FACES]
 
 
-def box_description() -> dict:
+def box_description() -> JsonObject:
     """resources/calibration_box.json: everything needed to build or check the box."""
     return {"units": "mm", "size": BOX_SIZE_MM, "dictionary": ARUCO_DICTIONARY, "marker_size": MARKER_MM,
             "marker_pitch": MARKER_PITCH_MM, "frame": "origin at the centre of the bottom face; x patient's right, "
@@ -180,7 +193,8 @@ def stretch_to_8bit(image: np.ndarray) -> np.ndarray:
     # stretched: a white frame of a dim box may span only a few tens of grey levels
     img = img.astype(np.float32)
     hi = float(np.nanpercentile(img, 99.5)) or 1.0
-    return np.clip(np.nan_to_num(img) * (255.0 / hi), 0, 255).astype(np.uint8)
+    grey: np.ndarray = np.clip(np.nan_to_num(img) * (255.0 / hi), 0, 255).astype(np.uint8)
+    return grey
 
 
 
@@ -204,11 +218,11 @@ def detect_markers(white: np.ndarray, refine_edges: bool = True,
     corners, ids, _ = detector.detectMarkers(stretch_to_8bit(white))
     known = marker_layout()
     gray = _gray_float(white) if refine_edges else None
-    out = {}
+    out: dict[int, np.ndarray] = {}
     for c, i in zip(corners, [] if ids is None else ids.ravel(), strict=True):
         if int(i) in known:
             quad = c.reshape(4, 2).astype(np.float64)
-            if not refine_edges:
+            if gray is None:  # no refinement asked for
                 out[int(i)] = quad
                 continue
             refined = refine_marker_corners(gray, quad)
@@ -309,7 +323,8 @@ def refine_marker_corners(gray: np.ndarray, quad: np.ndarray) -> np.ndarray | No
     half = float(np.clip(0.35 * side / (MARKER_BITS + 2), 1.5, 4.0))
     for _ in range(EDGE_ROUNDS):
         centre = quad.mean(axis=0)
-        lines, whites = [], []
+        lines: list[tuple[np.ndarray, np.ndarray]] = []
+        whites: list[float] = []
         for k in range(4):
             a, b = quad[k], quad[(k + 1) % 4]
             d = (b - a) / np.linalg.norm(b - a)
@@ -318,7 +333,7 @@ def refine_marker_corners(gray: np.ndarray, quad: np.ndarray) -> np.ndarray | No
                 n = -n
             crossings, white = _edge_crossings(gray, a, b, n, half)
             line = fit_line(crossings) if white is not None else None
-            if line is None:
+            if line is None or white is None:
                 return None
             lines.append(line)
             whites.append(white)
@@ -379,10 +394,12 @@ def _on_marker_face(quad: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndar
     H = cv2.getPerspectiveTransform(np.asarray(quad, np.float32), square)
     st = cv2.perspectiveTransform(np.stack([xs, ys], axis=-1).reshape(-1, 1, 2).astype(np.float32), H)
     st = st.reshape(xs.shape + (2,))
-    return ((st > -FACE_MARGIN) & (st < 1 + FACE_MARGIN)).all(axis=-1)
+    inside = np.asarray(((st > -FACE_MARGIN) & (st < 1 + FACE_MARGIN)).all(axis=-1))
+    return inside
 
 
-def projector_at(point: np.ndarray, maps: list, white: np.ndarray, quad: np.ndarray | None = None) -> np.ndarray | None:
+def projector_at(point: np.ndarray, maps: list[np.ndarray], white: np.ndarray,
+                 quad: np.ndarray | None = None) -> np.ndarray | None:
     """Projector coordinate(s) at camera ``point`` from decoded maps (column[, row]), or None.
 
     Uses the window's bright, valid pixels away from edges (and, given the marker's ``quad``,
@@ -431,10 +448,10 @@ class BoxObservations:
     cam_uv: np.ndarray
     proj_xyz: np.ndarray
     proj_uv: np.ndarray  # (N,) columns or (N, 2) columns and rows
-    marker_ids: list
+    marker_ids: list[int]
     proj_cam_uv: np.ndarray  # (N, 2) the camera pixel where each projector point was read
-    found: dict  # marker id -> (4, 2) camera corners
-    unconfirmed: list = field(default_factory=list)  # marker ids seen but dropped (outline not confirmed)
+    found: dict[int, np.ndarray]  # marker id -> (4, 2) camera corners
+    unconfirmed: list[int] = field(default_factory=list)  # marker ids seen but dropped (outline not confirmed)
     cam_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # marker id of each camera point
     proj_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # and of each projector point
 
@@ -445,7 +462,13 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
     found = detect_markers(white, unconfirmed=unconfirmed)
     world = marker_corners_world()
     maps = [column] if row is None else [column, row]
-    cam_xyz, cam_uv, proj_xyz, proj_uv, proj_cam, cam_ids, proj_ids = [], [], [], [], [], [], []
+    cam_xyz: list[np.ndarray] = []
+    cam_uv: list[np.ndarray] = []
+    proj_xyz: list[np.ndarray] = []
+    proj_uv: list[np.ndarray] = []
+    proj_cam: list[np.ndarray] = []
+    cam_ids: list[int] = []
+    proj_ids: list[int] = []
     w = (np.asarray(white, dtype=np.float32) if np.asarray(white).ndim == 2
          else stretch_to_8bit(white).astype(np.float32))
     for mid in sorted(found):
@@ -461,9 +484,9 @@ def observe_box(white: np.ndarray, column: np.ndarray, row: np.ndarray | None = 
                 proj_ids.append(mid)
     if not cam_xyz:
         raise CalibrationError("no calibration-box markers found in the white frame: is the box in view and lit?")
-    proj_uv = np.array(proj_uv).reshape(len(proj_uv), len(maps))
+    proj = np.array(proj_uv).reshape(len(proj_uv), len(maps))
     return BoxObservations(np.array(cam_xyz), np.array(cam_uv), np.array(proj_xyz).reshape(-1, 3),
-                           proj_uv[:, 0] if row is None else proj_uv, sorted(found),
+                           proj[:, 0] if row is None else proj, sorted(found),
                            np.array(proj_cam).reshape(-1, 2), found, sorted(unconfirmed),
                            np.array(cam_ids, int), np.array(proj_ids, int))
 
@@ -489,7 +512,7 @@ class BoxCapture:
     observations: BoxObservations
 
 
-def _observe_capture(capture_dir) -> tuple[BoxObservations, tuple[int, int], tuple[int, int]]:
+def _observe_capture(capture_dir: str | os.PathLike[str]) -> tuple[BoxObservations, tuple[int, int], tuple[int, int]]:
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.decode import decode
 
@@ -500,7 +523,7 @@ def _observe_capture(capture_dir) -> tuple[BoxObservations, tuple[int, int], tup
     return obs, (W, H), (capture.pattern_set.width, capture.pattern_set.height)
 
 
-def _box_pose(camera, obs: BoxObservations) -> BoxPose:
+def _box_pose(camera: Device, obs: BoxObservations) -> BoxPose:
     """The box's pose in the world from its camera points and a calibrated camera (PnP)."""
     ok, rvec, tvec = cv2.solvePnP(obs.cam_xyz.astype(np.float64), obs.cam_uv.astype(np.float64), camera.K,
                                   np.asarray(camera.dist, np.float64), flags=cv2.SOLVEPNP_ITERATIVE)
@@ -518,7 +541,7 @@ def _stacked(captures: list[BoxCapture]) -> tuple[np.ndarray, np.ndarray, np.nda
     return cam_xyz, cam_uv, proj_xyz, proj_uv
 
 
-def worst_markers(captures: list[BoxCapture], cal, count: int = 3) -> list[tuple[str, int, float]]:
+def worst_markers(captures: list[BoxCapture], cal: Calibration, count: int = 3) -> list[tuple[str, int, float]]:
     """(capture name, marker id, its largest camera or projector error in px), worst first."""
     worst: dict[tuple[str, int], float] = {}
     for c in captures:
@@ -534,7 +557,7 @@ def worst_markers(captures: list[BoxCapture], cal, count: int = 3) -> list[tuple
     return [(name, mid, e) for (name, mid), e in ranked]
 
 
-def check_residuals(report, captures: list[BoxCapture], cal) -> None:
+def check_residuals(report: CalibrationReport, captures: list[BoxCapture], cal: Calibration) -> None:
     """BoxCalibrationRefused (one line, the worst markers named) when the residuals are far beyond the noise."""
     bad = [f"{q.device} RMS {q.rms_px:.2f} px, max {q.point_errors_px.max():.2f} px"
            for q in (report.camera, report.projector)
@@ -550,7 +573,9 @@ def check_residuals(report, captures: list[BoxCapture], cal) -> None:
         f"flat and clean, that it did not move, that every marker is lit and in view, and scan it again")
 
 
-def calibrate_from_box_captures(capture_dirs, *, radial_terms: int = 2, loss: str = "linear", check: bool = True):
+def calibrate_from_box_captures(capture_dirs: Sequence[str | os.PathLike[str]], *, radial_terms: int = 2,
+                                loss: str = "linear",
+                                check: bool = True) -> tuple[Calibration, CalibrationReport, list[BoxCapture]]:
     """(Calibration, CalibrationReport, [BoxCapture]) from captures of the calibration box, one per position
     (SPEC §6: the box at the table's height, then at the knee's). The first capture's box defines the world
     frame; every other box's pose is found (PnP with the camera fitted so far) and all captures' control
@@ -561,9 +586,9 @@ def calibrate_from_box_captures(capture_dirs, *, radial_terms: int = 2, loss: st
     dirs = [Path(d) for d in capture_dirs]
     if not dirs:
         raise CalibrationError("no box capture given")
-    seen = []
+    seen: list[str] = []
     captures: list[BoxCapture] = []
-    sizes = None
+    sizes: tuple[tuple[int, int], tuple[int, int]] | None = None
     for d in dirs:
         obs, cam_size, proj_size = _observe_capture(d)
         if sizes is not None and sizes != (cam_size, proj_size):
@@ -572,9 +597,10 @@ def calibrate_from_box_captures(capture_dirs, *, radial_terms: int = 2, loss: st
         name = d.name if d.name not in seen else str(d)
         seen.append(name)
         captures.append(BoxCapture(name, BoxPose(), obs))
+    assert sizes is not None  # dirs is not empty
     cam_size, proj_size = sizes
 
-    def fit():
+    def fit() -> tuple[Calibration, CalibrationReport]:
         return calibrate_points(*_stacked(captures), camera_size=cam_size, projector_size=proj_size,
                                 radial_terms=radial_terms, loss=loss,
                                 exclude_flagged=True)  # read automatically: a mis-read point is dropped
@@ -620,7 +646,8 @@ def position_summary(captures: list[BoxCapture]) -> list[str]:
     return out
 
 
-def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str = "linear", check: bool = True):
+def calibrate_from_box_capture(capture_dir: str | os.PathLike[str], *, radial_terms: int = 2, loss: str = "linear",
+                               check: bool = True) -> tuple[Calibration, CalibrationReport]:
     """(Calibration, CalibrationReport) from one capture of the calibration box (SPEC §5 folder).
 
     Uses the projector rows too when the capture has row patterns (2-D projector model).
@@ -629,7 +656,7 @@ def calibrate_from_box_capture(capture_dir, *, radial_terms: int = 2, loss: str 
     return cal, report
 
 
-def write_box_description(path) -> None:
+def write_box_description(path: str | os.PathLike[str]) -> None:
     Path(path).write_text(json.dumps(box_description(), indent=1) + "\n", encoding="utf-8")
 
 

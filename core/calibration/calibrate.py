@@ -19,10 +19,13 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import scipy.linalg
 from scipy.optimize import least_squares
 from scipy.spatial import ConvexHull
@@ -42,7 +45,7 @@ from anklescan.core.calibration.uncertainty import (
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
-from anklescan.core.vocabulary import TextEnum
+from anklescan.core.vocabulary import JsonObject, TextEnum
 
 DEFAULT_CAMERA_SIZE = (1600, 1200)  # the paper's PowerShot G3
 DEFAULT_PROJECTOR_SIZE = (1024, 768)  # the paper's ELP-70
@@ -73,7 +76,7 @@ CSV_COLUMNS: dict[DeviceKind, tuple[str, ...]] = {
 
 
 # ==== input validation =====================================================================
-def _as_points(xyz, obs, kind: str, width: int) -> tuple[np.ndarray, np.ndarray]:
+def _as_points(xyz: npt.ArrayLike, obs: npt.ArrayLike, kind: str, width: int) -> tuple[np.ndarray, np.ndarray]:
     try:
         X = np.asarray(xyz, dtype=np.float64)
         o = np.asarray(obs, dtype=np.float64)
@@ -89,7 +92,8 @@ def _as_points(xyz, obs, kind: str, width: int) -> tuple[np.ndarray, np.ndarray]
     return X, o
 
 
-def validate_points(xyz, obs, kind: DeviceKind, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def validate_points(xyz: npt.ArrayLike, obs: npt.ArrayLike, kind: DeviceKind,
+                    size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Checked copies of (N, 3) world points and (N, 2) or (N, 1) observations."""
     n_min, width = MIN_POINTS[kind], 1 if kind == DeviceKind.PROJECTOR else 2
     kind = DeviceKind.PROJECTOR if kind == DeviceKind.PROJECTOR_2D else kind  # the name users know
@@ -151,7 +155,8 @@ def _null_vector(A: np.ndarray, kind: str) -> np.ndarray:
     if s[-2] <= 1e-12 * s[0]:
         raise GeometryError(f"{kind} linear calibration is degenerate (more than one solution); "
                             "add control points off the common planes")
-    return Vt[-1]
+    null: np.ndarray = Vt[-1]
+    return null
 
 
 def dlt_camera(X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -226,8 +231,9 @@ class _Problem:
     obs: np.ndarray  # (N, 2) or (N, 1)
     v0: np.ndarray  # initial paper vector
     free: np.ndarray = field(init=False)  # indices of the vector's non-angle entries that vary
+    R0: np.ndarray = field(init=False)  # the initial rotation the local rotation vector turns
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.R0 = pm.rotation_from_rpy(*self.v0[:3])
         fixed = {4} if self.kind == DeviceKind.PROJECTOR else set()  # ty: the 1-D projector's gauge
         self.free = np.array([i for i in range(3, self.v0.size) if i not in fixed])
@@ -243,7 +249,8 @@ class _Problem:
 
     def residuals_of_vector(self, v: np.ndarray) -> np.ndarray:
         pred = pm.project_projector(v, self.X)[:, None] if self.kind == DeviceKind.PROJECTOR else pm.project_camera(v, self.X)
-        return pred - self.obs
+        residuals: np.ndarray = pred - self.obs
+        return residuals
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
         r = self.residuals_of_vector(self.vector(p)).ravel()
@@ -280,17 +287,17 @@ def _fix_projector_gauge(v: np.ndarray, X: np.ndarray) -> np.ndarray:
 class DeviceQuality:
     device: DeviceKind
     model: str
-    parameters: dict  # name -> value (angles in degrees)
-    std_errors: dict  # name -> 1-sigma (angles in degrees); None where fixed by the gauge
+    parameters: dict[str, float]  # name -> value (angles in degrees)
+    std_errors: dict[str, float | None]  # name -> 1-sigma (angles in degrees); None where fixed by the gauge
     residuals_px: np.ndarray  # (N, 2) or (N, 1)
     dof: int
     sigma_px: float  # sqrt(SSR / dof): the noise estimate
     robust_sigma_px: float  # 1.4826 * MAD of the residual components
-    flagged: list  # 0-based indices of likely mis-picked points
-    warnings: list
-    notes: list
+    flagged: list[int]  # 0-based indices of likely mis-picked points
+    warnings: list[str]
+    notes: list[str]
     nfev: int
-    excluded: list = field(default_factory=list)  # 0-based indices (of the input) left out as mis-read
+    excluded: list[int] = field(default_factory=list)  # 0-based indices (of the input) left out as mis-read
     covariance: np.ndarray | None = None  # s² (JᵀJ)⁻¹ over the vector's entries ``covariance_index``
     covariance_index: np.ndarray | None = None
 
@@ -300,14 +307,15 @@ class DeviceQuality:
 
     @property
     def point_errors_px(self) -> np.ndarray:
-        return np.linalg.norm(self.residuals_px, axis=1)
+        errors: np.ndarray = np.linalg.norm(self.residuals_px, axis=1)
+        return errors
 
     @property
     def rms_px(self) -> float:
         """Root mean square of the per-point error (for 2-D points, of its length)."""
         return float(np.sqrt(np.mean(self.point_errors_px**2)))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"device": self.device, "model": self.model, "n_points": self.n_points, "dof": self.dof,
                 "rms_px": self.rms_px, "max_px": float(self.point_errors_px.max()), "sigma_px": self.sigma_px,
                 "robust_sigma_px": self.robust_sigma_px, "parameters": self.parameters, "std_errors": self.std_errors,
@@ -336,14 +344,14 @@ class CalibrationReport:
     camera: DeviceQuality
     projector: DeviceQuality
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"camera": self.camera.to_dict(), "projector": self.projector.to_dict()}
 
     def format_text(self) -> str:
         return self.camera.format_text() + "\n" + self.projector.format_text()
 
     @property
-    def warnings(self) -> list:
+    def warnings(self) -> list[str]:
         return [f"camera: {w}" for w in self.camera.warnings] + [f"projector: {w}" for w in self.projector.warnings]
 
 
@@ -359,7 +367,7 @@ def _vector_jacobian(problem: _Problem, v: np.ndarray, idx: np.ndarray) -> np.nd
     return np.stack(cols, axis=1)
 
 
-def flag_outliers(r: np.ndarray, sigma: float) -> tuple[list, float]:
+def flag_outliers(r: np.ndarray, sigma: float) -> tuple[list[int], float]:
     """Points whose error exceeds both a robust family-wise threshold and 3 sigma (docs/calibration.md)."""
     comp = r.ravel()
     robust = robust_sigma(comp)
@@ -383,15 +391,16 @@ def _coverage(obs: np.ndarray, size: tuple[int, int]) -> float:
 
 
 def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev: int) -> DeviceQuality:
-    names = pm.CAMERA_NAMES if problem.kind != DeviceKind.PROJECTOR else pm.PROJECTOR_NAMES
-    names = names[: v.size]
+    all_names: tuple[str, ...] = pm.CAMERA_NAMES if problem.kind != DeviceKind.PROJECTOR else pm.PROJECTOR_NAMES
+    names = all_names[: v.size]
     r = problem.residuals_of_vector(v)
     idx = np.array([0, 1, 2, *problem.free])
     J = _vector_jacobian(problem, v, idx)
     dof = r.size - len(idx)
     sigma = math.sqrt(float(r.ravel() @ r.ravel()) / dof) if dof > 0 else math.nan
-    warnings, notes = [], []
-    std = {name: None for name in names}
+    warnings: list[str] = []
+    notes: list[str] = []
+    std: dict[str, float | None] = {name: None for name in names}
     try:
         cov = sigma**2 * np.linalg.inv(J.T @ J)
         se = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -419,7 +428,7 @@ def quality_report(problem: _Problem, v: np.ndarray, size: tuple[int, int], nfev
     return q
 
 
-def _correlation_warnings(cov: np.ndarray, names: list) -> list:
+def _correlation_warnings(cov: np.ndarray, names: list[str]) -> list[str]:
     d = np.sqrt(np.diag(cov))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(d, d)
@@ -431,8 +440,9 @@ def _correlation_warnings(cov: np.ndarray, names: list) -> list:
     return out
 
 
-def _geometry_warnings(problem: _Problem, v, r, dof, size, flagged) -> list:
-    out = []
+def _geometry_warnings(problem: _Problem, v: np.ndarray, r: np.ndarray, dof: int, size: tuple[int, int],
+                       flagged: list[int]) -> list[str]:
+    out: list[str] = []
     if dof < 10:
         out.append(f"only {dof} degrees of freedom: the standard errors are unreliable")
     cover = _coverage(problem.obs, size)
@@ -449,7 +459,7 @@ def _geometry_warnings(problem: _Problem, v, r, dof, size, flagged) -> list:
 
 
 # ==== one device ===========================================================================
-def calibrate_device(xyz, obs, kind: DeviceKind | str, size: tuple[int, int], radial_terms: int = 1,
+def calibrate_device(xyz: npt.ArrayLike, obs: npt.ArrayLike, kind: DeviceKind | str, size: tuple[int, int], radial_terms: int = 1,
                      loss: str = "linear", f_scale: float = 1.0,
                      exclude_flagged: bool = False) -> tuple[np.ndarray, DeviceQuality]:
     """Paper vector (Cn, Pn, or Cn for "projector2d") and its quality for one device.
@@ -457,23 +467,27 @@ def calibrate_device(xyz, obs, kind: DeviceKind | str, size: tuple[int, int], ra
     ``exclude_flagged``: for automatically read points, leave out the ones the robust test
     flags and fit once more without them (a hand-picked set is reported, not edited).
     """
-    v, q = _calibrate_device_once(xyz, obs, kind, size, radial_terms, loss, f_scale)
+    device = _device_kind(kind)
+    v, q = _calibrate_device_once(xyz, obs, device, size, radial_terms, loss, f_scale)
     if not (exclude_flagged and q.flagged):
         return v, q
     keep = np.setdiff1d(np.arange(len(np.asarray(xyz))), q.flagged)
-    if keep.size < MIN_POINTS[kind]:
+    if keep.size < MIN_POINTS[device]:
         return v, q
-    v, q = _calibrate_device_once(np.asarray(xyz)[keep], np.asarray(obs)[keep], kind, size, radial_terms, loss,
+    v, q = _calibrate_device_once(np.asarray(xyz)[keep], np.asarray(obs)[keep], device, size, radial_terms, loss,
                                   f_scale)
     q.excluded = sorted(int(i) for i in np.setdiff1d(np.arange(len(np.asarray(xyz))), keep))
     return v, q
 
 
-def _calibrate_device_once(xyz, obs, kind: DeviceKind | str, size, radial_terms, loss,
-                           f_scale) -> tuple[np.ndarray, DeviceQuality]:
+def _device_kind(kind: DeviceKind | str) -> DeviceKind:
     if kind not in MIN_POINTS:
         raise CalibrationError(f"unknown device kind {kind!r}")
-    kind = DeviceKind(kind)
+    return DeviceKind(kind)
+
+
+def _calibrate_device_once(xyz: npt.ArrayLike, obs: npt.ArrayLike, kind: DeviceKind, size: tuple[int, int],
+                           radial_terms: int, loss: str, f_scale: float) -> tuple[np.ndarray, DeviceQuality]:
     if radial_terms not in (1, 2):
         raise CalibrationError("radial_terms must be 1 (the paper's k1) or 2 (k1, k2)")
     X, o = validate_points(xyz, obs, kind, size)
@@ -489,8 +503,9 @@ def _calibrate_device_once(xyz, obs, kind: DeviceKind | str, size, radial_terms,
     return v, quality_report(problem, v, size, nfev)
 
 
-def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_CAMERA_SIZE,
-                     projector_size=DEFAULT_PROJECTOR_SIZE, radial_terms: int = 1, loss: str = "linear",
+def calibrate_points(cam_xyz: npt.ArrayLike, cam_uv: npt.ArrayLike, proj_xyz: npt.ArrayLike, proj_u: npt.ArrayLike, *,
+                     camera_size: tuple[int, int] = DEFAULT_CAMERA_SIZE,
+                     projector_size: tuple[int, int] = DEFAULT_PROJECTOR_SIZE, radial_terms: int = 1, loss: str = "linear",
                      f_scale: float = 1.0, exclude_flagged: bool = False) -> tuple[Calibration, CalibrationReport]:
     """The paper's calibration of both devices (SPEC §6 ``calibrate points``).
 
@@ -507,7 +522,7 @@ def calibrate_points(cam_xyz, cam_uv, proj_xyz, proj_u, *, camera_size=DEFAULT_C
     camera = pm.camera_to_device(Cn, *camera_size)
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
     report = CalibrationReport(cam_q, proj_q)
-    extra = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
+    extra: JsonObject = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
              "frame_source": "points",  # the control points' frame (core.calibration.frame.FrameSource)
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
@@ -532,7 +547,9 @@ def _paper_covariance(Cn: np.ndarray, cam_q: DeviceQuality, proj_q: DeviceQualit
             return None
         idx = q.covariance_index
 
-        def to_device(x: np.ndarray, v: np.ndarray = v, idx: np.ndarray = idx, conv=conv, size=size) -> Device:
+        def to_device(x: np.ndarray, v: np.ndarray = v, idx: np.ndarray = idx,
+                      conv: Callable[[npt.ArrayLike, int, int], Device] = conv,
+                      size: tuple[int, int] = size) -> Device:
             full = v.copy()
             full[idx] = x
             return conv(full, *size)
@@ -544,7 +561,7 @@ def _paper_covariance(Cn: np.ndarray, cam_q: DeviceQuality, proj_q: DeviceQualit
 
 
 # ==== CSV ==================================================================================
-def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
+def read_control_points_csv(path: str | os.PathLike[str], kind: DeviceKind | str) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) world points and (N, 2) [camera] or (N,) [projector] observations from a CSV.
 
     A header naming the columns is required (``X,Y,Z,u,v`` resp. ``X,Y,Z,u``; any order, other
@@ -553,6 +570,7 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
     """
     if kind not in CSV_COLUMNS:
         raise CalibrationError(f"unknown control-point kind {kind!r}")
+    kind = DeviceKind(kind)
     path = Path(path)
     rows = _read_csv_rows(path)
     if not rows:
@@ -567,8 +585,8 @@ def read_control_points_csv(path, kind: str) -> tuple[np.ndarray, np.ndarray]:
     if len(set(names)) != len(names):
         raise CalibrationError(f"{path}: the header repeats a column name")
     cols = [names.index(c) for c in wanted]
-    rows = [_parse_row(path, line, row, cols, len(names)) for line, row in body]
-    data = np.array(rows, dtype=np.float64).reshape(-1, len(wanted))
+    values = [_parse_row(path, line, row, cols, len(names)) for line, row in body]
+    data = np.array(values, dtype=np.float64).reshape(-1, len(wanted))
     if len(data) == 0:
         raise CalibrationError(f"{path}: no control points after the header")
     _check_csv_range(path, data, [line for line, _ in body])
@@ -589,7 +607,7 @@ def _check_csv_range(path: Path, data: np.ndarray, lines: list[int]) -> None:
                                    "not a control point of a real rig")
 
 
-def _read_csv_rows(path: Path) -> list:
+def _read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:
             out = list(csv.reader(f))
@@ -601,21 +619,21 @@ def _read_csv_rows(path: Path) -> list:
     return [(i, r) for i, r in numbered if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
 
 
-def _parse_row(path: Path, line: int, row: list, cols: list, n_names: int) -> list:
+def _parse_row(path: Path, line: int, row: list[str], cols: list[int], n_names: int) -> list[float]:
     if len(row) != n_names:
         raise CalibrationError(f"{path}: line {line} has {len(row)} fields, the header has {n_names}")
     return [finite_number(row[c], f"{path}: line {line}", CalibrationError) for c in cols]
 
 
-def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list) -> None:
-    seen: dict = {}
+def _check_csv_duplicates(path: Path, data: np.ndarray, lines: list[int]) -> None:
+    seen: dict[tuple[float, ...], int] = {}
     for line, xyz in zip(lines, map(tuple, data[:, :3]), strict=False):
         if xyz in seen:
             raise CalibrationError(f"{path}: line {line} repeats the point X,Y,Z of line {seen[xyz]}")
         seen[xyz] = line
 
 
-def read_control_point_files(paths: str | Path | list[str | Path], kind: str) -> tuple[np.ndarray, np.ndarray]:
+def read_control_point_files(paths: str | Path | Sequence[str | Path], kind: DeviceKind | str) -> tuple[np.ndarray, np.ndarray]:
     """Several CSVs of one kind (e.g. the box at two heights, in one world frame) as one set."""
     paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
     parts = [read_control_points_csv(p, kind) for p in paths]
@@ -630,8 +648,9 @@ def read_control_point_files(paths: str | Path | list[str | Path], kind: str) ->
     return X, obs
 
 
-def run_calibrate_points(cam_csv: str | Path | list[str | Path], proj_csv: str | Path | list[str | Path], out_path,
-                         *, camera_size=DEFAULT_CAMERA_SIZE, projector_size=DEFAULT_PROJECTOR_SIZE,
+def run_calibrate_points(cam_csv: str | Path | list[str | Path], proj_csv: str | Path | list[str | Path],
+                         out_path: str | os.PathLike[str], *, camera_size: tuple[int, int] = DEFAULT_CAMERA_SIZE,
+                         projector_size: tuple[int, int] = DEFAULT_PROJECTOR_SIZE,
                          radial_terms: int = 1, loss: str = "linear") -> CalibrationReport:
     """Read the CSVs (one or several per device), calibrate and save atomically; on any error
     nothing is written."""

@@ -32,12 +32,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import JsonObject
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.scan.capture import Capture
 
 DEFAULT_TOLERANCE_DEG = 0.3
 DEFAULT_FLATNESS_MM = 0.3  # peak-to-valley sag of a flat top beyond which the calibration bends it
@@ -57,7 +63,7 @@ class Angle:
     value: float  # degrees
     sd: float  # degrees
 
-    def to_json(self) -> dict:
+    def to_json(self) -> JsonObject:
         return {"value": round(self.value, 4), "sd": round(self.sd, 4)}
 
 
@@ -88,7 +94,7 @@ class CheckResult:
     expected_plantar_flexion: float
     top: TopFit
     settings: CheckSettings
-    extra: dict = field(default_factory=dict)
+    extra: JsonObject = field(default_factory=dict)
 
     @property
     def inversion_off(self) -> float:
@@ -147,7 +153,7 @@ class CheckResult:
             return f"check passed (within {self.settings.tolerance_deg:g}°): {self.details()}"
         return f"check FAILED (tolerance {self.settings.tolerance_deg:g}°): {self.details()}"
 
-    def to_json(self) -> dict:
+    def to_json(self) -> JsonObject:
         t = self.top
         return {
             "measured": {"inversion": t.inversion.to_json(), "plantar_flexion": t.plantar_flexion.to_json()},
@@ -333,7 +339,7 @@ def _jackknife(X: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, floa
     return float(np.sqrt(var[0])), float(np.sqrt(var[1]))
 
 
-def run_check(capture, cal, inversion_deg: float, plantar_flexion_deg: float,
+def run_check(capture: Capture, cal: Calibration, inversion_deg: float, plantar_flexion_deg: float,
               settings: CheckSettings | None = None) -> CheckResult:
     """Reconstruct ``capture`` with ``cal``, measure the object's top, compare with the set angles."""
     from anklescan.core.scan.reconstruct import reconstruct

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.errors import CalibrationError
 from anklescan.core.vocabulary import Axis
@@ -30,9 +31,9 @@ class Device:
     R: np.ndarray
     t: np.ndarray
     axis: Axis = Axis.BOTH
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "K", np.asarray(self.K, dtype=np.float64).reshape(3, 3))
         d = np.zeros(5)
         given = np.asarray(self.dist, dtype=np.float64).ravel()
@@ -49,7 +50,8 @@ class Device:
     @property
     def center(self) -> np.ndarray:
         """Optical centre in world coordinates."""
-        return -self.R.T @ self.t
+        centre: np.ndarray = -self.R.T @ self.t
+        return centre
 
     @property
     def fx(self) -> float:
@@ -69,7 +71,8 @@ class Device:
 
     def to_device(self, X: np.ndarray) -> np.ndarray:
         """World points (..., 3) to device coordinates (..., 3)."""
-        return np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+        device: np.ndarray = np.asarray(X, dtype=np.float64) @ self.R.T + self.t
+        return device
 
     # ---- distortion ---------------------------------------------------------------------
     def distort(self, xu: np.ndarray, yu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +137,8 @@ class Device:
         """Unit ray directions in world coordinates for pixel coordinates (..., 2)."""
         xu, yu = self.normalized_from_pixels(uv)
         d = np.stack([xu, yu, np.ones_like(xu)], axis=-1) @ self.R  # R.T @ d per row
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+        rays: np.ndarray = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        return rays
 
     def pixel_grid_rays(self) -> np.ndarray:
         """Unit world rays for every pixel centre, (height, width, 3) float64, cached."""
@@ -157,8 +161,8 @@ class Device:
             xd = (columns - self.K[0, 2]) / self.K[0, 0]
             xu, _ = self.undistort(xd, np.zeros_like(xd))
         n_dev = np.stack([np.ones_like(xu), np.zeros_like(xu), -xu], axis=-1)
-        n = n_dev @ self.R  # world normal = R.T @ n_dev
-        d = -(n @ self.center)
+        n: np.ndarray = n_dev @ self.R  # world normal = R.T @ n_dev
+        d: np.ndarray = -(n @ self.center)
         return np.concatenate([n, d[..., None]], axis=-1)
 
     def with_pose(self, R: np.ndarray, t: np.ndarray) -> Device:
@@ -170,7 +174,8 @@ def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:
     return R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
 
 
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+def look_at(eye: npt.ArrayLike, target: npt.ArrayLike,
+            up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """World-to-device R, t for a device at ``eye`` looking at ``target``.
 
     Device axes follow OpenCV: x right, y down in the image, z forward.

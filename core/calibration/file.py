@@ -28,7 +28,7 @@ from anklescan.core.limits import (
     MIN_FOCAL_PX,
     load_json,
 )
-from anklescan.core.vocabulary import Axis
+from anklescan.core.vocabulary import Axis, JsonObject
 
 ORTHONORMAL_TOL = 1e-4
 
@@ -37,10 +37,10 @@ ORTHONORMAL_TOL = 1e-4
 class Calibration:
     camera: Device
     projector: Device
-    extra: dict = field(default_factory=dict)  # quality report, source, ... kept on round trip
+    extra: JsonObject = field(default_factory=dict)  # quality report, source, ... kept on round trip
 
 
-def _matrix(obj: dict, device: str, key: str, shape: tuple[int, ...], allow_null_row: int | None = None) -> np.ndarray:
+def _matrix(obj: JsonObject, device: str, key: str, shape: tuple[int, ...], allow_null_row: int | None = None) -> np.ndarray:
     if key not in obj:
         raise CalibrationError(f"calibration: {device} is missing '{key}'")
     value = obj[key]
@@ -56,7 +56,7 @@ def _matrix(obj: dict, device: str, key: str, shape: tuple[int, ...], allow_null
     return arr
 
 
-def device_from_dict(obj: dict, device: str) -> Device:
+def device_from_dict(obj: object, device: str) -> Device:
     if not isinstance(obj, dict):
         raise CalibrationError(f"calibration: '{device}' must be an object")
     axis = obj.get("axis", Axis.BOTH)
@@ -113,7 +113,7 @@ def _check_plausible(device: str, width: int, height: int, K: np.ndarray, dist: 
                                f"{MAX_TRANSLATION_MM / 1000:g} m from the world origin")
 
 
-def _numeric_list(value) -> bool:
+def _numeric_list(value: object) -> bool:
     try:
         np.asarray(value, dtype=np.float64)
         return True
@@ -121,15 +121,15 @@ def _numeric_list(value) -> bool:
         return False
 
 
-def device_to_dict(dev: Device) -> dict:
-    out = {"width": dev.width, "height": dev.height, "K": dev.K.tolist(), "dist": dev.dist.tolist(),
+def device_to_dict(dev: Device) -> JsonObject:
+    out: JsonObject = {"width": dev.width, "height": dev.height, "K": dev.K.tolist(), "dist": dev.dist.tolist(),
            "R": dev.R.tolist(), "t": dev.t.tolist()}
     if dev.axis != Axis.BOTH:
         out["axis"] = dev.axis
     return out
 
 
-def calibration_from_dict(obj) -> Calibration:
+def calibration_from_dict(obj: object) -> Calibration:
     if not isinstance(obj, dict):
         raise CalibrationError("calibration: the file must hold a JSON object")
     units = obj.get("units", "mm")
@@ -178,10 +178,10 @@ def model_error(cal: Calibration) -> ModelError:
     return ModelError() if obj is None else ModelError.from_dict(obj)
 
 
-def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> dict:
+def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> JsonObject:
     """``volume`` and ``covariance`` entries of ``cal.extra`` re-expressed after the world moves
     (old = A @ new + o, ``calibrate level``); only the keys the calibration has."""
-    out: dict = {}
+    out: JsonObject = {}
     if (volume := calibrated_volume(cal)) is not None:
         out["volume"] = volume.transformed(A, o).to_dict()
     if (cov := parameter_covariance(cal)) is not None:
@@ -189,15 +189,15 @@ def moved_trust(cal: Calibration, A: np.ndarray, o: np.ndarray) -> dict:
     return out
 
 
-def calibration_to_dict(cal: Calibration) -> dict:
+def calibration_to_dict(cal: Calibration) -> JsonObject:
     return {"units": "mm", "camera": device_to_dict(cal.camera), "projector": device_to_dict(cal.projector), **cal.extra}
 
 
-def load_calibration(path: str | os.PathLike) -> Calibration:
+def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     return calibration_from_dict(load_json(Path(path), "calibration file", CalibrationError))
 
 
-def save_calibration(cal: Calibration, path: str | os.PathLike) -> None:
+def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> None:
     """Validated like a loaded file first (finite, plausible), so we never write one we
     would refuse to read."""
     obj = calibration_to_dict(cal)

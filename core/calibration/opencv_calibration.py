@@ -19,6 +19,7 @@ is not lost: ``x_cam = R_world_camera x_world + t_world_camera``.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -58,15 +59,16 @@ def _read_storage(path: Path) -> cv2.FileStorage:
     return fs
 
 
-def _node(fs: cv2.FileStorage, keys: tuple[str, ...]):
+def _node(fs: cv2.FileStorage, keys: tuple[str, ...]) -> tuple[str, cv2.FileNode] | None:
     for k in keys:
         n = fs.getNode(k)
         if not n.empty() and not n.isNone():
             return k, n
-    return None, None
+    return None
 
 
-def _array(node, key: str, path: Path) -> np.ndarray:
+def _array(node: cv2.FileNode, key: str, path: Path) -> np.ndarray:
+    a: np.ndarray | None
     try:
         if node.isSeq():
             a = np.array([node.at(i).real() for i in range(node.size())], np.float64)
@@ -84,12 +86,20 @@ def _array(node, key: str, path: Path) -> np.ndarray:
     return a
 
 
-def _get(fs, role: str, path: Path, required: bool = True):
-    key, node = _node(fs, NAMES[role])
-    if node is None:
-        if required:
-            raise CalibrationError(f"{path}: no {' / '.join(NAMES[role])} entry")
+def _get(fs: cv2.FileStorage, role: str, path: Path) -> tuple[str, np.ndarray]:
+    """The ``role`` entry's key and value; CalibrationError when the file has none."""
+    key, value = _get_optional(fs, role, path)
+    if key is None or value is None:
+        raise CalibrationError(f"{path}: no {' / '.join(NAMES[role])} entry")
+    return key, value
+
+
+def _get_optional(fs: cv2.FileStorage, role: str, path: Path) -> tuple[str | None, np.ndarray | None]:
+    """The ``role`` entry's key and value; (None, None) when the file has none."""
+    found = _node(fs, NAMES[role])
+    if found is None:
         return None, None
+    key, node = found
     return key, _array(node, key, path)
 
 
@@ -99,7 +109,7 @@ def _K(a: np.ndarray, key: str, path: Path) -> np.ndarray:
     return a.reshape(3, 3)
 
 
-def _dist(a, key: str, path: Path) -> np.ndarray:
+def _dist(a: np.ndarray | None, key: str | None, path: Path) -> np.ndarray:
     if a is None:
         return np.zeros(5)
     d = a.ravel()
@@ -121,12 +131,13 @@ def _rotation(a: np.ndarray, key: str, path: Path) -> np.ndarray:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) <= 0:
         raise CalibrationError(f"{path}: '{key}' is not a rotation matrix (not orthonormal with det +1)")
     u, _, vt = np.linalg.svd(R)  # the file's ~16 digits: make it exactly orthonormal
-    return u @ vt
+    orthonormal: np.ndarray = u @ vt
+    return orthonormal
 
 
-def _camera_size(fs, path: Path, given) -> tuple[int, int]:
+def _camera_size(fs: cv2.FileStorage, path: Path, given: tuple[int, int] | None) -> tuple[int, int]:
     if given is not None:
-        return tuple(int(v) for v in given)
+        return int(given[0]), int(given[1])
     for key, order in (("img_shape", "hw"), ("image_size", "wh"), ("imageSize", "wh"), ("camera_size", "wh")):
         n = fs.getNode(key)
         if n.empty() or n.isNone():
@@ -140,7 +151,8 @@ def _camera_size(fs, path: Path, given) -> tuple[int, int]:
                            f"give it with --camera WxH")
 
 
-def import_opencv_calibration(path, projector_size: tuple[int, int], camera_size=None,
+def import_opencv_calibration(path: str | os.PathLike[str], projector_size: tuple[int, int],
+                              camera_size: tuple[int, int] | None = None,
                               unit: str = "mm") -> Calibration:
     """A FileStorage projector-camera calibration as our Calibration, world frame = camera frame."""
     path = Path(path)
@@ -149,14 +161,14 @@ def import_opencv_calibration(path, projector_size: tuple[int, int], camera_size
     fs = _read_storage(path)
     try:
         kc, cam_K = _get(fs, "cam_K", path)
-        kcd, cam_d = _get(fs, "cam_dist", path, required=False)
+        kcd, cam_d = _get_optional(fs, "cam_dist", path)
         kp, proj_K = _get(fs, "proj_K", path)
-        kpd, proj_d = _get(fs, "proj_dist", path, required=False)
+        kpd, proj_d = _get_optional(fs, "proj_dist", path)
         kr, R = _get(fs, "R", path)
         kt, T = _get(fs, "T", path)
         cw, ch = _camera_size(fs, path, camera_size)
-        rms = fs.getNode("rms")
-        rms = float(rms.real()) if not rms.empty() and (rms.isReal() or rms.isInt()) else None
+        rms_node = fs.getNode("rms")
+        rms = float(rms_node.real()) if not rms_node.empty() and (rms_node.isReal() or rms_node.isInt()) else None
         # our own export keeps its world frame; anything else is in the camera's
         Rw = fs.getNode("R_world_camera")
         world = None
@@ -197,7 +209,7 @@ def relative_pose(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
     return R, tp - R @ tc
 
 
-def export_opencv_calibration(cal: Calibration, out) -> Path:
+def export_opencv_calibration(cal: Calibration, out: str | os.PathLike[str]) -> Path:
     """Write ``cal`` as an OpenCV FileStorage (format from the suffix), atomically."""
     out = Path(out)
     suffix = out.suffix.lower()

@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
@@ -67,7 +68,8 @@ def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
+    R: np.ndarray = Rz @ Ry @ Rx
+    return R
 
 
 def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
@@ -84,23 +86,23 @@ def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
 
 
 # ---- vector layout ------------------------------------------------------------------------
-def _check_len(vec, allowed: tuple[int, int], what: str) -> np.ndarray:
-    vec = np.asarray(vec, dtype=np.float64).ravel()
-    if vec.size not in allowed:
-        raise CalibrationError(f"{what} must have {allowed[0]} (paper) or {allowed[1]} (with k2) elements, not {vec.size}")
-    if not np.isfinite(vec).all():
+def _check_len(vec: npt.ArrayLike, allowed: tuple[int, int], what: str) -> np.ndarray:
+    v = np.asarray(vec, dtype=np.float64).ravel()
+    if v.size not in allowed:
+        raise CalibrationError(f"{what} must have {allowed[0]} (paper) or {allowed[1]} (with k2) elements, not {v.size}")
+    if not np.isfinite(v).all():
         raise CalibrationError(f"{what} has non-finite elements")
-    return vec
+    return v
 
 
-def camera_parts(Cn) -> tuple[np.ndarray, np.ndarray, float, float, float, float, float, float]:
+def camera_parts(Cn: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, float, float, float, float, float, float]:
     """(R_p, t_p, u0, v0, ku, kv, k1, k2) of a camera vector."""
     c = _check_len(Cn, (11, 12), "camera vector Cn")
     k2 = c[11] if c.size == 12 else 0.0
     return rotation_from_rpy(*c[:3]), c[3:6].copy(), c[6], c[7], c[8], c[9], c[10], k2
 
 
-def projector_parts(Pn) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
+def projector_parts(Pn: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
     """(R_p, t_p, u0, ku, k1, k2) of a projector vector."""
     p = _check_len(Pn, (9, 10), "projector vector Pn")
     k2 = p[9] if p.size == 10 else 0.0
@@ -122,7 +124,7 @@ def distorted_radius(r_u: np.ndarray, k1: float, k2: float = 0.0) -> np.ndarray:
     return r
 
 
-def paper_distort(xu: np.ndarray, yu: np.ndarray, k1: float, k2: float = 0.0):
+def paper_distort(xu: np.ndarray, yu: np.ndarray, k1: float, k2: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted to distorted image-plane mm (the inverse of eq. 3)."""
     r_u = np.hypot(xu, yu)
     r_d = distorted_radius(r_u, k1, k2)
@@ -131,7 +133,7 @@ def paper_distort(xu: np.ndarray, yu: np.ndarray, k1: float, k2: float = 0.0):
     return xu * s, yu * s
 
 
-def paper_undistort(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float = 0.0):
+def paper_undistort(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 3: distorted to undistorted image-plane mm."""
     r2 = xd * xd + yd * yd
     s = 1.0 + r2 * (k1 + r2 * k2)
@@ -148,7 +150,7 @@ def _to_image_plane(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[np.nda
     return xu, yu
 
 
-def project_camera(Cn, X: np.ndarray) -> np.ndarray:
+def project_camera(Cn: npt.ArrayLike, X: np.ndarray) -> np.ndarray:
     """World points (N, 3) to pixels (N, 2) with eqs. 1-4; NaN behind the camera."""
     R, t, u0, v0, ku, kv, k1, k2 = camera_parts(Cn)
     xu, yu = _to_image_plane(R, t, X)
@@ -156,16 +158,18 @@ def project_camera(Cn, X: np.ndarray) -> np.ndarray:
     return np.stack([-ku * xd + u0, -kv * yd + v0], axis=-1)
 
 
-def project_projector(Pn, X: np.ndarray) -> np.ndarray:
+def project_projector(Pn: npt.ArrayLike, X: np.ndarray) -> np.ndarray:
     """World points (N, 3) to projector columns (N,); distortion on the section y_d = 0."""
     R, t, u0, ku, k1, k2 = projector_parts(Pn)
     xu, _ = _to_image_plane(R, t, X)
     xd, _ = paper_distort(xu, np.zeros_like(xu), k1, k2)
-    return -ku * xd + u0
+    columns: np.ndarray = -ku * xd + u0
+    return columns
 
 
 # ---- conversion: distortion fits ----------------------------------------------------------
-def _normalised_grid(width: int, height: int, fx: float, fy: float, cx: float, cy: float, column: bool):
+def _normalised_grid(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                     column: bool) -> tuple[np.ndarray, np.ndarray]:
     """Distorted normalised coordinates sampling the image (a 1-D row for column devices)."""
     u = np.linspace(-0.5, width - 0.5, FIT_SAMPLES)
     if column:
@@ -204,7 +208,7 @@ def fit_paper_radial(dev: Device, xd: np.ndarray, yd: np.ndarray, terms: int) ->
 
 
 # ---- conversion: paper -> Device ----------------------------------------------------------
-def camera_to_device(Cn, width: int, height: int) -> Device:
+def camera_to_device(Cn: npt.ArrayLike, width: int, height: int) -> Device:
     R, t, u0, v0, ku, kv, k1, k2 = camera_parts(Cn)
     fx, fy = ku * PAPER_FOCAL_MM, kv * PAPER_FOCAL_MM
     xd, yd = _normalised_grid(width, height, fx, fy, u0, v0, column=False)
@@ -213,7 +217,7 @@ def camera_to_device(Cn, width: int, height: int) -> Device:
     return Device(width, height, K, dist, FLIP @ R, FLIP @ t, Axis.BOTH)
 
 
-def projector_to_device(Pn, width: int, height: int) -> Device:
+def projector_to_device(Pn: npt.ArrayLike, width: int, height: int) -> Device:
     """A column device; its row intrinsics are nominal (fy = fx, cy = image centre)."""
     R, t, u0, ku, k1, k2 = projector_parts(Pn)
     fx = ku * PAPER_FOCAL_MM
@@ -251,6 +255,6 @@ def device_to_projector(dev: Device, terms: int = 1) -> np.ndarray:
 
 
 # ---- the 2-D projector: the camera machinery on a projector -------------------------------
-def projector2d_to_device(Cn, width: int, height: int) -> Device:
+def projector2d_to_device(Cn: npt.ArrayLike, width: int, height: int) -> Device:
     """A projector described by a camera vector (both axes known, 2-D distortion)."""
     return camera_to_device(Cn, width, height)

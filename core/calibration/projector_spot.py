@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.box import fit_line
 
@@ -100,7 +101,7 @@ def _crossings(d: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.concatenate(dirs)
 
 
-def refine_spot(images: list[np.ndarray], corner_uv, steered: tuple[float, float], white: np.ndarray,
+def refine_spot(images: list[np.ndarray], corner_uv: npt.ArrayLike, steered: tuple[float, float], white: np.ndarray,
                 radius_px: float | None = None) -> SpotRefinement:
     """The projector (column, row) at camera point ``corner_uv`` from the camera images of
     ``refinement_frames(size, steered)``; refused (position None, with the reason) when the
@@ -114,7 +115,7 @@ def refine_spot(images: list[np.ndarray], corner_uv, steered: tuple[float, float
     edges = refinement_edges(steered)
     if len(images) != len(edges):
         raise ValueError(f"expected {len(edges)} images, got {len(images)}")
-    u, v = float(corner_uv[0]), float(corner_uv[1])
+    u, v = (float(c) for c in np.asarray(corner_uv, dtype=np.float64)[:2])
     h, w = np.asarray(images[0]).shape[:2]
     radii = [max(8.0, 0.02 * w), max(12.0, 0.03 * w)] if radius_px is None else [float(radius_px)]
     r = int(np.ceil(max(radii))) + 1
@@ -145,7 +146,8 @@ def refine_spot(images: list[np.ndarray], corner_uv, steered: tuple[float, float
     return SpotRefinement((float(position[0]), float(position[1])), steered, "refined", total)
 
 
-def _read_edges(crop: list, edges: list, usable: np.ndarray, point: np.ndarray):
+def _read_edges(crop: list[np.ndarray], edges: list[SpotEdge], usable: np.ndarray,
+                point: np.ndarray) -> tuple[list[float], int] | str:
     """((column, row), crossings) at ``point`` (crop coordinates), or the reason it failed."""
     position, total = [0.0, 0.0], 0
     for axis in (0, 1):
@@ -174,6 +176,6 @@ def _read_edges(crop: list, edges: list, usable: np.ndarray, point: np.ndarray):
     return position, total
 
 
-def _gray(image) -> np.ndarray:
+def _gray(image: npt.ArrayLike) -> np.ndarray:
     img = np.asarray(image, dtype=np.float32)
     return img.mean(axis=2) if img.ndim == 3 else img

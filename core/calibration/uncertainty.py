@@ -33,6 +33,7 @@ import numpy as np
 
 from anklescan.core.calibration.device_model import Device
 from anklescan.core.errors import CalibrationError
+from anklescan.core.vocabulary import JsonObject
 
 COVARIANCE_FORM = "opencv-device (rotation in the device frame, rad; t mm; K px; dist)"
 DEVICE_PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -95,7 +96,7 @@ class CalibratedVolume:
         new = (corners - np.asarray(o, dtype=np.float64)) @ np.asarray(A, dtype=np.float64)
         return CalibratedVolume(new.min(axis=0), new.max(axis=0))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"min": [round(float(v), 3) for v in self.min], "max": [round(float(v), 3) for v in self.max]}
 
     @staticmethod
@@ -125,7 +126,7 @@ class ModelError:
     def at(self, outside_mm: float) -> float:
         return self.sd_mm + self.growth * outside_mm
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"sd_mm": self.sd_mm, "growth_mm_per_mm": self.growth}
 
     @staticmethod
@@ -162,7 +163,7 @@ class ParameterCovariance:
                 raise CalibrationError(f"calibration: unknown covariance parameter {name!r}")
         object.__setattr__(self, "matrix", 0.5 * (m + m.T))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"form": COVARIANCE_FORM, "parameters": list(self.parameters),
                 "matrix": self.matrix.tolist()}
 

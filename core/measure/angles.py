@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import AnkleScanError, GeometryError
@@ -41,15 +44,20 @@ _MIN_LENGTH_MM = 1e-6
 _JACOBIAN_STEP_MM = 1e-3
 
 
-class AngleResult(dict):
+# a mapping of marks is keyed by label, as a number or its text (``5`` or ``"5"``)
+K = TypeVar("K", bound=MarkLabel | str)
+
+
+class AngleResult(dict[str, dict[str, float]]):
     """``{angle_name: {"value": deg, "sd": deg}}`` for the angles the marks allow.
 
     A plain dict to JSON, so it drops straight into RESULT.json; ``missing`` maps every
     angle that could not be computed to the labels it lacks.
     """
 
-    def __init__(self, *args, missing: Mapping[str, list[int]] | None = None, **kw):
-        super().__init__(*args, **kw)
+    def __init__(self, angles: Mapping[str, dict[str, float]] | None = None, *,
+                 missing: Mapping[str, list[int]] | None = None) -> None:
+        super().__init__(angles or {})
         self.missing: dict[str, list[int]] = dict(missing or {})
 
     @property
@@ -67,7 +75,7 @@ class AngleResult(dict):
 
 # --------------------------------------------------------------------------- geometry
 
-def _point(p, name: str) -> np.ndarray:
+def _point(p: npt.ArrayLike, name: str) -> np.ndarray:
     a = np.asarray(p, dtype=float).reshape(-1)
     if a.shape != (3,):
         raise GeometryError(f"{name} must have 3 coordinates, got {a.size}")
@@ -82,21 +90,21 @@ def _projected_slope(a: float, b: float, what: str) -> float:
     return math.degrees(math.atan2(a, b))
 
 
-def leg_inversion(P1, P2) -> float:
+def leg_inversion(P1: npt.ArrayLike, P2: npt.ArrayLike) -> float:
     """θ1 = atan2(x1 − x2, z1 − z2): line knee-front→ankle-front in the x–z plane."""
     p1, p2 = _point(P1, "mark 1"), _point(P2, "mark 2")
     d = p1 - p2
     return _projected_slope(d[0], d[2], "leg line 1–2")
 
 
-def leg_plantar_flexion(P3, P4) -> float:
+def leg_plantar_flexion(P3: npt.ArrayLike, P4: npt.ArrayLike) -> float:
     """θ2 = atan2(y3 − y4, z3 − z4): lateral knee→lateral ankle in the y–z plane."""
     p3, p4 = _point(P3, "mark 3"), _point(P4, "mark 4")
     d = p3 - p4
     return _projected_slope(d[1], d[2], "leg line 3–4")
 
 
-def table_normal(P5, P6, P7) -> np.ndarray:
+def table_normal(P5: npt.ArrayLike, P6: npt.ArrayLike, P7: npt.ArrayLike) -> np.ndarray:
     """Unit normal of the plane through marks 5, 6, 7, oriented n_z > 0."""
     p5, p6, p7 = (_point(p, f"mark {k}") for p, k in ((P5, 5), (P6, 6), (P7, 7)))
     a, b = p6 - p5, p7 - p5
@@ -107,13 +115,13 @@ def table_normal(P5, P6, P7) -> np.ndarray:
     nn = np.linalg.norm(n)
     if nn < _MIN_SINE * la * lb:
         raise GeometryError("table marks 5, 6, 7 are collinear; they must span a plane")
-    n = n / nn
-    if abs(n[2]) < _MIN_NZ:
+    unit: np.ndarray = n / nn
+    if abs(unit[2]) < _MIN_NZ:
         raise GeometryError("table plane through marks 5, 6, 7 is vertical")
-    return n if n[2] > 0 else -n
+    return unit if unit[2] > 0 else -unit
 
 
-def table_angles(P5, P6, P7) -> tuple[float, float]:
+def table_angles(P5: npt.ArrayLike, P6: npt.ArrayLike, P7: npt.ArrayLike) -> tuple[float, float]:
     """(table inversion, table plantar flexion) = (atan2(n_x, n_z), atan2(n_y, n_z))."""
     n = table_normal(P5, P6, P7)
     return (math.degrees(math.atan2(n[0], n[2])), math.degrees(math.atan2(n[1], n[2])))
@@ -141,7 +149,7 @@ class JointCovariance:
         idx = [3 * self.labels.index(lab) + k for lab in labels for k in range(3)]
         return self.matrix[np.ix_(idx, idx)]
 
-def _normalise_marks(marks: Mapping) -> dict[MarkLabel, np.ndarray]:
+def _normalise_marks(marks: Mapping[K, npt.ArrayLike]) -> dict[MarkLabel, np.ndarray]:
     out: dict[MarkLabel, np.ndarray] = {}
     for key, p in marks.items():
         lab = parse_label(key)
@@ -151,7 +159,7 @@ def _normalise_marks(marks: Mapping) -> dict[MarkLabel, np.ndarray]:
     return out
 
 
-def _covariance(sigma, label: MarkLabel) -> np.ndarray:
+def _covariance(sigma: float | Mapping[Any, npt.ArrayLike], label: MarkLabel) -> np.ndarray:
     """3x3 covariance for one mark from a scalar sigma, a per-mark dict, or a matrix."""
     s = sigma.get(label, sigma.get(str(label))) if isinstance(sigma, Mapping) else sigma
     if s is None:
@@ -181,8 +189,8 @@ def _jacobian(f: Callable[..., float], pts: list[np.ndarray]) -> np.ndarray:
     return J
 
 
-def angle_with_sd(name: str, points: list, covariances: list[np.ndarray] | None = None,
-                  joint: np.ndarray | None = None) -> dict:
+def angle_with_sd(name: str, points: list[npt.ArrayLike], covariances: list[np.ndarray] | None = None,
+                  joint: np.ndarray | None = None) -> dict[str, float]:
     """One angle and its first-order standard deviation (degrees): from per-mark covariances,
     and/or one (3k, 3k) covariance over the angle's k marks together (``joint``)."""
     f = _ANGLE_FUNCS[name]
@@ -195,7 +203,8 @@ def angle_with_sd(name: str, points: list, covariances: list[np.ndarray] | None 
     return {"value": float(value), "sd": float(math.sqrt(max(J @ cov @ J, 0.0)))}
 
 
-def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM, *, joint: JointCovariance | None = None) -> AngleResult:
+def compute_angles(marks: Mapping[K, npt.ArrayLike], sigma_mm: float | Mapping[Any, npt.ArrayLike] = DEFAULT_SIGMA_MM, *,
+                   joint: JointCovariance | None = None) -> AngleResult:
     """SPEC §3 angles from labelled marks (mm), each ``{"value", "sd"}`` in degrees.
 
     ``sigma_mm`` is the isotropic position SD of every mark, or a mapping label → SD or
@@ -205,7 +214,8 @@ def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM, *, joint: JointCov
     GeometryError.
     """
     pts = _normalise_marks(marks)
-    result, missing = {}, {}
+    result: dict[str, dict[str, float]] = {}
+    missing: dict[str, list[int]] = {}
     for name, labels in ANGLE_MARKS.items():
         lacking = [lab for lab in labels if lab not in pts]
         if lacking:
@@ -219,7 +229,7 @@ def compute_angles(marks: Mapping, sigma_mm=DEFAULT_SIGMA_MM, *, joint: JointCov
 
 # -------------------------------------------------------------------- mismatch
 
-def _value_sd(angles: Mapping, axis: str, what: str) -> tuple[float, float]:
+def _value_sd(angles: Mapping[str, float | Mapping[str, float]], axis: str, what: str) -> tuple[float, float]:
     v = angles.get(axis, angles.get(f"table_{axis}"))
     if v is None:
         raise AnkleScanError(f"{what} angles lack {axis}")
@@ -234,14 +244,15 @@ def wrap_degrees(a: float) -> float:
     return 180.0 if w == -180.0 else w
 
 
-def mismatch(adjusted_table_angles: Mapping, reference_angles: Mapping) -> dict:
+def mismatch(adjusted_table_angles: Mapping[str, float | Mapping[str, float]],
+             reference_angles: Mapping[str, float | Mapping[str, float]]) -> dict[str, dict[str, float]]:
     """Per axis adjusted − reference (SPEC §3), ``{"value", "sd"}`` in degrees.
 
     Each argument maps ``inversion``/``plantar_flexion`` (or the ``table_…`` keys of
     ``compute_angles``) to a number (an operator-set angle, sd 0) or ``{"value","sd"}``.
     The two tables are measured independently, so variances add.
     """
-    out = {}
+    out: dict[str, dict[str, float]] = {}
     for axis in ("inversion", "plantar_flexion"):
         va, sa = _value_sd(adjusted_table_angles, axis, "adjusted table")
         vr, sr = _value_sd(reference_angles, axis, "reference")
@@ -253,7 +264,7 @@ def mismatch(adjusted_table_angles: Mapping, reference_angles: Mapping) -> dict:
 
 def _header_columns(header: list[str], path: Path) -> dict[str, int]:
     names = [h.strip().lower() for h in header]
-    cols = {}
+    cols: dict[str, int] = {}
     for want in ("label", "x", "y", "z"):
         if want not in names:
             raise AnkleScanError(f"{path}: header must name columns label,x,y,z "
@@ -262,7 +273,7 @@ def _header_columns(header: list[str], path: Path) -> dict[str, int]:
     return cols
 
 
-def read_marks_csv(path) -> dict[int, np.ndarray]:
+def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
     """Marks from a ``label,x,y,z`` CSV (header required; extra columns ignored)."""
     path = Path(path)
     try:

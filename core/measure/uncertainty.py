@@ -36,7 +36,7 @@ from anklescan.core.calibration.file import Calibration, calibrated_volume, mode
 from anklescan.core.calibration.uncertainty import ModelError, ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
-from anklescan.core.vocabulary import Axis, parse_label
+from anklescan.core.vocabulary import Axis, JsonObject, parse_label
 
 _STEPS = {"r": 1e-6, "t": 1e-3, "f": 1e-3, "c": 1e-3, "k": 1e-6, "p": 1e-6}
 
@@ -50,7 +50,7 @@ class MarkUncertainty:
     outside_mm: float
     motion_mm: float
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         return {"calibration_mm": round(self.calibration_mm, 4), "model_mm": round(self.model_mm, 4),
                 "outside_volume_mm": round(self.outside_mm, 1), "motion_mm": round(self.motion_mm, 4)}
 
