@@ -129,11 +129,13 @@ class Case:
     def rig(self) -> SimRig:
         """The simulated rig this row describes."""
         if self.variant is not None:
-            v = draw_variant(self.variant, self.mark_type, self.diameter_mm, self.layout)
-            scene = dict(v.scene)
+            # the variant as drawn (draw_variant's own type, size or layout would shift its later draws)
+            v = draw_variant(self.variant)
+            scene = {**v.scene, "mark_type": self.mark_type or v.mark_type,
+                     "mark_radius": (self.diameter_mm or v.diameter) / 2}
             view = v.view
             optics = replace(Optics(), **{**v.optics, **self.optics()})
-            layout = v.layout
+            layout = self.layout or v.layout
         else:
             scene = {"mark_type": self.mark_type or MarkKind.PLATE,
                      "mark_radius": (self.diameter_mm or DEFAULT_DIAMETER_MM) / 2}
