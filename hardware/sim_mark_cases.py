@@ -24,7 +24,7 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from enum import StrEnum
 from pathlib import Path
@@ -134,13 +134,15 @@ class Case:
             scene = {**v.scene, "mark_type": self.mark_type or v.mark_type,
                      "mark_radius": (self.diameter_mm or v.diameter) / 2}
             view = v.view
-            optics = replace(Optics(), **{**v.optics, **self.optics()})
+            overrides: dict[str, Any] = {**v.optics, **self.optics()}
+            optics = replace(Optics(), **overrides)
             layout = self.layout or v.layout
         else:
             scene = {"mark_type": self.mark_type or MarkKind.PLATE,
                      "mark_radius": (self.diameter_mm or DEFAULT_DIAMETER_MM) / 2}
             view = {}
-            optics = replace(Optics(), **self.optics())
+            own: dict[str, Any] = self.optics()
+            optics = replace(Optics(), **own)
             layout = self.layout or "side"
         for key, value in (("mark_thickness", self.thickness_mm), ("ankle_mark_gap_mm", self.ankle_gap_mm),
                            ("lateral_mark_deg", self.lateral_mark_deg)):
@@ -236,8 +238,9 @@ def run_case(case: Case) -> CaseResult:
 
 # ---- the table ----------------------------------------------------------------------------------
 
-_CONVERT = {"mark_type": MarkKind, "expect": Expectation, "size": SizeMode, "variant": int, "seed": int,
-            "suite": lambda s: s.strip().lower() in ("yes", "true", "1")}
+_CONVERT: dict[str, Callable[[str], Any]] = {
+    "mark_type": MarkKind, "expect": Expectation, "size": SizeMode, "variant": int, "seed": int,
+    "suite": lambda s: s.strip().lower() in ("yes", "true", "1")}
 
 
 def _value(name: str, text: str, kind: str) -> Any:

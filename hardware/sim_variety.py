@@ -109,20 +109,20 @@ def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: f
     layout = layout or LAYOUTS[int(rng.integers(len(LAYOUTS)))]
     ankle = (u(31.0, 44.0), u(26.0, 36.0))
     table_marks = {k: (a + u(-12, 12), b + u(-12, 12)) for k, (a, b) in DEFAULT_TABLE_MARKS.items()}
-    scene = dict(ankle_semi_axes=ankle, knee_scale=u(1.25, 1.5), leg_offset_deg=(u(-3, 3), u(-3, 3)),
-                 foot_semi_axes=(u(43, 52), u(110, 128), u(31, 38)),
-                 knee_mark_height=u(340, 400), ankle_mark_height=u(52, 72), lateral_mark_deg=u(25, 45),
-                 table_marks=table_marks, mark_radius=diameter / 2, mark_thickness=u(1.0, 3.0),
-                 mark_albedo=u(0.75, 0.95), skin_albedo=u(0.3, 0.6), table_albedo=u(0.0, 1.0),
-                 floor_albedo=u(0.3, 0.6), mark_type=mark_type)
+    scene: dict[str, Any] = dict(ankle_semi_axes=ankle, knee_scale=u(1.25, 1.5), leg_offset_deg=(u(-3, 3), u(-3, 3)),
+                                 foot_semi_axes=(u(43, 52), u(110, 128), u(31, 38)),
+                                 knee_mark_height=u(340, 400), ankle_mark_height=u(52, 72), lateral_mark_deg=u(25, 45),
+                                 table_marks=table_marks, mark_radius=diameter / 2, mark_thickness=u(1.0, 3.0),
+                                 mark_albedo=u(0.75, 0.95), skin_albedo=u(0.3, 0.6), table_albedo=u(0.0, 1.0),
+                                 floor_albedo=u(0.3, 0.6), mark_type=mark_type)
     # a light table, but the marks MIN_MARK_CONTRAST brighter than it (docs/marks.md: below that
     # a mark does not stand out from the surface's own shading; no method finds it)
     top = min(0.7, scene["mark_albedo"] / MIN_MARK_CONTRAST)
     scene["table_albedo"] = 0.4 + (top - 0.4) * scene["table_albedo"]
-    optics = dict(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
-                  camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
-                  exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
-                  specular=(0.0, 0.0, u(0.05, 0.25))[int(rng.integers(3))])
+    optics: dict[str, Any] = dict(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
+                                  camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
+                                  exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
+                                  specular=(0.0, 0.0, u(0.05, 0.25))[int(rng.integers(3))])
     if seed >= HAND_PLACED_FROM_SEED:
         # a stream of its own, so that the draws above stay what they were
         hand = np.random.default_rng([seed, 16, 1])
