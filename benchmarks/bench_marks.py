@@ -304,7 +304,11 @@ def main(argv=None):
 def run_cases(a: argparse.Namespace) -> int:
     """``--cases`` / ``--draw``: one line per case, then the summary per group; exit 1 on a FAIL."""
     if a.cases:
-        cases = load_cases(a.cases)
+        try:
+            cases = load_cases(a.cases)
+        except (OSError, ValueError) as exc:
+            print(f"bench_marks: {exc}", file=sys.stderr)
+            return 2
         if a.suite:
             cases = [c for c in cases if c.suite]
         if a.only:
