@@ -3,6 +3,9 @@
     /work/venv/bin/python benchmarks/bench_marks.py [--scale 1.0] [--quick] [--jobs 2]
         [--postures 20/20,10/20] [--seed N | --seeds i,31,32] [--camera-blur PX] [--projector-blur PX] [--noise SIGMA]
         [--types plate,sticker] [--diameters 10,15,20] [--size unknown,given] [--variants 1,2,3] [--preset paper]
+        [--ambient FRACTION]
+    /work/venv/bin/python benchmarks/bench_marks.py --cases tests/data/mark_cases.csv [--only NAME,NAME] [--suite]
+    /work/venv/bin/python benchmarks/bench_marks.py --draw 20 [--draw-from 1000] [--harsh] [--scale 0.75] [--rows]
 
 Every posture with each mark type and diameter; each rendered capture is measured once per
 ``--size`` mode (the diameter measured from the capture, and given as the true one).
@@ -15,6 +18,17 @@ found is matched to the nearest true centre); then the worst cases and the count
 (``hardware/sim_variety.py``: leg, marks of 8-25 mm, plate thickness, albedos, gamma, tone
 curve, specular, rig layout); each variant draws its own mark type and diameter unless
 ``--types`` / ``--diameters`` are given.
+
+``--cases FILE`` runs a table of cases (hardware/sim_mark_cases.py; tests/data/mark_cases.csv,
+whose ``suite`` rows tests/test_mark_cases.py runs): one line per case with its worst centre and
+angle errors and PASS/FAIL against the row's expectation (``right``: all seven found, labelled
+right, centres within 0.3 mm, angles within 0.2 deg; ``right_or_refused``: that, or a refusal
+in one line, never a wrong answer), then found-right / refused / wrong per group. ``--draw N``
+runs N drawn combinations of every effect at once (seeds from ``--draw-from``: a variant's leg,
+marks, optics and camera with the table's posture, read noise, blur and ambient light in the
+contract's ranges, or ``--harsh``'s, adjacent ankle disks, a table seen at 72-80 deg, the size
+given or measured: ``sim_variety.draw_conditions``); ``--rows`` prints each as a CSV row for
+the table.
 """
 
 from __future__ import annotations
@@ -36,6 +50,7 @@ from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
 from anklescan.core.scan.capture import capture_from_images  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
 from anklescan.core.scan.triangulate import scan_axes  # noqa: E402
+from anklescan.hardware.sim_mark_cases import Case, case_row, load_cases, run_case, summary  # noqa: E402
 from anklescan.hardware.sim_scene import leg_scene  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402
 from anklescan.hardware.simrig import Optics, SimRig  # noqa: E402
@@ -182,9 +197,20 @@ def main(argv=None):
     ap.add_argument("--variants", help="drawn set-ups (hardware/sim_variety.py) by seed, e.g. 1,2,3, instead of "
                                        "the default scene")
     ap.add_argument("--size", default="unknown", help="unknown (measured), given, or both: unknown,given")
+    ap.add_argument("--ambient", type=float, help="ambient light, fraction of the projector's white (rig default 0.04)")
+    ap.add_argument("--cases", help="a table of cases (CSV, hardware/sim_mark_cases.py), e.g. tests/data/mark_cases.csv")
+    ap.add_argument("--only", help="with --cases: these cases by name, comma-separated")
+    ap.add_argument("--suite", action="store_true", help="with --cases: the rows the test suite runs")
+    ap.add_argument("--draw", type=int, help="N drawn combinations of every effect (sim_variety.draw_conditions)")
+    ap.add_argument("--draw-from", type=int, default=1000, help="with --draw: the first seed (default 1000)")
+    ap.add_argument("--harsh", action="store_true", help="with --draw: the harsh ranges (noise to 6/255, blur to "
+                                                         "1.5 px, ambient to 0.2), expecting right or refused")
+    ap.add_argument("--rows", action="store_true", help="with --draw: print each drawn case as a CSV row")
     a = ap.parse_args(argv)
+    if a.cases or a.draw:
+        return run_cases(a)
     overrides = {k: v for k, v in (("camera_blur_px", a.camera_blur), ("projector_blur_px", a.projector_blur),
-                                   ("noise_sigma", a.noise)) if v is not None}
+                                   ("noise_sigma", a.noise), ("ambient", a.ambient)) if v is not None}
     PRESET[0], THICKNESS[0] = a.preset, a.thickness
     jobs = _jobs(a, overrides)
     failures, n_found, n_right, errors, angle_errors, z, n_trials, size_err = 0, 0, 0, [], [], [], 0, []
@@ -275,5 +301,32 @@ def main(argv=None):
               f"worst {de[:, 1].max():.1f} SD")
 
 
+def run_cases(a: argparse.Namespace) -> int:
+    """``--cases`` / ``--draw``: one line per case, then the summary per group; exit 1 on a FAIL."""
+    if a.cases:
+        try:
+            cases = load_cases(a.cases)
+        except (OSError, ValueError) as exc:
+            print(f"bench_marks: {exc}", file=sys.stderr)
+            return 2
+        if a.suite:
+            cases = [c for c in cases if c.suite]
+        if a.only:
+            wanted = set(a.only.split(","))
+            cases = [c for c in cases if c.name in wanted]
+    else:
+        cases = [Case.drawn(s, a.harsh, a.scale) for s in range(a.draw_from, a.draw_from + a.draw)]
+    results = []
+    with multiprocessing.Pool(a.jobs) if a.jobs > 1 else contextlib.nullcontext() as pool:
+        for r in (pool.imap(run_case, cases) if pool else map(run_case, cases)):
+            results.append(r)
+            print(r.line() + (f"  (xfail: {r.case.xfail})" if r.case.xfail else ""), flush=True)
+            if a.rows:
+                print("    " + case_row(r.case), flush=True)
+    for line in summary(results):
+        print(line)
+    return 0 if all(r.passed for r in results) else 1
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -534,6 +534,31 @@ DEFAULT_TABLE_MARKS = {"5": (80.0, -100.0), "6": (80.0, 95.0), "7": (-48.0, 135.
 LATERAL_MARK_DEG = 35.0
 
 
+def section_arc_mm(semi_axes: tuple[float, float], from_deg: float, to_deg: float, steps: int = 512) -> float:
+    """Length along the ellipse with ``semi_axes`` between two polar angles (degrees; the
+    parameter angle of (a cos t, b sin t), as ``EllipticCone.point`` places marks)."""
+    a, b = semi_axes
+    t = np.linspace(math.radians(from_deg), math.radians(to_deg), steps + 1)
+    speed = np.hypot(a * np.sin(t), b * np.cos(t))
+    return float(abs(np.sum((speed[1:] + speed[:-1]) / 2 * np.diff(t))))
+
+
+def lateral_deg_for_gap(semi_axes: tuple[float, float], radius_mm: float, gap_mm: float) -> float:
+    """Where round the section marks 3 and 4 go (degrees from straight lateral, as
+    ``lateral_mark_deg``) so that the ankle's two disks of ``radius_mm`` leave ``gap_mm`` between
+    their edges along the skin: front mark 2 sits at 90°. Raises ValueError when the section has
+    no room (the gap is wanted between two marks a quarter-section apart at most)."""
+    want = 2.0 * radius_mm + gap_mm
+    if not 0.0 < want < section_arc_mm(semi_axes, 0.0, 90.0):
+        raise ValueError(f"no room for a {gap_mm:.1f} mm gap between {2 * radius_mm:.0f} mm disks on a "
+                         f"{2 * semi_axes[0]:.0f}x{2 * semi_axes[1]:.0f} mm section")
+    lo, hi = 0.0, 90.0  # arc from the angle to 90° falls as the angle rises
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if section_arc_mm(semi_axes, mid, 90.0) > want else (lo, mid)
+    return (lo + hi) / 2
+
+
 def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               leg_inversion: float | None = None, leg_plantar_flexion: float | None = None, *,
               leg_offset_deg: tuple = (1.5, -2.0),
@@ -542,7 +567,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               foot_semi_axes=(47.5, 120.0, 35.0), foot_sink=13.0, foot_shift=-10.0,
               ankle_back=55.0, ankle_height=20.0,
               knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG,
-              lateral_mark_offsets=(0.0, 0.0), table_marks=None,
+              lateral_mark_offsets=(0.0, 0.0), ankle_mark_gap_mm: float | None = None, table_marks=None,
               mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type: MarkKind | str = MarkKind.PLATE,
               floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
@@ -554,6 +579,10 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     ``lateral_mark_deg`` is how far round from straight lateral towards the front marks 3 and 4
     sit (0: straight lateral), ``lateral_mark_offsets`` how far along the leg marks 3 and 4 sit
     from the level of marks 1 and 2 (mm, knee and ankle: hand-stuck pairs are not level).
+    ``ankle_mark_gap_mm`` (None: unused) places marks 3 and 4 round the leg instead of
+    ``lateral_mark_deg``: so that the ankle's disks 2 and 4 leave this gap between their edges,
+    along the skin of the leg's section at mark 2's level (a small clinic ankle with 25 mm disks
+    nearly touching, ``lateral_deg_for_gap``).
     ``mark_type``: "plate" (rigid cylinders ``mark_thickness`` thick) or "sticker" (white disks
     on the skin and the table top, no thickness); ``mark_radius`` is either's radius (SPEC §2:
     4-12.5 mm).
@@ -585,6 +614,10 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     objs.append(leg)
     marks = {}
     knee_off, ankle_off = lateral_mark_offsets
+    if ankle_mark_gap_mm is not None:
+        s_ankle = 1.0 + taper * ankle_mark_height
+        lateral_mark_deg = lateral_deg_for_gap((ankle_semi_axes[0] * s_ankle, ankle_semi_axes[1] * s_ankle),
+                                               mark_radius, ankle_mark_gap_mm)
     for label, ang, z in (("1", math.pi / 2, knee_mark_height), ("2", math.pi / 2, ankle_mark_height),
                           ("3", math.radians(lateral_mark_deg), knee_mark_height + knee_off),
                           ("4", math.radians(lateral_mark_deg), ankle_mark_height + ankle_off)):
@@ -601,6 +634,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
         "kind": "leg",
         "mark_type": mark_type,
         "mark_radius": float(mark_radius),
+        "lateral_mark_deg": float(lateral_mark_deg),
         "table_angles": (float(table_inversion), float(table_plantar_flexion)),
         "leg_axis_angles": (float(leg_inversion), float(leg_plantar_flexion)),
         "table_normal": n,
