@@ -126,7 +126,7 @@ class SessionView(QWidget):
 
     def load_sessions(self, store, session_ids) -> None:
         ids = {int(i) for i in session_ids}
-        self.set_rows([r for r in store.study_rows() if r["session_id"] in ids])
+        self.set_rows([r for r in store.reports.study_rows() if r["session_id"] in ids])
 
     # ---- drawing -------------------------------------------------------------------------
     def redraw(self) -> None:

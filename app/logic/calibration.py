@@ -83,7 +83,7 @@ def accept_calibration(cal, report, data_folder: Path, store, settings,
     cid = None
     if store is not None:
         rms = float(report.camera.rms_px) if report is not None else None
-        cid = store.add_calibration(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
+        cid = store.calibrations.add(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
     s = settings
     for key, value in (("calibration_path", str(path)), ("calibration_id", "" if cid is None else str(cid)),
                        ("calibration_created", created), ("calibration_verified", ""),
