@@ -102,7 +102,7 @@ class Review(QObject):
             return
         rows = logic.session_rows(sid)
         title = logic.session_title(sid) if sid is not None else None
-        if title and any(r.get("simulated") for r in rows):  # simulated trials are never shown as patient data
+        if title and any(r.simulated for r in rows):  # simulated trials are never shown as patient data
             title += " · SIMULATED patient"
         self.session_view.set_rows(rows, title=title)
 

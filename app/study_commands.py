@@ -75,7 +75,7 @@ def cmd_export(args) -> int:
             sid, only = _get(store.sessions.get, args.session, "session").id, None
         session = store.sessions.get(sid)
         patient = store.patients.get(session.patient_id)
-        rows = [r for r in store.reports.study_rows() if r["session_id"] == sid and (only is None or r["trial_id"] in only)]
+        rows = [r for r in store.reports.study_rows() if r.session_id == sid and (only is None or r.trial_id in only)]
     bundle = session_bundle(tables.trial_rows(rows), patient.code, patient.affected_side)
     write_bundle(bundle, out)
     print(f"wrote a FHIR R4 Bundle of {len(bundle['entry']) - 1} Observation(s) (session {sid}) to {out}")

@@ -154,8 +154,8 @@ def test_store_flags_excludes_and_keeps(tmp_path):
         assert not s.trials.get(trials[0].id).motion_flagged and not s.trials.get(trials[1].id).motion_flagged
         summ = s.reports.session_summary(ses.id)
         assert summ.moved_trials == [trials[2].id] and summ.inversion.n == 2
-        rows = {r["trial_id"]: r for r in s.reports.study_rows()}
-        assert rows[trials[2].id]["motion_excluded"] == 1 and rows[trials[0].id]["motion_excluded"] == 0
+        rows = {r.trial_id: r for r in s.reports.study_rows()}
+        assert rows[trials[2].id].excluded_for_motion == 1 and rows[trials[0].id].excluded_for_motion == 0
         s.trials.keep(trials[2].id)
         summ = s.reports.session_summary(ses.id)
         assert summ.moved_trials == [] and summ.inversion.n == 3

@@ -14,6 +14,7 @@ from anklescan.core.records import report
 from anklescan.core.records import study_stats as st
 from anklescan.core.records.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
 from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import StudyRow
 
 INV_SETTINGS = (0.0, 20.0)
 PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
@@ -147,9 +148,10 @@ def test_csv_neutralises_formulas(tmp_path):
 # ------------------------------------------------------------------- stats
 
 def rows_for(values: dict[tuple[str, str], list[float]], sprains: dict[str, int]):
-    return [{"patient_code": p, "condition": c, "sprain_count": sprains[p],
-             "mismatch_inversion": v, "mismatch_plantar_flexion": -v}
-            for (p, c), vs in values.items() for v in vs]
+    return [StudyRow(id=i, session_id=1, created="", ref_inversion=None, ref_plantar_flexion=None,
+                     patient_code=p, condition=c, sprain_count=sprains[p],
+                     mismatch_inversion=v, mismatch_plantar_flexion=-v)
+            for i, ((p, c), v) in enumerate(((pc, v) for pc, vs in values.items() for v in vs))]
 
 
 def test_per_patient_aggregation_and_groups():
@@ -247,11 +249,11 @@ def _capture_figures(monkeypatch) -> list:
 
 def test_study_rows_carry_state_and_mark_confirmation(states_session):
     store, sid, ids, (c1, c2) = states_session
-    rows = {r["trial_id"]: r for r in store.reports.study_rows()}
-    assert [rows[ids[k]]["counted"] for k in ("a", "auto", "cancel", "fail", "excl")] == [1, 1, 0, 0, 0]
-    assert rows[ids["a"]]["marks_confirmed"] == 1 and rows[ids["auto"]]["marks_confirmed"] == 0
-    assert rows[ids["b"]]["marks_confirmed"] == 1          # no marks: nothing left to confirm
-    assert rows[ids["a"]]["calibration_id"] == c1 and rows[ids["auto"]]["calibration_id"] == c2
+    rows = {r.trial_id: r for r in store.reports.study_rows()}
+    assert [rows[ids[k]].counted for k in ("a", "auto", "cancel", "fail", "excl")] == [1, 1, 0, 0, 0]
+    assert rows[ids["a"]].marks_confirmed == 1 and rows[ids["auto"]].marks_confirmed == 0
+    assert rows[ids["b"]].marks_confirmed == 1          # no marks: nothing left to confirm
+    assert rows[ids["a"]].calibration_id == c1 and rows[ids["auto"]].calibration_id == c2
 
 
 def test_states_shown_in_table_but_only_counted_trials_plotted(states_session, tmp_path, monkeypatch):

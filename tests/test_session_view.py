@@ -224,7 +224,7 @@ def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
              for s in item.points()}
     assert spots[ids[1]].brush().color().alpha() == 0 and spots[ids[0]].brush().color().alpha() == 255
     assert "automatic marks, not confirmed" in trial_tip(spots[ids[1]].data(), "inversion")
-    left_out = [r for r in store.reports.study_rows() if r["trial_id"] in ids[3:]]
+    left_out = [r for r in store.reports.study_rows() if r.trial_id in ids[3:]]
     view.set_rows(left_out)
     assert view.trial_points == {} and "0 measured trials of 2; 2 left out" in view.info.text()
     texts = [i.textItem.toPlainText() for i in view.fig10.items if isinstance(i, pg.TextItem)]

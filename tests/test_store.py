@@ -329,8 +329,8 @@ def test_trial_lifecycle_exclusion_archive_and_events(tmp_path):
             db.trials.exclude(good.id, "  ")
         db.trials.exclude(good.id, "patient stepped off", who="dr-a")
         assert db.reports.session_summary(ses.id).inversion.n == 0
-        rows = {r["trial_id"]: r for r in db.reports.study_rows()}
-        assert rows[good.id]["counted"] == 0 and rows[good.id]["calibration_id"] == cal.id
+        rows = {r.trial_id: r for r in db.reports.study_rows()}
+        assert rows[good.id].counted == 0 and rows[good.id].calibration_id == cal.id
         db.trials.restore(good.id)
         assert db.trials.get(good.id).counted and db.reports.session_summary(ses.id).inversion.n == 1
         db.sessions.archive(ses.id)

@@ -197,7 +197,7 @@ def test_screenshots(qtbot, qapp, tmp_path):
     view = SessionView()
     qtbot.addWidget(view)
     view.resize(1000, 760)
-    view.set_rows([r for r in store.reports.study_rows() if r["session_id"] == sess.id], title="P-017, barefoot")
+    view.set_rows([r for r in store.reports.study_rows() if r.session_id == sess.id], title="P-017, barefoot")
     view.inversion_box.setCurrentIndex(2)
     view.show()
     qtbot.waitExposed(view)

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from anklescan.app.logic.events import Event
-from anklescan.core.vocabulary import Severity
+from anklescan.core.vocabulary import Severity, StudyRow
 
 
 class SessionLogic:
@@ -140,10 +140,10 @@ class SessionLogic:
         s = self.store.sessions.get(session_id)
         return f"{self.store.patients.get(s.patient_id).code}, {s.condition}, {s.date}"
 
-    def session_rows(self, session_id: int | None) -> list[dict]:
+    def session_rows(self, session_id: int | None) -> list[StudyRow]:
         if self.store is None or session_id is None:
             return []
-        return [r for r in self.store.reports.study_rows() if r["session_id"] == session_id]
+        return [r for r in self.store.reports.study_rows() if r.session_id == session_id]
 
     # ---- patients and sessions --------------------------------------------------------
     def require_store(self) -> bool:

@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.records import study_stats as st
-from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary, TrialState
+from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary, StudyRow, TrialState
 
 A4 = (8.27, 11.69)
 FOOT_SIZE = 7
@@ -51,7 +51,7 @@ CSV_COLUMNS = (
     "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
     "status", "status_note", "excluded_reason", "counted", "marks_confirmed",
     "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep", "simulated",
-    "mark_warnings")
+    "mark_warnings")  # each a StudyRow field or property of the same name
 _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
@@ -90,9 +90,9 @@ class _Pages:
         self.pdf.savefig(fig)
 
 
-def simulated_stamp(rows: Sequence[dict]) -> str:
+def simulated_stamp(rows: Sequence[StudyRow]) -> str:
     """What every page says of the simulated trials among ``rows`` ("" when there are none)."""
-    sim = sum(1 for r in rows if r.get("simulated"))
+    sim = sum(1 for r in rows if r.simulated)
     if not sim:
         return ""
     if sim == len(rows):
@@ -101,9 +101,11 @@ def simulated_stamp(rows: Sequence[dict]) -> str:
             "patient's (column 'simulated' in the CSV)")
 
 
-def _csv_value(key: str, v) -> str:
+def _csv_value(key: str, v: object) -> str:
     if v is None:
         return ""
+    if isinstance(v, bool):  # counted, marks_confirmed, motion_flagged, motion_keep, simulated
+        return str(int(v))
     if isinstance(v, float):
         return repr(v)
     s = str(v)
@@ -113,12 +115,12 @@ def _csv_value(key: str, v) -> str:
     return s
 
 
-def write_csv(rows: Sequence[dict], path: Path) -> None:
+def write_csv(rows: Sequence[StudyRow], path: Path) -> None:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
         for r in rows:
-            w.writerow([_csv_value(k, r.get(k)) for k in CSV_COLUMNS])
+            w.writerow([_csv_value(k, getattr(r, k)) for k in CSV_COLUMNS])
 
 
 # ------------------------------------------------------------------ formatting
@@ -154,48 +156,48 @@ def _trials_text(trials, no_mismatch: list) -> str:
     return text
 
 
-def _state_cell(r: dict) -> str:
-    if r.get("excluded_reason") is not None:
+def _state_cell(r: StudyRow) -> str:
+    if r.excluded_reason is not None:
         return "excluded"
-    state = r.get("status") or TrialState.COMPLETE
-    if state == TrialState.COMPLETE and r.get("motion_excluded"):
+    state = r.status
+    if state == TrialState.COMPLETE and r.excluded_for_motion:
         return "moved"
-    if state == TrialState.COMPLETE and not r.get("marks_confirmed", 1):
+    if state == TrialState.COMPLETE and not r.marks_confirmed:
         return "complete*"
     return str(state)
 
 
-def _left_out_why(r: dict) -> tuple[str, str] | None:
+def _left_out_why(r: StudyRow) -> tuple[str, str] | None:
     """(state, reason) of a trial that is shown but not counted; None for a counted one."""
-    if r.get("excluded_reason") is not None:
-        return "excluded", r["excluded_reason"]
-    state = r.get("status") or TrialState.COMPLETE
-    if state == TrialState.COMPLETE and r.get("motion_excluded"):
-        return "moved", f"{r['motion_mm']:.1f} mm during the scan, not kept"
-    return None if state == TrialState.COMPLETE else (str(state), r.get("status_note") or "")
+    if r.excluded_reason is not None:
+        return "excluded", r.excluded_reason
+    state = r.status
+    if state == TrialState.COMPLETE and r.excluded_for_motion:
+        return "moved", f"{r.motion_mm:.1f} mm during the scan, not kept"
+    return None if state == TrialState.COMPLETE else (str(state), r.status_note or "")
 
 
-def _trial_cells(i: int, r: dict) -> list[str]:
+def _trial_cells(i: int, r: StudyRow) -> list[str]:
     # two decimals: the propagated SDs are hundredths of a degree
-    cal = r.get("calibration_id")
+    cal = r.calibration_id
     return [str(i), _state_cell(r), "–" if cal is None else f"#{cal}",
-            _fmt(r["ref_inversion"]), _fmt(r["ref_plantar_flexion"]),
-            _fmt(r["leg_inversion"], r["leg_inversion_sd"], 2),
-            _fmt(r["leg_plantar_flexion"], r["leg_plantar_flexion_sd"], 2),
-            _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
-            _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"], 2),
-            _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"], 2),
-            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2),
+            _fmt(r.ref_inversion), _fmt(r.ref_plantar_flexion),
+            _fmt(r.leg_inversion, r.leg_inversion_sd, 2),
+            _fmt(r.leg_plantar_flexion, r.leg_plantar_flexion_sd, 2),
+            _fmt(r.table_inversion, r.table_inversion_sd, 2),
+            _fmt(r.table_plantar_flexion, r.table_plantar_flexion_sd, 2),
+            _fmt(r.mismatch_inversion, r.mismatch_inversion_sd, 2),
+            _fmt(r.mismatch_plantar_flexion, r.mismatch_plantar_flexion_sd, 2),
             _motion_cell(r)]
 
 
-def _motion_cell(r: dict) -> str:
+def _motion_cell(r: StudyRow) -> str:
     """Motion during the scan and the scan's duration; "out" = flagged and left out of the
     statistics, "kept" = flagged but kept by the clinician."""
-    m, dur = r.get("motion_mm"), r.get("scan_duration_s")
+    m, dur = r.motion_mm, r.scan_duration_s
     text = "–" if m is None else f"{m:.2f}"
-    if r.get("motion_flagged"):
-        text += " kept" if r.get("motion_keep") else " out"
+    if r.motion_flagged:
+        text += " kept" if r.motion_keep else " out"
     return text + ("" if dur is None else f" / {dur:.1f}")
 
 
@@ -259,28 +261,28 @@ def _setting(v: float | None) -> float | None:
     return None if v is None else round(v, 1)
 
 
-def _measured(rows: list[dict]) -> list[dict]:
+def _measured(rows: list[StudyRow]) -> list[StudyRow]:
     """Counted trials (complete, not excluded) with a mismatch and both set angles: what
     the plots and statistics use."""
-    return [r for r in st.counted_rows(rows) if r["mismatch_inversion"] is not None
-            and r["ref_inversion"] is not None and r["ref_plantar_flexion"] is not None]
+    return [r for r in st.counted_rows(rows) if r.mismatch_inversion is not None
+            and r.ref_inversion is not None and r.ref_plantar_flexion is not None]
 
 
-def _confirmed(r: dict) -> bool:
-    return bool(r.get("marks_confirmed", 1))
+def _confirmed(r: StudyRow) -> bool:
+    return bool(r.marks_confirmed)
 
 
-def _rows_by_setting(rows: list[dict]) -> dict[float, dict[float, list[dict]]]:
+def _rows_by_setting(rows: list[StudyRow]) -> dict[float, dict[float, list[StudyRow]]]:
     """inversion setting → plantar-flexion setting → the measured trials (rows) there."""
-    out: dict[float, dict[float, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    out: dict[float, dict[float, list[StudyRow]]] = defaultdict(lambda: defaultdict(list))
     for r in _measured(rows):
-        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(r)
+        out[_setting(r.ref_inversion)][_setting(r.ref_plantar_flexion)].append(r)
     return out
 
 
-def _by_setting(rows: list[dict], axis: str) -> dict[float, dict[float, list[float]]]:
+def _by_setting(rows: list[StudyRow], axis: str) -> dict[float, dict[float, list[float]]]:
     """inversion setting → plantar-flexion setting → mismatch values on ``axis``."""
-    return {inv: {pf: [r[f"mismatch_{axis}"] for r in rs] for pf, rs in per.items()}
+    return {inv: {pf: [r.mismatch(axis) for r in rs] for pf, rs in per.items()}
             for inv, per in _rows_by_setting(rows).items()}
 
 
@@ -349,7 +351,7 @@ def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
 
 # ------------------------------------------------------------------ figures
 
-def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
+def _plot_fig10(ax, rows: list[StudyRow], axis: str, show_sd: bool = False) -> None:
     """Paper Fig. 10: mismatch against plantar flexion, one curve per inversion setting."""
     by_rows = _rows_by_setting(rows)
     data = _by_setting(rows, axis)
@@ -365,11 +367,11 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         for p in pfs:
             trials = by_rows[inv][p]
             if len(trials) == 1:   # one trial is its own mean: one point, hollow when its marks are unconfirmed
-                _trial_marker(ax, p + dx, trials[0][f"mismatch_{axis}"], col, _confirmed(trials[0]), ms=5,
+                _trial_marker(ax, p + dx, trials[0].mismatch(axis), col, _confirmed(trials[0]), ms=5,
                               alpha=1.0)
                 continue
             for r in trials:
-                _trial_marker(ax, p + dx, r[f"mismatch_{axis}"], col, _confirmed(r))
+                _trial_marker(ax, p + dx, r.mismatch(axis), col, _confirmed(r))
             ax.plot(p + dx, np.mean(data[inv][p]), "o", ms=5, color=col, zorder=4)
         xs = [p + dx for p in pfs]
         all_x += xs
@@ -383,7 +385,7 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         ax.set_xlim(*x_limits(all_x))
 
 
-def _sym_limit(rows: list[dict]) -> float:
+def _sym_limit(rows: list[StudyRow]) -> float:
     """Symmetric y-limit covering every point and mean ± SD, shared by panels that the
     reader compares (barefoot/shoes, with/without sprain); never under MIN_HALF_SPAN_DEG."""
     m = MIN_HALF_SPAN_DEG
@@ -396,7 +398,7 @@ def _sym_limit(rows: list[dict]) -> float:
     return m * 1.12
 
 
-def _page_legend(fig: Figure, axes: list, y: float, rows: list[dict] | None = None) -> None:
+def _page_legend(fig: Figure, axes: list, y: float, rows: list[StudyRow] | None = None) -> None:
     """The inversion settings' colours, then a line for the trial markers (with the hollow
     "automatic marks, not confirmed" one when any plotted trial has such marks)."""
     for ax in axes:
@@ -412,7 +414,7 @@ def _page_legend(fig: Figure, axes: list, y: float, rows: list[dict] | None = No
             return
 
 
-def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> None:
+def _plot_error_range(ax, per_pf_rows: dict[float, list[StudyRow]], axis: str) -> None:
     """Paper Figs. 11–12: per plantar-flexion setting, mean, ±SD bar and min–max range, with
     the single trials beside the bar (hollow where their marks are unconfirmed)."""
     pfs = sorted(per_pf_rows)
@@ -420,7 +422,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
         _no_data(ax)
     extent: list[float] = []
     for p in pfs:
-        v = np.asarray([r[f"mismatch_{axis}"] for r in per_pf_rows[p]], float)
+        v = np.asarray([r.mismatch(axis) for r in per_pf_rows[p]], float)
         if v.size == 1:   # no spread to draw: the one trial, once, at its setting
             r = per_pf_rows[p][0]
             _trial_marker(ax, p, v[0], "0.35", _confirmed(r), ms=5, alpha=1.0)
@@ -429,7 +431,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
                         fontsize=7, color="0.3")
             continue
         for r in per_pf_rows[p]:
-            _trial_marker(ax, p + 1.4, r[f"mismatch_{axis}"], "0.35", _confirmed(r), alpha=0.6)
+            _trial_marker(ax, p + 1.4, r.mismatch(axis), "0.35", _confirmed(r), alpha=0.6)
         sd_ = v.std(ddof=1) if v.size > 1 else 0.0
         extent += [v.min(), v.max(), v.mean() - sd_, v.mean() + sd_]
         ax.vlines(p, v.min(), v.max(), color="0.35", lw=1)
@@ -457,7 +459,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
                   bbox_to_anchor=(0.5, 1.0), ncol=len(h0 + h), handlelength=1.5, columnspacing=1.2)
 
 
-def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
+def _fig10_page(pages: _Pages, rows: list[StudyRow], title: str) -> None:
     fig = pages.new()
     fig.suptitle(title, fontsize=12, weight="bold", y=0.965)
     fig.text(0.5, 0.935, "Mean mismatch (adjusted − reference table) per setting; "
@@ -472,7 +474,7 @@ def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
     pages.save(fig)
 
 
-def _error_range_pages(pages: _Pages, rows: list[dict], label: str) -> None:
+def _error_range_pages(pages: _Pages, rows: list[StudyRow], label: str) -> None:
     per_inv = _rows_by_setting(rows)
     for inv in sorted(per_inv):
         fig = pages.new()
@@ -505,12 +507,12 @@ def _calibration_text(cal) -> str:
             + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
 
 
-def _calibration_items(calibrations: dict[int, CalibrationRecord], session, rows: list[dict]) -> list[tuple[str, str]]:
+def _calibration_items(calibrations: dict[int, CalibrationRecord], session, rows: list[StudyRow]) -> list[tuple[str, str]]:
     """One line per calibration the session's trials were measured with (the trial table's
     "Cal." column names it per trial); the session's own when no trial names one."""
     used: dict[int | None, list[int]] = defaultdict(list)
     for i, r in enumerate(rows, 1):
-        used[r.get("calibration_id")].append(i)
+        used[r.calibration_id].append(i)
     if not rows:
         used[session.calibration_id] = []
     items = []
@@ -558,7 +560,7 @@ def _table_chunks(cells, rows, first_top: float, widths) -> list[tuple[int, int,
     return chunks
 
 
-def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
+def _notes_for(rows: list[StudyRow], start: int, stop: int) -> list[str]:
     why: dict[tuple[str, str], list[int]] = defaultdict(list)   # trials sharing a reason: one note
     for i in range(start, stop):
         if (w := _left_out_why(rows[i])) is not None:
@@ -566,8 +568,8 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
     notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
              for (state, reason), ts in why.items()]
     marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
-    uncertain = [f"trial {i + 1}: {rows[i]['mark_warnings']}" for i in range(start, stop)
-                 if rows[i].get("mark_warnings")]
+    uncertain = [f"trial {i + 1}: {rows[i].mark_warnings}" for i in range(start, stop)
+                 if rows[i].mark_warnings]
     lines = []
     if notes:
         lines += _wrap("Shown, but left out of the plots and statistics: " + "; ".join(notes) + ".", 130)
@@ -581,7 +583,7 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
 
 
 def _header_page(pages: _Pages, summ: SessionSummary, calibrations: dict[int, CalibrationRecord],
-                 rows: list[dict], group_note: str | None = None) -> None:
+                 rows: list[StudyRow], group_note: str | None = None) -> None:
     p, s = summ.patient, summ.session
     history = (f"{p.sprain_count} sprain(s)" + (f", last {p.last_sprain}" if p.last_sprain else "")
                + (f", {p.affected_side} side" if p.affected_side else ""))
@@ -633,7 +635,7 @@ GROUP_OMITTED = ("not included: no comparison can be computed yet (needs at leas
                  "both barefoot and in shoes)")
 
 
-def _group_page(pages: _Pages, rows: list[dict], highlight: set[str]) -> None:
+def _group_page(pages: _Pages, rows: list[StudyRow], highlight: set[str]) -> None:
     s = st.study_stats(rows)
     fig = pages.new()
     fig.suptitle("Group comparison — mean |mismatch| per patient", fontsize=12,
@@ -772,14 +774,14 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
     with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             ids = {summ.session.id for summ in data.sessions}
-            shown = all_rows if with_group else [r for r in all_rows if r["session_id"] in ids]
+            shown = all_rows if with_group else [r for r in all_rows if r.session_id in ids]
             pages = _Pages(pdf, f"AnkleScan session report — {', '.join(sorted(codes))} — "
                                 f"generated {stamp}", simulated_stamp(shown))
             for summ in data.sessions:
                 s = summ.session
-                rows = [r for r in all_rows if r["session_id"] == s.id]
+                rows = [r for r in all_rows if r.session_id == s.id]
                 _header_page(pages, summ, data.calibrations, rows, None if with_group else GROUP_OMITTED)
-                label = f"Patient {rows[0]['patient_code'] if rows else ''}, {s.condition}, {s.date}"
+                label = f"Patient {rows[0].patient_code if rows else ''}, {s.condition}, {s.date}"
                 _fig10_page(pages, rows, f"Mismatch against plantar flexion — {s.condition}, "
                                          f"{s.date}")
                 _error_range_pages(pages, rows, label)
@@ -788,7 +790,7 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
             _pdf_info(pdf, "AnkleScan session report")
         if tmp_csv is not None:
             ids = {s.id for s in sessions}
-            write_csv([r for r in all_rows if r["session_id"] in ids], tmp_csv)
+            write_csv([r for r in all_rows if r.session_id in ids], tmp_csv)
     return ReportResult(pdf_path, csv_path, pages.count)
 
 
@@ -805,7 +807,7 @@ def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResu
             with_group = st.has_tests(stats_)
             _overview_pages(pages, data.patients, rows, None if with_group else GROUP_OMITTED)
             for g in st.GROUPS:
-                mine = [r for r in rows if stats_.patient_group.get(r["patient_code"]) == g]
+                mine = [r for r in rows if stats_.patient_group.get(r.patient_code) == g]
                 if mine:   # a group nobody is in yet gets no page of empty axes
                     _group_fig10_page(pages, mine, g, lim)
             if with_group:
@@ -821,7 +823,7 @@ def _pdf_info(pdf: PdfPages, title: str) -> None:
     d["Title"], d["Creator"] = title, "AnkleScan"
 
 
-def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict],
+def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[StudyRow],
                     group_note: str | None = None) -> None:
     s = st.study_stats(rows)
     head = ("Patient", "Group", "Sprains", "Side", "Sessions", "Trials\ncounted",
@@ -829,16 +831,16 @@ def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict]
             "|Δ PF| shoes\n(°)")
     cells = []
     for p in patients:
-        mine = [r for r in rows if r["patient_code"] == p.code]
+        mine = [r for r in rows if r.patient_code == p.code]
         mean = [s.patient_means.get((p.code, c, a)) for a in st.AXES for c in st.CONDITIONS]
         cells.append([p.code, "sprain" if p.has_sprain_history else "none",
                       str(p.sprain_count), p.affected_side or "–",
-                      str(len({r["session_id"] for r in mine})),
+                      str(len({r.session_id for r in mine})),
                       str(sum(st.is_counted(r) for r in mine)),
                       *("–" if m is None else f"{m:.2f}" for m in mean)])
     counts = [("Patients", f"{len(patients)} ({sum(p.has_sprain_history for p in patients)} "
                            "with sprain history)"),
-              ("Sessions", str(len({r['session_id'] for r in rows}))),
+              ("Sessions", str(len({r.session_id for r in rows}))),
               ("Trials", f"{len(rows)} in all, {len(st.counted_rows(rows))} counted (complete and not "
                          f"excluded), {len(_measured(rows))} of them measured")]
     if group_note:
@@ -855,11 +857,11 @@ def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict]
         pages.save(fig)
 
 
-def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -> None:
+def _group_fig10_page(pages: _Pages, rows: list[StudyRow], group: str, lim: float) -> None:
     fig = pages.new()
     fig.suptitle(f"Mismatch against plantar flexion — {group}", fontsize=12, weight="bold",
                  y=0.965)
-    n = len({r['patient_code'] for r in rows})
+    n = len({r.patient_code for r in rows})
     fig.text(0.5, 0.935, f"{n} patient{'s' if n != 1 else ''}; mean ± SD over "
              "trials per setting, faint points are single trials", ha="center",
              fontsize=8, color="0.3")
@@ -867,7 +869,7 @@ def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -
     for i, axis in enumerate(st.AXES):
         for j, cond in enumerate(st.CONDITIONS):
             ax = fig.add_axes((0.1 + 0.46 * j, 0.5 - 0.43 * i, 0.37, 0.32))
-            _plot_fig10(ax, [r for r in rows if r["condition"] == cond], axis, show_sd=True)
+            _plot_fig10(ax, [r for r in rows if r.condition == cond], axis, show_sd=True)
             ax.set_title(cond, fontsize=10)
             ax.set_ylim(-lim, lim)
             axes.append(ax)
@@ -907,8 +909,8 @@ def _study_cover(pages: _Pages, t) -> None:
 
     rows = t.data.rows
     counts = [("Covers", t.filter.text()),
-              ("Patients", str(len({r["patient_code"] for r in rows}))),
-              ("Visits", f"{len({r['session_id'] for r in rows})} sessions"),
+              ("Patients", str(len({r.patient_code for r in rows}))),
+              ("Visits", f"{len({r.session_id for r in rows})} sessions"),
               ("Trials", f"{len(rows)} in all, {len(sy.tables.included(t.trials))} complete and included"),
               ("Files", "trials.csv / trials.xlsx (every trial, with its state), data_dictionary.csv, "
                         "position_sense.csv, reliability.csv")]
@@ -1109,12 +1111,12 @@ def write_study_pages(t, pdf_path: Path) -> int:
         stats_ = st.study_stats(rows)
         with_group = st.has_tests(stats_)
         _overview_pages(pages, t.data.patients, rows, None if with_group else GROUP_OMITTED)
-        for code in sorted({r["patient_code"] for r in rows}):
+        for code in sorted({r.patient_code for r in rows}):
             for cond in st.CONDITIONS:
-                mine = [r for r in rows if r["patient_code"] == code and r["condition"] == cond]
+                mine = [r for r in rows if r.patient_code == code and r.condition == cond]
                 if not _measured(mine):
                     continue
-                visits = sorted({r["session_date"] for r in mine})
+                visits = sorted({r.session_date for r in mine})
                 label = f"Patient {code}, {cond}, visits {', '.join(visits)}"
                 _fig10_page(pages, mine, f"Mismatch against plantar flexion — {code}, {cond}")
                 _error_range_pages(pages, mine, label)

@@ -5,6 +5,7 @@ takes it, never the database). Read-only queries across the aggregates."""
 from __future__ import annotations
 
 import math
+import sqlite3
 from collections.abc import Sequence
 
 from anklescan.core.records.calibrations import CalibrationRepository
@@ -12,7 +13,7 @@ from anklescan.core.records.database import Database
 from anklescan.core.records.patients import PatientRepository
 from anklescan.core.records.sessions import SessionRepository
 from anklescan.core.records.trials import TrialRepository
-from anklescan.core.vocabulary import AxisSummary, ReportInput, SessionSummary
+from anklescan.core.vocabulary import AxisSummary, ReportInput, SessionSummary, StudyRow, TrialState
 
 _STUDY_ROWS = (
     "SELECT p.code AS patient_code, p.sprain_count, p.last_sprain, p.affected_side,"
@@ -32,6 +33,16 @@ _STUDY_ROWS = (
     " JOIN patients p ON p.id = s.patient_id"
     " LEFT JOIN calibrations c ON c.id = COALESCE(t.calibration_id, s.calibration_id)"
     " ORDER BY p.code, s.date, s.id, t.id")
+
+
+def _study_row(row: sqlite3.Row) -> StudyRow:
+    d = dict(row)  # of a repeated column name (session_id, calibration_id) the first one's value
+    for k in ("trial_id", "counted", "motion_excluded"):  # Trial's id, .counted, .excluded_for_motion
+        del d[k]
+    for k in ("motion_flagged", "motion_keep", "simulated", "marks_confirmed"):
+        d[k] = bool(d[k] or 0)
+    d["status"] = TrialState(d["status"])
+    return StudyRow(**d)
 
 
 def _axis_summary(values: Sequence[float | None]) -> AxisSummary:
@@ -55,9 +66,10 @@ class ReportData:
         self._sessions = sessions
         self._trials = trials
 
-    def study_rows(self) -> list[dict[str, object]]:
-        """Every trial joined with its session, patient and calibration (for stats/CSV)."""
-        return [dict(r) for r in self._db.all(_STUDY_ROWS)]
+    def study_rows(self) -> list[StudyRow]:
+        """Every trial joined with its session, patient and calibration (for stats/CSV), ordered by
+        patient code, visit date, session and trial."""
+        return [_study_row(r) for r in self._db.all(_STUDY_ROWS)]
 
     def session_summary(self, session_id: int) -> SessionSummary:
         s = self._sessions.get(session_id)
@@ -78,6 +90,6 @@ class ReportData:
         report)."""
         sessions = [self.session_summary(int(i)) for i in (session_ids or ())]
         rows = self.study_rows()
-        cids = {r["calibration_id"] for r in rows} | {s.session.calibration_id for s in sessions}
-        calibrations = {cid: self._calibrations.get(cid) for cid in sorted(c for c in cids if isinstance(c, int))}
+        cids = {r.calibration_id for r in rows} | {s.session.calibration_id for s in sessions}
+        calibrations = {cid: self._calibrations.get(cid) for cid in sorted(c for c in cids if c is not None)}
         return ReportInput(rows, self._patients.all(), calibrations, sessions)

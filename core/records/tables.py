@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from anklescan.core.records import study_stats as st
-from anklescan.core.vocabulary import TrialState
+from anklescan.core.vocabulary import StudyRow, TrialState
 
 BOM = "\ufeff"
 TRUE, FALSE = "true", "false"
@@ -70,31 +70,33 @@ COLUMN_NAMES: tuple[str, ...] = tuple(c.name for c in COLUMNS)
 DICTIONARY_HEAD = ("column", "unit", "description")
 
 
-def _excluded_reason(r: Mapping) -> str:
-    if r.get("excluded_reason") is not None:
-        return str(r["excluded_reason"])
-    if r.get("motion_excluded"):
-        return f"moved {r['motion_mm']:.2f} mm during the scan, not kept"
+def _excluded_reason(r: StudyRow) -> str:
+    if r.excluded_reason is not None:
+        return str(r.excluded_reason)
+    if r.excluded_for_motion:
+        return f"moved {r.motion_mm:.2f} mm during the scan, not kept"
     return ""
 
 
-def trial_rows(rows: Sequence[Mapping]) -> list[dict]:
-    """``Store.study_rows()`` rows → the export's rows (SPEC §7 column names; numbers as numbers,
-    None for a value not measured, booleans as "true"/"false")."""
+def trial_rows(rows: Sequence[StudyRow]) -> list[dict[str, object]]:
+    """``store.reports.study_rows()`` → the export's rows: one cell per SPEC §7 column, by that
+    column's name (``COLUMNS``; numbers as numbers, None for a value not measured, booleans as
+    "true"/"false"), as trials.csv, trials.xlsx and the FHIR bundle write them."""
     out = []
     for r in rows:
-        excluded = r.get("excluded_reason") is not None or bool(r.get("motion_excluded"))
-        d = {"patient": r["patient_code"], "session": r["session_id"], "visit_date": r["session_date"],
-             "condition": r["condition"], "trial": r["trial_id"], "status": str(r.get("status") or TrialState.COMPLETE),
-             "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
-             "marks_confirmed": TRUE if r.get("marks_confirmed", 1) else FALSE,
-             "reference_inversion": r["ref_inversion"], "reference_plantar_flexion": r["ref_plantar_flexion"],
-             "motion_mm": r.get("motion_mm"), "motion_sd_mm": r.get("motion_sd_mm"),
-             "calibration": r.get("calibration_id"), "calibration_rms": r.get("calibration_rms"),
-             "sprain_count": r.get("sprain_count"), "affected_side": r.get("affected_side"),
-             "operator": r.get("operator"), "created": r.get("created")}
+        excluded = r.excluded_reason is not None or r.excluded_for_motion
+        d: dict[str, object] = {
+            "patient": r.patient_code, "session": r.session_id, "visit_date": r.session_date,
+            "condition": r.condition, "trial": r.trial_id, "status": str(r.status),
+            "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
+            "marks_confirmed": TRUE if r.marks_confirmed else FALSE,
+            "reference_inversion": r.ref_inversion, "reference_plantar_flexion": r.ref_plantar_flexion,
+            "motion_mm": r.motion_mm, "motion_sd_mm": r.motion_sd_mm,
+            "calibration": r.calibration_id, "calibration_rms": r.calibration_rms,
+            "sprain_count": r.sprain_count, "affected_side": r.affected_side,
+            "operator": r.operator, "created": r.created}
         for k in ("mismatch_inversion", "mismatch_plantar_flexion", *ANGLES):
-            d[k], d[f"{k}_sd"] = r.get(k), r.get(f"{k}_sd")
+            d[k], d[f"{k}_sd"] = r.angle(k)
         out.append(d)
     return out
 
