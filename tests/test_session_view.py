@@ -220,7 +220,7 @@ def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
         assert not plot.getAxis("left").autoSIPrefix and not plot.getAxis("bottom").autoSIPrefix
         assert UNCONFIRMED_LABEL in [label.text for _, label in plot.legend.items]
     import pyqtgraph as pg
-    spots = {s.data()["trial_id"]: s for item in view.fig10.items if isinstance(item, pg.ScatterPlotItem)
+    spots = {s.data().trial_id: s for item in view.fig10.items if isinstance(item, pg.ScatterPlotItem)
              for s in item.points()}
     assert spots[ids[1]].brush().color().alpha() == 0 and spots[ids[0]].brush().color().alpha() == 255
     assert "automatic marks, not confirmed" in trial_tip(spots[ids[1]].data(), "inversion")

@@ -17,6 +17,7 @@ import pytest
 
 from anklescan.app.cli import main
 from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import StudyRow
 
 PF_SETTINGS = (-20.0, 0.0, 20.0)
 
@@ -278,7 +279,8 @@ def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
         text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True, text=True).stdout
         assert "-0.00" not in text and "\u22120.00" not in text
         assert "one trial (n=1)" in text and "Repeat every setting" in text   # patient P9
-    one = [{"mismatch_inversion": 0.4, "mismatch_plantar_flexion": -0.3, "marks_confirmed": 0}]
+    one = [StudyRow(id=1, session_id=1, created="", ref_inversion=0.0, ref_plantar_flexion=0.0, patient_code="P9",
+                    condition="barefoot", mismatch_inversion=0.4, mismatch_plantar_flexion=-0.3, marks_confirmed=False)]
     fig = Figure()
     FigureCanvasAgg(fig)
     ax = fig.add_axes((0.1, 0.1, 0.8, 0.6))
