@@ -56,10 +56,13 @@ def group(rows: Iterable[StudyRow], axis: str) -> dict[float, dict[float, list[S
 
 
 def trial_tip(r: StudyRow, axis: str) -> str:
+    def deg(v: float | None, digits: int = 1) -> str:  # a plotted trial has them all
+        return "–" if v is None else signed(v, digits)
+
     sd = r.mismatch_sd(axis)
     return (f"Trial {r.trial_id} · {r.patient_code} {r.session_date}\n"
-            f"reference inv {signed(r.ref_inversion)}°, PF {signed(r.ref_plantar_flexion)}°\n"
-            f"mismatch {axis.replace('_', ' ')} {signed(r.mismatch(axis), 2)}°"
+            f"reference inv {deg(r.ref_inversion)}°, PF {deg(r.ref_plantar_flexion)}°\n"
+            f"mismatch {axis.replace('_', ' ')} {deg(r.mismatch(axis), 2)}°"
             + (f" ± {sd:.2f}°" if sd is not None else "")
             + ("" if marks_confirmed(r) else f"\n{UNCONFIRMED_LABEL}"))
 

@@ -327,8 +327,8 @@ def _check_contents(conn: sqlite3.Connection, path: Path, where: str = "") -> No
                              "left untouched, restore it from a backup")
 
 
-def _kept_rows(conn: sqlite3.Connection) -> dict[str, set[tuple]]:
-    rows: dict[str, set[tuple]] = {}
+def _kept_rows(conn: sqlite3.Connection) -> dict[str, set[tuple[object, ...]]]:
+    rows: dict[str, set[tuple[object, ...]]] = {}
     tables = _columns(conn)
     for table, key in _KEPT_ROWS.items():
         if key in tables.get(table, set()) and "id" in tables[table]:

@@ -13,6 +13,7 @@ The SQL is here; nothing here computes an angle.
 from __future__ import annotations
 
 import hashlib
+import sqlite3
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -66,7 +67,7 @@ def check_state(status: TrialState | str) -> TrialState:
     return TrialState(status)
 
 
-def _trial(row: Mapping[str, object]) -> Trial:
+def _trial(row: sqlite3.Row) -> Trial:
     d = dict(row)
     for k in ("motion_flagged", "motion_keep", "simulated"):
         d[k] = bool(d.get(k) or 0)
@@ -152,7 +153,7 @@ class TrialFiles:
             " JOIN patients p ON p.id = s.patient_id WHERE t.id = ?", (trial_id,))
         if row is None:
             raise AnkleScanError(f"no trial {trial_id}")
-        d = self.data_dir / "patients" / row["code"] / f"session-{row['sid']}" / f"trial-{trial_id}"
+        d = self.data_dir / "patients" / str(row["code"]) / f"session-{row['sid']}" / f"trial-{trial_id}"
         if create:
             try:
                 # patients/<code>/session-<id>/trial-<id>: each level private (0700)
