@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import sqlite3
 from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
@@ -88,10 +89,11 @@ def add_check(store: Store, result: CheckResult, *, calibration_id: int | None =
             (stamp, calibration_id, *values[:2], values[2], _finite(t.inversion.sd), values[3],
              _finite(t.plantar_flexion.sd), _finite(t.sag_mm), float(result.settings.tolerance_deg),
              int(result.passed), result.details(), who)).lastrowid
+    assert cid is not None
     return _get(store, cid)
 
 
-def _record(row: object) -> DailyCheckRecord:
+def _record(row: sqlite3.Row) -> DailyCheckRecord:
     d = dict(row)
     d["passed"] = bool(d["passed"])
     return DailyCheckRecord(**d)

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from anklescan.core.records.tables import AXES, Column, included, mismatch
+from anklescan.core.records.tables import AXES, Column, ExportRow, included, mismatch
 
 
 @dataclass(frozen=True)
@@ -48,7 +48,7 @@ class SessionErrors:
     axis: str
     figures: ErrorFigures
 
-    def as_row(self) -> dict:
+    def as_row(self) -> ExportRow:
         return {"patient": self.patient, "session": self.session, "visit_date": self.visit_date,
                 "condition": self.condition, "axis": self.axis, **asdict(self.figures)}
 
@@ -77,10 +77,10 @@ COLUMNS: tuple[Column, ...] = (
 )
 
 
-def session_errors(trials: Sequence[Mapping]) -> list[SessionErrors]:
+def session_errors(trials: Sequence[ExportRow]) -> list[SessionErrors]:
     """Export rows (tables.trial_rows) → one SessionErrors per patient, session, condition, axis
     with at least one included trial, sorted by patient, date, session, axis."""
-    acc: dict[tuple, list[float]] = defaultdict(list)
+    acc: dict[tuple[str, str, int, str, str], list[float]] = defaultdict(list)
     for t in included(trials):
         for axis in AXES:
             m = mismatch(t, axis)
@@ -95,10 +95,10 @@ def _setting(v: float | None) -> float | None:
     return None if v is None else round(float(v), 1)
 
 
-def grid_errors(trials: Sequence[Mapping]) -> list[GridErrors]:
+def grid_errors(trials: Sequence[ExportRow]) -> list[GridErrors]:
     """Per condition, axis and reference setting (rounded to 0.1°): the errors pooled over the
     included trials there, for the picture of error against position."""
-    acc: dict[tuple, list[float]] = defaultdict(list)
+    acc: dict[tuple[str, str, float, float], list[float]] = defaultdict(list)
     for t in included(trials):
         inv, pf = _setting(t["reference_inversion"]), _setting(t["reference_plantar_flexion"])
         if inv is None or pf is None:

@@ -203,7 +203,7 @@ def study_stats(rows: list[StudyRow], min_sprains: int = 1) -> StudyStats:
 def has_tests(s: StudyStats) -> bool:
     """Whether any comparison could be computed (at least one test with n large enough);
     a report leaves its group page out otherwise rather than print a page of "n too small"."""
-    tests = [*s.history_tests.values(), *s.condition_tests.values()]
+    tests: list[GroupTest | PairedTest] = [*s.history_tests.values(), *s.condition_tests.values()]
     return any(t.note != TOO_SMALL for t in tests)
 
 

@@ -12,12 +12,17 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeAlias
 
 from anklescan.core.records import study_stats as st
 from anklescan.core.vocabulary import StudyRow, TrialState
+
+# One row of the exported tables: a cell per column, by the column's published name (``COLUMNS``,
+# SPEC §7; numbers as numbers, None for a value not measured, booleans as "true"/"false").
+ExportRow: TypeAlias = dict[str, Any]
 
 BOM = "\ufeff"
 TRUE, FALSE = "true", "false"
@@ -78,14 +83,14 @@ def _excluded_reason(r: StudyRow) -> str:
     return ""
 
 
-def trial_rows(rows: Sequence[StudyRow]) -> list[dict[str, object]]:
+def trial_rows(rows: Sequence[StudyRow]) -> list[ExportRow]:
     """``store.reports.study_rows()`` → the export's rows: one cell per SPEC §7 column, by that
     column's name (``COLUMNS``; numbers as numbers, None for a value not measured, booleans as
     "true"/"false"), as trials.csv, trials.xlsx and the FHIR bundle write them."""
     out = []
     for r in rows:
         excluded = r.excluded_reason is not None or r.excluded_for_motion
-        d: dict[str, object] = {
+        d: ExportRow = {
             "patient": r.patient_code, "session": r.session_id, "visit_date": r.session_date,
             "condition": r.condition, "trial": r.trial_id, "status": str(r.status),
             "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
@@ -101,17 +106,17 @@ def trial_rows(rows: Sequence[StudyRow]) -> list[dict[str, object]]:
     return out
 
 
-def included(trials: Sequence[Mapping]) -> list[Mapping]:
+def included(trials: Sequence[ExportRow]) -> list[ExportRow]:
     """Export rows that enter the statistics (status complete, not excluded)."""
     return [t for t in trials if t["status"] == TrialState.COMPLETE and t["excluded"] == FALSE]
 
 
-def mismatch(t: Mapping, axis: str) -> float | None:
+def mismatch(t: ExportRow, axis: str) -> float | None:
     v = t.get(f"mismatch_{axis}")
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def _cell(col: Column, v) -> str:
+def _cell(col: Column, v: object) -> str:
     if v is None:
         return ""
     if isinstance(v, float):
@@ -122,7 +127,7 @@ def _cell(col: Column, v) -> str:
     return s
 
 
-def write_trials_csv(trials: Sequence[Mapping], path: Path) -> None:
+def write_trials_csv(trials: Sequence[ExportRow], path: Path) -> None:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         fh.write(BOM)
         w = csv.writer(fh)
@@ -131,7 +136,7 @@ def write_trials_csv(trials: Sequence[Mapping], path: Path) -> None:
             w.writerow([_cell(c, t.get(c.name)) for c in COLUMNS])
 
 
-def write_trials_xlsx(trials: Sequence[Mapping], path: Path) -> None:
+def write_trials_xlsx(trials: Sequence[ExportRow], path: Path) -> None:
     """The same rows as trials.csv: numbers as numbers, true/false as the same words, empty for none."""
     from openpyxl import Workbook
 
@@ -169,7 +174,7 @@ def write_dictionary(path: Path, extra: Sequence[tuple[str, Sequence[Column]]] =
                 w.writerow((file, c.name, c.unit, c.description))
 
 
-def write_table(path: Path, columns: Sequence[Column], rows: Sequence[Mapping]) -> None:
+def write_table(path: Path, columns: Sequence[Column], rows: Sequence[ExportRow]) -> None:
     """A plain CSV (UTF-8 with BOM) of ``rows`` in ``columns``' order; NaN and None are empty."""
     with open(path, "w", newline="", encoding="utf-8") as fh:
         fh.write(BOM)
