@@ -55,7 +55,7 @@ class ScanNote:
 
 @dataclass(frozen=True, eq=False)
 class TrialFinished:
-    """A scan that ran to the end, recorded (``Store.finish_trial``): what the windows show."""
+    """A scan that ran to the end, recorded (``store.results.finish``): what the windows show."""
 
     trial_id: int | None
     complete: bool                      # it gave a cloud, recorded: the trial is complete
@@ -170,7 +170,7 @@ class ScanLogic:
         return event
 
     def _finish(self, outcome: TrialOutcome) -> bool:
-        """``Store.finish_trial``; when it fails, the trial still leaves 'scanning' (failed, saying why)."""
+        """``store.results.finish``; when it fails, the trial still leaves 'scanning' (failed, saying why)."""
         tid, store = self.trial_id, self.session.store
         self.trial_id = None
         if tid is None or store is None:
