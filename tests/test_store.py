@@ -401,3 +401,52 @@ def test_finish_trial_writes_nothing_when_any_part_is_refused(tmp_path, db):
     after = db.trials.get(t.id)
     assert after.status == t.status and after.capture_path is None and after.motion_mm is None
     assert db.marks.all(t.id) == []
+
+
+def test_repositories_writes_are_one_unit_of_work(db):
+    """Several repositories' writes inside ``db.transaction()`` are committed together or not at
+    all: a failure inside rolls back the whole, even when a caller in between caught it."""
+    p, cal, ses, t = populate(db)
+    with db.db.transaction():
+        db.trials.exclude(t.id, "stepped off")
+        db.results.update_marks(t.id, marks_for(12.0, 17.5), "auto", "detector")
+    assert db.trials.get(t.id).excluded_reason == "stepped off" and db.trials.get(t.id).table_inversion is not None
+    before = db.trials.get(t.id), db.marks.all(t.id), db.events.all("trial", t.id)
+    with pytest.raises(AnkleScanError, match="collinear"), db.db.transaction():
+        db.trials.restore(t.id)
+        db.sessions.set_mark_diameter(ses.id, 12.0)
+        db.results.update_marks(t.id, {5: [0, 0, 0], 6: [10, 10, 1], 7: [20, 20, 2]}, "manual")
+    assert (db.trials.get(t.id), db.marks.all(t.id), db.events.all("trial", t.id)) == before
+    assert db.sessions.get(ses.id).mark_diameter_mm is None
+    with pytest.raises(AnkleScanError, match="none of it was saved"), db.db.transaction():
+        db.trials.restore(t.id)
+        try:
+            db.patients.add("P-002")
+            with db.db.transaction():
+                db.patients.add("P-003")
+                raise AnkleScanError("an inner step failed")
+        except AnkleScanError:
+            pass   # caught in between: the outer transaction still saves none of it
+    assert db.trials.get(t.id).excluded_reason == "stepped off"
+    assert [x.code for x in db.patients.all()] == ["P-001"]
+    assert not db.db._conn.in_transaction
+
+
+def test_study_rows_are_typed_trials_with_their_session_patient_and_calibration(db):
+    from anklescan.core.records.report import CSV_COLUMNS
+    from anklescan.core.vocabulary import StudyRow, Trial
+
+    p, cal, ses, t = populate(db)
+    db.results.update_marks(t.id, marks_for(12.0, 17.5), "auto", "detector")
+    db.trials.set_motion(t.id, 0.9, 0.1, scan_duration_s=2.0)
+    (row,) = db.reports.study_rows()
+    assert isinstance(row, StudyRow) and isinstance(row, Trial)
+    trial = db.trials.get(t.id)
+    assert {f: getattr(row, f) for f in Trial.__dataclass_fields__} == {
+        f: getattr(trial, f) for f in Trial.__dataclass_fields__}
+    assert (row.patient_code, row.sprain_count, row.affected_side) == ("P-001", 2, "right")
+    assert (row.session_id, row.session_date, row.operator, row.condition) == (ses.id, "2024-05-02", "op1", "barefoot")
+    assert (row.calibration_id, row.calibration_rms, row.trial_id) == (cal.id, 0.18, t.id)
+    assert row.excluded_for_motion and not row.counted and row.marks_confirmed is False
+    assert row.mismatch("inversion") == pytest.approx(2.0) and row.mismatch_sd("plantar_flexion") > 0
+    assert all(hasattr(row, c) for c in CSV_COLUMNS)   # every column of the report's CSV is a field
