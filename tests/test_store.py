@@ -450,3 +450,9 @@ def test_study_rows_are_typed_trials_with_their_session_patient_and_calibration(
     assert row.excluded_for_motion and not row.counted and row.marks_confirmed is False
     assert row.mismatch("inversion") == pytest.approx(2.0) and row.mismatch_sd("plantar_flexion") > 0
     assert all(hasattr(row, c) for c in CSV_COLUMNS)   # every column of the report's CSV is a field
+    from anklescan.core.records.tables import COLUMN_NAMES, TrialExport, trial_rows
+
+    assert tuple(TrialExport.__dataclass_fields__) == COLUMN_NAMES   # trials.csv: the fields, in order
+    (export,) = trial_rows([row])
+    assert (export.patient, export.trial, export.excluded, export.marks_confirmed) == ("P-001", t.id, "true", "false")
+    assert export.value("mismatch_inversion") == row.mismatch_inversion and export.sd("reference_inversion") is None

@@ -92,7 +92,7 @@ def test_database_keeps_plain_strings_and_reads_back_enums(tmp_path):
         assert raw.execute("SELECT label, source, typeof(source) FROM marks ORDER BY label").fetchall() == [
             (1, "auto", "text"), (2, "auto", "text"), (3, "manual", "text")]
     # the export's rows carry plain strings (CSV, Excel, FHIR)
-    assert [(r["status"], type(r["status"])) for r in rows] == [("cancelled", str), ("complete", str)]
+    assert [(r.status, type(r.status)) for r in rows] == [("cancelled", str), ("complete", str)]
     out = tmp_path / "rows.csv"
     with out.open("w", newline="") as f:
         csv.writer(f).writerows([[TrialState.COMPLETE, MarkSource.MANUAL, Axis.ROW, Severity.WARNING]])

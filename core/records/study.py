@@ -53,7 +53,7 @@ class StudyTables:
     """Everything the study's files and pages show, computed once."""
     data: ReportInput                              # the filtered rows, the patients in them
     filter: StudyFilter
-    trials: list[tables.ExportRow]                 # tables.trial_rows
+    trials: list[tables.TrialExport]               # tables.trial_rows
     errors: list[ps.SessionErrors]
     grid: list[ps.GridErrors]
     reliability: list[rel.Reliability]
