@@ -216,7 +216,7 @@ def test_measure_writes_the_warnings_and_an_honest_sd(tmp_path: Path) -> None:
 
 
 def test_the_store_keeps_the_honest_sd(tmp_path: Path, table_box: Calibration) -> None:
-    """Store.update_marks with the measurement's joint covariance: the trial's *_sd columns (the
+    """store.results.update_marks with the measurement's joint covariance: the trial's *_sd columns (the
     CSV's) hold the SD computed from it, not the per-mark default."""
     from anklescan.core.records.store import Store
 

@@ -783,7 +783,7 @@ def _strip(ax: Axes, s: st.StudyStats, cats: Sequence[tuple[str, str]], axis: st
 # ------------------------------------------------------------------ public
 
 def write_session_report(data: ReportInput, pdf_path: Path, csv_path: Path | None = None) -> ReportResult:
-    """Per session of ``data.sessions`` (``Store.report_input(session_ids)``): header + trial
+    """Per session of ``data.sessions`` (``store.reports.report_input(session_ids)``): header + trial
     table (every trial, with its state and calibration), Fig. 10, one Fig. 11/12 page per
     inversion setting (counted trials only); then one group-comparison page over all of
     ``data.rows`` (the whole database), when any comparison can be computed."""
@@ -821,7 +821,7 @@ def write_session_report(data: ReportInput, pdf_path: Path, csv_path: Path | Non
 
 
 def write_study_report(data: ReportInput, pdf_path: Path, csv_path: Path | None = None) -> ReportResult:
-    """All patients and sessions (``Store.report_input()``): overview, Fig. 10 per group, group
+    """All patients and sessions (``store.reports.report_input()``): overview, Fig. 10 per group, group
     comparison (left out, and said so on the overview, when no comparison can be computed)."""
     rows = data.rows
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
