@@ -375,7 +375,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         record_verification(res, self.settings, calibration_path=str(self.accepted_path) if self.accepted_path else None)
         cid = self.settings.calibration_id
         if self.store is not None and cid is not None:
-            self.store.set_calibration_verified(cid, res.passed)  # the database keeps the verdict too
+            self.store.calibrations.set_verified(cid, res.passed)  # the database keeps the verdict too
         self.show_verification(white, res)
         self.status.setText("Verification " + ("passed." if res.passed else "FAILED: recalibrate."))
         self.verificationDone.emit(res)

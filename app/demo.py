@@ -182,18 +182,18 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
     pfs = (-20.0, 20.0) if quick else PLANTAR_FLEXIONS
     jobs = []
     for p in PATIENTS:
-        store.add_patient(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
+        store.patients.add(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
                           affected_side="right" if p.sprain_count else None, notes=p.notes)
         for condition in (c for code, c in sessions if code == p.code):
-            session = store.start_session(p.code, condition=condition, operator="demo",
+            session = store.sessions.start(p.code, condition=condition, operator="demo",
                                           calibration_id=cal_id, notes=f"simulated rig, {p.marks[0]}s {p.marks[1]:g} mm")
             if p.marks[2]:
-                session = store.set_session_mark_diameter(session.id, p.marks[1])
+                session = store.sessions.set_mark_diameter(session.id, p.marks[1])
             for inv in inversions:
                 for pf in pfs:
-                    trial = store.add_trial(session.id, ref_inversion=inv, ref_plantar_flexion=pf)
+                    trial = store.trials.add(session.id, ref_inversion=inv, ref_plantar_flexion=pf)
                     table = table_setting(p, condition, inv, pf, rng)
-                    folder = store.trial_dir(trial.id, create=True)
+                    folder = store.files.trial_dir(trial.id, create=True)
                     jobs.append(({"label": f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                                   "table": table, "scale": scale, "seed": int(rng.integers(2**31)),
                                   "capture": str(folder / "capture"), "cloud": str(folder / "cloud.ply"),
@@ -208,20 +208,20 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
 
 
 def _record(store, trial_id: int, job: dict, res: dict) -> None:
-    store.set_trial_simulated(trial_id)  # a simulated patient: every report and CSV says so
-    store.set_trial_files(trial_id, capture=job["capture"], cloud=job["cloud"])
+    store.trials.set_simulated(trial_id)  # a simulated patient: every report and CSV says so
+    store.trials.set_files(trial_id, capture=job["capture"], cloud=job["cloud"])
     m = res["motion"]
-    store.set_trial_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
+    store.trials.set_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
     if res["marks"]:
         # store the measured marks; the store recomputes the angles and mismatch from them
         # the marks' joint covariance (calibration, model, mark centres, motion: SPEC §3) gives the SD
         joint = res.get("joint")
         if joint is not None:
             from anklescan.core.measure.angles import JointCovariance
-            store.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo", sigma_mm=0.0,
+            store.results.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo", sigma_mm=0.0,
                                joint=JointCovariance(tuple(joint["labels"]), np.asarray(joint["matrix"])))
         else:
-            store.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo",
+            store.results.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo",
                                sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
 
 
@@ -237,7 +237,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
         progress("calibrating the simulated scanner from a scan of the calibration box (about 20 s)…")
         cal = _calibrate(out, scale, progress)
-        cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
+        cal_id = store.calibrations.add(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
         results = []
@@ -245,17 +245,17 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
                                                        strict=True), start=1):
             _record(store, trial_id, job, res)
             results.append(res)
-            progress(f"[{k}/{len(jobs)}] {_clinical_line(res, store.get_trial(trial_id))}")
+            progress(f"[{k}/{len(jobs)}] {_clinical_line(res, store.trials.get(trial_id))}")
             if res["accuracy"]:
                 acc = res["accuracy"]["subject"]
                 copy_private(job["cloud"], out / "scan.ply")
                 progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                          f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                          f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
-        report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
-        for session in store.list_sessions():
-            patient = store.get_patient(session.patient_id).code
-            write_session_report(store.report_input([session.id]), out / f"session_{patient}_{session.condition}.pdf")
+        report = write_study_report(store.reports.report_input(), out / "report.pdf", out / "trials.csv")
+        for session in store.sessions.all():
+            patient = store.patients.get(session.patient_id).code
+            write_session_report(store.reports.report_input([session.id]), out / f"session_{patient}_{session.condition}.pdf")
     _summarise(results, out, progress)
     _finish_out(out)
     progress(f"database {out / 'anklescan.db'}, study report {report.pdf_path} ({report.pages} pages), "
@@ -363,25 +363,25 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     results = []
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
         cal = _calibrate(out, scale, progress)
-        cal_id = store.add_calibration(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
+        cal_id = store.calibrations.add(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
         sessions, jobs = {}, []
         for t in plan:
             p = t["patient"]
-            if p.code not in {q.code for q in store.list_patients()}:
-                store.add_patient(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
+            if p.code not in {q.code for q in store.patients.all()}:
+                store.patients.add(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
                                   affected_side="right" if p.sprain_count else None, notes=p.notes)
             key = (p.code, t["condition"], t.get("visit", 0))
             if key not in sessions:
                 day = first_day + _dt.timedelta(days=key[2])
-                sessions[key] = store.start_session(p.code, condition=t["condition"], operator="demo", date=day,
+                sessions[key] = store.sessions.start(p.code, condition=t["condition"], operator="demo", date=day,
                                                     calibration_id=cal_id,
                                                     notes="simulated rig, --study" + (", retest" if key[2] else "")).id
                 if p.marks[2]:  # the clinic gave the marks' size for this patient's sessions
-                    store.set_session_mark_diameter(sessions[key], p.marks[1])
-            mark_diameter = store.get_session(sessions[key]).mark_diameter_mm
+                    store.sessions.set_mark_diameter(sessions[key], p.marks[1])
+            mark_diameter = store.sessions.get(sessions[key]).mark_diameter_mm
             inv, pf = t["ref"]
-            trial = store.add_trial(sessions[key], ref_inversion=inv, ref_plantar_flexion=pf, calibration_id=cal_id)
-            folder = store.trial_dir(trial.id, create=True)
+            trial = store.trials.add(sessions[key], ref_inversion=inv, ref_plantar_flexion=pf, calibration_id=cal_id)
+            folder = store.files.trial_dir(trial.id, create=True)
             jobs.append(({"label": f"{p.code} {t['condition']:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
                           "table": t["table"], "scale": scale, "seed": t["seed"], "capture": str(folder / "capture"),
                           "cloud": str(folder / "cloud.ply"), "calibration": cal["calibration"],
@@ -389,19 +389,19 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
         for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]), strict=False), 1):
             _record(store, trial_id, job, res)
             results.append(res)
-            m = store.get_trial(trial_id)
+            m = store.trials.get(trial_id)
             mm = ("mismatch –" if m.mismatch_inversion is None else
                   f"mismatch inv {m.mismatch_inversion:+5.2f}° pf {m.mismatch_plantar_flexion:+5.2f}°")
             progress(f"[{k}/{len(jobs)}] {res['label']}: {mm}"
                      + ("" if res["complete"] else f"  marks {', '.join(res['missing'])} not found"))
-        report = write_study_report(store.report_input(), out / "report.pdf", out / "trials.csv")
+        report = write_study_report(store.reports.report_input(), out / "report.pdf", out / "trials.csv")
         for code in dict.fromkeys(c for c, _, _ in sessions):
-            write_session_report(store.report_input([sid for (c, _, _), sid in sessions.items() if c == code]),
+            write_session_report(store.reports.report_input([sid for (c, _, _), sid in sessions.items() if c == code]),
                                  out / f"session_{code}.pdf")
         _study_summary(store, progress)
         from anklescan.core.records.study import write_study_folder
 
-        study = write_study_folder(store.report_input(), out / "study", data_dir=out, keep_site_mdc=True)
+        study = write_study_folder(store.reports.report_input(), out / "study", data_dir=out, keep_site_mdc=True)
         progress(f"the clinic's study (as `anklescan report --data {out}`): {study.folder} ({study.pages} pages, "
                  "position_sense.csv, reliability.csv, trials.xlsx)")
         _reliability_summary(study.folder, progress)
@@ -427,7 +427,7 @@ def _study_summary(store, progress) -> None:
     """The group page's two questions, one line each (the PDF has every test)."""
     from anklescan.core.records import study_stats as st
 
-    s = st.study_stats(store.study_rows())
+    s = st.study_stats(store.reports.study_rows())
     for c in CONDITIONS:
         progress(f"sprain history vs none, {c}, |mismatch of inversion|: "
                  + st.format_group_test(s.history_tests[(c, "inversion")]))

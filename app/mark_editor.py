@@ -213,7 +213,7 @@ class MarkEditor(QWidget):
         self.reference = None
         self.mark_notes, self.position_covariance = {}, None
         if store is not None and trial_id is not None:
-            t = store.get_trial(trial_id)
+            t = store.trials.get(trial_id)
             if None not in (t.ref_inversion, t.ref_plantar_flexion):
                 self.reference = {"inversion": t.ref_inversion, "plantar_flexion": t.ref_plantar_flexion}
         self.marks = dict(marks)
@@ -222,7 +222,7 @@ class MarkEditor(QWidget):
         self._refresh()
 
     def load_trial(self, store, trial_id: int) -> None:
-        self.load(marks_from_store(store.get_marks(trial_id)), store, trial_id)
+        self.load(marks_from_store(store.marks.all(trial_id)), store, trial_id)
 
     def show_measured(self, store, trial_id: int, warnings: tuple[str, ...] = (), covariance=None) -> None:
         """A finished scan's automatic marks, already stored (app.logic.scan records them with the
@@ -472,14 +472,14 @@ def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None], join
         if m is not None:
             groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
     for (source, placed_by), marks in groups.items():
-        store.update_marks(trial_id, marks, source, placed_by, sigma_mm=_sigmas(joint), joint=joint)
+        store.results.update_marks(trial_id, marks, source, placed_by, sigma_mm=_sigmas(joint), joint=joint)
     quality = {lab: (m.sd_mm, m.warning) for lab, m in changes.items()
                if m is not None and (m.sd_mm is not None or m.warning)}
     if quality:  # an automatic mark keeps its SD and warning when confirmed or relabelled
-        store.set_mark_quality(trial_id, quality)
+        store.marks.set_quality(trial_id, quality)
     removed = [lab for lab, m in changes.items() if m is None]
     if removed:
-        store.delete_marks(trial_id, removed)
+        store.results.delete_marks(trial_id, removed)
 
 
 def as_array(marks: PlacedMarks) -> dict[int, np.ndarray]:

@@ -278,7 +278,7 @@ def confirm(parent, title: str, text: str) -> bool:
 
 def trial_number(store, trial) -> int:
     """The trial's number in its session (1, 2, ...), as the trials list shows it."""
-    return sum(1 for t in store.list_trials(trial.session_id) if t.id <= trial.id)
+    return sum(1 for t in store.trials.all(trial.session_id) if t.id <= trial.id)
 
 
 def _trial_tip(t) -> str:

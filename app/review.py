@@ -102,7 +102,7 @@ class Review(QObject):
             return
         rows = logic.session_rows(sid)
         title = logic.session_title(sid) if sid is not None else None
-        if title and any(r.get("simulated") for r in rows):  # simulated trials are never shown as patient data
+        if title and any(r.simulated for r in rows):  # simulated trials are never shown as patient data
             title += " · SIMULATED patient"
         self.session_view.set_rows(rows, title=title)
 
@@ -150,7 +150,7 @@ class Review(QObject):
         cal = self.parts.session.trial_calibration(trial, session)
         if not trial.capture_path or cal is None:
             return None
-        return TrialSnapper(self.parts.session.store.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
+        return TrialSnapper(self.parts.session.store.files.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
 
     def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
@@ -164,7 +164,7 @@ class Review(QObject):
             parts.banner.show_message(Severity.INFO, f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
-            cloud = read_ply(logic.store.resolve(trial.cloud_path))
+            cloud = read_ply(logic.store.files.resolve(trial.cloud_path))
         except Exception as exc:
             parts.banner.show_message(Severity.ERROR, f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False
@@ -307,7 +307,7 @@ class Review(QObject):
             from anklescan.core.records.report import write_session_report
             from anklescan.core.records.store import Store
             with Store.open(db_path, data_dir=data_dir) as own:
-                return write_session_report(own.report_input([sid]), pdf, pdf.with_suffix(".csv"))
+                return write_session_report(own.reports.report_input([sid]), pdf, pdf.with_suffix(".csv"))
 
         parts.banner.show_message(Severity.INFO, f"Writing the session report to {pdf}…")
         job = run_in_background(render, lambda result: self._report_written(pdf, result),

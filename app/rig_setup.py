@@ -202,7 +202,7 @@ class RigSetup(QObject):
         store = parts.session.store
         if store is None or self.scan_flow.busy:
             return False
-        records = store.list_calibrations()
+        records = store.calibrations.all()
         if not records:
             parts.banner.show_message(Severity.INFO, "This data folder's database keeps no calibration yet: run Calibration….")
             return False

@@ -193,7 +193,7 @@ class ScanFlow(QObject):
             if event.has_marks:  # shown for confirmation in the 3-D view; undo stops here
                 parts.review.show_measured_marks(tid, event.warnings, event.covariance)
         store = parts.session.store
-        parts.result_page.show_angles(store.get_trial(tid) if store is not None and tid is not None else None)
+        parts.result_page.show_angles(store.trials.get(tid) if store is not None and tid is not None else None)
         if notes:
             show_notes(parts.banner, notes, {NoteAction.SCAN_AGAIN: self._scan_again})
         parts.scan_page.form.clear_notes()

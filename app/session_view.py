@@ -16,6 +16,7 @@ rounded to 0.1°), so screen and PDF agree.
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,7 @@ from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QVBoxLayout, QWidg
 from anklescan.app.main_parts import signed
 from anklescan.core.records.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL, span_limits, x_limits
 from anklescan.core.records.study_stats import is_counted
+from anklescan.core.vocabulary import StudyRow
 
 AXES = {"inversion": "Mismatch of inversion (°)", "plantar_flexion": "Mismatch of plantar flexion (°)"}
 PF_LABEL = "Reference plantar flexion (°)"
@@ -35,29 +37,33 @@ def _setting(v):
     return None if v is None else round(float(v), 1)
 
 
-def measured_rows(rows) -> list[dict]:
+def measured_rows(rows: Iterable[StudyRow]) -> list[StudyRow]:
     """Counted trials (complete, not excluded) with a mismatch and both set angles."""
-    return [r for r in rows if is_counted(r) and r.get("mismatch_inversion") is not None
-            and r.get("ref_inversion") is not None and r.get("ref_plantar_flexion") is not None]
+    return [r for r in rows if is_counted(r) and r.mismatch_inversion is not None
+            and r.ref_inversion is not None and r.ref_plantar_flexion is not None]
 
 
-def marks_confirmed(r: dict) -> bool:
-    return bool(r.get("marks_confirmed", 1))
+def marks_confirmed(r: StudyRow) -> bool:
+    return r.marks_confirmed
 
 
-def group(rows, axis: str) -> dict[float, dict[float, list[dict]]]:
+def group(rows: Iterable[StudyRow], axis: str) -> dict[float, dict[float, list[StudyRow]]]:
     """inversion setting → plantar-flexion setting → the trials (rows) measured there."""
     out: dict = defaultdict(lambda: defaultdict(list))
     for r in measured_rows(rows):
-        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(r)
+        out[_setting(r.ref_inversion)][_setting(r.ref_plantar_flexion)].append(r)
     return out
 
 
-def trial_tip(r: dict, axis: str) -> str:
-    return (f"Trial {r['trial_id']} · {r.get('patient_code', '')} {r.get('session_date', '')}\n"
-            f"reference inv {signed(r['ref_inversion'])}°, PF {signed(r['ref_plantar_flexion'])}°\n"
-            f"mismatch {axis.replace('_', ' ')} {signed(r[f'mismatch_{axis}'], 2)}°"
-            + (f" ± {r[f'mismatch_{axis}_sd']:.2f}°" if r.get(f"mismatch_{axis}_sd") is not None else "")
+def trial_tip(r: StudyRow, axis: str) -> str:
+    def deg(v: float | None, digits: int = 1) -> str:  # a plotted trial has them all
+        return "–" if v is None else signed(v, digits)
+
+    sd = r.mismatch_sd(axis)
+    return (f"Trial {r.trial_id} · {r.patient_code} {r.session_date}\n"
+            f"reference inv {deg(r.ref_inversion)}°, PF {deg(r.ref_plantar_flexion)}°\n"
+            f"mismatch {axis.replace('_', ' ')} {deg(r.mismatch(axis), 2)}°"
+            + (f" ± {sd:.2f}°" if sd is not None else "")
             + ("" if marks_confirmed(r) else f"\n{UNCONFIRMED_LABEL}"))
 
 
@@ -67,7 +73,7 @@ class SessionView(QWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
         pg.setConfigOptions(antialias=True)
-        self.rows: list[dict] = []
+        self.rows: list[StudyRow] = []
         self.title = ""
         self.axis_box = QComboBox()
         for key, label in AXES.items():
@@ -109,8 +115,8 @@ class SessionView(QWidget):
         return self.axis_box.currentData()
 
     # ---- data ----------------------------------------------------------------------------
-    def set_rows(self, rows: list[dict], title: str = "") -> None:
-        """Rows as anklescan.core.records.store.Store.study_rows() gives them (one session's or several)."""
+    def set_rows(self, rows: list[StudyRow], title: str = "") -> None:
+        """Rows as ``store.reports.study_rows()`` gives them (one session's or several)."""
         self.rows, self.title = list(rows), title
         settings = sorted(group(self.rows, "inversion"))
         self.inversion_box.blockSignals(True)
@@ -126,7 +132,7 @@ class SessionView(QWidget):
 
     def load_sessions(self, store, session_ids) -> None:
         ids = {int(i) for i in session_ids}
-        self.set_rows([r for r in store.study_rows() if r["session_id"] in ids])
+        self.set_rows([r for r in store.reports.study_rows() if r.session_id in ids])
 
     # ---- drawing -------------------------------------------------------------------------
     def redraw(self) -> None:
@@ -148,12 +154,12 @@ class SessionView(QWidget):
             colour = COLOURS[k % len(COLOURS)]
             dx = (k - (len(data) - 1) / 2) * 0.6  # curves side by side, as in the PDF report
             pfs = sorted(data[inv])
-            means = [np.mean([r[f"mismatch_{axis}"] for r in data[inv][pf]]) for pf in pfs]
+            means = [np.mean([r.mismatch(axis) for r in data[inv][pf]]) for pf in pfs]
             p.plot([pf + dx for pf in pfs], means, pen=pg.mkPen(colour, width=2), symbol="o", symbolSize=8,
                    symbolBrush=colour, symbolPen="w", name=f"inversion {inv:g}°")
             spots = self._add_trial_points(p, data[inv], dx, colour, axis)
             for s in spots:
-                self.trial_points[s["data"]["trial_id"]] = s["pos"]
+                self.trial_points[s["data"].trial_id] = s["pos"]
             values += [s["pos"][1] for s in spots]
             xs += [s["pos"][0] for s in spots]
         self._legend_unconfirmed(p, data)
@@ -165,7 +171,7 @@ class SessionView(QWidget):
         """One point per trial: filled when its marks are manual or confirmed, hollow when
         they are automatic and not confirmed yet. Hover names the trial; click opens it."""
         fill, clear = pg.mkBrush(pg.mkColor(colour).lighter(170)), pg.mkBrush(0, 0, 0, 0)
-        spots = [{"pos": (pf + dx, r[f"mismatch_{axis}"]), "data": r,
+        spots = [{"pos": (pf + dx, r.mismatch(axis)), "data": r,
                   **({"brush": fill, "pen": pg.mkPen(colour), "size": 7} if marks_confirmed(r) else
                      {"brush": clear, "pen": pg.mkPen(colour, width=1.6), "size": 9})}
                  for pf, rows in per_pf.items() for r in rows]
@@ -194,7 +200,7 @@ class SessionView(QWidget):
 
     def _point_clicked(self, _item, points, _ev=None) -> None:
         if len(points):
-            self.trialActivated.emit(int(points[0].data()["trial_id"]))
+            self.trialActivated.emit(int(points[0].data().trial_id))
 
     def _draw_error_range(self) -> None:
         p, axis = self.error_plot, self.axis
@@ -210,7 +216,7 @@ class SessionView(QWidget):
             return
         p.addLegend(offset=(10, 10), labelTextSize="9pt")
         pfs = sorted(per_pf)
-        values = [np.array([r[f"mismatch_{axis}"] for r in per_pf[pf]]) for pf in pfs]
+        values = [np.array([r.mismatch(axis) for r in per_pf[pf]]) for pf in pfs]
         x = np.array(pfs, float)
         lo, hi = np.array([v.min() for v in values]), np.array([v.max() for v in values])
         mean = np.array([v.mean() for v in values])

@@ -34,7 +34,7 @@ def cmd_report(args) -> int:
     progress = Progress(args.quiet)
     flt = StudyFilter(args.patient, args.date_from, args.date_to)
     with open_data_folder(args.data) as store:
-        data = store.report_input()
+        data = store.reports.report_input()
     out = write_study_folder(data, Path(args.out), flt, data_dir=Path(args.data), progress=progress,
                              keep_site_mdc=True)
     kept = f"; the site's MDC kept in {out.site_mdc_path}" if out.site_mdc_path else ""
@@ -57,25 +57,25 @@ def cmd_export(args) -> int:
                 raise AnkleScanError("--format c3d exports one trial's marks: give --trial N")
             from anklescan.core.records.c3d import write_c3d
 
-            trial = _get(store.get_trial, args.trial, "trial")
-            marks = {m.label: (m.x, m.y, m.z) for m in store.get_marks(trial.id)}
+            trial = _get(store.trials.get, args.trial, "trial")
+            marks = {m.label: (m.x, m.y, m.z) for m in store.marks.all(trial.id)}
             if not marks:
                 raise AnkleScanError(f"trial {trial.id} has no marks (state {trial.status}); nothing to export")
-            session = store.get_session(trial.session_id)
-            patient = store.get_patient(session.patient_id)
+            session = store.sessions.get(trial.session_id)
+            patient = store.patients.get(session.patient_id)
             n = write_c3d(marks, out, description=patient.code)
             print(f"wrote trial {trial.id}'s marks ({n} of 7, mm, labels 1-7) as C3D to {out}")
             return 0
         from anklescan.core.records.fhir import session_bundle, write_bundle
 
         if args.trial is not None:
-            trial = _get(store.get_trial, args.trial, "trial")
+            trial = _get(store.trials.get, args.trial, "trial")
             sid, only = trial.session_id, {trial.id}
         else:
-            sid, only = _get(store.get_session, args.session, "session").id, None
-        session = store.get_session(sid)
-        patient = store.get_patient(session.patient_id)
-        rows = [r for r in store.study_rows() if r["session_id"] == sid and (only is None or r["trial_id"] in only)]
+            sid, only = _get(store.sessions.get, args.session, "session").id, None
+        session = store.sessions.get(sid)
+        patient = store.patients.get(session.patient_id)
+        rows = [r for r in store.reports.study_rows() if r.session_id == sid and (only is None or r.trial_id in only)]
     bundle = session_bundle(tables.trial_rows(rows), patient.code, patient.affected_side)
     write_bundle(bundle, out)
     print(f"wrote a FHIR R4 Bundle of {len(bundle['entry']) - 1} Observation(s) (session {sid}) to {out}")

@@ -183,13 +183,13 @@ class StudyGui(QObject):
 
         db, data_dir = paths
         with Store.open(db, data_dir=data_dir, read_only=True) as own:  # its own connection, read-only
-            return own.report_input()
+            return own.reports.report_input()
 
     def open_study_report(self) -> None:
         paths = self._store_paths()
         if paths is None:
             return
-        codes = [p.code for p in self.parts.session.store.list_patients()]
+        codes = [p.code for p in self.parts.session.store.patients.all()]
         dialog = StudyReportDialog(codes, Path(self.parts.data_folder()).parent / "study-report",
                                    self.parts.dialog_parent)
         if dialog.exec() != QDialog.DialogCode.Accepted:

@@ -10,8 +10,9 @@ One definition of each name, imported everywhere (issue 17). What it holds:
   closed sets the database checks (sides, mark sources, trial states, the angle fields).
 - **Records**: one frozen dataclass per database row kind (``Patient``, ``CalibrationRecord``,
   ``Session``, ``Trial``, ``MarkRecord``, ``Event``) and the summaries and report inputs built
-  from them. ``anklescan.core.records.store`` reads and writes them; reports and windows only
-  read them.
+  from them. The repositories of ``anklescan.core.records`` read and write them; reports and
+  windows only read them. ``StudyRow`` is a trial joined with its session, patient and
+  calibration: what reports, statistics and exports read.
 
 Pure data: imports nothing from the rest of the package, so every layer can use it.
 """
@@ -19,6 +20,7 @@ Pure data: imports nothing from the rest of the package, so every layer can use 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, TypeAlias
@@ -239,6 +241,48 @@ class Trial:
         return self.status if not self.status_note else f"{self.status}: {self.status_note}"
 
 
+@dataclass(frozen=True, kw_only=True)
+class StudyRow(Trial):
+    """One trial joined with its session, patient and calibration, as the reports, the study
+    statistics and the exports read it (``store.reports.study_rows()``). Whether it is counted is
+    ``Trial.counted``; whether motion took it out, ``Trial.excluded_for_motion``."""
+    patient_code: str
+    sprain_count: int = 0
+    last_sprain: str | None = None
+    affected_side: str | None = None
+    session_date: str = ""
+    operator: str = ""
+    condition: str
+    calibration_rms: float | None = None
+    marks_confirmed: bool = True      # no automatic mark left unconfirmed (moved or confirmed by an operator)
+    mark_warnings: str | None = None  # "mark 5 overexposed (SD 0.40 mm); …" for marks less certain, else None
+
+    @property
+    def trial_id(self) -> int:
+        return self.id
+
+    def mismatch(self, axis: str) -> float | None:
+        """The table mismatch on ``axis`` ("inversion" / "plantar_flexion"), degrees."""
+        return self.mismatch_inversion if axis == "inversion" else self.mismatch_plantar_flexion
+
+    def mismatch_sd(self, axis: str) -> float | None:
+        return self.mismatch_inversion_sd if axis == "inversion" else self.mismatch_plantar_flexion_sd
+
+    def angle(self, name: str) -> tuple[float | None, float | None]:
+        """One of ``ANGLE_FIELDS`` (or mismatch_inversion / mismatch_plantar_flexion) with its SD."""
+        return _ANGLE_COLUMNS[name](self)
+
+
+_ANGLE_COLUMNS: dict[str, Callable[[StudyRow], tuple[float | None, float | None]]] = {
+    "leg_inversion": lambda r: (r.leg_inversion, r.leg_inversion_sd),
+    "leg_plantar_flexion": lambda r: (r.leg_plantar_flexion, r.leg_plantar_flexion_sd),
+    "table_inversion": lambda r: (r.table_inversion, r.table_inversion_sd),
+    "table_plantar_flexion": lambda r: (r.table_plantar_flexion, r.table_plantar_flexion_sd),
+    "mismatch_inversion": lambda r: (r.mismatch_inversion, r.mismatch_inversion_sd),
+    "mismatch_plantar_flexion": lambda r: (r.mismatch_plantar_flexion, r.mismatch_plantar_flexion_sd),
+}
+
+
 @dataclass(frozen=True)
 class Event:
     id: int
@@ -275,9 +319,9 @@ class SessionSummary:
 
 @dataclass(frozen=True)
 class ReportInput:
-    """Everything a report prints, read from the database in one go (``Store.report_input``):
+    """Everything a report prints, read from the database in one go (``store.reports.report_input``):
     the reports take these records, never the database."""
-    rows: list[JsonObject]  # Store.study_rows(): every trial joined with its session, patient and calibration
+    rows: list[StudyRow]  # store.reports.study_rows(): every trial with its session, patient and calibration
     patients: list[Patient]
     calibrations: dict[int, CalibrationRecord]
     sessions: list[SessionSummary] = field(default_factory=list)  # a session report's sessions, in order

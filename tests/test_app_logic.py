@@ -89,7 +89,7 @@ def test_a_scan_that_gives_no_cloud_ends_failed_with_its_reason(logic, tmp_path)
     (trial,) = logic.trials(session.id)
     assert trial.status == "scanning" and logic.session(session.id).mark_diameter_mm == 15.0
     plan = scan.plan((64, 48), "test rig")
-    assert plan.folder.parent == logic.store.trial_dir(trial.id) and plan.mark_diameter_mm == 15.0
+    assert plan.folder.parent == logic.store.files.trial_dir(trial.id) and plan.mark_diameter_mm == 15.0
     plan.folder.mkdir(parents=True, exist_ok=True)
     assert scan.finished(Result(folder=plan.folder)) is False
     (trial,) = logic.trials(session.id)
@@ -103,7 +103,7 @@ def test_another_condition_starts_its_own_session(logic):
     scan = ScanLogic(logic, logic.settings)
     shoes_id = scan.begin(barefoot.id, Entry(condition="shoes"), None)
     assert shoes_id != barefoot.id and logic.session(shoes_id).condition == "shoes"
-    note = scan.cancelled(logic.store.trial_dir(scan.trial_id) / "capture")
+    note = scan.cancelled(logic.store.files.trial_dir(scan.trial_id) / "capture")
     from anklescan.app.logic.scan import Severity
     assert note.severity is Severity.INFO and "marked cancelled" in note.text
     (trial,) = logic.trials(shoes_id)
@@ -112,7 +112,7 @@ def test_another_condition_starts_its_own_session(logic):
 
 def test_exclusion_needs_a_reason_and_restoring_brings_it_back(logic):
     session = logic.start_session(logic.add_patient("P-004").id, "barefoot")
-    trial = logic.store.add_trial(session.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
+    trial = logic.store.trials.add(session.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
     assert not logic.exclude_trial(trial.id, "  ")
     assert logic.notices[-1][0] == "warning" and logic.trial(trial.id).excluded_reason is None
     assert logic.exclude_trial(trial.id, "stepped off the table")
@@ -155,7 +155,7 @@ def test_a_finished_scan_is_recorded_at_once_and_told_as_typed_notes(logic, tmp_
     assert heard == [event] and isinstance(event, TrialFinished) and event.complete and event.has_marks
     trial = logic.trial(event.trial_id)
     assert trial.status == "complete" and trial.motion_flagged and trial.capture_path is not None
-    stored = {m.label: m for m in logic.store.get_marks(trial.id)}
+    stored = {m.label: m for m in logic.store.marks.all(trial.id)}
     assert sorted(stored) == list(range(1, 8)) and stored[3].warning == "overexposed" and stored[3].sd_mm == 0.4
     truth = compute_angles(marks, sigma_mm=0.5)
     assert trial.leg_inversion == truth["leg_inversion"]["value"]
@@ -178,5 +178,5 @@ def test_a_finish_the_store_refuses_leaves_no_half_recorded_trial(logic):
     assert not event.complete and not event.has_marks and scan.trial_id is None
     (trial,) = logic.trials(session.id)
     assert trial.status == "failed" and trial.capture_path is None and trial.motion_mm is None
-    assert logic.store.get_marks(trial.id) == []
+    assert logic.store.marks.all(trial.id) == []
     assert logic.notices[-1][0] == "error" and "could not be recorded" in logic.notices[-1][1]

@@ -89,11 +89,11 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     assert wiz.pages.currentIndex() == PAGE_VERIFY
     info = current_calibration_info(Settings())
     assert Path(info.path).exists() and info.id is not None
-    assert store.get_calibration(info.id).rms == pytest.approx(rep.camera.rms_px)
+    assert store.calibrations.get(info.id).rms == pytest.approx(rep.camera.rms_px)
     cal, cid = load_current_calibration(Settings())
     assert cid == info.id and np.allclose(cal.camera.K, wiz.calibration.camera.K)
-    session = store.start_session(store.add_patient("P1").id, condition="barefoot", calibration_id=cid)
-    assert store.session_summary(session.id).calibration.id == cid
+    session = store.sessions.start(store.patients.add("P1").id, condition="barefoot", calibration_id=cid)
+    assert store.reports.session_summary(session.id).calibration.id == cid
     assert calibration_warning(Settings()) == ""
 
     leg = _leg_rms(rig, cal, tmp_path / "leg")
@@ -114,7 +114,7 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     # a second accepted calibration is a new version; sessions keep theirs
     wiz.accept_current()
     assert current_calibration_info(Settings()).id != cid
-    assert store.get_session(session.id).calibration_id == cid
+    assert store.sessions.get(session.id).calibration_id == cid
 
 
 @pytest.mark.timing
@@ -319,7 +319,7 @@ def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
     info = current_calibration_info(Settings())
-    assert Path(info.path).exists() and "chessboard" in store.get_calibration(info.id).source
+    assert Path(info.path).exists() and "chessboard" in store.calibrations.get(info.id).source
 
 
 def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(setup, qtbot):

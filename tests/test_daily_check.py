@@ -187,7 +187,7 @@ def test_checks_are_kept_with_their_date_newest_last(results, tmp_path):
     good, bad = results
     t0 = dt.datetime(2026, 12, 1, 8, 0, tzinfo=dt.UTC)
     with Store.open(data_dir=tmp_path) as store:
-        assert store.schema_version() == SCHEMA_VERSION
+        assert store.db.schema_version() == SCHEMA_VERSION
         assert last_check(store) is None
         assert standing(None).state is CheckState.NONE
         first = add_check(store, good, calibration_id=None, who="AB", when=t0)
@@ -202,7 +202,7 @@ def test_checks_are_kept_with_their_date_newest_last(results, tmp_path):
         assert standing(first, now=t0 + dt.timedelta(hours=25)).state is CheckState.STALE
         assert standing(first, now=t0 + dt.timedelta(hours=25), max_age_hours=48).ok
         # a check of an earlier calibration says nothing about the current one
-        cal_a, cal_b = (store.add_calibration({"units": "mm", "n": i}).id for i in (1, 2))
+        cal_a, cal_b = (store.calibrations.add({"units": "mm", "n": i}).id for i in (1, 2))
         third = add_check(store, good, calibration_id=cal_a, when=t0 + dt.timedelta(hours=3))
         assert standing(third, calibration_id=cal_a, now=t0 + dt.timedelta(hours=4)).ok
         other = standing(third, calibration_id=cal_b, now=t0 + dt.timedelta(hours=4))
@@ -234,11 +234,11 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         scan = ScanLogic(session, session.settings)
         scan.begin(sid, Entry(), None)  # no check yet: warned, not refused
         assert "not had its daily check" in scan.check_warning
-        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        scan.cancelled(session.store.files.trial_dir(scan.trial_id) / "capture")
         record_check(session, bad)
         scan.begin(sid, Entry(), None)
         assert "FAILED" in scan.check_warning and "plantar flexion" in scan.check_warning
-        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        scan.cancelled(session.store.files.trial_dir(scan.trial_id) / "capture")
         session.settings.daily_check_policy = CheckPolicy.BLOCK
         n_trials = len(session.trials(sid))
         with pytest.raises(ScanRefused, match="FAILED"):
@@ -247,7 +247,7 @@ def test_a_scan_warns_or_is_refused_on_the_last_check(results, tmp_path):
         record_check(session, good)
         scan.begin(sid, Entry(), None)  # a passed check today: no word
         assert scan.check_warning == ""
-        scan.cancelled(session.store.trial_dir(scan.trial_id) / "capture")
+        scan.cancelled(session.store.files.trial_dir(scan.trial_id) / "capture")
         session.settings.daily_check_policy = CheckPolicy.OFF
         record_check(session, bad)
         scan.begin(sid, Entry(), None)

@@ -21,13 +21,13 @@ def test_quick_demo_writes_a_whole_study(tmp_path):
         assert (out / name).exists(), name
     assert (out / "report.pdf").read_bytes()[:4] == b"%PDF"
     with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
-        patients = {p.code: p for p in store.list_patients()}
+        patients = {p.code: p for p in store.patients.all()}
         assert set(patients) == {"SIM-01", "SIM-02"} and patients["SIM-01"].sprain_count == 3
-        trials = [t for s in store.list_sessions() for t in store.list_trials(s.id)]
+        trials = [t for s in store.sessions.all() for t in store.trials.all(s.id)]
         assert len(trials) == 8
         # every trial's capture and cloud are on disk, and its table mismatch was measured
         for t in trials:
-            assert not store.verify_trial_files(t.id), t.id
+            assert not store.trials.verify_files(t.id), t.id
             assert t.mismatch_inversion is not None and t.mismatch_plantar_flexion is not None
     rows = list(csv.DictReader((out / "trials.csv").open()))
     assert len(rows) == 8
@@ -38,7 +38,7 @@ def test_quick_demo_writes_a_whole_study(tmp_path):
     assert all(abs(d - 12.0) < 0.5 for d in summary["marks"]["sticker"]["diameters_mm"])
     assert summary["marks"]["plate"]["diameters_mm"] == [15.0]
     with Store.open(out / "anklescan.db", data_dir=out / "data") as store:
-        sizes = {store.get_patient(s.patient_id).code: s.mark_diameter_mm for s in store.list_sessions()}
+        sizes = {store.patients.get(s.patient_id).code: s.mark_diameter_mm for s in store.sessions.all()}
         assert sizes == {"SIM-01": None, "SIM-02": 15.0}
     assert any("scanner accuracy" in line for line in lines)
     # a clinician's progress: a line before the calibration starts, then each trial's mismatch
@@ -97,9 +97,9 @@ def test_study_demo_runs_end_to_end_on_a_small_plan(tmp_path):
     assert run_study_demo(out, progress=lines.append, scale=0.5, plan=plan) == 0
     assert (out / "report.pdf").exists() and (out / "trials.csv").exists()
     with Store.open(out / "anklescan.db", data_dir=out / "data") as db:
-        trials = [t for s in db.list_sessions() for t in db.list_trials(s.id)]
+        trials = [t for s in db.sessions.all() for t in db.trials.all(s.id)]
         assert len(trials) == 2 and all(t.cloud_path for t in trials)
-        dates = sorted(s.date for s in db.list_sessions())
+        dates = sorted(s.date for s in db.sessions.all())
     import datetime as dt
     assert (dt.date.fromisoformat(dates[1]) - dt.date.fromisoformat(dates[0])).days == 28   # the retest
     with open(out / "study" / "position_sense.csv", encoding="utf-8-sig") as fh:

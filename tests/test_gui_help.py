@@ -112,7 +112,7 @@ def test_the_current_calibration_is_chosen_from_the_database(qtbot, win):
     """Settings lost (the current calibration forgotten): the database's calibrations are listed
     with their date, RMS and verification, and one click makes one current again."""
     first_id = win.calibration_id
-    win.store.set_calibration_verified(first_id, True)
+    win.store.calibrations.set_verified(first_id, True)
     win.settings.calibration_path, win.settings.calibration_id, win.settings.calibration_created = "", None, ""
     win.rig_setup.load_calibration()
     assert win.calibration is None and not win.scan_page.scan_button.isEnabled()

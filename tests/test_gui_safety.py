@@ -34,7 +34,7 @@ def other_app():
     """Another AnkleScan process holding the data folder of the test's settings."""
     folder = Path(os.environ["ANKLESCAN_DATA"])
     with Store.open(data_dir=folder) as store:
-        store.add_patient("P-01")
+        store.patients.add("P-01")
     proc = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder)], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "holding"
     yield proc

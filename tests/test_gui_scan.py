@@ -37,7 +37,7 @@ def _run_scan(qtbot, win, timeout=120_000):
     with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
         QTest.mouseClick(win.scan_page.scan_button, Qt.MouseButton.LeftButton)
         assert win.controller.busy, win.banner.text
-    qtbot.waitUntil(lambda: win.records.trials.count() > 0 and win.store.get_trial(
+    qtbot.waitUntil(lambda: win.records.trials.count() > 0 and win.store.trials.get(
         win.records.trials.item(win.records.trials.count() - 1).data(Qt.ItemDataRole.UserRole)).status != "scanning",
         timeout=10_000)
     qtbot.wait(300)  # whatever the finished scan queued on the UI thread has run
@@ -56,9 +56,9 @@ def test_full_scan_matches_offline_reconstruction(qtbot, window):
     assert result is not None, window.banner.text
     pset_files = [f.file for f in window.scan_flow.logic.pattern_set(window.rig.projector_size).frames]
     assert sorted(p.name for p in result.folder.iterdir() if not p.name.startswith(".")) == sorted(pset_files + ["manifest.json"])
-    trial = window.store.get_trial(window.scan_flow.logic.trial_id)
+    trial = window.store.trials.get(window.scan_flow.logic.trial_id)
     assert (trial.ref_inversion, trial.ref_plantar_flexion) == (10.0, -5.0)
-    assert trial.capture_path and window.store.verify_trial_files(trial.id) == []
+    assert trial.capture_path and window.store.trials.verify_files(trial.id) == []
     from anklescan.app.scan_worker import reconstruct_folder
     offline = reconstruct_folder(result.folder, window.rig.calibration)
     assert np.array_equal(offline.points, result.cloud.points)
@@ -96,7 +96,7 @@ def test_cancel_stops_within_a_second(qtbot, window):
     assert elapsed < 1.0
     assert window.banner.kind == "info" and "cancelled" in window.banner.text
     assert window.scan_page.scan_button.isEnabled()
-    trial = window.store.list_trials(window.records.current_session_id())[-1]
+    trial = window.store.trials.all(window.records.current_session_id())[-1]
     assert trial.status == "cancelled" and not trial.counted
     assert "[cancelled" in window.records.trials.item(window.records.trials.count() - 1).text()
 
@@ -106,9 +106,9 @@ def test_camera_unplugged_mid_scan_keeps_frames_and_app(qtbot, window):
     with qtbot.waitSignal(window.controller.failed, timeout=60_000):
         assert window.scan_flow.start_scan()
     assert window.banner.kind == "error" and "disconnected" in window.banner.text
-    trial = window.store.list_trials(window.records.current_session_id())[-1]
+    trial = window.store.trials.all(window.records.current_session_id())[-1]
     assert trial.status == "failed" and "disconnected" in trial.status_note
-    kept = [p for p in window.store.resolve(trial.capture_path).iterdir() if p.suffix == ".png"]
+    kept = [p for p in window.store.files.resolve(trial.capture_path).iterdir() if p.suffix == ".png"]
     assert len(kept) == 5
     assert window.scan_page.scan_button.isEnabled() and window.records.current_session_id() is not None
 
@@ -150,9 +150,9 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     result = win.last_result
     assert result is not None and result.cloud is not None, win.banner.text
     assert set(result.marks) == set(range(1, 8)), result.marks_note
-    stored = win.store.get_marks(win.scan_flow.logic.trial_id)
+    stored = win.store.marks.all(win.scan_flow.logic.trial_id)
     assert {m.label for m in stored} == set(range(1, 8)) and {m.source for m in stored} == {"auto"}
-    trial = win.store.get_trial(win.scan_flow.logic.trial_id)
+    trial = win.store.trials.get(win.scan_flow.logic.trial_id)
     assert trial.table_inversion is not None and trial.leg_inversion is not None
     assert set(win.marks_page.editor.marks) == set(range(1, 8))
     # recorded with the trial in one transaction (ScanLogic.finish), the editor only shows them

@@ -68,7 +68,7 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
         QTest.keyClicks(dialog.last_sprain, "2026-08-14")
         press_accept(dialog)
     with_dialog(qtbot, lambda: click(button(win, "New patient…")), fill)
-    patient = win.store.get_patient("SIM-P1")
+    patient = win.store.patients.get("SIM-P1")
     assert patient.last_sprain == "2026-08-14" and patient.affected_side == "right"
     assert win.records.patients.currentItem().text() == "SIM-P1   ·  3 sprain(s), right side"
     click(button(win, "New session"))
@@ -83,12 +83,12 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
         with qtbot.waitSignal(win.controller.busyChanged, timeout=240_000, check_params_cb=lambda b: b is False):
             click(win.scan_page.scan_button)
         qtbot.wait(200)
-    trials = win.store.list_trials(sid)
+    trials = win.store.trials.all(sid)
     assert len(trials) == 3 and all(t.simulated and t.status == "complete" for t in trials)
     print()
     for t, ref in zip(trials, refs, strict=True):
         assert (t.ref_inversion, t.ref_plantar_flexion) == ref
-        meta = json.loads((win.store.resolve(t.capture_path) / "manifest.json").read_text())["capture"]
+        meta = json.loads((win.store.files.resolve(t.capture_path) / "manifest.json").read_text())["capture"]
         truth = meta["simulated_patient"]
         true_mismatch = np.subtract(truth["table_deg"], truth["reference_deg"])
         measured = np.array([t.mismatch_inversion, t.mismatch_plantar_flexion])
@@ -142,18 +142,18 @@ def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, t
         with qtbot.waitSignal(win.controller.busyChanged, timeout=240_000, check_params_cb=lambda b: b is False):
             click(win.scan_page.scan_button)
         qtbot.wait(200)
-        return win.store.list_trials(sid)[-1].id
+        return win.store.trials.all(sid)[-1].id
 
     # the patient already has a real trial (from a real rig): mixing is said, on screen and in the report
-    real = win.store.add_trial(sid, ref_inversion=5.0, ref_plantar_flexion=5.0, status="failed")
+    real = win.store.trials.add(sid, ref_inversion=5.0, ref_plantar_flexion=5.0, status="failed")
     assert not real.simulated
     low = scan("0", "-20")
     assert "overexposed" not in win.banner.text and "keep simulated patients apart" in win.banner.text
-    print("\n-20:", {m.label: (round(m.sd_mm, 3), m.warning) for m in win.store.get_marks(low)})
-    assert all("overexposed" not in m.warning for m in win.store.get_marks(low))
+    print("\n-20:", {m.label: (round(m.sd_mm, 3), m.warning) for m in win.store.marks.all(low)})
+    assert all("overexposed" not in m.warning for m in win.store.marks.all(low))
     high = scan("0", "20")
     assert "Mark 3 is overexposed" in win.banner.text
-    marks = {m.label: m for m in win.store.get_marks(high)}
+    marks = {m.label: m for m in win.store.marks.all(high)}
     assert marks[3].warning == "overexposed" and marks[3].sd_mm > 0
     win.tabs.setCurrentIndex(PAGE_MARKS)
     qtbot.wait(100)
@@ -172,7 +172,7 @@ def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, t
     # confirming keeps the warning; the next banner does not take it away
     click(win.marks_page.editor.confirm_button)
     win.banner.show_message("info", "something else")
-    assert {m.label: m for m in win.store.get_marks(high)}[3].warning == "overexposed"
+    assert {m.label: m for m in win.store.marks.all(high)}[3].warning == "overexposed"
     pdf = tmp_path / "out" / "report.pdf"
     pdf.parent.mkdir()
     with qtbot.waitSignal(win.reportWritten, timeout=120_000):

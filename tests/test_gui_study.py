@@ -26,15 +26,15 @@ def _fill_clinic(folder: Path) -> None:
     """Three patients, two visits each, barefoot and shoes: enough for reliability figures."""
     with Store.open(data_dir=folder) as store:
         for k, code in enumerate(("A-01", "A-02", "A-03")):
-            store.add_patient(code, sprain_count=k)
+            store.patients.add(code, sprain_count=k)
             for cond in ("barefoot", "shoes"):
                 for v, date in enumerate(("2026-03-02", "2026-04-06")):
-                    s = store.start_session(code, condition=cond, date=date)
+                    s = store.sessions.start(code, condition=cond, date=date)
                     for j, pf in enumerate(PF_SETTINGS):
-                        t = store.add_trial(s.id, ref_inversion=10.0, ref_plantar_flexion=pf)
+                        t = store.trials.add(s.id, ref_inversion=10.0, ref_plantar_flexion=pf)
                         err = ((k + 1) * 0.7 * (1 if cond == "barefoot" else 0.5) + 0.3 * ((j + v) % 3 - 1)
                                + 0.2 * v * (k - 1))
-                        store.update_marks(t.id, table_marks(10.0 + err, pf - 0.5 * err), "manual", "test")
+                        store.results.update_marks(t.id, table_marks(10.0 + err, pf - 0.5 * err), "manual", "test")
 
 
 @pytest.fixture

@@ -86,10 +86,10 @@ def _scan(qtbot, win, inversion: str, plantar_flexion: str, timeout=180_000) -> 
     form = win.scan_page.form
     _type(form.inversion.edit, inversion)
     _type(form.plantar_flexion.edit, plantar_flexion)
-    before = len(win.store.list_trials(win.records.current_session_id()))
+    before = len(win.store.trials.all(win.records.current_session_id()))
     with qtbot.waitSignal(win.controller.busyChanged, timeout=timeout, check_params_cb=lambda b: b is False):
         click(win.scan_page.scan_button)
-    trials = win.store.list_trials(win.records.current_session_id())
+    trials = win.store.trials.all(win.records.current_session_id())
     assert len(trials) == before + 1
     return trials[-1].id
 
@@ -162,11 +162,11 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
 
     # 3. a session; the operator is asked for once
     _new_session(qtbot, win, operator="Dr. Ada Test")
-    assert win.store.get_session(win.records.current_session_id()).operator == "Dr. Ada Test"
+    assert win.store.sessions.get(win.records.current_session_id()).operator == "Dr. Ada Test"
 
     # 4. three trials at different reference angles
     trials = [_scan(qtbot, win, "5", pf) for pf in ("-10", "0", "10")]
-    stored = [win.store.get_trial(t) for t in trials]
+    stored = [win.store.trials.get(t) for t in trials]
     assert [t.ref_plantar_flexion for t in stored] == [-10.0, 0.0, 10.0]
     assert all(t.status == "complete" and t.cloud_path and t.calibration_id == win.calibration_id for t in stored)
     _no_error(win)
@@ -184,13 +184,13 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     import json
 
     from anklescan.hardware.sim_scene import leg_scene
-    stance = json.loads((win.store.resolve(stored[1].capture_path) / "manifest.json").read_text())["capture"][
+    stance = json.loads((win.store.files.resolve(stored[1].capture_path) / "manifest.json").read_text())["capture"][
         "simulated_patient"]
     truth = np.asarray(leg_scene(*stance["table_deg"]).marks["1"].centre, float)
     x, y, _ = viewer.widget_pos_of(truth[None])[0]
     with qtbot.waitSignal(editor.snapped, timeout=60_000):
         click_at(viewer, int(x) + 3, int(y) + 2)
-    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
+    mark = {m.label: m for m in win.store.marks.all(trials[1])}[1]
     snapped_error = np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth)
     print(f"\nmark 1 placed by a click 3 px off: {snapped_error:.2f} mm from the truth ({editor.pick_label.text()})")
     assert snapped_error < 0.5 and "centre" in editor.pick_label.text()
@@ -200,7 +200,7 @@ def test_whole_clinical_path_by_clicks(qtbot, fresh, tmp_path):
     x, y, _ = viewer.widget_pos_of(target[None])[0]
     with qtbot.waitSignal(editor.snapped, timeout=60_000):
         click_at(viewer, int(x), int(y))
-    mark = {m.label: m for m in win.store.get_marks(trials[1])}[1]
+    mark = {m.label: m for m in win.store.marks.all(trials[1])}[1]
     assert mark.source == "manual" and mark.placed_by == "Dr. Ada Test"
     assert np.linalg.norm(np.array([mark.x, mark.y, mark.z]) - truth) > 5
     assert "moved" not in win.banner.text
@@ -234,7 +234,7 @@ def test_new_patient_from_button_menu_and_shortcut(qtbot, fresh):
                 fill_and_ok({"": "P-012"}))
     codes = [win.records.patients.item(i).text().split()[0] for i in range(win.records.patients.count())]
     assert codes == ["P-010", "P-011", "P-012"]
-    assert win.store.get_patient("P-010").sprain_count == 2
+    assert win.store.patients.get("P-010").sprain_count == 2
     # a duplicate is refused inside the dialog, which keeps its input
     def duplicate(dialog):
         QTest.keyClicks(dialog.code, "P-011")
@@ -250,7 +250,7 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     _add_patient(qtbot, win, "P-020")
     _new_session(qtbot, win, operator="op")
     menu_action(win, "Scan/Start scan").trigger()  # F5 with no calibration: blocked, the way out shown
-    assert not win.controller.busy and win.store.list_trials(win.records.current_session_id()) == []
+    assert not win.controller.busy and win.store.trials.all(win.records.current_session_id()) == []
     assert "No calibration" in win.banner.text and win.banner.action.text() == "Calibrate…"
     use_true_calibration(win)
     form = win.scan_page.form
@@ -266,11 +266,11 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     # the session's mark diameter: refused outside 8-25 mm, kept with the session, empty = measured
     sid = win.records.current_session_id()
     _type(form.mark_diameter.edit, "30")
-    assert "outside" in form.mark_diameter.message.text() and win.store.get_session(sid).mark_diameter_mm is None
+    assert "outside" in form.mark_diameter.message.text() and win.store.sessions.get(sid).mark_diameter_mm is None
     _type(form.mark_diameter.edit, "12")
-    assert win.store.get_session(sid).mark_diameter_mm == 12.0
+    assert win.store.sessions.get(sid).mark_diameter_mm == 12.0
     _type(form.mark_diameter.edit, "")
-    assert win.store.get_session(sid).mark_diameter_mm is None
+    assert win.store.sessions.get(sid).mark_diameter_mm is None
 
 
 def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
@@ -287,17 +287,17 @@ def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
     qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
     with qtbot.waitSignal(win.controller.cancelled, timeout=5000):
         click(win.scan_page.cancel_button)
-    cancelled = win.store.list_trials(win.records.current_session_id())[-1]
+    cancelled = win.store.trials.all(win.records.current_session_id())[-1]
     assert cancelled.status == "cancelled"
     assert "[cancelled" in win.records.trials.item(win.records.trials.count() - 1).text()
     # exclude the good trial with a reason, through its button and dialog, then restore it
     _click_trial(win, good)
     with_dialog(qtbot, lambda: click(win.records.exclude_button), fill_and_ok({"": "patient stepped off"}))
-    assert win.store.get_trial(good).excluded_reason == "patient stepped off"
-    assert win.store.session_summary(win.records.current_session_id()).inversion.n == 0
+    assert win.store.trials.get(good).excluded_reason == "patient stepped off"
+    assert win.store.reports.session_summary(win.records.current_session_id()).inversion.n == 0
     _click_trial(win, good)
     click(win.records.restore_button)
-    assert win.store.get_trial(good).counted
+    assert win.store.trials.get(good).counted
     # archiving asks first; "No" changes nothing, "Yes" hides the patient (nothing is deleted)
     with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, dismiss)
     assert win.records.patients.count() == 1
@@ -305,7 +305,7 @@ def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
     assert win.records.patients.count() == 0
     click(win.records.show_archived)
     assert win.records.patients.count() == 1 and "(archived)" in win.records.patients.item(0).text()
-    assert [e.kind for e in win.store.events("patient")] == ["archived"]
+    assert [e.kind for e in win.store.events.all("patient")] == ["archived"]
     _no_error(win)
 
 
@@ -359,7 +359,7 @@ def test_quitting_during_a_scan_asks_then_stops_cleanly(qtbot, fresh, caplog):
     assert not win.isVisible() and not win.controller.busy
     from anklescan.core.records.store import Store
     with Store.open(store.path) as db:
-        (trial,) = db.list_trials(sid)
+        (trial,) = db.trials.all(sid)
         assert trial.status == "cancelled" and "closed" in trial.status_note
     assert "closed database" not in caplog.text
 
@@ -415,8 +415,8 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     from anklescan.core.records.store import Store
     data = tmp_path / "archive"
     with Store.open(data_dir=data) as db:
-        db.add_patient("P-070", sprain_count=1)
-        db.start_session("P-070", condition="shoes", operator="dr")
+        db.patients.add("P-070", sprain_count=1)
+        db.sessions.start("P-070", condition="shoes", operator="dr")
     for p in data.iterdir():
         if p.is_file():
             p.chmod(0o444)
@@ -453,15 +453,15 @@ def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeyp
     _add_patient(qtbot, win, "P-080")
     _new_session(qtbot, win)
     tid = _scan(qtbot, win, "0", "0")
-    trial = win.store.get_trial(tid)
+    trial = win.store.trials.get(tid)
     print(f"\nmoved {trial.motion_mm} ± {trial.motion_sd_mm} mm in {trial.scan_duration_s} s")
     assert trial.motion_flagged and not trial.counted and trial.motion_mm > 1.0
     assert "during the scan: scan again?" in win.banner.text and win.banner.action.text() == "Scan again"
     assert "[moved" in win.records.trials.item(win.records.trials.count() - 1).text()
     _click_trial(win, tid)
     click(win.records.restore_button)
-    assert win.store.get_trial(tid).counted and win.store.get_trial(tid).motion_keep
-    assert ("trial", "kept") in [(e.entity, e.kind) for e in win.store.events()]
+    assert win.store.trials.get(tid).counted and win.store.trials.get(tid).motion_keep
+    assert ("trial", "kept") in [(e.entity, e.kind) for e in win.store.events.all()]
     win.close()
 
 
@@ -501,6 +501,6 @@ def test_an_overexposed_mark_is_said_and_lowering_the_exposure_clears_it(qtbot, 
     import json
     controls = json.loads((win.last_result.folder / "manifest.json").read_text())["capture"]["controls"]
     assert controls["exposure"] == pytest.approx(0.7), controls  # the capture records what was set
-    trials = win.store.list_trials(win.records.current_session_id())
+    trials = win.store.trials.all(win.records.current_session_id())
     assert len(trials) == 2
     win.close()

@@ -138,50 +138,50 @@ def test_capture_without_references_says_why(still, tmp_path):
 
 def test_store_flags_excludes_and_keeps(tmp_path):
     with Store.open(tmp_path / "db.sqlite") as s:
-        s.add_patient("P1")
-        ses = s.start_session("P1", condition="barefoot")
-        trials = [s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0) for _ in range(3)]
+        s.patients.add("P1")
+        ses = s.sessions.start("P1", condition="barefoot")
+        trials = [s.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0) for _ in range(3)]
         marks = {1: [0, 40, 480], 2: [0, 40, 80], 3: [35, 0, 485], 4: [35, 0, 85],
                  5: [-40, -60, 50], 6: [45, -50, 50], 7: [5, 90, 50]}
         for t in trials:
-            s.update_marks(t.id, marks, "auto")
+            s.results.update_marks(t.id, marks, "auto")
         # make the moved trial's mismatch stand out, so its exclusion shows in the mean
-        s.update_marks(trials[2].id, {5: [-40, -60, 60]}, "manual")
-        s.set_trial_motion(trials[0].id, 0.1, 0.05, scan_duration_s=1.1)
-        s.set_trial_motion(trials[1].id, None, None, scan_duration_s=60.0)
-        t2 = s.set_trial_motion(trials[2].id, 1.8, 0.2, scan_duration_s=1.1)
+        s.results.update_marks(trials[2].id, {5: [-40, -60, 60]}, "manual")
+        s.trials.set_motion(trials[0].id, 0.1, 0.05, scan_duration_s=1.1)
+        s.trials.set_motion(trials[1].id, None, None, scan_duration_s=60.0)
+        t2 = s.trials.set_motion(trials[2].id, 1.8, 0.2, scan_duration_s=1.1)
         assert t2.motion_flagged and t2.excluded_for_motion and t2.motion_mm == 1.8
-        assert not s.get_trial(trials[0].id).motion_flagged and not s.get_trial(trials[1].id).motion_flagged
-        summ = s.session_summary(ses.id)
+        assert not s.trials.get(trials[0].id).motion_flagged and not s.trials.get(trials[1].id).motion_flagged
+        summ = s.reports.session_summary(ses.id)
         assert summ.moved_trials == [trials[2].id] and summ.inversion.n == 2
-        rows = {r["trial_id"]: r for r in s.study_rows()}
-        assert rows[trials[2].id]["motion_excluded"] == 1 and rows[trials[0].id]["motion_excluded"] == 0
-        s.keep_trial(trials[2].id)
-        summ = s.session_summary(ses.id)
+        rows = {r.trial_id: r for r in s.reports.study_rows()}
+        assert rows[trials[2].id].excluded_for_motion == 1 and rows[trials[0].id].excluded_for_motion == 0
+        s.trials.keep(trials[2].id)
+        summ = s.reports.session_summary(ses.id)
         assert summ.moved_trials == [] and summ.inversion.n == 3
-        assert s.get_trial(trials[2].id).motion_keep
+        assert s.trials.get(trials[2].id).motion_keep
         # a stricter threshold flags the small one too
-        assert s.set_trial_motion(trials[0].id, 0.1, 0.05, threshold_mm=0.05).motion_flagged
+        assert s.trials.set_motion(trials[0].id, 0.1, 0.05, threshold_mm=0.05).motion_flagged
         from anklescan.core.errors import AnkleScanError
         with pytest.raises(AnkleScanError):
-            s.set_trial_motion(trials[0].id, float("nan"))
+            s.trials.set_motion(trials[0].id, float("nan"))
         with pytest.raises(AnkleScanError):
-            s.set_trial_motion(trials[0].id, 1.0, threshold_mm=0)
+            s.trials.set_motion(trials[0].id, 1.0, threshold_mm=0)
 
 
 def test_report_shows_motion(tmp_path):
     from anklescan.core.records.report import write_csv, write_session_report
     with Store.open(tmp_path / "db.sqlite") as s:
-        s.add_patient("P1")
-        ses = s.start_session("P1", condition="barefoot")
-        t = s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
-        s.set_trial_motion(t.id, 1.8, 0.2, scan_duration_s=1.1)
-        rep = write_session_report(s.report_input([ses.id]), tmp_path / "r.pdf")
+        s.patients.add("P1")
+        ses = s.sessions.start("P1", condition="barefoot")
+        t = s.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
+        s.trials.set_motion(t.id, 1.8, 0.2, scan_duration_s=1.1)
+        rep = write_session_report(s.reports.report_input([ses.id]), tmp_path / "r.pdf")
         assert rep.pages >= 1 and (tmp_path / "r.pdf").stat().st_size > 0
         from anklescan.core.records.report import _motion_cell
-        row = s.study_rows()[0]
+        row = s.reports.study_rows()[0]
         assert _motion_cell(row) == "1.80 out / 1.1"
-        write_csv(s.study_rows(), tmp_path / "t.csv")
+        write_csv(s.reports.study_rows(), tmp_path / "t.csv")
         text = (tmp_path / "t.csv").read_text()
         assert "motion_mm" in text.splitlines()[0] and "1.8" in text
 

@@ -404,10 +404,10 @@ def test_patient_data_is_private_whatever_the_umask(tmp_path):
     old = os.umask(0o022)
     try:
         store = Store.open(data_dir=tmp_path / "data")
-        store.add_patient("P1")
-        session = store.start_session("P1", condition="barefoot")
-        trial = store.add_trial(session.id, ref_inversion=0, ref_plantar_flexion=0)
-        trial_dir = store.trial_dir(trial.id, create=True)
+        store.patients.add("P1")
+        session = store.sessions.start("P1", condition="barefoot")
+        trial = store.trials.add(session.id, ref_inversion=0, ref_plantar_flexion=0)
+        trial_dir = store.files.trial_dir(trial.id, create=True)
         pset = make_pattern_set("paper", 16, 8)
         with CaptureWriter(trial_dir / "capture", pset) as writer:
             for frame, img in zip(pset.frames, render_all(pset), strict=False):
@@ -425,7 +425,7 @@ def test_patient_data_is_private_whatever_the_umask(tmp_path):
 
 def test_older_data_folders_are_made_private_on_open(tmp_path):
     with Store.open(data_dir=tmp_path) as s:
-        s.add_patient("P1")
+        s.patients.add("P1")
     old = tmp_path / "patients" / "P1" / "session-1" / "trial-1" / "capture"
     old.mkdir(parents=True)
     (old / "00_white.png").write_bytes(b"x")
@@ -468,30 +468,30 @@ def test_other_programs_databases_are_refused_untouched(tmp_path, kind):
 
 def test_our_database_is_marked_and_older_ones_recognised(tmp_path):
     with Store.open(tmp_path / "a.sqlite") as s:
-        s.add_patient("P1")
+        s.patients.add("P1")
     c = sqlite3.connect(tmp_path / "a.sqlite")
     assert c.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
     c.execute("PRAGMA application_id = 0")  # as made before the id existed
     c.commit()
     c.close()
     with Store.open(tmp_path / "a.sqlite") as s:
-        assert [p.code for p in s.list_patients()] == ["P1"] and not s.read_only
+        assert [p.code for p in s.patients.all()] == ["P1"] and not s.read_only
     c = sqlite3.connect(tmp_path / "a.sqlite")
     assert c.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
 
 
 def test_read_only_copy_opens_for_reading(tmp_path):
     with Store.open(tmp_path / "live" / "anklescan.sqlite") as s:
-        s.add_patient("P1")
+        s.patients.add("P1")
     shutil.copytree(tmp_path / "live", tmp_path / "archive")
     db = tmp_path / "archive" / "anklescan.sqlite"
     os.chmod(db, 0o444)
     before = snapshot(tmp_path / "archive")
     with Store.open(db) as s:
         assert s.read_only and "read-only" in s.read_only_reason
-        assert [p.code for p in s.list_patients()] == ["P1"]
-        for write in (lambda: s.add_patient("P2"), lambda: s.trial_dir(1, create=True),
-                      lambda: s.add_calibration({})):
+        assert [p.code for p in s.patients.all()] == ["P1"]
+        for write in (lambda: s.patients.add("P2"), lambda: s.files.trial_dir(1, create=True),
+                      lambda: s.calibrations.add({})):
             with pytest.raises(AnkleScanError, match="read-only"):
                 write()
     assert snapshot(tmp_path / "archive") == before
@@ -503,7 +503,7 @@ def test_damaged_database_is_one_line(tmp_path):
     path = tmp_path / "a.sqlite"
     with Store.open(path) as s:
         for i in range(200):
-            s.add_patient(f"P{i}", notes="x" * 400)
+            s.patients.add(f"P{i}", notes="x" * 400)
     data = bytearray(path.read_bytes())
     pages = len(data) // 4096  # the patients' rows fill the second half (the first holds every table's root)
     for page in range(pages // 2, pages - 1):
@@ -574,12 +574,12 @@ def read_only_mount(tmp_path):
 def test_database_on_a_read_only_mount_opens_for_reading(read_only_mount, monkeypatch, detected):
     mnt, make_read_only = read_only_mount
     with Store.open(mnt / "anklescan.sqlite") as s:
-        s.add_patient("P1")
+        s.patients.add("P1")
     make_read_only()
     if not detected:  # a mount the statvfs flag does not reveal: SQLite's refusal decides
-        monkeypatch.setattr("anklescan.core.records.store._read_only_reason", lambda path, exists: "")
+        monkeypatch.setattr("anklescan.core.records.database._read_only_reason", lambda path, exists: "")
     with Store.open(mnt / "anklescan.sqlite") as s:
         assert s.read_only and s.read_only_reason
-        assert [p.code for p in s.list_patients()] == ["P1"]
+        assert [p.code for p in s.patients.all()] == ["P1"]
         with pytest.raises(AnkleScanError, match="read-only"):
-            s.add_patient("P2")
+            s.patients.add("P2")

@@ -14,6 +14,7 @@ from anklescan.core.records import report
 from anklescan.core.records import study_stats as st
 from anklescan.core.records.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
 from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import StudyRow
 
 INV_SETTINGS = (0.0, 20.0)
 PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
@@ -22,24 +23,24 @@ PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
 def synthetic_study(store: Store, n_per_group=3, repeats=2, seed=0):
     """Sprain-history patients mis-sense more, shoes help: the paper's qualitative result."""
     rng = np.random.default_rng(seed)
-    cal = store.add_calibration({"units": "mm"}, rms=0.21, source="simulated rig", verified=True)
+    cal = store.calibrations.add({"units": "mm"}, rms=0.21, source="simulated rig", verified=True)
     sessions = []
     for g, sprains in (("S", 3), ("C", 0)):
         for i in range(n_per_group):
             code = f"{g}-{i + 1:02d}"
-            store.add_patient(code, sprain_count=sprains, affected_side="right" if sprains else None,
+            store.patients.add(code, sprain_count=sprains, affected_side="right" if sprains else None,
                               last_sprain="2024-01-15" if sprains else None)
             for cond in ("barefoot", "shoes"):
-                s = store.start_session(code, condition=cond, date="2024-06-03",
+                s = store.sessions.start(code, condition=cond, date="2024-06-03",
                                         operator="Dr. Test", calibration_id=cal.id)
                 sessions.append(s.id)
                 spread = (4.0 if sprains else 1.5) * (0.6 if cond == "shoes" else 1.0)
                 for inv in INV_SETTINGS:
                     for pf in PF_SETTINGS:
                         for _ in range(repeats):
-                            t = store.add_trial(s.id, ref_inversion=inv, ref_plantar_flexion=pf)
+                            t = store.trials.add(s.id, ref_inversion=inv, ref_plantar_flexion=pf)
                             ti, tp = inv + rng.normal(0, spread), pf + rng.normal(0.05 * pf, spread)
-                            store.update_trial_angles(t.id, {
+                            store.results.update_angles(t.id, {
                                 "leg_inversion": {"value": rng.normal(2, 1), "sd": 0.1},
                                 "leg_plantar_flexion": {"value": pf * 0.4, "sd": 0.1},
                                 "table_inversion": {"value": ti, "sd": 0.15},
@@ -70,13 +71,13 @@ def pdf_pages(path: Path) -> int:
 def test_session_report_pdf_and_csv(study, tmp_path):
     store, sessions = study
     pdf, out_csv = tmp_path / "r.pdf", tmp_path / "r.csv"
-    res = write_session_report(store.report_input(sessions[:1]), pdf, out_csv)
+    res = write_session_report(store.reports.report_input(sessions[:1]), pdf, out_csv)
     # header/table page (16 trials fit) + Fig. 10 + one error-range page per inversion
     # setting + the group page
     assert res.pages == 1 + 1 + len(INV_SETTINGS) + 1
     assert pdf.read_bytes()[:5] == b"%PDF-" and pdf_pages(pdf) == res.pages
     rows = list(csv.DictReader(out_csv.open()))
-    trials = store.list_trials(sessions[0])
+    trials = store.trials.all(sessions[0])
     assert len(rows) == len(trials) and tuple(rows[0]) == CSV_COLUMNS
     for r, t in zip(rows, trials, strict=False):
         assert int(r["trial_id"]) == t.id and r["patient_code"] == "S-01"
@@ -95,17 +96,17 @@ def test_session_report_pdf_and_csv(study, tmp_path):
 
 def test_multi_session_report_pages(study, tmp_path):
     store, sessions = study
-    res = write_session_report(store.report_input(sessions[:2]), tmp_path / "r.pdf")
+    res = write_session_report(store.reports.report_input(sessions[:2]), tmp_path / "r.pdf")
     assert res.pages == 2 * (2 + len(INV_SETTINGS)) + 1 and res.csv_path is None
 
 
 def test_long_session_table_continues(tmp_path):
     with Store.open(tmp_path / "db.sqlite") as s:
-        s.add_patient("L-1")
-        ses = s.start_session("L-1", condition="shoes")
+        s.patients.add("L-1")
+        ses = s.sessions.start("L-1", condition="shoes")
         for i in range(30):
-            s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=i)   # none measured
-        res = write_session_report(s.report_input([ses.id]), tmp_path / "l.pdf", tmp_path / "l.csv")
+            s.trials.add(ses.id, ref_inversion=0, ref_plantar_flexion=i)   # none measured
+        res = write_session_report(s.reports.report_input([ses.id]), tmp_path / "l.pdf", tmp_path / "l.csv")
     # 24 rows + continuation page, Fig. 10 page ("no measured trials"); no group page: one
     # patient has nothing to compare
     assert res.pages == 2 + 1
@@ -115,7 +116,7 @@ def test_long_session_table_continues(tmp_path):
 
 def test_study_report(study, tmp_path):
     store, _ = study
-    res = write_study_report(store.report_input(), tmp_path / "s.pdf", tmp_path / "s.csv")
+    res = write_study_report(store.reports.report_input(), tmp_path / "s.pdf", tmp_path / "s.csv")
     assert res.pages == 1 + 2 + 1 and pdf_pages(tmp_path / "s.pdf") == 4
     rows = list(csv.DictReader((tmp_path / "s.csv").open()))
     assert len(rows) == 12 * len(INV_SETTINGS) * len(PF_SETTINGS) * 2
@@ -124,22 +125,22 @@ def test_study_report(study, tmp_path):
 def test_report_errors_leave_nothing(study, tmp_path):
     store, sessions = study
     with pytest.raises(AnkleScanError, match="does not exist"):
-        write_session_report(store.report_input(sessions[:1]), tmp_path / "nope" / "r.pdf")
+        write_session_report(store.reports.report_input(sessions[:1]), tmp_path / "nope" / "r.pdf")
     with pytest.raises(AnkleScanError, match="no session"):
-        write_session_report(store.report_input([99999]), tmp_path / "r.pdf", tmp_path / "r.csv")
+        write_session_report(store.reports.report_input([99999]), tmp_path / "r.pdf", tmp_path / "r.csv")
     (tmp_path / "r.pdf").write_bytes(b"old")
     with pytest.raises(AnkleScanError, match="no sessions"):
-        write_session_report(store.report_input([]), tmp_path / "r.pdf")
+        write_session_report(store.reports.report_input([]), tmp_path / "r.pdf")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.pdf"]
     assert (tmp_path / "r.pdf").read_bytes() == b"old"
 
 
 def test_csv_neutralises_formulas(tmp_path):
     with Store.open(tmp_path / "db.sqlite") as s:
-        s.add_patient("F-1")
-        ses = s.start_session("F-1", condition="shoes", operator="=HYPERLINK(1)")
-        s.add_trial(ses.id, ref_inversion=0, ref_plantar_flexion=0, notes="-2 felt odd")
-        write_study_report(s.report_input(), tmp_path / "f.pdf", tmp_path / "f.csv")
+        s.patients.add("F-1")
+        ses = s.sessions.start("F-1", condition="shoes", operator="=HYPERLINK(1)")
+        s.trials.add(ses.id, ref_inversion=0, ref_plantar_flexion=0, notes="-2 felt odd")
+        write_study_report(s.reports.report_input(), tmp_path / "f.pdf", tmp_path / "f.csv")
     r = next(csv.DictReader((tmp_path / "f.csv").open()))
     assert r["operator"] == "'=HYPERLINK(1)" and r["notes"] == "'-2 felt odd"
 
@@ -147,9 +148,10 @@ def test_csv_neutralises_formulas(tmp_path):
 # ------------------------------------------------------------------- stats
 
 def rows_for(values: dict[tuple[str, str], list[float]], sprains: dict[str, int]):
-    return [{"patient_code": p, "condition": c, "sprain_count": sprains[p],
-             "mismatch_inversion": v, "mismatch_plantar_flexion": -v}
-            for (p, c), vs in values.items() for v in vs]
+    return [StudyRow(id=i, session_id=1, created="", ref_inversion=None, ref_plantar_flexion=None,
+                     patient_code=p, condition=c, sprain_count=sprains[p],
+                     mismatch_inversion=v, mismatch_plantar_flexion=-v)
+            for i, ((p, c), v) in enumerate(((pc, v) for pc, vs in values.items() for v in vs))]
 
 
 def test_per_patient_aggregation_and_groups():
@@ -189,7 +191,7 @@ def test_paired_condition_comparison():
 
 def test_report_stats_reflect_synthetic_effect(study):
     store, _ = study
-    s = st.study_stats(store.study_rows())
+    s = st.study_stats(store.reports.study_rows())
     for c in st.CONDITIONS:
         t = s.history_tests[(c, "inversion")]
         assert t.n_a == t.n_b == 3 and t.mean_diff > 0
@@ -215,21 +217,21 @@ def states_session(tmp_path):
     them with unconfirmed automatic marks), and a cancelled, a failed and an excluded trial
     whose large mismatch must not reach any plot or statistic; two calibrations."""
     s = Store.open(tmp_path / "db.sqlite", data_dir=tmp_path)
-    c1 = s.add_calibration({"units": "mm"}, rms=0.21, source=LONG_SOURCE, verified=True)
-    c2 = s.add_calibration({"units": "mm"}, rms=0.3, source="simulated box scan")
-    s.add_patient("P-1", sprain_count=2)
-    ses = s.start_session("P-1", condition="barefoot", calibration_id=c1.id)   # no operator
+    c1 = s.calibrations.add({"units": "mm"}, rms=0.21, source=LONG_SOURCE, verified=True)
+    c2 = s.calibrations.add({"units": "mm"}, rms=0.3, source="simulated box scan")
+    s.patients.add("P-1", sprain_count=2)
+    ses = s.sessions.start("P-1", condition="barefoot", calibration_id=c1.id)   # no operator
     ids = {}
     for name, pf, d, cal in (("a", -20.0, 0.0015, None), ("b", 0.0, -0.0010, None), ("auto", 20.0, 0.0005, c2.id),
                              ("cancel", 0.0, 30.0, None), ("fail", 0.0, 30.0, None), ("excl", 20.0, -30.0, None)):
-        t = s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=pf, calibration_id=cal)
-        s.update_trial_angles(t.id, _angles(d, pf - d))
+        t = s.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=pf, calibration_id=cal)
+        s.results.update_angles(t.id, _angles(d, pf - d))
         ids[name] = t.id
-    s.update_marks(ids["auto"], {5: MARKS[5]}, "auto", "", recompute=False)
-    s.update_marks(ids["a"], {5: MARKS[5]}, "auto", "confirmed by dr.k", recompute=False)
-    s.set_trial_status(ids["cancel"], "cancelled", "operator stopped the scan")
-    s.set_trial_status(ids["fail"], "failed", "projector disconnected")
-    s.exclude_trial(ids["excl"], "patient moved")
+    s.results.update_marks(ids["auto"], {5: MARKS[5]}, "auto", "", recompute=False)
+    s.results.update_marks(ids["a"], {5: MARKS[5]}, "auto", "confirmed by dr.k", recompute=False)
+    s.trials.set_status(ids["cancel"], "cancelled", "operator stopped the scan")
+    s.trials.set_status(ids["fail"], "failed", "projector disconnected")
+    s.trials.exclude(ids["excl"], "patient moved")
     yield s, ses.id, ids, (c1.id, c2.id)
     s.close()
 
@@ -247,17 +249,17 @@ def _capture_figures(monkeypatch) -> list:
 
 def test_study_rows_carry_state_and_mark_confirmation(states_session):
     store, sid, ids, (c1, c2) = states_session
-    rows = {r["trial_id"]: r for r in store.study_rows()}
-    assert [rows[ids[k]]["counted"] for k in ("a", "auto", "cancel", "fail", "excl")] == [1, 1, 0, 0, 0]
-    assert rows[ids["a"]]["marks_confirmed"] == 1 and rows[ids["auto"]]["marks_confirmed"] == 0
-    assert rows[ids["b"]]["marks_confirmed"] == 1          # no marks: nothing left to confirm
-    assert rows[ids["a"]]["calibration_id"] == c1 and rows[ids["auto"]]["calibration_id"] == c2
+    rows = {r.trial_id: r for r in store.reports.study_rows()}
+    assert [rows[ids[k]].counted for k in ("a", "auto", "cancel", "fail", "excl")] == [1, 1, 0, 0, 0]
+    assert rows[ids["a"]].marks_confirmed == 1 and rows[ids["auto"]].marks_confirmed == 0
+    assert rows[ids["b"]].marks_confirmed == 1          # no marks: nothing left to confirm
+    assert rows[ids["a"]].calibration_id == c1 and rows[ids["auto"]].calibration_id == c2
 
 
 def test_states_shown_in_table_but_only_counted_trials_plotted(states_session, tmp_path, monkeypatch):
     store, sid, ids, (c1, c2) = states_session
     figs = _capture_figures(monkeypatch)
-    res = write_session_report(store.report_input([sid]), tmp_path / "r.pdf", tmp_path / "r.csv")
+    res = write_session_report(store.reports.report_input([sid]), tmp_path / "r.pdf", tmp_path / "r.csv")
     # header + Fig. 10 + one error-range page; no group page (one patient: nothing to compare)
     assert res.pages == 3 == len(figs)
     texts = [t.get_text() for t in figs[0].texts]
@@ -301,7 +303,7 @@ def test_states_shown_in_table_but_only_counted_trials_plotted(states_session, t
 
 def test_stats_use_counted_trials_only(states_session):
     store, *_ = states_session
-    rows = store.study_rows()
+    rows = store.reports.study_rows()
     s = st.study_stats(rows)
     assert s.patient_means[("P-1", "barefoot", "inversion")] == pytest.approx((0.0015 + 0.0010 + 0.0005) / 3)
     assert s.trial_summary[("sprain history", "barefoot", "inversion")].n == 3
@@ -312,15 +314,15 @@ def test_stats_use_counted_trials_only(states_session):
 def test_group_page_only_with_something_to_compare(study, tmp_path, monkeypatch):
     store, sessions = study
     figs = _capture_figures(monkeypatch)
-    write_session_report(store.report_input(sessions[:1]), tmp_path / "r.pdf")
+    write_session_report(store.reports.report_input(sessions[:1]), tmp_path / "r.pdf")
     assert figs[-1]._suptitle.get_text().startswith("Group comparison")
-    assert st.has_tests(st.study_stats(store.study_rows()))
+    assert st.has_tests(st.study_stats(store.reports.study_rows()))
 
 
 def test_study_report_of_one_patient_has_no_empty_pages(states_session, tmp_path, monkeypatch):
     store, *_ = states_session
     figs = _capture_figures(monkeypatch)
-    res = write_study_report(store.report_input(), tmp_path / "s.pdf")
+    res = write_study_report(store.reports.report_input(), tmp_path / "s.pdf")
     # the overview (saying why there is no group comparison) and the one group that has a patient
     assert res.pages == 2
     assert "Group comparison" in [t.get_text() for t in figs[0].texts]

@@ -120,7 +120,7 @@ def test_claim_removes_exactly_what_the_earlier_run_wrote(tmp_path):
 def _store_with_patients(folder: Path, codes: list[str]) -> Path:
     with Store.open(data_dir=folder) as store:
         for c in codes:
-            store.add_patient(c)
+            store.patients.add(c)
         return store.path
 
 
@@ -128,9 +128,9 @@ def _live_wal(folder: Path, codes: list[str]) -> tuple[Path, Path]:
     """A database of ours with a -wal holding the patients ``codes`` (copied while open, as a
     crash leaves it): (database copy, its -wal copy) in ``folder/crashed``."""
     store = Store.open(data_dir=folder)
-    store._conn.execute("PRAGMA wal_autocheckpoint = 0")
+    store.db._conn.execute("PRAGMA wal_autocheckpoint = 0")
     for c in codes:
-        store.add_patient(c)
+        store.patients.add(c)
     crashed = folder / "crashed"
     crashed.mkdir()
     db = crashed / store.path.name
@@ -150,13 +150,13 @@ def test_a_foreign_wal_is_refused_and_nothing_changes(tmp_path):
     assert {p.name: p.read_bytes() for p in db.parent.iterdir() if p.is_file()} == before
     Path(f"{db}-wal").unlink()  # moved away, as the message says: the patients are all there
     with Store.open(db) as store:
-        assert [p.code for p in store.list_patients()] == ["P-01", "P-02"]
+        assert [p.code for p in store.patients.all()] == ["P-01", "P-02"]
 
 
 def test_a_crash_left_wal_of_the_database_itself_is_applied(tmp_path):
     db, _wal = _live_wal(tmp_path / "clinic", ["P-01", "P-02", "P-03"])
     with Store.open(db) as store:
-        assert [p.code for p in store.list_patients()] == ["P-01", "P-02", "P-03"]
+        assert [p.code for p in store.patients.all()] == ["P-01", "P-02", "P-03"]
     assert not [p for p in db.parent.iterdir() if p.name.startswith(".")]  # the private copy is gone
 
 

@@ -20,7 +20,7 @@ MARKS = {1: (10.0, 60.0, 520.0), 2: (0.0, 55.0, 200.0), 3: (55.0, 10.0, 520.0), 
 @pytest.fixture
 def store(tmp_path):
     s = Store.open(tmp_path / "db.sqlite", data_dir=tmp_path)
-    s.add_patient("P-001", sprain_count=2)
+    s.patients.add("P-001", sprain_count=2)
     yield s
     s.close()
 
@@ -31,14 +31,14 @@ def editor(qtbot, store):
     ed = MarkEditor(viewer, operator="dr.k")
     qtbot.addWidget(viewer)
     qtbot.addWidget(ed)
-    sess = store.start_session("P-001", condition="barefoot")
-    trial = store.add_trial(sess.id, ref_inversion=10.0, ref_plantar_flexion=5.0)
+    sess = store.sessions.start("P-001", condition="barefoot")
+    trial = store.trials.add(sess.id, ref_inversion=10.0, ref_plantar_flexion=5.0)
     ed.load_trial(store, trial.id)
     return ed, store, trial.id
 
 
 def _stored(store, tid):
-    return {m.label: m for m in store.get_marks(tid)}
+    return {m.label: m for m in store.marks.all(tid)}
 
 
 def test_place_saves_manual_marks_and_updates_angles(editor):
@@ -51,7 +51,7 @@ def test_place_saves_manual_marks_and_updates_angles(editor):
     want = compute_angles(MARKS)
     assert ed.angles["leg_inversion"]["value"] == pytest.approx(want["leg_inversion"]["value"])
     assert ed.angle_labels["table_inversion"].text().startswith(f"{want['table_inversion']['value']:+.2f}")
-    assert store.get_trial(tid).mismatch_inversion is not None  # the store recomputed from the marks
+    assert store.trials.get(tid).mismatch_inversion is not None  # the store recomputed from the marks
     assert set(ed.viewer.marks) == set(MARKS)
 
 
@@ -89,7 +89,7 @@ def test_auto_marks_shown_for_confirmation(editor):
     stored = _stored(store, tid)
     assert stored[4].source == "manual" and stored[5].source == "auto"
     assert stored[5].placed_by == "confirmed by dr.k"
-    reloaded = marks_from_store(store.get_marks(tid))
+    reloaded = marks_from_store(store.marks.all(tid))
     assert all(m.confirmed for m in reloaded.values())
     ed.undo_stack.undo()  # unconfirm
     assert ed.viewer.unconfirmed == set(MARKS) - {4}
@@ -106,16 +106,16 @@ def test_click_on_viewer_places_current_mark(editor):
 
 
 def _session_rows(store):
-    sess = store.start_session("P-001", condition="shoes")
+    sess = store.sessions.start("P-001", condition="shoes")
     rng = np.random.default_rng(0)
     for inv in (0.0, 20.0):
         for pf in (-10.0, 0.0, 10.0):
             for _ in range(3):
-                t = store.add_trial(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
-                store.update_trial_angles(t.id, {
+                t = store.trials.add(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
+                store.results.update_angles(t.id, {
                     "table_inversion": {"value": inv + rng.normal(0, 2) + 0.1 * pf, "sd": 0.3},
                     "table_plantar_flexion": {"value": pf + rng.normal(0, 2), "sd": 0.3}})
-    store.add_trial(sess.id, ref_inversion=0.0, ref_plantar_flexion=0.0)  # not measured yet
+    store.trials.add(sess.id, ref_inversion=0.0, ref_plantar_flexion=0.0)  # not measured yet
     return sess.id
 
 
@@ -162,13 +162,13 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
     win.records.add_patient("P-100", 1, "right")
     win.records.start_session("barefoot")
     sid = win.records.current_session_id()
-    trial = win.store.add_trial(sid, ref_inversion=10.0, ref_plantar_flexion=0.0)
+    trial = win.store.trials.add(sid, ref_inversion=10.0, ref_plantar_flexion=0.0)
     g = np.linspace(-100, 100, 201)
     xx, yy = np.meshgrid(g, g)
     pts = np.c_[xx.ravel(), yy.ravel(), 120 + 0.2 * xx.ravel()].astype(np.float32)  # a tilted table top
-    path = win.store.trial_dir(trial.id, create=True) / "cloud.ply"
+    path = win.store.files.trial_dir(trial.id, create=True) / "cloud.ply"
     write_ply(path, PointCloud(pts, np.full((len(pts), 3), 200, np.uint8)))
-    win.store.set_trial_files(trial.id, cloud=path)
+    win.store.trials.set_files(trial.id, cloud=path)
     win.records.show_session()
     assert win.review.open_trial(trial.id) and win.tabs.currentIndex() == PAGE_MARKS
     viewer, editor = win.marks_page.viewer, win.marks_page.editor
@@ -180,10 +180,10 @@ def test_main_window_opens_trial_marks_it_and_exports(qtbot, tmp_path):
         x, y, _ = viewer.widget_pos_of(np.array([xyz]))[0]
         with qtbot.waitSignal(viewer.picked, timeout=1000):
             qtbot.mouseClick(viewer, Qt.MouseButton.LeftButton, pos=QPoint(int(x), int(y)))
-    marks = {m.label: m for m in win.store.get_marks(trial.id)}
+    marks = {m.label: m for m in win.store.marks.all(trial.id)}
     assert set(marks) == {5, 6, 7} and all(m.source == "manual" for m in marks.values())
     assert np.linalg.norm(np.array([marks[7].x, marks[7].y, marks[7].z]) - (-60, 0, 108)) < 2.0
-    t = win.store.get_trial(trial.id)
+    t = win.store.trials.get(trial.id)
     assert t.table_inversion == pytest.approx(np.degrees(np.arctan(-0.2)), abs=1.0)  # n ∝ (−0.2, 0, 1)
     win.tabs.setCurrentIndex(PAGE_SESSION)
     assert "1 measured trial of 1" in win.session_view.info.text()
@@ -198,16 +198,16 @@ def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
     """Cancelled and excluded trials stay off the plots; unconfirmed automatic marks are hollow
     with a legend entry; thousandths of a degree sit on an axis of at least ±1°, unprefixed."""
     from anklescan.core.records.report import MIN_HALF_SPAN_DEG, UNCONFIRMED_LABEL
-    sess = store.start_session("P-001", condition="barefoot")
+    sess = store.sessions.start("P-001", condition="barefoot")
     ids = []
     for pf, d in ((-10.0, 0.0015), (0.0, -0.001), (10.0, 0.0005), (0.0, 25.0), (10.0, -25.0)):
-        t = store.add_trial(sess.id, ref_inversion=0.0, ref_plantar_flexion=pf)
-        store.update_trial_angles(t.id, {"table_inversion": {"value": d, "sd": 0.001},
+        t = store.trials.add(sess.id, ref_inversion=0.0, ref_plantar_flexion=pf)
+        store.results.update_angles(t.id, {"table_inversion": {"value": d, "sd": 0.001},
                                          "table_plantar_flexion": {"value": pf + d, "sd": 0.001}})
         ids.append(t.id)
-    store.update_marks(ids[1], {5: MARKS[5]}, "auto", "", recompute=False)   # detected, not confirmed
-    store.set_trial_status(ids[3], "cancelled", "operator stopped the scan")
-    store.exclude_trial(ids[4], "patient moved")
+    store.results.update_marks(ids[1], {5: MARKS[5]}, "auto", "", recompute=False)   # detected, not confirmed
+    store.trials.set_status(ids[3], "cancelled", "operator stopped the scan")
+    store.trials.exclude(ids[4], "patient moved")
     view = SessionView()
     qtbot.addWidget(view)
     view.resize(900, 700)
@@ -220,11 +220,11 @@ def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
         assert not plot.getAxis("left").autoSIPrefix and not plot.getAxis("bottom").autoSIPrefix
         assert UNCONFIRMED_LABEL in [label.text for _, label in plot.legend.items]
     import pyqtgraph as pg
-    spots = {s.data()["trial_id"]: s for item in view.fig10.items if isinstance(item, pg.ScatterPlotItem)
+    spots = {s.data().trial_id: s for item in view.fig10.items if isinstance(item, pg.ScatterPlotItem)
              for s in item.points()}
     assert spots[ids[1]].brush().color().alpha() == 0 and spots[ids[0]].brush().color().alpha() == 255
     assert "automatic marks, not confirmed" in trial_tip(spots[ids[1]].data(), "inversion")
-    left_out = [r for r in store.study_rows() if r["trial_id"] in ids[3:]]
+    left_out = [r for r in store.reports.study_rows() if r.trial_id in ids[3:]]
     view.set_rows(left_out)
     assert view.trial_points == {} and "0 measured trials of 2; 2 left out" in view.info.text()
     texts = [i.textItem.toPlainText() for i in view.fig10.items if isinstance(i, pg.TextItem)]

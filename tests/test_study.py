@@ -17,6 +17,7 @@ import pytest
 
 from anklescan.app.cli import main
 from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import StudyRow
 
 PF_SETTINGS = (-20.0, 0.0, 20.0)
 
@@ -46,31 +47,31 @@ def data(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("clinic data")
     rng = np.random.default_rng(39)
     with Store.open(data_dir=folder) as store:
-        cal = store.add_calibration({"units": "mm"}, rms=0.2, source="test").id
+        cal = store.calibrations.add({"units": "mm"}, rms=0.2, source="test").id
         for code, conds in _cohort(rng).items():
-            store.add_patient(code, sprain_count=2 if code in ("P1", "P2") else 0,
+            store.patients.add(code, sprain_count=2 if code in ("P1", "P2") else 0,
                               affected_side="left" if code == "P1" else None)
             for cond, visits in conds.items():
                 for date, mms in visits.items():
-                    s = store.start_session(code, condition=cond, date=date, calibration_id=cal)
+                    s = store.sessions.start(code, condition=cond, date=date, calibration_id=cal)
                     for pf, (mi, mp) in zip(PF_SETTINGS, mms, strict=True):
-                        t = store.add_trial(s.id, ref_inversion=10.0, ref_plantar_flexion=pf)
-                        store.update_marks(t.id, table_marks(10.0 + mi, pf + mp), "manual", "test")
+                        t = store.trials.add(s.id, ref_inversion=10.0, ref_plantar_flexion=pf)
+                        store.results.update_marks(t.id, table_marks(10.0 + mi, pf + mp), "manual", "test")
         # trials that must not count: excluded, failed, moved
-        s = store.list_sessions("P1")[0]
-        t = store.add_trial(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
-        store.update_marks(t.id, table_marks(19.0, 5.0), "manual", "test")
-        store.exclude_trial(t.id, "=patient sneezed")
-        t = store.add_trial(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
-        store.set_trial_status(t.id, "failed", "no marks")
-        t = store.add_trial(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
-        store.update_marks(t.id, table_marks(25.0, 0.0), "manual", "test")
-        store.set_trial_motion(t.id, 2.0, 0.1, scan_duration_s=3.0)
+        s = store.sessions.all("P1")[0]
+        t = store.trials.add(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
+        store.results.update_marks(t.id, table_marks(19.0, 5.0), "manual", "test")
+        store.trials.exclude(t.id, "=patient sneezed")
+        t = store.trials.add(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
+        store.trials.set_status(t.id, "failed", "no marks")
+        t = store.trials.add(s.id, ref_inversion=10.0, ref_plantar_flexion=0.0)
+        store.results.update_marks(t.id, table_marks(25.0, 0.0), "manual", "test")
+        store.trials.set_motion(t.id, 2.0, 0.1, scan_duration_s=3.0)
         # a one-visit, one-trial patient
-        store.add_patient("P9")
-        s = store.start_session("P9", condition="barefoot", date="2026-03-01", calibration_id=cal)
-        t = store.add_trial(s.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
-        store.update_marks(t.id, table_marks(0.5, -0.2), "auto", "detector")
+        store.patients.add("P9")
+        s = store.sessions.start("P9", condition="barefoot", date="2026-03-01", calibration_id=cal)
+        t = store.trials.add(s.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
+        store.results.update_marks(t.id, table_marks(0.5, -0.2), "auto", "detector")
     return folder
 
 
@@ -220,8 +221,8 @@ def test_export_c3d_reads_back_with_seven_labelled_marks(data, tmp_path, capfd):
     import c3d
 
     with Store.open(data_dir=data, read_only=True) as store:
-        trial = store.list_trials(store.list_sessions("P3")[0].id)[1]
-        marks = {m.label: (m.x, m.y, m.z) for m in store.get_marks(trial.id)}
+        trial = store.trials.all(store.sessions.all("P3")[0].id)[1]
+        marks = {m.label: (m.x, m.y, m.z) for m in store.marks.all(trial.id)}
     out = tmp_path / "trial.c3d"
     code, _, err = run(capfd, "export", "--data", data, "--trial", trial.id, "--format", "c3d", "--out", out)
     assert code == 0, err
@@ -278,7 +279,8 @@ def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
         text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True, text=True).stdout
         assert "-0.00" not in text and "\u22120.00" not in text
         assert "one trial (n=1)" in text and "Repeat every setting" in text   # patient P9
-    one = [{"mismatch_inversion": 0.4, "mismatch_plantar_flexion": -0.3, "marks_confirmed": 0}]
+    one = [StudyRow(id=1, session_id=1, created="", ref_inversion=0.0, ref_plantar_flexion=0.0, patient_code="P9",
+                    condition="barefoot", mismatch_inversion=0.4, mismatch_plantar_flexion=-0.3, marks_confirmed=False)]
     fig = Figure()
     FigureCanvasAgg(fig)
     ax = fig.add_axes((0.1, 0.1, 0.8, 0.6))
@@ -301,12 +303,12 @@ def test_a_change_is_real_only_beyond_the_kept_mdc(tmp_path):
     assert rel.save_site_mdc(tmp_path, kept, "2026-12-04T10:00:00") == tmp_path / "site_mdc.json"
     assert rel.load_site_mdc(tmp_path)[("barefoot", "inversion")] == kept[0]
     with Store.open(data_dir=tmp_path) as store:
-        store.add_patient("Q1")
+        store.patients.add("Q1")
         for date, err in (("2026-01-05", 2.0), ("2026-02-05", 1.5), ("2026-03-05", 0.2)):
-            s = store.start_session("Q1", condition="barefoot", date=date)
-            t = store.add_trial(s.id, ref_inversion=5.0, ref_plantar_flexion=0.0)
-            store.update_marks(t.id, table_marks(5.0 + err, 0.0), "manual", "test")
-        data = store.report_input()
+            s = store.sessions.start("Q1", condition="barefoot", date=date)
+            t = store.trials.add(s.id, ref_inversion=5.0, ref_plantar_flexion=0.0)
+            store.results.update_marks(t.id, table_marks(5.0 + err, 0.0), "manual", "test")
+        data = store.reports.report_input()
     visits = [v for v in patient_visits(study_tables(data, data_dir=tmp_path), "Q1") if v.axis == "inversion"]
     mdc = kept[0].mdc95   # 0.69°
     assert [v.real for v in visits] == [None, False, True]   # -0.5° is within it, -1.3° is real

@@ -216,7 +216,7 @@ def test_measure_writes_the_warnings_and_an_honest_sd(tmp_path: Path) -> None:
 
 
 def test_the_store_keeps_the_honest_sd(tmp_path: Path, table_box: Calibration) -> None:
-    """Store.update_marks with the measurement's joint covariance: the trial's *_sd columns (the
+    """store.results.update_marks with the measurement's joint covariance: the trial's *_sd columns (the
     CSV's) hold the SD computed from it, not the per-mark default."""
     from anklescan.core.records.store import Store
 
@@ -224,11 +224,11 @@ def test_the_store_keeps_the_honest_sd(tmp_path: Path, table_box: Calibration) -
     joint, _ = position_uncertainty(table_box, marks, {k: np.eye(3) * 0.01 for k in marks})
     want = compute_angles(marks, 0.0, joint=joint)
     with Store.open(tmp_path / "s.sqlite") as s:
-        s.add_patient("P-001", sprain_count=0)
-        ses = s.start_session("P-001", condition="barefoot")
-        t = s.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
-        s.update_marks(t.id, {k: list(v) for k, v in marks.items()}, "auto", "test", sigma_mm=0.0, joint=joint)
-        got = s.get_trial(t.id)
+        s.patients.add("P-001", sprain_count=0)
+        ses = s.sessions.start("P-001", condition="barefoot")
+        t = s.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0)
+        s.results.update_marks(t.id, {k: list(v) for k, v in marks.items()}, "auto", "test", sigma_mm=0.0, joint=joint)
+        got = s.trials.get(t.id)
     for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
         assert getattr(got, f"{name}_sd") == pytest.approx(want[name]["sd"], rel=1e-9)
     assert got.leg_inversion_sd != pytest.approx(compute_angles(marks)["leg_inversion"]["sd"], rel=0.05)

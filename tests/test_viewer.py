@@ -164,9 +164,9 @@ def test_screenshots(qtbot, qapp, tmp_path):
     grey = (white if white.ndim == 2 else white[..., 0]).reshape(-1)[keep]
     cloud = PointCloud(P[keep].astype(np.float32), np.repeat(grey[:, None], 3, axis=1).astype(np.uint8))
     store = Store.open(tmp_path / "db.sqlite", data_dir=tmp_path)
-    store.add_patient("P-017", sprain_count=3)
-    sess = store.start_session("P-017", condition="barefoot", operator="dr.k")
-    trial = store.add_trial(sess.id, ref_inversion=10.0, ref_plantar_flexion=-6.0)
+    store.patients.add("P-017", sprain_count=3)
+    sess = store.sessions.start("P-017", condition="barefoot", operator="dr.k")
+    trial = store.trials.add(sess.id, ref_inversion=10.0, ref_plantar_flexion=-6.0)
     page = MarksPage("dr.k")
     qtbot.addWidget(page)
     page.resize(1280, 760)
@@ -190,14 +190,14 @@ def test_screenshots(qtbot, qapp, tmp_path):
     for inv in (0.0, 10.0, 20.0):
         for pf in (-20.0, -10.0, 0.0, 10.0, 20.0):
             for _ in range(4):
-                t = store.add_trial(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
-                store.update_trial_angles(t.id, {
+                t = store.trials.add(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
+                store.results.update_angles(t.id, {
                     "table_inversion": {"value": inv + rng.normal(0.08 * pf - 0.05 * inv, 1.2 + 0.05 * abs(pf)), "sd": 0.3},
                     "table_plantar_flexion": {"value": pf + rng.normal(-0.1 * pf, 1.5), "sd": 0.3}})
     view = SessionView()
     qtbot.addWidget(view)
     view.resize(1000, 760)
-    view.set_rows([r for r in store.study_rows() if r["session_id"] == sess.id], title="P-017, barefoot")
+    view.set_rows([r for r in store.reports.study_rows() if r.session_id == sess.id], title="P-017, barefoot")
     view.inversion_box.setCurrentIndex(2)
     view.show()
     qtbot.waitExposed(view)

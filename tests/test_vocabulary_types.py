@@ -63,25 +63,25 @@ def test_calibration_axis_round_trips_as_plain_text():
 
 def test_database_keeps_plain_strings_and_reads_back_enums(tmp_path):
     with Store.open(tmp_path / "a.sqlite", timeout=2.0) as db:
-        cal = db.add_calibration({"units": "mm"}, rms=0.2, source="sim", verified=True)
-        db.add_patient("P-001")
-        ses = db.start_session("P-001", condition="barefoot", date="2024-05-02", operator="op", calibration_id=cal.id)
-        t = db.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status=TrialState.SCANNING)
+        cal = db.calibrations.add({"units": "mm"}, rms=0.2, source="sim", verified=True)
+        db.patients.add("P-001")
+        ses = db.sessions.start("P-001", condition="barefoot", date="2024-05-02", operator="op", calibration_id=cal.id)
+        t = db.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status=TrialState.SCANNING)
         assert t.status is TrialState.SCANNING
-        t2 = db.add_trial(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status="scanning")  # text still taken
-        db.set_trial_status(t.id, TrialState.CANCELLED, "operator stopped it")
-        db.set_trial_status(t2.id, "complete")
-        db.update_marks(t2.id, {1: [0, 40, 480], 2: [0, 40, 80]}, MarkSource.AUTO, "detector")
-        db.update_marks(t2.id, {3: [35, 0, 485]}, "manual", "op")
-        assert db.get_trial(t.id).status is TrialState.CANCELLED
-        assert db.get_trial(t.id).state_text == "cancelled: operator stopped it"
-        assert db.get_trial(t2.id).counted
-        assert [(m.label, m.source) for m in db.get_marks(t2.id)] == [
+        t2 = db.trials.add(ses.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status="scanning")  # text still taken
+        db.trials.set_status(t.id, TrialState.CANCELLED, "operator stopped it")
+        db.trials.set_status(t2.id, "complete")
+        db.results.update_marks(t2.id, {1: [0, 40, 480], 2: [0, 40, 80]}, MarkSource.AUTO, "detector")
+        db.results.update_marks(t2.id, {3: [35, 0, 485]}, "manual", "op")
+        assert db.trials.get(t.id).status is TrialState.CANCELLED
+        assert db.trials.get(t.id).state_text == "cancelled: operator stopped it"
+        assert db.trials.get(t2.id).counted
+        assert [(m.label, m.source) for m in db.marks.all(t2.id)] == [
             (1, MarkSource.AUTO), (2, MarkSource.AUTO), (3, MarkSource.MANUAL)]
         with pytest.raises(AnkleScanError, match="trial state must be one of scanning, complete, cancelled, "
                                                  "failed, got 'done'"):
-            db.set_trial_status(t.id, "done")
-        rows = trial_rows(db.study_rows())
+            db.trials.set_status(t.id, "done")
+        rows = trial_rows(db.reports.study_rows())
         path = db.path
     # the raw database: the plain text values the schema's CHECKs name
     with sqlite3.connect(path) as raw:
@@ -92,7 +92,7 @@ def test_database_keeps_plain_strings_and_reads_back_enums(tmp_path):
         assert raw.execute("SELECT label, source, typeof(source) FROM marks ORDER BY label").fetchall() == [
             (1, "auto", "text"), (2, "auto", "text"), (3, "manual", "text")]
     # the export's rows carry plain strings (CSV, Excel, FHIR)
-    assert [(r["status"], type(r["status"])) for r in rows] == [("cancelled", str), ("complete", str)]
+    assert [(r.status, type(r.status)) for r in rows] == [("cancelled", str), ("complete", str)]
     out = tmp_path / "rows.csv"
     with out.open("w", newline="") as f:
         csv.writer(f).writerows([[TrialState.COMPLETE, MarkSource.MANUAL, Axis.ROW, Severity.WARNING]])

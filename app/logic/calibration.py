@@ -98,7 +98,7 @@ def accept_calibration(cal, report, data_folder: Path, store, settings: AppSetti
     cid = None
     if store is not None:
         rms = float(report.camera.rms_px) if report is not None else None
-        cid = store.add_calibration(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
+        cid = store.calibrations.add(calibration_to_dict(cal), rms=rms, source=f"{source}: {path.name}").id
     _make_current(settings, path, cid, created, CalibrationVerdict.NONE)
     return path, cid
 

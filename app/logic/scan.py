@@ -56,7 +56,7 @@ class ScanNote:
 
 @dataclass(frozen=True, eq=False)
 class TrialFinished:
-    """A scan that ran to the end, recorded (``Store.finish_trial``): what the windows show."""
+    """A scan that ran to the end, recorded (``store.results.finish``): what the windows show."""
 
     trial_id: int | None
     complete: bool                      # it gave a cloud, recorded: the trial is complete
@@ -88,13 +88,13 @@ class ScanLogic:
         self.mixed_note = ""
         if not s.set_mark_diameter(session_id, mark_diameter_mm):
             raise ScanRefused("the mark diameter was not saved")
-        session = s.store.get_session(session_id)
+        session = s.store.sessions.get(session_id)
         if entry.condition != session.condition:
             session = s.start_session(session.patient_id, entry.condition)
             if session is None:
                 raise ScanRefused("no session for that condition")
         try:
-            trial = s.store.add_trial(session.id, ref_inversion=entry.ref_inversion,
+            trial = s.store.trials.add(session.id, ref_inversion=entry.ref_inversion,
                                       ref_plantar_flexion=entry.ref_plantar_flexion, notes=entry.notes,
                                       calibration_id=s.calibration_id, status="scanning")
         except Exception as exc:
@@ -133,10 +133,10 @@ class ScanLogic:
     def plan(self, projector_size: tuple[int, int], device: str) -> ScanPlan:
         """What the begun trial's scan projects, where it writes and how it is measured."""
         s, store = self.session, self.session.store
-        trial = store.get_trial(self.trial_id)
-        folder = store.trial_dir(trial.id, create=True) / "capture"
+        trial = store.trials.get(self.trial_id)
+        folder = store.files.trial_dir(trial.id, create=True) / "capture"
         return ScanPlan(self.pattern_set(projector_size), folder, folder.parent / "cloud.ply", s.calibration,
-                        store.get_session(trial.session_id).mark_diameter_mm,
+                        store.sessions.get(trial.session_id).mark_diameter_mm,
                         self.settings.motion_threshold_mm, self.settings.settle_ms / 1000.0,
                         {"device": device, "trial": trial.id, "calibration_id": s.calibration_id})
 
@@ -171,19 +171,19 @@ class ScanLogic:
         return event
 
     def _finish(self, outcome: TrialOutcome) -> bool:
-        """``Store.finish_trial``; when it fails, the trial still leaves 'scanning' (failed, saying why)."""
+        """``store.results.finish``; when it fails, the trial still leaves 'scanning' (failed, saying why)."""
         tid, store = self.trial_id, self.session.store
         self.trial_id = None
         if tid is None or store is None:
             return False
         try:
-            store.finish_trial(tid, outcome, who=self.session.operator)
+            store.results.finish(tid, outcome, who=self.session.operator)
             return True
         except Exception as exc:
             self.notice.emit("error", f"Trial {tid} could not be recorded: {exc}")
         try:
             status = "failed" if outcome.status == "complete" else outcome.status
-            store.set_trial_status(tid, status, outcome.note or "its outcome could not be recorded",
+            store.trials.set_status(tid, status, outcome.note or "its outcome could not be recorded",
                                    who=self.session.operator)
         except Exception as exc:
             self.notice.emit("error", f"Trial {tid} could not be updated: {exc}")
@@ -222,7 +222,7 @@ class ScanLogic:
         patient already has trials of the other kind."""
         store, tid = self.session.store, self.trial_id
         if simulated and store is not None and tid is not None:
-            store.set_trial_simulated(tid)
+            store.trials.set_simulated(tid)
         self.mixed_note = mixed_warning(store, tid, simulated)
 
     def failed(self, message: str, folder) -> ScanNote:
@@ -240,7 +240,7 @@ class ScanLogic:
     def abandon(self, note: str) -> None:
         """The app closes during the scan: keep what was captured, the trial cancelled."""
         if self.trial_id is not None and self.session.store is not None:
-            self._stop("cancelled", note, self.session.store.trial_dir(self.trial_id) / "capture")
+            self._stop("cancelled", note, self.session.store.files.trial_dir(self.trial_id) / "capture")
 
     def end_unstarted(self, note: str) -> None:
         self._stop("failed", note, None)
@@ -263,8 +263,8 @@ def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
     """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
     if store is None or trial_id is None:
         return ""
-    patient_id = store.get_session(store.get_trial(trial_id).session_id).patient_id
-    others = [t for s in store.list_sessions(patient_id) for t in store.list_trials(s.id)
+    patient_id = store.sessions.get(store.trials.get(trial_id).session_id).patient_id
+    others = [t for s in store.sessions.all(patient_id) for t in store.trials.all(s.id)
               if t.id != trial_id and t.simulated != simulated]
     if not others:
         return ""

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from anklescan.app.logic.events import Event
 from anklescan.app.logic.settings import AppSettings
-from anklescan.core.vocabulary import Severity
+from anklescan.core.vocabulary import Severity, StudyRow
 
 
 class SessionLogic:
@@ -116,37 +116,37 @@ class SessionLogic:
 
     # ---- reading ----------------------------------------------------------------------
     def patients(self, include_archived: bool = False) -> list:
-        return [] if self.store is None else self.store.list_patients(include_archived=include_archived)
+        return [] if self.store is None else self.store.patients.all(include_archived=include_archived)
 
     def sessions(self, patient_id: int | None, include_archived: bool = False) -> list:
         if self.store is None or patient_id is None:
             return []
-        return self.store.list_sessions(patient_id, include_archived=include_archived)
+        return self.store.sessions.all(patient_id, include_archived=include_archived)
 
     def trials(self, session_id: int | None) -> list:
-        return [] if self.store is None or session_id is None else self.store.list_trials(session_id)
+        return [] if self.store is None or session_id is None else self.store.trials.all(session_id)
 
     def trial(self, trial_id: int | None):
-        return None if self.store is None or trial_id is None else self.store.get_trial(int(trial_id))
+        return None if self.store is None or trial_id is None else self.store.trials.get(int(trial_id))
 
     def session(self, session_id: int | None):
-        return None if self.store is None or session_id is None else self.store.get_session(session_id)
+        return None if self.store is None or session_id is None else self.store.sessions.get(session_id)
 
     def patient_exists(self, code: str) -> bool:
         try:
-            self.store.get_patient(code)
+            self.store.patients.get(code)
             return True
         except Exception:
             return False
 
     def session_title(self, session_id: int) -> str:
-        s = self.store.get_session(session_id)
-        return f"{self.store.get_patient(s.patient_id).code}, {s.condition}, {s.date}"
+        s = self.store.sessions.get(session_id)
+        return f"{self.store.patients.get(s.patient_id).code}, {s.condition}, {s.date}"
 
-    def session_rows(self, session_id: int | None) -> list[dict]:
+    def session_rows(self, session_id: int | None) -> list[StudyRow]:
         if self.store is None or session_id is None:
             return []
-        return [r for r in self.store.study_rows() if r["session_id"] == session_id]
+        return [r for r in self.store.reports.study_rows() if r.session_id == session_id]
 
     # ---- patients and sessions --------------------------------------------------------
     def require_store(self) -> bool:
@@ -158,24 +158,24 @@ class SessionLogic:
     def add_patient(self, code: str, sprain_count: int = 0, side: str | None = None, last_sprain: str | None = None):
         if not self.require_store():
             return None
-        return self._write("", lambda: self.store.add_patient(code, sprain_count=sprain_count, affected_side=side,
+        return self._write("", lambda: self.store.patients.add(code, sprain_count=sprain_count, affected_side=side,
                                                               last_sprain=last_sprain))
 
     def start_session(self, patient_id: int | None, condition: str):
         if patient_id is None or self.store is None:
             self.notice.emit(Severity.WARNING, "Select or add a patient first (File ▸ New patient…).")
             return None
-        return self._write("The session could not be started", lambda: self.store.start_session(
+        return self._write("The session could not be started", lambda: self.store.sessions.start(
             patient_id, condition=condition, calibration_id=self.calibration_id, operator=self.operator))
 
     def set_mark_diameter(self, session_id: int | None, value: float | None) -> bool:
         """Keep the marks' diameter with the session (None: measured from each scan)."""
         if session_id is None or not self.writable:
             return True
-        if self.store.get_session(session_id).mark_diameter_mm == value:
+        if self.store.sessions.get(session_id).mark_diameter_mm == value:
             return True
         done = self._write("The mark diameter could not be saved",
-                           lambda: self.store.set_session_mark_diameter(session_id, value) or True)
+                           lambda: self.store.sessions.set_mark_diameter(session_id, value) or True)
         return bool(done)
 
     @property
@@ -191,14 +191,14 @@ class SessionLogic:
         if not reason.strip():
             self.notice.emit(Severity.WARNING, "A trial is excluded only with a reason; nothing was changed.")
             return False
-        return self._write("", lambda: self.store.exclude_trial(trial_id, reason, who=self.operator) or True) is not None
+        return self._write("", lambda: self.store.trials.exclude(trial_id, reason, who=self.operator) or True) is not None
 
     def restore_trial(self, trial_id: int) -> bool:
         """Undo an exclusion; for a trial flagged because the patient moved, keep it in the statistics."""
-        if self.store.get_trial(trial_id).excluded_reason is not None:
-            write = lambda: self.store.restore_trial(trial_id, who=self.operator)  # noqa: E731
+        if self.store.trials.get(trial_id).excluded_reason is not None:
+            write = lambda: self.store.trials.restore(trial_id, who=self.operator)  # noqa: E731
         else:
-            write = lambda: self.store.keep_trial(trial_id, who=self.operator)  # noqa: E731
+            write = lambda: self.store.trials.keep(trial_id, who=self.operator)  # noqa: E731
         return self._write("", lambda: write() or True) is not None
 
     def can_exclude(self, trial) -> bool:
@@ -208,10 +208,10 @@ class SessionLogic:
         return bool(trial and self.writable and (trial.excluded_reason is not None or trial.excluded_for_motion))
 
     def archive_session(self, session_id: int) -> bool:
-        return self._write("", lambda: self.store.archive_session(session_id, who=self.operator) or True) is not None
+        return self._write("", lambda: self.store.sessions.archive(session_id, who=self.operator) or True) is not None
 
     def archive_patient(self, patient_id: int) -> bool:
-        return self._write("", lambda: self.store.archive_patient(patient_id, who=self.operator) or True) is not None
+        return self._write("", lambda: self.store.patients.archive(patient_id, who=self.operator) or True) is not None
 
     # ---- the calibration --------------------------------------------------------------
     def use_calibration(self, cal, cid) -> None:
@@ -225,12 +225,12 @@ class SessionLogic:
         from anklescan.core.calibration.file import calibration_to_dict
         data = calibration_to_dict(cal)
         try:
-            if cid is not None and self.store.get_calibration(cid).data == data:
+            if cid is not None and self.store.calibrations.get(cid).data == data:
                 return cid
         except Exception:
             pass
         try:
-            return self.store.add_calibration(data, source="current calibration").id
+            return self.store.calibrations.add(data, source="current calibration").id
         except Exception:
             return None
 
@@ -241,6 +241,6 @@ class SessionLogic:
             return None
         try:
             from anklescan.core.calibration.file import calibration_from_dict
-            return calibration_from_dict(self.store.get_calibration(cid).data)
+            return calibration_from_dict(self.store.calibrations.get(cid).data)
         except Exception:
             return None

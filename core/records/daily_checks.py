@@ -1,4 +1,4 @@
-"""The daily checks kept in the sessions database (table ``daily_checks``, one migration in store.py).
+"""The daily checks kept in the sessions database (table ``daily_checks``, one migration in database.py).
 
 A small repository: :func:`add_check`, :func:`list_checks`, :func:`last_check`; and
 :func:`standing`, what the last check says about scanning now: passed and recent (within
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import sqlite3
 from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
@@ -80,7 +81,7 @@ def add_check(store: Store, result: CheckResult, *, calibration_id: int | None =
     if not all(math.isfinite(v) for v in values):
         raise AnkleScanError("a daily check with a non-finite angle is not kept")
     stamp = (when or _now()).astimezone(_dt.UTC).isoformat(timespec="seconds")
-    with store._write() as c:  # the store's own one-transaction write (core/records/store.py)
+    with store.db.transaction() as c:
         cid = c.execute(
             "INSERT INTO daily_checks (time, calibration_id, expected_inversion, expected_plantar_flexion,"
             " measured_inversion, measured_inversion_sd, measured_plantar_flexion, measured_plantar_flexion_sd,"
@@ -88,17 +89,18 @@ def add_check(store: Store, result: CheckResult, *, calibration_id: int | None =
             (stamp, calibration_id, *values[:2], values[2], _finite(t.inversion.sd), values[3],
              _finite(t.plantar_flexion.sd), _finite(t.sag_mm), float(result.settings.tolerance_deg),
              int(result.passed), result.details(), who)).lastrowid
+    assert cid is not None
     return _get(store, cid)
 
 
-def _record(row: object) -> DailyCheckRecord:
+def _record(row: sqlite3.Row) -> DailyCheckRecord:
     d = dict(row)
     d["passed"] = bool(d["passed"])
     return DailyCheckRecord(**d)
 
 
 def _get(store: Store, cid: int) -> DailyCheckRecord:
-    row = store._one("SELECT * FROM daily_checks WHERE id = ?", (cid,))
+    row = store.db.one("SELECT * FROM daily_checks WHERE id = ?", (cid,))
     if row is None:
         raise AnkleScanError(f"no daily check {cid}")
     return _record(row)
@@ -107,7 +109,7 @@ def _get(store: Store, cid: int) -> DailyCheckRecord:
 def list_checks(store: Store, limit: int | None = None) -> list[DailyCheckRecord]:
     """Newest first."""
     sql = "SELECT * FROM daily_checks ORDER BY time DESC, id DESC"
-    rows = store._all(sql + " LIMIT ?", (int(limit),)) if limit is not None else store._all(sql)
+    rows = store.db.all(sql + " LIMIT ?", (int(limit),)) if limit is not None else store.db.all(sql)
     return [_record(r) for r in rows]
 
 

@@ -13,11 +13,13 @@ import datetime as _dt
 import json
 import math
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from anklescan.core.atomic import write_text_atomic
 from anklescan.core.errors import AnkleScanError
+from anklescan.core.records.tables import TrialExport
 from anklescan.core.vocabulary import TrialState
 
 SNOMED = "http://snomed.info/sct"
@@ -38,7 +40,7 @@ COMPONENTS = {
 }
 
 
-def _deg(value: float, sd: float | None = None) -> dict:
+def _deg(value: float, sd: float | None = None) -> dict[str, Any]:
     q = {"value": round(float(value), 4), "unit": "deg", "system": UCUM, "code": "deg"}
     return q if sd is None else q
 
@@ -55,48 +57,48 @@ def _side(affected_side: str | None) -> str:
     return affected_side if affected_side in LATERALITY else "right"
 
 
-def observation(trial: Mapping, patient_ref: str, side: str) -> dict:
+def observation(trial: TrialExport, patient_ref: str, side: str) -> dict[str, Any]:
     """One complete trial (an export row of core.records.tables) as an Observation."""
     comps = []
     for key, text in COMPONENTS.items():
         ref = key.startswith("reference_")
-        v = trial.get(key)
+        v = trial.value(key)
         if v is None or not math.isfinite(v):
             continue
-        comp: dict = {"code": {"coding": [{"system": LOCAL, "code": key, "display": text}], "text": text},
+        comp: dict[str, Any] = {"code": {"coding": [{"system": LOCAL, "code": key, "display": text}], "text": text},
                       "valueQuantity": _deg(v)}
-        sd = None if ref else trial.get(f"{key}_sd")
+        sd = None if ref else trial.sd(key)
         if sd is not None and math.isfinite(sd):
             comp["referenceRange"] = [{"low": _deg(v - 2 * sd), "high": _deg(v + 2 * sd),
                                        "text": f"measured value ± 2 SD (SD {sd:.3f} deg)"}]
         comps.append(comp)
     code, display = LATERALITY[side]
-    obs = {"resourceType": "Observation", "id": f"trial-{trial['trial']}", "status": "final",
+    obs = {"resourceType": "Observation", "id": f"trial-{trial.trial}", "status": "final",
            "category": [{"coding": [{"system": "http://terminology.hl7.org/CodeSystem/observation-category",
                                      "code": "exam", "display": "Exam"}]}],
            "code": {"coding": [{"system": LOCAL, "code": "ankle-position-sense-trial",
                                 "display": "Ankle joint position sense trial (structured-light scan)"}],
-                    "text": f"Ankle joint position sense trial, {trial['condition']}"},
+                    "text": f"Ankle joint position sense trial, {trial.condition}"},
            "subject": {"reference": patient_ref},
-           "effectiveDateTime": _effective(trial["created"]),
+           "effectiveDateTime": _effective(trial.created),
            "bodySite": {"coding": [{"system": SNOMED, "code": ANKLE_JOINT[0], "display": ANKLE_JOINT[1]}],
                         "extension": [{"url": LATERALITY_URL, "valueCodeableConcept": {
                             "coding": [{"system": SNOMED, "code": code, "display": display}]}}],
                         "text": f"{display.lower()} ankle joint"},
            "method": {"text": "structured-light 3-D scan of seven marks (AnkleScan)"},
-           "note": [{"text": f"session {trial['session']}, trial {trial['trial']}, condition {trial['condition']}, "
-                             f"calibration {trial.get('calibration')}"
-                             + (f"; excluded from the statistics: {trial.get('excluded_reason')}"
-                                if trial.get("excluded") == "true" else "")}],
+           "note": [{"text": f"session {trial.session}, trial {trial.trial}, condition {trial.condition}, "
+                             f"calibration {trial.calibration}"
+                             + (f"; excluded from the statistics: {trial.excluded_reason}"
+                                if trial.excluded == "true" else "")}],
            "component": comps}
     return obs
 
 
-def session_bundle(trials: Sequence[Mapping], patient_code: str, affected_side: str | None) -> dict:
+def session_bundle(trials: Sequence[TrialExport], patient_code: str, affected_side: str | None) -> dict[str, Any]:
     """A ``collection`` Bundle: the Patient (its pseudonymous code only) and one Observation per
     complete trial of ``trials`` (one session's export rows) with any measured value."""
-    done = [t for t in trials if t["status"] == TrialState.COMPLETE and any(
-        t.get(k) is not None for k in COMPONENTS if not k.startswith("reference_"))]
+    done = [t for t in trials if t.status == TrialState.COMPLETE and any(
+        t.value(k) is not None for k in COMPONENTS if not k.startswith("reference_"))]
     if not done:
         raise AnkleScanError("the session has no complete trial with a measured angle; nothing to export")
     pid = "patient-1"
@@ -104,12 +106,12 @@ def session_bundle(trials: Sequence[Mapping], patient_code: str, affected_side: 
                "identifier": [{"system": "urn:anklescan:patient-code", "value": patient_code}]}
     side = _side(affected_side)
     patient_ref = f"urn:uuid:{uuid.uuid5(uuid.NAMESPACE_URL, 'anklescan:patient:' + patient_code)}"
-    entries: list[dict] = [{"fullUrl": patient_ref, "resource": patient}]
+    entries: list[dict[str, Any]] = [{"fullUrl": patient_ref, "resource": patient}]
     for t in done:
         entries.append({"fullUrl": f"urn:uuid:{uuid.uuid4()}", "resource": observation(t, patient_ref, side)})
     return {"resourceType": "Bundle", "type": "collection",
             "timestamp": _dt.datetime.now().astimezone().isoformat(timespec="seconds"), "entry": entries}
 
 
-def write_bundle(bundle: dict, path: Path) -> None:
+def write_bundle(bundle: dict[str, Any], path: Path) -> None:
     write_text_atomic(path, json.dumps(bundle, indent=2, ensure_ascii=False) + "\n")

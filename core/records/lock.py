@@ -46,7 +46,7 @@ class LockHolder:
 class DataFolderLock:
     """The lock of one data folder; ``acquire`` once, ``release`` when the folder is closed."""
 
-    def __init__(self, folder: str | os.PathLike):
+    def __init__(self, folder: str | os.PathLike[str]):
         self.folder = Path(folder)
         self.path = self.folder / LOCK_FILENAME
         self._fd: int | None = None

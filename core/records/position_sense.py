@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from anklescan.core.records.tables import AXES, Column, included, mismatch
+from anklescan.core.records.tables import AXES, Column, TableRow, TrialExport, included, mismatch
 
 
 @dataclass(frozen=True)
@@ -48,7 +48,7 @@ class SessionErrors:
     axis: str
     figures: ErrorFigures
 
-    def as_row(self) -> dict:
+    def as_row(self) -> TableRow:
         return {"patient": self.patient, "session": self.session, "visit_date": self.visit_date,
                 "condition": self.condition, "axis": self.axis, **asdict(self.figures)}
 
@@ -77,15 +77,15 @@ COLUMNS: tuple[Column, ...] = (
 )
 
 
-def session_errors(trials: Sequence[Mapping]) -> list[SessionErrors]:
+def session_errors(trials: Sequence[TrialExport]) -> list[SessionErrors]:
     """Export rows (tables.trial_rows) → one SessionErrors per patient, session, condition, axis
     with at least one included trial, sorted by patient, date, session, axis."""
-    acc: dict[tuple, list[float]] = defaultdict(list)
+    acc: dict[tuple[str, str, int, str, str], list[float]] = defaultdict(list)
     for t in included(trials):
         for axis in AXES:
             m = mismatch(t, axis)
             if m is not None:
-                acc[(t["patient"], t["visit_date"], t["session"], t["condition"], axis)].append(m)
+                acc[(t.patient, t.visit_date, t.session, t.condition, axis)].append(m)
     return [SessionErrors(p, s, d, c, a, ErrorFigures.of(v))
             for (p, d, s, c, a), v in sorted(acc.items(), key=lambda kv: (kv[0][0], kv[0][1], kv[0][2],
                                                                           AXES.index(kv[0][4])))]
@@ -95,16 +95,16 @@ def _setting(v: float | None) -> float | None:
     return None if v is None else round(float(v), 1)
 
 
-def grid_errors(trials: Sequence[Mapping]) -> list[GridErrors]:
+def grid_errors(trials: Sequence[TrialExport]) -> list[GridErrors]:
     """Per condition, axis and reference setting (rounded to 0.1°): the errors pooled over the
     included trials there, for the picture of error against position."""
-    acc: dict[tuple, list[float]] = defaultdict(list)
+    acc: dict[tuple[str, str, float, float], list[float]] = defaultdict(list)
     for t in included(trials):
-        inv, pf = _setting(t["reference_inversion"]), _setting(t["reference_plantar_flexion"])
+        inv, pf = _setting(t.reference_inversion), _setting(t.reference_plantar_flexion)
         if inv is None or pf is None:
             continue
         for axis in AXES:
             m = mismatch(t, axis)
             if m is not None:
-                acc[(t["condition"], axis, inv, pf)].append(m)
+                acc[(t.condition, axis, inv, pf)].append(m)
     return [GridErrors(c, a, inv, pf, ErrorFigures.of(v)) for (c, a, inv, pf), v in sorted(acc.items())]

@@ -53,7 +53,7 @@ class Reliability:
     sem: float
     mdc95: float
 
-    def as_row(self) -> dict:
+    def as_row(self) -> dict[str, object]:
         return asdict(self)
 
     @property

@@ -13,19 +13,39 @@ import datetime as _dt
 import math
 import textwrap
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+from matplotlib.artist import Artist
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.transforms import Bbox
 
 from anklescan.core.atomic import atomic_paths
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.records import study_stats as st
-from anklescan.core.vocabulary import CalibrationRecord, Patient, ReportInput, SessionSummary, TrialState
+from anklescan.core.records import tables
+from anklescan.core.vocabulary import (
+    CONDITIONS,
+    CalibrationRecord,
+    Patient,
+    ReportInput,
+    Session,
+    SessionSummary,
+    StudyRow,
+    Trial,
+    TrialState,
+)
+
+if TYPE_CHECKING:
+    from anklescan.core.records.reliability import Reliability
+    from anklescan.core.records.study import StudyTables, Visit
 
 A4 = (8.27, 11.69)
 FOOT_SIZE = 7
@@ -51,7 +71,7 @@ CSV_COLUMNS = (
     "capture_path", "capture_sha256", "cloud_path", "cloud_sha256", "notes",
     "status", "status_note", "excluded_reason", "counted", "marks_confirmed",
     "motion_mm", "motion_sd_mm", "scan_duration_s", "motion_flagged", "motion_keep", "simulated",
-    "mark_warnings")
+    "mark_warnings")  # each a StudyRow field or property of the same name
 _FREE_TEXT = ("operator", "notes", "status_note", "excluded_reason")
 
 TABLE_HEAD = ("Trial", "State", "Cal.", "Ref. inv.\n(°)", "Ref. PF\n(°)", "Leg inv.\n(°)",
@@ -87,12 +107,12 @@ class _Pages:
         if self.stamp:  # simulated trials: said at the top of every page, never only once
             fig.text(0.5, 0.99, self.stamp, ha="center", va="top", fontsize=FOOT_SIZE + 1, color="#b3261e",
                      fontweight="bold")
-        self.pdf.savefig(fig)
+        self.pdf.savefig(fig)  # type: ignore[no-untyped-call]  # matplotlib leaves it unannotated
 
 
-def simulated_stamp(rows: Sequence[dict]) -> str:
+def simulated_stamp(rows: Sequence[StudyRow]) -> str:
     """What every page says of the simulated trials among ``rows`` ("" when there are none)."""
-    sim = sum(1 for r in rows if r.get("simulated"))
+    sim = sum(1 for r in rows if r.simulated)
     if not sim:
         return ""
     if sim == len(rows):
@@ -101,9 +121,11 @@ def simulated_stamp(rows: Sequence[dict]) -> str:
             "patient's (column 'simulated' in the CSV)")
 
 
-def _csv_value(key: str, v) -> str:
+def _csv_value(key: str, v: object) -> str:
     if v is None:
         return ""
+    if isinstance(v, bool):  # counted, marks_confirmed, motion_flagged, motion_keep, simulated
+        return str(int(v))
     if isinstance(v, float):
         return repr(v)
     s = str(v)
@@ -113,12 +135,12 @@ def _csv_value(key: str, v) -> str:
     return s
 
 
-def write_csv(rows: Sequence[dict], path: Path) -> None:
+def write_csv(rows: Sequence[StudyRow], path: Path) -> None:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
         for r in rows:
-            w.writerow([_csv_value(k, r.get(k)) for k in CSV_COLUMNS])
+            w.writerow([_csv_value(k, getattr(r, k)) for k in CSV_COLUMNS])
 
 
 # ------------------------------------------------------------------ formatting
@@ -128,14 +150,14 @@ def signed(v: float, digits: int = 2) -> str:
     return f"{round(float(v), digits) + 0.0:+.{digits}f}"
 
 
-def _fmt(v, sd=None, digits=1) -> str:
+def _fmt(v: float | None, sd: float | None = None, digits: int = 1) -> str:
     if v is None:
         return "–"
     s = signed(v, digits)
     return s if sd is None else f"{s} ± {sd:.{digits}f}"
 
 
-def _trials_text(trials, no_mismatch: list) -> str:
+def _trials_text(trials: Sequence[Trial], no_mismatch: Sequence[int]) -> str:
     """How many trials, how many of them count, why the others don't, and what is missing
     from the counted ones (cancelled or failed scans never had marks to place)."""
     counted = [t for t in trials if t.counted]
@@ -154,48 +176,48 @@ def _trials_text(trials, no_mismatch: list) -> str:
     return text
 
 
-def _state_cell(r: dict) -> str:
-    if r.get("excluded_reason") is not None:
+def _state_cell(r: StudyRow) -> str:
+    if r.excluded_reason is not None:
         return "excluded"
-    state = r.get("status") or TrialState.COMPLETE
-    if state == TrialState.COMPLETE and r.get("motion_excluded"):
+    state = r.status
+    if state == TrialState.COMPLETE and r.excluded_for_motion:
         return "moved"
-    if state == TrialState.COMPLETE and not r.get("marks_confirmed", 1):
+    if state == TrialState.COMPLETE and not r.marks_confirmed:
         return "complete*"
     return str(state)
 
 
-def _left_out_why(r: dict) -> tuple[str, str] | None:
+def _left_out_why(r: StudyRow) -> tuple[str, str] | None:
     """(state, reason) of a trial that is shown but not counted; None for a counted one."""
-    if r.get("excluded_reason") is not None:
-        return "excluded", r["excluded_reason"]
-    state = r.get("status") or TrialState.COMPLETE
-    if state == TrialState.COMPLETE and r.get("motion_excluded"):
-        return "moved", f"{r['motion_mm']:.1f} mm during the scan, not kept"
-    return None if state == TrialState.COMPLETE else (str(state), r.get("status_note") or "")
+    if r.excluded_reason is not None:
+        return "excluded", r.excluded_reason
+    state = r.status
+    if state == TrialState.COMPLETE and r.excluded_for_motion:
+        return "moved", f"{r.motion_mm:.1f} mm during the scan, not kept"
+    return None if state == TrialState.COMPLETE else (str(state), r.status_note or "")
 
 
-def _trial_cells(i: int, r: dict) -> list[str]:
+def _trial_cells(i: int, r: StudyRow) -> list[str]:
     # two decimals: the propagated SDs are hundredths of a degree
-    cal = r.get("calibration_id")
+    cal = r.calibration_id
     return [str(i), _state_cell(r), "–" if cal is None else f"#{cal}",
-            _fmt(r["ref_inversion"]), _fmt(r["ref_plantar_flexion"]),
-            _fmt(r["leg_inversion"], r["leg_inversion_sd"], 2),
-            _fmt(r["leg_plantar_flexion"], r["leg_plantar_flexion_sd"], 2),
-            _fmt(r["table_inversion"], r["table_inversion_sd"], 2),
-            _fmt(r["table_plantar_flexion"], r["table_plantar_flexion_sd"], 2),
-            _fmt(r["mismatch_inversion"], r["mismatch_inversion_sd"], 2),
-            _fmt(r["mismatch_plantar_flexion"], r["mismatch_plantar_flexion_sd"], 2),
+            _fmt(r.ref_inversion), _fmt(r.ref_plantar_flexion),
+            _fmt(r.leg_inversion, r.leg_inversion_sd, 2),
+            _fmt(r.leg_plantar_flexion, r.leg_plantar_flexion_sd, 2),
+            _fmt(r.table_inversion, r.table_inversion_sd, 2),
+            _fmt(r.table_plantar_flexion, r.table_plantar_flexion_sd, 2),
+            _fmt(r.mismatch_inversion, r.mismatch_inversion_sd, 2),
+            _fmt(r.mismatch_plantar_flexion, r.mismatch_plantar_flexion_sd, 2),
             _motion_cell(r)]
 
 
-def _motion_cell(r: dict) -> str:
+def _motion_cell(r: StudyRow) -> str:
     """Motion during the scan and the scan's duration; "out" = flagged and left out of the
     statistics, "kept" = flagged but kept by the clinician."""
-    m, dur = r.get("motion_mm"), r.get("scan_duration_s")
+    m, dur = r.motion_mm, r.scan_duration_s
     text = "–" if m is None else f"{m:.2f}"
-    if r.get("motion_flagged"):
-        text += " kept" if r.get("motion_keep") else " out"
+    if r.motion_flagged:
+        text += " kept" if r.motion_keep else " out"
     return text + ("" if dur is None else f" / {dur:.1f}")
 
 
@@ -210,7 +232,7 @@ def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[s
     ax = fig.add_axes((left, top - h, 1 - 2 * left, h))
     ax.axis("off")
     tab = ax.table(cellText=cells or [["–"] * len(head)], colLabels=list(head),
-                   cellLoc="center", colWidths=widths, bbox=(0, 0, 1, 1))
+                   cellLoc="center", colWidths=widths, bbox=Bbox.from_bounds(0, 0, 1, 1))
     tab.auto_set_font_size(False)
     tab.set_fontsize(7.5)
     for (row, _), cell in tab.get_celld().items():
@@ -223,7 +245,7 @@ def _draw_table(fig: Figure, top: float, head: Sequence[str], cells: list[list[s
             cell.set_facecolor("0.97")
         if row > 0 and row - 1 in muted:
             cell.get_text().set_color("0.5")
-            cell.get_text().set_style("italic")
+            cell.get_text().set_fontstyle("italic")
     # The header row holds two lines: give it more of the height.
     for (row, _), cell in tab.get_celld().items():
         cell.set_height((1.6 if row == 0 else 1.0) / (len(cells) + 1.6))
@@ -259,28 +281,28 @@ def _setting(v: float | None) -> float | None:
     return None if v is None else round(v, 1)
 
 
-def _measured(rows: list[dict]) -> list[dict]:
+def _measured(rows: list[StudyRow]) -> list[StudyRow]:
     """Counted trials (complete, not excluded) with a mismatch and both set angles: what
     the plots and statistics use."""
-    return [r for r in st.counted_rows(rows) if r["mismatch_inversion"] is not None
-            and r["ref_inversion"] is not None and r["ref_plantar_flexion"] is not None]
+    return [r for r in st.counted_rows(rows) if r.mismatch_inversion is not None
+            and r.ref_inversion is not None and r.ref_plantar_flexion is not None]
 
 
-def _confirmed(r: dict) -> bool:
-    return bool(r.get("marks_confirmed", 1))
+def _confirmed(r: StudyRow) -> bool:
+    return bool(r.marks_confirmed)
 
 
-def _rows_by_setting(rows: list[dict]) -> dict[float, dict[float, list[dict]]]:
+def _rows_by_setting(rows: list[StudyRow]) -> dict[float, dict[float, list[StudyRow]]]:
     """inversion setting → plantar-flexion setting → the measured trials (rows) there."""
-    out: dict[float, dict[float, list[dict]]] = defaultdict(lambda: defaultdict(list))
-    for r in _measured(rows):
-        out[_setting(r["ref_inversion"])][_setting(r["ref_plantar_flexion"])].append(r)
+    out: dict[float, dict[float, list[StudyRow]]] = defaultdict(lambda: defaultdict(list))
+    for r in _measured(rows):  # both set angles known
+        out[round(r.ref_inversion or 0.0, 1)][round(r.ref_plantar_flexion or 0.0, 1)].append(r)
     return out
 
 
-def _by_setting(rows: list[dict], axis: str) -> dict[float, dict[float, list[float]]]:
+def _by_setting(rows: list[StudyRow], axis: str) -> dict[float, dict[float, list[float]]]:
     """inversion setting → plantar-flexion setting → mismatch values on ``axis``."""
-    return {inv: {pf: [r[f"mismatch_{axis}"] for r in rs] for pf, rs in per.items()}
+    return {inv: {pf: [m for r in rs if (m := r.mismatch(axis)) is not None] for pf, rs in per.items()}
             for inv, per in _rows_by_setting(rows).items()}
 
 
@@ -289,11 +311,11 @@ AXIS_LABEL = {"inversion": "Mismatch of inversion (°)",
 PF_LABEL = "Reference plantar flexion (°)"
 
 
-def _no_data(ax, text="no measured trials") -> None:
+def _no_data(ax: Axes, text: str = "no measured trials") -> None:
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="0.4")
 
 
-def _style(ax, ylabel: str) -> None:
+def _style(ax: Axes, ylabel: str) -> None:
     ax.axhline(0, color="0.6", lw=0.8, zorder=0)
     ax.grid(True, color="0.9", lw=0.6)
     ax.set_xlabel(PF_LABEL, fontsize=9)
@@ -302,12 +324,12 @@ def _style(ax, ylabel: str) -> None:
     _plain_ticks(ax)
 
 
-def _plain_ticks(ax, axis: str = "both") -> None:
+def _plain_ticks(ax: Axes, axis: Literal["both", "x", "y"] = "both") -> None:
     """Degrees as degrees: no "×10⁻³" multiplier or "+1.2e1" offset above the axis."""
     ax.ticklabel_format(axis=axis, style="plain", useOffset=False)
 
 
-def span_limits(values, floor: float = MIN_HALF_SPAN_DEG, pad: float = 0.12) -> tuple[float, float]:
+def span_limits(values: Iterable[float | None], floor: float = MIN_HALF_SPAN_DEG, pad: float = 0.12) -> tuple[float, float]:
     """y-limits over ``values`` and zero, at least ±``floor``, padded by ``pad`` of the span."""
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
     lo, hi = min(-floor, float(v.min(initial=0.0))), max(floor, float(v.max(initial=0.0)))
@@ -318,7 +340,7 @@ def span_limits(values, floor: float = MIN_HALF_SPAN_DEG, pad: float = 0.12) -> 
 MIN_X_SPAN_DEG = 10.0   # the settings axis: one or two close settings are not stretched across it
 
 
-def x_limits(xs, floor: float = MIN_X_SPAN_DEG, pad: float = 0.08) -> tuple[float, float]:
+def x_limits(xs: Sequence[float], floor: float = MIN_X_SPAN_DEG, pad: float = 0.08) -> tuple[float, float]:
     """x-limits over the plotted settings, at least ``floor`` wide, padded by ``pad``."""
     lo, hi = float(min(xs)), float(max(xs))
     if hi - lo < floor:
@@ -328,16 +350,18 @@ def x_limits(xs, floor: float = MIN_X_SPAN_DEG, pad: float = 0.08) -> tuple[floa
     return lo - d, hi + d
 
 
-def _trial_marker(ax, x, y, col, confirmed: bool, ms: float = 3.5, alpha: float = 0.45) -> None:
+def _trial_marker(ax: Axes, x: float, y: float | None, col: str, confirmed: bool, ms: float = 3.5,
+                  alpha: float = 0.45) -> None:
     """One trial's point: filled when its marks are manual or confirmed, hollow when they
     are still the automatic detection nobody has checked."""
+    yv = math.nan if y is None else y   # not measured: nothing drawn
     if confirmed:
-        ax.plot(x, y, "o", ms=ms, color=col, alpha=alpha, mec="none", zorder=3)
+        ax.plot(x, yv, "o", ms=ms, color=col, alpha=alpha, mec="none", zorder=3)
     else:   # drawn above the filled points and the means, so it is never hidden under them
-        ax.plot(x, y, "o", ms=ms + 1.5, mfc="none", mec=col, mew=1.3, alpha=1.0, zorder=6)
+        ax.plot(x, yv, "o", ms=ms + 1.5, mfc="none", mec=col, mew=1.3, alpha=1.0, zorder=6)
 
 
-def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
+def _marker_handles(unconfirmed: bool, col: str = "0.35") -> tuple[list[Line2D], list[str]]:
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], ls="none", marker="o", ms=3.5, color=col, alpha=0.6, mec="none")]
     labels = ["single trial"]
@@ -349,7 +373,7 @@ def _marker_handles(unconfirmed: bool, col="0.35") -> tuple[list, list[str]]:
 
 # ------------------------------------------------------------------ figures
 
-def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
+def _plot_fig10(ax: Axes, rows: list[StudyRow], axis: str, show_sd: bool = False) -> None:
     """Paper Fig. 10: mismatch against plantar flexion, one curve per inversion setting."""
     by_rows = _rows_by_setting(rows)
     data = _by_setting(rows, axis)
@@ -365,16 +389,16 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         for p in pfs:
             trials = by_rows[inv][p]
             if len(trials) == 1:   # one trial is its own mean: one point, hollow when its marks are unconfirmed
-                _trial_marker(ax, p + dx, trials[0][f"mismatch_{axis}"], col, _confirmed(trials[0]), ms=5,
+                _trial_marker(ax, p + dx, trials[0].mismatch(axis), col, _confirmed(trials[0]), ms=5,
                               alpha=1.0)
                 continue
             for r in trials:
-                _trial_marker(ax, p + dx, r[f"mismatch_{axis}"], col, _confirmed(r))
+                _trial_marker(ax, p + dx, r.mismatch(axis), col, _confirmed(r))
             ax.plot(p + dx, np.mean(data[inv][p]), "o", ms=5, color=col, zorder=4)
         xs = [p + dx for p in pfs]
         all_x += xs
         if show_sd:
-            sds = [np.std(data[inv][p], ddof=1) if len(data[inv][p]) > 1 else 0 for p in pfs]
+            sds = [float(np.std(data[inv][p], ddof=1)) if len(data[inv][p]) > 1 else 0.0 for p in pfs]
             ax.errorbar(xs, means, yerr=sds, fmt="-", color=col, capsize=3, label=f"inversion {inv:g}°")
         else:
             ax.plot(xs, means, "-", color=col, label=f"inversion {inv:g}°")
@@ -383,7 +407,7 @@ def _plot_fig10(ax, rows: list[dict], axis: str, show_sd: bool = False) -> None:
         ax.set_xlim(*x_limits(all_x))
 
 
-def _sym_limit(rows: list[dict]) -> float:
+def _sym_limit(rows: list[StudyRow]) -> float:
     """Symmetric y-limit covering every point and mean ± SD, shared by panels that the
     reader compares (barefoot/shoes, with/without sprain); never under MIN_HALF_SPAN_DEG."""
     m = MIN_HALF_SPAN_DEG
@@ -396,7 +420,7 @@ def _sym_limit(rows: list[dict]) -> float:
     return m * 1.12
 
 
-def _page_legend(fig: Figure, axes: list, y: float, rows: list[dict] | None = None) -> None:
+def _page_legend(fig: Figure, axes: list[Axes], y: float, rows: list[StudyRow] | None = None) -> None:
     """The inversion settings' colours, then a line for the trial markers (with the hollow
     "automatic marks, not confirmed" one when any plotted trial has such marks)."""
     for ax in axes:
@@ -412,7 +436,7 @@ def _page_legend(fig: Figure, axes: list, y: float, rows: list[dict] | None = No
             return
 
 
-def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> None:
+def _plot_error_range(ax: Axes, per_pf_rows: dict[float, list[StudyRow]], axis: str) -> None:
     """Paper Figs. 11–12: per plantar-flexion setting, mean, ±SD bar and min–max range, with
     the single trials beside the bar (hollow where their marks are unconfirmed)."""
     pfs = sorted(per_pf_rows)
@@ -420,7 +444,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
         _no_data(ax)
     extent: list[float] = []
     for p in pfs:
-        v = np.asarray([r[f"mismatch_{axis}"] for r in per_pf_rows[p]], float)
+        v = np.asarray([r.mismatch(axis) for r in per_pf_rows[p]], float)
         if v.size == 1:   # no spread to draw: the one trial, once, at its setting
             r = per_pf_rows[p][0]
             _trial_marker(ax, p, v[0], "0.35", _confirmed(r), ms=5, alpha=1.0)
@@ -429,7 +453,7 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
                         fontsize=7, color="0.3")
             continue
         for r in per_pf_rows[p]:
-            _trial_marker(ax, p + 1.4, r[f"mismatch_{axis}"], "0.35", _confirmed(r), alpha=0.6)
+            _trial_marker(ax, p + 1.4, r.mismatch(axis), "0.35", _confirmed(r), alpha=0.6)
         sd_ = v.std(ddof=1) if v.size > 1 else 0.0
         extent += [v.min(), v.max(), v.mean() - sd_, v.mean() + sd_]
         ax.vlines(p, v.min(), v.max(), color="0.35", lw=1)
@@ -452,12 +476,13 @@ def _plot_error_range(ax, per_pf_rows: dict[float, list[dict]], axis: str) -> No
         unconfirmed = any(not _confirmed(r) for rs in per_pf_rows.values() for r in rs)
         h, lab = _marker_handles(unconfirmed)
         h0, lab0 = ax.get_legend_handles_labels()
+        handles: list[Artist] = [*h0, *h]
         # above the axes, never on the data
-        ax.legend(h0 + h, lab0 + lab, fontsize=7.5, frameon=False, loc="lower center",
-                  bbox_to_anchor=(0.5, 1.0), ncol=len(h0 + h), handlelength=1.5, columnspacing=1.2)
+        ax.legend(handles, lab0 + lab, fontsize=7.5, frameon=False, loc="lower center",
+                  bbox_to_anchor=(0.5, 1.0), ncol=len(handles), handlelength=1.5, columnspacing=1.2)
 
 
-def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
+def _fig10_page(pages: _Pages, rows: list[StudyRow], title: str) -> None:
     fig = pages.new()
     fig.suptitle(title, fontsize=12, weight="bold", y=0.965)
     fig.text(0.5, 0.935, "Mean mismatch (adjusted − reference table) per setting; "
@@ -472,7 +497,7 @@ def _fig10_page(pages: _Pages, rows: list[dict], title: str) -> None:
     pages.save(fig)
 
 
-def _error_range_pages(pages: _Pages, rows: list[dict], label: str) -> None:
+def _error_range_pages(pages: _Pages, rows: list[StudyRow], label: str) -> None:
     per_inv = _rows_by_setting(rows)
     for inv in sorted(per_inv):
         fig = pages.new()
@@ -493,27 +518,28 @@ SINGLE_TRIAL_NOTE = ("Each setting here has one trial (n=1): a single point has 
                      "can be drawn. Repeat every setting (3 trials or more) to see the error range of the mismatch.")
 
 
-def _mark_diameter_text(session) -> str:
+def _mark_diameter_text(session: Session) -> str:
     """The session's mark-size setting: a given diameter, or measured from each capture."""
     d = getattr(session, "mark_diameter_mm", None)
     return "measured from each capture (auto)" if d is None else f"{d:g} mm (given)"
 
 
-def _calibration_text(cal) -> str:
+def _calibration_text(cal: CalibrationRecord) -> str:
     rms = "RMS unknown" if cal.rms is None else f"reprojection RMS {cal.rms:.3f} px"
     return (f"#{cal.id}, {rms}, {'verified' if cal.verified else 'not verified'}"
             + (f", {cal.source}" if cal.source else "") + f" ({cal.created[:10]})")
 
 
-def _calibration_items(calibrations: dict[int, CalibrationRecord], session, rows: list[dict]) -> list[tuple[str, str]]:
+def _calibration_items(calibrations: dict[int, CalibrationRecord], session: Session,
+                       rows: list[StudyRow]) -> list[tuple[str, str]]:
     """One line per calibration the session's trials were measured with (the trial table's
     "Cal." column names it per trial); the session's own when no trial names one."""
     used: dict[int | None, list[int]] = defaultdict(list)
     for i, r in enumerate(rows, 1):
-        used[r.get("calibration_id")].append(i)
+        used[r.calibration_id].append(i)
     if not rows:
         used[session.calibration_id] = []
-    items = []
+    items: list[tuple[str, str]] = []
     for cid in sorted(used, key=lambda c: (c is None, c or 0)):
         text = "none recorded" if cid is None else _calibration_text(calibrations[cid])
         if len(used) > 1:
@@ -538,10 +564,12 @@ NOTE_LINE = 0.0125   # figure fraction per 7.5-pt line under the trial table
 TABLE_BOTTOM = 0.05  # keep clear of the footer
 
 
-def _table_chunks(cells, rows, first_top: float, widths) -> list[tuple[int, int, list[str]]]:
+def _table_chunks(cells: Sequence[Sequence[str]], rows: list[StudyRow], first_top: float,
+                  widths: Sequence[float]) -> list[tuple[int, int, list[str]]]:
     """Split the trial table into pages: (start, stop, note lines) so that each page's rows
     and the notes on its left-out trials fit above the footer."""
-    chunks, start, top = [], 0, first_top
+    chunks: list[tuple[int, int, list[str]]] = []
+    start, top = 0, first_top
     while start < len(cells) or not chunks:
         cap = FIRST_PAGE_ROWS if not chunks else NEXT_PAGE_ROWS
         stop = min(len(cells), start + cap)
@@ -558,7 +586,7 @@ def _table_chunks(cells, rows, first_top: float, widths) -> list[tuple[int, int,
     return chunks
 
 
-def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
+def _notes_for(rows: list[StudyRow], start: int, stop: int) -> list[str]:
     why: dict[tuple[str, str], list[int]] = defaultdict(list)   # trials sharing a reason: one note
     for i in range(start, stop):
         if (w := _left_out_why(rows[i])) is not None:
@@ -566,8 +594,8 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
     notes = [f"trial{'s' if len(ts) > 1 else ''} {_ranges(ts)} {state}" + (f": {reason}" if reason else "")
              for (state, reason), ts in why.items()]
     marks = [i + 1 for i in range(start, stop) if _state_cell(rows[i]) == "complete*"]
-    uncertain = [f"trial {i + 1}: {rows[i]['mark_warnings']}" for i in range(start, stop)
-                 if rows[i].get("mark_warnings")]
+    uncertain = [f"trial {i + 1}: {rows[i].mark_warnings}" for i in range(start, stop)
+                 if rows[i].mark_warnings]
     lines = []
     if notes:
         lines += _wrap("Shown, but left out of the plots and statistics: " + "; ".join(notes) + ".", 130)
@@ -581,7 +609,7 @@ def _notes_for(rows: list[dict], start: int, stop: int) -> list[str]:
 
 
 def _header_page(pages: _Pages, summ: SessionSummary, calibrations: dict[int, CalibrationRecord],
-                 rows: list[dict], group_note: str | None = None) -> None:
+                 rows: list[StudyRow], group_note: str | None = None) -> None:
     p, s = summ.patient, summ.session
     history = (f"{p.sprain_count} sprain(s)" + (f", last {p.last_sprain}" if p.last_sprain else "")
                + (f", {p.affected_side} side" if p.affected_side else ""))
@@ -633,7 +661,7 @@ GROUP_OMITTED = ("not included: no comparison can be computed yet (needs at leas
                  "both barefoot and in shoes)")
 
 
-def _group_page(pages: _Pages, rows: list[dict], highlight: set[str]) -> None:
+def _group_page(pages: _Pages, rows: list[StudyRow], highlight: set[str]) -> None:
     s = st.study_stats(rows)
     fig = pages.new()
     fig.suptitle("Group comparison — mean |mismatch| per patient", fontsize=12,
@@ -642,7 +670,7 @@ def _group_page(pages: _Pages, rows: list[dict], highlight: set[str]) -> None:
              "trials); bars are group means" + ("; ★ = this report's patient" if highlight
                                                  else ""),
              ha="center", fontsize=8, color="0.3")
-    cats = [(g, c) for g in st.GROUPS for c in st.CONDITIONS]
+    cats = [(g, c) for g in st.GROUPS for c in CONDITIONS]
     for k, axis in enumerate(st.AXES):
         ax = fig.add_axes((0.1 + 0.47 * k, 0.66, 0.38, 0.25))
         _strip(ax, s, cats, axis, highlight)
@@ -680,7 +708,7 @@ def _desc_cells(s: st.StudyStats) -> list[list[str]]:
     cells = []
     for axis in st.AXES:
         for g in st.GROUPS:
-            for c in st.CONDITIONS:
+            for c in CONDITIONS:
                 p, t = s.patient_summary[(g, c, axis)], s.trial_summary[(g, c, axis)]
                 cells.append([g, c, _axis_name(axis), str(p.n), str(t.n),
                               st.format_or_dash(p.mean_abs), st.format_or_dash(p.sd),
@@ -691,7 +719,7 @@ def _desc_cells(s: st.StudyStats) -> list[list[str]]:
 
 def _test_cells(s: st.StudyStats) -> list[list[str]]:
     cells = []
-    for c in st.CONDITIONS:
+    for c in CONDITIONS:
         for axis in st.AXES:
             t = s.history_tests[(c, axis)]
             cells.append(["sprain vs none", c, _axis_name(axis), f"{t.n_a}+{t.n_b}",
@@ -700,10 +728,10 @@ def _test_cells(s: st.StudyStats) -> list[list[str]]:
                           _short(t.note)])
     for g in ("all", *st.GROUPS):
         for axis in st.AXES:
-            t = s.condition_tests[(g, axis)]
-            cells.append(["barefoot vs shoes", g, _axis_name(axis), str(t.n),
-                          _signed(t.mean_diff), _tp("t", t.t, t.t_p), _eff("dz", t.cohen_dz),
-                          _tp("W", t.wilcoxon_w, t.wilcoxon_p, ".0f"), _short(t.note)])
+            pt = s.condition_tests[(g, axis)]
+            cells.append(["barefoot vs shoes", g, _axis_name(axis), str(pt.n),
+                          _signed(pt.mean_diff), _tp("t", pt.t, pt.t_p), _eff("dz", pt.cohen_dz),
+                          _tp("W", pt.wilcoxon_w, pt.wilcoxon_p, ".0f"), _short(pt.note)])
     return cells
 
 
@@ -726,7 +754,7 @@ def _short(note: str) -> str:
     return {st.TOO_SMALL: "n too small"}.get(note, note)
 
 
-def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
+def _strip(ax: Axes, s: st.StudyStats, cats: Sequence[tuple[str, str]], axis: str, highlight: set[str]) -> None:
     rng = np.random.default_rng(0)   # fixed jitter: the same data gives the same page
     for i, (g, c) in enumerate(cats):
         pts = [(p, v) for (p, cc, a), v in sorted(s.patient_means.items())
@@ -754,8 +782,8 @@ def _strip(ax, s: st.StudyStats, cats, axis: str, highlight: set[str]) -> None:
 
 # ------------------------------------------------------------------ public
 
-def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResult:
-    """Per session of ``data.sessions`` (``Store.report_input(session_ids)``): header + trial
+def write_session_report(data: ReportInput, pdf_path: Path, csv_path: Path | None = None) -> ReportResult:
+    """Per session of ``data.sessions`` (``store.reports.report_input(session_ids)``): header + trial
     table (every trial, with its state and calibration), Fig. 10, one Fig. 11/12 page per
     inversion setting (counted trials only); then one group-comparison page over all of
     ``data.rows`` (the whole database), when any comparison can be computed."""
@@ -772,14 +800,14 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
     with atomic_paths(pdf_path, csv_path, what="report") as (tmp_pdf, tmp_csv):
         with PdfPages(tmp_pdf) as pdf:
             ids = {summ.session.id for summ in data.sessions}
-            shown = all_rows if with_group else [r for r in all_rows if r["session_id"] in ids]
+            shown = all_rows if with_group else [r for r in all_rows if r.session_id in ids]
             pages = _Pages(pdf, f"AnkleScan session report — {', '.join(sorted(codes))} — "
                                 f"generated {stamp}", simulated_stamp(shown))
             for summ in data.sessions:
                 s = summ.session
-                rows = [r for r in all_rows if r["session_id"] == s.id]
+                rows = [r for r in all_rows if r.session_id == s.id]
                 _header_page(pages, summ, data.calibrations, rows, None if with_group else GROUP_OMITTED)
-                label = f"Patient {rows[0]['patient_code'] if rows else ''}, {s.condition}, {s.date}"
+                label = f"Patient {rows[0].patient_code if rows else ''}, {s.condition}, {s.date}"
                 _fig10_page(pages, rows, f"Mismatch against plantar flexion — {s.condition}, "
                                          f"{s.date}")
                 _error_range_pages(pages, rows, label)
@@ -788,12 +816,12 @@ def write_session_report(data: ReportInput, pdf_path, csv_path=None) -> ReportRe
             _pdf_info(pdf, "AnkleScan session report")
         if tmp_csv is not None:
             ids = {s.id for s in sessions}
-            write_csv([r for r in all_rows if r["session_id"] in ids], tmp_csv)
+            write_csv([r for r in all_rows if r.session_id in ids], tmp_csv)
     return ReportResult(pdf_path, csv_path, pages.count)
 
 
-def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResult:
-    """All patients and sessions (``Store.report_input()``): overview, Fig. 10 per group, group
+def write_study_report(data: ReportInput, pdf_path: Path, csv_path: Path | None = None) -> ReportResult:
+    """All patients and sessions (``store.reports.report_input()``): overview, Fig. 10 per group, group
     comparison (left out, and said so on the overview, when no comparison can be computed)."""
     rows = data.rows
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
@@ -805,7 +833,7 @@ def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResu
             with_group = st.has_tests(stats_)
             _overview_pages(pages, data.patients, rows, None if with_group else GROUP_OMITTED)
             for g in st.GROUPS:
-                mine = [r for r in rows if stats_.patient_group.get(r["patient_code"]) == g]
+                mine = [r for r in rows if stats_.patient_group.get(r.patient_code) == g]
                 if mine:   # a group nobody is in yet gets no page of empty axes
                     _group_fig10_page(pages, mine, g, lim)
             if with_group:
@@ -817,11 +845,11 @@ def write_study_report(data: ReportInput, pdf_path, csv_path=None) -> ReportResu
 
 
 def _pdf_info(pdf: PdfPages, title: str) -> None:
-    d = pdf.infodict()
+    d = pdf.infodict()  # type: ignore[no-untyped-call]  # matplotlib leaves it unannotated
     d["Title"], d["Creator"] = title, "AnkleScan"
 
 
-def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict],
+def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[StudyRow],
                     group_note: str | None = None) -> None:
     s = st.study_stats(rows)
     head = ("Patient", "Group", "Sprains", "Side", "Sessions", "Trials\ncounted",
@@ -829,16 +857,16 @@ def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict]
             "|Δ PF| shoes\n(°)")
     cells = []
     for p in patients:
-        mine = [r for r in rows if r["patient_code"] == p.code]
-        mean = [s.patient_means.get((p.code, c, a)) for a in st.AXES for c in st.CONDITIONS]
+        mine = [r for r in rows if r.patient_code == p.code]
+        mean = [s.patient_means.get((p.code, c, a)) for a in st.AXES for c in CONDITIONS]
         cells.append([p.code, "sprain" if p.has_sprain_history else "none",
                       str(p.sprain_count), p.affected_side or "–",
-                      str(len({r["session_id"] for r in mine})),
+                      str(len({r.session_id for r in mine})),
                       str(sum(st.is_counted(r) for r in mine)),
                       *("–" if m is None else f"{m:.2f}" for m in mean)])
     counts = [("Patients", f"{len(patients)} ({sum(p.has_sprain_history for p in patients)} "
                            "with sprain history)"),
-              ("Sessions", str(len({r['session_id'] for r in rows}))),
+              ("Sessions", str(len({r.session_id for r in rows}))),
               ("Trials", f"{len(rows)} in all, {len(st.counted_rows(rows))} counted (complete and not "
                          f"excluded), {len(_measured(rows))} of them measured")]
     if group_note:
@@ -855,19 +883,19 @@ def _overview_pages(pages: _Pages, patients: Sequence[Patient], rows: list[dict]
         pages.save(fig)
 
 
-def _group_fig10_page(pages: _Pages, rows: list[dict], group: str, lim: float) -> None:
+def _group_fig10_page(pages: _Pages, rows: list[StudyRow], group: str, lim: float) -> None:
     fig = pages.new()
     fig.suptitle(f"Mismatch against plantar flexion — {group}", fontsize=12, weight="bold",
                  y=0.965)
-    n = len({r['patient_code'] for r in rows})
+    n = len({r.patient_code for r in rows})
     fig.text(0.5, 0.935, f"{n} patient{'s' if n != 1 else ''}; mean ± SD over "
              "trials per setting, faint points are single trials", ha="center",
              fontsize=8, color="0.3")
     axes = []
     for i, axis in enumerate(st.AXES):
-        for j, cond in enumerate(st.CONDITIONS):
+        for j, cond in enumerate(CONDITIONS):
             ax = fig.add_axes((0.1 + 0.46 * j, 0.5 - 0.43 * i, 0.37, 0.32))
-            _plot_fig10(ax, [r for r in rows if r["condition"] == cond], axis, show_sd=True)
+            _plot_fig10(ax, [r for r in rows if r.condition == cond], axis, show_sd=True)
             ax.set_title(cond, fontsize=10)
             ax.set_ylim(-lim, lim)
             axes.append(ax)
@@ -902,14 +930,13 @@ def _text_block(fig: Figure, y: float, text: str, width: int = 110, size: float 
     return y - 0.0125 * len(lines) * size / 7.5 - 0.01
 
 
-def _study_cover(pages: _Pages, t) -> None:
-    from anklescan.core.records import study as sy
+def _study_cover(pages: _Pages, t: StudyTables) -> None:
 
     rows = t.data.rows
     counts = [("Covers", t.filter.text()),
-              ("Patients", str(len({r["patient_code"] for r in rows}))),
-              ("Visits", f"{len({r['session_id'] for r in rows})} sessions"),
-              ("Trials", f"{len(rows)} in all, {len(sy.tables.included(t.trials))} complete and included"),
+              ("Patients", str(len({r.patient_code for r in rows}))),
+              ("Visits", f"{len({r.session_id for r in rows})} sessions"),
+              ("Trials", f"{len(rows)} in all, {len(tables.included(t.trials))} complete and included"),
               ("Files", "trials.csv / trials.xlsx (every trial, with its state), data_dictionary.csv, "
                         "position_sense.csv, reliability.csv")]
     fig = pages.new()
@@ -922,7 +949,7 @@ def _study_cover(pages: _Pages, t) -> None:
     pages.save(fig)
 
 
-def _ps_table_pages(pages: _Pages, t) -> None:
+def _ps_table_pages(pages: _Pages, t: StudyTables) -> None:
     cells = [[e.patient, f"#{e.session} {e.visit_date}", e.condition, _axis_name(e.axis), str(e.figures.n),
               _dash(e.figures.AE), _dash(e.figures.CE, sign=True), _dash(e.figures.VE), _dash(e.figures.E)]
              for e in t.errors]
@@ -936,7 +963,7 @@ def _ps_table_pages(pages: _Pages, t) -> None:
         pages.save(fig)
 
 
-def _grid_page(pages: _Pages, t) -> None:
+def _grid_page(pages: _Pages, t: StudyTables) -> None:
     """The position-specific picture: AE (colour and number) at every reference setting, per condition
     and axis, pooled over the included trials there."""
     from matplotlib import colormaps
@@ -950,7 +977,7 @@ def _grid_page(pages: _Pages, t) -> None:
     cmap = colormaps["viridis_r"]
     mappable = None
     for i, axis in enumerate(st.AXES):
-        for j, cond in enumerate(st.CONDITIONS):
+        for j, cond in enumerate(CONDITIONS):
             ax = fig.add_axes((0.1 + 0.43 * j, 0.52 - 0.42 * i, 0.33, 0.3))
             gs = [g for g in t.grid if g.axis == axis and g.condition == cond]
             ax.set_title(f"{cond}: |mismatch of {axis.replace('_', ' ')}|", fontsize=9)
@@ -982,7 +1009,7 @@ def _grid_page(pages: _Pages, t) -> None:
     pages.save(fig)
 
 
-def _history_page(pages: _Pages, t, patient: str) -> None:
+def _history_page(pages: _Pages, t: StudyTables, patient: str) -> None:
     """A patient's visits over time: AE per axis per visit, barefoot against shoes, with the site's
     MDC95 band around the first visit (a later visit outside it is a real change)."""
     from anklescan.core.records import study as sy
@@ -999,7 +1026,7 @@ def _history_page(pages: _Pages, t, patient: str) -> None:
     pages.save(fig)
 
 
-def history_cells(visits) -> list[list[str]]:
+def history_cells(visits: Sequence[Visit]) -> list[list[str]]:
     """A patient's visits as table cells (the report page and the app's Patient history)."""
     cells = []
     for v in visits:
@@ -1011,14 +1038,15 @@ def history_cells(visits) -> list[list[str]]:
     return cells
 
 
-def draw_history(fig: Figure, visits, site_mdc, bottom: float, height: float, gap: float) -> None:
+def draw_history(fig: Figure, visits: Sequence[Visit], site_mdc: Mapping[tuple[str, str], Reliability],
+                 bottom: float, height: float, gap: float) -> None:
     """AE per visit against date, one panel per axis (inversion on top), barefoot and shoes as two
     lines, each with the band first visit ± the site's MDC95."""
     dates = sorted({v.visit_date for v in visits})
     for i, axis in enumerate(st.AXES):
         ax = fig.add_axes((0.12, bottom + (height + gap) * (len(st.AXES) - 1 - i), 0.8, height))
         top = MIN_HALF_SPAN_DEG
-        for j, cond in enumerate(st.CONDITIONS):
+        for j, cond in enumerate(CONDITIONS):
             vs = [v for v in visits if v.axis == axis and v.condition == cond]
             if not vs:
                 continue
@@ -1044,7 +1072,7 @@ def draw_history(fig: Figure, visits, site_mdc, bottom: float, height: float, ga
             ax.legend(fontsize=7, frameon=False, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2)
 
 
-def _reliability_page(pages: _Pages, t) -> None:
+def _reliability_page(pages: _Pages, t: StudyTables) -> None:
     from anklescan.core.records import reliability as rel
 
     fig = pages.new()
@@ -1064,7 +1092,7 @@ def _reliability_page(pages: _Pages, t) -> None:
     y -= 0.02
     h = (y - 0.26) / 2
     for i, axis in enumerate(st.AXES):
-        for j, cond in enumerate(st.CONDITIONS):
+        for j, cond in enumerate(CONDITIONS):
             ax = fig.add_axes((0.1 + 0.46 * j, y - 0.06 - (h + 0.06) * (i + 1), 0.37, h))
             ps_ = rel.pairs(t.errors, cond, axis)
             ax.set_title(f"{cond}, {axis.replace('_', ' ')} (n={len(ps_)})", fontsize=8.5)
@@ -1096,7 +1124,7 @@ def _reliability_page(pages: _Pages, t) -> None:
     pages.save(fig)
 
 
-def write_study_pages(t, pdf_path: Path) -> int:
+def write_study_pages(t: StudyTables, pdf_path: Path) -> int:
     """report.pdf of ``anklescan report`` from a ``core.records.study.StudyTables``: cover, overview, per
     patient and condition the paper's Figs. 10–12, the position-sense errors (table and grid), each
     patient's visits over time, the group comparison (when any can be computed) and the reliability.
@@ -1109,12 +1137,12 @@ def write_study_pages(t, pdf_path: Path) -> int:
         stats_ = st.study_stats(rows)
         with_group = st.has_tests(stats_)
         _overview_pages(pages, t.data.patients, rows, None if with_group else GROUP_OMITTED)
-        for code in sorted({r["patient_code"] for r in rows}):
-            for cond in st.CONDITIONS:
-                mine = [r for r in rows if r["patient_code"] == code and r["condition"] == cond]
+        for code in sorted({r.patient_code for r in rows}):
+            for cond in CONDITIONS:
+                mine = [r for r in rows if r.patient_code == code and r.condition == cond]
                 if not _measured(mine):
                     continue
-                visits = sorted({r["session_date"] for r in mine})
+                visits = sorted({r.session_date for r in mine})
                 label = f"Patient {code}, {cond}, visits {', '.join(visits)}"
                 _fig10_page(pages, mine, f"Mismatch against plantar flexion — {code}, {cond}")
                 _error_range_pages(pages, mine, label)

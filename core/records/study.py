@@ -1,6 +1,6 @@
 """The clinic's own study from its database alone (SPEC §7, ``anklescan report`` and File > Study report…).
 
-``study_tables`` turns ``Store.report_input()`` rows (optionally one patient, a date range) into the
+``study_tables`` turns ``store.reports.report_input()`` rows (optionally one patient, a date range) into the
 study's tables; ``write_study_folder`` writes OUTDIR: report.pdf, trials.csv, trials.xlsx,
 data_dictionary.csv, position_sense.csv and reliability.csv, all built in a temporary folder beside it
 and moved into place together (core.scan.patterns.replace_dir). OUTDIR may be new, empty, or an earlier
@@ -22,7 +22,7 @@ from anklescan.core.errors import AnkleScanError
 from anklescan.core.records import position_sense as ps
 from anklescan.core.records import reliability as rel
 from anklescan.core.records import tables
-from anklescan.core.vocabulary import ReportInput
+from anklescan.core.vocabulary import ReportInput, StudyRow
 
 MARKER = ".anklescan-report"
 FILES = ("report.pdf", "trials.csv", "trials.xlsx", "data_dictionary.csv", "position_sense.csv", "reliability.csv")
@@ -35,9 +35,9 @@ class StudyFilter:
     date_from: str | None = None
     date_to: str | None = None
 
-    def keeps(self, row: dict) -> bool:
-        d = str(row["session_date"])[:10]
-        return ((self.patient is None or row["patient_code"] == self.patient)
+    def keeps(self, row: StudyRow) -> bool:
+        d = str(row.session_date)[:10]
+        return ((self.patient is None or row.patient_code == self.patient)
                 and (self.date_from is None or d >= self.date_from)
                 and (self.date_to is None or d <= self.date_to))
 
@@ -53,7 +53,7 @@ class StudyTables:
     """Everything the study's files and pages show, computed once."""
     data: ReportInput                              # the filtered rows, the patients in them
     filter: StudyFilter
-    trials: list[dict]                             # tables.trial_rows
+    trials: list[tables.TrialExport]               # tables.trial_rows
     errors: list[ps.SessionErrors]
     grid: list[ps.GridErrors]
     reliability: list[rel.Reliability]
@@ -74,7 +74,7 @@ def study_tables(data: ReportInput, flt: StudyFilter = StudyFilter(), data_dir: 
     rows = [r for r in data.rows if flt.keeps(r)]
     if flt.patient is not None and not rows and flt.patient not in {p.code for p in data.patients}:
         raise AnkleScanError(f"no patient {flt.patient!r} in the database")
-    codes = {r["patient_code"] for r in rows}
+    codes = {r.patient_code for r in rows}
     sub = replace(data, rows=rows, patients=[p for p in data.patients if p.code in codes or p.code == flt.patient])
     trials = tables.trial_rows(rows)
     errors = ps.session_errors(trials)

@@ -12,13 +12,13 @@ from __future__ import annotations
 import math
 import warnings
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats
 
-from anklescan.core.vocabulary import CONDITIONS
+from anklescan.core.vocabulary import CONDITIONS, StudyRow
 
 AXES = ("inversion", "plantar_flexion")
 GROUPS = ("sprain history", "no sprain history")
@@ -147,47 +147,46 @@ def _small_note(na: int, nb: int) -> str:
 
 # ------------------------------------------------------------- aggregation
 
-def group_of(row: Mapping, min_sprains: int = 1) -> str:
+def group_of(row: StudyRow, min_sprains: int = 1) -> str:
     """Sprain history = at least ``min_sprains`` recorded sprains (paper: >= 2 in 6 months)."""
-    return GROUPS[0] if (row.get("sprain_count") or 0) >= min_sprains else GROUPS[1]
+    return GROUPS[0] if (row.sprain_count or 0) >= min_sprains else GROUPS[1]
 
 
-def is_counted(row: Mapping) -> bool:
-    """Whether a trial enters the statistics: complete and not excluded (``Store.study_rows``'
-    ``counted``). Cancelled, failed and excluded trials stay in the database and the report's
-    trial table, never in a mean or a test. Rows without the column (older callers) count."""
-    return bool(row.get("counted", 1))
+def is_counted(row: StudyRow) -> bool:
+    """Whether a trial enters the statistics: complete and not excluded, for motion either
+    (``Trial.counted``). Cancelled, failed and excluded trials stay in the database and the
+    report's trial table, never in a mean or a test."""
+    return row.counted
 
 
-def counted_rows(rows: Iterable[Mapping]) -> list[Mapping]:
+def counted_rows(rows: Iterable[StudyRow]) -> list[StudyRow]:
     return [r for r in rows if is_counted(r)]
 
 
-def patient_means(rows: Iterable[Mapping]) -> dict[tuple[str, str, str], float]:
+def patient_means(rows: Iterable[StudyRow]) -> dict[tuple[str, str, str], float]:
     """(patient, condition, axis) → mean |mismatch| over that patient's counted, measured trials."""
     acc: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for r in counted_rows(rows):
         for axis in AXES:
-            v = r.get(f"mismatch_{axis}")
+            v = r.mismatch(axis)
             if v is not None:
-                acc[(r["patient_code"], r["condition"], axis)].append(abs(v))
+                acc[(r.patient_code, r.condition, axis)].append(abs(v))
     return {k: float(np.mean(v)) for k, v in acc.items()}
 
 
-def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
-    """All descriptive summaries and tests from ``Store.study_rows()``-shaped rows (only
+def study_stats(rows: list[StudyRow], min_sprains: int = 1) -> StudyStats:
+    """All descriptive summaries and tests from ``store.reports.study_rows()`` (only
     counted trials enter them; see ``is_counted``)."""
     rows = counted_rows(rows)
     out = StudyStats()
-    rows = [r for r in rows if not r.get("motion_excluded")]  # moved during the scan, not kept (core/records/store.py)
-    out.patient_group = {r["patient_code"]: group_of(r, min_sprains) for r in rows}
+    rows = [r for r in rows if not r.excluded_for_motion]  # moved during the scan, not kept
+    out.patient_group = {r.patient_code: group_of(r, min_sprains) for r in rows}
     out.patient_means = patient_means(rows)
     for g in GROUPS:
         for c in CONDITIONS:
             for axis in AXES:
-                vals = [r[f"mismatch_{axis}"] for r in rows
-                        if out.patient_group[r["patient_code"]] == g and r["condition"] == c
-                        and r.get(f"mismatch_{axis}") is not None]
+                vals = [v for r in rows if out.patient_group[r.patient_code] == g and r.condition == c
+                        and (v := r.mismatch(axis)) is not None]
                 out.trial_summary[(g, c, axis)] = Summary.of(vals)
                 out.patient_summary[(g, c, axis)] = Summary.of(_means(out, g, c, axis))
     for c in CONDITIONS:
@@ -204,7 +203,7 @@ def study_stats(rows: list[Mapping], min_sprains: int = 1) -> StudyStats:
 def has_tests(s: StudyStats) -> bool:
     """Whether any comparison could be computed (at least one test with n large enough);
     a report leaves its group page out otherwise rather than print a page of "n too small"."""
-    tests = [*s.history_tests.values(), *s.condition_tests.values()]
+    tests: list[GroupTest | PairedTest] = [*s.history_tests.values(), *s.condition_tests.values()]
     return any(t.note != TOO_SMALL for t in tests)
 
 

@@ -12,12 +12,17 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeAlias
 
 from anklescan.core.records import study_stats as st
-from anklescan.core.vocabulary import TrialState
+from anklescan.core.vocabulary import StudyRow, TrialState
+
+# A row of one of the other tables (position_sense.csv, reliability.csv: their figures' ``as_row``),
+# a cell per column by the column's name.
+TableRow: TypeAlias = dict[str, Any]
 
 BOM = "\ufeff"
 TRUE, FALSE = "true", "false"
@@ -67,49 +72,112 @@ COLUMNS: tuple[Column, ...] = (
     Column("created", "ISO 8601", "when the trial was started"),
 )
 COLUMN_NAMES: tuple[str, ...] = tuple(c.name for c in COLUMNS)
+# the measured values a TrialExport holds, with their SDs (FHIR's components, the statistics' mismatch)
+_MEASURED = ("reference_inversion", "reference_plantar_flexion", "mismatch_inversion", "mismatch_plantar_flexion",
+             *ANGLES)
+
+
+@dataclass(frozen=True)
+class TrialExport:
+    """One trial as the exported tables show it: a field per column of ``COLUMNS``, of the same
+    name and in the same order (SPEC §7; numbers as numbers, None for a value not measured,
+    yes/no as "true"/"false"), as trials.csv, trials.xlsx and the FHIR bundle write it."""
+
+    patient: str
+    session: int
+    visit_date: str
+    condition: str
+    trial: int
+    status: str
+    excluded: str
+    excluded_reason: str
+    marks_confirmed: str
+    reference_inversion: float | None
+    reference_plantar_flexion: float | None
+    mismatch_inversion: float | None
+    mismatch_inversion_sd: float | None
+    mismatch_plantar_flexion: float | None
+    mismatch_plantar_flexion_sd: float | None
+    leg_inversion: float | None
+    leg_inversion_sd: float | None
+    leg_plantar_flexion: float | None
+    leg_plantar_flexion_sd: float | None
+    table_inversion: float | None
+    table_inversion_sd: float | None
+    table_plantar_flexion: float | None
+    table_plantar_flexion_sd: float | None
+    motion_mm: float | None
+    motion_sd_mm: float | None
+    calibration: int | None
+    calibration_rms: float | None
+    sprain_count: int | None
+    affected_side: str | None
+    operator: str | None
+    created: str
+
+    @property
+    def included(self) -> bool:
+        """Whether it enters the statistics: status complete and not excluded."""
+        return self.status == TrialState.COMPLETE and self.excluded == FALSE
+
+    def value(self, name: str) -> float | None:
+        """One of the measured values (a reference, mismatch or angle column) by its column name."""
+        if name not in _MEASURED:
+            raise KeyError(name)
+        v: float | None = getattr(self, name)
+        return v
+
+    def sd(self, name: str) -> float | None:
+        """The SD of a mismatch or angle column (None for a reference: set, not measured)."""
+        if name not in _MEASURED:
+            raise KeyError(name)
+        v: float | None = getattr(self, f"{name}_sd", None)
+        return v
+
+    def cells(self) -> list[object]:
+        """The values in ``COLUMNS``' order."""
+        return [getattr(self, c) for c in COLUMN_NAMES]
 DICTIONARY_HEAD = ("column", "unit", "description")
 
 
-def _excluded_reason(r: Mapping) -> str:
-    if r.get("excluded_reason") is not None:
-        return str(r["excluded_reason"])
-    if r.get("motion_excluded"):
-        return f"moved {r['motion_mm']:.2f} mm during the scan, not kept"
+def _excluded_reason(r: StudyRow) -> str:
+    if r.excluded_reason is not None:
+        return str(r.excluded_reason)
+    if r.excluded_for_motion:
+        return f"moved {r.motion_mm:.2f} mm during the scan, not kept"
     return ""
 
 
-def trial_rows(rows: Sequence[Mapping]) -> list[dict]:
-    """``Store.study_rows()`` rows → the export's rows (SPEC §7 column names; numbers as numbers,
-    None for a value not measured, booleans as "true"/"false")."""
-    out = []
-    for r in rows:
-        excluded = r.get("excluded_reason") is not None or bool(r.get("motion_excluded"))
-        d = {"patient": r["patient_code"], "session": r["session_id"], "visit_date": r["session_date"],
-             "condition": r["condition"], "trial": r["trial_id"], "status": str(r.get("status") or TrialState.COMPLETE),
-             "excluded": TRUE if excluded else FALSE, "excluded_reason": _excluded_reason(r),
-             "marks_confirmed": TRUE if r.get("marks_confirmed", 1) else FALSE,
-             "reference_inversion": r["ref_inversion"], "reference_plantar_flexion": r["ref_plantar_flexion"],
-             "motion_mm": r.get("motion_mm"), "motion_sd_mm": r.get("motion_sd_mm"),
-             "calibration": r.get("calibration_id"), "calibration_rms": r.get("calibration_rms"),
-             "sprain_count": r.get("sprain_count"), "affected_side": r.get("affected_side"),
-             "operator": r.get("operator"), "created": r.get("created")}
-        for k in ("mismatch_inversion", "mismatch_plantar_flexion", *ANGLES):
-            d[k], d[f"{k}_sd"] = r.get(k), r.get(f"{k}_sd")
-        out.append(d)
-    return out
+def trial_rows(rows: Sequence[StudyRow]) -> list[TrialExport]:
+    """``store.reports.study_rows()`` → the export's rows (``TrialExport``)."""
+    return [TrialExport(
+        patient=r.patient_code, session=r.session_id, visit_date=r.session_date, condition=r.condition,
+        trial=r.trial_id, status=str(r.status),
+        excluded=TRUE if r.excluded_reason is not None or r.excluded_for_motion else FALSE,
+        excluded_reason=_excluded_reason(r), marks_confirmed=TRUE if r.marks_confirmed else FALSE,
+        reference_inversion=r.ref_inversion, reference_plantar_flexion=r.ref_plantar_flexion,
+        mismatch_inversion=r.mismatch_inversion, mismatch_inversion_sd=r.mismatch_inversion_sd,
+        mismatch_plantar_flexion=r.mismatch_plantar_flexion, mismatch_plantar_flexion_sd=r.mismatch_plantar_flexion_sd,
+        leg_inversion=r.leg_inversion, leg_inversion_sd=r.leg_inversion_sd,
+        leg_plantar_flexion=r.leg_plantar_flexion, leg_plantar_flexion_sd=r.leg_plantar_flexion_sd,
+        table_inversion=r.table_inversion, table_inversion_sd=r.table_inversion_sd,
+        table_plantar_flexion=r.table_plantar_flexion, table_plantar_flexion_sd=r.table_plantar_flexion_sd,
+        motion_mm=r.motion_mm, motion_sd_mm=r.motion_sd_mm, calibration=r.calibration_id,
+        calibration_rms=r.calibration_rms, sprain_count=r.sprain_count, affected_side=r.affected_side,
+        operator=r.operator, created=r.created) for r in rows]
 
 
-def included(trials: Sequence[Mapping]) -> list[Mapping]:
+def included(trials: Sequence[TrialExport]) -> list[TrialExport]:
     """Export rows that enter the statistics (status complete, not excluded)."""
-    return [t for t in trials if t["status"] == TrialState.COMPLETE and t["excluded"] == FALSE]
+    return [t for t in trials if t.included]
 
 
-def mismatch(t: Mapping, axis: str) -> float | None:
-    v = t.get(f"mismatch_{axis}")
+def mismatch(t: TrialExport, axis: str) -> float | None:
+    v = t.value(f"mismatch_{axis}")
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def _cell(col: Column, v) -> str:
+def _cell(col: Column, v: object) -> str:
     if v is None:
         return ""
     if isinstance(v, float):
@@ -120,16 +188,16 @@ def _cell(col: Column, v) -> str:
     return s
 
 
-def write_trials_csv(trials: Sequence[Mapping], path: Path) -> None:
+def write_trials_csv(trials: Sequence[TrialExport], path: Path) -> None:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         fh.write(BOM)
         w = csv.writer(fh)
         w.writerow(COLUMN_NAMES)
         for t in trials:
-            w.writerow([_cell(c, t.get(c.name)) for c in COLUMNS])
+            w.writerow([_cell(c, v) for c, v in zip(COLUMNS, t.cells(), strict=True)])
 
 
-def write_trials_xlsx(trials: Sequence[Mapping], path: Path) -> None:
+def write_trials_xlsx(trials: Sequence[TrialExport], path: Path) -> None:
     """The same rows as trials.csv: numbers as numbers, true/false as the same words, empty for none."""
     from openpyxl import Workbook
 
@@ -139,8 +207,7 @@ def write_trials_xlsx(trials: Sequence[Mapping], path: Path) -> None:
     ws.append(list(COLUMN_NAMES))
     for t in trials:
         row = []
-        for c in COLUMNS:
-            v = t.get(c.name)
+        for c, v in zip(COLUMNS, t.cells(), strict=True):
             if isinstance(v, float) and not math.isfinite(v):
                 v = None
             elif isinstance(v, str):
@@ -167,7 +234,7 @@ def write_dictionary(path: Path, extra: Sequence[tuple[str, Sequence[Column]]] =
                 w.writerow((file, c.name, c.unit, c.description))
 
 
-def write_table(path: Path, columns: Sequence[Column], rows: Sequence[Mapping]) -> None:
+def write_table(path: Path, columns: Sequence[Column], rows: Sequence[TableRow]) -> None:
     """A plain CSV (UTF-8 with BOM) of ``rows`` in ``columns``' order; NaN and None are empty."""
     with open(path, "w", newline="", encoding="utf-8") as fh:
         fh.write(BOM)
