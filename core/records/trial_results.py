@@ -20,6 +20,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy.typing as npt
+
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
 from anklescan.core.records.database import Database
@@ -77,8 +79,8 @@ class TrialOutcome:
     joint: JointCovariance | None = None            # the marks' covariance (the angles' honest ±)
 
 
-Sigma = float | Mapping[MarkLabel, object]
-Reference = Mapping[str, object]
+Sigma = float | Mapping[MarkLabel, npt.ArrayLike]
+Reference = Mapping[str, float | Mapping[str, float]]
 
 
 def trial_angles(trial: Trial, marks: Mapping[MarkLabel, Xyz], *, sigma_mm: Sigma = DEFAULT_SIGMA_MM,
@@ -87,7 +89,7 @@ def trial_angles(trial: Trial, marks: Mapping[MarkLabel, Xyz], *, sigma_mm: Sigm
     return angles_to_store(trial, compute_angles(marks, sigma_mm=sigma_mm, joint=joint), None)
 
 
-def angles_to_store(trial: Trial, angles: Mapping[str, object], reference: Reference | None) -> TrialAngles:
+def angles_to_store(trial: Trial, angles: Mapping[str, float | Mapping[str, float]], reference: Reference | None) -> TrialAngles:
     """``compute_angles`` output (name → {"value", "sd"}) as the trial keeps it, with the mismatch
     of the table angles against ``reference`` (a measured reference table's ``{"inversion":
     {"value", "sd"}, …}``; None: the trial's set angles)."""
@@ -177,7 +179,7 @@ class TrialResults:
             self._trials.set_angles(trial.id, trial_angles(trial, self._marks.positions(trial.id)))
         return self._marks.all(trial_id)
 
-    def update_angles(self, trial_id: int, angles: Mapping[str, object],
+    def update_angles(self, trial_id: int, angles: Mapping[str, float | Mapping[str, float]],
                       reference: Reference | None = None) -> Trial:
         """Store measured angles (``compute_angles`` output) and the resulting mismatch.
 
