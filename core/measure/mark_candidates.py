@@ -28,27 +28,41 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
         return out
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
     box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the reconstructed region only
-    P, ok_pts = points[box], valid[box].astype(np.float32)
+    ok_pts = valid[box].astype(np.float32)
     k = (CONFIG.normal_window_px, CONFIG.normal_window_px)
     count = cv2.boxFilter(ok_pts, -1, k, normalize=False)
-    mean = cv2.boxFilter(np.nan_to_num(P).astype(np.float32), -1, k, normalize=False) / np.maximum(count, 1)[..., None]
+    inv_count = np.maximum(count, 1)
+    # each coordinate as its own image (float32 as before): the sums, normals and distances
+    # below are the same arithmetic, without (H, W, 3) temporaries
+    mean = [cv2.boxFilter(np.where(ok_pts > 0, points[box][..., i], np.float32(0)), -1, k, normalize=False) / inv_count
+            for i in range(3)]
     h = CONFIG.normal_window_px // 2
-    dx, dy = np.zeros_like(mean), np.zeros_like(mean)
-    dx[:, h:-h] = mean[:, 2 * h:] - mean[:, :-2 * h]
-    dy[h:-h] = mean[2 * h:] - mean[:-2 * h]
-    n = np.stack([dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1], dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2],
-                  dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]], axis=-1)
-    n_len = np.sqrt(np.einsum("ijk,ijk->ij", n, n)) + np.float32(1e-12)
-    facing = np.sign(np.einsum("ijk,ijk->ij", n, cal.camera.center.astype(np.float32) - mean))  # towards the camera
-    to_light = cal.projector.center.astype(np.float32) - mean
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", to_light, to_light)) + np.float32(1e-9)
-    cos_i = facing * np.einsum("ijk,ijk->ij", n, to_light) / (n_len * dist)
+    dx, dy = [np.zeros_like(m) for m in mean], [np.zeros_like(m) for m in mean]
+    for i in range(3):
+        dx[i][:, h:-h] = mean[i][:, 2 * h:] - mean[i][:, :-2 * h]
+        dy[i][h:-h] = mean[i][2 * h:] - mean[i][:-2 * h]
+    n = [dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2], dx[0] * dy[1] - dx[1] * dy[0]]
+    n_len = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + np.float32(1e-12)
+    cam, proj = cal.camera.center.astype(np.float32), cal.projector.center.astype(np.float32)
+    facing = np.sign(sum_of_products(n, [cam[i] - mean[i] for i in range(3)]))  # towards the camera
+    to_light = [proj[i] - mean[i] for i in range(3)]
+    dist = np.sqrt(sum_of_products(to_light, to_light)) + np.float32(1e-9)
+    cos_i = facing * sum_of_products(n, to_light) / (n_len * dist)
     ok = (count >= 0.5 * CONFIG.normal_window_px**2) & (cos_i > 0.05)
     if not ok.any():
         return image.astype(np.float32)
     d0 = float(np.median(dist[ok]))
     shade = np.where(ok, cos_i * (d0 / dist) ** 2, 1.0)
     out[box] = np.where(ok, image[box] / shade, 0.0)
+    return out
+
+
+def sum_of_products(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
+    """a[0] b[0] + a[1] b[1] + a[2] b[2], elementwise: the dot product of two images of vectors
+    kept as one image per coordinate."""
+    out = a[0] * b[0]
+    out += a[1] * b[1]
+    out += a[2] * b[2]
     return out
 
 
