@@ -114,6 +114,15 @@ def depth_image(cal: Calibration, points: np.ndarray) -> np.ndarray:
 
 
 
+def depth_range(depth: np.ndarray) -> tuple[float, float]:
+    """(near, far): the 1st and 99.5th percentiles of the decoded pixels' camera depths (mm), which
+    bound the plates' size in pixels; (nan, nan) for no depth."""
+    if not depth.size:
+        return math.nan, math.nan
+    near, far = np.percentile(depth, [1, 99.5])
+    return float(near), float(far)
+
+
 def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False,
                     depth: np.ndarray | None = None) -> list[dict]:
     """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii CONFIG.scale_step apart
@@ -129,13 +138,17 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
             steps.append(_depth_steps(depth))
         return steps[0]
 
+    valid = np.isfinite(points[..., 0])
+    near_far = depth_range(depth[valid])
     if np.isscalar(radius_mm):
-        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump)
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump,
+                                  valid=valid, near_far=near_far)
     lo, hi = radius_mm
     n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
     kept, taken = [], np.zeros(image.shape, bool)
     for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump,
+                                    valid=valid, near_far=near_far):
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue
@@ -146,7 +159,8 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
 
 def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False,
                        depth_img: np.ndarray | None = None,
-                       jump: Callable[[], np.ndarray] | None = None) -> list[dict]:
+                       jump: Callable[[], np.ndarray] | None = None, *, valid: np.ndarray | None = None,
+                       near_far: tuple[float, float] | None = None) -> list[dict]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -157,17 +171,19 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
     the shading-corrected image), cut again at half-way over the median of the decoded surface
     in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it;
-    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them.
+    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them; ``valid``
+    (the decoded pixels) and ``near_far`` (``depth_range`` of their depths): where the caller has them.
     """
-    valid = np.isfinite(points[..., 0])
-    if valid.sum() < 10:
+    if valid is None:
+        valid = np.isfinite(points[..., 0])
+    if np.count_nonzero(valid) < 10:
         return []
     if depth_img is None:
         depth_img = depth_image(cal, points)
-    depth = depth_img[valid]
+    near, far = depth_range(depth_img[valid]) if near_far is None else near_far
     r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
-    r_max = float(plate_radius_px(cal, np.percentile(depth, 1), r_hi))
-    r_min = float(plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
+    r_max = float(plate_radius_px(cal, near, r_hi))
+    r_min = float(plate_radius_px(cal, far, r_lo))
     blur = max(0.25 * r_min, 0.7)
     smooth = cv2.GaussianBlur(image, (0, 0), blur)
     # the seeds are compared with the noise of the smoothed image (a Gaussian of SD s passes
