@@ -93,3 +93,39 @@ def test_shading_correction_matches_the_vector_image_form() -> None:
     got = shading_corrected(image, points, cal)  # type: ignore[arg-type]
     assert np.array_equal(got, expected)
     assert np.count_nonzero(got) > 0.5 * got.size
+
+
+def test_row_nanmedian_matches_numpy() -> None:
+    import warnings
+
+    from anklescan.core.measure.mark_edges import row_nanmedian
+
+    rng = np.random.default_rng(7)
+    for dtype in (np.float32, np.float64):
+        for shape in ((240, 61), (30, 700), (4, 1)):  # numpy takes two paths: below and above 600 columns
+            x = rng.normal(size=shape).astype(dtype)
+            x[rng.random(shape) < 0.5] = np.nan
+            x[1] = np.nan  # a row with nothing: NaN
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                expected = np.nanmedian(x, axis=1)
+            got = row_nanmedian(x)
+            assert got.dtype == expected.dtype and np.array_equal(got, expected, equal_nan=True)
+
+
+def test_plane_basis_is_np_cross_to_the_bit() -> None:
+    from anklescan.core.measure.mark_edges import plane_basis
+
+    rng = np.random.default_rng(8)
+    for i in range(2000):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        if i % 5 == 0:
+            n[i % 3] = 0.0
+        e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        expected = np.stack([e1, np.cross(n, e1)])
+        got = plane_basis(n)
+        assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+    B = plane_basis(np.array([0.0, 0.0, 1.0], np.float32))  # other dtypes: np.cross itself
+    assert np.allclose(B @ B.T, np.eye(2), atol=1e-6)
