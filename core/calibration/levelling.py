@@ -136,11 +136,16 @@ def _sample_planes(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _inlier_counts(X: np.ndarray, normals: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
-    """Per candidate plane, the number of points of X within ``tol`` of it: ``|(X - p) @ n| < tol``."""
+    """Per candidate plane, the number of points of X within ``tol`` of it: ``|(X - p) @ n| < tol``.
+
+    Counted in float32: the points surely inside (below ``tol`` - _F32_MARGIN_MM), plus those about
+    on the tolerance's edge (within _F32_MARGIN_MM of it) counted in float64, as one at a time
+    counted them."""
     centre = X.mean(axis=0)  # float32 distances about the points' centre: no large offsets cancel
     Xc = np.ascontiguousarray((X - centre).T, dtype=np.float32)
     n32 = normals.astype(np.float32)
     off32 = np.einsum("ij,ij->i", points - centre, normals).astype(np.float32)
+    inside, outside = np.float32(tol - _F32_MARGIN_MM), np.float32(tol + _F32_MARGIN_MM)
     counts = np.empty(len(normals), np.int64)
     block = max(1, _RANSAC_BLOCK_VALUES // max(X.shape[0], 1))
     for lo in range(0, len(normals), block):
@@ -150,13 +155,13 @@ def _inlier_counts(X: np.ndarray, normals: np.ndarray, points: np.ndarray, tol: 
         d += n[:, 2:3] * Xc[2]
         d -= off
         np.abs(d, out=d)
-        counts[lo:lo + block] = np.count_nonzero(d < tol, axis=1)
-        near = np.abs(d - np.float32(tol)) <= _F32_MARGIN_MM
-        for j in np.flatnonzero(near.any(axis=1)):
+        surely = np.count_nonzero(d < inside, axis=1)
+        maybe = np.count_nonzero(d < outside, axis=1)
+        counts[lo:lo + block] = surely
+        for j in np.flatnonzero(maybe != surely):  # the points about on the edge, counted in float64
             i = lo + int(j)
-            idx = np.flatnonzero(near[j])
-            exact = np.count_nonzero(np.abs((X[idx] - points[i]) @ normals[i]) < tol)
-            counts[i] += int(exact) - int(np.count_nonzero(d[j, idx] < tol))
+            edge = np.flatnonzero((d[j] >= inside) & (d[j] < outside))
+            counts[i] += np.count_nonzero(np.abs((X[edge] - points[i]) @ normals[i]) < tol)
     return counts
 
 
