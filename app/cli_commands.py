@@ -203,13 +203,21 @@ def cmd_calibrate_level(args) -> int:
 
 
 def cmd_measure(args) -> int:
+    from concurrent.futures import ThreadPoolExecutor
+
     from anklescan.core.errors import AnkleScanError
-    from anklescan.core.measure.pipeline import run_measure
+    from anklescan.core.scan.capture import load_capture
 
     if not (args.motion_threshold > 0 and args.motion_threshold < float("inf")):
         raise AnkleScanError(f"--motion-threshold must be a positive number of mm, not {args.motion_threshold}")
-    result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter,
-                         motion_threshold_mm=args.motion_threshold)
+    # the frames are read (PNG decoding releases the GIL) while the measure stage's modules
+    # import; run_measure takes the capture when it needs it, after checking its other inputs
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        loading = pool.submit(load_capture, args.capture)
+        from anklescan.core.measure.pipeline import run_measure
+
+        result = run_measure(args.capture, args.calibration, args.out, args.mark_diameter,
+                             motion_threshold_mm=args.motion_threshold, loading=loading)
     print(result.format_text())
     return 0
 

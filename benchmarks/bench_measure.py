@@ -3,12 +3,17 @@ reads the same PNGs, each timed as a fresh subprocess (interpreter start, import
 on a simulated full-resolution capture with the default scene's seven marks.
 
     python benchmarks/bench_measure.py [--runs 5] [--layout side] [--axes column,row] [--keep DIR] [--profile]
+                                       [--stages] [--before DIR]
 
 The capture and its calibration are made as ``bench_command.py`` makes them (``--keep DIR``
 keeps and reuses them). Runs alternate bare / reconstruct / measure so that a busy machine slows
 all three alike; medians and minima are printed, and the measure / bare ratio (issue 41's
 target: at most 2). ``--profile`` also runs ``measure`` once under cProfile and prints where
-its time goes.
+its time goes. ``--stages`` also runs ``measure``'s stages one after another in a fresh process
+and prints each one's CPU and wall time (the command overlaps some of them on threads).
+``--before DIR``: also time ``measure`` of another version of AnkleScan, alternating with the
+rest, where DIR holds its ``anklescan`` package (e.g. a link tree like build/mypy's of an older
+checkout); its RESULT.json is compared with this version's.
 """
 
 from __future__ import annotations
@@ -24,6 +29,39 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_command import BARE, ROOT, make_capture, timed  # noqa: E402
 
+STAGES = """
+import sys, time
+clock = [time.perf_counter(), time.process_time()]
+def lap(name):
+    t, c = time.perf_counter(), time.process_time()
+    print(f"  {name:34s} CPU {c - clock[1]:5.2f} s   wall {t - clock[0]:5.2f} s")
+    clock[:] = [t, c]
+import numpy, cv2
+lap("interpreter, numpy, cv2")
+from anklescan.core.measure import pipeline as P
+lap("import the measure stage")
+from anklescan.core.calibration.file import load_calibration
+from anklescan.core.scan.capture import load_capture
+cal = load_calibration(sys.argv[2])
+capture = load_capture(sys.argv[1])
+lap("calibration, frames read (2 threads)")
+P.check_compatible(capture, cal)
+decoded = P.decode(capture)
+lap("decode")
+cloud = P.cloud_from_decoded(capture, cal, decoded)
+lap("grids, triangulate (cloud)")
+lit = P.averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
+lap("lit image")
+marks = P.find_marks(lit, cloud, cal, mark_diameter_mm=None, clipped=P.clipped_white(capture))
+lap("find_marks")
+motion = P.estimate_motion(capture, cal, decoded, cloud)
+P.honest_angles(marks, cal, motion)
+P.measure_warnings(P.WarningContext(marks.centres(), cal, marks.overexposed_message()))
+lap("motion, angles, warnings")
+P.frame_warnings(cal.extra, cloud.points, cal.camera.center)
+lap("frame check")
+"""
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -32,6 +70,8 @@ def main() -> None:
     ap.add_argument("--axes", help="stripe axes of the capture (default: what the rig needs)")
     ap.add_argument("--keep", type=Path)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--stages", action="store_true", help="CPU and wall time of each stage of measure")
+    ap.add_argument("--before", type=Path, help="a folder holding another version's anklescan package")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-measure-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -46,6 +86,10 @@ def main() -> None:
         "anklescan measure": cli + ["measure", str(folder), "--calibration", str(cal_path),
                                     "--out", str(work / "result.json")],
     }
+    if args.before is not None:
+        commands["anklescan measure (--before)"] = [
+            "env", f"PYTHONPATH={args.before.resolve()}", *cli, "measure", str(folder), "--calibration",
+            str(cal_path), "--out", str(work / "result_before.json")]
     for cmd in commands.values():
         timed(cmd)  # warm the page cache and the interpreter's bytecode
     times: dict[str, list[tuple[float, float]]] = {name: [] for name in commands}
@@ -61,6 +105,12 @@ def main() -> None:
     wall_b, wall_m = (statistics.median(x[0] for x in times[k]) for k in keys)
     cpu_b, cpu_m = (statistics.median(x[1] for x in times[k]) for k in keys)
     print(f"measure / bare read: wall medians {wall_m / wall_b:.2f}, CPU medians {cpu_m / cpu_b:.2f} (target <= 2)")
+    if args.before is not None:
+        same = (work / "result.json").read_bytes() == (work / "result_before.json").read_bytes()
+        print(f"RESULT.json {'byte-identical to' if same else 'DIFFERS from'} the --before version's")
+    if args.stages:
+        print("measure's stages one after another, in a fresh process:")
+        subprocess.run([sys.executable, "-c", STAGES, str(folder), str(cal_path)], check=True, cwd=ROOT)
     if args.profile:
         prof = work / "measure.prof"
         subprocess.run([sys.executable, "-m", "cProfile", "-o", str(prof)] + commands["anklescan measure"][1:],

@@ -51,6 +51,8 @@ EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's 
 # the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)
 
 
+_RANSAC_BLOCK_VALUES = 1 << 20  # float32 distances computed at once when counting RANSAC inliers (4 MB)
+_F32_MARGIN_MM = 1e-3  # float32 distances this close to the tolerance are computed again in float64
 SEQUENTIAL_PLANES = 6  # largest planes tried one after another, besides the level surfaces
 
 
@@ -106,21 +108,61 @@ class TableTop:
 
 
 def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normal, a point) of the plane holding the most points within ``tol``."""
-    best, best_p, best_n = None, None, -1
+    """(unit normal, a point) of the plane holding the most points within ``tol``.
+
+    The RANSAC_ITERATIONS samples are drawn one at a time as always (the same draws in the same
+    order); their inliers are then counted a block of candidates at once in float32, and the few
+    points whose float32 distance lies within _F32_MARGIN_MM of ``tol`` are counted again as
+    before, in float64: the counts, and so the plane, are those of one candidate at a time."""
+    samples = []
     for _ in range(RANSAC_ITERATIONS):
-        p = X[rng.choice(len(X), 3, replace=False)]
-        n = np.cross(p[1] - p[0], p[2] - p[0])
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n /= norm
-        cnt = int(np.count_nonzero(np.abs((X - p[0]) @ n) < tol))
-        if cnt > best_n:
-            best, best_p, best_n = n, p[0], cnt
-    if best is None or best_p is None:
+        samples.append(X[rng.choice(len(X), 3, replace=False)])
+    if not samples:
         raise GeometryError("the table scan holds no plane")
-    return best, best_p
+    normals, points = _sample_planes(np.stack(samples))
+    if not len(normals):
+        raise GeometryError("the table scan holds no plane")
+    counts = _inlier_counts(X, normals, points, tol)
+    best = int(np.argmax(counts))  # the first of the largest counts, as one candidate at a time found it
+    return normals[best], points[best]
+
+
+def _sample_planes(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normals, first points) of the planes through each (3, 3) sample, the degenerate left out."""
+    crossed = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])
+    norms = np.array([np.linalg.norm(n) for n in crossed])  # each as one at a time computed it
+    keep = norms >= 1e-9
+    return crossed[keep] / norms[keep, None], samples[keep, 0]
+
+
+def _inlier_counts(X: np.ndarray, normals: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
+    """Per candidate plane, the number of points of X within ``tol`` of it: ``|(X - p) @ n| < tol``.
+
+    Counted in float32: the points surely inside (below ``tol`` - _F32_MARGIN_MM), plus those about
+    on the tolerance's edge (within _F32_MARGIN_MM of it) counted in float64, as one at a time
+    counted them."""
+    centre = X.mean(axis=0)  # float32 distances about the points' centre: no large offsets cancel
+    Xc = np.ascontiguousarray((X - centre).T, dtype=np.float32)
+    n32 = normals.astype(np.float32)
+    off32 = np.einsum("ij,ij->i", points - centre, normals).astype(np.float32)
+    inside, outside = np.float32(tol - _F32_MARGIN_MM), np.float32(tol + _F32_MARGIN_MM)
+    counts = np.empty(len(normals), np.int64)
+    block = max(1, _RANSAC_BLOCK_VALUES // max(X.shape[0], 1))
+    for lo in range(0, len(normals), block):
+        n, off = n32[lo:lo + block], off32[lo:lo + block, None]
+        d = n[:, 0:1] * Xc[0]
+        d += n[:, 1:2] * Xc[1]
+        d += n[:, 2:3] * Xc[2]
+        d -= off
+        np.abs(d, out=d)
+        surely = np.count_nonzero(d < inside, axis=1)
+        maybe = np.count_nonzero(d < outside, axis=1)
+        counts[lo:lo + block] = surely
+        for j in np.flatnonzero(maybe != surely):  # the points about on the edge, counted in float64
+            i = lo + int(j)
+            edge = np.flatnonzero((d[j] >= inside) & (d[j] < outside))
+            counts[i] += np.count_nonzero(np.abs((X[edge] - points[i]) @ normals[i]) < tol)
+    return counts
 
 
 def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -17,6 +18,8 @@ from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.robust import robust_sigma
 from anklescan.core.scan.pointcloud import PointCloud
+
+Blob = dict[str, Any]  # a candidate: slice, region, origin, centre and how it was cut (docs/marks.md)
 
 
 def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -> np.ndarray:
@@ -28,21 +31,26 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
         return out
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
     box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # the reconstructed region only
-    P, ok_pts = points[box], valid[box].astype(np.float32)
+    ok_pts = valid[box].astype(np.float32)
     k = (CONFIG.normal_window_px, CONFIG.normal_window_px)
     count = cv2.boxFilter(ok_pts, -1, k, normalize=False)
-    mean = cv2.boxFilter(np.nan_to_num(P).astype(np.float32), -1, k, normalize=False) / np.maximum(count, 1)[..., None]
+    inv_count = np.maximum(count, 1)
+    # each coordinate as its own image (float32 as before): the sums, normals and distances
+    # below are the same arithmetic, without (H, W, 3) temporaries
+    mean = [cv2.boxFilter(np.where(ok_pts > 0, points[box][..., i], np.float32(0)), -1, k, normalize=False) / inv_count
+            for i in range(3)]
     h = CONFIG.normal_window_px // 2
-    dx, dy = np.zeros_like(mean), np.zeros_like(mean)
-    dx[:, h:-h] = mean[:, 2 * h:] - mean[:, :-2 * h]
-    dy[h:-h] = mean[2 * h:] - mean[:-2 * h]
-    n = np.stack([dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1], dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2],
-                  dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]], axis=-1)
-    n_len = np.sqrt(np.einsum("ijk,ijk->ij", n, n)) + np.float32(1e-12)
-    facing = np.sign(np.einsum("ijk,ijk->ij", n, cal.camera.center.astype(np.float32) - mean))  # towards the camera
-    to_light = cal.projector.center.astype(np.float32) - mean
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", to_light, to_light)) + np.float32(1e-9)
-    cos_i = facing * np.einsum("ijk,ijk->ij", n, to_light) / (n_len * dist)
+    dx, dy = [np.zeros_like(m) for m in mean], [np.zeros_like(m) for m in mean]
+    for i in range(3):
+        dx[i][:, h:-h] = mean[i][:, 2 * h:] - mean[i][:, :-2 * h]
+        dy[i][h:-h] = mean[i][2 * h:] - mean[i][:-2 * h]
+    n = [dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2], dx[0] * dy[1] - dx[1] * dy[0]]
+    n_len = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + np.float32(1e-12)
+    cam, proj = cal.camera.center.astype(np.float32), cal.projector.center.astype(np.float32)
+    facing = np.sign(sum_of_products(n, [cam[i] - mean[i] for i in range(3)]))  # towards the camera
+    to_light = [proj[i] - mean[i] for i in range(3)]
+    dist = np.sqrt(sum_of_products(to_light, to_light)) + np.float32(1e-9)
+    cos_i = facing * sum_of_products(n, to_light) / (n_len * dist)
     ok = (count >= 0.5 * CONFIG.normal_window_px**2) & (cos_i > 0.05)
     if not ok.any():
         return image.astype(np.float32)
@@ -52,24 +60,39 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     return out
 
 
-def points_image(cloud: PointCloud, shape: tuple) -> np.ndarray:
+def sum_of_products(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
+    """a[0] b[0] + a[1] b[1] + a[2] b[2], elementwise: the dot product of two images of vectors
+    kept as one image per coordinate."""
+    out: np.ndarray = a[0] * b[0]
+    out += a[1] * b[1]
+    out += a[2] * b[2]
+    return out
+
+
+def points_image(cloud: PointCloud, shape: tuple[int, ...]) -> np.ndarray:
     """(H, W, 3) float32 world points per camera pixel, NaN where nothing was decoded."""
     img = np.full((*shape, 3), np.nan, np.float32)
     if len(cloud):
-        px = cloud.pixels.astype(np.intp)
+        px = _pixels(cloud)
         img[px[:, 1], px[:, 0]] = cloud.points
     return img
 
 
-def sigma_image(cloud: PointCloud, shape: tuple):
+def sigma_image(cloud: PointCloud, shape: tuple[int, ...]) -> np.ndarray | None:
     """(H, W) float32 predicted noise per decoded pixel (NaN elsewhere), or None if the cloud
     has no ``sigma``."""
     if cloud.sigma is None or not len(cloud):
         return None
     img = np.full(shape, np.nan, np.float32)
-    px = cloud.pixels.astype(np.intp)
+    px = _pixels(cloud)
     img[px[:, 1], px[:, 0]] = cloud.sigma
     return img
+
+
+def _pixels(cloud: PointCloud) -> np.ndarray:
+    if cloud.pixels is None:
+        raise ValueError("the marks need the cloud's camera pixels (PointCloud.pixels)")
+    return cloud.pixels.astype(np.intp)
 
 
 def noise_sigma(image: np.ndarray) -> float:
@@ -80,7 +103,7 @@ def noise_sigma(image: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------------- candidates
 
-def plate_radius_px(cal: Calibration, depth_mm, radius_mm: float):
+def plate_radius_px(cal: Calibration, depth_mm: float | np.ndarray, radius_mm: float) -> np.ndarray:
     return cal.camera.fx * radius_mm / np.asarray(depth_mm, float)
 
 
@@ -100,8 +123,26 @@ def depth_image(cal: Calibration, points: np.ndarray) -> np.ndarray:
 
 
 
-def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool = False,
-                    depth: np.ndarray | None = None) -> list[dict]:
+def radius_range(radius_mm: float | tuple[float, float]) -> tuple[float, float]:
+    """(lo, hi) mm: a size given as one number (twice) or a (lo, hi) range."""
+    if np.ndim(radius_mm) == 0:
+        return cast(float, radius_mm), cast(float, radius_mm)
+    lo, hi = cast(tuple[float, float], radius_mm)
+    return lo, hi
+
+
+def depth_range(depth: np.ndarray) -> tuple[float, float]:
+    """(near, far): the 1st and 99.5th percentiles of the decoded pixels' camera depths (mm), which
+    bound the plates' size in pixels; (nan, nan) for no depth."""
+    if not depth.size:
+        return math.nan, math.nan
+    near, far = np.percentile(depth, [1, 99.5])
+    return float(near), float(far)
+
+
+def candidate_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, noise: float,
+                    radius_mm: float | tuple[float, float], ring_background: bool = False,
+                    depth: np.ndarray | None = None) -> list[Blob]:
     """``candidate_blobs_at`` for one radius, or for a (lo, hi) range at radii CONFIG.scale_step apart
     (an opening wide enough for the largest disk swallows a leg as narrow as 3 disks, and the
     blob cut from it is the leg): the union, a blob dropped where its centre lies in one kept.
@@ -115,13 +156,17 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
             steps.append(_depth_steps(depth))
         return steps[0]
 
-    if np.isscalar(radius_mm):
-        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump)
-    lo, hi = radius_mm
+    valid = np.isfinite(points[..., 0])
+    near_far = depth_range(depth[valid])
+    if np.ndim(radius_mm) == 0:
+        return candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background, depth, jump,
+                                  valid=valid, near_far=near_far)
+    lo, hi = radius_range(radius_mm)
     n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
     kept, taken = [], np.zeros(image.shape, bool)
     for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump):
+        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump,
+                                    valid=valid, near_far=near_far):
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue
@@ -130,9 +175,11 @@ def candidate_blobs(image, points, cal, noise, radius_mm, ring_background: bool 
     return kept
 
 
-def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bool = False,
+def candidate_blobs_at(image: np.ndarray, points: np.ndarray, cal: Calibration, noise: float,
+                       radius_mm: float | tuple[float, float], ring_background: bool = False,
                        depth_img: np.ndarray | None = None,
-                       jump: Callable[[], np.ndarray] | None = None) -> list[dict]:
+                       jump: Callable[[], np.ndarray] | None = None, *, valid: np.ndarray | None = None,
+                       near_far: tuple[float, float] | None = None) -> list[Blob]:
     """Compact bright blobs, each cut out at half its own contrast over its surround.
 
     Seeds are local maxima of a smoothed white top-hat (grey opening with a square wider than
@@ -143,17 +190,19 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
     minimum reaches into a shadow nearby: a plate at the terminator of the skin's shading, in
     the shading-corrected image), cut again at half-way over the median of the decoded surface
     in a ring around the seed. ``depth_img``: ``depth_image(cal, points)`` where the caller has it;
-    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them.
+    ``jump``: returns its depth steps (``_depth_steps``), where the caller keeps them; ``valid``
+    (the decoded pixels) and ``near_far`` (``depth_range`` of their depths): where the caller has them.
     """
-    valid = np.isfinite(points[..., 0])
-    if valid.sum() < 10:
+    if valid is None:
+        valid = np.isfinite(points[..., 0])
+    if np.count_nonzero(valid) < 10:
         return []
     if depth_img is None:
         depth_img = depth_image(cal, points)
-    depth = depth_img[valid]
-    r_lo, r_hi = (radius_mm, radius_mm) if np.isscalar(radius_mm) else radius_mm  # a size or a range
-    r_max = float(plate_radius_px(cal, np.percentile(depth, 1), r_hi))
-    r_min = float(plate_radius_px(cal, np.percentile(depth, 99.5), r_lo))
+    near, far = depth_range(depth_img[valid]) if near_far is None else near_far
+    r_lo, r_hi = radius_range(radius_mm)  # a size or a range
+    r_max = float(plate_radius_px(cal, near, r_hi))
+    r_min = float(plate_radius_px(cal, far, r_lo))
     blur = max(0.25 * r_min, 0.7)
     smooth = cv2.GaussianBlur(image, (0, 0), blur)
     # the seeds are compared with the noise of the smoothed image (a Gaussian of SD s passes
@@ -182,7 +231,7 @@ def candidate_blobs_at(image, points, cal, noise, radius_mm, ring_background: bo
             # the seed must stand out from that surround as seeds do from the opening
             stands = bg is not None and smooth[v, u] - bg > max(CONFIG.min_relative_contrast * bg,
                                                                  CONFIG.min_contrast_sigmas * noise)
-            if stands:
+            if stands and bg is not None:
                 blob = cut_blob(smooth, (u, v), bg, half)
                 if blob is not None:
                     blob["ring_cut"] = True
@@ -202,7 +251,7 @@ def _without_outlines(smooth: np.ndarray, valid: np.ndarray, jump: np.ndarray) -
     return np.where(valid & ~jump, smooth, -np.inf).astype(np.float32), jump
 
 
-def _depth_cut(masked, jump, seed, bg, half):
+def _depth_cut(masked: np.ndarray, jump: np.ndarray, seed: tuple[int, int], bg: float, half: int) -> Blob | None:
     """``cut_blob`` again in ``masked`` (``_without_outlines``): a mark on the leg's outline,
     seen against a table about as bright as its face far behind, leaks into the table at any
     brightness cut (lateral ankle plates seen at 70-73° at 20/+20 had no blob).
@@ -218,7 +267,7 @@ def _depth_cut(masked, jump, seed, bg, half):
     return blob
 
 
-def _depth_steps(depth) -> np.ndarray:
+def _depth_steps(depth: np.ndarray) -> np.ndarray:
     """(h, w) bool: pixels within CONFIG.depth_step_reach_px of decoded depths more than CONFIG.depth_step_mm
     apart. Not neighbours alone: the pixels at an outline mix the two surfaces and are mostly
     undecoded (up to half the ring round a plate there, a band 3-4 px wide, which 2 px of
@@ -230,7 +279,8 @@ def _depth_steps(depth) -> np.ndarray:
     return (hi - lo) > CONFIG.depth_step_mm
 
 
-def ring_level(smooth, valid, seed, cal, points, radius_mm):
+def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal: Calibration, points: np.ndarray,
+               radius_mm: float) -> float | None:
     """Median of the decoded pixels 1.6-2.6 plate radii from ``seed`` (None if the seed has no
     3-D point, or fewer than a third of the ring is decoded): the surface around a plate."""
     u, v = seed
@@ -251,7 +301,7 @@ def ring_level(smooth, valid, seed, cal, points, radius_mm):
 
 
 
-def cut_blob(smooth, seed, bg, half):
+def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) -> Blob | None:
     """The connected region around ``seed`` above half-way between its level and the
     background; None where it reaches its window's border inside the image. ``blob["wider"]``,
     where present: the same from a lower first cut (see CONFIG.first_cut)."""
@@ -260,7 +310,7 @@ def cut_blob(smooth, seed, bg, half):
     y0, y1, x0, x1 = max(v - half, 0), min(v + half + 1, H), max(u - half, 0), min(u + half + 1, W)
     roi = smooth[y0:y1, x0:x1]
     peak, bg = float(smooth[v, u]), float(bg)
-    regions = []
+    regions: list[np.ndarray | None] = []
     for first in (CONFIG.first_cut, CONFIG.wider_first_cut):
         region = _region_at(roi, (u - x0, v - y0), bg + first * (peak - bg))
         # The seed may be a brightly lit sliver of side wall; the plate's own level is its median.
@@ -268,9 +318,10 @@ def cut_blob(smooth, seed, bg, half):
         touches = ((region[0].any() and y0 > 0) or (region[-1].any() and y1 < H)
                    or (region[:, 0].any() and x0 > 0) or (region[:, -1].any() and x1 < W))
         regions.append(None if touches else region)
-    region, wider = regions
-    if region is None:
+    cut, wider = regions
+    if cut is None:
         return None
+    region = cut
     blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
             "centre": (float(u), float(v))}
     if wider is not None and wider.sum() >= CONFIG.wider_min_growth * region.sum():
@@ -278,12 +329,12 @@ def cut_blob(smooth, seed, bg, half):
     return blob
 
 
-def _region_at(roi, seed, level) -> np.ndarray:
+def _region_at(roi: np.ndarray, seed: tuple[int, int], level: float) -> np.ndarray:
     _, lab = cv2.connectedComponents((roi > level).astype(np.uint8), connectivity=8)
-    return lab == lab[seed[1], seed[0]]
+    return np.asarray(lab == lab[seed[1], seed[0]])
 
 
-def border_undecoded(blob, decoded) -> float:
+def border_undecoded(blob: Blob, decoded: np.ndarray) -> float:
     """Fraction of the pixels just outside ``blob`` (a 2-px ring round its region) that have no
     3-D point. ``decoded``: (H, W) bool, or the (H, W, 3) points image."""
     y0, x0 = blob["slice"][0].start, blob["slice"][1].start
@@ -300,7 +351,8 @@ def border_undecoded(blob, decoded) -> float:
     return float(1.0 - hit.mean())
 
 
-def predicted_disk(points, cal: Calibration, centre, radius_mm: float, thickness: float = 0.0):
+def predicted_disk(points: np.ndarray, cal: Calibration, centre: tuple[float, float], radius_mm: float,
+                   thickness: float = 0.0) -> dict[str, Any] | None:
     """The image of a disk of ``radius_mm`` lying on the surface near pixel ``centre``: a dict
     with the filled outline ``mask`` (odd-sized, centred) and ``centre``, from a plane through
     the decoded points within 2.5 radii (None where fewer than a third of them are decoded).
@@ -342,7 +394,7 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float, thickness
     face, base = face - [u, v], base - [u, v]
     half = int(math.ceil(max(np.abs(face).max(), np.abs(base).max()))) + 1
 
-    def filled(poly):
+    def filled(poly: np.ndarray) -> np.ndarray:
         mask = np.zeros((2 * half + 1, 2 * half + 1), np.uint8)
         cv2.fillPoly(mask, [np.round(poly + half).astype(np.int32)], 1)
         return mask.astype(bool)
@@ -354,7 +406,7 @@ def predicted_disk(points, cal: Calibration, centre, radius_mm: float, thickness
     return {"mask": filled(hull) | face_mask, "face": face_mask, "centre": (u, v)}
 
 
-def disk_contrast_peak(image, disk, reach: float = 1.0):
+def disk_contrast_peak(image: np.ndarray, disk: dict[str, Any], reach: float = 1.0) -> Blob | None:
     """Where ``disk``'s outline (``predicted_disk``), slid within ``reach`` of its own size
     round its centre, holds the most light over a ring just outside it (a pixel clear of the
     outline, about a fifth of its size wide): a blob of that outline there, of the ``face``
@@ -393,7 +445,7 @@ def disk_contrast_peak(image, disk, reach: float = 1.0):
             "origin": (cu - half - 1, cv_ - half - 1), "centre": (float(cu), float(cv_)), "predicted": True}
 
 
-def blob_shape(blob):
+def blob_shape(blob: Blob) -> dict[str, Any] | None:
     """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
     region = blob["region"].astype(np.uint8)
     x0, y0 = blob["origin"]
@@ -409,7 +461,7 @@ def blob_shape(blob):
             "fill": poly / max(math.pi * d1 * d2 / 4, 1e-9), "solidity": poly / max(hull, 1e-9)}
 
 
-def ellipse_pixels(shape: dict, fraction: float, img_shape) -> np.ndarray:
+def ellipse_pixels(shape: dict[str, Any], fraction: float, img_shape: tuple[int, ...]) -> np.ndarray:
     """Integer (u, v) pixels inside the blob's ellipse shrunk by ``fraction``."""
     (cx, cy), (a, b) = shape["centre"], shape["axes"]
     h, w = img_shape[:2]

@@ -7,6 +7,7 @@ write RESULT.json unless all seven marks are found and labelled, and writes it a
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, estimate_motion, scan_duration_s
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
+from anklescan.core.scan.triangulate import prepare
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -126,13 +128,17 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     check_compatible(capture, calibration)
     decoded = decode(capture)
     cloud = cloud_from_decoded(capture, calibration, decoded)
-    lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
-    marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
-    summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
-    motion = estimate_motion(capture, calibration, decoded, cloud)
-    angles, shares, joint = honest_angles(marks, calibration, motion)
-    warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
-    warnings += frame_warnings(calibration.extra, cloud.points, calibration.camera.center)
+    # the frame check needs the cloud alone: on a thread while the marks are found (its numpy
+    # work releases the GIL; a plain executor joined here, as in the command: no Qt in core)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        frame_check = pool.submit(frame_warnings, calibration.extra, cloud.points, calibration.camera.center)
+        lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
+        marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
+        summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
+        motion = estimate_motion(capture, calibration, decoded, cloud)
+        angles, shares, joint = honest_angles(marks, calibration, motion)
+        warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
+        warnings += frame_check.result()
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
                          scan_duration_s(capture), warnings, shares, joint)
 
@@ -149,12 +155,21 @@ def honest_angles(marks: MarkSet, calibration: Calibration, motion: MotionEstima
 
 
 def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,
-                motion_threshold_mm: float = DEFAULT_THRESHOLD_MM) -> MeasureResult:
-    """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError."""
+                motion_threshold_mm: float = DEFAULT_THRESHOLD_MM,
+                loading: Future[Capture] | None = None) -> MeasureResult:
+    """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError.
+    ``loading``: ``load_capture(capture_dir)`` already running on a thread (the command starts it
+    before importing this module, so that the frames are read while the modules load)."""
     if mark_diameter_mm is not None and not (np.isfinite(mark_diameter_mm) and mark_diameter_mm > 0):
         raise AnkleScanError(f"--mark-diameter must be a positive number of mm, not {mark_diameter_mm}")
     cal = load_calibration(calibration_path)
-    capture = load_capture(capture_dir)
+    # the calibration's grids are built on a thread while the frames are read (PNG decoding
+    # leaves the cores part idle), as ``anklescan reconstruct`` does; ``loading``: the capture
+    # already being read by the caller (its error, if any, comes after the calibration's)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ready = pool.submit(prepare, cal)
+        capture = load_capture(capture_dir) if loading is None else loading.result()
+        ready.result()
     result = measure_capture(capture, cal, mark_diameter_mm, motion_threshold_mm=motion_threshold_mm)
     # marks lost on a trial that moved: the motion (measured without the marks) is the likely cause
     moved = f"{result.motion_message()}, the likely cause; " if result.motion_flagged else ""
