@@ -117,9 +117,9 @@ class ManualCalibration:
 
     def refine_projector_spot(self, corner_uv, steered, on_done) -> None:
         """Show the eight edge frames around the spot and photograph each (app.acquisition), read
-        the projector coordinate at the corner (anklescan.core.calibration.projector_spot), all in
+        the projector coordinate at the corner (anklescan.core.calibration.procedures.projector_spot), all in
         the background; then show the spot where it was read and call ``on_done(SpotRefinement)``."""
-        from anklescan.core.calibration.projector_spot import SpotRefinement, refine_spot, refinement_frames
+        from anklescan.core.calibration.procedures.projector_spot import SpotRefinement, refine_spot, refinement_frames
         self._refining = True
         live = self._timer.isActive()
         self._timer.stop()  # the preview would photograph the edge frames as if they were the spot
@@ -158,7 +158,7 @@ class ManualCalibration:
                 X[proj], np.array([self._manual_proj[i] for i in proj]).reshape(-1, 2))
 
     def calibrate_manual(self) -> bool:
-        from anklescan.core.calibration.calibrate import calibrate_points
+        from anklescan.core.calibration.procedures.calibrate import calibrate_points
         cam_xyz, cam_uv, proj_xyz, proj_uv = self.manual_observations()
         size_c, size_p = self.camera_size, tuple(self.projector.projector_size)
         try:

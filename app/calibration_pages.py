@@ -204,7 +204,7 @@ class WizardPages:
         return w
 
     def _build_verify(self) -> QWidget:
-        from anklescan.core.calibration.verification import PASS_MAX_MM, PASS_RMS_MM
+        from anklescan.core.calibration.procedures.verification import PASS_MAX_MM, PASS_RMS_MM
         w, v = self._page("Verify the calibration", "One scan of the box, reconstructed at its marker corners with "
                           "the current calibration. Distances between marker centres are compared with the box "
                           f"drawing. Pass: RMS error ≤ {PASS_RMS_MM:g} mm and every distance within "

@@ -3,18 +3,19 @@
 Steps (one dialog, a step list on the left):
 1. Place the box — live preview with the detected markers outlined. Beside it, a printed chessboard:
    scan it in two or more poses (the first laid flat on the level table), then calibrate from the
-   board views (anklescan.core.calibration.board); the report and the rest of the flow are the box's.
+   board views (anklescan.core.calibration.procedures.board); the report and the rest of the flow are the box's.
 2. Scan the box — column AND row patterns through app.scan_worker and app.acquisition (the one
    show → painted → settle → capture sequence, in the background, as a patient scan), so the
    projector gets the full 2-D model.
 3. Quality report — RMS, residual arrows on the image, standard errors, flagged points; Accept.
 4. Manual (paper §3.2-3.3) — click each marker corner (zoom, cornerSubPix refinement, undo),
    then steer the projector spot onto it and record the spot's projector position, refined
-   (unless switched off) to the clicked corner by eight local edge frames (anklescan.core.calibration.projector_spot).
+   (unless switched off) to the clicked corner by eight local edge frames (anklescan.core.calibration.procedures.projector_spot).
 5. Verify — a scan of the box reconstructed at the marker corners; distances between marker
-   centres against the box drawing (anklescan.core.calibration.verification). Beside it, Level: a scan of the reference
-   table set level brings the current calibration into the clinic's frame (anklescan.core.calibration.levelling, SPEC §1)
-   and saves it as a new version — for imported calibrations and boards not laid square.
+   centres against the box drawing (anklescan.core.calibration.procedures.verification). Beside it,
+   Level: a scan of the reference table set level brings the current calibration into the clinic's
+   frame (anklescan.core.calibration.procedures.levelling, SPEC §1) and saves it as a new version —
+   for imported calibrations and boards not laid square.
 
 Accepting saves the file atomically in ``<data>/calibrations/``, adds a versioned row to the
 sessions database and makes it the current calibration (app.settings), which the main window uses
@@ -77,7 +78,7 @@ def preview_frame(acquisition, detect: bool):
     frame = acquisition.capture()
     if not detect:
         return frame, gray_rgb(frame), None
-    from anklescan.core.calibration.box import detect_markers
+    from anklescan.core.calibration.procedures.box import detect_markers
     found = detect_markers(frame, refine_edges=False)  # outlines only: no need for edge-fitted corners
     return frame, draw_outlines(frame, found), len(found)
 
@@ -86,7 +87,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     """The calibration dialog. ``rig`` is app.rig.Rig, ``projector`` the ProjectorWindow."""
 
     calibrationAccepted = Signal(object, object, str)  # Calibration, database id or None, file path
-    verificationDone = Signal(object)  # anklescan.core.calibration.verification.VerificationResult
+    verificationDone = Signal(object)  # anklescan.core.calibration.procedures.verification.VerificationResult
 
     def __init__(self, rig, projector, *, store=None, data_folder: Path | None = None, settle_s: float = 0.03,
                  parent=None):

@@ -47,7 +47,7 @@ def cmd_patterns(args) -> int:
     if args.axes:
         axes, why = tuple(a.strip() for a in args.axes.split(",")), "as asked"
     elif args.calibration:
-        from anklescan.core.calibration.file import load_calibration
+        from anklescan.core.calibration.model.file import load_calibration
         from anklescan.core.scan.triangulate import scan_axes
 
         cal = load_calibration(args.calibration)
@@ -74,7 +74,7 @@ def cmd_patterns(args) -> int:
 def cmd_reconstruct(args) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
-    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.model.file import load_calibration
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.pointcloud import write_ply
     from anklescan.core.scan.reconstruct import reconstruct
@@ -104,26 +104,26 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_calibrate_points(args) -> int:
-    from anklescan.core.calibration.calibrate import run_calibrate_points
+    from anklescan.core.calibration.procedures.calibrate import run_calibrate_points
 
     report = run_calibrate_points(args.camera, args.projector, args.out,
                                   camera_size=args.camera_size, projector_size=args.projector_size)
     print(report.format_text())
-    from anklescan.core.calibration.file import load_calibration, volume_text
+    from anklescan.core.calibration.model.file import load_calibration, volume_text
     print(volume_text(load_calibration(args.out)))
     print(f"wrote calibration to {args.out}")
     return 0
 
 
 def cmd_calibrate_box(args) -> int:
-    from anklescan.core.calibration.box import calibrate_from_box_captures, position_summary
-    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.calibration.model.file import save_calibration
+    from anklescan.core.calibration.procedures.box import calibrate_from_box_captures, position_summary
 
     Progress(args.quiet)(f"reading {len(args.captures)} box capture(s)")
     cal, report, positions = calibrate_from_box_captures(args.captures)
     save_calibration(cal, args.out)
     print(report.format_text())
-    from anklescan.core.calibration.file import volume_text
+    from anklescan.core.calibration.model.file import volume_text
     print(volume_text(cal))
     for line in position_summary(positions):
         print(line)
@@ -146,8 +146,8 @@ def cmd_import_opencv_graycode(args) -> int:
 def cmd_calibrate_import(args) -> int:
     import numpy as np
 
-    from anklescan.core.calibration.file import save_calibration
-    from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
+    from anklescan.core.calibration.model.file import save_calibration
+    from anklescan.core.calibration.procedures.opencv_calibration import import_opencv_calibration
 
     cal = import_opencv_calibration(args.file, args.projector, args.camera, args.unit)
     save_calibration(cal, args.out)
@@ -161,8 +161,8 @@ def cmd_calibrate_import(args) -> int:
 
 
 def cmd_calibrate_export(args) -> int:
-    from anklescan.core.calibration.file import load_calibration
-    from anklescan.core.calibration.opencv_calibration import export_opencv_calibration
+    from anklescan.core.calibration.model.file import load_calibration
+    from anklescan.core.calibration.procedures.opencv_calibration import export_opencv_calibration
 
     export_opencv_calibration(load_calibration(args.calibration), args.out)
     print(f"wrote OpenCV FileStorage {args.out} (K1 D1 camera, K2 D2 projector, R T camera -> projector, mm)")
@@ -170,8 +170,8 @@ def cmd_calibrate_export(args) -> int:
 
 
 def cmd_calibrate_board(args) -> int:
-    from anklescan.core.calibration.board import calibrate_from_board_captures
-    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.calibration.model.file import save_calibration
+    from anklescan.core.calibration.procedures.board import calibrate_from_board_captures
 
     cols, rows = args.board
     progress = Progress(args.quiet)
@@ -179,7 +179,7 @@ def cmd_calibrate_board(args) -> int:
     result = calibrate_from_board_captures(args.captures, cols, rows, args.square, args.distortion)
     save_calibration(result.calibration, args.out)
     print(result.report.format_text())
-    from anklescan.core.calibration.file import volume_text
+    from anklescan.core.calibration.model.file import volume_text
     print(volume_text(result.calibration))
     print(f"world frame: the board of {Path(args.captures[0]).name} (z its normal, origin its corner grid's centre); "
           f"unless it lay flat on the level table, run 'anklescan calibrate level' before measuring angles")
@@ -188,8 +188,8 @@ def cmd_calibrate_board(args) -> int:
 
 
 def cmd_calibrate_level(args) -> int:
-    from anklescan.core.calibration.file import load_calibration, save_calibration
-    from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
+    from anklescan.core.calibration.model.file import load_calibration, save_calibration
+    from anklescan.core.calibration.procedures.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
 
     table = DEFAULT_TABLE if args.table_size is None else parse_table_size(args.table_size)
@@ -227,8 +227,8 @@ EXIT_CHECK_FAILED = 3  # SPEC §6: the daily check ran and the rig has drifted
 
 def cmd_check(args: argparse.Namespace) -> int:
     from anklescan.core.atomic import write_json_atomic
-    from anklescan.core.calibration.daily_check import CheckSettings, run_check
-    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.model.file import load_calibration
+    from anklescan.core.calibration.procedures.daily_check import CheckSettings, run_check
     from anklescan.core.scan.capture import load_capture
 
     progress = Progress(args.quiet)

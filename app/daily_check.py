@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from anklescan.app.main_parts import Banner
     from anklescan.app.rig_setup import RigSetup
     from anklescan.app.settings import Settings
-    from anklescan.core.calibration.daily_check import CheckResult
+    from anklescan.core.calibration.procedures.daily_check import CheckResult
 
 HISTORY_ROWS = 5
 
@@ -70,7 +70,7 @@ def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "
 
 
 class DailyCheckDialog(QDialog):
-    checkDone = Signal(object)  # anklescan.core.calibration.daily_check.CheckResult
+    checkDone = Signal(object)  # anklescan.core.calibration.procedures.daily_check.CheckResult
 
     def __init__(self, parts: DailyCheckParts, parent: QWidget | None = None):
         super().__init__(parent)

@@ -62,7 +62,7 @@ _CALIBRATIONS: dict = {}
 
 def _calibration(obj: dict):
     """One Calibration object per worker, so its triangulation cache is built once, not per trial."""
-    from anklescan.core.calibration.file import calibration_from_dict
+    from anklescan.core.calibration.model.file import calibration_from_dict
 
     key = json.dumps(obj, sort_keys=True)
     if key not in _CALIBRATIONS:
@@ -135,8 +135,8 @@ def _warm_pool(scale: float) -> ProcessPoolExecutor:
 
 
 def _calibrate(out: Path, scale: float, progress) -> dict:
-    from anklescan.core.calibration.box import calibrate_from_box_capture
-    from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+    from anklescan.core.calibration.model.file import calibration_to_dict, save_calibration
+    from anklescan.core.calibration.procedures.box import calibrate_from_box_capture
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.hardware.sim_scene import box_scene_objects, quad_scene

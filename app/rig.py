@@ -24,7 +24,7 @@ class Rig:
     projector_size: tuple[int, int]
     simulated: bool
     sim_projector: object = None     # a ProjectorOutput (hardware.simrig); fed with what the window paints
-    calibration: object = None       # anklescan.core.calibration.file.Calibration, when known
+    calibration: object = None       # anklescan.core.calibration.model.file.Calibration, when known
     sim_patient: object = None       # hardware.sim_patient.SimulatedPatient standing on the simulated rig
     stance: object = None            # hardware.sim_patient.Stance of the last trial set up
 

@@ -44,7 +44,7 @@ class ScanJob:
     camera: object                      # hardware.camera.Camera
     folder: Path                        # the capture folder (created; must not hold a capture)
     settle_s: float = 0.03
-    calibration: object = None          # anklescan.core.calibration.file.Calibration or None: capture only
+    calibration: object = None          # anklescan.core.calibration.model.file.Calibration or None: capture only
     metadata: dict = field(default_factory=dict)
     render: Callable | None = None      # (pattern_set, frame) -> uint8 array; anklescan.core.scan.patterns.render_frame
     reconstruct: Callable | None = None  # (folder, calibration) -> core.measure.pipeline.MeasureResult (measure_folder)

@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from anklescan.core.calibration import box as cb  # noqa: E402
-from anklescan.core.calibration.file import Calibration  # noqa: E402
+from anklescan.core.calibration.model.file import Calibration  # noqa: E402
+from anklescan.core.calibration.procedures import box as cb  # noqa: E402
 from anklescan.core.errors import AnkleScanError  # noqa: E402
 from anklescan.core.scan.capture import save_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402

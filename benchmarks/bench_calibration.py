@@ -21,10 +21,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from anklescan.core.calibration import paper_model as pm
-from anklescan.core.calibration.box import face_grid_points  # noqa: E402
-from anklescan.core.calibration.calibrate import calibrate_device  # noqa: E402
-from anklescan.core.calibration.device_model import Device, look_at  # noqa: E402
+from anklescan.core.calibration.model import paper_model as pm
+from anklescan.core.calibration.model.device_model import Device, look_at  # noqa: E402
+from anklescan.core.calibration.procedures.box import face_grid_points  # noqa: E402
+from anklescan.core.calibration.procedures.calibrate import calibrate_device  # noqa: E402
 
 CAMERA_SIZE, PROJECTOR_SIZE = (1600, 1200), (1024, 768)
 
@@ -58,7 +58,7 @@ def rotation_error_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 
 def gauge_fixed(Pn: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """The truth moved to the estimator's gauge (see anklescan.core.calibration.calibrate)."""
+    """The truth moved to the estimator's gauge (see anklescan.core.calibration.procedures.calibrate)."""
     P = Pn.copy()
     P[4] = -pm.rotation_from_rpy(*P[:3])[1] @ X.mean(axis=0)
     return P
@@ -126,7 +126,7 @@ def reconstruction_error_mm(camera: Device, projector: Device, Cn: np.ndarray, P
 
 
 def trial(seed: int, noise: float, per_side: int = 7, size: float = 400.0) -> dict:
-    from anklescan.core.calibration.calibrate import initial_camera_vector
+    from anklescan.core.calibration.procedures.calibrate import initial_camera_vector
     X, uv, u, Cn, Pn = synthetic(seed, noise, per_side, size)
     t0 = time.perf_counter()
     cam, cq = calibrate_device(X, uv, "camera", CAMERA_SIZE)

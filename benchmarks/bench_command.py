@@ -45,7 +45,7 @@ def make_capture(work: Path, layout: str, axes: tuple[str, ...] | None, scale: f
     folder, cal_path = work / f"capture_{tag}", work / f"calibration_{layout}.json"
     if (folder / "manifest.json").exists() and cal_path.exists():
         return folder, cal_path
-    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.calibration.model.file import save_calibration
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.core.scan.triangulate import scan_axes

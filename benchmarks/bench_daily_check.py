@@ -15,8 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from anklescan.core.calibration.daily_check import run_check
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.calibration.procedures.daily_check import run_check
 from anklescan.core.scan.capture import load_capture, save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.hardware.sim_check import CheckObject, MarkStyle, check_scene, nudged_device, rotated_frame

@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from anklescan.core.calibration.file import save_calibration  # noqa: E402
+from anklescan.core.calibration.model.file import save_calibration  # noqa: E402
 from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
 from anklescan.hardware.simrig import SimRig  # noqa: E402

@@ -22,10 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from anklescan.core.calibration.box import face_grid_points  # noqa: E402
-from anklescan.core.calibration.calibrate import calibrate_points  # noqa: E402
-from anklescan.core.calibration.file import Calibration  # noqa: E402
-from anklescan.core.calibration.levelling import level_calibration, parse_table_size  # noqa: E402
+from anklescan.core.calibration.model.file import Calibration  # noqa: E402
+from anklescan.core.calibration.procedures.box import face_grid_points  # noqa: E402
+from anklescan.core.calibration.procedures.calibrate import calibrate_points  # noqa: E402
+from anklescan.core.calibration.procedures.levelling import level_calibration, parse_table_size  # noqa: E402
 from anklescan.core.errors import AnkleScanError  # noqa: E402
 from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402

@@ -40,7 +40,7 @@ import numpy, cv2
 lap("interpreter, numpy, cv2")
 from anklescan.core.measure import pipeline as P
 lap("import the measure stage")
-from anklescan.core.calibration.file import load_calibration
+from anklescan.core.calibration.model.file import load_calibration
 from anklescan.core.scan.capture import load_capture
 cal = load_calibration(sys.argv[2])
 capture = load_capture(sys.argv[1])

@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from anklescan.core.calibration.file import save_calibration  # noqa: E402
+from anklescan.core.calibration.model.file import save_calibration  # noqa: E402
 from anklescan.core.scan.capture import load_capture, save_capture  # noqa: E402
 from anklescan.core.scan.decode import decode  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
@@ -43,7 +43,7 @@ def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
 
 
 def box_calibration(rig: SimRig, work: Path):
-    from anklescan.core.calibration.box import calibrate_from_box_capture
+    from anklescan.core.calibration.procedures.box import calibrate_from_box_capture
     from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
 
     box = rig.with_scene(quad_scene(box_scene_objects()))

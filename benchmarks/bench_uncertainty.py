@@ -4,7 +4,7 @@
 
 The cheap sweep the docs' table comes from (docs/performance.md, "Honest ±"): the simulator's
 true rig (hardware/simrig.py: OpenCV distortion with k1, k2 and tangential terms, which the
-paper's model lacks) projects the calibration box's control points (core/calibration/box.py's
+paper's model lacks) projects the calibration box's control points (core/calibration/procedures/box.py's
 face grid), with Gaussian pixel noise, and `calibrate_points` fits the paper's model, once with
 the box where it stands and once with a second copy raised by --raise mm (the box at the knee's
 height too). The simulated leg's seven true mark centres (hardware/sim_scene.py, several
@@ -29,13 +29,13 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from anklescan.core.calibration.box import face_grid_points  # noqa: E402
-from anklescan.core.calibration.calibrate import calibrate_points  # noqa: E402
-from anklescan.core.calibration.file import (  # noqa: E402
+from anklescan.core.calibration.model.file import (  # noqa: E402
     Calibration,
     calibrated_volume,
     parameter_covariance,  # noqa: E402
 )
+from anklescan.core.calibration.procedures.box import face_grid_points  # noqa: E402
+from anklescan.core.calibration.procedures.calibrate import calibrate_points  # noqa: E402
 from anklescan.core.measure.angles import compute_angles  # noqa: E402
 from anklescan.core.measure.uncertainty import calibration_jacobian, position_uncertainty  # noqa: E402
 from anklescan.core.scan.triangulate import triangulate_points  # noqa: E402
@@ -91,12 +91,12 @@ BOARD = (9, 7, 40.0)  # inner corners and square (mm) of the simulated chessboar
 
 def board_calibration(truth: Calibration, noise_px: float, rng: np.random.Generator
                       ) -> tuple[Calibration, np.ndarray, np.ndarray]:
-    """A chessboard calibration (core/calibration/board.py) from the simulator's four board poses,
+    """A chessboard calibration (core/calibration/procedures/board.py) from the simulator's four board poses,
     corners and projector points projected through the true rig with noise; and (B, b): the
     board calibration's world = B @ (true world) + b (its frame is the first board's)."""
     import cv2
 
-    from anklescan.core.calibration.board import BoardView, board_points, board_world_frame, calibrate_board_views
+    from anklescan.core.calibration.procedures.board import BoardView, board_points, board_world_frame, calibrate_board_views
     from anklescan.hardware.sim_board import board_views
 
     cols, rows, square = BOARD

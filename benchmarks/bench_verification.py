@@ -3,7 +3,7 @@
     python benchmarks/bench_verification.py [--scale 1.0] [--seed 11]
 
 One simulated scan of the calibration box (column and row patterns) is calibrated as the app's
-guided flow does (``anklescan.core.calibration.box.calibrate_from_box_capture``: the same corners, the
+guided flow does (``anklescan.core.calibration.procedures.box.calibrate_from_box_capture``: the same corners, the
 same windows); a second scan of the box, with fresh noise, is verified with that calibration
 and with the rig's true one. Prints the focal-length errors, the corner error against the
 simulator's truth, and the verification's RMS and worst distance error (target ≤ 0.2 mm).
@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from anklescan.core.calibration import box as cb
-from anklescan.core.calibration.verification import verify_box_capture  # noqa: E402
+from anklescan.core.calibration.procedures import box as cb
+from anklescan.core.calibration.procedures.verification import verify_box_capture  # noqa: E402
 from anklescan.core.scan.capture import save_capture  # noqa: E402
 from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E402
 from anklescan.hardware.sim_scene import box_scene_objects, quad_scene  # noqa: E402

@@ -2,11 +2,12 @@
 
     PYTHONPATH=. python benchmarks/real_data_figures.py ../shared/realdata/procam-calibration
 
-For every pair of captures: a chessboard calibration from the pair (anklescan.core.calibration.board), then
-the third capture measured (anklescan.core.calibration.board_metrics): the pitch of its corners in 3-D and the flatness of
-its board against the cloud's predicted noise.  Then the author's calibration_result.xml, imported,
+For every pair of captures: a chessboard calibration from the pair
+(anklescan.core.calibration.procedures.board), then the third capture measured
+(anklescan.core.calibration.procedures.board_metrics): the pitch of its corners in 3-D and the flatness of its board
+against the cloud's predicted noise.  Then the author's calibration_result.xml, imported,
 on each capture.  The clouds triangulate the camera ray against the projector ray of both decoded
-codes (anklescan.core.calibration.board_metrics.triangulate_both).
+codes (anklescan.core.calibration.procedures.board_metrics.triangulate_both).
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.calibration.board import DEFAULT_DIST, calibrate_board_views, observe_board
-from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
-from anklescan.core.calibration.opencv_calibration import import_opencv_calibration
+from anklescan.core.calibration.procedures.board import DEFAULT_DIST, calibrate_board_views, observe_board
+from anklescan.core.calibration.procedures.board_metrics import measure_board, triangulate_both
+from anklescan.core.calibration.procedures.opencv_calibration import import_opencv_calibration
 from anklescan.core.scan.capture import load_capture
 from anklescan.core.scan.decode import decode
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode

@@ -145,7 +145,7 @@ class Patient:
 @dataclass(frozen=True)
 class CalibrationRecord:
     """A calibration as the database keeps it (its file as JSON text, with provenance); the
-    calibration itself is ``anklescan.core.calibration.file.Calibration``."""
+    calibration itself is ``anklescan.core.calibration.model.file.Calibration``."""
     id: int
     created: str
     json: str

@@ -25,8 +25,8 @@ from enum import Enum
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.hardware.sim_scene import (
     _EPS_T,
     Box,

@@ -667,10 +667,10 @@ def angles_from_marks(marks: dict) -> dict:
 
 
 def box_scene_objects(px_per_mm: float = 4.0, pose=None) -> list:
-    """The calibration box (anklescan.core.calibration.box's faces and markers) as simulator objects,
+    """The calibration box (anklescan.core.calibration.procedures.box's faces and markers) as simulator objects,
     at ``pose`` (a ``BoxPose``: e.g. ``BoxPose.placed(lift_mm=300)``, the box raised to the knee on a
     stand, or turned on the floor); default: its documented place, which defines the world frame."""
-    from anklescan.core.calibration.box import face_placements
+    from anklescan.core.calibration.procedures.box import face_placements
 
     return [TexturedQuad(origin=p["origin"], u_axis=p["u_axis"], v_axis=p["v_axis"], texture=p["texture"])
             for p in face_placements(px_per_mm, pose)]

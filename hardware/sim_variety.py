@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_scene import DEFAULT_TABLE_MARKS, leg_scene, table_normal
 from anklescan.hardware.simrig import (

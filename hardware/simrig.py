@@ -20,8 +20,8 @@ import numpy as np
 import scipy.sparse
 from threadpoolctl import threadpool_limits
 
-from anklescan.core.calibration.device_model import Device, look_at
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.device_model import Device, look_at
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.vocabulary import LABEL_KEYS, Axis
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene

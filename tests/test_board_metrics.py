@@ -1,10 +1,10 @@
-"""anklescan.core.calibration.board_metrics on exact synthetic geometry: the pitch and flatness measures themselves."""
+"""anklescan.core.calibration.procedures.board_metrics on exact synthetic geometry: the pitch and flatness measures themselves."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from anklescan.core.calibration.board_metrics import fit_plane, measure_board, triangulate_both
+from anklescan.core.calibration.procedures.board_metrics import fit_plane, measure_board, triangulate_both
 from anklescan.hardware.sim_board import inner_corners_world, rotation
 from anklescan.hardware.simrig import SimRig
 

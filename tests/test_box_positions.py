@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anklescan.core.calibration import box as cb
-from anklescan.core.calibration.file import Calibration, load_calibration
-from anklescan.core.calibration.frame import frame_alignment
+from anklescan.core.calibration.model.file import Calibration, load_calibration
+from anklescan.core.calibration.procedures import box as cb
+from anklescan.core.calibration.procedures.frame import frame_alignment
 from anklescan.core.measure.pipeline import measure_capture
 from anklescan.core.scan.capture import load_capture, save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
@@ -150,7 +150,7 @@ def test_a_turned_box_warns_until_levelled(boxes, table_cal, true_cal, tmp_path)
     # levelled from a scan of the reference table: no warning, angles right
     from test_levelling import reference_table_scene
 
-    from anklescan.core.calibration.levelling import level_calibration
+    from anklescan.core.calibration.procedures.levelling import level_calibration
 
     table_rig = SimRig(reference_table_scene(), scale=SCALE, seed=5)
     pset = make_pattern_set("default", table_rig.projector.width, table_rig.projector.height, axes=("column",))
@@ -162,7 +162,7 @@ def test_a_turned_box_warns_until_levelled(boxes, table_cal, true_cal, tmp_path)
 
 
 def test_frame_provenance_decides_what_needs_checking():
-    from anklescan.core.calibration.frame import FrameAlignment, FrameSource, frame_source
+    from anklescan.core.calibration.procedures.frame import FrameAlignment, FrameSource, frame_source
 
     assert frame_source({}) == FrameSource.UNKNOWN and frame_source({"frame_source": "nonsense"}) == FrameSource.UNKNOWN
     assert frame_source({"frame_source": "levelled"}) == FrameSource.LEVELLED

@@ -10,9 +10,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_calibration as bench  # noqa: E402
 
-from anklescan.core.calibration import calibrate as cal
-from anklescan.core.calibration import paper_model as pm
-from anklescan.core.calibration.file import load_calibration  # noqa: E402
+from anklescan.core.calibration.model import paper_model as pm
+from anklescan.core.calibration.model.file import load_calibration  # noqa: E402
+from anklescan.core.calibration.procedures import calibrate as cal
 from anklescan.core.errors import CalibrationError, GeometryError  # noqa: E402
 
 CAM, PROJ = bench.CAMERA_SIZE, bench.PROJECTOR_SIZE
@@ -101,7 +101,7 @@ def test_calibrate_points_builds_spec_devices(noisy):
 
 def test_two_d_projector_uses_camera_model():
     X, _, _, _, _ = bench.synthetic(seed=1, noise=0.0, per_side=5)
-    from anklescan.core.calibration.device_model import Device, look_at
+    from anklescan.core.calibration.model.device_model import Device, look_at
     R, t = look_at([250.0, 1150.0, 820.0], [0.0, 0.0, 150.0])
     Pn2 = pm.device_to_camera(Device(*PROJ, [[1700.0, 0, 520.0], [0, 1702.0, 390.0], [0, 0, 1]], [], R, t))
     Pn2[10] = 0.03

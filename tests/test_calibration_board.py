@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.board import board_world_frame, calibrate_from_board_captures
+from anklescan.core.calibration.procedures.board import board_world_frame, calibrate_from_board_captures
 from anklescan.core.scan.capture import save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.hardware.sim_board import board_views
@@ -78,7 +78,7 @@ def test_board_world_frame_does_not_depend_on_the_corner_order():
 
 def test_board_records_volume_and_covariance(board_calibration):
     """SPEC §4: the span of every view's corners in world mm, and the fit's covariance in the file's form."""
-    from anklescan.core.calibration.file import calibrated_volume, parameter_covariance
+    from anklescan.core.calibration.model.file import calibrated_volume, parameter_covariance
 
     rig, views, result = board_calibration
     cal = result.calibration

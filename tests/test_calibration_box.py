@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration import box as cb
+from anklescan.core.calibration.procedures import box as cb
 
 
 def test_corners_lie_on_their_faces_and_ids_are_unique():

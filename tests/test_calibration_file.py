@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import calibration_from_dict, calibration_to_dict, load_calibration, save_calibration
+from anklescan.core.calibration.model.file import calibration_from_dict, calibration_to_dict, load_calibration, save_calibration
 from anklescan.core.errors import CalibrationError
 from anklescan.hardware.simrig import SimRig
 

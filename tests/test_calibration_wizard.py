@@ -329,7 +329,7 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     from scipy.spatial.transform import Rotation
 
     from anklescan.app.calibration_wizard import PAGE_VERIFY, accept_calibration, load_current_calibration
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.file import Calibration
     from anklescan.core.measure.angles import compute_angles
     from anklescan.hardware.sim_scene import leg_scene
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+from anklescan.core.calibration.model.file import calibration_to_dict, save_calibration
 from anklescan.core.scan.capture import save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.core.scan.pointcloud import read_ply

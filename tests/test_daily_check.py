@@ -14,8 +14,8 @@ import pytest
 
 from anklescan.app.cli import main
 from anklescan.app.logic.settings import CheckPolicy, MemorySettings
-from anklescan.core.calibration.daily_check import CheckSettings, run_check, table_angles
-from anklescan.core.calibration.file import save_calibration
+from anklescan.core.calibration.model.file import save_calibration
+from anklescan.core.calibration.procedures.daily_check import CheckSettings, run_check, table_angles
 from anklescan.core.scan.capture import load_capture, save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.hardware.sim_check import (
@@ -172,7 +172,7 @@ def test_command_exit_code_from_a_real_process(rig_files):
 @pytest.fixture(scope="module")
 def results(rig_files):
     """A passed and a failed check of the same capture (true and tilted calibrations)."""
-    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.model.file import load_calibration
     work, _ = rig_files
     cap = load_capture(work / "wedge")
     return (run_check(cap, load_calibration(work / "true.json"), INV, PF),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from anklescan.core.calibration.file import Calibration, load_calibration, save_calibration
+from anklescan.core.calibration.model.file import Calibration, load_calibration, save_calibration
 from anklescan.core.measure.angles import compute_angles
 from anklescan.core.scan.capture import save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
@@ -126,7 +126,7 @@ def frame_error_deg(levelled: Calibration, true: Calibration) -> tuple[float, fl
 
 def write_control_points(folder: Path, true: Calibration, seed: int, noise_px: float) -> tuple[Path, Path]:
     """The paper's path: 75 points on a 200 mm box seen through the true rig with Gaussian pixel noise."""
-    from anklescan.core.calibration.box import face_grid_points
+    from anklescan.core.calibration.procedures.box import face_grid_points
 
     rng = np.random.default_rng(seed)
     X = face_grid_points(5, margin_mm=20.0, size=200.0)

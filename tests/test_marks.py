@@ -264,8 +264,8 @@ def test_leg_marks_labelled_without_the_table_triple(inv, pf, drop):
 def test_shading_correction_recovers_albedo_on_a_curved_surface():
     """A cylinder lit from the side: the lit image falls with cos(incidence) / d², the
     corrected one is flat (∝ albedo) wherever the light reaches at a usable angle."""
-    from anklescan.core.calibration.device_model import Device, look_at
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.device_model import Device, look_at
+    from anklescan.core.calibration.model.file import Calibration
     from anklescan.core.measure.mark_candidates import shading_corrected
 
     R, t = look_at([0.0, 1000.0, 0.0], [0.0, 0.0, 0.0])

@@ -43,7 +43,7 @@ def test_format_text_lists_marks_and_angles():
 def plain_plane_capture(tmp_path_factory, request):
     """A scan of a bare board on the floor: no marks at all (with row patterns too, as the
     calibration box's capture has: measuring that one once failed with an internal error)."""
-    from anklescan.core.calibration.file import save_calibration
+    from anklescan.core.calibration.model.file import save_calibration
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.hardware.sim_scene import Box, ObjectId, quad_scene

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.special
 
-from anklescan.core.calibration import levelling
+from anklescan.core.calibration.procedures import levelling
 from anklescan.core.measure.mark_edges import normal_cdf
 
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import save_calibration
+from anklescan.core.calibration.model.file import save_calibration
 from anklescan.core.errors import AnkleScanError, CaptureError
 from anklescan.core.measure.pipeline import measure_capture, run_measure
 from anklescan.core.records.store import Store

@@ -10,8 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import load_calibration, save_calibration
-from anklescan.core.calibration.opencv_calibration import export_opencv_calibration, import_opencv_calibration, relative_pose
+from anklescan.core.calibration.model.file import load_calibration, save_calibration
+from anklescan.core.calibration.procedures.opencv_calibration import (
+    export_opencv_calibration,
+    import_opencv_calibration,
+    relative_pose,
+)
 from anklescan.core.errors import CalibrationError
 from anklescan.hardware.simrig import SimRig
 

@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from anklescan.core.calibration import paper_model as pm
-from anklescan.core.calibration.device_model import Device, look_at
+from anklescan.core.calibration.model import paper_model as pm
+from anklescan.core.calibration.model.device_model import Device, look_at
 from anklescan.core.errors import CalibrationError
 
 R_CAM, T_CAM = look_at([650.0, 1050.0, 750.0], [0.0, 0.0, 140.0])

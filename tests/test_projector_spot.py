@@ -1,10 +1,10 @@
-"""Refining a steered projector spot to the camera's control point (anklescan.core.calibration.projector_spot)."""
+"""Refining a steered projector spot to the camera's control point (anklescan.core.calibration.procedures.projector_spot)."""
 
 import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration import projector_spot as ps
+from anklescan.core.calibration.procedures import projector_spot as ps
 
 PROJECTOR = (320, 240)
 CAMERA = (200, 160)

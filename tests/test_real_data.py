@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.board import calibrate_board_views, observe_board, observe_board_maps
-from anklescan.core.calibration.board_metrics import measure_board, triangulate_both
+from anklescan.core.calibration.procedures.board import calibrate_board_views, observe_board, observe_board_maps
+from anklescan.core.calibration.procedures.board_metrics import measure_board, triangulate_both
 from anklescan.core.scan.capture import load_capture
 from anklescan.core.scan.decode import decode
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode
@@ -122,7 +122,7 @@ def test_author_calibration_imported_measures_the_board(capture_1, tmp_path):
     done = run("calibrate", "import", DATA / "calibration_result.xml", "--projector", "2048x1536",
                "--out", tmp_path / "author.json")
     assert done.returncode == 0, done.stderr
-    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.model.file import load_calibration
 
     cal = load_calibration(tmp_path / "author.json")
     assert np.allclose(cal.camera.R, np.eye(3)) and np.allclose(cal.camera.t, 0)  # world = camera

@@ -22,7 +22,7 @@ import pytest
 
 from anklescan.app.cli import main
 from anklescan.core.atomic import guard_output, temp_affixes
-from anklescan.core.calibration.file import save_calibration
+from anklescan.core.calibration.model.file import save_calibration
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.limits import MAX_IMAGE_SIDE, load_json
 from anklescan.core.records.store import APPLICATION_ID, Store

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import calibration_from_dict, calibration_to_dict
+from anklescan.core.calibration.model.file import calibration_from_dict, calibration_to_dict
 from anklescan.core.errors import AnkleScanError
 from anklescan.hardware.camera import CameraDisconnected
 from anklescan.hardware.sim_scene import ObjectId, Scene, TexturedQuad, angles_from_marks, leg_scene, quad_scene, table_normal

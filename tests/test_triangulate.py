@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.device_model import Device, look_at
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.device_model import Device, look_at
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.errors import GeometryError
 from anklescan.core.scan.triangulate import triangulate_columns
 

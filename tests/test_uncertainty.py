@@ -15,14 +15,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_uncertainty as bench  # noqa: E402
 
-from anklescan.core.calibration.file import (  # noqa: E402
+from anklescan.core.calibration.model.file import (  # noqa: E402
     Calibration,
     calibrated_volume,
     load_calibration,
     parameter_covariance,
     save_calibration,
 )
-from anklescan.core.calibration.levelling import apply_level  # noqa: E402
+from anklescan.core.calibration.procedures.levelling import apply_level  # noqa: E402
 from anklescan.core.errors import CalibrationError  # noqa: E402
 from anklescan.core.measure.angles import compute_angles  # noqa: E402
 from anklescan.core.measure.measure_warnings import WarningContext, measure_warnings  # noqa: E402

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from anklescan.core.calibration import box as cb
-from anklescan.core.calibration import verification as ver
+from anklescan.core.calibration.procedures import box as cb
+from anklescan.core.calibration.procedures import verification as ver
 from anklescan.core.errors import CalibrationError
 from anklescan.core.scan.triangulate import triangulate_points
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from anklescan.core.calibration.file import device_from_dict, device_to_dict
+from anklescan.core.calibration.model.file import device_from_dict, device_to_dict
 from anklescan.core.errors import AnkleScanError, CaptureError
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_fit import step_kind
@@ -114,7 +114,7 @@ def test_text_enums_print_as_their_values():
 
 
 def test_device_kind_accepts_the_text_and_reports_the_name_users_know():
-    from anklescan.core.calibration.calibrate import DeviceKind, validate_points
+    from anklescan.core.calibration.procedures.calibrate import DeviceKind, validate_points
     from anklescan.core.errors import CalibrationError
 
     X = np.array([[0, 0, 0], [100, 0, 0], [0, 100, 0], [0, 0, 100], [100, 100, 0], [100, 0, 100], [0, 100, 100],

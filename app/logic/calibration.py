@@ -19,7 +19,7 @@ import numpy as np
 from anklescan.app.logic.settings import AppSettings, CalibrationVerdict
 
 if TYPE_CHECKING:
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.file import Calibration
 
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
@@ -44,7 +44,7 @@ def current_calibration_info(settings: AppSettings) -> CurrentCalibration:
 
 def load_current_calibration(settings: AppSettings) -> tuple[Calibration, int | None] | tuple[None, None]:
     """(Calibration, database id) of the current calibration, or (None, None)."""
-    from anklescan.core.calibration.file import load_calibration
+    from anklescan.core.calibration.model.file import load_calibration
     info = current_calibration_info(settings)
     if not info.path or not Path(info.path).exists():
         return None, None
@@ -84,7 +84,7 @@ def _now_iso() -> str:
 def accept_calibration(cal, report, data_folder: Path, store, settings: AppSettings,
                        source: str = "box") -> tuple[Path, int | None]:
     """Save atomically, add to the database (versioned: a new row each time), make current."""
-    from anklescan.core.calibration.file import calibration_to_dict, save_calibration
+    from anklescan.core.calibration.model.file import calibration_to_dict, save_calibration
     created = _now_iso()
     cal.extra["created"] = created
     cal.extra.setdefault("source", source)
@@ -108,7 +108,7 @@ def use_stored_calibration(record, data_folder: Path, settings: AppSettings) -> 
     when it is still in the data folder and the same, else the database's copy written next to
     the others. Its verification in the database is kept as the current verdict."""
     from anklescan.core.atomic import write_text_atomic
-    from anklescan.core.calibration.file import calibration_from_dict
+    from anklescan.core.calibration.model.file import calibration_from_dict
     calibration_from_dict(record.data)  # a calibration that cannot be read is refused before anything changes
     folder = Path(data_folder) / "calibrations"
     name = record.source.split(": ", 1)[-1] if ": " in record.source else ""
@@ -171,7 +171,7 @@ def box_camera(rig, position: int = 0):
     on real hardware the rig's own camera."""
     if not rig.simulated or not hasattr(rig.camera, "rig"):
         return rig.camera
-    from anklescan.core.calibration.box import BoxPose
+    from anklescan.core.calibration.procedures.box import BoxPose
     from anklescan.hardware.sim_scene import box_scene_objects, quad_scene
     lift = SIM_BOX_LIFTS_MM[position % len(SIM_BOX_LIFTS_MM)]
     return _scene_camera(rig, quad_scene(box_scene_objects(4.0, BoxPose.placed(lift_mm=lift))),
@@ -209,14 +209,14 @@ class BoxPoints:
 
 
 def observe(white, column, row) -> BoxPoints:
-    from anklescan.core.calibration.box import observe_box
+    from anklescan.core.calibration.procedures.box import observe_box
     obs = observe_box(white, column, row)
     return BoxPoints(np.asarray(white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
                      obs.proj_cam_uv, obs.found)
 
 
 def calibrate_box(points: BoxPoints, camera_size, projector_size, exclude_flagged: bool = True):
-    from anklescan.core.calibration.calibrate import calibrate_points
+    from anklescan.core.calibration.procedures.calibrate import calibrate_points
     # radial_terms=2: real lenses (and the simulator's) need k2 beyond the paper's k1.
     return calibrate_points(points.cam_xyz, points.cam_uv, points.proj_xyz, points.proj_uv, camera_size=camera_size,
                             projector_size=projector_size, radial_terms=2, exclude_flagged=exclude_flagged)
@@ -230,7 +230,7 @@ def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tup
     """The marker corner nearest a click, to sub-pixel (cv2.cornerSubPix on the stretched image)."""
     import cv2
 
-    from anklescan.core.calibration.box import stretch_to_8bit
+    from anklescan.core.calibration.procedures.box import stretch_to_8bit
     g = stretch_to_8bit(image)
     h, w = g.shape
     if not (half_window <= x < w - half_window and half_window <= y < h - half_window):
@@ -244,7 +244,7 @@ def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tup
 
 def manual_points() -> list[tuple[str, np.ndarray]]:
     """(label, world mm) of every marker corner, in the order the operator is asked for them."""
-    from anklescan.core.calibration.box import marker_corners_world, marker_layout
+    from anklescan.core.calibration.procedures.box import marker_corners_world, marker_layout
     layout = marker_layout()
     return [(f"marker {mid} ({layout[mid][0].name} face), {CORNER_NAMES[k]} corner", X[k])
             for mid, X in sorted(marker_corners_world().items()) for k in range(4)]
@@ -276,8 +276,8 @@ def white_frame(folder):
 def calibrate_folder(folder, camera_size, projector_size):
     """(BoxPoints, Calibration, report) from a box scan; BoxCalibrationRefused (its one line says what
     to do) when the residuals are far beyond the corners' noise."""
-    from anklescan.core.calibration.box import BoxCapture, BoxPose, check_residuals, observe_box
-    from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
+    from anklescan.core.calibration.procedures.box import BoxCapture, BoxPose, check_residuals, observe_box
+    from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
     decoded = decode_folder(folder)
     obs = observe_box(decoded.white, decoded.column, decoded.row)
     pts = BoxPoints(np.asarray(decoded.white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
@@ -293,9 +293,9 @@ def calibrate_folder(folder, camera_size, projector_size):
 
 def calibrate_folders(folders, camera_size, projector_size):
     """(BoxPoints of all positions, drawn on the last scan's white frame, Calibration, report) from
-    box scans at several positions in one fit (core.calibration.box.calibrate_from_box_captures;
+    box scans at several positions in one fit (core.calibration.procedures.box.calibrate_from_box_captures;
     refused like one scan)."""
-    from anklescan.core.calibration.box import calibrate_from_box_captures
+    from anklescan.core.calibration.procedures.box import calibrate_from_box_captures
     if len(folders) == 1:
         return calibrate_folder(folders[0], camera_size, projector_size)
     cal, report, caps = calibrate_from_box_captures(folders)
@@ -311,20 +311,20 @@ def calibrate_folders(folders, camera_size, projector_size):
 
 def calibrate_board_folders(folders, cols, rows, square):
     """(board calibration result, the first view's white frame)."""
-    from anklescan.core.calibration.board import calibrate_from_board_captures
+    from anklescan.core.calibration.procedures.board import calibrate_from_board_captures
     return calibrate_from_board_captures(folders, cols, rows, square), white_frame(folders[0])
 
 
 def check_board_folder(folder, cols, rows) -> Path:
     """The folder, once the chessboard's corners are found in its white frame (raises otherwise)."""
-    from anklescan.core.calibration.board import find_corners
+    from anklescan.core.calibration.procedures.board import find_corners
     find_corners(white_frame(folder), cols, rows)
     return Path(folder)
 
 
 def level_folder(folder, cal, table_size: str = ""):
     """(levelled calibration, TableTop) from a scan of the level reference table of ``table_size`` ("LxW" mm)."""
-    from anklescan.core.calibration.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
+    from anklescan.core.calibration.procedures.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
     table = parse_table_size(table_size) if table_size else DEFAULT_TABLE
     return level_calibration(cal, load_capture(folder), table)
@@ -332,6 +332,6 @@ def level_folder(folder, cal, table_size: str = ""):
 
 def verify_folder(folder, cal):
     """(white frame, VerificationResult) of a verification scan of the box."""
-    from anklescan.core.calibration.verification import compare_distances, measure_centres
+    from anklescan.core.calibration.procedures.verification import compare_distances, measure_centres
     decoded = decode_folder(folder)
     return decoded.white, compare_distances(measure_centres(cal, decoded.white, decoded.column, decoded.row))

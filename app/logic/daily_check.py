@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from anklescan.app.logic.settings import AppSettings, CheckPolicy
-from anklescan.core.calibration.daily_check import CheckResult, CheckSettings, run_check
+from anklescan.core.calibration.procedures.daily_check import CheckResult, CheckSettings, run_check
 from anklescan.core.records.daily_checks import (
     DEFAULT_MAX_AGE_HOURS,
     CheckStanding,
@@ -25,7 +25,7 @@ from anklescan.core.records.daily_checks import (
 
 if TYPE_CHECKING:
     from anklescan.app.logic.session import SessionLogic
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.file import Calibration
     from anklescan.hardware.camera import Camera
 
 CHECKS_FOLDER = "daily_checks"  # in the data folder: one capture per check, kept

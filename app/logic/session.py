@@ -222,7 +222,7 @@ class SessionLogic:
     def _calibration_in_store(self, cal, cid):
         if cal is None or self.store is None:
             return None
-        from anklescan.core.calibration.file import calibration_to_dict
+        from anklescan.core.calibration.model.file import calibration_to_dict
         data = calibration_to_dict(cal)
         try:
             if cid is not None and self.store.calibrations.get(cid).data == data:
@@ -240,7 +240,7 @@ class SessionLogic:
         if cid is None:
             return None
         try:
-            from anklescan.core.calibration.file import calibration_from_dict
+            from anklescan.core.calibration.model.file import calibration_from_dict
             return calibration_from_dict(self.store.calibrations.get(cid).data)
         except Exception:
             return None

@@ -175,7 +175,7 @@ class AppSettings(ABC):
     daily_check_inversion = _number("daily_check/inversion", 0.0)
     daily_check_plantar_flexion = _number("daily_check/plantar_flexion", 0.0)
     daily_check_tolerance = _number("daily_check/tolerance", 0.3)
-    # the level reference table's top, mm, long side first (core.calibration.levelling.TableSpec)
+    # the level reference table's top, mm, long side first (core.calibration.procedures.levelling.TableSpec)
     table_size = _text("calibration/table_size", "320x220")
     # the simulated rig's resolution: 0.75 of 1600x1200 is the least at which marks are found
     # automatically (docs/marks.md), and a scan still takes seconds

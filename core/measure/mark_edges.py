@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import (
     blob_shape,
     border_undecoded,

@@ -19,7 +19,7 @@ import math
 import numpy as np
 import scipy.optimize
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, plane_basis

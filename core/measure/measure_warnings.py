@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration, calibrated_volume
-from anklescan.core.calibration.uncertainty import Side
+from anklescan.core.calibration.model.file import Calibration, calibrated_volume
+from anklescan.core.calibration.model.uncertainty import Side
 from anklescan.core.vocabulary import KNEE_LABELS, parse_label
 
 # A mark less than this outside the volume is inside for all practical purposes (its own radius is

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from anklescan.core.atomic import write_json_atomic
-from anklescan.core.calibration.file import Calibration, load_calibration
-from anklescan.core.calibration.frame import frame_warnings
+from anklescan.core.calibration.model.file import Calibration, load_calibration
+from anklescan.core.calibration.procedures.frame import frame_warnings
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
 from anklescan.core.measure.marks import MarkSet, find_marks

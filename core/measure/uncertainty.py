@@ -1,13 +1,13 @@
 """Every source of a mark's position uncertainty the tool knows, jointly over the marks (SPEC §3).
 
-- The calibration: its parameters' covariance (core/calibration/uncertainty.py) is propagated to
+- The calibration: its parameters' covariance (core/calibration/model/uncertainty.py) is propagated to
   the marks by re-triangulating each mark's observations (its camera pixel and projector column,
   recovered by projecting the measured centre through the calibration) under perturbed
   parameters. The same parameters move every mark, so the result is one (3L, 3L) matrix with the
   cross terms that make an angle's calibration error correlated across its marks.
 - The model and extrapolation: a mark ``d`` mm outside the calibrated volume (0 inside) gets an
   isotropic SD of ``a + g * d`` per axis, independent between marks, with (a, g) the calibration's
-  recorded ``model_error`` (core/calibration/uncertainty.py ``ModelError``; the paper path records
+  recorded ``model_error`` (core/calibration/model/uncertainty.py ``ModelError``; the paper path records
   ``PAPER_MODEL_ERROR``, a board's full OpenCV model none). The covariance holds the control
   points' noise only; a model that cannot represent the lens exactly (the paper's single radial
   term and column-only projector against a lens with higher and tangential terms) leaves a
@@ -32,8 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration, calibrated_volume, model_error, parameter_covariance
-from anklescan.core.calibration.uncertainty import ModelError, ParameterCovariance, perturbed_device
+from anklescan.core.calibration.model.file import Calibration, calibrated_volume, model_error, parameter_covariance
+from anklescan.core.calibration.model.uncertainty import ModelError, ParameterCovariance, perturbed_device
 from anklescan.core.measure.angles import JointCovariance
 from anklescan.core.scan.triangulate import triangulate_points
 from anklescan.core.vocabulary import Axis, JsonObject, parse_label

@@ -1,6 +1,6 @@
 """Calibrations kept in the database (table ``calibrations``): the file as JSON text, its RMS,
 where it came from, and whether a verification scan of the box passed. The calibration itself
-(the model) is ``core.calibration.file.Calibration``; this is only its record."""
+(the model) is ``core.calibration.model.file.Calibration``; this is only its record."""
 
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
 
-from anklescan.core.calibration.daily_check import CheckResult
+from anklescan.core.calibration.procedures.daily_check import CheckResult
 from anklescan.core.errors import AnkleScanError
 
 if TYPE_CHECKING:

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import DecodeResult

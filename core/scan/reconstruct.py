@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.errors import CaptureError, GeometryError
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, decode

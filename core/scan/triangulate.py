@@ -50,8 +50,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.vocabulary import Axis
 

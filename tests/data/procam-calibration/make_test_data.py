@@ -24,7 +24,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[2]))
 
-from anklescan.core.calibration.board import find_corners  # noqa: E402
+from anklescan.core.calibration.procedures.board import find_corners  # noqa: E402
 from anklescan.core.scan.capture import load_capture  # noqa: E402
 from anklescan.core.scan.decode import decode  # noqa: E402
 from anklescan.core.scan.opencv_graycode import import_opencv_graycode  # noqa: E402

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
-from anklescan.core.calibration.device_model import AXES, Device
-from anklescan.core.calibration.uncertainty import CalibratedVolume, ModelError, ParameterCovariance
+from anklescan.core.calibration.model.device_model import AXES, Device
+from anklescan.core.calibration.model.uncertainty import CalibratedVolume, ModelError, ParameterCovariance
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import (
     MAX_DISTORTION,
@@ -157,7 +157,7 @@ def calibrated_volume(cal: Calibration) -> CalibratedVolume | None:
 
 
 def parameter_covariance(cal: Calibration) -> ParameterCovariance | None:
-    """Its parameters' covariance (core/calibration/uncertainty.py), None for a file that does not say."""
+    """Its parameters' covariance (core/calibration/model/uncertainty.py), None for a file that does not say."""
     obj = cal.extra.get("covariance")
     return None if obj is None else ParameterCovariance.from_dict(obj)
 
@@ -173,7 +173,7 @@ def volume_text(cal: Calibration) -> str:
 
 
 def model_error(cal: Calibration) -> ModelError:
-    """What its model leaves beyond the covariance (core/calibration/uncertainty.py); none recorded: 0."""
+    """What its model leaves beyond the covariance (core/calibration/model/uncertainty.py); none recorded: 0."""
     obj = cal.extra.get("model_error")
     return ModelError() if obj is None else ModelError.from_dict(obj)
 

@@ -2,7 +2,7 @@
 
 A scan of the calibration box is reconstructed at the box's marker corners only: each
 detected corner's camera ray meets the projector plane of the column (and row) decoded there
-(read by anklescan.core.calibration.box.projector_at's local homography). The control point that is
+(read by anklescan.core.calibration.procedures.box.projector_at's local homography). The control point that is
 compared is the marker *centre*, the mean of its four triangulated corners: optical blur pulls
 each corner of a black square inwards along its diagonal, and the four pulls cancel in the
 mean, while they add up in a corner-to-corner distance (docs/calibration_app.md has figures).
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from anklescan.core.calibration import box as cb
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.calibration.procedures import box as cb
 from anklescan.core.errors import CalibrationError
 from anklescan.core.scan.triangulate import triangulate_points
 from anklescan.core.vocabulary import JsonObject

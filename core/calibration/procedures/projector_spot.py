@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from anklescan.core.calibration.box import fit_line
+from anklescan.core.calibration.procedures.box import fit_line
 
 EDGE_OFFSET_PX = 3      # the two edges sit this far either side of the spot (projector px)
 WINDOW_HALF_PX = 14     # the frames light only this square around the spot

@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 
 from anklescan.core.atomic import write_text_atomic
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration, calibration_from_dict, calibration_to_dict
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration, calibration_from_dict, calibration_to_dict
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import MIN_BASELINE_MM
 
@@ -196,7 +196,7 @@ def import_opencv_calibration(path: str | os.PathLike[str], projector_size: tupl
     extra = {"source": f"imported from OpenCV FileStorage {path.name}",
              "frame": ("camera (not levelled: run 'anklescan calibrate level' before measuring angles)"
                        if world is None else "the exporting tool's world frame (R_world_camera, t_world_camera)"),
-             "frame_source": "camera" if world is None else "unknown",  # core.calibration.frame.FrameSource
+             "frame_source": "camera" if world is None else "unknown",  # core.calibration.procedures.frame.FrameSource
              "imported": {"keys": [kc, kcd, kp, kpd, kr, kt], "unit": unit, "rms_px": rms}}
     # through the JSON form once: the same validation as a loaded calibration file
     return calibration_from_dict(calibration_to_dict(Calibration(camera, projector, extra)))

@@ -12,7 +12,7 @@
 3. Initial values from OpenCV (``calibrateCamera`` per device, relative pose from the views),
    then one joint least-squares adjustment of both devices, the relative pose and every
    board pose, each device's residuals weighted by its own noise estimated from the data;
-   points the robust test flags (anklescan.core.calibration.calibrate's rule) are left out and the fit repeated.
+   points the robust test flags (anklescan.core.calibration.procedures.calibrate's rule) are left out and the fit repeated.
    Standard errors come from the Jacobian at the solution.
 
 World frame (SPEC §1): from the first capture's board.  ``z`` is the board's normal on the
@@ -37,10 +37,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import OptimizeResult, least_squares
 
-from anklescan.core.calibration.calibrate import CalibrationReport, DeviceKind, DeviceQuality, flag_outliers
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration
-from anklescan.core.calibration.uncertainty import CalibratedVolume, devices_form_covariance
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.calibration.model.uncertainty import CalibratedVolume, devices_form_covariance
+from anklescan.core.calibration.procedures.calibrate import CalibrationReport, DeviceKind, DeviceQuality, flag_outliers
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.scan.patterns import FrameKind
 from anklescan.core.vocabulary import Axis, JsonObject
@@ -410,7 +410,7 @@ def _init_projector(X: np.ndarray, views: list[BoardView], masks: list[np.ndarra
     on its principal point (projectors are built far off-axis, and OpenCV's planar start from the
     image centre can settle in the wrong minimum with few views).  One view (coplanar corners)
     falls back on OpenCV's planar calibration."""
-    from anklescan.core.calibration.calibrate import dlt_camera
+    from anklescan.core.calibration.procedures.calibrate import dlt_camera
 
     P3 = np.concatenate([(cv2.Rodrigues(r)[0] @ X[m].T).T + t for r, t, m in zip(rvs, tvs, masks, strict=False)])
     uv = np.concatenate([v.proj[m] for v, m in zip(views, masks, strict=False)])
@@ -529,10 +529,10 @@ def _finish(sol: OptimizeResult, lay: _Layout, views: list[BoardView], obj: list
         q.excluded = sorted(k * len(views[0].corners) + j for k, j in excl)
         qualities.append(q)
     report = CalibrationReport(*qualities)
-    extra = {"source": "chessboard calibration (anklescan.core.calibration.board)",
+    extra = {"source": "chessboard calibration (anklescan.core.calibration.procedures.board)",
              "frame": "first capture's board: z board normal on the camera side, y board axis down the "
                       "camera image, origin at the corner grid's centre",
-             "frame_source": "board",  # core.calibration.frame.FrameSource
+             "frame_source": "board",  # core.calibration.procedures.frame.FrameSource
              "board": {"cols": cols, "rows": rows, "square_mm": square, "captures": [v.name for v in views],
                        "corners_camera": [len(v.corners) for v in views],
                        "corners_projector": [int(m.sum()) for m in masks], "distortion": model},
@@ -553,7 +553,7 @@ def _board_trust(x: np.ndarray, lay: _Layout, cov: np.ndarray | None, A: np.ndar
                  boards: list[tuple[np.ndarray, np.ndarray]], Rc: np.ndarray, tc: np.ndarray,
                  csize: tuple[int, int], psize: tuple[int, int]) -> JsonObject:
     """SPEC §4's ``volume`` (the span of every view's corners, world mm) and ``covariance`` (the
-    fit's s² (JᵀJ)⁻¹ over every parameter, poses included, mapped to core/calibration/uncertainty.py's form)."""
+    fit's s² (JᵀJ)⁻¹ over every parameter, poses included, mapped to core/calibration/model/uncertainty.py's form)."""
     corners = []
     for X, pose in boards:
         R, _ = cv2.Rodrigues(np.asarray(pose[:3], np.float64))

@@ -42,7 +42,7 @@ from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject
 
 if TYPE_CHECKING:
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.file import Calibration
     from anklescan.core.scan.capture import Capture
 
 DEFAULT_TOLERANCE_DEG = 0.3

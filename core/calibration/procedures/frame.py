@@ -85,7 +85,7 @@ class FrameAlignment:
 def frame_alignment(extra: Mapping[str, object], points: np.ndarray, camera_centre: np.ndarray) -> FrameAlignment:
     """The frame of a calibration (its ``extra`` keys) against a patient scan's cloud (world mm): the
     floor (the scan's dominant plane) and the table top (levelling's table finder, any table size)."""
-    from anklescan.core.calibration.levelling import TableSpec, find_table_top, floor_normal
+    from anklescan.core.calibration.procedures.levelling import TableSpec, find_table_top, floor_normal
     from anklescan.core.errors import GeometryError
 
     source = frame_source(extra)

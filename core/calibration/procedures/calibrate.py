@@ -3,7 +3,7 @@
 Step 1 is linear: a Hartley-normalised DLT (3×4 for the camera; the 1-D analogue 2×4,
 u = a·X̃ / c·X̃, for a stripes-only projector) decomposed into pinhole parameters with k1 = 0.
 Step 2 is non-linear least squares on the reprojection error in pixels over every parameter
-of the paper's vectors (anklescan.core.calibration.paper_model), optionally with a robust loss.
+of the paper's vectors (anklescan.core.calibration.model.paper_model), optionally with a robust loss.
 
 A stripes-only projector has a gauge freedom the paper does not mention: the column planes
 all contain one line (through the centre, along the projector's y axis) and nothing observable
@@ -32,10 +32,10 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
-from anklescan.core.calibration import paper_model as pm
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration, save_calibration
-from anklescan.core.calibration.uncertainty import (
+from anklescan.core.calibration.model import paper_model as pm
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration, save_calibration
+from anklescan.core.calibration.model.uncertainty import (
     PAPER_MODEL_ERROR,
     CalibratedVolume,
     ParameterCovariance,
@@ -522,8 +522,8 @@ def calibrate_points(cam_xyz: npt.ArrayLike, cam_uv: npt.ArrayLike, proj_xyz: np
     camera = pm.camera_to_device(Cn, *camera_size)
     projector = (pm.projector2d_to_device if two_d else pm.projector_to_device)(Pn, *projector_size)
     report = CalibrationReport(cam_q, proj_q)
-    extra: JsonObject = {"source": "paper two-step calibration (anklescan.core.calibration.calibrate)",
-             "frame_source": "points",  # the control points' frame (core.calibration.frame.FrameSource)
+    extra: JsonObject = {"source": "paper two-step calibration (anklescan.core.calibration.procedures.calibrate)",
+             "frame_source": "points",  # the control points' frame (core.calibration.procedures.frame.FrameSource)
              "paper_model": {"camera_Cn": Cn.tolist(), ("projector_Cn" if two_d else "projector_Pn"): Pn.tolist(),
                              "angles": "rad", "focal_mm": pm.PAPER_FOCAL_MM},
              "quality": report.to_dict(),
@@ -538,7 +538,7 @@ def calibrate_points(cam_xyz: npt.ArrayLike, cam_uv: npt.ArrayLike, proj_xyz: np
 
 def _paper_covariance(Cn: np.ndarray, cam_q: DeviceQuality, proj_q: DeviceQuality, Pn: np.ndarray, two_d: bool,
                       camera_size: tuple[int, int], projector_size: tuple[int, int]) -> ParameterCovariance | None:
-    """Both fits' s² (JᵀJ)⁻¹ over the paper's vectors, in the file's form (core/calibration/uncertainty.py)."""
+    """Both fits' s² (JᵀJ)⁻¹ over the paper's vectors, in the file's form (core/calibration/model/uncertainty.py)."""
     to_proj = pm.projector2d_to_device if two_d else pm.projector_to_device
     parts = []
     for name, v, q, conv, size in (("camera", Cn, cam_q, pm.camera_to_device, camera_size),

@@ -31,7 +31,7 @@ from enum import Enum
 
 import numpy as np
 
-from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.errors import CalibrationError
 from anklescan.core.vocabulary import JsonObject
 

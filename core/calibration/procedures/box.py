@@ -31,15 +31,15 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
+from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import CalibrationError
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject
 
 if TYPE_CHECKING:
-    from anklescan.core.calibration.calibrate import CalibrationReport
-    from anklescan.core.calibration.device_model import Device
-    from anklescan.core.calibration.file import Calibration
+    from anklescan.core.calibration.model.device_model import Device
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.calibration.procedures.calibrate import CalibrationReport
 
 BOX_SIZE_MM = 400.0
 MARKER_MM = 90.0
@@ -581,7 +581,7 @@ def calibrate_from_box_captures(capture_dirs: Sequence[str | os.PathLike[str]], 
     frame; every other box's pose is found (PnP with the camera fitted so far) and all captures' control
     points go into one fit, alternating ``POSE_ROUNDS`` times. Refused (``BoxCalibrationRefused``) when the
     residuals are far beyond the noise (``check``)."""
-    from anklescan.core.calibration.calibrate import calibrate_points
+    from anklescan.core.calibration.procedures.calibrate import calibrate_points
 
     dirs = [Path(d) for d in capture_dirs]
     if not dirs:

@@ -28,7 +28,7 @@ Conventions, all fixed here and used everywhere in the project:
 * Pixels: the centre of pixel (i, j) is (i, j), as in SPEC §4.
 * The projector (paper §3.3) is one-dimensional: only u is modelled, and its distortion is
   evaluated on the row-independent section y_d = 0, so that a projector column is an exact
-  plane (as anklescan.core.calibration.device_model does for ``axis == "column"``).
+  plane (as anklescan.core.calibration.model.device_model does for ``axis == "column"``).
 
 The optional ``k2`` exists because a single inverse coefficient cannot represent a lens that
 OpenCV describes with k1 alone to better than a few tenths of a pixel at the corners (see
@@ -45,7 +45,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from anklescan.core.calibration.device_model import Device
+from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.errors import CalibrationError
 from anklescan.core.vocabulary import Axis
 

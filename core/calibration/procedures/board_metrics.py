@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.file import Calibration
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject

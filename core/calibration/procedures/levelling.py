@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from anklescan.core.calibration.device_model import Device
-from anklescan.core.calibration.file import Calibration, moved_trust
-from anklescan.core.calibration.frame import FRAME_KEY, FrameSource
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration, moved_trust
+from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
 
