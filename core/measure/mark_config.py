@@ -242,15 +242,27 @@ class MarkConfig:
     #: of the first pass's fits: the capture's kind of mark (a clinic sticks one kind), the only
     #: one fitted where a disk's step is unclear
     common_kind_share: float = 0.75
-    #: the plate outline's fit replaces the disk's in the shape look where it has this many
-    #: times its edges (it reaches the far rim the disk alone, cut over the wall, misses)
-    shape_plate_edge_ratio: float = 1.5
     #: share of a second-look blob that must be decoded: a sparsely decoded far surface's
     #: corrected image is a patchwork whose bits can pass for a disk
     second_look_min_decoded: float = 0.8
     #: share of a second-look blob's border left undecoded, at most: along the edge of the
     #: reconstruction the normal (over 7 x 7 points) is wrong and the corrected image a streak
     second_look_max_border_undecoded: float = 1 / 3
+    #: ½ SD²: the score of a fit that matches the model exactly, against no mark there
+    #: (``mark_selection.fit_score``): above the worst fit that passes its checks (edges and face
+    #: at their 3-SD limits and a doubtful radius: ½ (3² + 3² + 4²) = 17), so every such fit is worth
+    #: keeping where nothing better overlaps it
+    fit_score_base: float = 20.0
+    #: ½ SD²: the prior odds against a hypothesis, by how it was made (``HypothesisSource.tier``):
+    #: the first search's blobs, the re-cuts at the marks' size, the outlines derived from a blob
+    #: no cut fits (each finds more that are not a mark's image than the one before)
+    source_penalty: tuple[float, float, float] = (0.0, 1.0, 2.0)
+    #: x the marks' radius: two fits whose centres lie closer are two views of one disk (two disks'
+    #: centres lie two radii apart or more; two fits of one disk within a fraction of a radius)
+    overlap_radii: float = 1.0
+    #: the best non-overlapping fits among which the seven the labels accept are chosen
+    #: exhaustively (C(10, 7) = 120 labellings)
+    selection_pool: int = 10
     #: mm: a clicked disk may be fitted on edges that scatter this much (the click says a disk
     #: is there, and the fit's SD carries the scatter)
     snap_max_edge_rms_mm: float = 0.7

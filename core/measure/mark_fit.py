@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,13 +28,10 @@ from anklescan.core.measure.mark_edges import (
     sliver_edges,
     top_face_pixels,
 )
-from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_types import DiskFit, Mark, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
-
-if TYPE_CHECKING:
-    from anklescan.core.measure.marks import Mark
 
 
 def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
@@ -181,8 +177,6 @@ class _Candidate:
 
 def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
-    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
-
     image, points, sigma, shape, profiles = cand.image, cand.points, cand.sigma, cand.shape, cand.profiles
     cal, centroid, normal, plane_rms, n_in0 = cand.cal, cand.centroid, cand.normal, cand.plane_rms, cand.n_in
     radius_mm, prior_sd, thickness, clipped = cand.radius_mm, cand.prior_sd, cand.thickness, cand.clipped

@@ -1,0 +1,121 @@
+"""The marks model's stages (docs/marks.md, "Stages"): fits scored in SD units, the global
+selection of the seven non-overlapping fits the labels accept, and hypotheses found in the world."""
+
+import math
+
+import numpy as np
+import pytest
+
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_hypotheses import (
+    CutImage,
+    Hypothesis,
+    HypothesisSource,
+    blob_point,
+    on_a_fitted_disk,
+)
+from anklescan.core.measure.mark_selection import MarkFit, fit_score, overlaps, select_marks
+from anklescan.core.measure.mark_types import Mark
+from anklescan.hardware.sim_scene import leg_scene
+
+R = 7.5  # the default scene's plates' radius, mm
+
+
+def _mark(centre, normal, *, rms=0.05, face=0.05, radius=R, radius_sd=0.05, doubtful=False) -> Mark:
+    return Mark(np.asarray(centre, float), np.asarray(normal, float), radius, rms, face, np.full((3, 3), np.nan),
+                (0.0, 0.0), 30, 100, radius_sd=radius_sd, doubtful=doubtful)
+
+
+def _fit(mark: Mark, source=HypothesisSource.BLOB) -> MarkFit:
+    h = Hypothesis({"centre": (0.0, 0.0)}, source, CutImage.LIT)
+    return MarkFit(h, mark, fit_score(mark, R, CONFIG.radius_prior_sd_mm, source.tier))
+
+
+def test_score_is_a_log_likelihood_ratio_in_sd_units():
+    """A perfect fit scores the base; each SD of misfit costs its square's half; a doubtful fit
+    at least max_radius_z SDs of radius; a doubtful fit on scattering edges is no hypothesis."""
+    n = np.array([0.0, 0.0, 1.0])
+    perfect = _mark([0, 0, 0], n, rms=0.0, face=0.0)
+    assert fit_score(perfect, R, 0.05, 0) == pytest.approx(CONFIG.fit_score_base)
+    # edges at a third of the limit: one SD
+    one_sd = _mark([0, 0, 0], n, rms=CONFIG.max_circle_rms_mm / 3, face=0.0)
+    assert fit_score(one_sd, R, 0.05, 0) == pytest.approx(CONFIG.fit_score_base - 0.5)
+    # a free radius 2 SDs (of the two, in quadrature) from the size
+    off = _mark([0, 0, 0], n, rms=0.0, face=0.0, radius=R + 2 * math.hypot(0.1, 0.05), radius_sd=0.1)
+    assert fit_score(off, R, 0.05, 0) == pytest.approx(CONFIG.fit_score_base - 2.0)
+    doubtful = _mark([0, 0, 0], n, rms=0.0, face=0.0, doubtful=True)
+    assert fit_score(doubtful, R, 0.05, 0) == pytest.approx(CONFIG.fit_score_base - 0.5 * CONFIG.max_radius_z**2)
+    scattering = _mark([0, 0, 0], n, rms=CONFIG.doubtful_max_edge_rms_mm + 0.01, doubtful=True)
+    assert fit_score(scattering, R, 0.05, 0) == -math.inf
+    # a re-cut's fit is trusted less than the first search's
+    assert fit_score(perfect, R, 0.05, 1) < fit_score(perfect, R, 0.05, 0)
+
+
+def test_two_fits_of_one_disk_keep_the_better_and_side_by_side_disks_both():
+    n = np.array([1.0, 0.0, 0.0])
+    a, b = _mark([0, 0, 0], n, rms=0.2), _mark([0, 1.0, 0], n, rms=0.05)
+    touching = _mark([0, 2 * R + 0.2, 0], n)  # two disks nearly touching, side by side
+    assert overlaps(a, b, R) and not overlaps(b, touching, R)
+    sel = select_marks([_fit(a), _fit(b), _fit(touching)], R)
+    assert {id(f.mark) for f in sel.chosen} == {id(b), id(touching)}
+    assert len(sel.left_out) == 1 and "second fit" in sel.left_out[0]["reason"]
+
+
+@pytest.mark.parametrize("inv,pf", [(0, 0), (20, -20), (10, 20)])
+def test_selection_chooses_the_seven_the_labels_accept_over_a_better_scored_false_mark(inv, pf):
+    """Eight non-overlapping fits: the seven true marks and a bright patch half-way up the shank,
+    facing sideways, fitted better than two of them. The best-scored seven include it and cannot
+    be labelled (three leg marks at three heights); the selection takes the seven that can, and
+    labels them right."""
+    scene = leg_scene(inv, pf)
+    truth = {lab: m for lab, m in scene.marks.items()}
+    fits = []
+    for i, (lab, m) in enumerate(sorted(truth.items())):
+        mark = _mark(m.centre, m.normal, rms=0.05 + 0.03 * i)  # true marks scored 7 ways
+        fits.append((lab, _fit(mark)))
+    knee, ankle = truth["3"], truth["4"]
+    patch = _mark(0.5 * (knee.centre + ankle.centre), knee.normal, rms=0.02)
+    ranked = sorted([f for _, f in fits] + [_fit(patch)], key=lambda f: -f.score)
+    assert any(f.mark is patch for f in ranked[:7])  # a greedy top seven would keep it
+    sel = select_marks(ranked, R)
+    chosen = [f.mark for f in sel.chosen]
+    assert not any(m is patch for m in chosen) and len(chosen) == 7
+    from anklescan.core.measure.mark_labels import label_marks
+    from anklescan.core.measure.mark_types import MarkSet
+
+    ms = MarkSet(marks=chosen)
+    label_marks(ms)
+    assert ms.complete, ms.message()
+    for lab, f in fits:
+        assert f.mark.label == lab
+    assert any("labels accept" in r["reason"] for r in sel.left_out)
+
+
+def test_a_set_that_cannot_be_labelled_reports_the_marks_it_lacks():
+    scene = leg_scene(0, 0)
+    fits = [_fit(_mark(m.centre, m.normal)) for lab, m in sorted(scene.marks.items()) if lab != "3"]
+    from anklescan.core.measure.mark_labels import label_marks
+    from anklescan.core.measure.mark_types import MarkSet
+
+    ms = MarkSet(marks=[f.mark for f in select_marks(fits, R).chosen])
+    label_marks(ms)
+    assert ms.missing == ["3"] and "missing label 3" in ms.message()
+
+
+def test_a_blob_is_on_a_fitted_disk_by_its_world_points_not_its_pixels():
+    """Two disks side by side seen at a grazing angle image closer than two radii; their blobs'
+    world points say which disk each is."""
+    points = np.full((20, 40, 3), np.nan, np.float32)
+    xs = np.arange(40, dtype=np.float32) * 1.2  # 1.2 mm per pixel across
+    points[..., 0] = xs[None, :]
+    points[..., 1] = 0.0
+    points[..., 2] = 300.0
+    region = np.zeros((6, 6), bool)
+    region[1:5, 1:5] = True
+    blob_a = {"slice": (slice(7, 13), slice(2, 8)), "region": region, "centre": (5.0, 10.0)}
+    blob_b = {"slice": (slice(7, 13), slice(15, 21)), "region": region, "centre": (18.0, 10.0)}
+    pa, pb = blob_point(blob_a, points), blob_point(blob_b, points)
+    disk_a = _mark(pa, [0.0, 0.0, 1.0])
+    assert on_a_fitted_disk(blob_a, points, [disk_a], R)
+    assert float(np.linalg.norm(pb - pa)) > 2 * R  # two disks side by side
+    assert not on_a_fitted_disk(blob_b, points, [disk_a], R)
