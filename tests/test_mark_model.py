@@ -119,3 +119,17 @@ def test_a_blob_is_on_a_fitted_disk_by_its_world_points_not_its_pixels():
     assert on_a_fitted_disk(blob_a, points, [disk_a], R)
     assert float(np.linalg.norm(pb - pa)) > 2 * R  # two disks side by side
     assert not on_a_fitted_disk(blob_b, points, [disk_a], R)
+
+
+def test_a_tier_is_settled_only_where_none_of_its_fits_could_change_the_choice():
+    """Seven true marks the labels accept, each scored at least the best a re-cut's fit can:
+    no re-cut can change the choice; one true mark fitted worse than that: it can."""
+    from anklescan.core.measure.mark_selection import settled
+
+    scene = leg_scene(10, -10)
+    good = [_fit(_mark(m.centre, m.normal, rms=0.02, face=0.02)) for _, m in sorted(scene.marks.items())]
+    assert settled(select_marks(good, R), HypothesisSource.SIZED.tier)
+    worse = good[:-1] + [_fit(_mark(scene.marks["7"].centre, scene.marks["7"].normal, rms=0.3))]
+    assert worse[-1].score < CONFIG.fit_score_base - CONFIG.source_penalty[HypothesisSource.SIZED.tier]
+    assert not settled(select_marks(worse, R), HypothesisSource.SIZED.tier)
+    assert not settled(select_marks(good[:6], R), HypothesisSource.WIDER.tier)  # six marks: a seventh may come

@@ -113,7 +113,7 @@ class MarkConfig:
     max_radius_sd_mm: float = 0.6
     #: SDs of the free radius and the size, in quadrature: a free radius further than this from
     #: the marks' size may not be the disk's rim (a short arc on a side wall or in blur); the fit is
-    #: held back (``Mark.doubtful``) while the later looks search its place
+    #: doubtful (``Mark.doubtful``): its score counts at least this disagreement (``fit_score``)
     max_radius_z: float = 4.0
     #: mm, and share of the size: a last-chance fit (a wider cut, a predicted outline) must measure
     #: its free radius at least this well (the larger of the two) to be clearly a disk
@@ -242,6 +242,10 @@ class MarkConfig:
     #: of the first pass's fits: the capture's kind of mark (a clinic sticks one kind), the only
     #: one fitted where a disk's step is unclear
     common_kind_share: float = 0.75
+    #: of the two predicted outlines of one blob (the disk alone, the plate's face and wall
+    #: together), the plate's is kept where it rests on this many times the disk's edge points (it
+    #: reaches the far rim the disk alone, cut over the wall, misses); else the disk's
+    shape_plate_edge_ratio: float = 1.5
     #: share of a second-look blob that must be decoded: a sparsely decoded far surface's
     #: corrected image is a patchwork whose bits can pass for a disk
     second_look_min_decoded: float = 0.8
@@ -255,8 +259,11 @@ class MarkConfig:
     fit_score_base: float = 20.0
     #: ½ SD²: the prior odds against a hypothesis, by how it was made (``HypothesisSource.tier``):
     #: the first search's blobs, the re-cuts at the marks' size, the outlines derived from a blob
-    #: no cut fits (each finds more that are not a mark's image than the one before)
-    source_penalty: tuple[float, float, float] = (0.0, 1.0, 2.0)
+    #: no cut fits (each finds more that are not a mark's image than the one before). A re-cut's
+    #: fit must fit ~2.4 SD better, a derived one ~3.5 SD better, to outweigh a first-search fit;
+    #: and a choice whose fits all score within this of the base needs no hypothesis of that tier
+    #: (``mark_selection.settled``)
+    source_penalty: tuple[float, float, float] = (0.0, 3.0, 6.0)
     #: x the marks' radius: two fits whose centres lie closer are two views of one disk (two disks'
     #: centres lie two radii apart or more; two fits of one disk within a fraction of a radius)
     overlap_radii: float = 1.0

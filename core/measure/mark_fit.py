@@ -315,7 +315,7 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     profiles start is itself an uncertainty, so both fits count and their spread goes into the
     SD. The first fit stands alone where the second's edges scatter more
     (``CONFIG.reprofile_max_rms_ratio``) or either fit's radius disagrees with a given size (a doubtful
-    fit is kept for the second look of ``_wider_fit``)."""
+    fit is scored as such, ``mark_selection.fit_score``)."""
     if prior_sd is not None and radius_disagrees(out.radius, out.radius_sd, radius_mm, prior_sd):
         return out
     if _runaway(out.radius, radius_mm):

@@ -20,9 +20,10 @@ how far its fits are trusted against another hypothesis of the same disk
   that no cut fits, alone or as a plate of the capture's thickness (face and wall together),
   slid to where it stands out most (``predicted_disk``, ``disk_contrast_peak``).
 
-Derived hypotheses (wider cuts, lit-sticker and predicted disks) are made for the blobs whose
-own cut fits no disk (``derived``); a blob lying on a disk already fitted well is a second
-view of it and is not fitted again (``on_a_fitted_disk``).
+Derived hypotheses are made for the blobs whose own cut fits no disk (``derived``): wider cuts
+for every such blob, lit-sticker and predicted disks for the first search's; a re-cut lying on
+a disk already fitted well is a second view of it and is not fitted again
+(``on_a_fitted_disk``).
 """
 
 from __future__ import annotations
@@ -141,13 +142,18 @@ def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, 
 
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
-            thickness: float | None) -> list[Hypothesis]:
-    """What a blob that no cut fits may still be: its wider cut, a sticker on the lit image's
-    edges, and the disk (and, where the capture's plates have a thickness, the plate) of the
-    marks' size predicted on the surface round it, slid to where it stands out most."""
-    out = [Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob)]
+            thickness: float | None, *, recut: bool = False) -> list[Hypothesis]:
+    """What a blob that no cut fits may still be: its wider cut; and for a blob of the first
+    search (not a ``recut`` at the marks' size, whose surround was already searched at that
+    size) a sticker on the lit image's edges, and the disk (and, where the capture's plates
+    have a thickness, the plate) of the marks' size predicted on the surface round it, slid to
+    where it stands out most."""
+    out = []
     if blob.get("wider") is not None:
         out.append(Hypothesis(blob["wider"], HypothesisSource.WIDER, CutImage.LIT, blob))
+    if recut:
+        return out
+    out.append(Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob))
     for height, source in ((0.0, HypothesisSource.PREDICTED), (thickness, HypothesisSource.PREDICTED_PLATE)):
         if height is None or (source is HypothesisSource.PREDICTED_PLATE and not height):
             continue

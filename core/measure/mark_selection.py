@@ -11,7 +11,8 @@ with ``z_r`` the free radius' distance from the marks' size in SDs of the two (a
 ``z_e`` the edge points' RMS about the circle and ``z_f`` the face's (plate) or surface's
 (sticker) RMS about its fit, each over a third of the limit a mark's fit may reach
 (``CONFIG.max_circle_rms_mm``, ``CONFIG.max_top_face_rms_mm``: the limits are 3 SD). The base
-is the score of no mark there, so every fit that passed is worth keeping; the source's
+is the score of a perfect fit, and every fit that passed its checks may be chosen (where
+nothing better overlaps it, and the labels accept it); the source's
 penalty is the prior odds that a hypothesis made that way is a mark's image (a re-cut or a
 prediction finds more that are not). A doubtful fit with edges scattering past
 ``CONFIG.doubtful_max_edge_rms_mm`` is no hypothesis of a mark's rim.
@@ -22,6 +23,8 @@ chosen set has none such. Of the non-overlapping sets of at most seven, the one 
 total score that ``label_marks`` labels completely; where none does, the best-scored seven
 (the labels then say what is missing). Exhaustive over the CONFIG.selection_pool best fits
 that overlap none better (an assignment, not a search run again until seven are found).
+Hypotheses of a tier are not made where no fit of theirs could change the choice (``settled``:
+a bound on their score, so the answer is the same as with them).
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ def overlaps(a: Mark, b: Mark, radius_mm: float) -> bool:
 def select_marks(fits: list[MarkFit], radius_mm: float) -> Selection:
     """The non-overlapping set of at most seven fits with the best total score that the labels'
     geometry accepts (module docstring)."""
-    ranked = sorted((f for f in fits if f.score > 0), key=lambda f: -f.score)
+    ranked = sorted((f for f in fits if math.isfinite(f.score)), key=lambda f: -f.score)
     left: list[Rejection] = []
     pool: list[MarkFit] = []
     for f in ranked:
@@ -107,6 +110,18 @@ def select_marks(fits: list[MarkFit], radius_mm: float) -> Selection:
                 f"{'not one of seven marks the labels accept' if best is not None else 'seven marks were already kept'}"
                 f" (score {f.score:.1f}{', doubtful radius' if f.mark.doubtful else ''})")})
     return Selection(sorted(chosen, key=lambda f: -f.score), left)
+
+
+def settled(selection: Selection, tier: int) -> bool:
+    """True if no fit of a hypothesis of ``tier`` can change ``selection``: it is seven fits the
+    labels accept, each scored at least the best such a fit can score (``CONFIG.fit_score_base`` −
+    its source's penalty). A new fit then either overlaps a chosen one it cannot outscore, or
+    replaces one in the seven without raising the total: the bound that lets ``find_marks``
+    leave a tier's hypotheses unmade without changing its answer."""
+    chosen = tuple(selection.chosen)
+    if len(chosen) != len(LABELS) or not _labels_completely(chosen):
+        return False
+    return min(f.score for f in chosen) >= CONFIG.fit_score_base - CONFIG.source_penalty[tier]
 
 
 def _labels_completely(fits: tuple[MarkFit, ...]) -> bool:

@@ -111,8 +111,8 @@ class Mark:
     step_mm: float | None = None  # measured height of the face over the surface around it
     step_sd: float = float("nan")  # its SD
     radius_sd: float = float("nan")  # SD of the free fit's radius
-    # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): held back
-    # while the second look searches its place (``find_marks``)
+    # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): its score
+    # counts that disagreement (``mark_selection.fit_score``), so a sure fit of its disk comes first
     doubtful: bool = False
     # its face is saturated in the camera along part of the rim used: the rim there may lie
     # inside where it is read, and the covariance says how far (``edge_profiles``); lower the
