@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import cv2
 import numpy as np
@@ -47,9 +48,9 @@ from anklescan.core.measure.mark_candidates import (
     sigma_image,
 )
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, step_kind
 from anklescan.core.measure.mark_hypotheses import (
+    Blob,
     CutImage,
     Hypothesis,
     HypothesisSource,
@@ -58,10 +59,12 @@ from anklescan.core.measure.mark_hypotheses import (
     on_a_fitted_disk,
     sized_hypotheses,
 )
-from anklescan.core.measure.mark_labels import LABELS, label_marks
+from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
 from anklescan.core.measure.mark_types import Mark, MarkSet, Refusal, RefusalReason, fitted
+from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import LABEL_KEYS as LABELS
 from anklescan.core.vocabulary import MarkKind
 
 __all__ = [  # the public API; Mark, MarkSet and the rest are defined in the modules they are imported from
@@ -253,7 +256,7 @@ def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool) -> Mark | Ref
     return out
 
 
-def size_groups(marks) -> list[dict]:
+def size_groups(marks: list[Mark]) -> list[SizeGroup]:
     """Groups of marks whose free radii agree (within CONFIG.size_cluster_rel of the radius or 3 SD),
     largest first: {"radius", "sd", "n"} with the inverse-variance mean and its SD (scaled up by
     the scatter where the radii disagree more than their SDs say). SPEC §2: all seven are one
@@ -262,14 +265,16 @@ def size_groups(marks) -> list[dict]:
     s = np.array([m.radius_sd for m in marks], float)
     ok = np.isfinite(r) & np.isfinite(s)
     r, s = r[ok], np.maximum(s[ok], CONFIG.radius_prior_sd_mm)
-    groups, used = [], np.zeros(len(r), bool)
+    groups: list[SizeGroup] = []
+    used = np.zeros(len(r), bool)
     while not used.all():
-        best = None
+        best: tuple[tuple[int, float], np.ndarray] | None = None
         for i in np.flatnonzero(~used):
             mem = ~used & (np.abs(r - r[i]) <= np.maximum(CONFIG.size_cluster_rel * r[i], 3 * np.hypot(s, s[i])))
             key = (int(mem.sum()), float(np.sum(1 / s[mem] ** 2)))
             if best is None or key > best[0]:
                 best = (key, mem)
+        assert best is not None  # some radius is unused
         mem = best[1]
         w = 1.0 / s[mem] ** 2
         mean = float(w @ r[mem] / w.sum())
@@ -286,7 +291,7 @@ def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
 
 
-def _away(pixel, marks, r_px) -> bool:
+def _away(pixel: tuple[float, float], marks: list[Mark], r_px: list[float]) -> bool:
     """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
     return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px, strict=True))
 
@@ -311,11 +316,11 @@ def _restore_held(result: MarkSet, held: list[Mark], cal: Calibration, radius_mm
     result.rejected.extend(selection.left_out)
 
 
-def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
+def _distinct(marks: list[Mark], cal: Calibration, radius_mm: float) -> list[Mark]:
     """One mark per disk: of fits whose centres image within one radius of each other (two
     candidate blobs, or a blob's wider cut, on the same disk; disks do not overlap), the one
     with the most edge points."""
-    kept = []
+    kept: list[Mark] = []
     for m in sorted(marks, key=lambda m: -m.n_edge):
         r_px = _radius_px(cal, m, radius_mm)
         if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= r_px for o in kept):
@@ -342,7 +347,29 @@ def _of_capture_kind(mark: Mark, prefer_kind: MarkKind | None) -> bool:
     return not (prefer_kind == MarkKind.PLATE and step_kind(mark.step_mm, mark.step_sd) == MarkKind.STICKER)
 
 
-def _pixel_distance(blob, uv) -> float:
+class SizeGroup(TypedDict):
+    """Marks whose free radii agree (``size_groups``)."""
+
+    radius: float  # mm, inverse-variance mean
+    sd: float  # mm, its SD (scaled up by the scatter)
+    n: int  # marks in the group
+
+
+@dataclass(frozen=True, eq=False)
+class _Click:
+    """What ``fit_marks_near`` fits each candidate near a click with."""
+
+    image: np.ndarray  # (H, W) lit image
+    points: np.ndarray  # (H, W, 3) world points per pixel
+    cal: Calibration
+    mark_diameter_mm: float | None  # the marks' size, where given
+    bounds: tuple[float, float]  # radii searched, mm
+    sigma: np.ndarray | None  # (H, W) the points' predicted SD
+    clipped: np.ndarray | None  # where the camera saturated
+    albedo: np.ndarray  # the shading-corrected image
+
+
+def _pixel_distance(blob: Blob, uv: np.ndarray) -> float:
     """From ``uv`` to the nearest pixel of ``blob``'s region (0 inside it): a large disk partly
     hidden has its blob's centre far from the disk's."""
     v, u = np.nonzero(blob["region"])
@@ -351,7 +378,8 @@ def _pixel_distance(blob, uv) -> float:
 
 
 
-def _brightest_cut(image, points, cal, uv, reach, r_max_mm, px_per_mm):
+def _brightest_cut(image: np.ndarray, points: np.ndarray, cal: Calibration, uv: np.ndarray, reach: float,
+                   r_max_mm: float, px_per_mm: float) -> Blob | None:
     """The blob at the brightest pixel within ``reach`` px of ``uv``, cut at half-way over the
     decoded surface round it (``ring_level``): a disk no candidate search kept. None if none."""
     H, W = image.shape
@@ -363,12 +391,14 @@ def _brightest_cut(image, points, cal, uv, reach, r_max_mm, px_per_mm):
     smooth = cv2.GaussianBlur(image, (0, 0), 0.7)
     j = np.unravel_index(int(np.argmax(np.nan_to_num(smooth[win], nan=-np.inf))), smooth[win].shape)
     seed = (win[1].start + j[1], win[0].start + j[0])
-    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)
-    return None if bg is None else cut_blob(smooth, seed, bg, int(math.ceil(2.5 * r_max_mm * px_per_mm)))
+    # mark_candidates is still on mypy's debt list (untyped): its calls are marked here
+    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)  # type: ignore[no-untyped-call]
+    half = int(math.ceil(2.5 * r_max_mm * px_per_mm))
+    return None if bg is None else cut_blob(smooth, seed, bg, half)  # type: ignore[no-untyped-call,no-any-return]
 
 
-def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0,
-                   mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None):
+def fit_marks_near(point: np.ndarray, lit: np.ndarray, points: np.ndarray, cal: Calibration, search_mm: float = 20.0,
+                   mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> Mark | None:
     """The white disk nearest ``point`` (a clicked world point, mm) within ``search_mm``: a
     fitted ``Mark`` (centre of the face; the skin under a sticker's centre), or None.
 
@@ -395,7 +425,7 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     reach = search_mm * px_per_mm
     bounds = CONFIG.size_range_mm if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
     albedo = shading_corrected(image, points, cal)
-    fit = (image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo)
+    fit = _Click(image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo)
     tried = _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm)
     best = _nearest_fit(tried, point, search_mm, fit, CONFIG.max_circle_rms_mm)
     if best is None:
@@ -407,7 +437,8 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     return best
 
 
-def _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm) -> list[dict]:
+def _near_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, uv: np.ndarray, reach: float,
+                bounds: tuple[float, float], px_per_mm: float) -> list[Blob]:
     """The candidate blobs of ``image`` whose region comes within ``reach`` px of ``uv``, and the
     one cut at the brightest pixel there (``_brightest_cut``)."""
     blobs = [b for b in candidate_blobs(image, points, cal, noise_sigma(image), bounds, ring_background=True)
@@ -416,10 +447,11 @@ def _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm) -> list[dict]:
     return blobs + ([blob] if blob is not None else [])
 
 
-def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
+def _nearest_fit(blobs: list[Blob], point: np.ndarray, search_mm: float, fit: _Click, max_edge_rms: float) -> Mark | None:
     """Of ``blobs`` fitted as marks (edges scattering up to ``max_edge_rms``), the one whose
     centre lies nearest ``point``, within ``search_mm``; or None."""
-    image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo = fit
+    image, points, cal, mark_diameter_mm = fit.image, fit.points, fit.cal, fit.mark_diameter_mm
+    bounds, sigma, clipped, albedo = fit.bounds, fit.sigma, fit.clipped, fit.albedo
     best = None
     for blob in blobs:
         if mark_diameter_mm is None:
@@ -438,7 +470,7 @@ def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
             # edges that scatter past the search's limit are likely off the rim somewhere (the
             # foot over a sticker's lower part), not at random: the centre may be off by their
             # RMS in the disk's plane
-            B = plane_basis(mark.normal)
+            B = local_frame(mark.centre, mark.normal)[:2]
             mark.covariance = mark.covariance + mark.circle_rms ** 2 * (B.T @ B)
         d = float(np.linalg.norm(mark.centre - point))
         if d <= search_mm and (best is None or d < best[0]):
@@ -446,8 +478,8 @@ def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
     return None if best is None else best[1]
 
 
-def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20.0,
-                 mark_diameter_mm: float | None = None, clipped=None):
+def snap_to_disk(point: np.ndarray, lit: np.ndarray, points_img: np.ndarray, cal: Calibration, search_mm: float = 20.0,
+                 mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> Mark | None:
     """The centre of the white disk nearest a clicked 3-D point (manual placement).
 
     ``point``: the clicked world point (mm); ``lit``: the capture's projector-lit image
