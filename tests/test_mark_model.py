@@ -133,3 +133,30 @@ def test_a_tier_is_settled_only_where_none_of_its_fits_could_change_the_choice()
     assert worse[-1].score < CONFIG.fit_score_base - CONFIG.source_penalty[HypothesisSource.SIZED.tier]
     assert not settled(select_marks(worse, R), HypothesisSource.SIZED.tier)
     assert not settled(select_marks(good[:6], R), HypothesisSource.WIDER.tier)  # six marks: a seventh may come
+
+
+def test_a_thin_disk_image_is_elliptical_and_a_crescent_is_not():
+    """A disk seen at a grazing angle images as an ellipse a few pixels wide, whose rasterised
+    outline's convex hull bridges its pixel steps: at 3 px half-wide its solidity fell to 0.86,
+    under the fixed 0.88, and the disk was refused as 'not elliptical'. The limit follows the
+    raster; a crescent (a lit side wall) stays far below it."""
+    import cv2
+
+    from anklescan.core.measure.mark_candidates import blob_shape
+    from anklescan.core.measure.mark_fit import min_solidity
+
+    rng = np.random.default_rng(1)
+    v, u = np.mgrid[0:100, 0:100].astype(float)
+    for a, b in [(30.0, 12.0), (30.0, 4.0), (30.0, 3.0), (25.0, 2.5)]:
+        for _ in range(20):
+            cx, cy, ang = rng.uniform(0, 1), rng.uniform(0, 1), rng.uniform(0, math.pi)
+            x, y = u - 50 - cx, v - 50 - cy
+            xr, yr = x * math.cos(ang) + y * math.sin(ang), -x * math.sin(ang) + y * math.cos(ang)
+            shape = blob_shape({"region": (xr / a) ** 2 + (yr / b) ** 2 <= 1.0, "origin": (0, 0)})
+            assert shape["solidity"] >= min_solidity(min(shape["axes"])), (a, b, shape["solidity"])
+    crescent = np.zeros((100, 100), np.uint8)
+    cv2.circle(crescent, (50, 50), 20, 1, -1)
+    cv2.circle(crescent, (50, 58), 20, 0, -1)
+    shape = blob_shape({"region": crescent.astype(bool), "origin": (0, 0)})
+    assert shape["solidity"] < min_solidity(min(shape["axes"]))
+    assert min_solidity(10.0) == CONFIG.min_solidity  # a disk well resolved: the fixed limit

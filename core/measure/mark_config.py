@@ -94,6 +94,11 @@ class MarkConfig:
     min_fill: float = 0.80
     max_fill: float = 1.15
     min_solidity: float = 0.88
+    #: px: ... or, where lower, 1 − this / the ellipse's semi-minor axis in px: a rasterised
+    #: ellipse's convex hull bridges its outline's pixel steps (ellipses of semi-minor axis
+    #: 2.5-12 px at random sub-pixel offsets and angles: solidity down to 1 − 0.45-0.5 px / b; a
+    #: disk seen at 79°, 4 px half-wide, measured 0.86). The margin allows for noise on the outline
+    raster_solidity_px: float = 0.6
     #: mm: a free radius this far from the marks' size is another object (3 SD of the fit where
     #: larger, up to ``max_radius_tolerance_mm``: a straight edge's SD is huge)
     radius_tolerance_mm: float = 1.5

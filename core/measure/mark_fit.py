@@ -71,7 +71,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         return Refusal(RefusalReason.TOO_SMALL, "too small to fit")
     # a predicted disk's outline is an ellipse by construction; rasterised a few pixels across
     # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87
-    elliptical = CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill and shape["solidity"] >= CONFIG.min_solidity
+    elliptical = (CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill
+                  and shape["solidity"] >= min_solidity(min(shape["axes"])))
     if not blob.get("predicted") and not elliptical:
         return Refusal(RefusalReason.NOT_ELLIPTICAL,
                        f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})")
@@ -130,6 +131,15 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         first = first or out
     assert first is not None
     return first
+
+
+def min_solidity(semi_minor_px: float) -> float:
+    """The least solidity of a disk's image whose ellipse is ``semi_minor_px`` pixels half-wide:
+    ``CONFIG.min_solidity``, or where lower the limit of a rasterised ellipse, whose convex hull
+    bridges its outline's pixel steps: 1 − ``CONFIG.raster_solidity_px`` / semi-minor axis (a disk
+    seen at a grazing angle, a few pixels across)."""
+    raster = 1.0 - CONFIG.raster_solidity_px / max(float(semi_minor_px), 1e-9)
+    return min(CONFIG.min_solidity, raster)
 
 
 def step_kind(step_mm: float | None, step_sd: float) -> MarkKind | None:
