@@ -272,6 +272,12 @@ class MarkConfig:
     #: x the marks' radius: two fits whose centres lie closer are two views of one disk (two disks'
     #: centres lie two radii apart or more; two fits of one disk within a fraction of a radius)
     overlap_radii: float = 1.0
+    #: x the marks' radius: a blob's decoded points this near a fitted mark's centre are that
+    #: disk's (its face, rim and side wall, with the blur)
+    explained_radii: float = 1.15
+    #: a re-cut of which less than this share is left unexplained by the fitted disks is another
+    #: view of them; with more left, the rest is a hypothesis of its own (two disks cut as one)
+    unexplained_min_share: float = 0.25
     #: the best non-overlapping fits among which the seven the labels accept are chosen
     #: exhaustively (C(10, 7) = 120 labellings)
     selection_pool: int = 10

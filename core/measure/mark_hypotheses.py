@@ -22,8 +22,8 @@ how far its fits are trusted against another hypothesis of the same disk
 
 Derived hypotheses are made for the blobs whose own cut fits no disk (``derived``): wider cuts
 for every such blob, lit-sticker and predicted disks for the first search's; a re-cut lying on
-a disk already fitted well is a second view of it and is not fitted again
-(``on_a_fitted_disk``).
+a disk already fitted well is a second view of it and is not fitted again, and of a re-cut
+that holds such a disk and more, the rest is the hypothesis (``unexplained``).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import enum
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from anklescan.core.calibration.file import Calibration
@@ -110,6 +111,34 @@ def on_a_fitted_disk(blob: Blob, points: np.ndarray, marks: list[Mark], radius_m
     if p is None:
         return False
     return any(float(np.linalg.norm(p - m.centre)) < radius_mm for m in marks)
+
+
+def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: float) -> Blob | None:
+    """``blob`` less the pixels a fitted disk explains (decoded points within
+    CONFIG.explained_radii radii of a mark's centre): the blob itself where none does, its
+    largest remaining connected part where some do (two disks side by side cut as one blob, one
+    of them fitted: the other's hypothesis), None where less than CONFIG.unexplained_min_share of
+    it remains (another view of a disk fitted: its face, its side wall)."""
+    region = np.asarray(blob["region"], bool)
+    P = points[blob["slice"]]
+    inside = np.zeros(region.shape, bool)
+    for m in marks:
+        d = np.linalg.norm(P - m.centre, axis=-1)
+        inside |= np.nan_to_num(d, nan=np.inf) < CONFIG.explained_radii * radius_mm
+    rest = region & ~inside
+    n_rest, n_all = int(rest.sum()), int(region.sum())
+    if n_rest == n_all:
+        return blob
+    if n_rest < CONFIG.unexplained_min_share * n_all:
+        return None
+    count, labels = cv2.connectedComponents(rest.astype(np.uint8), connectivity=8)
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    sizes[0] = 0
+    part = labels == int(np.argmax(sizes))
+    v, u = np.nonzero(part)
+    x0, y0 = blob["origin"]
+    return {"region": part, "slice": blob["slice"], "origin": blob["origin"],
+            "centre": (float(u.mean() + x0), float(v.mean() + y0))}
 
 
 def first_hypotheses(blobs: list[Blob]) -> list[Hypothesis]:

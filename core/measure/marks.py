@@ -58,6 +58,7 @@ from anklescan.core.measure.mark_hypotheses import (
     first_hypotheses,
     on_a_fitted_disk,
     sized_hypotheses,
+    unexplained,
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
@@ -148,20 +149,19 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     # each tier's hypotheses are made unless no fit of theirs could change the choice (``settled``)
     selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.SIZED.tier):
-        consider([h for h in sized_hypotheses(image, albedo, points, cal, r0)
-                  if not on_a_fitted_disk(h.blob, points, sure(), r0)])
+        recuts = [(h, unexplained(h.blob, points, sure(), r0))
+                  for h in sized_hypotheses(image, albedo, points, cal, r0)]
+        consider([h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob)
+                  for h, rest in recuts if rest is not None])
         selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.WIDER.tier):
         parents = [h for h in refused if h.source.tier < HypothesisSource.WIDER.tier]
-        # derived only where no cut gives a disk, not even a doubtful one, within two radii in the
-        # image: there a cut's fit is no worse a hypothesis than an outline predicted or a lit-edge
-        # sticker beside it (an 8 mm plate seen at 69°: a doubtful re-cut 0.18 mm off, the predicted
-        # plate outline 0.66 mm off on clean edges; a sticker lit at 85-88° beside its pair's,
-        # 0.5 mm off on the lit edges)
+        # derived only where no cut gives a disk, not even a doubtful one: there a cut's fit is no
+        # worse a hypothesis than an outline predicted beside it (an 8 mm plate seen at 69°: a
+        # doubtful re-cut 0.18 mm off, the predicted plate outline 0.66 mm off on clean edges)
         kept = [f.mark for f in fits if math.isfinite(f.score)]
-        r_px = [_radius_px(cal, m, r0) for m in kept]
         before = len(fits)
-        consider([d for h in parents if _away(h.blob["centre"], kept, r_px)
+        consider([d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
                   for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0)])
         fits[before:] = _one_predicted_outline(fits[before:])
         selection = select_marks(fits, r0)
@@ -289,11 +289,6 @@ def size_groups(marks: list[Mark]) -> list[SizeGroup]:
 def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     """A disk of ``radius_mm`` at the mark's depth, in camera pixels."""
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
-
-
-def _away(pixel: tuple[float, float], marks: list[Mark], r_px: list[float]) -> bool:
-    """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
-    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px, strict=True))
 
 
 def _restore_held(result: MarkSet, held: list[Mark], cal: Calibration, radius_mm: float) -> None:
