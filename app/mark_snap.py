@@ -39,7 +39,7 @@ class TrialSnapper:
 
     def snap(self, point) -> tuple[float, float, float] | None:
         """The centre of the disk nearest ``point`` (world mm), or None."""
-        from anklescan.core.measure.marks_surface import snap_to_disk
+        from anklescan.core.measure.marks import snap_to_disk
         lit, points, clipped = self._images()
         mark = snap_to_disk(point, lit, points, self.calibration, mark_diameter_mm=self.mark_diameter_mm,
                             clipped=clipped)

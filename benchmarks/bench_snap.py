@@ -8,7 +8,7 @@ the seed is the posture's index in ``bench_marks.py``'s five-posture sweep unles
 field gives it). The capture is measured as ``anklescan measure`` does; for every true mark
 the search did not find, two clicks ``--offset`` mm beside its true centre (either way across
 the leg, in the mark's plane) are snapped as the 3-D view snaps them
-(``anklescan.core.measure.marks_surface.snap_to_disk``). Prints each click's outcome: the snapped
+(``anklescan.core.measure.marks.snap_to_disk``). Prints each click's outcome: the snapped
 centre's error and error/SD, or 'kept' (no disk found: the click stays where it is), then the
 count of missed marks whose clicks both snapped within 0.35 mm and 3.37 SD.
 """
@@ -29,8 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_marks import captured  # noqa: E402
 
 from anklescan.core.measure.mark_candidates import points_image  # noqa: E402
-from anklescan.core.measure.marks import LABELS  # noqa: E402
-from anklescan.core.measure.marks_surface import snap_to_disk  # noqa: E402
+from anklescan.core.measure.marks import LABELS, snap_to_disk  # noqa: E402
 from anklescan.core.measure.pipeline import measure_capture  # noqa: E402
 from anklescan.core.scan.lit_image import averaged_lit, clipped_white  # noqa: E402
 from anklescan.hardware.sim_variety import draw_variant, variant_rig  # noqa: E402

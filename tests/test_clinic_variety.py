@@ -499,7 +499,7 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
     The snap now looks in both images, takes a blob that reaches the click, and lets a clicked
     disk's edges scatter more: within 0.35 mm, and within its SD."""
     from anklescan.core.measure.mark_candidates import points_image
-    from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.measure.marks import snap_to_disk
     from anklescan.core.measure.pipeline import measure_capture
     from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 
@@ -578,7 +578,7 @@ def test_a_click_is_not_moved_onto_a_doubtful_fit():
     0.24 mm: a confident wrong place. A fit whose radius disagrees with the size is passed
     over now, and the click is kept as it was."""
     from anklescan.core.measure.mark_candidates import points_image
-    from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.measure.marks import snap_to_disk
     from anklescan.core.measure.pipeline import measure_capture
     from anklescan.core.scan.lit_image import averaged_lit, clipped_white
 

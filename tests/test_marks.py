@@ -406,7 +406,7 @@ def test_click_snaps_to_the_sticker_centre():
     """Manual placement: a click 4 mm off a sticker's centre snaps to it; a click on bare skin
     far from any disk gives None (the click is kept as it is)."""
     from anklescan.core.measure.mark_candidates import points_image
-    from anklescan.core.measure.marks_surface import snap_to_disk
+    from anklescan.core.measure.marks import snap_to_disk
     from anklescan.core.scan.decode import decode
     from anklescan.core.scan.lit_image import averaged_lit
     from anklescan.core.scan.reconstruct import cloud_from_decoded

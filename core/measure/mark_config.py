@@ -94,6 +94,11 @@ class MarkConfig:
     min_fill: float = 0.80
     max_fill: float = 1.15
     min_solidity: float = 0.88
+    #: px: ... or, where lower, 1 − this / the ellipse's semi-minor axis in px: a rasterised
+    #: ellipse's convex hull bridges its outline's pixel steps (ellipses of semi-minor axis
+    #: 2.5-12 px at random sub-pixel offsets and angles: solidity down to 1 − 0.45-0.5 px / b; a
+    #: disk seen at 79°, 4 px half-wide, measured 0.86). The margin allows for noise on the outline
+    raster_solidity_px: float = 0.6
     #: mm: a free radius this far from the marks' size is another object (3 SD of the fit where
     #: larger, up to ``max_radius_tolerance_mm``: a straight edge's SD is huge)
     radius_tolerance_mm: float = 1.5
@@ -113,7 +118,7 @@ class MarkConfig:
     max_radius_sd_mm: float = 0.6
     #: SDs of the free radius and the size, in quadrature: a free radius further than this from
     #: the marks' size may not be the disk's rim (a short arc on a side wall or in blur); the fit is
-    #: held back (``Mark.doubtful``) while the later looks search its place
+    #: doubtful (``Mark.doubtful``): its score counts at least this disagreement (``fit_score``)
     max_radius_z: float = 4.0
     #: mm, and share of the size: a last-chance fit (a wider cut, a predicted outline) must measure
     #: its free radius at least this well (the larger of the two) to be clearly a disk
@@ -242,8 +247,9 @@ class MarkConfig:
     #: of the first pass's fits: the capture's kind of mark (a clinic sticks one kind), the only
     #: one fitted where a disk's step is unclear
     common_kind_share: float = 0.75
-    #: the plate outline's fit replaces the disk's in the shape look where it has this many
-    #: times its edges (it reaches the far rim the disk alone, cut over the wall, misses)
+    #: of the two predicted outlines of one blob (the disk alone, the plate's face and wall
+    #: together), the plate's is kept where it rests on this many times the disk's edge points (it
+    #: reaches the far rim the disk alone, cut over the wall, misses); else the disk's
     shape_plate_edge_ratio: float = 1.5
     #: share of a second-look blob that must be decoded: a sparsely decoded far surface's
     #: corrected image is a patchwork whose bits can pass for a disk
@@ -251,6 +257,30 @@ class MarkConfig:
     #: share of a second-look blob's border left undecoded, at most: along the edge of the
     #: reconstruction the normal (over 7 x 7 points) is wrong and the corrected image a streak
     second_look_max_border_undecoded: float = 1 / 3
+    #: ½ SD²: the score of a fit that matches the model exactly, against no mark there
+    #: (``mark_selection.fit_score``): above the worst fit that passes its checks (edges and face
+    #: at their 3-SD limits and a doubtful radius: ½ (3² + 3² + 4²) = 17), so every such fit is worth
+    #: keeping where nothing better overlaps it
+    fit_score_base: float = 20.0
+    #: ½ SD²: the prior odds against a hypothesis, by how it was made (``HypothesisSource.tier``):
+    #: the first search's blobs, the re-cuts at the marks' size, the outlines derived from a blob
+    #: no cut fits (each finds more that are not a mark's image than the one before). A re-cut's
+    #: fit must fit ~2.4 SD better, a derived one ~3.5 SD better, to outweigh a first-search fit;
+    #: and a choice whose fits all score within this of the base needs no hypothesis of that tier
+    #: (``mark_selection.settled``)
+    source_penalty: tuple[float, float, float] = (0.0, 3.0, 6.0)
+    #: x the marks' radius: two fits whose centres lie closer are two views of one disk (two disks'
+    #: centres lie two radii apart or more; two fits of one disk within a fraction of a radius)
+    overlap_radii: float = 1.0
+    #: x the marks' radius: a blob's decoded points this near a fitted mark's centre are that
+    #: disk's (its face, rim and side wall, with the blur)
+    explained_radii: float = 1.15
+    #: a re-cut of which less than this share is left unexplained by the fitted disks is another
+    #: view of them; with more left, the rest is a hypothesis of its own (two disks cut as one)
+    unexplained_min_share: float = 0.25
+    #: the best non-overlapping fits among which the seven the labels accept are chosen
+    #: exhaustively (C(10, 7) = 120 labellings)
+    selection_pool: int = 10
     #: mm: a clicked disk may be fitted on edges that scatter this much (the click says a disk
     #: is there, and the fit's SD carries the scatter)
     snap_max_edge_rms_mm: float = 0.7

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,13 +28,10 @@ from anklescan.core.measure.mark_edges import (
     sliver_edges,
     top_face_pixels,
 )
-from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_types import DiskFit, Mark, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
-
-if TYPE_CHECKING:
-    from anklescan.core.measure.marks import Mark
 
 
 def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
@@ -75,7 +71,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         return Refusal(RefusalReason.TOO_SMALL, "too small to fit")
     # a predicted disk's outline is an ellipse by construction; rasterised a few pixels across
     # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87
-    elliptical = CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill and shape["solidity"] >= CONFIG.min_solidity
+    elliptical = (CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill
+                  and shape["solidity"] >= min_solidity(min(shape["axes"])))
     if not blob.get("predicted") and not elliptical:
         return Refusal(RefusalReason.NOT_ELLIPTICAL,
                        f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})")
@@ -136,6 +133,15 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     return first
 
 
+def min_solidity(semi_minor_px: float) -> float:
+    """The least solidity of a disk's image whose ellipse is ``semi_minor_px`` pixels half-wide:
+    ``CONFIG.min_solidity``, or where lower the limit of a rasterised ellipse, whose convex hull
+    bridges its outline's pixel steps: 1 − ``CONFIG.raster_solidity_px`` / semi-minor axis (a disk
+    seen at a grazing angle, a few pixels across)."""
+    raster = 1.0 - CONFIG.raster_solidity_px / max(float(semi_minor_px), 1e-9)
+    return min(CONFIG.min_solidity, raster)
+
+
 def step_kind(step_mm: float | None, step_sd: float) -> MarkKind | None:
     """"sticker" or "plate" where a face's measured step over the surface says so clearly (3 SD
     from ``CONFIG.sticker_max_step_mm``), else None."""
@@ -181,8 +187,6 @@ class _Candidate:
 
 def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
     """``fit_mark`` for one mark model ("sticker" or "plate") and its checks."""
-    from anklescan.core.measure.marks import Mark  # noqa: PLC0415 (anklescan.core.measure.marks imports this module)
-
     image, points, sigma, shape, profiles = cand.image, cand.points, cand.sigma, cand.shape, cand.profiles
     cal, centroid, normal, plane_rms, n_in0 = cand.cal, cand.centroid, cand.normal, cand.plane_rms, cand.n_in
     radius_mm, prior_sd, thickness, clipped = cand.radius_mm, cand.prior_sd, cand.thickness, cand.clipped
@@ -321,7 +325,7 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
     profiles start is itself an uncertainty, so both fits count and their spread goes into the
     SD. The first fit stands alone where the second's edges scatter more
     (``CONFIG.reprofile_max_rms_ratio``) or either fit's radius disagrees with a given size (a doubtful
-    fit is kept for the second look of ``_wider_fit``)."""
+    fit is scored as such, ``mark_selection.fit_score``)."""
     if prior_sd is not None and radius_disagrees(out.radius, out.radius_sd, radius_mm, prior_sd):
         return out
     if _runaway(out.radius, radius_mm):

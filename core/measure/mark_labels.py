@@ -6,19 +6,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.measure.mark_types import Mark, MarkSet
+from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS  # the detector keys marks by the labels' text form
 from anklescan.core.vocabulary import TABLE_LABEL_KEYS as TABLE_LABELS
-
-if TYPE_CHECKING:
-    from anklescan.core.measure.marks import MarkSet
-
-
 
 
 def label_marks(ms: MarkSet) -> None:
@@ -48,14 +43,14 @@ def label_marks(ms: MarkSet) -> None:
         if len(leg) == 4:
             _label_leg(leg, ms.problems)
     order = {lab: i for i, lab in enumerate(LABELS)}
-    ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label, 99), m.pixel[1], m.pixel[0]))
+    ms.marks.sort(key=lambda m: (m.label is None, order.get(m.label or "", 99), m.pixel[1], m.pixel[0]))
 
 
-def _angle_deg(a, b) -> float:
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip(abs(a @ b), -1.0, 1.0))))
 
 
-def _triple_score(ms) -> float:
+def _triple_score(ms: list[Mark]) -> float:
     """Worst disagreement (deg) among the three plate normals and the plane through the centres."""
     P = np.array([m.centre for m in ms])
     n = np.cross(P[1] - P[0], P[2] - P[0])
@@ -66,7 +61,7 @@ def _triple_score(ms) -> float:
                + [_angle_deg(a.normal, b.normal) for a, b in itertools.combinations(ms, 2)])
 
 
-def _table_triple(marks, problems):
+def _table_triple(marks: list[Mark], problems: list[str]) -> set[int] | None:
     """Indices of the table marks: the only triple whose plates all lie in one plane, flat on it.
 
     Leg marks come in pairs along a generator (front, lateral) whose normals are ~90° apart,
@@ -86,13 +81,13 @@ def _table_triple(marks, problems):
     return set(t)
 
 
-def _table_order(ms):
+def _table_order(ms: list[Mark]) -> list[Mark]:
     """5, 6, 7: counter-clockwise seen from above (about +z) around their centroid, starting
     after the widest angular gap (for the default layout: lateral-posterior, lateral-anterior,
     medial)."""
     P = np.array([m.centre for m in ms])
     n = _table_plane(ms)[1]
-    B = plane_basis(n)
+    B = local_frame(P.mean(axis=0), n)[:2]
     if np.cross(B[0], B[1]) @ n < 0:
         B = B[::-1]
     q = (P - P.mean(axis=0)) @ B.T
@@ -103,7 +98,7 @@ def _table_order(ms):
     return [ms[i] for i in np.roll(order, -start)]
 
 
-def _table_plane(table):
+def _table_plane(table: list[Mark]) -> tuple[np.ndarray, np.ndarray]:
     """(point, upward unit normal) of the table top through its three marks."""
     P = np.array([m.centre for m in table])
     n = np.cross(P[1] - P[0], P[2] - P[0])
@@ -111,7 +106,7 @@ def _table_plane(table):
     return P.mean(axis=0), n if n[2] >= 0 else -n
 
 
-def _label_leg(leg, problems, table=None):
+def _label_leg(leg: list[Mark], problems: list[str], table: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Knee pair above the ankle pair (along the leg axis, i.e. z); within a pair the front
     plate faces anterior (+y) more than lateral (+x), the lateral one the other way round.
 
@@ -171,7 +166,7 @@ def _label_leg(leg, problems, table=None):
             pair[0].label = label
 
 
-def _pairs_agree(knee, ankle, axis, problems) -> bool:
+def _pairs_agree(knee: list[Mark], ankle: list[Mark], axis: np.ndarray, problems: list[str]) -> bool:
     """False (with a message) if a mark of one labelled pair faces round the leg clearly nearer
     the other role's mark of the other pair than its own role's (``CONFIG.cross_pair_margin_deg``)."""
     marks = knee + ankle
@@ -192,7 +187,7 @@ def _pairs_agree(knee, ankle, axis, problems) -> bool:
     return True
 
 
-def _label_lone_pair(pair, table, problems):
+def _label_lone_pair(pair: list[Mark], table: tuple[np.ndarray, np.ndarray], problems: list[str]) -> None:
     """Two leg plates at one height, the other pair lost: knee or ankle by their height over
     the table top (``CONFIG.knee_min_height_mm``), front or lateral by which way round the leg their
     normals point (about z: the leg stands, SPEC §1)."""
@@ -200,7 +195,7 @@ def _label_lone_pair(pair, table, problems):
     _label_pair(pair, np.array([0.0, 0.0, 1.0]), front, lateral, where, problems)
 
 
-def _label_lone_mark(m, table, problems):
+def _label_lone_mark(m: Mark, table: tuple[np.ndarray, np.ndarray], problems: list[str]) -> None:
     """The only leg plate found: knee or ankle by its height over the table top, front or
     lateral by which way round the leg its normal points (as a lone plate without the other
     pair, ``_lone_label``)."""
@@ -210,14 +205,14 @@ def _label_lone_mark(m, table, problems):
         problems.append(f"cannot tell whether the {where} mark is the front or the lateral one")
 
 
-def _by_height(marks, table):
+def _by_height(marks: list[Mark], table: tuple[np.ndarray, np.ndarray]) -> tuple[tuple[str, str], str]:
     """((front, lateral) labels, "knee"/"ankle") of leg marks by their mean height over the table top."""
     point, up = table
     height = float(np.mean([(m.centre - point) @ up for m in marks]))
     return (("1", "3"), "knee") if height >= CONFIG.knee_min_height_mm else (("2", "4"), "ankle")
 
 
-def _label_pair(pair, axis, front, lateral, where, problems):
+def _label_pair(pair: list[Mark], axis: np.ndarray, front: str, lateral: str, where: str, problems: list[str]) -> None:
     """Front and lateral of one pair by which way round ``axis`` their normals point."""
     a = [_azimuth_about(m.normal, axis) for m in pair]
     if abs(_wrap_deg(a[0] - a[1])) < CONFIG.side_margin_deg:  # 50-90° apart; a tie means no decision
@@ -227,17 +222,17 @@ def _label_pair(pair, axis, front, lateral, where, problems):
     f.label, lat.label = front, lateral
 
 
-def _lone_label(m, other, axis, front, lateral):
+def _lone_label(m: Mark, other: list[Mark], axis: np.ndarray, front: str, lateral: str) -> str | None:
     """A lone knee (ankle) plate is front or lateral by which plate of the labelled ankle
     (knee) pair its normal is nearer to, around the leg axis: the leg carries both pairs,
     wherever round its side the marks were stuck. Without that pair, by which side of
     ``CONFIG.lone_split_deg`` its normal points round the leg (front marks face 90°, lateral ones
     0-40°: docs/marks.md), at least half the margin clear of it."""
     if len(other) == 2 and all(o.label is not None for o in other):
-        ref = sorted(other, key=lambda o: o.label)  # front ("1"/"2") before lateral ("3"/"4")
-        a = [abs(_wrap_deg(_azimuth_about(m.normal, axis) - _azimuth_about(o.normal, axis))) for o in ref]
-        if abs(a[0] - a[1]) >= CONFIG.side_margin_deg:
-            return front if a[0] < a[1] else lateral
+        ref = sorted(other, key=lambda o: o.label or "")  # front ("1"/"2") before lateral ("3"/"4")
+        d = [abs(_wrap_deg(_azimuth_about(m.normal, axis) - _azimuth_about(o.normal, axis))) for o in ref]
+        if abs(d[0] - d[1]) >= CONFIG.side_margin_deg:
+            return front if d[0] < d[1] else lateral
         return None
     a = _azimuth_about(m.normal, axis)
     if a >= CONFIG.lone_split_deg + CONFIG.side_margin_deg / 2:
@@ -247,7 +242,7 @@ def _lone_label(m, other, axis, front, lateral):
     return None
 
 
-def _azimuth_about(n, axis) -> float:
+def _azimuth_about(n: np.ndarray, axis: np.ndarray) -> float:
     """Direction (deg) of a normal round the leg, seen down its axis: 0 lateral (+x), 90 front (+y)."""
     p = n - (n @ axis) * axis
     return math.degrees(math.atan2(p[1], p[0]))

@@ -1,14 +1,19 @@
-"""Typed results of one disk's fit (docs/marks.md, "Stages"): a ``DiskFit`` (the model's
-parameters with their covariance) or a ``Refusal`` (which check failed, and the one line that
-says so with its figures)."""
+"""Typed results of the marks detector (docs/marks.md, "Stages"): one disk's fit, a ``DiskFit``
+(the model's parameters with their covariance) or a ``Refusal`` (which check failed, and the one
+line that says so with its figures); a measured ``Mark``; the scan's ``MarkSet``."""
 
 from __future__ import annotations
 
 import dataclasses
 import enum
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
+
+from anklescan.core.vocabulary import LABEL_KEYS as LABELS  # the detector keys marks by the labels' text form
+from anklescan.core.vocabulary import MarkKind
 
 
 class RefusalReason(enum.Enum):
@@ -33,6 +38,7 @@ class RefusalReason(enum.Enum):
     FACE_NOT_SMOOTH = "face not smooth"
     LIT_EDGES_ON_A_LINE = "the lit image's edges lie on a line"
     IMAGES_DISAGREE = "the lit and corrected images place it apart"
+    WRONG_KIND = "not of the capture's kind of mark"
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,3 +80,127 @@ class DiskFit:
     def moved(self, centre: np.ndarray, covariance: np.ndarray) -> DiskFit:
         """The same fit with another centre and covariance."""
         return dataclasses.replace(self, centre=centre, covariance=covariance)
+
+
+class Rejection(TypedDict):
+    """A candidate that gave no mark: where it was, and why (the one line of its ``Refusal``)."""
+
+    pixel: tuple[float, float]  # (u, v) camera pixel of its blob's centre
+    reason: str
+
+
+@dataclass(eq=False)
+class Mark:
+    """One measured plate. ``centre`` is the centre of its top face in world mm."""
+
+    centre: np.ndarray
+    normal: np.ndarray  # unit, towards the camera
+    radius: float  # mm, fitted (nominal 7.5)
+    circle_rms: float  # mm, edge points about the circle
+    plane_rms: float  # mm, interior points about the plane
+    covariance: np.ndarray  # (3, 3) mm^2, fit + CONFIG.sd_floor_mm
+    pixel: tuple[float, float]  # (u, v) camera pixel of the centre
+    n_edge: int
+    n_interior: int
+    label: str | None = None
+    # degrees between the plate's normal and the camera ray / the projector ray to its centre:
+    # past ~70° a plate's centre is less accurate (docs/marks.md), a reason to re-stick it
+    view_deg: float | None = None
+    light_deg: float | None = None
+    kind: MarkKind = MarkKind.PLATE  # a plate (a face standing step_mm proud) or a sticker (on the surface)
+    step_mm: float | None = None  # measured height of the face over the surface around it
+    step_sd: float = float("nan")  # its SD
+    radius_sd: float = float("nan")  # SD of the free fit's radius
+    # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): its score
+    # counts that disagreement (``mark_selection.fit_score``), so a sure fit of its disk comes first
+    doubtful: bool = False
+    # its face is saturated in the camera along part of the rim used: the rim there may lie
+    # inside where it is read, and the covariance says how far (``edge_profiles``); lower the
+    # camera's exposure
+    clipped: bool = False
+
+    @property
+    def sd(self) -> float:
+        """Isotropic-equivalent position SD, mm (RMS over the three axes)."""
+        return float(math.sqrt(max(np.trace(self.covariance), 0.0) / 3.0))
+
+    def to_dict(self) -> dict[str, object]:
+        return {"label": self.label, "centre": [round(float(v), 4) for v in self.centre],
+                "normal": [round(float(v), 5) for v in self.normal], "radius_mm": round(self.radius, 4),
+                "circle_rms_mm": round(self.circle_rms, 4), "plane_rms_mm": round(self.plane_rms, 4),
+                "sd_mm": round(self.sd, 4), "pixel": [round(float(v), 2) for v in self.pixel],
+                "edge_points": self.n_edge, "interior_points": self.n_interior,
+                "kind": self.kind, "step_mm": None if self.step_mm is None else round(self.step_mm, 3),
+                "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
+                "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1),
+                "overexposed": self.clipped}
+
+
+def fitted(out: Mark | Refusal) -> Mark | None:
+    """The mark of ``fit_mark``'s result, or None where it was refused."""
+    return out if isinstance(out, Mark) else None
+
+
+@dataclass
+class MarkSet:
+    """Every plate found, labelled where the geometry allows, and what went wrong."""
+
+    marks: list[Mark] = field(default_factory=list)  # labelled ones first in label order
+    rejected: list[Rejection] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # labelling / count messages
+    diameter: tuple[float, float] | None = None  # (mm, sd mm) of the marks: measured, or (given, 0.0)
+    diameter_given: bool = False
+    size_error: str = ""  # a given size that fits no mark: the one-line reason (names the sizes seen)
+
+    @property
+    def labelled(self) -> dict[str, Mark]:
+        return {m.label: m for m in self.marks if m.label is not None}
+
+    @property
+    def unlabelled(self) -> list[Mark]:
+        return [m for m in self.marks if m.label is None]
+
+    @property
+    def missing(self) -> list[str]:
+        return [lab for lab in LABELS if lab not in self.labelled]
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing and not self.unlabelled and not self.problems
+
+    def centres(self) -> dict[str, np.ndarray]:
+        return {lab: m.centre for lab, m in sorted(self.labelled.items())}
+
+    def covariances(self) -> dict[str, np.ndarray]:
+        return {lab: m.covariance for lab, m in sorted(self.labelled.items())}
+
+    def overexposed(self) -> list[str]:
+        """The labels of the marks whose face saturates the camera ("?" for an unlabelled one)."""
+        return ([str(lab) for lab, m in sorted(self.labelled.items()) if m.clipped]
+                + ["?" for m in self.unlabelled if m.clipped])
+
+    def overexposed_message(self) -> str:
+        """One line naming the marks whose face saturates the camera ('' when none)."""
+        over = self.overexposed()
+        if not over:
+            return ""
+        return (f"overexposed: mark{'s' * (len(over) > 1)} {', '.join(over)} saturate{'s' * (len(over) == 1)} the "
+                "camera, so the rim is less certain (the sd says how much): lower the exposure")
+
+    def message(self) -> str:
+        """One line: what was found and what is missing ('' when all seven are labelled)."""
+        if self.complete:
+            return ""
+        if self.size_error:
+            return self.size_error
+        found = ", ".join(f"{m.label or '?'} at pixel ({m.pixel[0]:.0f}, {m.pixel[1]:.0f})" for m in self.marks)
+        parts = [f"found {len(self.marks)} mark{'s' if len(self.marks) != 1 else ''}"
+                 + (f" ({found})" if found else "")]
+        if self.missing:
+            parts.append(f"missing label{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}")
+        parts += self.problems
+        if self.rejected and len(self.marks) < len(LABELS):
+            parts.append(f"{len(self.rejected)} candidate blob(s) rejected, e.g. "
+                         + "; ".join(f"({r['pixel'][0]:.0f}, {r['pixel'][1]:.0f}): {r['reason']}"
+                                     for r in self.rejected[:3]))
+        return "; ".join(parts)

@@ -28,7 +28,8 @@ says what is missing, so an operator can correct it; ``anklescan.core.measure.pi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import TypedDict
 
 import cv2
 import numpy as np
@@ -39,140 +40,38 @@ from anklescan.core.measure.mark_candidates import (
     camera_depth,
     candidate_blobs,
     cut_blob,
-    depth_image,
-    disk_contrast_peak,
     noise_sigma,
     plate_radius_px,
     points_image,
-    predicted_disk,
     ring_level,
     shading_corrected,
     sigma_image,
 )
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, step_kind
-from anklescan.core.measure.mark_labels import LABELS, label_marks
-from anklescan.core.measure.mark_types import Refusal
+from anklescan.core.measure.mark_hypotheses import (
+    Blob,
+    CutImage,
+    Hypothesis,
+    HypothesisSource,
+    derived,
+    first_hypotheses,
+    on_a_fitted_disk,
+    sized_hypotheses,
+    unexplained,
+)
+from anklescan.core.measure.mark_labels import label_marks
+from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
+from anklescan.core.measure.mark_types import Mark, MarkSet, Refusal, RefusalReason, fitted
+from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import LABEL_KEYS as LABELS
 from anklescan.core.vocabulary import MarkKind
 
-
-@dataclass(eq=False)
-class Mark:
-    """One measured plate. ``centre`` is the centre of its top face in world mm."""
-
-    centre: np.ndarray
-    normal: np.ndarray  # unit, towards the camera
-    radius: float  # mm, fitted (nominal 7.5)
-    circle_rms: float  # mm, edge points about the circle
-    plane_rms: float  # mm, interior points about the plane
-    covariance: np.ndarray  # (3, 3) mm^2, fit + CONFIG.sd_floor_mm
-    pixel: tuple  # (u, v) camera pixel of the centre
-    n_edge: int
-    n_interior: int
-    label: str | None = None
-    # degrees between the plate's normal and the camera ray / the projector ray to its centre:
-    # past ~70° a plate's centre is less accurate (docs/marks.md), a reason to re-stick it
-    view_deg: float | None = None
-    light_deg: float | None = None
-    kind: MarkKind = MarkKind.PLATE  # a plate (a face standing step_mm proud) or a sticker (on the surface)
-    step_mm: float | None = None  # measured height of the face over the surface around it
-    step_sd: float = float("nan")  # its SD
-    radius_sd: float = float("nan")  # SD of the free fit's radius
-    # the free radius disagrees with the marks' size (``mark_fit.radius_disagrees``): held back
-    # while the second look searches its place (``find_marks``)
-    doubtful: bool = False
-    # its face is saturated in the camera along part of the rim used: the rim there may lie
-    # inside where it is read, and the covariance says how far (``edge_profiles``); lower the
-    # camera's exposure
-    clipped: bool = False
-
-    @property
-    def sd(self) -> float:
-        """Isotropic-equivalent position SD, mm (RMS over the three axes)."""
-        return float(math.sqrt(max(np.trace(self.covariance), 0.0) / 3.0))
-
-    def to_dict(self) -> dict:
-        return {"label": self.label, "centre": [round(float(v), 4) for v in self.centre],
-                "normal": [round(float(v), 5) for v in self.normal], "radius_mm": round(self.radius, 4),
-                "circle_rms_mm": round(self.circle_rms, 4), "plane_rms_mm": round(self.plane_rms, 4),
-                "sd_mm": round(self.sd, 4), "pixel": [round(float(v), 2) for v in self.pixel],
-                "edge_points": self.n_edge, "interior_points": self.n_interior,
-                "kind": self.kind, "step_mm": None if self.step_mm is None else round(self.step_mm, 3),
-                "seen_at_deg": None if self.view_deg is None else round(self.view_deg, 1),
-                "lit_at_deg": None if self.light_deg is None else round(self.light_deg, 1),
-                "overexposed": self.clipped}
-
-
-def fitted(out: Mark | Refusal) -> Mark | None:
-    """The mark of ``fit_mark``'s result, or None where it was refused."""
-    return out if isinstance(out, Mark) else None
-
-
-@dataclass
-class MarkSet:
-    """Every plate found, labelled where the geometry allows, and what went wrong."""
-
-    marks: list = field(default_factory=list)  # list[Mark], labelled ones first in label order
-    rejected: list = field(default_factory=list)  # [{"pixel": (u, v), "reason": str}]
-    problems: list = field(default_factory=list)  # labelling / count messages
-    diameter: tuple | None = None  # (mm, sd mm) of the marks: measured, or (given, 0.0)
-    diameter_given: bool = False
-    size_error: str = ""  # a given size that fits no mark: the one-line reason (names the sizes seen)
-
-    @property
-    def labelled(self) -> dict:
-        return {m.label: m for m in self.marks if m.label is not None}
-
-    @property
-    def unlabelled(self) -> list:
-        return [m for m in self.marks if m.label is None]
-
-    @property
-    def missing(self) -> list:
-        return [lab for lab in LABELS if lab not in self.labelled]
-
-    @property
-    def complete(self) -> bool:
-        return not self.missing and not self.unlabelled and not self.problems
-
-    def centres(self) -> dict:
-        return {lab: m.centre for lab, m in sorted(self.labelled.items())}
-
-    def covariances(self) -> dict:
-        return {lab: m.covariance for lab, m in sorted(self.labelled.items())}
-
-    def overexposed(self) -> list:
-        """The labels of the marks whose face saturates the camera ("?" for an unlabelled one)."""
-        return ([str(lab) for lab, m in sorted(self.labelled.items()) if m.clipped]
-                + ["?" for m in self.unlabelled if m.clipped])
-
-    def overexposed_message(self) -> str:
-        """One line naming the marks whose face saturates the camera ('' when none)."""
-        over = self.overexposed()
-        if not over:
-            return ""
-        return (f"overexposed: mark{'s' * (len(over) > 1)} {', '.join(over)} saturate{'s' * (len(over) == 1)} the "
-                "camera, so the rim is less certain (the sd says how much): lower the exposure")
-
-    def message(self) -> str:
-        """One line: what was found and what is missing ('' when all seven are labelled)."""
-        if self.complete:
-            return ""
-        if self.size_error:
-            return self.size_error
-        found = ", ".join(f"{m.label or '?'} at pixel ({m.pixel[0]:.0f}, {m.pixel[1]:.0f})" for m in self.marks)
-        parts = [f"found {len(self.marks)} mark{'s' if len(self.marks) != 1 else ''}"
-                 + (f" ({found})" if found else "")]
-        if self.missing:
-            parts.append(f"missing label{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}")
-        parts += self.problems
-        if self.rejected and len(self.marks) < len(LABELS):
-            parts.append(f"{len(self.rejected)} candidate blob(s) rejected, e.g. "
-                         + "; ".join(f"({r['pixel'][0]:.0f}, {r['pixel'][1]:.0f}): {r['reason']}"
-                                     for r in self.rejected[:3]))
-        return "; ".join(parts)
+__all__ = [  # the public API; Mark, MarkSet and the rest are defined in the modules they are imported from
+    "LABELS", "Mark", "MarkSet", "Refusal", "border_undecoded", "find_marks", "fit_marks_near", "fitted", "points_image",
+    "snap_to_disk",
+]
 
 
 # ---------------------------------------------------------------------------- public entry
@@ -189,9 +88,12 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     a rim read there may lie inside where it is read, and the mark's covariance says how far
     (``edge_profiles``).
 
-    Two passes: every candidate fitted with its own free radius (the sizes seen), the common
-    size taken from the largest group of agreeing radii, then every candidate fitted again with
-    that size as a prior (a short arc otherwise trades centre against radius).
+    The model (docs/marks.md, "Stages"): the marks' size, thickness and kind from every blob
+    fitted with its own free radius (``size_groups``); then (1) every hypothesis of a disk
+    (``mark_hypotheses``), (2) each fitted once with that size as a prior, without its
+    covariance, and scored in SD units (``mark_selection.fit_score``), (3) the non-overlapping
+    set of seven the labels accept with the best total score (``select_marks``), and only those
+    fitted again with their covariance.
     """
     image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
@@ -226,57 +128,135 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     else:
         label_marks(result)
         return result
-    refused = []
-    for blob in blobs:
-        out = fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo, plate_thickness=thick,
-                       prefer_kind=prefer, clipped=clipped)
-        mark, reason = fitted(out), str(out)
-        if mark is not None and blob.get("ring_cut") and not radius_clearly_measured(mark.radius_sd, r0):
-            # cut against the surface round it, not the opening: kept here only if clearly a disk
-            # (a plate's cut with its side wall measures its radius to ± 0.5 mm and its centre
-            # ~0.6 mm off; the later looks find the face alone)
-            mark, reason = None, (f"cut against its surround and not clearly a disk (radius {mark.radius:.2f} ± "
-                                  f"{mark.radius_sd:.2f} mm)")
-        if mark is None:
-            result.rejected.append({"pixel": blob["centre"], "reason": reason})
-            refused.append(blob)
+    scene = _Scene(image, points, sigma, albedo, cal, clipped, r0, sd0, thick, prefer)
+    fits: list[MarkFit] = []
+    refused: list[Hypothesis] = []
+
+    def consider(hyps: list[Hypothesis]) -> None:
+        for h in hyps:
+            out = _fit_hypothesis(h, scene, covariance=False)
+            if isinstance(out, Mark):
+                fits.append(MarkFit(h, out, fit_score(out, r0, sd0, h.source.tier)))
+            else:
+                refused.append(h)
+                if h.source is HypothesisSource.BLOB:
+                    result.rejected.append({"pixel": h.pixel, "reason": str(out)})
+
+    def sure() -> list[Mark]:
+        return [f.mark for f in fits if not f.mark.doubtful]
+
+    consider(first_hypotheses(blobs))
+    # each tier's hypotheses are made unless no fit of theirs could change the choice (``settled``)
+    selection = select_marks(fits, r0)
+    if not settled(selection, HypothesisSource.SIZED.tier):
+        recuts = [(h, unexplained(h.blob, points, sure(), r0))
+                  for h in sized_hypotheses(image, albedo, points, cal, r0)]
+        consider([h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob)
+                  for h, rest in recuts if rest is not None])
+        selection = select_marks(fits, r0)
+    if not settled(selection, HypothesisSource.WIDER.tier):
+        parents = [h for h in refused if h.source.tier < HypothesisSource.WIDER.tier]
+        # derived only where no cut gives a disk, not even a doubtful one: there a cut's fit is no
+        # worse a hypothesis than an outline predicted beside it (an 8 mm plate seen at 69°: a
+        # doubtful re-cut 0.18 mm off, the predicted plate outline 0.66 mm off on clean edges)
+        kept = [f.mark for f in fits if math.isfinite(f.score)]
+        before = len(fits)
+        consider([d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
+                  for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0)])
+        fits[before:] = _one_predicted_outline(fits[before:])
+        selection = select_marks(fits, r0)
+    for f in selection.chosen:
+        out = _fit_hypothesis(f.hypothesis, scene, covariance=True)  # the same fit, with its covariance
+        if isinstance(out, Mark):
+            result.marks.append(out)
         else:
-            result.marks.append(mark)
-    result.marks = _distinct(result.marks, cal, r0)
-    held = [m for m in result.marks if m.doubtful]
-    result.marks = [m for m in result.marks if not m.doubtful]
-    if len(result.marks) < len(LABELS):
-        _second_look(result, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
-    _restore_held(result, held, cal, r0)
-    if len(result.marks) < len(LABELS):
-        # the last look: a refused blob as a sticker with the lit image's edges. A lateral 20 mm
-        # sticker beside the leg's silhouette (20/10, 0.75 scale) had an edge RMS of 0.77 mm in
-        # the corrected image, whose surround there is the silhouette's dark band, and was
-        # refused in both size modes; with the lit edges 0.06 mm off. Only now: tried first, it
-        # took a front sticker at 20/20 that the second look finds 0.13 mm off, 0.38 mm off.
-        r_px = [_radius_px(cal, m, r0) for m in result.marks]
-        for blob in refused:
-            if not _away(blob["centre"], result.marks, r_px):
-                continue
-            mark = fitted(fit_mark(image, points, blob, cal, r0, sigma, prior_sd=sd0, albedo=albedo,
-                                   lit_sticker_edges=True, clipped=clipped))
-            if mark is not None and _of_capture_kind(mark, prefer):
-                result.marks.append(mark)
-                r_px.append(_radius_px(cal, mark, r0))
-    if len(result.marks) < len(LABELS):
-        _wider_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
-    if len(result.marks) < len(LABELS):
-        _shape_look(result, refused, image, points, cal, r0, sigma, sd0, albedo, thick, prefer, clipped)
+            result.rejected.append({"pixel": f.mark.pixel, "reason": str(out)})
+    result.rejected.extend(selection.left_out)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
         result.problems.append(result.size_error)
-    result.marks = _distinct(result.marks, cal, r0)  # each look checks its blobs, not its fits, against the marks
     label_marks(result)
     return result
 
 
-def size_groups(marks) -> list[dict]:
+def _one_predicted_outline(fits: list[MarkFit]) -> list[MarkFit]:
+    """``fits`` with one predicted outline per blob: of the disk's alone and the plate's (face and
+    wall), a sure one before a doubtful one; then the disk's, unless the plate's rests on
+    CONFIG.shape_plate_edge_ratio times its edges or more. Their scores do not tell them apart:
+    both fit their own edges well, but where the plate outline is the right model its face's
+    profiles reach the far rim that the disk alone, cut over the wall, misses (thick table plates
+    seen obliquely: 14-32 edges against 8-13, 0.02-0.17 mm off against 0.16-0.72); where both see
+    the same rim the counts are close and the disk alone was as good or better (front plates
+    lit at 78-85°: 0.17-0.28 mm off against 0.23-0.55)."""
+    out: list[MarkFit] = []
+    by_parent: dict[int, dict[HypothesisSource, MarkFit]] = {}
+    for f in fits:
+        src, parent = f.hypothesis.source, f.hypothesis.parent
+        if src in (HypothesisSource.PREDICTED, HypothesisSource.PREDICTED_PLATE) and parent is not None:
+            by_parent.setdefault(id(parent), {})[src] = f
+        else:
+            out.append(f)
+    for pair in by_parent.values():
+        alone, plate = pair.get(HypothesisSource.PREDICTED), pair.get(HypothesisSource.PREDICTED_PLATE)
+        if alone is None or plate is None:
+            out.extend(f for f in (alone, plate) if f is not None)
+        elif alone.mark.doubtful != plate.mark.doubtful:
+            out.append(plate if alone.mark.doubtful else alone)
+        else:
+            more = plate.mark.n_edge >= CONFIG.shape_plate_edge_ratio * alone.mark.n_edge
+            out.append(plate if more else alone)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Scene:
+    """What every hypothesis of one capture is fitted with."""
+
+    image: np.ndarray  # (H, W) lit image
+    points: np.ndarray  # (H, W, 3) world points per pixel
+    sigma: np.ndarray | None  # (H, W) their predicted SD
+    albedo: np.ndarray  # the shading-corrected image
+    cal: Calibration
+    clipped: np.ndarray | None  # where the camera saturated
+    radius_mm: float  # the marks' radius ...
+    radius_sd: float  # ... and its SD (the fits' prior)
+    thickness: float | None  # the capture's plates' step, where measured
+    prefer_kind: MarkKind | None  # the capture's kind of mark (``_common_kind``)
+
+
+def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool) -> Mark | Refusal:
+    """One hypothesis fitted as its source says (``HypothesisSource``): a blob with the marks'
+    size as a prior; a sticker on the lit image's edges; a derived outline kept only where the
+    fit is clearly a disk (``radius_clearly_measured``). Re-cuts and derived outlines search
+    weaker contrast and must be of the capture's kind (``_of_capture_kind``)."""
+    if h.source is HypothesisSource.LIT_STICKER:
+        out = fit_mark(s.image, s.points, h.blob, s.cal, s.radius_mm, s.sigma, prior_sd=s.radius_sd, albedo=s.albedo,
+                       lit_sticker_edges=True, clipped=s.clipped, covariance=covariance)
+    else:
+        out = fit_mark(s.image, s.points, h.blob, s.cal, s.radius_mm, s.sigma, prior_sd=s.radius_sd, albedo=s.albedo,
+                       plate_thickness=s.thickness, prefer_kind=s.prefer_kind, clipped=s.clipped,
+                       covariance=covariance)
+    if not isinstance(out, Mark):
+        return out
+    what = f"{out.kind}, seen at {out.view_deg or 0.0:.0f}°"
+    clear = radius_clearly_measured(out.radius_sd, s.radius_mm)
+    if h.source is HypothesisSource.BLOB and h.blob.get("ring_cut") and not clear:
+        # cut against the surface round it, not the opening: a plate's cut with its side wall
+        # measures its radius to ± 0.5 mm and its centre ~0.6 mm off; the re-cuts find the face alone
+        return Refusal(RefusalReason.SHORT_ARC, f"cut against its surround and not clearly a disk (radius "
+                                                f"{out.radius:.2f} ± {out.radius_sd:.2f} mm, {what})")
+    if h.source.tier == 0:
+        return out
+    if not _of_capture_kind(out, s.prefer_kind):
+        return Refusal(RefusalReason.WRONG_KIND, f"a {out.kind} among the capture's {s.prefer_kind}s ({what})")
+    if h.source.tier == 2 and h.source is not HypothesisSource.LIT_STICKER and not clear:
+        return Refusal(RefusalReason.SHORT_ARC, f"not clearly a disk (radius {out.radius:.2f} ± "
+                                                f"{out.radius_sd:.2f} mm, {what})")
+    return out
+
+
+def size_groups(marks: list[Mark]) -> list[SizeGroup]:
     """Groups of marks whose free radii agree (within CONFIG.size_cluster_rel of the radius or 3 SD),
     largest first: {"radius", "sd", "n"} with the inverse-variance mean and its SD (scaled up by
     the scatter where the radii disagree more than their SDs say). SPEC §2: all seven are one
@@ -285,14 +265,16 @@ def size_groups(marks) -> list[dict]:
     s = np.array([m.radius_sd for m in marks], float)
     ok = np.isfinite(r) & np.isfinite(s)
     r, s = r[ok], np.maximum(s[ok], CONFIG.radius_prior_sd_mm)
-    groups, used = [], np.zeros(len(r), bool)
+    groups: list[SizeGroup] = []
+    used = np.zeros(len(r), bool)
     while not used.all():
-        best = None
+        best: tuple[tuple[int, float], np.ndarray] | None = None
         for i in np.flatnonzero(~used):
             mem = ~used & (np.abs(r - r[i]) <= np.maximum(CONFIG.size_cluster_rel * r[i], 3 * np.hypot(s, s[i])))
             key = (int(mem.sum()), float(np.sum(1 / s[mem] ** 2)))
             if best is None or key > best[0]:
                 best = (key, mem)
+        assert best is not None  # some radius is unused
         mem = best[1]
         w = 1.0 / s[mem] ** 2
         mean = float(w @ r[mem] / w.sum())
@@ -309,130 +291,31 @@ def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
 
 
-def _away(pixel, marks, r_px) -> bool:
-    """True if ``pixel`` lies at least two radii (``r_px``, one per mark) from every mark's."""
-    return all(np.hypot(*(np.asarray(pixel) - m.pixel)) >= 2 * r for m, r in zip(marks, r_px, strict=True))
-
-
-def _restore_held(result: MarkSet, held, cal: Calibration, radius_mm: float) -> None:
-    """The doubtful marks (free radius far from the size, ``Mark.doubtful``) after the second
-    look: one is kept where no other mark lies within two radii, the first pass's (``held``)
-    before the second look's own doubtful fits (a doubtful fit is no better than another), and
-    among those the one with the most edge points. Its covariance carries the radius's
-    disagreement ((Δ/2)², ``_fit_kind``). Under camera blur 0.9 px a 10 mm plate fitted 2.56 mm
-    off (z 4.7) was replaced by the second look's fit 0.11 mm off; a plate 0.15 mm off (z 4.4)
-    with nothing better there is kept. None is kept once seven marks are kept: a doubtful fit
-    there can only be an eighth (skin by the leg's outline, which leaves five leg marks and the
-    trial unlabelled)."""
+def _restore_held(result: MarkSet, held: list[Mark], cal: Calibration, radius_mm: float) -> None:
+    """The selection (``select_marks``) among ``result``'s marks and the doubtful ones ``held``
+    back from them: marks of the first search (``held`` and the sure ones) before the later
+    doubtful fits in ``result``; a doubtful fit only where no better one overlaps it, and none
+    beyond seven. ``cal``: unused (overlaps are measured in the world)."""
+    del cal
     late = [m for m in result.marks if m.doubtful]
-    result.marks = [m for m in result.marks if not m.doubtful]
-    for group in (held, late):
-        for m in sorted(group, key=lambda m: -m.n_edge):
-            if m.circle_rms > CONFIG.doubtful_max_edge_rms_mm:
-                continue
-            if len(result.marks) >= len(LABELS):
-                result.rejected.append({"pixel": m.pixel, "reason": (
-                    f"doubtful (radius {m.radius:.2f} mm against the marks' {radius_mm:.2f}), and seven marks were "
-                    "already kept")})
-                continue
-            r_px = _radius_px(cal, m, radius_mm)
-            if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= 2 * r_px for o in result.marks):
-                result.marks.append(m)
+    first = [m for m in result.marks if not m.doubtful] + list(held)
+
+    def fit(m: Mark, source: HypothesisSource) -> MarkFit:
+        h = Hypothesis({"centre": m.pixel}, source, CutImage.LIT)
+        return MarkFit(h, m, fit_score(m, radius_mm, CONFIG.radius_prior_sd_mm, source.tier))
+
+    fits = [fit(m, HypothesisSource.BLOB) for m in first] + [fit(m, HypothesisSource.SIZED) for m in late]
+    selection = select_marks(fits, radius_mm)
+    chosen = [f.mark for f in selection.chosen]
+    result.marks = [m for m in first + late if any(m is c for c in chosen)]
+    result.rejected.extend(selection.left_out)
 
 
-def _wider_look(result: MarkSet, refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
-                thickness, prefer_kind, clipped=None) -> None:
-    """Last of all, the refused blobs' wider cuts (``cut_blob``), away from the marks found, kept
-    where the fit is clearly a disk (``radius_clearly_measured``, not doubtful): a
-    thick plate's face beside its bright side wall (a 15 x 3 mm table plate at 0/-20). Tried in
-    the first pass instead, a weaker fit of a 10 mm plate (14 edge points, 0.31 mm off) took the
-    place of the second look's (21, 0.18 mm)."""
-    r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
-    for blob in refused:
-        wider = blob.get("wider")
-        if wider is None or not _away(blob["centre"], result.marks, r_px):
-            continue
-        mark = _wider_fit(wider, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
-                          clipped)
-        if mark is not None:
-            result.marks.append(mark)
-            r_px.append(_radius_px(cal, mark, radius_mm))
-
-
-def _shape_look(result: MarkSet, refused, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo,
-                thickness, prefer_kind, clipped=None) -> None:
-    """Last of all, where a refused blob's cut is not the disk (a thick plate's lit side wall,
-    brighter than its face, which is no brighter than the skin on the wall's side: every cut
-    is then the wall's crescent alone): the disk
-    as it must image, the marks' size on the surface round the blob (``predicted_disk``), slid
-    over the blob's surround to where it stands out most (``disk_contrast_peak``), and fitted as
-    a blob of that outline. Kept where the fit is clearly a disk, as the wider look's.
-    Where the capture's plates have a thickness, the disk is also slid as a plate that thick,
-    face and side wall together, and its face fitted: a thick plate lit at a grazing angle is a
-    bright wall under a dim face, and the disk alone stands out most over the wall. Which fit
-    is kept: ``_surer_shape_fit``."""
-    r_px = [_radius_px(cal, m, radius_mm) for m in result.marks]
-    for blob in refused:
-        if not _away(blob["centre"], result.marks, r_px):
-            continue
-        def away_fit(height: float, pixel: tuple = blob["centre"]) -> Mark | None:
-            # _shape_fit, None where it lands on a mark already found
-            m = _shape_fit(image, points, cal, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
-                           prefer_kind, clipped)
-            return m if m is not None and _away(m.pixel, result.marks, r_px) else None
-
-        mark = _surer_shape_fit(away_fit(0.0), away_fit(thickness) if thickness else None)
-        if mark is not None:
-            result.marks.append(mark)
-            r_px.append(_radius_px(cal, mark, radius_mm))
-
-
-def _surer_shape_fit(alone, plate):
-    """Of ``_shape_look``'s fits of the disk ``alone`` and of the ``plate`` outline (either may
-    be None), the one to keep: a sure one before a doubtful one; then the disk's, unless the
-    plate's rests on CONFIG.shape_plate_edge_ratio times its edges or more. Where the plate outline is
-    the right model, its face's profiles reach the far rim the disk alone, cut over the wall,
-    misses (thick table plates seen obliquely: 14-32 edges against 8-13, 0.02-0.17 mm off
-    against 0.16-0.72). Where both see the same rim the counts are close and the disk alone was
-    as good or better (front plates lit at 78-85°: 17-34 edges against 12-33, 0.23-0.55 mm off
-    against 0.17-0.28)."""
-    if alone is None or plate is None:
-        return alone or plate
-    if alone.doubtful != plate.doubtful:
-        return plate if alone.doubtful else alone
-    return plate if plate.n_edge >= CONFIG.shape_plate_edge_ratio * alone.n_edge else alone
-
-
-def _shape_fit(image, points, cal: Calibration, pixel, radius_mm, height, sigma, prior_sd, albedo, thickness,
-               prefer_kind, clipped):
-    """``_shape_look``'s fit of the disk predicted near ``pixel``, a plate ``height`` high (its
-    face and side wall slid together, the face fitted), or None."""
-    disk = predicted_disk(points, cal, pixel, radius_mm, thickness=height)
-    found = None if disk is None else disk_contrast_peak(image, disk)
-    if found is None:
-        return None
-    return _wider_fit(found, image, points, cal, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind, clipped)
-
-
-def _wider_fit(wider, image, points, cal: Calibration, radius_mm, sigma, prior_sd, albedo, thickness, prefer_kind,
-               clipped=None):
-    """A blob's wider cut fitted, kept only where the fit is clearly a disk (see ``_wider_look``):
-    a short arc's free radius well measured, and, where that radius is far from the size
-    (doubtful), clean edges, as for a doubtful mark restored (``_restore_held``): a small front
-    plate lit at 79° measures a free radius 7 % short on clean edges and its centre within its
-    SD (the radius's disagreement is in it); refused, the trial would be incomplete."""
-    mark = fitted(fit_mark(image, points, wider, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                           plate_thickness=thickness, prefer_kind=prefer_kind, clipped=clipped))
-    if mark is None or not (radius_clearly_measured(mark.radius_sd, radius_mm) and _of_capture_kind(mark, prefer_kind)):
-        return None
-    return mark if not mark.doubtful or mark.circle_rms <= CONFIG.doubtful_max_edge_rms_mm else None
-
-
-def _distinct(marks: list, cal: Calibration, radius_mm: float) -> list:
+def _distinct(marks: list[Mark], cal: Calibration, radius_mm: float) -> list[Mark]:
     """One mark per disk: of fits whose centres image within one radius of each other (two
     candidate blobs, or a blob's wider cut, on the same disk; disks do not overlap), the one
     with the most edge points."""
-    kept = []
+    kept: list[Mark] = []
     for m in sorted(marks, key=lambda m: -m.n_edge):
         r_px = _radius_px(cal, m, radius_mm)
         if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= r_px for o in kept):
@@ -450,7 +333,7 @@ def _common_kind(kinds: list[MarkKind]) -> MarkKind | None:
 
 def _of_capture_kind(mark: Mark, prefer_kind: MarkKind | None) -> bool:
     """False where the capture's marks are plates (``_common_kind``; a clinic sticks one kind)
-    and a later look's fit has a face clearly flush with the surface. Those looks search weaker
+    and a re-cut's or derived hypothesis' fit has a face clearly flush with the surface. Those search weaker
     contrast, where a bright patch of skin can pass for a sticker (by the leg's outline, beside
     a lateral ankle plate, one would take the front mark's label). Not the other way round: a
     step is measured over a quadric, which a large sticker on a bony ankle can leave, so a
@@ -459,58 +342,29 @@ def _of_capture_kind(mark: Mark, prefer_kind: MarkKind | None) -> bool:
     return not (prefer_kind == MarkKind.PLATE and step_kind(mark.step_mm, mark.step_sd) == MarkKind.STICKER)
 
 
-def _second_look(result: MarkSet, image, points, cal: Calibration, radius_mm: float, sigma, prior_sd,
-                 albedo=None, plate_thickness=None, prefer_kind=None, clipped=None) -> None:
-    """Candidates in the shading-corrected image, where fewer than seven plates were found.
+class SizeGroup(TypedDict):
+    """Marks whose free radii agree (``size_groups``)."""
 
-    A plate lit at a grazing angle (a front plate at plantar flexion >= 10°: 74–77° from the
-    projector) is hardly brighter than the skin beside it, which faces the projector better;
-    its lit side wall is, and that crescent was the blob found. Divided by the irradiance the
-    reconstruction predicts (cos of the incidence on the local surface, 1/d²), plate and skin
-    are 0.9 against 0.45 again. Only new blobs away from the plates already found are tried,
-    and they are fitted on the lit image as before (its edges are where the plate's are).
-    Then the lit image itself at the marks' size, each seed's blob cut against the surface
-    round it where the cut over the opening leaks: a 20 mm plate at the ankle's terminator
-    (20/-20, 0.75 scale) leaked into the brighter skin on its lit side at every search radius
-    and had no candidate; cut against its surround it was found, 0.06 mm off.
-    """
-    decoded = np.isfinite(points[..., 0])
-    if decoded.sum() < 10:
-        return
-    if albedo is None:
-        albedo = shading_corrected(image, points, cal)
-    found = [m.pixel for m in result.marks]
-    depth = depth_image(cal, points)
-    r_px = float(plate_radius_px(cal, np.median(depth[decoded]), radius_mm))
-    size = (radius_mm, radius_mm)
-    blobs = candidate_blobs(albedo, points, cal, noise_sigma(albedo), size, ring_background=True, depth=depth)
-    for blob in blobs + candidate_blobs(image, points, cal, noise_sigma(image), size, ring_background=True,
-                                        depth=depth):
-        if any(np.hypot(*(np.asarray(blob["centre"]) - p)) < 2 * r_px for p in found):
-            continue
-        if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
-            continue  # a patchwork of decoded and empty pixels (the far, dim floor), not a lit surface
-        if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
-            continue  # a streak along the edge of the reconstruction, where the normals are mixed
-        mark = fitted(fit_mark(image, points, blob, cal, radius_mm, sigma, prior_sd=prior_sd, albedo=albedo,
-                               plate_thickness=plate_thickness, prefer_kind=prefer_kind, clipped=clipped))
-        if mark is not None and not _of_capture_kind(mark, prefer_kind):
-            mark = None
-        if mark is None and blob.get("wider") is not None:
-            mark = _wider_fit(blob["wider"], image, points, cal, radius_mm, sigma, prior_sd, albedo, plate_thickness,
-                              prefer_kind, clipped)
-        if mark is not None:
-            # two blobs can fit one disk: the blob is checked above, not where its fit lands
-            result.marks = _distinct(result.marks + [mark], cal, radius_mm)
-            found = [m.pixel for m in result.marks]
+    radius: float  # mm, inverse-variance mean
+    sd: float  # mm, its SD (scaled up by the scatter)
+    n: int  # marks in the group
 
 
+@dataclass(frozen=True, eq=False)
+class _Click:
+    """What ``fit_marks_near`` fits each candidate near a click with."""
+
+    image: np.ndarray  # (H, W) lit image
+    points: np.ndarray  # (H, W, 3) world points per pixel
+    cal: Calibration
+    mark_diameter_mm: float | None  # the marks' size, where given
+    bounds: tuple[float, float]  # radii searched, mm
+    sigma: np.ndarray | None  # (H, W) the points' predicted SD
+    clipped: np.ndarray | None  # where the camera saturated
+    albedo: np.ndarray  # the shading-corrected image
 
 
-
-
-
-def _pixel_distance(blob, uv) -> float:
+def _pixel_distance(blob: Blob, uv: np.ndarray) -> float:
     """From ``uv`` to the nearest pixel of ``blob``'s region (0 inside it): a large disk partly
     hidden has its blob's centre far from the disk's."""
     v, u = np.nonzero(blob["region"])
@@ -519,7 +373,8 @@ def _pixel_distance(blob, uv) -> float:
 
 
 
-def _brightest_cut(image, points, cal, uv, reach, r_max_mm, px_per_mm):
+def _brightest_cut(image: np.ndarray, points: np.ndarray, cal: Calibration, uv: np.ndarray, reach: float,
+                   r_max_mm: float, px_per_mm: float) -> Blob | None:
     """The blob at the brightest pixel within ``reach`` px of ``uv``, cut at half-way over the
     decoded surface round it (``ring_level``): a disk no candidate search kept. None if none."""
     H, W = image.shape
@@ -531,12 +386,14 @@ def _brightest_cut(image, points, cal, uv, reach, r_max_mm, px_per_mm):
     smooth = cv2.GaussianBlur(image, (0, 0), 0.7)
     j = np.unravel_index(int(np.argmax(np.nan_to_num(smooth[win], nan=-np.inf))), smooth[win].shape)
     seed = (win[1].start + j[1], win[0].start + j[0])
-    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)
-    return None if bg is None else cut_blob(smooth, seed, bg, int(math.ceil(2.5 * r_max_mm * px_per_mm)))
+    # mark_candidates is still on mypy's debt list (untyped): its calls are marked here
+    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)  # type: ignore[no-untyped-call]
+    half = int(math.ceil(2.5 * r_max_mm * px_per_mm))
+    return None if bg is None else cut_blob(smooth, seed, bg, half)  # type: ignore[no-untyped-call,no-any-return]
 
 
-def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0,
-                   mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None):
+def fit_marks_near(point: np.ndarray, lit: np.ndarray, points: np.ndarray, cal: Calibration, search_mm: float = 20.0,
+                   mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> Mark | None:
     """The white disk nearest ``point`` (a clicked world point, mm) within ``search_mm``: a
     fitted ``Mark`` (centre of the face; the skin under a sticker's centre), or None.
 
@@ -548,7 +405,7 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     prior, or with its own free radius (a fit whose radius disagrees with the given size, a
     doubtful one, is passed over); the corrected image's blobs, and edges scattering up to
     CONFIG.snap_max_edge_rms_mm, only where the lit image's blobs give no mark.
-    ``anklescan.core.measure.marks_surface.snap_to_disk`` is the public name.
+    ``snap_to_disk`` is the public name.
     """
     image = np.asarray(lit, np.float32)
     point = np.asarray(point, float).reshape(3)
@@ -563,7 +420,7 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     reach = search_mm * px_per_mm
     bounds = CONFIG.size_range_mm if mark_diameter_mm is None else (0.5 * mark_diameter_mm,) * 2
     albedo = shading_corrected(image, points, cal)
-    fit = (image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo)
+    fit = _Click(image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo)
     tried = _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm)
     best = _nearest_fit(tried, point, search_mm, fit, CONFIG.max_circle_rms_mm)
     if best is None:
@@ -575,7 +432,8 @@ def fit_marks_near(point, lit, points, cal: Calibration, search_mm: float = 20.0
     return best
 
 
-def _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm) -> list[dict]:
+def _near_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, uv: np.ndarray, reach: float,
+                bounds: tuple[float, float], px_per_mm: float) -> list[Blob]:
     """The candidate blobs of ``image`` whose region comes within ``reach`` px of ``uv``, and the
     one cut at the brightest pixel there (``_brightest_cut``)."""
     blobs = [b for b in candidate_blobs(image, points, cal, noise_sigma(image), bounds, ring_background=True)
@@ -584,10 +442,11 @@ def _near_blobs(image, points, cal, uv, reach, bounds, px_per_mm) -> list[dict]:
     return blobs + ([blob] if blob is not None else [])
 
 
-def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
+def _nearest_fit(blobs: list[Blob], point: np.ndarray, search_mm: float, fit: _Click, max_edge_rms: float) -> Mark | None:
     """Of ``blobs`` fitted as marks (edges scattering up to ``max_edge_rms``), the one whose
     centre lies nearest ``point``, within ``search_mm``; or None."""
-    image, points, cal, mark_diameter_mm, bounds, sigma, clipped, albedo = fit
+    image, points, cal, mark_diameter_mm = fit.image, fit.points, fit.cal, fit.mark_diameter_mm
+    bounds, sigma, clipped, albedo = fit.bounds, fit.sigma, fit.clipped, fit.albedo
     best = None
     for blob in blobs:
         if mark_diameter_mm is None:
@@ -606,10 +465,23 @@ def _nearest_fit(blobs, point, search_mm, fit, max_edge_rms):
             # edges that scatter past the search's limit are likely off the rim somewhere (the
             # foot over a sticker's lower part), not at random: the centre may be off by their
             # RMS in the disk's plane
-            B = plane_basis(mark.normal)
+            B = local_frame(mark.centre, mark.normal)[:2]
             mark.covariance = mark.covariance + mark.circle_rms ** 2 * (B.T @ B)
         d = float(np.linalg.norm(mark.centre - point))
         if d <= search_mm and (best is None or d < best[0]):
             best = (d, mark)
     return None if best is None else best[1]
 
+
+def snap_to_disk(point: np.ndarray, lit: np.ndarray, points_img: np.ndarray, cal: Calibration, search_mm: float = 20.0,
+                 mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> Mark | None:
+    """The centre of the white disk nearest a clicked 3-D point (manual placement).
+
+    ``point``: the clicked world point (mm); ``lit``: the capture's projector-lit image
+    (``anklescan.core.scan.lit_image.averaged_lit``); ``points_img``: (H, W, 3) world points per camera pixel
+    (``points_image``). The disks found by the automatic search within
+    ``search_mm`` of the click (any size, or ``mark_diameter_mm``) are candidates; the nearest
+    one's ``Mark`` is returned, or None when no disk is there (keep the click).
+    ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
+    """
+    return fit_marks_near(np.asarray(point, float), lit, points_img, cal, search_mm, mark_diameter_mm, clipped)

@@ -19,7 +19,6 @@ import math
 import numpy as np
 import scipy.optimize
 
-from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, plane_basis
@@ -31,7 +30,7 @@ _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
 _GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
 
 
-def local_frame(centre, normal) -> np.ndarray:
+def local_frame(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """(3, 3) rows e1, e2, n: a right-handed frame with n the (unit) normal."""
     n = np.asarray(normal, float) / np.linalg.norm(normal)
     e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -288,19 +287,3 @@ def combined_normal(normal, tilt, surface):
     n = normal - a @ B
     n /= np.linalg.norm(n)
     return n, (plane_basis(n), C)
-
-
-def snap_to_disk(point, lit, points_img, cal: Calibration, search_mm: float = 20.0,
-                 mark_diameter_mm: float | None = None, clipped=None):
-    """The centre of the white disk nearest a clicked 3-D point (manual placement).
-
-    ``point``: the clicked world point (mm); ``lit``: the capture's projector-lit image
-    (``anklescan.core.scan.lit_image.averaged_lit``); ``points_img``: (H, W, 3) world points per camera pixel
-    (``anklescan.core.measure.marks.points_image``). The disks found by the automatic search within
-    ``search_mm`` of the click (any size, or ``mark_diameter_mm``) are candidates; the nearest
-    one's ``anklescan.core.measure.marks.Mark`` is returned, or None when no disk is there (keep the click).
-    ``clipped``: where the camera saturated (``anklescan.core.scan.lit_image.clipped_white``).
-    """
-    from anklescan.core.measure.marks import fit_marks_near  # noqa: PLC0415
-
-    return fit_marks_near(np.asarray(point, float), lit, points_img, cal, search_mm, mark_diameter_mm, clipped)

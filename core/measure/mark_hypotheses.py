@@ -1,0 +1,193 @@
+"""Stage 1 of the marks model (docs/marks.md, "Stages"): every candidate disk, as a typed
+``Hypothesis``, before any is chosen.
+
+A hypothesis is a region of the camera image that may be one mark's image: a blob cut from
+one image at one level, or the outline a disk of the marks' size must have on the surface
+there. Where it came from (``HypothesisSource``) says how it is fitted (``mark_selection``) and
+how far its fits are trusted against another hypothesis of the same disk
+(``CONFIG.source_penalty``). The sources:
+
+- ``BLOB``: the lit image's compact bright blobs over the whole size range
+  (``candidate_blobs``), cut at the seed's level or against the surface round it;
+- ``CORRECTED``: the shading-corrected image's blobs at the marks' size (a disk lit at a
+  grazing angle is hardly brighter than the skin beside it, which faces the light better);
+- ``SIZED``: the lit image's blobs at the marks' size (a disk the range's openings merged with
+  its bright surround);
+- ``WIDER``: a blob's wider cut (face and lit side wall together);
+- ``LIT_STICKER``: a blob fitted as a sticker on the lit image's edges (its surround in the
+  corrected image is a silhouette's dark band);
+- ``PREDICTED`` / ``PREDICTED_PLATE``: the disk as it must image on the surface round a blob
+  that no cut fits, alone or as a plate of the capture's thickness (face and wall together),
+  slid to where it stands out most (``predicted_disk``, ``disk_contrast_peak``).
+
+Derived hypotheses are made for the blobs whose own cut fits no disk (``derived``): wider cuts
+for every such blob, lit-sticker and predicted disks for the first search's; a re-cut lying on
+a disk already fitted well is a second view of it and is not fitted again, and of a re-cut
+that holds such a disk and more, the rest is the hypothesis (``unexplained``).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.measure.mark_candidates import (
+    border_undecoded,
+    candidate_blobs,
+    depth_image,
+    disk_contrast_peak,
+    noise_sigma,
+    predicted_disk,
+)
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_types import Mark
+
+Blob = dict[str, Any]  # ``candidate_blobs``' blob: region, slice, origin, centre (u, v), and its cuts
+
+
+class HypothesisSource(enum.Enum):
+    """How a hypothesis was made (module docstring); its ``tier`` indexes ``CONFIG.source_penalty``."""
+
+    BLOB = "blob"
+    CORRECTED = "corrected blob"
+    SIZED = "blob at the marks' size"
+    WIDER = "wider cut"
+    LIT_STICKER = "sticker on the lit edges"
+    PREDICTED = "predicted disk"
+    PREDICTED_PLATE = "predicted plate"
+
+    @property
+    def tier(self) -> int:
+        """0: the first search's blobs; 1: re-cut at the marks' size; 2: derived from a blob no cut fits."""
+        if self is HypothesisSource.BLOB:
+            return 0
+        if self in (HypothesisSource.CORRECTED, HypothesisSource.SIZED):
+            return 1
+        return 2
+
+
+class CutImage(enum.Enum):
+    """The image a hypothesis' region was cut from."""
+
+    LIT = "lit"
+    CORRECTED = "shading-corrected"
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """One candidate disk: its blob (``candidate_blobs``' dict, or a predicted outline's), how it
+    was made, and the image it was cut from. ``parent``: the blob it was derived from, if any."""
+
+    blob: Blob
+    source: HypothesisSource
+    image: CutImage
+    parent: Blob | None = None
+
+    @property
+    def pixel(self) -> tuple[float, float]:
+        """(u, v) camera pixel of its region's centre."""
+        u, v = self.blob["centre"]
+        return float(u), float(v)
+
+
+def blob_point(blob: Blob, points: np.ndarray) -> np.ndarray | None:
+    """The median world point (mm) of the decoded pixels of ``blob``'s region, or None."""
+    P = points[blob["slice"]][blob["region"]]
+    P = P[np.isfinite(P[:, 0])]
+    return None if not len(P) else np.median(P, axis=0)
+
+
+def on_a_fitted_disk(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: float) -> bool:
+    """True if ``blob``'s decoded points lie within one radius of a mark's centre: another view
+    of a disk already fitted (disks do not overlap, so a second disk's centre is two radii away
+    or more). Measured in the world, not in the image: two disks seen at a grazing angle, side by
+    side, image less than two radii apart."""
+    p = blob_point(blob, points)
+    if p is None:
+        return False
+    return any(float(np.linalg.norm(p - m.centre)) < radius_mm for m in marks)
+
+
+def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: float) -> Blob | None:
+    """``blob`` less the pixels a fitted disk explains (decoded points within
+    CONFIG.explained_radii radii of a mark's centre): the blob itself where none does, its
+    largest remaining connected part where some do (two disks side by side cut as one blob, one
+    of them fitted: the other's hypothesis), None where less than CONFIG.unexplained_min_share of
+    it remains (another view of a disk fitted: its face, its side wall)."""
+    region = np.asarray(blob["region"], bool)
+    P = points[blob["slice"]]
+    inside = np.zeros(region.shape, bool)
+    for m in marks:
+        d = np.linalg.norm(P - m.centre, axis=-1)
+        inside |= np.nan_to_num(d, nan=np.inf) < CONFIG.explained_radii * radius_mm
+    rest = region & ~inside
+    n_rest, n_all = int(rest.sum()), int(region.sum())
+    if n_rest == n_all:
+        return blob
+    if n_rest < CONFIG.unexplained_min_share * n_all:
+        return None
+    count, labels = cv2.connectedComponents(rest.astype(np.uint8), connectivity=8)
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    sizes[0] = 0
+    part = labels == int(np.argmax(sizes))
+    v, u = np.nonzero(part)
+    x0, y0 = blob["origin"]
+    return {"region": part, "slice": blob["slice"], "origin": blob["origin"],
+            "centre": (float(u.mean() + x0), float(v.mean() + y0))}
+
+
+def first_hypotheses(blobs: list[Blob]) -> list[Hypothesis]:
+    """The first search's blobs (``candidate_blobs`` over the size range, lit image)."""
+    return [Hypothesis(b, HypothesisSource.BLOB, CutImage.LIT) for b in blobs]
+
+
+def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, cal: Calibration,
+                     radius_mm: float) -> list[Hypothesis]:
+    """Blobs at the marks' size in the shading-corrected and in the lit image, each cut against
+    the surface round it where the cut over the opening leaks. Not where the blob is a patchwork
+    of decoded and empty pixels (the far, dim floor, CONFIG.second_look_min_decoded) or lies
+    along the edge of the reconstruction, where the normals are mixed
+    (CONFIG.second_look_max_border_undecoded)."""
+    decoded = np.isfinite(points[..., 0])
+    if decoded.sum() < CONFIG.min_interior_points:
+        return []
+    depth = depth_image(cal, points)
+    size = (radius_mm, radius_mm)
+    out = []
+    for img, source, cut in ((albedo, HypothesisSource.CORRECTED, CutImage.CORRECTED),
+                             (image, HypothesisSource.SIZED, CutImage.LIT)):
+        for blob in candidate_blobs(img, points, cal, noise_sigma(img), size, ring_background=True, depth=depth):
+            if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
+                continue
+            if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
+                continue
+            out.append(Hypothesis(blob, source, cut))
+    return out
+
+
+def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
+            thickness: float | None, *, recut: bool = False) -> list[Hypothesis]:
+    """What a blob that no cut fits may still be: its wider cut; and for a blob of the first
+    search (not a ``recut`` at the marks' size, whose surround was already searched at that
+    size) a sticker on the lit image's edges, and the disk (and, where the capture's plates
+    have a thickness, the plate) of the marks' size predicted on the surface round it, slid to
+    where it stands out most."""
+    out = []
+    if blob.get("wider") is not None:
+        out.append(Hypothesis(blob["wider"], HypothesisSource.WIDER, CutImage.LIT, blob))
+    if recut:
+        return out
+    out.append(Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob))
+    for height, source in ((0.0, HypothesisSource.PREDICTED), (thickness, HypothesisSource.PREDICTED_PLATE)):
+        if height is None or (source is HypothesisSource.PREDICTED_PLATE and not height):
+            continue
+        disk = predicted_disk(points, cal, blob["centre"], radius_mm, thickness=height)
+        found = None if disk is None else disk_contrast_peak(image, disk)
+        if found is not None:
+            out.append(Hypothesis(found, source, CutImage.LIT, blob))
+    return out
