@@ -385,11 +385,10 @@ def _brightest_cut(image: np.ndarray, points: np.ndarray, cal: Calibration, uv: 
     win = (slice(max(v0 - h, 0), min(v0 + h + 1, H)), slice(max(u0 - h, 0), min(u0 + h + 1, W)))
     smooth = cv2.GaussianBlur(image, (0, 0), 0.7)
     j = np.unravel_index(int(np.argmax(np.nan_to_num(smooth[win], nan=-np.inf))), smooth[win].shape)
-    seed = (win[1].start + j[1], win[0].start + j[0])
-    # mark_candidates is still on mypy's debt list (untyped): its calls are marked here
-    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)  # type: ignore[no-untyped-call]
+    seed = (int(win[1].start + j[1]), int(win[0].start + j[0]))
+    bg = ring_level(smooth, np.isfinite(points[..., 0]), seed, cal, points, r_max_mm)
     half = int(math.ceil(2.5 * r_max_mm * px_per_mm))
-    return None if bg is None else cut_blob(smooth, seed, bg, half)  # type: ignore[no-untyped-call,no-any-return]
+    return None if bg is None else cut_blob(smooth, seed, bg, half)
 
 
 def fit_marks_near(point: np.ndarray, lit: np.ndarray, points: np.ndarray, cal: Calibration, search_mm: float = 20.0,
