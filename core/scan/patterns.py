@@ -562,7 +562,7 @@ def _unlink_quiet(p: str | os.PathLike[str]) -> None:
         os.unlink(p)
 
 
-def imwrite_checked(path: Path, image: np.ndarray) -> None:
+def imwrite_checked(path: str | os.PathLike[str], image: npt.NDArray[Any]) -> None:
     # encode + write ourselves: cv2.imwrite crashes on paths that are not valid UTF-8, and
     # the file is created private (frames are patient data) whatever the umask
     try:
