@@ -59,7 +59,7 @@ Mat = npt.NDArray[Any]
 
 @dataclass
 class DecodeResult:
-    column: npt.NDArray[np.float32]  # float32 HxW, continuous projector column, NaN where invalid
+    column: npt.NDArray[np.float32] | None  # float32 HxW, continuous projector column, NaN where invalid
     row: npt.NDArray[np.float32] | None  # same for rows if the set has a row axis
     valid: npt.NDArray[np.bool_]  # bool HxW
     reason: npt.NDArray[np.uint8]  # uint8 HxW, see REASON_NAMES
@@ -74,6 +74,12 @@ class DecodeResult:
     def axis_map(self, axis: Axis) -> npt.NDArray[np.float32] | None:
         """The decoded map of ``axis`` ("column" or "row"), None if the set has no such axis."""
         return self.column if axis == Axis.COLUMN else self.row
+
+    def require_column(self) -> npt.NDArray[np.float32]:
+        """The decoded column map; a one-line CaptureError for a capture without column patterns."""
+        if self.column is None:
+            raise CaptureError("the capture has no column patterns (rows only): this needs columns")
+        return self.column
 
     def axis_sigma(self, axis: Axis) -> npt.NDArray[np.float32] | None:
         return self.column_sigma if axis == Axis.COLUMN else self.row_sigma
@@ -95,8 +101,9 @@ class DecodeResult:
                "reasons": {name: int(c) for name, c in zip(REASON_NAMES, counts, strict=False)},
                "thresholds": dict(self.thresholds)}
         if counts[VALID]:
-            cols = self.column[self.valid]
-            out["column_range"] = [float(cols.min()), float(cols.max())]
+            if self.column is not None:
+                cols = self.column[self.valid]
+                out["column_range"] = [float(cols.min()), float(cols.max())]
             if self.row is not None:
                 rows = self.row[self.valid]
                 out["row_range"] = [float(rows.min()), float(rows.max())]
@@ -215,9 +222,7 @@ def decode(capture_or_frames: Capture | Frames | Sequence[Frames], pattern_set: 
         # each axis is NaN where its own tests (or the shared shadow / white tests) fail: a pixel
         # whose rows are washed out keeps its column; ``valid`` is every axis valid
         cv2.copyTo(nan, axis_flags[axis], coord)
-    if Axis.COLUMN not in coords:
-        raise CaptureError("decode needs a pattern set with a column axis")
-    return DecodeResult(coords[Axis.COLUMN], coords.get(Axis.ROW), flags == 0, reason, thr,
+    return DecodeResult(coords.get(Axis.COLUMN), coords.get(Axis.ROW), flags == 0, reason, thr,
                         white, black, sigmas.get(Axis.COLUMN), sigmas.get(Axis.ROW))
 
 
