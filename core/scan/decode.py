@@ -188,7 +188,7 @@ def decode(capture_or_frames: Capture | Frames | Sequence[Frames], pattern_set: 
         saturation = full
     white = frames[pset.index(FrameKind.WHITE)]
     black = frames[pset.index(FrameKind.BLACK)]
-    first = _axis_code(pset, pset.axes[0])
+    first = pset.code(pset.axes[0])
     if sigma is None:
         sigma = estimate_sigma(white, black, frames[first.gray[0]],
                                frames[first.gray_inv[0]], full)
@@ -226,13 +226,6 @@ def decode(capture_or_frames: Capture | Frames | Sequence[Frames], pattern_set: 
                         white, black, sigmas.get(Axis.COLUMN), sigmas.get(Axis.ROW))
 
 
-def _axis_code(pset: PatternSet, axis: Axis) -> AxisCode:
-    ac = pset.axis_code(axis)
-    if ac is None:
-        raise CaptureError(f"pattern set has no {axis} code")
-    return ac
-
-
 def _decode_block(frames: Frames, pset: PatternSet, thr: dict[str, Any], k_phase: float, tol: float | None,
                   min_run: float, saturation: float, full: float
                   ) -> tuple[dict[Axis, Mat], dict[Axis, Mat], Mat, dict[Axis, Mat], dict[str, Any]]:
@@ -243,7 +236,7 @@ def _decode_block(frames: Frames, pset: PatternSet, thr: dict[str, Any], k_phase
     flags = cv2.bitwise_and(shadow, scalar(_FLAG[SHADOW]))
     # A clipped white only matters where no phase says otherwise: with phase on every axis,
     # the phase frames' own clipping decides (see _too_clipped)
-    all_phase = all(_axis_code(pset, axis).phase for axis in pset.axes)
+    all_phase = all(pset.code(axis).phase for axis in pset.axes)
     sat = np.zeros_like(shadow) if all_phase else _cmp(white, saturation, cv2.CMP_GE)
     cv2.bitwise_or(flags, scalar(_FLAG[SATURATED]), dst=flags, mask=sat)  # shared tests
     coords: dict[Axis, Mat] = {}
@@ -251,7 +244,7 @@ def _decode_block(frames: Frames, pset: PatternSet, thr: dict[str, Any], k_phase
     axis_flags: dict[Axis, Mat] = {}
     info: dict[str, Any] = {}
     for axis in pset.axes:
-        ac = _axis_code(pset, axis)
+        ac = pset.code(axis)
         coord, coord_sigma, masks, sat_axis, axis_info = _decode_axis(frames, ac, thr, k_phase, tol,
                                                                       min_run, saturation, full)
         sigmas[axis] = coord_sigma

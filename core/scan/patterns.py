@@ -167,6 +167,13 @@ class PatternSet:
             self._codes = {a: _axis_code(self, a) for a in self.axes}
         return self._codes.get(axis)
 
+    def code(self, axis: Axis) -> AxisCode:
+        """``axis``' code; a one-line CaptureError when the set does not encode that axis."""
+        ac = self.axis_code(axis)
+        if ac is None:
+            raise CaptureError(f"pattern set has no {axis} code")
+        return ac
+
     # ------------------------------------------------------------------ manifest
     def to_manifest(self) -> dict[str, Any]:
         return {
