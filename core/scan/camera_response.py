@@ -23,7 +23,10 @@ linear light too.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.patterns import FrameKind, PatternSet
@@ -43,7 +46,7 @@ def response_gamma(capture: Capture) -> float:
     return gamma_from_frames(capture.frames, capture.pattern_set, capture.max_value)
 
 
-def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -> float:
+def gamma_from_frames(frames: npt.NDArray[Any], pset: PatternSet, full_scale: float) -> float:
     if FrameKind.WHITE not in (f.kind for f in pset.frames) or FrameKind.BLACK not in (f.kind for f in pset.frames):
         return 1.0
     step = max(1, int(np.sqrt(frames.shape[1] * frames.shape[2] / SAMPLE_GRID_PIXELS)))
@@ -54,7 +57,7 @@ def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -
     span = np.maximum(w - b, 1e-6)
     samples = []
     for axis in pset.axes:
-        code = pset.axis_code(axis)
+        code = pset.code(axis)
         for g, gi in list(zip(code.gray, code.gray_inv, strict=False))[-FINE_BITS:]:
             p = frames[g][sub].astype(np.float32) / np.float32(full_scale)
             q = frames[gi][sub].astype(np.float32) / np.float32(full_scale)
@@ -77,14 +80,14 @@ def gamma_from_frames(frames: np.ndarray, pset: PatternSet, full_scale: float) -
     return float(GAMMA_GRID[int(np.argmin(cost))])
 
 
-def linearised(frames: np.ndarray, gamma: float, full_scale: float) -> np.ndarray:
+def linearised(frames: npt.NDArray[Any], gamma: float, full_scale: float) -> npt.NDArray[np.float32]:
     """``frames`` in linear light, float32 on the same scale (full scale stays full scale)."""
     f = linear_unit(frames, gamma, full_scale)
     f *= np.float32(full_scale)
     return f
 
 
-def linear_unit(frames: np.ndarray, gamma: float, full_scale: float) -> np.ndarray:
+def linear_unit(frames: npt.NDArray[Any], gamma: float, full_scale: float) -> npt.NDArray[np.float32]:
     """``frames`` in linear light as float32 in [0, 1] (in place on one float copy: a capture is
     tens of frames)."""
     f = frames.astype(np.float32)

@@ -19,14 +19,18 @@ import shutil
 import sys
 import tempfile
 from collections import deque
+from collections.abc import Generator, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.atomic import atomic_paths, check_replaceable_dir, make_private_dir, mkdtemp_beside, write_json_atomic
 from anklescan.core.errors import CaptureError
@@ -44,14 +48,19 @@ MAX_VALUE = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 LIT_MIN_FRACTION = 1e-3
 LIT_CONTRAST = 0.02
 
+# A camera image as read: uint8 or uint16 (MAX_VALUE), gray (H, W) or colour (H, W, 3/4).
+Image = npt.NDArray[Any]
+# What capture_from_images / save_capture take: images in manifest order, or by frame file name.
+Images = Mapping[str, Image] | Iterable[Image]
+
 
 @dataclass
 class Capture:
     folder: Path | None
     pattern_set: PatternSet
-    frames: np.ndarray  # (n_frames, H, W) uint8 or uint16, manifest order
-    white_color: np.ndarray | None = None  # (H, W, 3) uint8 BGR, None for gray cameras
-    metadata: dict = field(default_factory=dict)  # the manifest's "capture" object
+    frames: Image  # (n_frames, H, W) uint8 or uint16, manifest order
+    white_color: npt.NDArray[np.uint8] | None = None  # (H, W, 3) uint8 BGR, None for gray cameras
+    metadata: dict[str, Any] = field(default_factory=dict)  # the manifest's "capture" object
 
     @property
     def max_value(self) -> int:
@@ -59,26 +68,35 @@ class Capture:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.frames.shape[1:]
+        return (int(self.frames.shape[1]), int(self.frames.shape[2]))
 
-    def frame(self, name: str) -> np.ndarray:
-        return self.frames[self.pattern_set.files.index(name)]
+    def frame(self, name: str) -> Image:
+        frame: Image = self.frames[self.pattern_set.files.index(name)]
+        return frame
 
 
 # ------------------------------------------------------------------------ images
-def _to_gray(img: np.ndarray, name: str) -> np.ndarray:
+@dataclass(frozen=True)
+class _Reference:
+    """The first frame of a capture, which every later frame must match in size and depth."""
+
+    name: str
+    image: Image
+
+
+def _to_gray(img: Image, name: str) -> Image:
     if img.ndim == 2:
         return img
     if img.ndim == 3 and img.shape[2] == 1:
         return img[:, :, 0]
     if img.ndim == 3 and img.shape[2] == 3:
-        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
     if img.ndim == 3 and img.shape[2] == 4:
-        return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY))
     raise CaptureError(f"{name}: unsupported image layout {img.shape}")
 
 
-def _color_8bit(img: np.ndarray) -> np.ndarray | None:
+def _color_8bit(img: Image) -> npt.NDArray[np.uint8] | None:
     if img.ndim != 3 or img.shape[2] not in (3, 4):
         return None
     bgr = img[:, :, :3]
@@ -88,7 +106,7 @@ def _color_8bit(img: np.ndarray) -> np.ndarray | None:
 
 
 @contextmanager
-def _decoder_messages():
+def _decoder_messages() -> Generator[list[str], None, None]:
     """Collect what image libraries print on stderr (libpng, libjpeg, libtiff write there
     directly, not through OpenCV's log level) so that an error stays one line; yields a
     list that receives the text."""
@@ -110,12 +128,12 @@ def _decoder_messages():
             lines.extend(t for t in sink.read(4096).decode("utf-8", "replace").splitlines() if t.strip())
 
 
-def _describe(img: np.ndarray) -> str:
+def _describe(img: Image) -> str:
     return f"{img.shape[1]}x{img.shape[0]}"
 
 
 # ----------------------------------------------------------------------- loading
-def load_capture(folder) -> Capture:
+def load_capture(folder: str | os.PathLike[str]) -> Capture:
     """Load and check a capture folder; every defect raises a one-line CaptureError."""
     folder = Path(folder)
     if not folder.exists():
@@ -164,7 +182,7 @@ def _check_sizes(paths: list[Path]) -> None:
                            f"more than this computer can decode (limit {limit / 2**30:.1f} GB)")
 
 
-def _load_frames(paths: list[Path], white_idx: int):
+def _load_frames(paths: list[Path], white_idx: int) -> tuple[Image, npt.NDArray[np.uint8] | None]:
     """(stack, colour) from the frame files. Image libraries print on stderr themselves
     (libpng, libjpeg, libtiff, not through OpenCV's log level): that text is held back while
     decoding, and the last line joins our one-line error when a frame cannot be read."""
@@ -184,7 +202,7 @@ class _UnreadableFrame(CaptureError):
     pass
 
 
-def _read_ahead(paths: list[Path], lookahead: int = 4):
+def _read_ahead(paths: list[Path], lookahead: int = 4) -> Generator[Image, None, None]:
     """Decoded frames in order, at most ``lookahead`` ahead of the consumer (so memory is
     the stack plus a few frames); PNG/TIFF decoding releases the GIL, so two threads
     roughly halve load time."""
@@ -203,7 +221,7 @@ def _read_ahead(paths: list[Path], lookahead: int = 4):
                 f.cancel()
 
 
-def read_image(path) -> np.ndarray | None:
+def read_image(path: str | os.PathLike[str]) -> Image | None:
     """``cv2.imread(path, IMREAD_UNCHANGED)`` for any path: OpenCV's own path handling crashes
     (segfault) on names that are not valid UTF-8 (a folder copied from a Latin-1 system),
     so we read the bytes and let OpenCV decode them."""
@@ -211,10 +229,13 @@ def read_image(path) -> np.ndarray | None:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as e:
         raise CaptureError(f"cannot read image {path}: {e.strerror or e}") from None
-    return cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if not data.size:
+        return None
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    return None if img is None else np.asarray(img)
 
 
-def _read(path: Path) -> np.ndarray:
+def _read(path: Path) -> Image:
     img = read_image(path)
     if img is None or img.size == 0:
         raise _UnreadableFrame(f"unreadable image {path}: damaged or not an image")
@@ -258,23 +279,27 @@ def _check_files(folder: Path, pset: PatternSet) -> None:
         raise CaptureError(f"capture {folder}: image {extra[0]} is not a frame of the manifest")
 
 
-def _stack(images, paths, white_idx):
-    stack = color = None
-    first = None
+def _stack(images: Iterable[Image], paths: Sequence[Path],
+           white_idx: int) -> tuple[Image, npt.NDArray[np.uint8] | None]:
+    stack: Image | None = None
+    color: npt.NDArray[np.uint8] | None = None
+    first: _Reference | None = None
     for i, (img, path) in enumerate(zip(images, paths, strict=False)):
-        if stack is None:
-            first = (path.name, img)
+        if stack is None or first is None:
+            first = _Reference(path.name, img)
             stack = np.empty((len(paths),) + img.shape[:2], img.dtype)
         else:
             _check_same(first, path.name, img)
         stack[i] = _to_gray(img, path.name)
         if i == white_idx:
             color = _color_8bit(img)
+    if stack is None:
+        raise CaptureError("a capture needs at least one frame")
     return stack, color
 
 
-def _check_same(first, name: str, img: np.ndarray) -> None:
-    fname, fimg = first
+def _check_same(first: _Reference, name: str, img: Image) -> None:
+    fname, fimg = first.name, first.image
     if img.shape[:2] != fimg.shape[:2]:
         raise CaptureError(f"frame {name} is {_describe(img)} but {fname} is {_describe(fimg)}")
     if img.dtype != fimg.dtype:
@@ -282,19 +307,20 @@ def _check_same(first, name: str, img: np.ndarray) -> None:
                            f"{fimg.dtype.itemsize * 8}-bit (mixed bit depth)")
 
 
-def capture_from_images(pattern_set: PatternSet, images, metadata=None) -> Capture:
+def capture_from_images(pattern_set: PatternSet, images: Images,
+                        metadata: Mapping[str, Any] | None = None) -> Capture:
     """An in-memory capture (e.g. from a simulator), checked like a loaded one."""
-    images = _as_list(pattern_set, images)
+    image_list = _as_list(pattern_set, images)
     names = [Path(n) for n in pattern_set.files]
-    for img, name in zip(images, names, strict=False):
+    for img, name in zip(image_list, names, strict=False):
         if not isinstance(img, np.ndarray) or img.dtype not in MAX_VALUE:
             raise CaptureError(f"frame {name}: need an 8- or 16-bit numpy image")
-    stack, color = _stack(images, names, pattern_set.index(FrameKind.WHITE))
+    stack, color = _stack(image_list, names, pattern_set.index(FrameKind.WHITE))
     return Capture(None, pattern_set, stack, color, dict(metadata or {}))
 
 
-def _as_list(pattern_set: PatternSet, images) -> list:
-    if isinstance(images, dict):
+def _as_list(pattern_set: PatternSet, images: Images) -> list[Image]:
+    if isinstance(images, Mapping):
         missing = [f for f in pattern_set.files if f not in images]
         if missing:
             raise CaptureError(f"no image for frame {missing[0]}")
@@ -302,21 +328,21 @@ def _as_list(pattern_set: PatternSet, images) -> list:
         if extra:
             raise CaptureError(f"image {extra[0]} is not a frame of the pattern set")
         return [images[f] for f in pattern_set.files]
-    images = list(images)
-    if len(images) != len(pattern_set.frames):
-        raise CaptureError(f"got {len(images)} images for {len(pattern_set.frames)} frames")
-    return images
+    image_list = list(images)
+    if len(image_list) != len(pattern_set.frames):
+        raise CaptureError(f"got {len(image_list)} images for {len(pattern_set.frames)} frames")
+    return image_list
 
 
 # ----------------------------------------------------------------------- writing
-def _manifest_with(pattern_set: PatternSet, metadata: dict | None) -> dict:
+def _manifest_with(pattern_set: PatternSet, metadata: Mapping[str, Any] | None) -> dict[str, Any]:
     m = pattern_set.to_manifest()
     if metadata:
         m["capture"] = _json_safe(metadata)
     return m
 
 
-def _json_safe(obj):
+def _json_safe(obj: object) -> object:
     """Metadata as strict JSON: a device reporting NaN/inf (an unknown gain, say) becomes
     null, numpy scalars plain numbers; otherwise the manifest could not be read back."""
     if isinstance(obj, dict):
@@ -330,17 +356,18 @@ def _json_safe(obj):
     return obj
 
 
-def save_capture(folder, pattern_set: PatternSet, images, metadata=None) -> Path:
+def save_capture(folder: str | os.PathLike[str], pattern_set: PatternSet, images: Images,
+                 metadata: Mapping[str, Any] | None = None) -> Path:
     """Write a whole capture atomically: a temporary sibling folder renamed into place."""
     folder = Path(folder)
-    images = _as_list(pattern_set, images)
-    capture_from_images(pattern_set, images)  # size/depth checks before touching disk
+    image_list = _as_list(pattern_set, images)
+    capture_from_images(pattern_set, image_list)  # size/depth checks before touching disk
     if not folder.parent.is_dir():
         raise CaptureError(f"output folder's parent {folder.parent} does not exist")
     check_replaceable_dir(folder, lambda f: is_pattern_output(f, allow_capture=True))
     tmp = Path(mkdtemp_beside(folder))  # 0700
     try:
-        for name, img in zip(pattern_set.files, images, strict=False):
+        for name, img in zip(pattern_set.files, image_list, strict=False):
             imwrite_checked(tmp / name, img)
         write_json_atomic(tmp / MANIFEST, _manifest_with(pattern_set, metadata))
         replace_dir(tmp, folder, lambda f: is_pattern_output(f, allow_capture=True))
@@ -361,12 +388,13 @@ class CaptureWriter:
     is written last by ``finish()``, so a folder without a manifest is an unfinished
     capture (its frames are complete and can be recovered)."""
 
-    def __init__(self, folder, pattern_set: PatternSet, metadata: dict | None = None):
+    def __init__(self, folder: str | os.PathLike[str], pattern_set: PatternSet,
+                 metadata: Mapping[str, Any] | None = None) -> None:
         self.folder = Path(folder)
         self.pattern_set = pattern_set
-        self.metadata = dict(metadata or {})
+        self.metadata: dict[str, Any] = dict(metadata or {})
         self._written: dict[str, str] = {}
-        self._ref = None
+        self._ref: _Reference | None = None
         if self.folder.exists() and not self.folder.is_dir():
             raise CaptureError(f"capture path {self.folder} exists and is not a folder")
         if self.folder.is_dir() and (self.folder / MANIFEST).exists():
@@ -376,19 +404,20 @@ class CaptureWriter:
         make_private_dir(self.folder)  # patient data: 0700 whatever the umask
         self.metadata.setdefault("started", _now())
 
-    def add(self, frame_name: str, image: np.ndarray) -> Path:
+    def add(self, frame_name: str, image: Image) -> Path:
         if frame_name not in self.pattern_set.files:
             raise CaptureError(f"{frame_name} is not a frame of the pattern set")
         if not isinstance(image, np.ndarray) or image.dtype not in MAX_VALUE:
             raise CaptureError(f"frame {frame_name}: need an 8- or 16-bit numpy image")
         if self._ref is None:
-            self._ref = (frame_name, image)
+            self._ref = _Reference(frame_name, image)
         else:
             _check_same(self._ref, frame_name, image)
         dest = self.folder / frame_name
         # the temporary keeps the real extension so imwrite picks the same encoder; frames are
         # not fsynced one by one (finish() writes the manifest, durably, last)
         with atomic_paths(dest, keep_suffix=True, fsync=False) as (tmp,):
+            assert tmp is not None  # atomic_paths yields None only for a None target
             imwrite_checked(tmp, image)
         self._written[frame_name] = _now()
         return dest
@@ -407,10 +436,11 @@ class CaptureWriter:
                           _manifest_with(self.pattern_set, self.metadata))
         return self.folder
 
-    def __enter__(self):
+    def __enter__(self) -> CaptureWriter:
         return self
 
-    def __exit__(self, exc_type, exc, tb):
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> Literal[False]:
         if exc_type is None:
             self.finish()
         return False

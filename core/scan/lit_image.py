@@ -19,18 +19,30 @@ white + black only for a linear camera) keep this right for cameras with a tone 
 
 from __future__ import annotations
 
+from typing import Any, Protocol
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.scan.camera_response import SATURATED, linearised, response_gamma
 from anklescan.core.scan.capture import Capture
+from anklescan.core.scan.cv_typing import scalar
 from anklescan.core.scan.patterns import FrameKind, PatternSet
 
 DECISIVE_FRACTION = 0.85  # lower lets stripe-edge pixels in; higher selects pairs by their noise
 REFERENCE_BITS = 5  # the coarsest bits per axis: stripes of >= 1/32 of the projector
 
+F32 = npt.NDArray[np.float32]
 
-def averaged_lit(capture: Capture, gamma: float | None = None) -> np.ndarray:
+
+class _FrameStack(Protocol):
+    """What lit_from_frames reads frames from: an (n, H, W) array or _LinearFrames."""
+
+    def __getitem__(self, i: int, /) -> npt.NDArray[Any]: ...
+
+
+def averaged_lit(capture: Capture, gamma: float | None = None) -> F32:
     """(H, W) float32 projector light per pixel, averaged over white − black and the decisive
     Gray pairs (see the module's docstring), in linear light. ``gamma``: the camera's tone curve
     where already measured (``decode``'s ``thresholds["camera_gamma"]``), else measured here."""
@@ -38,7 +50,7 @@ def averaged_lit(capture: Capture, gamma: float | None = None) -> np.ndarray:
     return lit_from_frames(capture.frames, capture.pattern_set, gamma, capture.max_value)
 
 
-def clipped_white(capture: Capture) -> np.ndarray:
+def clipped_white(capture: Capture) -> npt.NDArray[np.bool_]:
     """(H, W) bool: where the white frame is saturated (at least ``SATURATED`` of full scale).
     There the lit image reads less than the light: a white mark exposed for the skin beside it
     clips first, and its rim must then be found by its steepest fall (``edge_profiles``)."""
@@ -46,15 +58,14 @@ def clipped_white(capture: Capture) -> np.ndarray:
     return np.asarray(white) >= SATURATED * capture.max_value
 
 
-def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, full_scale: float = 255.0) -> np.ndarray:
-    """``averaged_lit`` of ``frames``, first linearised with the camera's tone-curve exponent ``gamma``."""
-    if gamma != 1.0:
-        frames = _LinearFrames(frames, gamma, full_scale)
+def lit_from_frames(stack: npt.NDArray[Any], pset: PatternSet, gamma: float = 1.0, full_scale: float = 255.0) -> F32:
+    """``averaged_lit`` of ``stack``, first linearised with the camera's tone-curve exponent ``gamma``."""
+    frames: _FrameStack = _LinearFrames(stack, gamma, full_scale) if gamma != 1.0 else stack
     white = frames[pset.index(FrameKind.WHITE)]
     black = frames[pset.index(FrameKind.BLACK)]
     pairs = [(g, gi) for axis in pset.axes
-             for g, gi in zip(pset.axis_code(axis).gray, pset.axis_code(axis).gray_inv, strict=False)]
-    total = cv2.subtract(white.astype(np.float32), black.astype(np.float32))
+             for g, gi in zip(pset.code(axis).gray, pset.code(axis).gray_inv, strict=False)]
+    total: F32 = np.asarray(cv2.subtract(white.astype(np.float32), black.astype(np.float32)), np.float32)
     if not pairs:
         return total
     count = np.ones(white.shape, np.float32)
@@ -63,39 +74,41 @@ def lit_from_frames(frames: np.ndarray, pset: PatternSet, gamma: float = 1.0, fu
     reference = _median([diffs[i] for i in _reference_indices(pset)]).astype(np.float32)
     # (total is white − black here; where it is negative the reference, >= 0, wins anyway)
     threshold = cv2.max(reference, total) * np.float32(DECISIVE_FRACTION)
-    for d in diffs:
-        d = d.astype(np.float32)
+    for diff in diffs:
+        d = diff.astype(np.float32)
         mask = cv2.compare(d, threshold, cv2.CMP_GE)
         cv2.add(total, d, dst=total, mask=mask)
-        cv2.add(count, 1.0, dst=count, mask=mask)
+        cv2.add(count, scalar(1.0), dst=count, mask=mask)
     return total / count
 
 
 class _LinearFrames:
     """``frames[i]`` in linear light, one frame at a time (a whole capture as float32 is ~300 MB)."""
 
-    def __init__(self, frames, gamma, full_scale):
+    def __init__(self, frames: npt.NDArray[Any], gamma: float, full_scale: float) -> None:
         self.frames, self.gamma, self.full_scale = frames, gamma, full_scale
 
-    def __getitem__(self, i):
+    def __getitem__(self, i: int) -> F32:
         return linearised(self.frames[i], self.gamma, self.full_scale)
 
 
 def _reference_indices(pset: PatternSet) -> list[int]:
     """Positions in the pairs list of each axis's coarsest ``REFERENCE_BITS`` bits."""
-    out, start = [], 0
+    out: list[int] = []
+    start = 0
     for axis in pset.axes:
-        n = len(pset.axis_code(axis).gray)
+        n = len(pset.code(axis).gray)
         out += list(range(start, start + min(REFERENCE_BITS, n)))
         start += n
     return out
 
 
-def _median(images: list[np.ndarray]) -> np.ndarray:
+def _median(images: list[npt.NDArray[Any]]) -> npt.NDArray[Any]:
     if len(images) == 5:
         # median of five by min/max: 25x faster than np.median over a stack
         a, b, c, d, e = images
         lo = cv2.max(cv2.min(a, b), cv2.min(c, d))
         hi = cv2.min(cv2.max(a, b), cv2.max(c, d))
-        return cv2.max(cv2.min(lo, hi), cv2.min(cv2.max(lo, hi), e))
-    return np.median(np.stack(images), axis=0)
+        median: npt.NDArray[Any] = cv2.max(cv2.min(lo, hi), cv2.min(cv2.max(lo, hi), e))
+        return median
+    return np.asarray(np.median(np.stack(images), axis=0))

@@ -35,16 +35,20 @@ two successive looks (~11 mm at full resolution, ``ambiguity_mm`` in the result)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.errors import CaptureError
 from anklescan.core.scan.camera_response import linear_unit
 from anklescan.core.scan.capture import Capture
 from anklescan.core.scan.decode import DecodeResult
-from anklescan.core.scan.patterns import FrameKind
+from anklescan.core.scan.patterns import Frame, FrameKind, PatternSet
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.vocabulary import Axis
 
@@ -62,6 +66,9 @@ MODULATION_RATIO = (0.6, 1.6)  # a look's modulation vs the main frames': else t
 RIDGE = 0.01  # of the largest eigenvalue: unseen directions shrink instead of amplifying noise
 MODEL_SD_FRACTION = 0.1  # relative model uncertainty added to the noise (docs/performance.md)
 CONFIDENCE_Z = 2.0
+
+F64 = npt.NDArray[np.float64]
+Mask = npt.NDArray[np.bool_]
 
 
 MOTION_REFS = {"default": 9, "short": 7, "paper": 0}  # looks per preset: start, evenly between, end.
@@ -88,9 +95,10 @@ def scan_duration_s(capture: Capture) -> float | None:
                 return d
         except (TypeError, ValueError, AttributeError):
             pass
-    d = meta.get("duration_s")
-    if isinstance(d, (int, float)) and not isinstance(d, bool) and math.isfinite(d) and d >= 0:
-        return float(d)
+    duration: object = meta.get("duration_s")
+    if isinstance(duration, (int, float)) and not isinstance(duration, bool) and math.isfinite(duration) \
+            and duration >= 0:
+        return float(duration)
     return None
 
 
@@ -102,16 +110,16 @@ class MotionEstimate:
     patches: int = 0  # surface patches measured
     ambiguity_mm: float | None = None  # median shift along the camera ray that would wrap
     reason: str = ""  # why there is no value
-    details: dict = field(default_factory=dict)
+    details: dict[str, Any] = field(default_factory=dict)
 
     @property
     def measured(self) -> bool:
         return self.value_mm is not None
 
     def flagged(self, threshold_mm: float = DEFAULT_THRESHOLD_MM) -> bool:
-        return self.measured and self.value_mm > threshold_mm
+        return self.value_mm is not None and self.value_mm > threshold_mm
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, float | None]:
         """SPEC §6's ``motion_mm`` (value and sd are null when the capture cannot tell)."""
         return {"value": None if self.value_mm is None else round(float(self.value_mm), 4),
                 "sd": None if self.sd_mm is None else round(float(self.sd_mm), 4)}
@@ -123,12 +131,13 @@ class MotionEstimate:
                 f"({self.patches} patches, {self.looks} looks)")
 
 
-def motion_looks(pattern_set) -> list[list[int]]:
+def motion_looks(pattern_set: PatternSet) -> list[list[int]]:
     """Runs of consecutive repeat frames (one look each) that repeat column phase frames."""
-    looks, run = [], []
-    for i, f in enumerate(pattern_set.frames):
-        if f.kind == FrameKind.REPEAT:
-            of = pattern_set.frames[pattern_set.files.index(f.of)]
+    looks: list[list[int]] = []
+    run: list[int] = []
+    for i in range(len(pattern_set.frames)):
+        if pattern_set.frames[i].kind == FrameKind.REPEAT:
+            of = _of(pattern_set, i)
             if of.kind == FrameKind.PHASE and of.axis == Axis.COLUMN:
                 run.append(i)
                 continue
@@ -137,16 +146,32 @@ def motion_looks(pattern_set) -> list[list[int]]:
             run = []
     if run:
         looks.append(run)
-    return [r for r in looks if len({_of(pattern_set, i).shift % (_of(pattern_set, i).steps // 2 or 1)
+    return [r for r in looks if len({_shift(_of(pattern_set, i)) % (_steps(_of(pattern_set, i)) // 2 or 1)
                                      for i in r}) >= 2]
 
 
-def _of(pset, i):
-    return pset.frames[pset.files.index(pset.frames[i].of)]
+def _of(pset: PatternSet, i: int) -> Frame:
+    """The frame that repeat frame ``i`` shows again."""
+    of = pset.frames[i].of
+    if of is None:
+        raise CaptureError(f"frame {pset.files[i]} repeats no frame")
+    return pset.frames[pset.files.index(of)]
+
+
+def _shift(frame: Frame) -> int:
+    if frame.shift is None:
+        raise CaptureError(f"frame {frame.file} is not a phase frame")
+    return frame.shift
+
+
+def _steps(frame: Frame) -> int:
+    if frame.steps is None:
+        raise CaptureError(f"frame {frame.file} is not a phase frame")
+    return frame.steps
 
 
 def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeResult, cloud: PointCloud, *,
-                    patch_mm=PATCH_MM) -> MotionEstimate:
+                    patch_mm: Sequence[float] = PATCH_MM) -> MotionEstimate:
     pset = capture.pattern_set
     looks = motion_looks(pset)
     if len(looks) < 2:
@@ -154,7 +179,8 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
                                                              "(make patterns with motion references)" if not looks
                               else "one motion reference look: nothing to compare it with")
     code = pset.axis_code(Axis.COLUMN)
-    if not code.phase or len(cloud) == 0 or cloud.pixels is None:
+    if code is None or not code.phase or code.period is None or code.steps is None or len(cloud) == 0 \
+            or cloud.pixels is None:
         return MotionEstimate(None, None, len(looks), reason="no phase-decoded points to compare")
     frames = capture.frames
     sub = np.arange(0, len(cloud), max(1, -(-len(cloud) // MAX_POINTS)))
@@ -162,7 +188,10 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
     v = cloud.pixels[sub, 1].astype(np.intp)
     gamma = float(decoded.thresholds.get("camera_gamma", 1.0))
 
-    def sampled(idx):  # on the scale the decoder worked in (linear light where the camera has a tone curve)
+    period, steps = code.period, code.steps
+
+    # on the scale the decoder worked in (linear light where the camera has a tone curve)
+    def sampled(idx: list[int]) -> npt.NDArray[np.float32]:
         x = frames[idx][:, v, u]
         return x.astype(np.float32) if gamma == 1.0 else linear_unit(x, gamma, capture.max_value)
 
@@ -172,13 +201,17 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
     geo = _geometry(calibration, cloud, capture.shape, sub)
     if geo is None:
         return MotionEstimate(None, None, len(looks), reason="too few points for surface normals")
-    ok_pts, normal, ndotr, dc_dl = geo
+    ok_pts, normal, ndotr, dc_dl = geo.ok, geo.normal, geo.ndotr, geo.dc_dl
     shifts_main = {i: k for k, i in enumerate(code.phase)}
-    dns, weights, times = [], [], []
-    phi_prev = acc = chain_ok = None
+    dns: list[F64] = []
+    weights: list[F64] = []
+    times: list[float] = []
+    phi_prev: F64 | None = None
+    acc: F64 | None = None
+    chain_ok: Mask | None = None
     for look in looks:
-        ks = [_of(pset, i).shift for i in look]
-        d = 2 * np.pi * np.asarray(ks, float) / code.steps
+        ks = [_shift(_of(pset, i)) for i in look]
+        d = 2 * np.pi * np.asarray(ks, float) / steps
         pinv = np.linalg.pinv(np.stack([np.cos(d), np.sin(d)], axis=1))  # (2, n)
         ab = pinv @ (sampled(look) - A)
         ab_main = pinv @ (main[[shifts_main[code.phase[k]] for k in ks]] - A)
@@ -188,37 +221,67 @@ def estimate_motion(capture: Capture, calibration: Calibration, decoded: DecodeR
         good = ok_pts & (ratio > MODULATION_RATIO[0]) & (ratio < MODULATION_RATIO[1]) & (mod > 3 * sigma)
         phi = np.angle(z)
         times.append(float(np.mean(look)))
-        if phi_prev is None:  # the first look is the reference
+        if phi_prev is None or acc is None or chain_ok is None:  # the first look is the reference
             phi_prev, acc, chain_ok = phi, np.zeros_like(phi), good
             continue
         # unwrapped look by look: each step only needs to stay within half a period
         acc = acc + np.angle(np.exp(1j * (phi - phi_prev)))
         phi_prev, chain_ok = phi, chain_ok & good
-        dc = acc * (code.period / (2 * np.pi))
+        dc = acc * (period / (2 * np.pi))
         dn = dc / dc_dl * ndotr  # normal displacement, mm
         # phase noise of a fit ~ sigma * sqrt(trace(pinv pinv^T) / 2) / |z|; two fits compared
         s_phi = sigma * math.sqrt(float(np.trace(pinv @ pinv.T))) / np.maximum(mod, 1e-6)
-        s_dn = s_phi * (code.period / (2 * np.pi)) / np.abs(dc_dl) * np.abs(ndotr)
+        s_dn = s_phi * (period / (2 * np.pi)) / np.abs(dc_dl) * np.abs(ndotr)
         dns.append(np.where(chain_ok, dn, np.nan))
         weights.append(np.where(chain_ok, 1.0 / np.maximum(s_dn, 1e-4) ** 2, 0.0))
-    ambiguity = np.nanmedian(np.abs(0.5 * code.period / dc_dl[ok_pts])) if ok_pts.any() else None
-    fits = None
+    ambiguity = float(np.nanmedian(np.abs(0.5 * period / dc_dl[ok_pts]))) if ok_pts.any() else None
+    fits: list[_PatchFit] | None = None
     for offset in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
         patch = _patch_ids(cloud.points[sub], patch_mm, offset)
         grid = [_fit_patches(patch, normal, dn, w) for dn, w in zip(dns, weights, strict=True)]
-        fits = grid if fits is None else [tuple(np.concatenate([a, b]) for a, b in zip(f, g, strict=True))
-                                          for f, g in zip(fits, grid, strict=True)]
-    est = _largest(fits)
+        fits = grid if fits is None else [f.joined(g) for f, g in zip(fits, grid, strict=True)]
+    est = _largest(fits or [])
     if est is None:
         return MotionEstimate(None, None, len(looks), reason="no surface patch had enough measured points",
                               ambiguity_mm=ambiguity)
-    value, sd, n_patches, details = est
+    details = est.details
     details.update(look_frames=[[int(i) for i in lk] for lk in looks], look_times_frames=times)
-    return MotionEstimate(value, sd, len(looks), n_patches, None if ambiguity is None else float(ambiguity),
-                          details=details)
+    return MotionEstimate(est.value_mm, est.sd_mm, len(looks), est.patches, ambiguity, details=details)
 
 
-def _geometry(cal: Calibration, cloud: PointCloud, shape, sub: np.ndarray):
+@dataclass(frozen=True)
+class _Geometry:
+    """Per point: usable, unit normal, n . r (ray from the camera), d(column)/d(depth along the ray)."""
+
+    ok: Mask
+    normal: F64
+    ndotr: F64
+    dc_dl: F64
+
+
+@dataclass(frozen=True)
+class _PatchFit:
+    """Per patch, its displacement D (n, 3), D's covariance (n, 3, 3) and its inlier count (n,)."""
+
+    D: F64
+    cov: F64
+    count: npt.NDArray[Any]  # float from a weighted bincount, 0 for an ill-conditioned patch
+
+    def joined(self, other: _PatchFit) -> _PatchFit:
+        """The patches of both fits (another grid offset), one list."""
+        return _PatchFit(np.concatenate([self.D, other.D]), np.concatenate([self.cov, other.cov]),
+                         np.concatenate([self.count, other.count]))
+
+
+@dataclass(frozen=True)
+class _Largest:
+    value_mm: float
+    sd_mm: float
+    patches: int
+    details: dict[str, Any]
+
+
+def _geometry(cal: Calibration, cloud: PointCloud, shape: tuple[int, int], sub: npt.NDArray[np.intp]) -> _Geometry | None:
     """Per point of ``sub``: usable, unit normal, n . r (ray from the camera), d(column)/d(depth
     along the ray)."""
     X = cloud.points[sub].astype(np.float64)
@@ -229,15 +292,18 @@ def _geometry(cal: Calibration, cloud: PointCloud, shape, sub: np.ndarray):
     col_plus = cal.projector.project(X + eps * ray)[:, 0]
     col_minus = cal.projector.project(X - eps * ray)[:, 0]
     dc_dl = (col_plus - col_minus) / (2 * eps)
+    if cloud.pixels is None:
+        return None
     normal, enough = _normals(cloud.points.astype(np.float64), cloud.pixels, shape, sub)
     ndotr = np.einsum("ij,ij->i", normal, ray)
     ok = enough & np.isfinite(dc_dl) & (np.abs(dc_dl) > 1e-3) & (np.abs(ndotr) > MIN_COS_INCIDENCE)
     if np.count_nonzero(ok) < MIN_PATCH_POINTS:
         return None
-    return ok, normal, ndotr, dc_dl
+    return _Geometry(ok, normal, ndotr, dc_dl)
 
 
-def _normals(X: np.ndarray, pixels: np.ndarray, shape, at: np.ndarray):
+def _normals(X: F64, pixels: npt.NDArray[np.uint16], shape: tuple[int, int],
+             at: npt.NDArray[np.intp]) -> tuple[F64, Mask]:
     """Surface normals from the organised point map: the least-squares plane of each pixel's
     window of reconstructed neighbours (box-filtered moments, one eigen-solve per point). The
     window is ``NORMAL_MM`` wide on the surface, from the measured spacing of neighbours. The
@@ -251,12 +317,17 @@ def _normals(X: np.ndarray, pixels: np.ndarray, shape, at: np.ndarray):
     mask[v, u] = 1.0
     ref = X.mean(axis=0)
     P = X - ref  # centred: the moments keep their precision in float32
-    maps = {}
+    maps: dict[tuple[int, ...], F64] = {}
     comps = [P[:, 0], P[:, 1], P[:, 2]]
     prods = {(i, j): comps[i] * comps[j] for i in range(3) for j in range(i, 3)}
-    box = lambda img: cv2.boxFilter(img, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT)  # noqa: E731
+
+    def box(img: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+        return np.asarray(cv2.boxFilter(img, -1, (window, window), normalize=False,
+                                        borderType=cv2.BORDER_CONSTANT), np.float32)
+
     n = box(mask)[va, ua]
-    for key, vals in [((i,), c) for i, c in enumerate(comps)] + list(prods.items()):
+    keyed: list[tuple[tuple[int, ...], F64]] = [((i,), c) for i, c in enumerate(comps)]
+    for key, vals in keyed + list(prods.items()):
         img = np.zeros((h, w), np.float32)
         img[v, u] = vals
         maps[key] = box(img)[va, ua].astype(np.float64)
@@ -270,7 +341,7 @@ def _normals(X: np.ndarray, pixels: np.ndarray, shape, at: np.ndarray):
     return normal, n >= max(6, window * window // 3)
 
 
-def _window_px(X, u, v, shape) -> int:
+def _window_px(X: F64, u: npt.NDArray[np.intp], v: npt.NDArray[np.intp], shape: tuple[int, int]) -> int:
     """Odd window (pixels) spanning ~NORMAL_MM at the median spacing of horizontal neighbours."""
     index = np.full(shape, -1, np.int64)
     index[v, u] = np.arange(len(X))
@@ -283,7 +354,8 @@ def _window_px(X, u, v, shape) -> int:
     return 2 * min(max(half, 1), 7) + 1
 
 
-def _patch_ids(points: np.ndarray, size, offset=(0.0, 0.0)) -> np.ndarray:
+def _patch_ids(points: npt.NDArray[np.float32], size: Sequence[float],
+               offset: tuple[float, float] = (0.0, 0.0)) -> npt.NDArray[np.intp]:
     """Dense ids of the ``size`` mm boxes the points fall in (one int64 key per box: a 1-D
     unique is ~10x faster than a row-wise one at a million points)."""
     shift = np.array([offset[0], offset[1], 0.0])
@@ -295,7 +367,7 @@ def _patch_ids(points: np.ndarray, size, offset=(0.0, 0.0)) -> np.ndarray:
     return ids.ravel()
 
 
-def _fit_patches(patch: np.ndarray, normal: np.ndarray, dn: np.ndarray, w0: np.ndarray, iterations: int = 4):
+def _fit_patches(patch: npt.NDArray[np.intp], normal: F64, dn: F64, w0: F64, iterations: int = 4) -> _PatchFit:
     """Per patch, D minimising sum w (n.D - dn)^2 with Tukey reweighting; returns (D, cov, count)."""
     valid = np.isfinite(dn) & (w0 > 0)
     idx, nrm, y, w0 = patch[valid], normal[valid], dn[valid], w0[valid]
@@ -332,15 +404,17 @@ def _fit_patches(patch: np.ndarray, normal: np.ndarray, dn: np.ndarray, w0: np.n
     ev = np.linalg.eigvalsh(NtN)
     # a patch whose normals see one direction only (a sliver at a silhouette) cannot tell where it went
     count = np.where(ev[:, -2] >= MIN_CONDITION * np.maximum(ev[:, -1], 1e-12), count, 0)
-    return D, cov, count
+    return _PatchFit(D, cov, count)
 
 
-def _largest(fits):
+def _largest(fits: list[_PatchFit]) -> _Largest | None:
     """Largest pairwise distance among each patch's positions at the looks (the first look at 0),
     debiased by its noise; the patch is chosen by its lower confidence bound (see step 4)."""
-    D0 = [f[0] for f in fits]
-    covs = [f[1] for f in fits]
-    counts = np.min(np.stack([f[2] for f in fits]), axis=0)
+    if not fits:
+        return None
+    D0 = [f.D for f in fits]
+    covs = [f.cov for f in fits]
+    counts = np.min(np.stack([f.count for f in fits]), axis=0)
     usable = counts >= MIN_PATCH_POINTS
     if not usable.any():
         return None
@@ -372,5 +446,5 @@ def _largest(fits):
     top = top[np.isfinite(score[order[:5]])]
     spread = float(np.std(top[:3])) if top.size > 1 else 0.0  # how sharply the maximum is defined
     sd = math.sqrt(float(best_var[k]) + spread**2 + (MODEL_SD_FRACTION * value) ** 2)
-    return value, sd, int(usable.sum()), {"patch_values_top": [round(float(x), 4) for x in top],
-                                          "noise_sd": round(math.sqrt(float(best_var[k])), 4)}
+    return _Largest(value, sd, int(usable.sum()), {"patch_values_top": [round(float(x), 4) for x in top],
+                                                   "noise_sd": round(math.sqrt(float(best_var[k])), 4)})

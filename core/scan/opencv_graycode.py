@@ -18,6 +18,7 @@ the frame count of the source folder must match it exactly, which catches a wron
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 from pathlib import Path
@@ -25,7 +26,7 @@ from pathlib import Path
 from anklescan.core.atomic import copy_private, mkdtemp_beside, write_json_atomic
 from anklescan.core.errors import CaptureError
 from anklescan.core.scan.capture import IMAGE_EXTS, MANIFEST, load_capture
-from anklescan.core.scan.patterns import Frame, PatternSet, replace_dir
+from anklescan.core.scan.patterns import Frame, FrameKind, PatternSet, replace_dir
 from anklescan.core.vocabulary import Axis
 
 PRESET = "opencv-graycode"
@@ -50,18 +51,19 @@ def opencv_pattern_set(width: int, height: int, step: int, files: list[str]) -> 
             f"{len(files)} images, but OpenCV's Gray code for a {width}x{height} projector at step {step} "
             f"has {need} frames ({cb} column bits, {rb} row bits, each with its inverse, then white, black): "
             f"check --projector and --step")
-    frames, it = [], iter(files)
+    frames: list[Frame] = []
+    it = iter(files)
     for axis, bits in ((Axis.COLUMN, cb), (Axis.ROW, rb)):
         for b in range(bits):
             for inv in (False, True):
-                frames.append(Frame(next(it), "gray", axis, b, bits, step, inv))
-    frames += [Frame(next(it), "white"), Frame(next(it), "black")]
+                frames.append(Frame(next(it), FrameKind.GRAY, axis, b, bits, step, inv))
+    frames += [Frame(next(it), FrameKind.WHITE), Frame(next(it), FrameKind.BLACK)]
     pset = PatternSet(PRESET, width, height, frames, (Axis.COLUMN, Axis.ROW))
     pset.validate("opencv-graycode import")
     return pset
 
 
-def _natural_key(name: str):
+def _natural_key(name: str) -> list[int | str]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
@@ -78,7 +80,8 @@ def source_frames(src: Path) -> list[str]:
     return sorted(names, key=_natural_key)
 
 
-def import_opencv_graycode(src, out, width: int, height: int, step: int = 1) -> PatternSet:
+def import_opencv_graycode(src: str | os.PathLike[str], out: str | os.PathLike[str], width: int, height: int,
+                           step: int = 1) -> PatternSet:
     """Copy ``src`` (never modified) into a new capture folder ``out`` with its manifest, atomically."""
     src, out = Path(src), Path(out)
     files = source_frames(src)

@@ -20,11 +20,14 @@ import contextlib
 import math
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.atomic import PRIVATE_FILE_MODE, check_replaceable_dir, mkdtemp_beside, release_temp_dir, write_json_atomic
 from anklescan.core.errors import CaptureError
@@ -69,6 +72,17 @@ SHORT_STEPS = 4  # "short" preset, for slow cameras: 4 phase steps, Gray code to
 MOTION_REF_SHIFTS_QUARTER = (0, 1)  # in quarters of the steps: shift 0 and shift steps/4
 PHASE_FORMULA = "I_k(c) = 0.5 + 0.5*cos(2*pi*(c - k*period/steps)/period), k = shift"
 
+_T = TypeVar("_T")
+# One frame to build: its kind and the Frame keyword fields (a repeat carries the spec it repeats).
+FrameSpec = tuple["FrameKind", dict[str, Any]]
+
+
+def _required(value: _T | None, what: str) -> _T:
+    """A frame field its kind needs; a frame without it is a malformed pattern set."""
+    if value is None:
+        raise CaptureError(f"pattern frame is missing its {what}")
+    return value
+
 
 @dataclass(frozen=True)
 class Frame:
@@ -91,8 +105,8 @@ class Frame:
     steps: int | None = None
     of: str | None = None  # kind "repeat": the file name of the frame this one shows again
 
-    def to_dict(self) -> dict:
-        d = {"file": self.file, "kind": self.kind}
+    def to_dict(self) -> dict[str, object]:
+        d: dict[str, object] = {"file": self.file, "kind": self.kind}
         if self.kind == FrameKind.GRAY:
             d.update(axis=self.axis, bit=self.bit, bits=self.bits, stripe=self.stripe,
                      inverse=self.inverse)
@@ -122,7 +136,7 @@ class AxisCode:
         """Codes that exist on the projector (higher Gray codes are never projected)."""
         return -(-self.size // self.stripe)
 
-    def code_centre(self, code):
+    def code_centre(self, code: int) -> float:
         """Continuous projector coordinate of a stripe's centre (SPEC section 4)."""
         return code * self.stripe + (self.stripe - 1) / 2.0
 
@@ -134,7 +148,7 @@ class PatternSet:
     height: int
     frames: list[Frame]
     axes: tuple[Axis, ...] = (Axis.COLUMN,)
-    _codes: dict = field(default=None, init=False, repr=False, compare=False)
+    _codes: dict[Axis, AxisCode] | None = field(default=None, init=False, repr=False, compare=False)
 
     # ----------------------------------------------------------------- structure
     @property
@@ -153,8 +167,15 @@ class PatternSet:
             self._codes = {a: _axis_code(self, a) for a in self.axes}
         return self._codes.get(axis)
 
+    def code(self, axis: Axis) -> AxisCode:
+        """``axis``' code; a one-line CaptureError when the set does not encode that axis."""
+        ac = self.axis_code(axis)
+        if ac is None:
+            raise CaptureError(f"pattern set has no {axis} code")
+        return ac
+
     # ------------------------------------------------------------------ manifest
-    def to_manifest(self) -> dict:
+    def to_manifest(self) -> dict[str, Any]:
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -174,7 +195,7 @@ class PatternSet:
         }
 
     @classmethod
-    def from_manifest(cls, m: dict, source: str = "manifest") -> PatternSet:
+    def from_manifest(cls, m: Any, source: str = "manifest") -> PatternSet:
         """Build and validate a pattern set; any defect raises a one-line CaptureError."""
         if not isinstance(m, dict):
             raise CaptureError(f"{source}: expected a JSON object, got {type(m).__name__}")
@@ -209,7 +230,7 @@ class PatternSet:
 
     def validate(self, source: str = "pattern set") -> None:
         files = self.files
-        seen = set()
+        seen: set[str] = set()
         for name in files:
             if name in seen:
                 raise CaptureError(f"{source}: duplicate frame file name '{name}'")
@@ -233,7 +254,7 @@ class PatternSet:
             _axis_code(self, a, source)
 
 
-def _is_pos_int(v) -> bool:
+def _is_pos_int(v: object) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v > 0
 
 
@@ -290,7 +311,8 @@ def _axis_code(pset: PatternSet, axis: Axis, source: str = "pattern set") -> Axi
     stripes = {f.stripe for f in gray}
     if len(bits) != 1 or len(stripes) != 1:
         raise CaptureError(f"{source}: {axis} gray frames disagree on bits/stripe")
-    nbits, stripe = bits.pop(), stripes.pop()
+    nbits = _required(bits.pop(), f"{axis} gray bits")
+    stripe = _required(stripes.pop(), f"{axis} gray stripe")
     if stripe * 2 ** nbits < size:
         raise CaptureError(f"{source}: {axis} code of {nbits} bits x stripe {stripe} covers "
                            f"{stripe * 2 ** nbits} < projector size {size}")
@@ -304,18 +326,20 @@ def _axis_code(pset: PatternSet, axis: Axis, source: str = "pattern set") -> Axi
                 raise CaptureError(f"{source}: {axis} gray bit {b}"
                                    f"{' inverse' if inv else ''} frame is missing")
     phase = [(i, f) for i, f in enumerate(pset.frames) if f.kind == FrameKind.PHASE and f.axis == axis]
-    period = steps = None
-    order = ()
+    period: float | None = None
+    steps: int | None = None
+    order: tuple[int, ...] = ()
     if phase:
         periods = {f.period for _, f in phase}
         stepss = {f.steps for _, f in phase}
         if len(periods) != 1 or len(stepss) != 1:
             raise CaptureError(f"{source}: {axis} phase frames disagree on period/steps")
-        period, steps = periods.pop(), stepss.pop()
-        by_shift = {f.shift: i for i, f in phase}
+        period = _required(periods.pop(), f"{axis} phase period")
+        steps = _required(stepss.pop(), f"{axis} phase steps")
+        by_shift = {_required(f.shift, "phase shift"): i for i, f in phase}
         if len(by_shift) != len(phase) or sorted(by_shift) != list(range(steps)):
             raise CaptureError(f"{source}: {axis} phase needs shifts 0..{steps - 1} once each, "
-                               f"got {sorted(f.shift for _, f in phase)}")
+                               f"got {sorted(_required(f.shift, 'phase shift') for _, f in phase)}")
         if period < 2 * stripe:
             # unwrapping needs the Gray code to within +-period/2
             raise CaptureError(f"{source}: {axis} phase period {period:g} is shorter than two "
@@ -343,12 +367,12 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
     if not (_is_pos_int(width) and _is_pos_int(height)) or width < 2 or height < 2:
         raise CaptureError(f"projector size must be at least 2x2, got {width}x{height}")
     check_image_side(width, height, "projector", CaptureError)
-    axes = tuple(axes)
-    if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
-        raise CaptureError(f"axes must be a non-empty subset of {AXES}, got {axes!r}")
-    axes = tuple(Axis(a) for a in axes)
-    specs = [(FrameKind.WHITE, {}), (FrameKind.BLACK, {})]
-    for axis in axes:
+    given = tuple(axes)
+    if not given or any(a not in AXES for a in given) or len(set(given)) != len(given):
+        raise CaptureError(f"axes must be a non-empty subset of {AXES}, got {given!r}")
+    axis_list = tuple(Axis(a) for a in given)
+    specs: list[FrameSpec] = [(FrameKind.WHITE, {}), (FrameKind.BLACK, {})]
+    for axis in axis_list:
         size = width if axis == Axis.COLUMN else height
         full = max(1, math.ceil(math.log2(size)))
         nbits = min(PAPER_BITS, full) if preset == "paper" else max(1, full - 1) if preset == "short" else full
@@ -372,26 +396,27 @@ def make_pattern_set(preset: str = "default", width: int = 1024, height: int = 7
         if n_refs > MAX_MOTION_REFS or len(specs) + 2 * n_refs > MAX_FRAMES:
             raise CaptureError(f"{n_refs} motion references are beyond any scan (at most {MAX_MOTION_REFS}, "
                                f"and {MAX_FRAMES} frames in all)")
-        specs = _with_motion_refs(specs, axes[0], n_refs, steps)
+        specs = _with_motion_refs(specs, axis_list[0], n_refs, steps)
     digits = max(2, len(str(len(specs) - 1)))
     names = [_file_name(i, digits, kind, kw) for i, (kind, kw) in enumerate(specs)]
     by_spec = {(kind, tuple(sorted(kw.items()))): n for n, (kind, kw) in zip(names, specs, strict=True)
                if kind != FrameKind.REPEAT}
     frames = [Frame(n, kind, of=by_spec[kw["of"]]) if kind == FrameKind.REPEAT else Frame(n, kind, **kw)
               for n, (kind, kw) in zip(names, specs, strict=True)]
-    pset = PatternSet(preset, width, height, frames, axes)
+    pset = PatternSet(preset, width, height, frames, axis_list)
     pset.validate()
     return pset
 
 
-def _with_motion_refs(specs: list, axis: Axis, n_refs: int, steps: int) -> list:
+def _with_motion_refs(specs: list[FrameSpec], axis: Axis, n_refs: int, steps: int) -> list[FrameSpec]:
     """Insert ``n_refs`` quadrature pairs of ``axis``' phase frames, evenly spread in time."""
     pair = [s for s in specs if s[0] == FrameKind.PHASE and s[1]["axis"] == axis
             and s[1]["shift"] in tuple(q * steps // 4 for q in MOTION_REF_SHIFTS_QUARTER)]
     keys = [(FrameKind.REPEAT, {"of": (FrameKind.PHASE, tuple(sorted(kw.items()))), "ref": j})
             for _, kw in pair for j in [0]]
     n_main = len(specs)
-    out, at = [], [round(j * n_main / (n_refs - 1)) for j in range(n_refs)]
+    out: list[FrameSpec] = []
+    at = [round(j * n_main / (n_refs - 1)) for j in range(n_refs)]
     for i in range(n_main + 1):
         for j, pos in enumerate(at):
             if pos == i:
@@ -401,7 +426,7 @@ def _with_motion_refs(specs: list, axis: Axis, n_refs: int, steps: int) -> list:
     return out
 
 
-def _file_name(i: int, digits: int, kind: FrameKind, kw: dict) -> str:
+def _file_name(i: int, digits: int, kind: FrameKind, kw: dict[str, Any]) -> str:
     head = f"{i:0{digits}d}_"
     if kind in FLAT_KINDS:
         return f"{head}{kind}.png"
@@ -414,56 +439,60 @@ def _file_name(i: int, digits: int, kind: FrameKind, kw: dict) -> str:
     return f"{head}{tag}_phase_p{kw['period']:g}_s{kw['shift']}.png"
 
 
-def gray_profile(n: int, bit: int, bits: int, stripe: int) -> np.ndarray:
+def gray_profile(n: int, bit: int, bits: int, stripe: int) -> npt.NDArray[np.uint8]:
     """0/1 value of Gray bit ``bit`` (0 = MSB) for coordinates 0..n-1."""
     code = np.arange(n, dtype=np.int64) // stripe
     gray = code ^ (code >> 1)
     return ((gray >> (bits - 1 - bit)) & 1).astype(np.uint8)
 
 
-def _cos_period(u, period: float):
+def _cos_period(u: npt.NDArray[np.floating[Any]], period: float | np.floating[Any]) -> npt.NDArray[np.floating[Any]]:
     """cos(2*pi*u/period), evaluated on the folded argument min(m, P - m), m = u mod P.
 
     Folding makes mirror-image samples bit-identical, so 8-bit rounding errors are
     symmetric and cancel in the N-step sums: the decoded column is exact at centres."""
     m = np.mod(u, period)
     m = np.minimum(m, period - m)
-    return np.cos(m * (2 * np.pi / period))
+    out: npt.NDArray[np.floating[Any]] = np.cos(m * (2 * np.pi / period))
+    return out
 
 
-def phase_profile(n: int, period: float, shift: int, steps: int) -> np.ndarray:
+def phase_profile(n: int, period: float, shift: int, steps: int) -> npt.NDArray[np.float64]:
     c = np.arange(n, dtype=np.float64)
-    return 0.5 + 0.5 * _cos_period(c - shift * period / steps, period)
+    return (0.5 + 0.5 * _cos_period(c - shift * period / steps, period)).astype(np.float64, copy=False)
 
 
-def render_frame(pset: PatternSet, frame: Frame) -> np.ndarray:
+def render_frame(pset: PatternSet, frame: Frame) -> npt.NDArray[np.uint8]:
     """The projector image (uint8, height x width) of one frame."""
     h, w = pset.height, pset.width
     if frame.kind == FrameKind.REPEAT:
-        return render_frame(pset, pset.frames[pset.files.index(frame.of)])
+        return render_frame(pset, pset.frames[pset.files.index(_required(frame.of, "repeated frame"))])
     if frame.kind == FrameKind.WHITE:
         return np.full((h, w), 255, np.uint8)
     if frame.kind == FrameKind.BLACK:
         return np.zeros((h, w), np.uint8)
     n = w if frame.axis == Axis.COLUMN else h
+    prof: npt.NDArray[np.uint8]
     if frame.kind == FrameKind.GRAY:
-        prof = gray_profile(n, frame.bit, frame.bits, frame.stripe) * np.uint8(255)
+        prof = gray_profile(n, _required(frame.bit, "gray bit"), _required(frame.bits, "gray bits"),
+                            _required(frame.stripe, "gray stripe")) * np.uint8(255)
         if frame.inverse:
             prof = 255 - prof
     else:
-        prof = np.rint(255.0 * phase_profile(n, frame.period, frame.shift, frame.steps))
-        prof = prof.astype(np.uint8)
+        prof = np.rint(255.0 * phase_profile(n, _required(frame.period, "phase period"),
+                                             _required(frame.shift, "phase shift"),
+                                             _required(frame.steps, "phase steps"))).astype(np.uint8)
     # build from a 1-D profile: broadcasting is far cheaper than evaluating per pixel
     if frame.axis == Axis.COLUMN:
         return np.ascontiguousarray(np.broadcast_to(prof[None, :], (h, w)))
     return np.ascontiguousarray(np.broadcast_to(prof[:, None], (h, w)))
 
 
-def render_all(pset: PatternSet) -> list[np.ndarray]:
+def render_all(pset: PatternSet) -> list[npt.NDArray[np.uint8]]:
     return [render_frame(pset, f) for f in pset.frames]
 
 
-def pattern_value(frame: Frame, u: np.ndarray) -> np.ndarray:
+def pattern_value(frame: Frame, u: npt.NDArray[np.floating[Any]]) -> npt.NDArray[np.float32]:
     """Projector intensity in [0, 1] (float32) at continuous coordinates ``u``.
 
     Gray stripes switch at pixel boundaries (``c + 0.5``); the phase frames are the
@@ -476,19 +505,23 @@ def pattern_value(frame: Frame, u: np.ndarray) -> np.ndarray:
     if frame.kind == FrameKind.BLACK:
         return np.zeros_like(u, dtype=np.float32)
     if frame.kind == FrameKind.GRAY:
-        code = np.floor((u + 0.5) / frame.stripe).astype(np.int64)
-        code = np.clip(code, 0, 2 ** frame.bits - 1)
-        bit = ((code ^ (code >> 1)) >> (frame.bits - 1 - frame.bit)) & 1
+        bits = _required(frame.bits, "gray bits")
+        code = np.floor((u + 0.5) / _required(frame.stripe, "gray stripe")).astype(np.int64)
+        code = np.clip(code, 0, 2 ** bits - 1)
+        bit = ((code ^ (code >> 1)) >> (bits - 1 - _required(frame.bit, "gray bit"))) & 1
         if frame.inverse:
             bit = 1 - bit
         return bit.astype(np.float32)
-    shifted = u - np.float32(frame.shift * frame.period / frame.steps)
-    return (0.5 + 0.5 * _cos_period(shifted, np.float32(frame.period))).astype(np.float32)
+    period = _required(frame.period, "phase period")
+    shifted = u - np.float32(_required(frame.shift, "phase shift") * period / _required(frame.steps, "phase steps"))
+    # the float32 period keeps float32 arithmetic (and the tested bit pattern) in the fold
+    return (0.5 + 0.5 * _cos_period(shifted, np.float32(period))).astype(np.float32)
 
 
-def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
-                    albedo=0.8, ambient=0.05, blur: float = 0.0, noise: float = 0.0,
-                    gamma: float = 1.0, dtype=np.uint8, rng=None) -> np.ndarray:
+def simulate_frames(pset: PatternSet, column_map: npt.ArrayLike, row_map: npt.ArrayLike | None = None, *,
+                    albedo: npt.ArrayLike = 0.8, ambient: float = 0.05, blur: float = 0.0, noise: float = 0.0,
+                    gamma: float = 1.0, dtype: npt.DTypeLike = np.uint8,
+                    rng: np.random.Generator | None = None) -> npt.NDArray[Any]:
     """A synthetic capture: camera pixel (x, y) sees projector point
     (column_map, row_map); intensity = ambient + albedo * pattern**gamma, Gaussian blur
     of ``blur`` camera px, additive noise ``noise`` (fraction of full scale), clipped and
@@ -501,29 +534,29 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
     pad = int(math.ceil(4 * blur)) + 1 if blur > 0 else 0
     crop = (slice(pad, pad + shape[0]), slice(pad, pad + shape[1]))
 
-    def extend(m, **how):
-        m = np.broadcast_to(np.asarray(m, np.float32), shape)
-        return np.pad(m, pad, **how) if pad else m
+    def extend(m: npt.ArrayLike, **how: Any) -> npt.NDArray[np.float32]:
+        a = np.broadcast_to(np.asarray(m, np.float32), shape)
+        return np.pad(a, pad, **how) if pad else a
 
-    column_map = extend(column_map, mode="reflect", reflect_type="odd")
-    row_map = None if row_map is None else extend(row_map, mode="reflect", reflect_type="odd")
-    albedo = extend(albedo, mode="edge")
+    columns = extend(column_map, mode="reflect", reflect_type="odd")
+    rows = None if row_map is None else extend(row_map, mode="reflect", reflect_type="odd")
+    albedos = extend(albedo, mode="edge")
     out = np.empty((len(pset.frames),) + shape, dtype)
     for i, f in enumerate(pset.frames):
         if f.kind == FrameKind.REPEAT:
-            f = pset.frames[pset.files.index(f.of)]
+            f = pset.frames[pset.files.index(_required(f.of, "repeated frame"))]
         if f.kind in CODED_KINDS and f.axis == Axis.ROW:
-            if row_map is None:
+            if rows is None:
                 raise CaptureError("simulate_frames needs a row map for row patterns")
-            u = np.asarray(row_map, np.float32)
+            u = rows
         else:
-            u = column_map
+            u = columns
         img = pattern_value(f, u)
         if gamma != 1.0:
             img = np.power(img, np.float32(gamma))
-        img = np.float32(ambient) + albedo * img
+        img = np.float32(ambient) + albedos * img
         if blur > 0:
-            img = cv2.GaussianBlur(img, (0, 0), blur)[crop]
+            img = np.asarray(cv2.GaussianBlur(img, (0, 0), blur), np.float32)[crop]
         if noise > 0:
             img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise)
         out[i] = np.clip(np.rint(img * full), 0, full).astype(dtype)
@@ -531,12 +564,12 @@ def simulate_frames(pset: PatternSet, column_map: np.ndarray, row_map=None, *,
 
 
 # ----------------------------------------------------------------------- writing
-def _unlink_quiet(p) -> None:
+def _unlink_quiet(p: str | os.PathLike[str]) -> None:
     with contextlib.suppress(OSError):
         os.unlink(p)
 
 
-def imwrite_checked(path: Path, image: np.ndarray) -> None:
+def imwrite_checked(path: str | os.PathLike[str], image: npt.NDArray[Any]) -> None:
     # encode + write ourselves: cv2.imwrite crashes on paths that are not valid UTF-8, and
     # the file is created private (frames are patient data) whatever the umask
     try:
@@ -551,7 +584,8 @@ def imwrite_checked(path: Path, image: np.ndarray) -> None:
         fh.write(data.tobytes())
 
 
-def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
+def replace_dir(tmp_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+                is_ours: Callable[[Path], bool] | None = None) -> None:
     """Move a finished temporary directory into place.
 
     An existing ``out_dir`` is renamed aside first and removed only after the new one is
@@ -561,7 +595,7 @@ def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
     other file is refused untouched.
     """
     out_dir = Path(out_dir)
-    old = None
+    old: Path | None = None
     check_replaceable_dir(out_dir, is_ours or is_pattern_output)
     release_temp_dir(tmp_dir)
     if out_dir.exists():
@@ -579,7 +613,7 @@ def replace_dir(tmp_dir: Path, out_dir: Path, is_ours=None) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def write_patterns(pset: PatternSet, out_dir) -> Path:
+def write_patterns(pset: PatternSet, out_dir: str | os.PathLike[str]) -> Path:
     """Write one 8-bit PNG per frame plus manifest.json, atomically (tmp dir + rename)."""
     out_dir = Path(out_dir)
     parent = out_dir.parent
@@ -598,12 +632,12 @@ def write_patterns(pset: PatternSet, out_dir) -> Path:
     return out_dir
 
 
-def load_manifest(path) -> PatternSet:
+def load_manifest(path: str | os.PathLike[str]) -> PatternSet:
     path = Path(path)
     return PatternSet.from_manifest(load_json(path, "manifest", CaptureError), str(path))
 
 
-def is_pattern_output(folder, allow_capture: bool = False) -> bool:
+def is_pattern_output(folder: str | os.PathLike[str], allow_capture: bool = False) -> bool:
     """True when ``folder`` holds only an earlier pattern set of ours: a valid manifest.json
     and nothing but its frames. A camera capture (a manifest with a "capture" object) is
     someone's scan, so it counts only with ``allow_capture``."""

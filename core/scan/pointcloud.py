@@ -11,8 +11,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO, Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.atomic import atomic_file
 from anklescan.core.errors import AnkleScanError
@@ -21,31 +23,45 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 
+_A = TypeVar("_A", bound=np.generic)
+
+
+@dataclass(frozen=True)
+class _PlyElement:
+    """One ``element`` of a PLY header: its name, its count and its (name, numpy type) properties
+    (a list property's type is ``"list:<count type>:<item type>"``)."""
+
+    name: str
+    count: int
+    props: list[tuple[str, str]]
+
 
 @dataclass(eq=False)
 class PointCloud:
-    points: np.ndarray  # (N, 3) float32, world mm
-    colors: np.ndarray | None = None  # (N, 3) uint8 RGB
-    pixels: np.ndarray | None = None  # (N, 2) uint16 camera (u, v)
-    quality: np.ndarray | None = None  # (N,) float32
-    sigma: np.ndarray | None = None  # (N,) float32 predicted noise along the camera ray, mm
-    meta: dict = field(default_factory=dict)
+    points: npt.NDArray[np.float32]  # (N, 3) float32, world mm
+    colors: npt.NDArray[np.uint8] | None = None  # (N, 3) uint8 RGB
+    pixels: npt.NDArray[np.uint16] | None = None  # (N, 2) uint16 camera (u, v)
+    quality: npt.NDArray[np.float32] | None = None  # (N,) float32
+    sigma: npt.NDArray[np.float32] | None = None  # (N,) float32 predicted noise along the camera ray, mm
+    meta: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
-    def subset(self, keep: np.ndarray) -> PointCloud:
-        pick = lambda a: None if a is None else a[keep]  # noqa: E731
+    def subset(self, keep: npt.NDArray[np.bool_] | npt.NDArray[np.integer[Any]]) -> PointCloud:
+        def pick(a: npt.NDArray[_A] | None) -> npt.NDArray[_A] | None:
+            return None if a is None else a[keep]
+
         return PointCloud(self.points[keep], pick(self.colors), pick(self.pixels), pick(self.quality),
                           pick(self.sigma), dict(self.meta))
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    def bounds(self) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         if len(self) == 0:
             raise AnkleScanError("the point cloud is empty")
         return self.points.min(axis=0), self.points.max(axis=0)
 
 
-def _vertex_dtype(cloud: PointCloud) -> np.dtype:
+def _vertex_dtype(cloud: PointCloud) -> np.dtype[np.void]:
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if cloud.colors is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
@@ -58,7 +74,7 @@ def _vertex_dtype(cloud: PointCloud) -> np.dtype:
     return np.dtype(fields)
 
 
-def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | None = None) -> None:
+def write_ply(path: str | os.PathLike[str], cloud: PointCloud, comments: list[str] | None = None) -> None:
     """Binary little-endian PLY, written to a temporary sibling and renamed into place.
 
     Refuses non-finite coordinates (a broken calibration, never a surface). ``comments``
@@ -81,7 +97,7 @@ def write_ply(path: str | os.PathLike, cloud: PointCloud, comments: list[str] | 
     header = ["ply", "format binary_little_endian 1.0", "comment AnkleScan point cloud, world frame, units mm"]
     header += [f"comment {_header_text(c)}" for c in (comments or [])]
     header.append(f"element vertex {len(cloud)}")
-    for name in dtype.names:
+    for name in dtype.names or ():
         header.append(f"property {inverse[dtype[name].str]} {name}")
     header.append("end_header")
     with atomic_file(path, "wb") as f:
@@ -95,10 +111,11 @@ def _header_text(text: str) -> str:
     return str(text).encode("unicode_escape").decode("ascii")
 
 
-def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
+def _parse_header(f: IO[bytes], path: Path) -> tuple[str, list[_PlyElement]]:
     if f.readline().strip() != b"ply":
         raise AnkleScanError(f"{path} is not a PLY file")
-    fmt, elements = None, []
+    fmt: str | None = None
+    elements: list[_PlyElement] = []
     for _ in range(100_000):
         line = f.readline(4096)
         if not line:
@@ -113,26 +130,26 @@ def _parse_header(f, path: Path) -> tuple[str, list[tuple[str, int, list[tuple[s
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 12:
                 raise AnkleScanError(f"{path}: bad PLY element line {line[:80]!r}")
-            elements.append((words[1], int(words[2]), []))
+            elements.append(_PlyElement(words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:
                 raise AnkleScanError(f"{path}: PLY property before any element")
             if len(words) < 3 or (words[1] == "list" and len(words) != 5):
                 raise AnkleScanError(f"{path}: bad PLY property line {line[:80]!r}")
             if words[1] == "list":
-                elements[-1][2].append((words[4], "list:" + words[2] + ":" + words[3]))
+                elements[-1].props.append((words[4], "list:" + words[2] + ":" + words[3]))
             elif words[1] in _PLY_TYPES:
-                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+                elements[-1].props.append((words[2], _PLY_TYPES[words[1]]))
             else:
                 raise AnkleScanError(f"{path}: unknown PLY property type {words[1]!r}")
     else:
         raise AnkleScanError(f"{path}: PLY header has no end_header in its first 100000 lines")
-    if fmt not in ("binary_little_endian", "ascii"):
+    if fmt is None or fmt not in ("binary_little_endian", "ascii"):
         raise AnkleScanError(f"{path}: PLY format {fmt!r} is not supported (binary_little_endian or ascii)")
     return fmt, elements
 
 
-def read_ply(path: str | os.PathLike) -> PointCloud:
+def read_ply(path: str | os.PathLike[str]) -> PointCloud:
     """Read the vertex element of a binary little-endian or ASCII PLY (faces are skipped)."""
     path = Path(path)
     try:
@@ -146,11 +163,11 @@ def read_ply(path: str | os.PathLike) -> PointCloud:
         raise AnkleScanError(f"{path}: malformed PLY ({' '.join(str(exc).split())[:200]})") from None
 
 
-def _read_vertices(f, path: Path) -> PointCloud:
+def _read_vertices(f: IO[bytes], path: Path) -> PointCloud:
     fmt, elements = _parse_header(f, path)
-    if not elements or elements[0][0] != "vertex":
+    if not elements or elements[0].name != "vertex":
         raise AnkleScanError(f"{path}: PLY has no vertex element first")
-    _, count, props = elements[0]
+    count, props = elements[0].count, elements[0].props
     if any(t.startswith("list:") for _, t in props):
         raise AnkleScanError(f"{path}: list properties on vertices are not supported")
     left = os.fstat(f.fileno()).st_size - f.tell()
@@ -168,7 +185,7 @@ def _read_vertices(f, path: Path) -> PointCloud:
         data = np.fromfile(f, dtype=dtype, count=count)
         if data.shape[0] != count:
             raise AnkleScanError(f"{path}: PLY is truncated ({data.shape[0]} of {count} vertices)")
-    names = data.dtype.names
+    names = data.dtype.names or ()
     for n in ("x", "y", "z"):
         if n not in names:
             raise AnkleScanError(f"{path}: PLY vertices have no '{n}'")

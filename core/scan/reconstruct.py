@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.errors import CaptureError, GeometryError
 from anklescan.core.scan.capture import Capture
-from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, decode
+from anklescan.core.scan.decode import REASON_NAMES, DecodeResult, Mat, decode
+from anklescan.core.scan.patterns import AxisCode
 from anklescan.core.scan.pointcloud import PointCloud
-from anklescan.core.scan.triangulate import AXIS_BITS, calibrated_axes, check_geometry, triangulate_maps
+from anklescan.core.scan.triangulate import AXIS_BITS, Index, calibrated_axes, check_geometry, triangulate_maps
 from anklescan.core.vocabulary import Axis
 
 # A phase-decoded point is kept when its predicted noise along the camera ray (from the local
@@ -33,7 +37,7 @@ def check_compatible(capture: Capture, cal: Calibration) -> None:
     triangulation_axes(capture, cal)
 
 
-def triangulation_axes(capture: Capture, cal: Calibration) -> tuple[str, ...]:
+def triangulation_axes(capture: Capture, cal: Calibration) -> tuple[Axis, ...]:
     """The capture's stripe axes the calibration knows and the rig's geometry can triangulate
     with; a one-line error when there is none (stripes along the baseline, rows with a
     column-only calibration)."""
@@ -49,10 +53,11 @@ def triangulation_axes(capture: Capture, cal: Calibration) -> tuple[str, ...]:
 MIN_AXIS_ANGLE_DEG = 2.0  # an axis triangulating the working point more obliquely is not used
 
 
-def point_colors(capture: Capture, idx: np.ndarray, white: np.ndarray) -> np.ndarray:
+def point_colors(capture: Capture, idx: Index, white: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
     """RGB colour of each point from the white frame (colour camera) or its grey level."""
     if capture.white_color is not None:
-        return capture.white_color.reshape(-1, 3)[idx][:, ::-1].copy()  # BGR → RGB
+        rgb: npt.NDArray[np.uint8] = capture.white_color.reshape(-1, 3)[idx][:, ::-1].copy()  # BGR → RGB
+        return rgb
     g = white.reshape(-1)[idx]
     if capture.max_value != 255:
         g = (g >> 8).astype(np.uint8)  # 16-bit: the high byte
@@ -61,9 +66,9 @@ def point_colors(capture: Capture, idx: np.ndarray, white: np.ndarray) -> np.nda
     return out
 
 
-def point_quality(decoded: DecodeResult, idx: np.ndarray, full_scale: float) -> np.ndarray:
+def point_quality(decoded: DecodeResult, idx: Index, full_scale: float) -> npt.NDArray[np.float32]:
     """Projector contrast (white − black) relative to full scale: low values are noisier points."""
-    w = decoded.white_raw.reshape(-1)[idx].astype(np.float32)
+    w: npt.NDArray[np.float32] = decoded.white_raw.reshape(-1)[idx].astype(np.float32)
     w -= decoded.black_raw.reshape(-1)[idx]
     w *= np.float32(1.0 / full_scale)
     return np.clip(w, 0, 1, out=w)
@@ -74,7 +79,8 @@ EDGE_BASE_TOL_PX = 1.0  # a mixed pixel errs by at most the step it straddles; a
 EDGE_K_SIGMA = 5.0  # plus this many standard deviations of a second difference's noise
 
 
-def depth_edges(column: np.ndarray, column_sigma: np.ndarray, stripe: float | None) -> np.ndarray:
+def depth_edges(column: npt.NDArray[np.float32], column_sigma: npt.NDArray[np.float32] | None,
+                stripe: float | None) -> npt.NDArray[np.bool_]:
     """Pixels next to a kink in the decoded column map: mixed pixels at depth edges.
 
     A camera pixel straddling a depth edge decodes a mixture of both surfaces' columns and
@@ -89,15 +95,20 @@ def depth_edges(column: np.ndarray, column_sigma: np.ndarray, stripe: float | No
     """
     if stripe:
         tol = np.full(column.shape, 2 * stripe + EDGE_BASE_TOL_PX, np.float32)
+    elif column_sigma is None:
+        raise CaptureError("depth edges of a phase-decoded map need its noise (column_sigma)")
     else:
         tol = EDGE_BASE_TOL_PX + EDGE_K_SIGMA * np.sqrt(6.0, dtype=np.float32) * column_sigma
-    kink = None
+    kink: Mat | None = None
     for kernel in (_D2_H, _D2_V):
         # filter2D is multithreaded; NaN neighbours give NaN, which never compares greater
         d2 = np.abs(cv2.filter2D(column, cv2.CV_32F, kernel, borderType=cv2.BORDER_REPLICATE))
         k = cv2.compare(d2, tol, cv2.CMP_GT)
         kink = k if kink is None else cv2.bitwise_or(kink, k, dst=kink)
-    return cv2.dilate(kink, np.ones((3, 3), np.uint8)).view(bool)
+    if kink is None:  # the loop runs twice
+        raise CaptureError("depth_edges: no kernel")
+    edges: npt.NDArray[np.bool_] = np.asarray(cv2.dilate(kink, np.ones((3, 3), np.uint8))).view(bool)
+    return edges
 
 
 _D2_H = np.array([[1.0, -2.0, 1.0]], np.float32)
@@ -113,19 +124,29 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     else:
         axes = tuple(axes)
         check_geometry(cal, axes)
-    codes = {a: capture.pattern_set.axis_code(a) for a in axes}
+    codes: dict[Axis, AxisCode] = {}
+    for a in axes:
+        code = capture.pattern_set.axis_code(a)
+        if code is None:
+            raise CaptureError(f"capture {capture.folder} has no {a} patterns")
+        codes[a] = code
     # a pixel is decoded when any axis used is; a mixed pixel at a depth edge shows as a kink in
     # any map that changes with depth, so a kink in either drops it
-    decoded_any = None
-    edges = None
+    decoded_any: Mat | None = None
+    edges: Mat | None = None
     for a, code in codes.items():
         m = decoded.axis_map(a)
+        if m is None:
+            raise CaptureError(f"capture {capture.folder} decoded no {a}s")
         fin = cv2.compare(m, m, cv2.CMP_EQ)  # not NaN
         decoded_any = fin if decoded_any is None else cv2.bitwise_or(decoded_any, fin)
         e = depth_edges(m, decoded.axis_sigma(a), None if code.phase else code.stripe).view(np.uint8)
         edges = e if edges is None else cv2.bitwise_or(edges, e)
+    if decoded_any is None or edges is None:
+        raise CaptureError("no stripe axis to triangulate with")
     decoded_any &= 1
-    valid = cv2.bitwise_and(decoded_any, cv2.bitwise_not(edges) & 1).view(bool)
+    not_edges: Mat = cv2.bitwise_not(edges)
+    valid = cv2.bitwise_and(decoded_any, not_edges & 1).view(bool)
     n_decoded, n_valid = cv2.countNonZero(decoded_any), cv2.countNonZero(valid.view(np.uint8))
     if n_decoded == 0:
         raise CaptureError(f"nothing decodable in {capture.folder}: {_undecodable_reason(decoded)}")
@@ -145,7 +166,10 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
     n_pix = decoded.valid.size
     n_reasons = len(REASON_NAMES)
     # why the pixels without any decoded axis failed (with one axis: every pixel whose reason is not 0)
-    undecoded = None if len(capture.pattern_set.axes) == 1 else cv2.bitwise_not(decoded_any) & 1
+    undecoded: Mat | None = None
+    if len(capture.pattern_set.axes) != 1:
+        not_decoded: Mat = cv2.bitwise_not(decoded_any)
+        undecoded = not_decoded & 1
     counts = cv2.calcHist([decoded.reason], [0], undecoded, [n_reasons], [0, n_reasons]).ravel().astype(np.int64)
     rejected = {REASON_NAMES[i]: int(c) for i, c in enumerate(counts) if i and c}
     if n_decoded > n_valid:

@@ -44,11 +44,14 @@ import math
 import os
 import threading
 import weakref
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.calibration.model.file import Calibration
@@ -83,33 +86,40 @@ AXIS_AGREEMENT_K = 5.0
 AXIS_AGREEMENT_PX = 2.0
 DEFAULT_SIGMA_PX = 1.0  # weights when no noise model is given: equal noise on both axes
 
+F32 = npt.NDArray[np.float32]
+# Flat camera pixel indices (int64 / intp) and the boolean masks over them.
+Index = npt.NDArray[np.integer[Any]]
+Mask = npt.NDArray[np.bool_]
+# (u, v) float32 pixel coordinates of flat pixel indices, when they were computed.
+PixelCoords = tuple[F32, F32]
+
 
 @dataclass(eq=False)
 class TriangulationCache:
     """Everything that depends on the calibration only; parts are built on first use."""
 
     calibration: Calibration
-    cam_center: np.ndarray  # (3,)
-    shape: tuple  # camera (H, W)
-    ray_grid: np.ndarray  # (Hc, Wc, 2) float32 camera normalised (x_u, y_u) at nodes every ray_step px
+    cam_center: npt.NDArray[np.float64]  # (3,)
+    shape: tuple[int, int]  # camera (H, W)
+    ray_grid: F32  # (Hc, Wc, 2) float32 camera normalised (x_u, y_u) at nodes every ray_step px
     ray_step: int
-    R_c: np.ndarray  # camera rotation (3, 3)
-    R_p: np.ndarray  # projector rotation (3, 3)
-    D: np.ndarray  # (3,) R_p (Cp - Cc): the baseline in the projector's frame
-    f: dict  # axis -> projector focal length (px) along it
-    axes: tuple  # the axes the projector's calibration knows
+    R_c: npt.NDArray[np.float64]  # camera rotation (3, 3)
+    R_p: npt.NDArray[np.float64]  # projector rotation (3, 3)
+    D: npt.NDArray[np.float64]  # (3,) R_p (Cp - Cc): the baseline in the projector's frame
+    f: dict[Axis, float]  # axis -> projector focal length (px) along it
+    axes: tuple[Axis, ...]  # the axes the projector's calibration knows
     cos_limit: float
     table_step: int = 1
-    _tables: tuple | None = None
-    _epipolar: dict = field(default_factory=dict)
+    _tables: tuple[F32, F32] | None = None
+    _epipolar: dict[Axis, F32] = field(default_factory=dict)
     # Per-pixel fields, built at the second scan with this calibration (an application scanning
     # again and again): then a scan gathers instead of interpolating. A one-off command never
     # pays for them.
     scans: int = 0
-    ray_field: np.ndarray | None = None  # (6, H*W) float32: unit world ray, the same in the projector's frame
-    epipolar_field: dict = field(default_factory=dict)  # axis -> (3, H*W) float32 coefficients
+    ray_field: F32 | None = None  # (6, H*W) float32: unit world ray, the same in the projector's frame
+    epipolar_field: dict[Axis, F32] = field(default_factory=dict)  # axis -> (3, H*W) float32 coefficients
 
-    def build_fields(self, axes) -> None:
+    def build_fields(self, axes: Iterable[Axis]) -> None:
         """The per-pixel fields of the rays and of ``axes``' epipolar curves."""
         if self.ray_field is not None and all(a in self.epipolar_field for a in axes):
             return
@@ -122,13 +132,13 @@ class TriangulationCache:
                 self.epipolar_field[axis] = np.ascontiguousarray(_interpolated_curves(self, axis, uv).T)
 
     @property
-    def tables(self) -> tuple[np.ndarray, np.ndarray]:
+    def tables(self) -> tuple[F32, F32]:
         """(x_u, y_u) float32 tables over the projector image every ``table_step`` px."""
         if self._tables is None:
             self._tables = projector_tables(self.calibration.projector, step=self.table_step)
         return self._tables
 
-    def epipolar(self, axis: Axis) -> np.ndarray:
+    def epipolar(self, axis: Axis) -> F32:
         """(Hc, Wc, 3) float32 on a grid of nodes every ``epipolar_step`` camera px: the other
         coordinate as a quadratic of ``axis``'s."""
         if axis not in self._epipolar:
@@ -136,7 +146,7 @@ class TriangulationCache:
         return self._epipolar[axis]
 
 
-def projector_tables(projector: Device, margin: int = TABLE_MARGIN, step: int = 1):
+def projector_tables(projector: Device, margin: int = TABLE_MARGIN, step: int = 1) -> tuple[F32, F32]:
     """Undistorted normalised x and y at distorted projector pixels ``-margin + step * k``."""
     u = np.arange(-margin, projector.width + margin + step, step, dtype=np.float64)
     v = np.arange(-margin, projector.height + margin + step, step, dtype=np.float64)
@@ -145,12 +155,12 @@ def projector_tables(projector: Device, margin: int = TABLE_MARGIN, step: int = 
     return xu.astype(np.float32), yu.astype(np.float32)
 
 
-def projector_xu_table(projector: Device, margin: int = TABLE_MARGIN) -> np.ndarray:
+def projector_xu_table(projector: Device, margin: int = TABLE_MARGIN) -> F32:
     """Undistorted normalised x for every distorted projector pixel (1-px spacing, with margin)."""
     return projector_tables(projector, margin, 1)[0]
 
 
-def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[np.ndarray, int]:
+def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[F32, int]:
     """The camera's undistorted normalised coordinates (Hc, Wc, 2: x_u, y_u), float32, exact at the pixels
     ``step * k`` (one node past the last pixel on each side). Their curvature is that of the lens
     distortion, so bilinear interpolation between nodes errs by ~3e-4 px at 4-px spacing for a
@@ -162,7 +172,7 @@ def camera_ray_grid(cam: Device, step: int | None = None) -> tuple[np.ndarray, i
     return np.stack([xg, yg], axis=-1).astype(np.float32), step
 
 
-def _pixel_coords(cache: TriangulationCache, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pixel_coords(cache: TriangulationCache, idx: Index) -> PixelCoords:
     """Pixel coordinates (u, v), float32, of flat camera pixel indices.
 
     In float32, ~3x faster than an int64 divmod: below 2**24 pixels every index and coordinate
@@ -185,39 +195,45 @@ class _Rays:
     per-pixel field each is one gather; otherwise each is rotated from the interpolated
     camera-frame rays, only when asked for."""
 
-    def __init__(self, cache: TriangulationCache, idx: np.ndarray, uv):
+    def __init__(self, cache: TriangulationCache, idx: Index, uv: PixelCoords | None) -> None:
         self.field = cache.ray_field
         self.idx = idx
         self.cam = None if self.field is not None else camera_rays(cache, idx, uv)
         self.M = (cache.R_p @ cache.R_c.T).astype(np.float32)  # camera frame -> projector frame
         self.Rt = cache.R_c.T.astype(np.float32)  # camera frame -> world
-        self.got: dict = {}
-        self.cam_kept = None
+        self.got: dict[int, F32] = {}
+        self.cam_kept: list[F32] | None = None
 
     @staticmethod
-    def _rotate(r, row) -> np.ndarray:
-        v = r[0] * row[0]
+    def _rotate(r: tuple[F32, F32, F32] | list[F32], row: F32) -> F32:
+        v: F32 = r[0] * row[0]
         v += r[1] * row[1]
         v += r[2] * row[2]
         return v
 
-    def projector(self, k: int) -> np.ndarray:
+    def _camera_rays(self) -> tuple[F32, F32, F32]:
+        if self.cam is None:
+            raise GeometryError("triangulation: camera rays asked for alongside the per-pixel ray field")
+        return self.cam
+
+    def projector(self, k: int) -> F32:
         if k not in self.got:
-            self.got[k] = self.field[3 + k][self.idx] if self.field is not None else self._rotate(self.cam, self.M[k])
+            self.got[k] = self.field[3 + k][self.idx] if self.field is not None else self._rotate(self._camera_rays(), self.M[k])
         return self.got[k]
 
-    def world_at(self, k: int, keep: np.ndarray, idx_keep: np.ndarray) -> np.ndarray:
+    def world_at(self, k: int, keep: Index, idx_keep: Index) -> F32:
         """World component k at the points ``keep`` (indices into idx; ``idx_keep = idx[keep]``)."""
         if self.field is not None:
-            return self.field[k][idx_keep]
+            gathered: F32 = self.field[k][idx_keep]
+            return gathered
         if self.cam_kept is None:
-            self.cam_kept = [c[keep] for c in self.cam]
+            self.cam_kept = [c[keep] for c in self._camera_rays()]
         return self._rotate(self.cam_kept, self.Rt[k])
 
 
-def _interpolated_rays(cache: TriangulationCache, idx: np.ndarray, uv) -> list[np.ndarray]:
+def _interpolated_rays(cache: TriangulationCache, idx: Index, uv: PixelCoords | None) -> list[F32]:
     r = camera_rays(cache, idx, uv)
-    out = []
+    out: list[F32] = []
     for R in (cache.R_c.T, cache.R_p @ cache.R_c.T):  # camera frame -> world, -> projector frame
         R = R.astype(np.float32)
         for k in range(3):
@@ -228,7 +244,7 @@ def _interpolated_rays(cache: TriangulationCache, idx: np.ndarray, uv) -> list[n
     return out
 
 
-def camera_rays(cache: TriangulationCache, idx: np.ndarray, uv=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_rays(cache: TriangulationCache, idx: Index, uv: PixelCoords | None = None) -> tuple[F32, F32, F32]:
     """Camera-frame rays (x_u, y_u, 1) / |.| of flat pixel indices: 3 float32 arrays."""
     u, v = _pixel_coords(cache, idx) if uv is None else uv
     scale = np.float32(1.0 / cache.ray_step)
@@ -244,7 +260,7 @@ def camera_rays(cache: TriangulationCache, idx: np.ndarray, uv=None) -> tuple[np
     return x, y, inv
 
 
-def _epipolar_curves(cal: Calibration, axis: Axis) -> np.ndarray:
+def _epipolar_curves(cal: Calibration, axis: Axis) -> F32:
     """Per node of a camera grid, its epipolar curve in the projector image as a quadratic: the row as a
     function of the column (``axis="column"``) or the column of the row (``"row"``).
 
@@ -301,7 +317,7 @@ def _epipolar_curves(cal: Calibration, axis: Axis) -> np.ndarray:
     return q.reshape(gv.size, gu.size, 3).astype(np.float32)
 
 
-def calibrated_axes(cal: Calibration) -> tuple[str, ...]:
+def calibrated_axes(cal: Calibration) -> tuple[Axis, ...]:
     """The projector axes the calibration can triangulate with: rows need the projector's row
     intrinsics, which a column-only calibration (SPEC §4, ``"axis": "column"``) lacks."""
     return (Axis.COLUMN, Axis.ROW) if cal.projector.axis == Axis.BOTH else (Axis.COLUMN,)
@@ -364,7 +380,7 @@ def prepare(cal: Calibration) -> None:
 REMAP_WIDTH = 4096  # cv2.remap takes 2-D maps below 32767 a side; N points are laid out in rows
 
 
-def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def sample_bilinear(table: F32, x: F32, y: F32) -> F32:
     """Bilinear samples of ``table`` (H, W) or (H, W, C) at N arbitrary points (NaN outside), via
     cv2.remap: (N,) or (N, C)."""
     n = x.size
@@ -375,10 +391,11 @@ def sample_bilinear(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarr
     mx[n:] = my[n:] = -1.0
     out = cv2.remap(table, mx.reshape(rows, REMAP_WIDTH), my.reshape(rows, REMAP_WIDTH),
                     interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    return out.reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
+    samples: F32 = np.asarray(out, np.float32).reshape(rows * REMAP_WIDTH, *table.shape[2:])[:n]
+    return samples
 
 
-def _undistorted(cache: TriangulationCache, axis: Axis, value: np.ndarray, other: np.ndarray) -> np.ndarray:
+def _undistorted(cache: TriangulationCache, axis: Axis, value: F32, other: F32) -> F32:
     """x_u (``axis="column"``: value = column, other = row) or y_u (rows) at distorted projector
     coordinates, from the table."""
     xt, yt = cache.tables
@@ -389,10 +406,11 @@ def _undistorted(cache: TriangulationCache, axis: Axis, value: np.ndarray, other
     return sample_bilinear(yt, other * scale + off, value * scale + off)
 
 
-def _other_coordinate(cache: TriangulationCache, axis: Axis, value: np.ndarray, idx: np.ndarray,
-                      uv=None) -> np.ndarray:
+def _other_coordinate(cache: TriangulationCache, axis: Axis, value: F32, idx: Index,
+                      uv: PixelCoords | None = None) -> F32:
     """The other projector coordinate on pixel ``idx``'s epipolar curve at ``value`` of ``axis``."""
     field_ = cache.epipolar_field.get(axis)
+    q: F32 | list[F32]
     if field_ is not None:
         q = [f[idx] for f in field_]
     else:
@@ -407,7 +425,7 @@ def _other_coordinate(cache: TriangulationCache, axis: Axis, value: np.ndarray, 
     return out
 
 
-def _interpolated_curves(cache: TriangulationCache, axis: Axis, uv) -> np.ndarray:
+def _interpolated_curves(cache: TriangulationCache, axis: Axis, uv: PixelCoords) -> F32:
     u, v = uv
     scale = np.float32(1.0 / epipolar_step(cache.calibration.camera))
     return sample_bilinear(cache.epipolar(axis), u * scale, v * scale)
@@ -418,23 +436,23 @@ def _interpolated_curves(cache: TriangulationCache, axis: Axis, uv) -> np.ndarra
 class Triangulated:
     """Points from decoded maps, with what made each."""
 
-    points: np.ndarray  # (N, 3) float32 world mm
-    index: np.ndarray  # (N,) int64 flat camera pixel index
-    sigma: np.ndarray | None  # (N,) float32 predicted noise along the camera ray, mm (None without a noise model)
-    axes: np.ndarray  # (N,) uint8: 1 column, 2 row, 3 both
-    rejected: dict  # reason -> pixels: "noisy_geometry" (grazing or above the noise limit), "axes_disagree"
+    points: F32  # (N, 3) float32 world mm
+    index: Index  # (N,) int64 flat camera pixel index
+    sigma: F32 | None  # (N,) float32 predicted noise along the camera ray, mm (None without a noise model)
+    axes: npt.NDArray[np.uint8]  # (N,) uint8: 1 column, 2 row, 3 both
+    rejected: dict[str, int]  # reason -> pixels: "noisy_geometry" (grazing or above the noise limit), "axes_disagree"
 
-    def __iter__(self):  # (points, index, sigma), as triangulate_columns returns
+    def __iter__(self) -> Iterator[F32 | Index | None]:  # (points, index, sigma), as triangulate_columns returns
         return iter((self.points, self.index, self.sigma))
 
 
 AXIS_BITS: dict[Axis, int] = {Axis.COLUMN: 1, Axis.ROW: 2}
 
 
-def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np.ndarray | None = None,
-                     valid: np.ndarray | None = None, *, column_sigma: np.ndarray | None = None,
-                     row_sigma: np.ndarray | None = None, max_sigma_mm: float | None = None,
-                     axes=(Axis.COLUMN, Axis.ROW)) -> Triangulated:
+def triangulate_maps(cal: Calibration, column: npt.ArrayLike | None = None, row: npt.ArrayLike | None = None,
+                     valid: npt.ArrayLike | None = None, *, column_sigma: npt.ArrayLike | None = None,
+                     row_sigma: npt.ArrayLike | None = None, max_sigma_mm: float | None = None,
+                     axes: Iterable[Axis] = (Axis.COLUMN, Axis.ROW)) -> Triangulated:
     """World points for camera pixels with decoded projector columns and/or rows.
 
     ``column``, ``row``: (H, W) float32 decoded maps (NaN where undecoded), either may be None.
@@ -447,9 +465,10 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
     """
     cache = cache_for(cal)
     H, W = cache.shape
+    axes = tuple(axes)
     maps = {Axis.COLUMN: column, Axis.ROW: row}
     sigmas = {Axis.COLUMN: column_sigma, Axis.ROW: row_sigma}
-    for _name, m in list(maps.items()) + [(f"{k} sigma", v) for k, v in sigmas.items()]:
+    for m in [*maps.values(), *sigmas.values()]:
         if m is not None and np.shape(m) != (H, W):
             raise GeometryError(f"decoded map is {np.shape(m)[1]}x{np.shape(m)[0]} but the calibrated camera is {W}x{H}")
     use = tuple(a for a in AXES if a in axes and maps[a] is not None)
@@ -459,18 +478,20 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
                                 f"it cannot triangulate {a}s")
     if not use:
         raise GeometryError("nothing to triangulate: no decoded map of an axis the calibration knows")
-    flat = {a: None if m is None else np.asarray(m, dtype=np.float32).ravel() for a, m in maps.items()}
-    sig = {a: None if s is None else np.asarray(s, dtype=np.float32).ravel() for a, s in sigmas.items()}
+    flat: dict[Axis, F32 | None] = {a: None if m is None else np.asarray(m, dtype=np.float32).ravel()
+                                    for a, m in maps.items()}
+    sig: dict[Axis, F32 | None] = {a: None if s is None else np.asarray(s, dtype=np.float32).ravel()
+                                   for a, s in sigmas.items()}
     has_noise = all(sig[a] is not None for a in use)
     if valid is not None:  # (a NaN on every axis fails the geometric test below anyway)
-        idx = np.flatnonzero(np.asarray(valid, bool))
+        idx: Index = np.flatnonzero(np.asarray(valid, bool))
     else:
-        finite = None
+        finite: Mask | None = None
         for a in use:
-            f = np.isfinite(maps[a])
+            f = np.isfinite(np.asarray(maps[a], np.float32))
             finite = f if finite is None else (finite | f)
-        idx = np.flatnonzero(finite)
-    alone = []  # axes decoded without the other somewhere: they need the epipolar curves
+        idx = np.flatnonzero(np.asarray(finite))
+    alone: list[Axis] = []  # axes decoded without the other somewhere: they need the epipolar curves
     for a in use:  # lazy parts of the cache, built here once rather than racing in the threads
         o = flat[Axis.ROW if a == Axis.COLUMN else Axis.COLUMN]
         if o is None or not np.isfinite(o[idx]).all():
@@ -482,20 +503,22 @@ def triangulate_maps(cal: Calibration, column: np.ndarray | None = None, row: np
         if cache.scans >= 2:
             cache.build_fields(alone)
     chunks = np.array_split(idx, max(1, min(_WORKERS, idx.size // MIN_CHUNK)))
-    work = lambda i: _triangulate_chunk(cache, i, flat, sig, use, has_noise, max_sigma_mm)  # noqa: E731
+    def work(i: Index) -> Triangulated:
+        return _triangulate_chunk(cache, i, flat, sig, use, has_noise, max_sigma_mm)
+
     parts = list(_pool().map(work, chunks)) if len(chunks) > 1 else [work(chunks[0])]
-    rejected: dict = {}
+    rejected: dict[str, int] = {}
     for p in parts:
-        for k, v in p[4].items():
+        for k, v in p.rejected.items():
             rejected[k] = rejected.get(k, 0) + v
-    return Triangulated(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                        np.concatenate([p[2] for p in parts]) if has_noise else None,
-                        np.concatenate([p[3] for p in parts]), rejected)
+    return Triangulated(np.concatenate([p.points for p in parts]), np.concatenate([p.index for p in parts]),
+                        np.concatenate([p.sigma for p in parts if p.sigma is not None]) if has_noise else None,
+                        np.concatenate([p.axes for p in parts]), rejected)
 
 
-def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray | None = None,
-                        row: np.ndarray | None = None, column_sigma: np.ndarray | None = None,
-                        max_sigma_mm: float | None = None):
+def triangulate_columns(cal: Calibration, column: npt.ArrayLike, valid: npt.ArrayLike | None = None,
+                        row: npt.ArrayLike | None = None, column_sigma: npt.ArrayLike | None = None,
+                        max_sigma_mm: float | None = None) -> tuple[F32, Index, F32 | None]:
     """World points for camera pixels with decoded projector columns (camera ray ∩ column plane).
 
     ``column``: (H, W) float32 projector column per camera pixel, NaN where undecoded.
@@ -514,7 +537,7 @@ def triangulate_columns(cal: Calibration, column: np.ndarray, valid: np.ndarray 
 
 _WORKERS = max(1, min(4, os.cpu_count() or 1))
 MIN_CHUNK = 1 << 16
-_POOL: list = []
+_POOL: list[ThreadPoolExecutor] = []
 
 
 def _pool() -> ThreadPoolExecutor:
@@ -523,7 +546,8 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL[0]
 
 
-def _axis_depth(cache, axis, rays, value, other, idx, uv):
+def _axis_depth(cache: TriangulationCache, axis: Axis, rays: _Rays, value: F32, other: F32 | None, idx: Index,
+                uv: PixelCoords | None) -> tuple[F32, F32, Mask]:
     """s along the ray, ds/d(projector px) and the grazing test for one axis."""
     k = 0 if axis == Axis.COLUMN else 1
     if other is None:
@@ -550,35 +574,56 @@ def _axis_depth(cache, axis, rays, value, other, idx, uv):
     return s, g, ok
 
 
-def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, sig: dict, use: tuple,
-                       has_noise: bool, max_sigma_mm):
+@dataclass(frozen=True)
+class _AxisEstimate:
+    """One axis' depth along each ray, its predicted noise, ds/d(projector px) and its test."""
+
+    s: F32
+    sd: F32
+    g: F32
+    ok: Mask
+
+
+def _triangulate_chunk(cache: TriangulationCache, idx: Index, flat: dict[Axis, F32 | None],
+                       sig: dict[Axis, F32 | None], use: tuple[Axis, ...],
+                       has_noise: bool, max_sigma_mm: float | None) -> Triangulated:
     uv = None if cache.ray_field is not None else _pixel_coords(cache, idx)
     rays = _Rays(cache, idx, uv)
-    rejected = {}
-    est = {}
+    rejected: dict[str, int] = {}
+    est: dict[Axis, _AxisEstimate] = {}
     for a in use:
-        value = flat[a][idx]
+        values = flat[a]
+        if values is None:  # ``use`` holds only the decoded axes
+            raise GeometryError(f"no decoded {a} map to triangulate")
+        value = values[idx]
         o = Axis.ROW if a == Axis.COLUMN else Axis.COLUMN
-        other = None
-        if flat[o] is not None:
-            other = flat[o][idx]
+        other: F32 | None = None
+        others = flat[o]
+        if others is not None:
+            other = others[idx]
             if not np.isfinite(other).all():
                 if uv is None and cache.epipolar_field.get(a) is None:
                     uv = _pixel_coords(cache, idx)
                 fill = _other_coordinate(cache, a, value, idx, uv)
                 other = np.where(np.isfinite(other), other, fill)
         s, g, ok = _axis_depth(cache, a, rays, value, other, idx, uv)  # a NaN value fails ok
-        if sig[a] is not None:
-            sd = sig[a][idx]
+        axis_sig = sig[a]
+        if axis_sig is not None:
+            sd = axis_sig[idx]
             sd *= g
         else:
             sd = g * np.float32(DEFAULT_SIGMA_PX)
-        est[a] = (s, sd, g, ok)
+        est[a] = _AxisEstimate(s, sd, g, ok)
+    sigma: F32 | None
+    axes_code: npt.NDArray[np.uint8] | None
     if len(est) == 1:
-        (a, (s_all, sigma, _, ok)), = est.items()
+        (only,) = est.values()
+        s_all, sigma, ok = only.s, only.sd, only.ok
         axes_code = None
     else:
-        (s1, sd1, g1, ok1), (s2, sd2, g2, ok2) = est[Axis.COLUMN], est[Axis.ROW]
+        c, r = est[Axis.COLUMN], est[Axis.ROW]
+        s1, sd1, g1, ok1 = c.s, c.sd, c.g, c.ok
+        s2, sd2, g2, ok2 = r.s, r.sd, r.g, r.ok
         v1, v2 = sd1 * sd1 + np.float32(1e-20), sd2 * sd2 + np.float32(1e-20)
         both = ok1 & ok2
         # a wrong code on one axis: the two depths disagree far beyond their noise
@@ -609,7 +654,7 @@ def _triangulate_chunk(cache: TriangulationCache, idx: np.ndarray, flat: dict, s
     for k in range(3):
         pts[:, k] = rays.world_at(k, keep, idx_keep) * s + np.float32(cache.cam_center[k])
     code = np.full(keep.size, AXIS_BITS[use[0]], np.uint8) if axes_code is None else axes_code[keep]
-    return pts, idx_keep, (None if sigma is None else sigma[keep]), code, rejected
+    return Triangulated(pts, idx_keep, None if sigma is None else sigma[keep], code, rejected)
 
 
 # ------------------------------------------------------------------------------ rig geometry
@@ -622,7 +667,7 @@ class AxisGeometry:
     mm_per_px: float  # depth along the ray per projector pixel of that axis
 
 
-def working_point(cal: Calibration) -> np.ndarray:
+def working_point(cal: Calibration) -> npt.NDArray[np.float64]:
     """Where the rig looks: the midpoint of the closest approach of the rays through the centres
     of the camera's and the projector's images (a projector's optical axis is usually far off its
     image's centre), or, if they do not converge in front of both, the camera's central ray at
@@ -639,11 +684,13 @@ def working_point(cal: Calibration) -> np.ndarray:
         s = (b * (d2 @ w) - (d1 @ w)) / den
         t = ((d2 @ w) - b * (d1 @ w)) / den
         if s > 0.1 * base and t > 0.1 * base:
-            return 0.5 * ((c1 + s * d1) + (c2 + t * d2))
-    return c1 + 2.0 * base * d1
+            mid: npt.NDArray[np.float64] = 0.5 * ((c1 + s * d1) + (c2 + t * d2))
+            return mid
+    ahead: npt.NDArray[np.float64] = c1 + 2.0 * base * d1
+    return ahead
 
 
-def axis_geometry(cal: Calibration, point: np.ndarray | None = None) -> dict[str, AxisGeometry]:
+def axis_geometry(cal: Calibration, point: npt.ArrayLike | None = None) -> dict[Axis, AxisGeometry]:
     """Per axis the projector knows: the triangulation angle and depth per projector pixel at
     ``point`` (default :func:`working_point`). A stripe plane holding the baseline gives 0°."""
     cam, proj = cal.camera, cal.projector
@@ -654,7 +701,7 @@ def axis_geometry(cal: Calibration, point: np.ndarray | None = None) -> dict[str
     Xp = proj.to_device(X)
     e = proj.R @ d
     D = proj.R @ (proj.center - cam.center)
-    out = {}
+    out: dict[Axis, AxisGeometry] = {}
     for axis in calibrated_axes(cal):
         k = 0 if axis == Axis.COLUMN else 1
         xu = Xp[k] / Xp[2]
@@ -673,7 +720,7 @@ def axis_geometry(cal: Calibration, point: np.ndarray | None = None) -> dict[str
 SINGLE_AXIS_SHARE = 0.85
 
 
-def scan_axes(cal: Calibration | None) -> tuple[str, ...]:
+def scan_axes(cal: Calibration | None) -> tuple[Axis, ...]:
     """The stripe axes a scan with this rig needs: columns for a projector beside the camera,
     rows for one above or below it, both for a diagonal one (or with no calibration at all)."""
     if cal is None:
@@ -689,7 +736,7 @@ def scan_axes(cal: Calibration | None) -> tuple[str, ...]:
     return AXES
 
 
-def check_geometry(cal: Calibration, axes) -> dict[str, AxisGeometry]:
+def check_geometry(cal: Calibration, axes: tuple[Axis, ...]) -> dict[Axis, AxisGeometry]:
     """Raise a one-line GeometryError when none of ``axes`` can triangulate on this rig."""
     geo = axis_geometry(cal)
     usable = [a for a in axes if a in geo]
@@ -707,7 +754,7 @@ def check_geometry(cal: Calibration, axes) -> dict[str, AxisGeometry]:
 
 
 # ------------------------------------------------------------------------------ single points
-def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -> np.ndarray:
+def triangulate_points(cal: Calibration, cam_uv: npt.ArrayLike, proj: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """(N, 3) world mm for single sub-pixel observations, in float64.
 
     ``proj`` is (N,) projector columns (camera ray ∩ column plane) or (N, 2) columns and rows:
@@ -725,7 +772,8 @@ def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -
         n, off = planes[:, :3], planes[:, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
             s = -(n @ C + off) / np.einsum("ij,ij->i", n, d)
-        return C + s[:, None] * d
+        on_planes: npt.NDArray[np.float64] = C + s[:, None] * d
+        return on_planes
     xu, yu = p.normalized_from_pixels(proj[:, :2])
     e = d @ p.R.T
     D = p.R @ (p.center - C)
@@ -739,4 +787,5 @@ def triangulate_points(cal: Calibration, cam_uv: np.ndarray, proj: np.ndarray) -
         (s1, w1), (s2, w2) = est
         s = (s1 * w1 + s2 * w2) / (w1 + w2)
         s = np.where(np.isfinite(s), s, np.where(np.isfinite(s1), s1, s2))
-    return C + s[:, None] * d
+    points: npt.NDArray[np.float64] = C + s[:, None] * d
+    return points

@@ -195,7 +195,8 @@ def observe_board(capture: Capture, cols: int, rows: int, decoded: DecodeResult 
         find_corners(capture.frames[pset.index(FrameKind.WHITE)], cols, rows)
     d = decode(capture) if decoded is None else decoded
     column_code, row_code = pset.axis_code(Axis.COLUMN), pset.axis_code(Axis.ROW)
-    assert column_code is not None and row_code is not None and d.row is not None  # both axes: checked above
+    # both axes: checked above
+    assert column_code is not None and row_code is not None and d.column is not None and d.row is not None
     stripe = float(min(column_code.stripe, row_code.stripe))
     name = capture.folder.name if capture.folder is not None else "capture"
     return observe_board_maps(d.white_raw, d.column, d.row, cols, rows, stripe, name)

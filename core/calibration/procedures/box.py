@@ -518,7 +518,7 @@ def _observe_capture(capture_dir: str | os.PathLike[str]) -> tuple[BoxObservatio
 
     capture = load_capture(capture_dir)
     result = decode(capture)
-    obs = observe_box(result.white, result.column, result.row)
+    obs = observe_box(result.white, result.require_column(), result.row)
     H, W = capture.shape
     return obs, (W, H), (capture.pattern_set.width, capture.pattern_set.height)
 

@@ -131,4 +131,4 @@ def verify_box_capture(capture_dir: str | Path, cal: Calibration) -> Verificatio
     from anklescan.core.scan.decode import decode
 
     result = decode(load_capture(capture_dir))
-    return verify_decoded(cal, result.white, result.column, result.row)
+    return verify_decoded(cal, result.white, result.require_column(), result.row)
