@@ -39,6 +39,7 @@ from anklescan.core.calibration.model.file import Calibration, moved_trust
 from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
 from anklescan.core.robust import robust_sigma
+from anklescan.core.scan.capture import Capture
 
 PLANE_TOL_MM = 3.0  # a point within this of a plane is on it (widened by the cloud's own noise)
 MIN_PEAK_SHARE = 0.02  # a level surface's height bin holds >= this share of the largest one
@@ -227,7 +228,8 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
         bins = np.array([h.min() - tol, h.max() + tol])
     counts, edges = np.histogram(h, bins)
     # level surfaces make peaks (the floor is usually the biggest, and a mark plate or a shelf may sit higher)
-    peaks = [int(b) for b in np.flatnonzero(counts >= max(MIN_TOP_POINTS, MIN_PEAK_SHARE * counts.max()))
+    level = max(float(MIN_TOP_POINTS), MIN_PEAK_SHARE * float(counts.max()))
+    peaks = [b for b in np.flatnonzero(counts >= level).tolist()
              if counts[b] >= counts[max(b - 1, 0)] and counts[b] >= counts[min(b + 1, len(counts) - 1)]]
     # candidate planes (unit normal, offset: n·x = offset), the highest level surface first
     seeds: list[tuple[np.ndarray, float]] = [(n, 0.5 * float(edges[b] + edges[b + 1])) for b in sorted(peaks)[::-1]]
@@ -344,10 +346,12 @@ def _largest_patch(P: np.ndarray, nt: np.ndarray) -> np.ndarray:
     if nlab < 2:
         return P[:0]
     sizes = np.bincount(lab.ravel())[1:]
-    return P[lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))]
+    kept: np.ndarray = P[lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))]
+    return kept
 
 
-def _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, length, width) -> None:
+def _check_edges(X: np.ndarray, c: np.ndarray, nt: np.ndarray, c_uv: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                 centre_uv: np.ndarray, d: np.ndarray, length: float, width: float) -> None:
     """A table top ends in drops: past at least two of its sides something lower is seen (the floor;
     the others may be hidden or outside the lit field).  A surface cut off by the camera's or the
     projector's frame (a floor) has nothing beyond its cuts."""
@@ -367,7 +371,8 @@ def _check_edges(X, c, nt, c_uv, e1, e2, centre_uv, d, length, width) -> None:
                             "beyond them): scan the level reference table with all of its top in view")
 
 
-def _refine_long_sides(uv, centre, d, length, width):
+def _refine_long_sides(uv: np.ndarray, centre: np.ndarray, d: np.ndarray, length: float,
+                       width: float) -> tuple[np.ndarray, np.ndarray]:
     """Direction of the long sides and the centre, from robust lines through each long edge's points."""
     perp = np.array([-d[1], d[0]])
     s = (uv - centre) @ perp
@@ -405,7 +410,7 @@ def level_transform(top: TableTop) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x, y, z], axis=1), top.centre
 
 
-def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> Calibration:
+def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict[str, object]) -> Calibration:
     def move(dev: Device) -> Device:
         return dev.with_pose(dev.R @ A, dev.R @ o + dev.t)
 
@@ -417,7 +422,7 @@ def apply_level(cal: Calibration, A: np.ndarray, o: np.ndarray, extra: dict) -> 
     return Calibration(move(cal.camera), move(cal.projector), new_extra)
 
 
-def level_calibration(cal: Calibration, capture, table: TableSpec = DEFAULT_TABLE) -> tuple[Calibration, TableTop]:
+def level_calibration(cal: Calibration, capture: Capture, table: TableSpec = DEFAULT_TABLE) -> tuple[Calibration, TableTop]:
     """``cal`` re-expressed in the clinic's frame from a capture of the level reference table
     (GeometryError, one line, when no top of ``table``'s size fits well)."""
     from anklescan.core.scan.reconstruct import reconstruct
