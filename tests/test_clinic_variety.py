@@ -506,8 +506,9 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
     rig = variant_rig(draw_variant(variant), inv, pf, scale=1.0, seed=seed)
     cap = _capture(rig)
     res = measure_capture(cap, rig.true_calibration())
-    assert "2" not in res.marks.labelled  # the search alone misses it
     truth = rig.truth()
+    if "2" in res.marks.labelled:  # the search finds it now (its image fitted as a whole): right
+        assert np.linalg.norm(res.marks.labelled["2"].centre - truth.marks["2"]) < 0.35
     lit = averaged_lit(cap)
     n = truth.mark_normals["2"]
     off = np.cross(n, [0.0, 0.0, 1.0])

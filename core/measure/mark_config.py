@@ -285,5 +285,43 @@ class MarkConfig:
     #: is there, and the fit's SD carries the scatter)
     snap_max_edge_rms_mm: float = 0.7
 
+    # ---- a sticker fitted to its image (``mark_image_model``)
+    #: x the radius: the surface and the pixels fitted reach this far from the centre (the disk and
+    #: a ring of its surround, for the surround's level)
+    image_fit_reach: float = 1.3
+    #: x the radius: the surface under the disk is fitted to the decoded points this far from its
+    #: centre (its height at the centre, which a steep view carries along the ray ~5-fold at 80°,
+    #: is the mean of more points)
+    image_fit_surface_reach: float = 2.0
+    #: a pixel whose decoded point lies off the surface fitted by more than this many times its RMS,
+    #: and this many mm, sees another surface (an outline, the table's front face): not fitted
+    image_fit_off_surface_sd: float = 4.0
+    image_fit_off_surface_mm: float = 1.0
+    #: an undecoded pixel is fitted only where its light is at least this share of the decoded
+    #: surface's round it (else it is a shadow, or beyond a silhouette)
+    image_fit_min_lit_share: float = 0.5
+    #: px: nor within this many pixels of such a pixel or of one that sees another surface (the
+    #: blur spreads their light onto the surface's pixels beside them)
+    image_fit_guard_px: int = 2
+    #: mm: the image fit's radius error from its model (a blur that is not Gaussian, the camera's
+    #: tone curve: 0.01-0.14 mm on whole disks), in quadrature with its SD where a radius is
+    #: checked against the marks' size
+    image_fit_radius_sd_mm: float = 0.075
+    #: px: and this far beyond, for the blur
+    image_fit_margin_px: int = 3
+    #: px: the blur's SD the fit starts from, and the range it may take
+    image_fit_blur_start_px: float = 1.0
+    image_fit_blur_range_px: tuple[float, float] = (0.3, 4.0)
+    #: x the image noise: residuals beyond are weighted down (Huber), a neighbour or an outline in the window
+    image_fit_huber: float = 2.5
+    #: Gauss-Newton iterations, at most
+    image_fit_iterations: int = 40
+    #: the image fit's residuals over the image noise, less one, at most: a disk's image matches
+    #: the model to within the noise (a blur that is not Gaussian, a rim's shading: 0-0.2); beyond,
+    #: the window holds what is not a flush disk
+    image_fit_max_excess: float = 0.5
+    #: SDs: a disk's contrast over its surround at least (no disk is there otherwise)
+    image_fit_min_contrast_z: float = 5.0
+
 
 CONFIG = MarkConfig()

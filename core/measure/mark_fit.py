@@ -28,6 +28,7 @@ from anklescan.core.measure.mark_edges import (
     sliver_edges,
     top_face_pixels,
 )
+from anklescan.core.measure.mark_image_model import fit_disk_image
 from anklescan.core.measure.mark_types import DiskFit, Mark, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
@@ -116,13 +117,9 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         kinds = (prefer_kind,)
     # ``lit_sticker_edges``: only a sticker, with the lit image's edges (the last look, ``find_marks``)
     tries = [(MarkKind.STICKER, None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
-    if (any(k == MarkKind.STICKER for k, _ in tries)
-            and border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded):
-        tries = [t for t in tries if t[0] != MarkKind.STICKER]
-        if not tries:
-            return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
+    bare = border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded
     cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
-                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance)
+                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance, bare)
     first: Refusal | None = None
     for kind, alb in tries:
         out = _fit_kind(kind, cand, alb)
@@ -183,6 +180,7 @@ class _Candidate:
     radius_bounds: tuple[float, float] | None  # the size is not known: the radius must lie in this range
     max_edge_rms: float  # mm, edges about the circle
     covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
+    bare: bool  # the blob's border is mostly undecoded (CONFIG.sticker_max_border_undecoded): no surface round it
 
 
 def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
@@ -207,6 +205,13 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
         pa = edge_profiles(albedo, shape, local_level=True, clipped=clipped)
         profiles = pa if len(pa.rows) >= CONFIG.min_edge_points else profiles
     out = fit(profiles)
+    imaged = False
+    if kind == MarkKind.STICKER:
+        by_image = _sticker_by_image(cand, out)
+        if by_image is None and cand.bare:
+            # the edges' rays are cut with a surface extrapolated over the gap
+            return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
+        out, imaged = (by_image, isinstance(by_image, DiskFit)) if by_image is not None else (out, False)
     if isinstance(out, Refusal):
         return out
     if kind == MarkKind.PLATE:
@@ -258,7 +263,7 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
         # measured centre errors are 0.5–0.9 Δ (docs/marks.md), so Δ/2 per in-plane axis.
         B = plane_basis(normal)
         cov = cov + (0.5 * (radius - radius_mm)) ** 2 * (B.T @ B)
-    if kind == MarkKind.STICKER and profiles is not lit_profiles and prior_sd is not None:
+    if kind == MarkKind.STICKER and profiles is not lit_profiles and prior_sd is not None and not imaged:
         spread = _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd,
                                     centre)
         lit_enough = light_deg <= CONFIG.lit_shift_max_light_deg
@@ -290,6 +295,46 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
                 step_sd=float("nan") if step is None else float(step.step_sd), radius_sd=radius_sd,
                 doubtful=prior_sd is not None and radius_disagrees(radius, radius_sd, radius_mm, prior_sd),
                 clipped=clipped_rim)
+
+
+def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit | Refusal | None:
+    """The sticker fitted to its image (``mark_image_model``), from the edge fit's centre where
+    there is one on a decoded surround, else the blob's first plane. None where there is no such
+    fit to make (too few decoded points or pixels round it); a ``Refusal`` where the fit is not
+    a whole disk's image of the marks' size: residuals past CONFIG.image_fit_max_excess, less
+    than CONFIG.min_seen_share of the disk's pixels fitted, a contrast within
+    CONFIG.image_fit_min_contrast_z SDs of none, or (the size given or measured) a radius that
+    disagrees with it (``radius_disagrees``: the image measures a radius to a tenth of a mm, so
+    a disk cut by an outline or a shadow shows there). Where the residuals alone fail and the
+    edges fitted a disk on a decoded surround, None: the window holds more than the disk and
+    its surround, and the rim's edges may still be its own. Its
+    ``edge_rms`` is its excess on the edges' scale (the limit of one at the limit of the other:
+    ``mark_selection.fit_score`` scores both alike), its face RMS the edge fit's surface RMS (or
+    its own)."""
+    use_edges = isinstance(edge_fit, DiskFit) and not cand.bare
+    start = (edge_fit.centre, edge_fit.normal) if use_edges else (cand.centroid, cand.normal)
+    fit = fit_disk_image(cand.image, cand.points, cand.cal, start[0], start[1], cand.radius_mm, cand.prior_sd)
+    if fit is None:
+        return None
+    what = f"its image fitted as a sticker: diameter {2 * fit.radius:.2f} ± {2 * fit.radius_sd:.2f} mm"
+    if fit.excess > CONFIG.image_fit_max_excess:
+        if isinstance(edge_fit, DiskFit) and not cand.bare:
+            return None  # the window holds more than the disk and its surround: the rim's edges may still be its own
+        return Refusal(RefusalReason.EDGES_SCATTER, f"not a disk's image (residuals {1 + fit.excess:.1f} x the "
+                                                    f"noise; {what})")
+    if fit.seen < CONFIG.min_seen_share:
+        return Refusal(RefusalReason.PARTLY_HIDDEN, f"only {100 * fit.seen:.0f} % of its face is seen whole: partly "
+                                                    f"in a shadow or hidden ({what})")
+    if fit.contrast < CONFIG.image_fit_min_contrast_z * fit.contrast_sd:
+        return Refusal(RefusalReason.NO_EDGE, f"no contrast ({fit.contrast:.3f} ± {fit.contrast_sd:.3f}; {what})")
+    radius_sd = math.hypot(fit.radius_sd, CONFIG.image_fit_radius_sd_mm)
+    if cand.prior_sd is not None and radius_disagrees(fit.radius, radius_sd, cand.radius_mm, cand.prior_sd):
+        return Refusal(RefusalReason.WRONG_RADIUS, f"not a whole {2 * cand.radius_mm:.1f} mm disk ({what})")
+    edge_rms = CONFIG.max_circle_rms_mm * max(fit.excess, 0.0) / CONFIG.image_fit_max_excess
+    face_rms = edge_fit.face_rms if isinstance(edge_fit, DiskFit) else fit.surface_rms
+    n_edge = edge_fit.n_edge if isinstance(edge_fit, DiskFit) else fit.n_pixels
+    cov = fit.covariance if cand.covariance else np.full((3, 3), np.nan)
+    return DiskFit(fit.centre, fit.normal, fit.radius, radius_sd, edge_rms, face_rms, cov, n_edge)
 
 
 def _face_off_surface(points, cal, centre, normal, radius) -> float:

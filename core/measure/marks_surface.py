@@ -21,7 +21,7 @@ import scipy.optimize
 
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import decoded_across, plane_basis
+from anklescan.core.measure.mark_edges import decoded_across, image_scale, plane_basis
 from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.robust import robust_sigma
 
@@ -116,30 +116,39 @@ def surface_lengths(coef, c, P) -> np.ndarray:
     return np.sqrt((delta * delta).sum(axis=1)[:, None] + slope**2) @ _GL_W
 
 
-def circle_on_surface(coef, Q, c0, r0, prior=None):
+def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
     """(centre (2,), radius, residuals, cov of centre (2, 2), radius SD) of the circle of
     points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
-    as ``anklescan.core.measure.mark_fit.circle_geometric`` does). None if it fails."""
+    as ``anklescan.core.measure.mark_fit.circle_geometric`` does). ``along``: (N, 2) the edge
+    rays' local x, y components: each residual weighted by how much of it the camera sees
+    (``image_scale``, as ``circle_geometric``), from the centre the pass before found. None if
+    it fails."""
     floor = 0.03
 
-    def fun(p, scale):
-        res = surface_lengths(coef, p[:2], Q) - p[2]
+    def fun(p, scale, w):
+        res = w * (surface_lengths(coef, p[:2], Q) - p[2])
         if prior is None:
             return res
         return np.r_[res, scale / prior[1] * (p[2] - prior[0])]
 
+    def weights(c):
+        d = Q - c
+        return image_scale(d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None], along)
+
     p = np.array([c0[0], c0[1], r0], float)
     scale = floor
     for _ in range(3):
-        sol = scipy.optimize.least_squares(fun, p, args=(scale,), method="lm", x_scale=1.0)
+        w = weights(p[:2])
+        sol = scipy.optimize.least_squares(fun, p, args=(scale, w), method="lm", x_scale=1.0)
         if not sol.success and sol.status <= 0:
             return None
+        moved = float(np.linalg.norm(p[:2] - sol.x[:2]))
         p = sol.x
         resid = sol.fun[: len(Q)]
         new = max(float(np.sqrt(np.mean(resid**2))), floor)
-        if prior is None or abs(new - scale) < 0.1 * scale:
-            break
+        if (prior is None or abs(new - scale) < 0.1 * scale) and (along is None or moved < CONFIG.plane_converged_mm):
+            break  # the residuals' scale, and the weights, as the pass before had them
         scale = new
     J = sol.jac
     s2 = max(float(resid @ resid) / max(len(Q) - 3, 1), floor**2)
@@ -175,6 +184,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
             return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {len(P)} decoded 3-D points on the mark")
         coef, surf_rms, keep, _ = q
         D = rays_all @ F.T
+        along = D[:, :2] / np.linalg.norm(D, axis=1, keepdims=True)
         E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
         # where the disk wraps round the leg's silhouette, the outline there is the limb, not
         # the disk's rim: rays grazing the surface are dropped
@@ -184,7 +194,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(CONFIG.max_edge_view_deg))) & lit_edge
         if use.sum() < CONFIG.min_edge_points:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
-        fit = circle_on_surface(coef, E[use, :2], c2, r, prior)
+        fit = circle_on_surface(coef, E[use, :2], c2, r, prior, along[use])
         if fit is None:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         for _ in range(2):
@@ -193,7 +203,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
             if not bad.any() or (~bad).sum() < CONFIG.min_edge_points:
                 break
             use[np.flatnonzero(use)[bad]] = False
-            fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior)
+            fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior, along[use])
             if fit is None:
                 return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
         c2, r, resid, cov2, _ = fit
@@ -206,7 +216,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         c2 = np.zeros(2)
         if moved < CONFIG.plane_converged_mm:
             break
-    free = circle_on_surface(coef, E[use, :2], fit[0], fit[1]) if prior is not None else fit
+    free = circle_on_surface(coef, E[use, :2], fit[0], fit[1], along=along[use]) if prior is not None else fit
     radius, radius_sd = (free[1], free[4]) if free is not None else (float("nan"), float("inf"))
     rms = float(np.sqrt(np.mean(resid**2)))
     # centre's covariance: the in-surface fit, carried to 3-D along the surface's slope; the

@@ -1,0 +1,270 @@
+"""A flush disk (a sticker) fitted to its image, not to its rim's edge points.
+
+Where the rim is resolved, its edge points locate the disk (``marks_surface.fit_on_surface``).
+Where it is not, each edge point is noise: a sticker seen at 75-80° images a few pixels across
+its minor axis, which the camera's blur spans, and a sticker barely brighter than its surround
+gives each radial profile a crossing that noise moves by pixels. Every pixel of the disk and
+its surround still carries its information, so the disk is fitted to them all at once:
+
+    I(u, v) = B(u, v) (1 + a Φ(d(u, v) / s))
+
+with ``d`` the signed distance (image pixels, positive inside) from the pixel to the rim of
+the disk of centre ``c`` and radius ``r`` on the local surface (the quadric of the decoded
+points round it, ``marks_surface.fit_quadric``): each pixel's ray is cut with the surface, its
+distance from the rim along the surface scaled to the image by how much of a radial offset
+the camera sees there (``mark_edges.image_scale``) and the depth. ``Φ`` is the standard normal
+CDF (a straight edge blurred by a Gaussian of SD ``s`` pixels), ``a`` the disk's contrast
+(its albedo over its surround's, less one) and ``B`` the light on the surface there, a quadratic
+in the pixel (the shading of a curved leg; both the disk and its surround are lit by it). The
+parameters are found by robust least squares (a neighbouring disk in the window is weighted
+down, not modelled); pixels that see another surface are left out.
+
+The fit's goodness is in SD units of the image's own noise (``ImageFit.excess``: the robust
+RMS residual over the noise, less one), its centre's covariance the least-squares one scaled
+by the residuals, carried to 3-D along the surface.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.measure.mark_candidates import noise_sigma
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_edges import image_scale
+from anklescan.core.measure.marks_surface import (
+    fit_quadric,
+    local_frame,
+    quadric_grad,
+    quadric_z,
+    ray_quadric,
+    surface_lengths,
+)
+from anklescan.core.robust import robust_sigma
+
+
+@dataclass(frozen=True)
+class ImageFit:
+    """A disk fitted to its image (module docstring). World mm, image pixels."""
+
+    centre: np.ndarray  # (3,) the centre, on the surface
+    normal: np.ndarray  # (3,) the surface's unit normal there, towards the camera
+    radius: float  # mm, the fitted (free) or given radius
+    radius_sd: float  # mm, its SD (the prior's where the radius was given)
+    covariance: np.ndarray  # (3, 3) of the centre
+    contrast: float  # a, the disk's brightness over its surround's, less one
+    contrast_sd: float  # its SD
+    blur_px: float  # s, the rim's blur, pixels
+    excess: float  # robust RMS residual over the image noise, less one (0: residuals are the noise)
+    seen: float  # the share of the disk's pixels fitted (the rest: a shadow, another surface, their blur)
+    surface_rms: float  # mm, the surface points about their quadric
+    n_pixels: int  # pixels fitted
+
+
+def _normal_cdf(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + _erf(x / math.sqrt(2.0)))
+
+
+def _erf(x: np.ndarray) -> np.ndarray:
+    # Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): numpy has no vectorised erf, and scipy.special
+    # would be imported for this alone
+    t = 1.0 / (1.0 + 0.3275911 * np.abs(x))
+    y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t * np.exp(
+        -x * x)
+    return np.sign(x) * y
+
+
+def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, centre: np.ndarray,
+                   normal: np.ndarray, radius_mm: float, prior_sd: float | None) -> ImageFit | None:
+    """The flush disk of radius ``radius_mm`` (± ``prior_sd``; None: free) near the world point
+    ``centre`` (mm) on the surface of normal ``normal`` there, fitted to ``image`` (the lit image;
+    its per-pixel noise is measured in the window, ``noise_sigma``); ``points`` (H, W, 3) the
+    decoded world points per pixel.
+    None where the surface or the image round it is not there to fit (too few decoded points or
+    pixels, a window off the image) or the fit does not converge."""
+    centre = np.asarray(centre, float)
+    F = local_frame(centre, normal)
+    cam_c = cal.camera.center
+    window = _window(image.shape, cal, centre, F, radius_mm)
+    around = _window(image.shape, cal, centre, F, radius_mm, CONFIG.image_fit_surface_reach)
+    if window is None or around is None:
+        return None
+    (v0, v1), (u0, u1) = window
+    (s0, s1), (t0, t1) = around
+    P = points[s0:s1, t0:t1].reshape(-1, 3).astype(np.float64)
+    P = P[np.isfinite(P[:, 0])]
+    L = (P - centre) @ F.T
+    L = L[np.hypot(L[:, 0], L[:, 1]) <= CONFIG.image_fit_surface_reach * radius_mm]
+    surf = fit_quadric(L)
+    if surf is None:
+        return None
+    coef, surface_rms, keep, _ = surf
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float64)
+    rays = cal.camera.rays(uv)
+    D = rays @ F.T
+    X = ray_quadric(coef, (cam_c - centre) @ F.T, D)
+    crop = np.asarray(image[v0:v1, u0:u1], np.float32)
+    lum = crop.astype(np.float64).ravel()
+    # only the pixels that see this surface, not another one in the window (an outline, the
+    # table's front face); an undecoded pixel only where it is lit (a surface seen at 80° decodes
+    # sparsely, but a shadow or the dark beyond a silhouette is not the surface's light)
+    Lw = (points[v0:v1, u0:u1].reshape(-1, 3).astype(np.float64) - centre) @ F.T
+    off = np.abs(Lw[:, 2] - quadric_z(coef, Lw[:, 0], Lw[:, 1]))
+    decoded = np.isfinite(off)
+    near = decoded & (off <= max(CONFIG.image_fit_off_surface_sd * surface_rms, CONFIG.image_fit_off_surface_mm))
+    if near.sum() < CONFIG.min_surface_points:
+        return None
+    lit = lum >= CONFIG.image_fit_min_lit_share * float(np.median(lum[near]))
+    other = ~(near | (~decoded & lit)).reshape(v1 - v0, u1 - u0)
+    # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
+    # spread onto the surface's pixels beside it
+    g = 2 * CONFIG.image_fit_guard_px + 1
+    other = cv2.dilate(other.astype(np.uint8), np.ones((g, g), np.uint8)).astype(bool).ravel()
+    hits = np.isfinite(X[:, 0]) & np.isfinite(lum)
+    ok = hits & ~other
+    if ok.sum() < CONFIG.min_interior_points:
+        return None
+    X_all = X[hits]
+    seen_mask = ok[hits]
+    X, lum, uv, D = X[ok], lum[ok], uv[ok], D[ok]
+    along = D[:, :2] / np.linalg.norm(D, axis=1, keepdims=True)
+    depth = (X @ F + centre) @ cal.camera.R[2] + cal.camera.t[2]
+    px_per_mm = cal.camera.fx / depth
+    du, dv = uv[:, 0] - uv[:, 0].mean(), uv[:, 1] - uv[:, 1].mean()
+    noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
+    fit = _solve(X[:, :2], coef, lum, du, dv, along, px_per_mm, radius_mm, prior_sd, noise)
+    if fit is None:
+        return None
+    p, cov, excess = fit
+    c2, r = p[:2], float(p[2])
+    on_disk = np.hypot(X_all[:, 0] - c2[0], X_all[:, 1] - c2[1]) < r
+    seen = float(seen_mask[on_disk].mean()) if on_disk.any() else 0.0
+    g = quadric_grad(coef, c2[0], c2[1])
+    world = centre + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
+    n = np.array([-g[0], -g[1], 1.0]) @ F
+    n /= np.linalg.norm(n)
+    n = n if n @ (cam_c - world) >= 0 else -n
+    # in-surface covariance to 3-D along the slope, the surface's height error at the centre
+    # carried along the rays (as the edge fit does), and the systematic floor
+    Jm = np.array([[1.0, 0.0], [0.0, 1.0], [g[0], g[1]]])
+    ray = (world - cam_c) / np.linalg.norm(world - cam_c)
+    gv = ray / (ray @ n)
+    var_offset = surface_rms**2 * 6.0 / max(int(keep.sum()), 1)
+    cov3 = F.T @ (Jm @ cov[:2, :2] @ Jm.T) @ F + var_offset * np.outer(gv, gv) + CONFIG.sd_floor_mm**2 * np.eye(3)
+    radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
+    return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
+                    float(math.exp(p[3])), excess, seen, float(surface_rms), int(len(lum)))
+
+
+def _window(shape: tuple[int, ...], cal: Calibration, centre: np.ndarray, F: np.ndarray, radius_mm: float,
+            reach: float = CONFIG.image_fit_reach) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """The image rows and columns round the image of the disk ``reach`` times the radius, and
+    CONFIG.image_fit_margin_px more."""
+    t = np.linspace(0.0, 2 * math.pi, 24, endpoint=False)
+    ring = centre + reach * radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    uv = cal.camera.project(ring)
+    if not np.isfinite(uv).all():
+        return None
+    m = CONFIG.image_fit_margin_px
+    h, w = shape[:2]
+    u0, u1 = max(int(uv[:, 0].min() - m), 0), min(int(uv[:, 0].max() + m) + 1, w)
+    v0, v1 = max(int(uv[:, 1].min() - m), 0), min(int(uv[:, 1].max() + m) + 1, h)
+    if u1 - u0 < 3 or v1 - v0 < 3:
+        return None
+    return (v0, v1), (u0, u1)
+
+
+def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, along: np.ndarray,
+           px_per_mm: np.ndarray, radius_mm: float, prior_sd: float | None, noise: float):
+    """Levenberg-Marquardt with Huber weights on the model of the module docstring. Parameters
+    (cx, cy, r, log s, a, b0 ... b5); returns (p, covariance, excess) or None."""
+    inside = np.hypot(Q[:, 0], Q[:, 1]) < radius_mm
+    if inside.sum() < 3 or (~inside).sum() < 3:
+        return None
+    half = max(float(np.abs(du).max()), float(np.abs(dv).max()), 1.0)
+    x, y = du / half, dv / half  # the shading's terms on [-1, 1]: a well-conditioned system
+    basis = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    b = float(np.median(lum[~inside]))
+    a = float(np.median(lum[inside])) / max(b, 1e-9) - 1.0
+    p = np.r_[0.0, 0.0, radius_mm, math.log(CONFIG.image_fit_blur_start_px), a, b, np.zeros(5)]
+    lam = 1e-3
+    huber = CONFIG.image_fit_huber * noise
+    prior_w = 0.0 if prior_sd is None else (noise / prior_sd) ** 2
+
+    def model(p):
+        d = Q - p[:2]
+        flat = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+        k = image_scale(d / flat[:, None], along) * px_per_mm  # image px per mm, radially
+        rho = np.maximum(surface_lengths(coef, p[:2], Q), 1e-9)  # along the surface, as the sticker lies
+        s = math.exp(p[3])
+        z = (p[2] - rho) * k / s
+        cdf = _normal_cdf(z)
+        shade = basis @ p[5:]
+        return shade * (1.0 + p[4] * cdf), (d, rho, k, s, z, cdf, shade)
+
+    def jacobian(p, state):
+        d, rho, k, s, z, cdf, shade = state
+        phi = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
+        g = shade * p[4] * phi * k / s  # dm/d(r - rho)
+        J = np.empty((len(Q), 11))
+        J[:, 0] = g * d[:, 0] / rho  # the surface's slope neglected: the step's direction, not its end
+        J[:, 1] = g * d[:, 1] / rho
+        J[:, 2] = g
+        J[:, 3] = -shade * p[4] * phi * z
+        J[:, 4] = shade * cdf
+        J[:, 5:] = basis * (1.0 + p[4] * cdf)[:, None]
+        return J
+
+    def cost(r):
+        a_ = np.abs(r)
+        return float(np.sum(np.where(a_ <= huber, 0.5 * r * r, huber * (a_ - 0.5 * huber))))
+
+    def normal_equations(p, state, r):
+        J = jacobian(p, state)
+        w = np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-12))
+        A = (J * w[:, None]).T @ J
+        g = (J * w[:, None]).T @ r
+        A[2, 2] += prior_w
+        g[2] += prior_w * (radius_mm - p[2])
+        return A, g
+
+    m, state = model(p)
+    r = lum - m
+    blur_lo, blur_hi = (math.log(v) for v in CONFIG.image_fit_blur_range_px)
+    for _ in range(CONFIG.image_fit_iterations):
+        A, g = normal_equations(p, state, r)
+        c0 = cost(r) + 0.5 * prior_w * (p[2] - radius_mm) ** 2
+        while True:
+            try:
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+            except np.linalg.LinAlgError:
+                return None
+            q = p + step
+            q[3] = min(max(q[3], blur_lo), blur_hi)
+            if q[2] > 0:
+                mq, sq = model(q)
+                if cost(lum - mq) + 0.5 * prior_w * (q[2] - radius_mm) ** 2 <= c0:
+                    break
+            lam *= 10
+            if lam > 1e6:
+                break
+        if lam > 1e6:
+            break  # no step lowers the cost: at the minimum (or lost)
+        p, state, r = q, sq, lum - mq
+        lam = max(lam / 10, 1e-7)
+        if np.abs(step[:3]).max() < 1e-4:
+            break
+    A, _ = normal_equations(p, state, r)
+    spread = robust_sigma(r, centre=0.0)
+    try:
+        cov = np.linalg.inv(A) * max(spread, noise) ** 2
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(cov).all():
+        return None
+    return p, cov, spread / noise - 1.0
