@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.optimize
 
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
@@ -121,6 +120,8 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
     points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
     as ``anklescan.core.measure.mark_fit.circle_geometric`` does). None if it fails."""
+    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
+
     floor = 0.03
 
     def fun(p, scale):
