@@ -129,3 +129,18 @@ def test_plane_basis_is_np_cross_to_the_bit() -> None:
         assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
     B = plane_basis(np.array([0.0, 0.0, 1.0], np.float32))  # other dtypes: np.cross itself
     assert np.allclose(B @ B.T, np.eye(2), atol=1e-6)
+
+
+def test_lit_median_network_is_np_median() -> None:
+    from anklescan.core.scan.lit_image import MEDIAN_BLOCK_ROWS, _median
+
+    rng = np.random.default_rng(5)
+    shape = (2 * MEDIAN_BLOCK_ROWS + 7, 11)  # blocks, and a short last one
+    for n in (1, 2, 3, 4, 6, 7, 10, 13, 20):
+        for dtype in (np.uint8, np.uint16, np.float32):
+            if dtype == np.float32:
+                images = [rng.normal(0, 1, shape).astype(np.float32) for _ in range(n)]
+            else:
+                images = [rng.integers(0, 255, shape).astype(dtype) for _ in range(n)]
+            ours, theirs = _median(images), np.median(np.stack(images), axis=0)
+            assert ours.dtype == theirs.dtype and np.array_equal(ours, theirs), (n, dtype)
