@@ -317,6 +317,8 @@ def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) ->
         region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(float(np.median(roi[region])), peak) - bg))
         touches = ((region[0].any() and y0 > 0) or (region[-1].any() and y1 < H)
                    or (region[:, 0].any() and x0 > 0) or (region[:, -1].any() and x1 < W))
+        if touches and not regions:
+            return None  # the first cut leaks: no blob, whatever the wider cut gives
         regions.append(None if touches else region)
     cut, wider = regions
     if cut is None:
