@@ -242,10 +242,7 @@ def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, fram
     face = ellipse_pixels(shape, CONFIG.step_face_fraction, (H, W))
     outer = ellipse_pixels(shape, CONFIG.step_ring[1], (H, W))
     inner = ellipse_pixels(shape, CONFIG.step_ring[0], (H, W))
-    ring_mask = np.zeros((H, W), bool)
-    ring_mask[outer[:, 1], outer[:, 0]] = True
-    ring_mask[inner[:, 1], inner[:, 0]] = False
-    vr, ur = np.nonzero(ring_mask)
+    vr, ur = _ring_pixels(outer, inner)
     uv = np.concatenate([face, np.stack([ur, vr], axis=1)])
     is_face = np.r_[np.ones(len(face)), np.zeros(len(ur))]
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
@@ -265,6 +262,21 @@ def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, fram
     return SurfaceStep(float(coef[6]), step_sd, n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded)
 
 
+
+
+def _ring_pixels(outer: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v, u) of the pixels ``outer`` holds and ``inner`` does not (both (N, 2) u, v), in row-major
+    order as ``np.nonzero`` of an image-sized mask gives them, from a mask over ``outer``'s box only."""
+    if not len(outer):
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    x0, y0 = outer.min(axis=0)
+    x1, y1 = outer.max(axis=0)
+    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), bool)
+    mask[outer[:, 1] - y0, outer[:, 0] - x0] = True
+    ins = inner[(inner[:, 0] >= x0) & (inner[:, 0] <= x1) & (inner[:, 1] >= y0) & (inner[:, 1] <= y1)]
+    mask[ins[:, 1] - y0, ins[:, 0] - x0] = False
+    v, u = np.nonzero(mask)
+    return v + y0, u + x0
 
 
 def combined_normal(normal, tilt, surface):
