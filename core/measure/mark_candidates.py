@@ -24,7 +24,11 @@ Blob = dict[str, Any]  # a candidate: slice, region, origin, centre and how it w
 
 def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -> np.ndarray:
     """``image`` divided by the projector irradiance predicted from the reconstruction (0 where
-    nothing was decoded): proportional to albedo, so a plate is a plate whatever its lighting."""
+    nothing was decoded): proportional to albedo, so a plate is a plate whatever its lighting.
+
+    One image per coordinate (float32), the same arithmetic in the same order as the (H, W, 3)
+    form (tests/test_measure_speed.py), each step written into a buffer that is reused: a dozen
+    image-sized arrays instead of some forty, each of which cost its page faults again."""
     out = np.zeros(image.shape, np.float32)
     valid = np.isfinite(points[..., 0])
     if not valid.any():
@@ -35,28 +39,59 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     k = (CONFIG.normal_window_px, CONFIG.normal_window_px)
     count = cv2.boxFilter(ok_pts, -1, k, normalize=False)
     inv_count = np.maximum(count, 1)
-    # each coordinate as its own image (float32 as before): the sums, normals and distances
-    # below are the same arithmetic, without (H, W, 3) temporaries
-    mean = [cv2.boxFilter(np.where(ok_pts > 0, points[box][..., i], np.float32(0)), -1, k, normalize=False) / inv_count
-            for i in range(3)]
+    zero = np.float32(0)
+    mean = []
+    for i in range(3):
+        m = cv2.boxFilter(np.where(ok_pts > 0, points[box][..., i], zero), -1, k, normalize=False)
+        mean.append(np.divide(m, inv_count, out=m))
+    del inv_count
     h = CONFIG.normal_window_px // 2
     dx, dy = [np.zeros_like(m) for m in mean], [np.zeros_like(m) for m in mean]
     for i in range(3):
-        dx[i][:, h:-h] = mean[i][:, 2 * h:] - mean[i][:, :-2 * h]
-        dy[i][h:-h] = mean[i][2 * h:] - mean[i][:-2 * h]
-    n = [dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2], dx[0] * dy[1] - dx[1] * dy[0]]
-    n_len = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) + np.float32(1e-12)
+        np.subtract(mean[i][:, 2 * h:], mean[i][:, :-2 * h], out=dx[i][:, h:-h])
+        np.subtract(mean[i][2 * h:], mean[i][:-2 * h], out=dy[i][h:-h])
+    t = np.empty_like(count)  # a scratch image
+    n = []
+    for a, b in ((1, 2), (2, 0), (0, 1)):  # the cross product dx × dy, a coordinate at a time
+        c = np.multiply(dx[a], dy[b])
+        np.multiply(dx[b], dy[a], out=t)
+        n.append(np.subtract(c, t, out=c))
+    del dx, dy
+    n_len = np.multiply(n[0], n[0])
+    n_len += np.multiply(n[1], n[1], out=t)
+    n_len += np.multiply(n[2], n[2], out=t)
+    np.sqrt(n_len, out=n_len)
+    n_len += np.float32(1e-12)
     cam, proj = cal.camera.center.astype(np.float32), cal.projector.center.astype(np.float32)
-    facing = np.sign(sum_of_products(n, [cam[i] - mean[i] for i in range(3)]))  # towards the camera
-    to_light = [proj[i] - mean[i] for i in range(3)]
-    dist = np.sqrt(sum_of_products(to_light, to_light)) + np.float32(1e-9)
-    cos_i = facing * sum_of_products(n, to_light) / (n_len * dist)
+    # facing: towards the camera (the sign of n · (camera − mean)); to_light: projector − mean
+    facing, to_light = np.zeros_like(count), []
+    for i in range(3):
+        np.subtract(cam[i], mean[i], out=t)
+        np.multiply(n[i], t, out=t)
+        facing += t  # as sum_of_products: n0 t0 + n1 t1 + n2 t2, in that order
+        to_light.append(np.subtract(proj[i], mean[i], out=mean[i]))
+    np.sign(facing, out=facing)
+    dist = np.multiply(to_light[0], to_light[0])
+    dist += np.multiply(to_light[1], to_light[1], out=t)
+    dist += np.multiply(to_light[2], to_light[2], out=t)
+    np.sqrt(dist, out=dist)
+    dist += np.float32(1e-9)
+    cos_i = np.multiply(n[0], to_light[0], out=n[0])
+    cos_i += np.multiply(n[1], to_light[1], out=t)
+    cos_i += np.multiply(n[2], to_light[2], out=t)
+    np.multiply(facing, cos_i, out=cos_i)
+    np.divide(cos_i, np.multiply(n_len, dist, out=n_len), out=cos_i)
     ok = (count >= 0.5 * CONFIG.normal_window_px**2) & (cos_i > 0.05)
     if not ok.any():
         return image.astype(np.float32)
     d0 = float(np.median(dist[ok]))
-    shade = np.where(ok, cos_i * (d0 / dist) ** 2, 1.0)
-    out[box] = np.where(ok, image[box] / shade, 0.0)
+    shade = np.divide(d0, dist, out=dist)
+    np.square(shade, out=shade)  # (d0 / dist) ** 2
+    np.multiply(cos_i, shade, out=shade)
+    shade[~ok] = 1.0
+    np.divide(image[box], shade, out=shade)
+    shade[~ok] = 0.0
+    out[box] = shade
     return out
 
 
