@@ -268,9 +268,15 @@ def candidate_blobs_at(image: np.ndarray, points: np.ndarray, cal: Calibration, 
     background = cv2.morphologyEx(smooth, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)))
     tophat = smooth - background
     k = int(2 * math.ceil(0.6 * r_min) + 1)
-    peaks = ((smooth >= cv2.dilate(smooth, np.ones((k, k), np.uint8)))
-             & (tophat > CONFIG.min_relative_contrast * np.maximum(background, 0))
-             & (tophat > CONFIG.min_contrast_sigmas * noise))
+    # the local maxima that stand out (the same comparisons as one expression, in two scratch images)
+    scratch = cv2.dilate(smooth, np.ones((k, k), np.uint8))
+    peaks = np.greater_equal(smooth, scratch)
+    np.maximum(background, 0, out=scratch)
+    np.multiply(scratch, CONFIG.min_relative_contrast, out=scratch)
+    stands = np.greater(tophat, scratch)
+    peaks &= stands
+    peaks &= np.greater(tophat, CONFIG.min_contrast_sigmas * noise, out=stands)
+    del scratch, stands
     vs, us = np.nonzero(peaks)
     order = np.argsort(-tophat[vs, us])
     taken = np.zeros(image.shape, bool)
