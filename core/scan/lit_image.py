@@ -121,8 +121,9 @@ def _median(images: list[npt.NDArray[Any]]) -> npt.NDArray[Any]:
         return np.asarray(np.median(np.stack(images), axis=0))
     net = _median_network(n)
     real = images[0].dtype == np.float32
-    out = np.empty(images[0].shape, np.float32 if real else np.float64)  # np.median's dtypes
-    for r0 in range(0, out.shape[0], MEDIAN_BLOCK_ROWS):  # a block of rows at a time: in the cache
+    height, width = images[0].shape
+    out: npt.NDArray[Any] = np.empty((height, width), np.float32 if real else np.float64)  # np.median's dtypes
+    for r0 in range(0, height, MEDIAN_BLOCK_ROWS):  # a block of rows at a time: in the cache
         wires = [im[r0:r0 + MEDIAN_BLOCK_ROWS] for im in images]
         for i, j in net:
             wires[i], wires[j] = cv2.min(wires[i], wires[j]), cv2.max(wires[i], wires[j])
