@@ -146,25 +146,6 @@ def test_lit_median_network_is_np_median() -> None:
             assert ours.dtype == theirs.dtype and np.array_equal(ours, theirs), (n, dtype)
 
 
-def test_circle_fit_by_normal_equations_is_the_least_squares_fit() -> None:
-    from anklescan.core.measure.mark_fit import _circle_geometric_lstsq, circle_geometric
-
-    rng = np.random.default_rng(4)
-    for t in range(400):  # long and short arcs, noisy and clean, free and with a prior; runaways too
-        n, arc, radius = int(rng.integers(5, 300)), rng.uniform(0.3, 6.3), rng.uniform(3, 12)
-        phi = rng.uniform(0, arc, n)
-        q = radius * np.c_[np.cos(phi), np.sin(phi)] + rng.normal(0, rng.uniform(0.005, 0.3), (n, 2))
-        q += rng.uniform(-50, 50, 2)
-        c0, r0 = q.mean(axis=0) + rng.normal(0, 1, 2), radius + rng.normal(0, 0.5)
-        prior = (radius + rng.normal(0, 0.1), rng.uniform(0.02, 0.5)) if t % 2 else None
-        ours, plain = circle_geometric(q, c0, r0, prior), _circle_geometric_lstsq(q, c0, r0, prior)
-        assert (ours is None) == (plain is None), t
-        if ours is not None and plain is not None:
-            assert np.allclose(ours[0], plain[0], rtol=1e-9, atol=1e-9) and np.isclose(ours[1], plain[1], rtol=1e-9)
-            assert np.allclose(ours[2], plain[2], atol=1e-9)
-            assert np.allclose(ours[3], plain[3], rtol=1e-6, atol=1e-15)
-
-
 def test_noise_sigma_is_robust_sigma_of_the_residual() -> None:
     import cv2
 

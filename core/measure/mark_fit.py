@@ -738,73 +738,7 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     is relative to the edge points' own scatter (their RMS residual, at least
     CONFIG.edge_noise_floor_mm), re-estimated every iteration: a fixed weight would let noisier edges
     outvote it and trade the centre against the radius again.
-
-    Each step from the 3 x 3 normal equations, whose sums and the residuals' are one product
-    ``A @ A.T`` of the rows (∂/∂cx, ∂/∂cy, ∂/∂r, residual): the same fit to rounding in half the
-    time of a least-squares solve of the Jacobian (``_circle_geometric_lstsq``), which is used
-    instead where these do not converge or are ill-conditioned.
     """
-    p = np.array([c0[0], c0[1], r0], float)
-    floor = CONFIG.edge_noise_floor_mm
-    n = len(q)
-    x, y = np.ascontiguousarray(q[:, 0], float), np.ascontiguousarray(q[:, 1], float)
-    A = np.empty((4, n))  # rows: the Jacobian's three columns and the residuals, filled in place
-    A[2] = -1.0
-    w = 0.0  # the prior's weight (scale / sd)
-
-    def system(p: np.ndarray) -> np.ndarray:  # A at p; returns the distances |q - c|
-        dx, dy = x - p[0], y - p[1]
-        rho = np.sqrt(dx * dx + dy * dy)
-        np.divide(dx, rho, out=A[0])
-        np.divide(dy, rho, out=A[1])
-        A[:2] *= -1.0
-        np.subtract(rho, p[2], out=A[3])
-        return rho
-
-    def normal_equations(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # J'J and J'r, the prior's row added
-        G = A @ A.T
-        JtJ, Jtr = G[:3, :3].copy(), G[:3, 3].copy()
-        if prior is not None:
-            JtJ[2, 2] += w * w
-            Jtr[2] += w * w * (p[2] - prior[0])
-        return JtJ, Jtr
-
-    JtJ, converged = np.eye(3), False
-    for _ in range(iterations):
-        rho = system(p)
-        if rho.min() < 1e-9:
-            break  # a point at the centre: the plain way decides
-        if prior is not None:
-            w = max(math.sqrt(float(A[3] @ A[3]) / n), floor) / prior[1]
-        JtJ, Jtr = normal_equations(p)
-        try:
-            step = np.linalg.solve(JtJ, -Jtr)
-        except np.linalg.LinAlgError:
-            break
-        p += step
-        if np.abs(step).max() < 1e-7:
-            converged = True
-            break
-    if converged:
-        rho = system(p)
-        resid = rho - p[2]
-        JtJ, _ = normal_equations(p)
-        try:
-            inv = np.linalg.inv(JtJ)
-        except np.linalg.LinAlgError:
-            inv = None
-        # their condition (an ∞-norm estimate) within 1e8: rounding leaves the fit at 1e-8 of its size or better
-        if inv is not None and np.abs(inv).max() * np.abs(JtJ).max() <= 1e8:
-            cov = inv * max(float(resid @ resid) / max(len(q) - 3, 1), floor**2)
-            return p[:2], float(p[2]), resid, cov[:2, :2]
-    # not converged, or ill-conditioned: the plain least-squares steps decide (a runaway circle
-    # is refused by its radius, not here)
-    return _circle_geometric_lstsq(q, c0, r0, prior, iterations)
-
-
-def _circle_geometric_lstsq(q, c0, r0, prior=None, iterations: int = 10):
-    """``circle_geometric`` by a least-squares solve of the Jacobian at every step: where the normal
-    equations are ill-conditioned (a circle running away from a nearly straight edge)."""
     p = np.array([c0[0], c0[1], r0], float)
     scale = CONFIG.edge_noise_floor_mm
     n = len(q)

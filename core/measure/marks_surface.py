@@ -120,8 +120,6 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
     points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
     as ``anklescan.core.measure.mark_fit.circle_geometric`` does). None if it fails."""
-    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
-
     floor = 0.03
 
     def fun(p, scale):
@@ -132,6 +130,8 @@ def circle_on_surface(coef, Q, c0, r0, prior=None):
 
     p = np.array([c0[0], c0[1], r0], float)
     scale = floor
+    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
+
     for _ in range(3):
         sol = scipy.optimize.least_squares(fun, p, args=(scale,), method="lm", x_scale=1.0)
         if not sol.success and sol.status <= 0:
