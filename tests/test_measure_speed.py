@@ -158,3 +158,16 @@ def test_noise_sigma_is_robust_sigma_of_the_residual() -> None:
     for image in (im.astype(np.float32) for im in images):
         direct = float(max(robust_sigma(image - cv2.blur(image, (3, 3))) * 1.06, 1e-3))
         assert noise_sigma(image) == direct or (np.isnan(direct) and np.isnan(noise_sigma(image)))
+
+
+def test_rows_at_is_boolean_indexing() -> None:
+    from anklescan.core.measure.mark_candidates import _rows_at
+
+    rng = np.random.default_rng(8)
+    for dtype in (np.float32, np.float64):
+        points = rng.normal(size=(17, 23, 3)).astype(dtype)
+        points[rng.random((17, 23)) < 0.3] = np.nan
+        mask = np.isfinite(points[..., 0])
+        assert np.array_equal(_rows_at(points, mask), points[mask])
+        view = points[:, ::2]  # not contiguous: numpy's own indexing
+        assert np.array_equal(_rows_at(view, mask[:, ::2]), view[mask[:, ::2]])
