@@ -13,12 +13,15 @@ its time goes. ``--stages`` also runs ``measure``'s stages one after another in 
 and prints each one's CPU and wall time (the command overlaps some of them on threads).
 ``--before DIR``: also time ``measure`` of another version of AnkleScan, alternating with the
 rest, where DIR holds its ``anklescan`` package (e.g. a link tree like build/mypy's of an older
-checkout); its RESULT.json is compared with this version's.
+checkout); its RESULT.json is compared with this version's (byte for byte, else the largest
+differences of the marks' centres and the angles, and which other values differ).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import statistics
 import subprocess
 import sys
@@ -61,6 +64,44 @@ lap("motion, angles, warnings")
 P.frame_warnings(cal.extra, cloud.points, cal.camera.center)
 lap("frame check")
 """
+
+
+def compare_results(ours: Path, theirs: Path) -> str:
+    """One line: RESULT.json byte-identical to the other version's, or how far its marks' centres
+    (mm) and angles (degrees) are from it (issue 38: within 0.005 mm and 0.001°), and whether any
+    other value differs beyond 1e-9 relative."""
+    if ours.read_bytes() == theirs.read_bytes():
+        return "RESULT.json byte-identical to the --before version's"
+    a, b = (json.loads(p.read_text(encoding="utf-8")) for p in (ours, theirs))
+    if sorted(a["marks"]) != sorted(b["marks"]):
+        return f"RESULT.json DIFFERS: marks {sorted(a['marks'])} against {sorted(b['marks'])}"
+    centre = max(abs(x - y) for k in a["marks"] for x, y in zip(a["marks"][k], b["marks"][k], strict=True))
+    angle = max((abs(a["angles"][k]["value"] - b["angles"][k]["value"]) for k in a["angles"]), default=0.0)
+    other: list[str] = []
+
+    def walk(x: object, y: object, path: str) -> None:
+        if isinstance(x, dict) and isinstance(y, dict):
+            if set(x) != set(y):
+                other.append(path)
+            for k in set(x) & set(y):
+                walk(x[k], y[k], f"{path}/{k}")
+        elif isinstance(x, list) and isinstance(y, list):
+            if len(x) != len(y):
+                other.append(path)
+            for i, (u, v) in enumerate(zip(x, y, strict=False)):
+                walk(u, v, f"{path}[{i}]")
+        elif isinstance(x, float) and isinstance(y, float):
+            if not math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12):
+                other.append(path)
+        elif x != y:
+            other.append(path)
+
+    walk(a, b, "")
+    ok = centre <= 0.005 and angle <= 0.001
+    return (f"RESULT.json vs the --before version's: centres within {centre:.1e} mm, angles within {angle:.1e}° "
+            f"({'within' if ok else 'BEYOND'} 0.005 mm / 0.001°); "
+            + (f"{len(other)} other values differ beyond 1e-9: {', '.join(sorted(other)[:5])}" if other
+               else "every other value within 1e-9"))
 
 
 def main() -> None:
@@ -106,8 +147,7 @@ def main() -> None:
     cpu_b, cpu_m = (statistics.median(x[1] for x in times[k]) for k in keys)
     print(f"measure / bare read: wall medians {wall_m / wall_b:.2f}, CPU medians {cpu_m / cpu_b:.2f} (target <= 2)")
     if args.before is not None:
-        same = (work / "result.json").read_bytes() == (work / "result_before.json").read_bytes()
-        print(f"RESULT.json {'byte-identical to' if same else 'DIFFERS from'} the --before version's")
+        print(compare_results(work / "result.json", work / "result_before.json"))
     if args.stages:
         print("measure's stages one after another, in a fresh process:")
         subprocess.run([sys.executable, "-c", STAGES, str(folder), str(cal_path)], check=True, cwd=ROOT)

@@ -129,3 +129,45 @@ def test_plane_basis_is_np_cross_to_the_bit() -> None:
         assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
     B = plane_basis(np.array([0.0, 0.0, 1.0], np.float32))  # other dtypes: np.cross itself
     assert np.allclose(B @ B.T, np.eye(2), atol=1e-6)
+
+
+def test_lit_median_network_is_np_median() -> None:
+    from anklescan.core.scan.lit_image import MEDIAN_BLOCK_ROWS, _median
+
+    rng = np.random.default_rng(5)
+    shape = (2 * MEDIAN_BLOCK_ROWS + 7, 11)  # blocks, and a short last one
+    for n in (1, 2, 3, 4, 6, 7, 10, 13, 20):
+        for dtype in (np.uint8, np.uint16, np.float32):
+            if dtype == np.float32:
+                images = [rng.normal(0, 1, shape).astype(np.float32) for _ in range(n)]
+            else:
+                images = [rng.integers(0, 255, shape).astype(dtype) for _ in range(n)]
+            ours, theirs = _median(images), np.median(np.stack(images), axis=0)
+            assert ours.dtype == theirs.dtype and np.array_equal(ours, theirs), (n, dtype)
+
+
+def test_noise_sigma_is_robust_sigma_of_the_residual() -> None:
+    import cv2
+
+    from anklescan.core.measure.mark_candidates import noise_sigma
+    from anklescan.core.robust import robust_sigma
+
+    rng = np.random.default_rng(6)
+    images = [rng.normal(100, 3, (37, 41)), rng.normal(0, 3, (38, 41)), np.zeros((5, 5)),
+              rng.integers(0, 5, (40, 40)), np.where(rng.random((30, 30)) < 0.1, np.nan, 50.0)]
+    for image in (im.astype(np.float32) for im in images):
+        direct = float(max(robust_sigma(image - cv2.blur(image, (3, 3))) * 1.06, 1e-3))
+        assert noise_sigma(image) == direct or (np.isnan(direct) and np.isnan(noise_sigma(image)))
+
+
+def test_rows_at_is_boolean_indexing() -> None:
+    from anklescan.core.measure.mark_candidates import _rows_at
+
+    rng = np.random.default_rng(8)
+    for dtype in (np.float32, np.float64):
+        points = rng.normal(size=(17, 23, 3)).astype(dtype)
+        points[rng.random((17, 23)) < 0.3] = np.nan
+        mask = np.isfinite(points[..., 0])
+        assert np.array_equal(_rows_at(points, mask), points[mask])
+        view = points[:, ::2]  # not contiguous: numpy's own indexing
+        assert np.array_equal(_rows_at(view, mask[:, ::2]), view[mask[:, ::2]])

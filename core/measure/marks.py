@@ -28,6 +28,7 @@ says what is missing, so an operator can correct it; ``anklescan.core.measure.pi
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypedDict
 
@@ -97,12 +98,15 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     """
     image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
-    sigma = sigma_image(cloud, image.shape)
-    noise = noise_sigma(image)
     result = MarkSet()
     bounds = CONFIG.size_range_mm
-    blobs = candidate_blobs(image, points, cal, noise, bounds, ring_background=True)
-    albedo = shading_corrected(image, points, cal)
+    # the shading correction (whole-image numpy and cv2: the GIL released) on the other core
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        shading = pool.submit(shading_corrected, image, points, cal)
+        sigma = sigma_image(cloud, image.shape)
+        noise = noise_sigma(image)
+        blobs = candidate_blobs(image, points, cal, noise, bounds, ring_background=True)
+        albedo = shading.result()
     # the sizes seen, the plates' thickness and the capture's kind: no fit's covariance is used
     free = [fitted(fit_mark(image, points, b, cal, None, sigma, prior_sd=None, radius_bounds=bounds, albedo=albedo,
                             clipped=clipped, covariance=False))

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.optimize
 
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
@@ -138,6 +137,8 @@ def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
 
     p = np.array([c0[0], c0[1], r0], float)
     scale = floor
+    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
+
     for _ in range(3):
         w = weights(p[:2])
         sol = scipy.optimize.least_squares(fun, p, args=(scale, w), method="lm", x_scale=1.0)
@@ -251,10 +252,7 @@ def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, fram
     face = ellipse_pixels(shape, CONFIG.step_face_fraction, (H, W))
     outer = ellipse_pixels(shape, CONFIG.step_ring[1], (H, W))
     inner = ellipse_pixels(shape, CONFIG.step_ring[0], (H, W))
-    ring_mask = np.zeros((H, W), bool)
-    ring_mask[outer[:, 1], outer[:, 0]] = True
-    ring_mask[inner[:, 1], inner[:, 0]] = False
-    vr, ur = np.nonzero(ring_mask)
+    vr, ur = _ring_pixels(outer, inner)
     uv = np.concatenate([face, np.stack([ur, vr], axis=1)])
     is_face = np.r_[np.ones(len(face)), np.zeros(len(ur))]
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64)
@@ -274,6 +272,21 @@ def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, fram
     return SurfaceStep(float(coef[6]), step_sd, n / np.linalg.norm(n), cov[3:5, 3:5], ring_decoded)
 
 
+
+
+def _ring_pixels(outer: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v, u) of the pixels ``outer`` holds and ``inner`` does not (both (N, 2) u, v), in row-major
+    order as ``np.nonzero`` of an image-sized mask gives them, from a mask over ``outer``'s box only."""
+    if not len(outer):
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    x0, y0 = outer.min(axis=0)
+    x1, y1 = outer.max(axis=0)
+    mask = np.zeros((y1 - y0 + 1, x1 - x0 + 1), bool)
+    mask[outer[:, 1] - y0, outer[:, 0] - x0] = True
+    ins = inner[(inner[:, 0] >= x0) & (inner[:, 0] <= x1) & (inner[:, 1] >= y0) & (inner[:, 1] <= y1)]
+    mask[ins[:, 1] - y0, ins[:, 0] - x0] = False
+    v, u = np.nonzero(mask)
+    return v + y0, u + x0
 
 
 def combined_normal(normal, tilt, surface):

@@ -127,15 +127,19 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
     (``result.mark_diameter()``)."""
     check_compatible(capture, calibration)
     decoded = decode(capture)
-    cloud = cloud_from_decoded(capture, calibration, decoded)
-    # the frame check needs the cloud alone: on a thread while the marks are found (its numpy
-    # work releases the GIL; a plain executor joined here, as in the command: no Qt in core)
+    # independent stages on a thread beside the main line (their numpy and cv2 work releases the
+    # GIL; a plain executor joined here, as in the command: no Qt in core): the lit image while
+    # the cloud is triangulated; the frame check and the motion, which need the cloud, while the
+    # marks are found
     with ThreadPoolExecutor(max_workers=1) as pool:
+        lit_job = pool.submit(averaged_lit, capture, decoded.thresholds.get("camera_gamma"))
+        cloud = cloud_from_decoded(capture, calibration, decoded)
         frame_check = pool.submit(frame_warnings, calibration.extra, cloud.points, calibration.camera.center)
-        lit = averaged_lit(capture, decoded.thresholds.get("camera_gamma"))
-        marks = find_marks(lit, cloud, calibration, mark_diameter_mm=mark_diameter_mm, clipped=clipped_white(capture))
+        moved = pool.submit(estimate_motion, capture, calibration, decoded, cloud)
+        marks = find_marks(lit_job.result(), cloud, calibration, mark_diameter_mm=mark_diameter_mm,
+                           clipped=clipped_white(capture))
         summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
-        motion = estimate_motion(capture, calibration, decoded, cloud)
+        motion = moved.result()
         angles, shares, joint = honest_angles(marks, calibration, motion)
         warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
         warnings += frame_check.result()

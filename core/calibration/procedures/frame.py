@@ -92,7 +92,10 @@ def frame_alignment(extra: Mapping[str, object], points: np.ndarray, camera_cent
     if source in (FrameSource.LEVELLED, FrameSource.CAMERA):
         return FrameAlignment(source, None, None)
     P = np.asarray(points)
-    finite = np.flatnonzero(np.isfinite(P).all(axis=1))
+    ok = np.isfinite(P[:, 0])  # all three coordinates finite, a column at a time (no (N, 3) temporary)
+    ok &= np.isfinite(P[:, 1])
+    ok &= np.isfinite(P[:, 2])
+    finite = np.flatnonzero(ok)
     if len(finite) < 1000:
         return FrameAlignment(source, None, None)
     if len(finite) > ALIGNMENT_POINTS:  # plenty for a plane's direction (the sample drawn before the copy)
