@@ -457,10 +457,12 @@ def top_face_pixels(cal: Calibration, centre: np.ndarray, normal: np.ndarray, ra
 
 def image_scale(u: np.ndarray, along: np.ndarray | None) -> np.ndarray:
     """(n,) how much of a unit in-plane offset along directions ``u`` (n, 2) the camera sees,
-    against one across its line of sight: √(1 − (u·a)²), a = ``along`` (``in_plane_rays``);
+    against one across its line of sight: √(1 − (u·a)²), a = ``along`` (the unit camera rays'
+    components along the plane's two directions);
     ones where ``along`` is None. At least CONFIG.cos_view_min (a rim seen edge-on still has
     its offset across the ray in the next pixel's profile)."""
     if along is None:
         return np.ones(len(u))
     c = np.einsum("ij,ij->i", u, along)
-    return np.sqrt(np.clip(1.0 - c * c, CONFIG.cos_view_min**2, 1.0))
+    scale: np.ndarray = np.sqrt(np.clip(1.0 - c * c, CONFIG.cos_view_min**2, 1.0))
+    return scale

@@ -65,6 +65,9 @@ class ImageFit:
     n_pixels: int  # pixels fitted
 
 
+_State = tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]  # d, rho, k, s, z, Φ, B
+
+
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
     return 0.5 * (1.0 + _erf(x / math.sqrt(2.0)))
 
@@ -75,7 +78,8 @@ def _erf(x: np.ndarray) -> np.ndarray:
     t = 1.0 / (1.0 + 0.3275911 * np.abs(x))
     y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t * np.exp(
         -x * x)
-    return np.sign(x) * y
+    out: np.ndarray = np.sign(x) * y
+    return out
 
 
 def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, centre: np.ndarray,
@@ -123,8 +127,8 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     other = ~(near | (~decoded & lit)).reshape(v1 - v0, u1 - u0)
     # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
     # spread onto the surface's pixels beside it
-    g = 2 * CONFIG.image_fit_guard_px + 1
-    other = cv2.dilate(other.astype(np.uint8), np.ones((g, g), np.uint8)).astype(bool).ravel()
+    guard = 2 * CONFIG.image_fit_guard_px + 1
+    other = cv2.dilate(other.astype(np.uint8), np.ones((guard, guard), np.uint8)).astype(bool).ravel()
     hits = np.isfinite(X[:, 0]) & np.isfinite(lum)
     ok = hits & ~other
     if ok.sum() < CONFIG.min_interior_points:
@@ -180,7 +184,8 @@ def _window(shape: tuple[int, ...], cal: Calibration, centre: np.ndarray, F: np.
 
 
 def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, along: np.ndarray,
-           px_per_mm: np.ndarray, radius_mm: float, prior_sd: float | None, noise: float):
+           px_per_mm: np.ndarray, radius_mm: float, prior_sd: float | None,
+           noise: float) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Levenberg-Marquardt with Huber weights on the model of the module docstring. Parameters
     (cx, cy, r, log s, a, b0 ... b5); returns (p, covariance, excess) or None."""
     inside = np.hypot(Q[:, 0], Q[:, 1]) < radius_mm
@@ -196,7 +201,7 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
     huber = CONFIG.image_fit_huber * noise
     prior_w = 0.0 if prior_sd is None else (noise / prior_sd) ** 2
 
-    def model(p):
+    def model(p: np.ndarray) -> tuple[np.ndarray, _State]:
         d = Q - p[:2]
         flat = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
         k = image_scale(d / flat[:, None], along) * px_per_mm  # image px per mm, radially
@@ -207,7 +212,7 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
         shade = basis @ p[5:]
         return shade * (1.0 + p[4] * cdf), (d, rho, k, s, z, cdf, shade)
 
-    def jacobian(p, state):
+    def jacobian(p: np.ndarray, state: _State) -> np.ndarray:
         d, rho, k, s, z, cdf, shade = state
         phi = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
         g = shade * p[4] * phi * k / s  # dm/d(r - rho)
@@ -220,11 +225,11 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
         J[:, 5:] = basis * (1.0 + p[4] * cdf)[:, None]
         return J
 
-    def cost(r):
+    def cost(r: np.ndarray) -> float:
         a_ = np.abs(r)
         return float(np.sum(np.where(a_ <= huber, 0.5 * r * r, huber * (a_ - 0.5 * huber))))
 
-    def normal_equations(p, state, r):
+    def normal_equations(p: np.ndarray, state: _State, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         J = jacobian(p, state)
         w = np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-12))
         A = (J * w[:, None]).T @ J
@@ -267,4 +272,4 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
         return None
     if not np.isfinite(cov).all():
         return None
-    return p, cov, spread / noise - 1.0
+    return p, cov, float(spread / noise - 1.0)

@@ -74,11 +74,11 @@ def fit_quadric(L: np.ndarray, weights=None, extra=None, iterations: int = 4):
     return coef, rms, keep, cov
 
 
-def quadric_z(coef, x, y):
+def quadric_z(coef: np.ndarray, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
     return _design(np.atleast_1d(x), np.atleast_1d(y)) @ coef[:6]
 
 
-def quadric_grad(coef, x, y):
+def quadric_grad(coef: np.ndarray, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
     a, b, c, d, e = coef[:5]
     return np.stack([2 * a * x + b * y + d, b * x + 2 * c * y + e], axis=-1)
 
