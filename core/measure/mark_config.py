@@ -293,6 +293,9 @@ class MarkConfig:
     #: centre (its height at the centre, which a steep view carries along the ray ~5-fold at 80°,
     #: is the mean of more points)
     image_fit_surface_reach: float = 2.0
+    #: decoded points there at least: fewer (a table seen at 80° under strong ambient light decodes
+    #: a dozen) leave the surface's height at the centre to a fit of six terms on a few points
+    image_fit_min_surface_points: int = 40
     #: a pixel whose decoded point lies off the surface fitted by more than this many times its RMS,
     #: and this many mm, sees another surface (an outline, the table's front face): not fitted
     image_fit_off_surface_sd: float = 4.0

@@ -11,8 +11,8 @@ its surround still carries its information, so the disk is fitted to them all at
 with ``d`` the signed distance (image pixels, positive inside) from the pixel to the rim of
 the disk of centre ``c`` and radius ``r`` on the local surface (the quadric of the decoded
 points round it, ``marks_surface.fit_quadric``): each pixel's ray is cut with the surface, its
-distance from the rim along the surface scaled to the image by how much of a radial offset
-the camera sees there (``mark_edges.image_scale``) and the depth. ``Φ`` is the standard normal
+distance from the rim along the surface carried to the image across the rim's image (through
+the camera model's Jacobian there). ``Φ`` is the standard normal
 CDF (a straight edge blurred by a Gaussian of SD ``s`` pixels), ``a`` the disk's contrast
 (its albedo over its surround's, less one) and ``B`` the light on the surface there, a quadratic
 in the pixel (the shading of a curved leg; both the disk and its surround are lit by it). The
@@ -35,7 +35,6 @@ import numpy as np
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import noise_sigma
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import image_scale
 from anklescan.core.measure.marks_surface import (
     fit_quadric,
     local_frame,
@@ -103,10 +102,12 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     P = P[np.isfinite(P[:, 0])]
     L = (P - centre) @ F.T
     L = L[np.hypot(L[:, 0], L[:, 1]) <= CONFIG.image_fit_surface_reach * radius_mm]
+    if len(L) < CONFIG.image_fit_min_surface_points:
+        return None  # the surface under the disk would be a guess: its height moves the centre tan(view)-fold
     surf = fit_quadric(L)
     if surf is None:
         return None
-    coef, surface_rms, keep, _ = surf
+    coef, surface_rms, keep, coef_cov = surf
     vv, uu = np.mgrid[v0:v1, u0:u1]
     uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float64)
     rays = cal.camera.rays(uv)
@@ -136,12 +137,10 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     X_all = X[hits]
     seen_mask = ok[hits]
     X, lum, uv, D = X[ok], lum[ok], uv[ok], D[ok]
-    along = D[:, :2] / np.linalg.norm(D, axis=1, keepdims=True)
-    depth = (X @ F + centre) @ cal.camera.R[2] + cal.camera.t[2]
-    px_per_mm = cal.camera.fx / depth
+    grad = _distance_gradient(cal, centre + X @ F, F)
     du, dv = uv[:, 0] - uv[:, 0].mean(), uv[:, 1] - uv[:, 1].mean()
     noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
-    fit = _solve(X[:, :2], coef, lum, du, dv, along, px_per_mm, radius_mm, prior_sd, noise)
+    fit = _solve(X[:, :2], coef, lum, du, dv, grad, radius_mm, prior_sd, noise)
     if fit is None:
         return None
     p, cov, excess = fit
@@ -154,15 +153,33 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     n /= np.linalg.norm(n)
     n = n if n @ (cam_c - world) >= 0 else -n
     # in-surface covariance to 3-D along the slope, the surface's height error at the centre
-    # carried along the rays (as the edge fit does), and the systematic floor
+    # carried along the ray, and the systematic floor
     Jm = np.array([[1.0, 0.0], [0.0, 1.0], [g[0], g[1]]])
     ray = (world - cam_c) / np.linalg.norm(world - cam_c)
     gv = ray / (ray @ n)
-    var_offset = surface_rms**2 * 6.0 / max(int(keep.sum()), 1)
+    # the surface's height at the centre from its fit's covariance: where the decoded points lie
+    # on one side of the disk (a table seen at 80° decodes sparsely) it is an extrapolation
+    row = np.array([c2[0] ** 2, c2[0] * c2[1], c2[1] ** 2, c2[0], c2[1], 1.0])
+    var_offset = max(float(row @ coef_cov[:6, :6] @ row), surface_rms**2 / max(int(keep.sum()), 1))
     cov3 = F.T @ (Jm @ cov[:2, :2] @ Jm.T) @ F + var_offset * np.outer(gv, gv) + CONFIG.sd_floor_mm**2 * np.eye(3)
     radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
     return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
                     float(math.exp(p[3])), excess, seen, float(surface_rms), int(len(lum)))
+
+
+def _distance_gradient(cal: Calibration, world: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) per world point: the inverse transpose of the Jacobian from the surface's local
+    x, y (mm, along ``F``'s first two rows) to the camera image (px), by central differences
+    through the camera model. Times a unit in-surface direction u, the image gradient of the
+    distance along u: the rim's signed distance in image pixels, across its image, is the
+    surface distance over its norm (at a grazing view the radial line crosses the rim's thin
+    image obliquely; its length along it is not the distance the blur acts over)."""
+    h = 0.05  # mm: small against the disk, large against rounding
+    pts = np.concatenate([world + h * F[0], world - h * F[0], world + h * F[1], world - h * F[1]])
+    uv = cal.camera.project(pts).reshape(4, len(world), 2)
+    J = np.stack([(uv[0] - uv[1]) / (2 * h), (uv[2] - uv[3]) / (2 * h)], axis=2)  # (N, 2 image, 2 local)
+    out: np.ndarray = np.linalg.inv(J).transpose(0, 2, 1)
+    return out
 
 
 def _window(shape: tuple[int, ...], cal: Calibration, centre: np.ndarray, F: np.ndarray, radius_mm: float,
@@ -183,9 +200,8 @@ def _window(shape: tuple[int, ...], cal: Calibration, centre: np.ndarray, F: np.
     return (v0, v1), (u0, u1)
 
 
-def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, along: np.ndarray,
-           px_per_mm: np.ndarray, radius_mm: float, prior_sd: float | None,
-           noise: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, grad: np.ndarray,
+           radius_mm: float, prior_sd: float | None, noise: float) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Levenberg-Marquardt with Huber weights on the model of the module docstring. Parameters
     (cx, cy, r, log s, a, b0 ... b5); returns (p, covariance, excess) or None."""
     inside = np.hypot(Q[:, 0], Q[:, 1]) < radius_mm
@@ -204,7 +220,8 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
     def model(p: np.ndarray) -> tuple[np.ndarray, _State]:
         d = Q - p[:2]
         flat = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        k = image_scale(d / flat[:, None], along) * px_per_mm  # image px per mm, radially
+        # image pixels per mm of distance from the rim, across the rim's image: 1 / |∇ρ| in the image
+        k = 1.0 / np.maximum(np.linalg.norm(np.einsum("nij,nj->ni", grad, d / flat[:, None]), axis=1), 1e-9)
         rho = np.maximum(surface_lengths(coef, p[:2], Q), 1e-9)  # along the surface, as the sticker lies
         s = math.exp(p[3])
         z = (p[2] - rho) * k / s
