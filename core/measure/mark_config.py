@@ -290,9 +290,10 @@ class MarkConfig:
     #: a ring of its surround, for the surround's level)
     image_fit_reach: float = 1.3
     #: x the radius: the surface under the disk is fitted to the decoded points this far from its
-    #: centre (its height at the centre, which a steep view carries along the ray ~5-fold at 80°,
-    #: is the mean of more points)
-    image_fit_surface_reach: float = 2.0
+    #: centre: more points for its height at the centre (a steep view carries it along the ray
+    #: ~5-fold at 80°), but not so far that a quadric bends over an edge nearby (a table's front
+    #: edge 2 radii from a sticker's centre tilted its surface 1.5° and moved it 0.5 mm)
+    image_fit_surface_reach: float = 1.5
     #: decoded points there at least: fewer (a table seen at 80° under strong ambient light decodes
     #: a dozen) leave the surface's height at the centre to a fit of six terms on a few points
     image_fit_min_surface_points: int = 40
@@ -303,9 +304,9 @@ class MarkConfig:
     #: an undecoded pixel is fitted only where its light is at least this share of the decoded
     #: surface's round it (else it is a shadow, or beyond a silhouette)
     image_fit_min_lit_share: float = 0.5
-    #: px: nor within this many pixels of such a pixel or of one that sees another surface (the
-    #: blur spreads their light onto the surface's pixels beside them)
-    image_fit_guard_px: int = 2
+    #: x the fitted blur (px): nor within this far of such a pixel or of one that sees another
+    #: surface (the blur spreads their light onto the surface's pixels beside them)
+    image_fit_guard_blurs: float = 3.0
     #: mm: the image fit's radius error from its model (a blur that is not Gaussian, the camera's
     #: tone curve: 0.01-0.14 mm on whole disks), in quadrature with its SD where a radius is
     #: checked against the marks' size

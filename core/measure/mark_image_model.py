@@ -126,23 +126,31 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
         return None
     lit = lum >= CONFIG.image_fit_min_lit_share * float(np.median(lum[near]))
     other = ~(near | (~decoded & lit)).reshape(v1 - v0, u1 - u0)
-    # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
-    # spread onto the surface's pixels beside it
-    guard = 2 * CONFIG.image_fit_guard_px + 1
-    other = cv2.dilate(other.astype(np.uint8), np.ones((guard, guard), np.uint8)).astype(bool).ravel()
     hits = np.isfinite(X[:, 0]) & np.isfinite(lum)
-    ok = hits & ~other
-    if ok.sum() < CONFIG.min_interior_points:
-        return None
+    noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
+    # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
+    # spread onto the surface's pixels beside it. The blur is the fit's own: fitted once with
+    # the guard its start gives, again where the blur found asks for a wider one
+    blur = CONFIG.image_fit_blur_start_px
+    guard = -1
+    while True:
+        wanted = int(math.ceil(CONFIG.image_fit_guard_blurs * blur))
+        if wanted <= guard:
+            break
+        guard = wanted
+        size = 2 * guard + 1
+        ok = hits & ~cv2.dilate(other.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool).ravel()
+        if ok.sum() < CONFIG.min_interior_points:
+            return None
+        Xo, lumo, uvo = X[ok], lum[ok], uv[ok]
+        grad = _distance_gradient(cal, centre + Xo @ F, F)
+        du, dv = uvo[:, 0] - uvo[:, 0].mean(), uvo[:, 1] - uvo[:, 1].mean()
+        fit = _solve(Xo[:, :2], coef, lumo, du, dv, grad, radius_mm, prior_sd, noise)
+        if fit is None:
+            return None
+        blur = math.exp(fit[0][3])
     X_all = X[hits]
     seen_mask = ok[hits]
-    X, lum, uv, D = X[ok], lum[ok], uv[ok], D[ok]
-    grad = _distance_gradient(cal, centre + X @ F, F)
-    du, dv = uv[:, 0] - uv[:, 0].mean(), uv[:, 1] - uv[:, 1].mean()
-    noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
-    fit = _solve(X[:, :2], coef, lum, du, dv, grad, radius_mm, prior_sd, noise)
-    if fit is None:
-        return None
     p, cov, excess = fit
     c2, r = p[:2], float(p[2])
     on_disk = np.hypot(X_all[:, 0] - c2[0], X_all[:, 1] - c2[1]) < r
@@ -164,7 +172,7 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     cov3 = F.T @ (Jm @ cov[:2, :2] @ Jm.T) @ F + var_offset * np.outer(gv, gv) + CONFIG.sd_floor_mm**2 * np.eye(3)
     radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
     return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
-                    float(math.exp(p[3])), excess, seen, float(surface_rms), int(len(lum)))
+                    float(math.exp(p[3])), excess, seen, float(surface_rms), int(ok.sum()))
 
 
 def _distance_gradient(cal: Calibration, world: np.ndarray, F: np.ndarray) -> np.ndarray:
