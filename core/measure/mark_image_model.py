@@ -148,10 +148,10 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
         fit = _solve(Xo[:, :2], coef, lumo, du, dv, grad, radius_mm, prior_sd, noise)
         if fit is None:
             return None
-        blur = math.exp(fit[0][3])
+        p, cov, excess = fit
+        blur = math.exp(p[3])
     X_all = X[hits]
     seen_mask = ok[hits]
-    p, cov, excess = fit
     c2, r = p[:2], float(p[2])
     on_disk = np.hypot(X_all[:, 0] - c2[0], X_all[:, 1] - c2[1]) < r
     seen = float(seen_mask[on_disk].mean()) if on_disk.any() else 0.0
