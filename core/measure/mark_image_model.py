@@ -127,7 +127,6 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     lit = lum >= CONFIG.image_fit_min_lit_share * float(np.median(lum[near]))
     other = ~(near | (~decoded & lit)).reshape(v1 - v0, u1 - u0)
     hits = np.isfinite(X[:, 0]) & np.isfinite(lum)
-    other |= _other_bright(crop, X, hits, radius_mm, cal.camera.project(centre[None])[0] - (u0, v0))
     noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
     # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
     # spread onto the surface's pixels beside it. The blur is the fit's own: fitted once with
@@ -174,32 +173,6 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
     return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
                     float(math.exp(p[3])), excess, seen, float(surface_rms), int(ok.sum()))
-
-
-def _other_bright(crop: np.ndarray, X: np.ndarray, hits: np.ndarray, radius_mm: float,
-                  uv_centre: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the window's bright regions that are not the disk's own: cut half-way between
-    the light inside the disk (from its start) and round it, the connected parts that do not
-    hold the start's pixel (a neighbouring disk, gaps of a few mm at the ankle, is another
-    mark's image, not this one's surround)."""
-    h, w = crop.shape
-    rho = np.full(h * w, np.inf)
-    rho[hits] = np.hypot(X[hits, 0], X[hits, 1])
-    inside, ring = rho < 0.7 * radius_mm, (rho > 1.1 * radius_mm) & np.isfinite(rho)
-    flat = crop.ravel()
-    if inside.sum() < 3 or ring.sum() < 3:
-        return np.zeros((h, w), bool)
-    level = 0.5 * (float(np.median(flat[inside])) + float(np.median(flat[ring])))
-    count, labels = cv2.connectedComponents((crop > level).astype(np.uint8), connectivity=8)
-    u, v = int(round(float(uv_centre[0]))), int(round(float(uv_centre[1])))
-    own = labels[v, u] if 0 <= u < w and 0 <= v < h else 0
-    # the disk's own part: the one at its start, else the one most of its inside falls in
-    if own == 0:
-        inner = labels.ravel()[inside]
-        inner = inner[inner > 0]
-        own = int(np.bincount(inner).argmax()) if len(inner) else 0
-    out: np.ndarray = (labels > 0) & (labels != own)
-    return out
 
 
 def _distance_gradient(cal: Calibration, world: np.ndarray, F: np.ndarray) -> np.ndarray:
