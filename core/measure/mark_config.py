@@ -286,9 +286,11 @@ class MarkConfig:
     snap_max_edge_rms_mm: float = 0.7
 
     # ---- a sticker fitted to its image (``mark_image_model``)
-    #: x the radius: the surface and the pixels fitted reach this far from the centre (the disk and
-    #: a ring of its surround, for the surround's level)
+    #: x the radius: the pixels fitted reach this far from the centre (the disk and a ring of its
+    #: surround, for the surround's level) ...
     image_fit_reach: float = 1.3
+    #: px: ... and this far beyond, for the blur
+    image_fit_margin_px: int = 3
     #: x the radius: the surface under the disk is fitted to the decoded points this far from its
     #: centre: more points for its height at the centre (a steep view carries it along the ray
     #: ~5-fold at 80°), but not so far that a quadric bends over an edge nearby (a table's front
@@ -311,14 +313,12 @@ class MarkConfig:
     #: tone curve: 0.01-0.14 mm on whole disks), in quadrature with its SD where a radius is
     #: checked against the marks' size
     image_fit_radius_sd_mm: float = 0.075
-    #: px: and this far beyond, for the blur
-    image_fit_margin_px: int = 3
     #: px: the blur's SD the fit starts from, and the range it may take
     image_fit_blur_start_px: float = 1.0
     image_fit_blur_range_px: tuple[float, float] = (0.3, 4.0)
     #: x the image noise: residuals beyond are weighted down (Huber), a neighbour or an outline in the window
     image_fit_huber: float = 2.5
-    #: Gauss-Newton iterations, at most
+    #: Levenberg-Marquardt iterations, at most
     image_fit_iterations: int = 40
     #: the image fit's residuals over the image noise, less one, at most: a disk's image matches
     #: the model to within the noise (a blur that is not Gaussian, a rim's shading: 0-0.2); beyond,

@@ -211,7 +211,8 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
         if by_image is None and cand.bare:
             # the edges' rays are cut with a surface extrapolated over the gap
             return Refusal(RefusalReason.NO_SURFACE, "no decoded surface around it, and a sticker lies on one")
-        out, imaged = (by_image, isinstance(by_image, DiskFit)) if by_image is not None else (out, False)
+        if by_image is not None:
+            out, imaged = by_image, isinstance(by_image, DiskFit)
     if isinstance(out, Refusal):
         return out
     if kind == MarkKind.PLATE:

@@ -53,7 +53,7 @@ class ImageFit:
     centre: np.ndarray  # (3,) the centre, on the surface
     normal: np.ndarray  # (3,) the surface's unit normal there, towards the camera
     radius: float  # mm, the fitted (free) or given radius
-    radius_sd: float  # mm, its SD (the prior's where the radius was given)
+    radius_sd: float  # mm, its SD (with the size's prior, where there is one)
     covariance: np.ndarray  # (3, 3) of the centre
     contrast: float  # a, the disk's brightness over its surround's, less one
     contrast_sd: float  # its SD
@@ -72,8 +72,9 @@ def _normal_cdf(x: np.ndarray) -> np.ndarray:
 
 
 def _erf(x: np.ndarray) -> np.ndarray:
-    # Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): numpy has no vectorised erf, and scipy.special
-    # would be imported for this alone
+    # Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7): numpy has no vectorised erf, scipy.special
+    # would be imported for this alone, and ``mark_edges.normal_cdf`` (exact, ``math.erf`` per
+    # element) is a Python loop over a window's thousands of pixels at every iteration
     t = 1.0 / (1.0 + 0.3275911 * np.abs(x))
     y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t * np.exp(
         -x * x)

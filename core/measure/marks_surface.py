@@ -121,8 +121,9 @@ def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
     from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
     as ``anklescan.core.measure.mark_fit.circle_geometric`` does). ``along``: (N, 2) the edge
     rays' local x, y components: each residual weighted by how much of it the camera sees
-    (``image_scale``, as ``circle_geometric``), from the centre the pass before found. None if
-    it fails."""
+    (``mark_edges.image_scale``), from the centre the pass before found. None if it fails."""
+    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
+
     floor = 0.03
 
     def fun(p, scale, w):
@@ -137,8 +138,6 @@ def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
 
     p = np.array([c0[0], c0[1], r0], float)
     scale = floor
-    import scipy.optimize  # here, not at import: 0.25 s of every `measure` that fits no sticker
-
     for _ in range(3):
         w = weights(p[:2])
         sol = scipy.optimize.least_squares(fun, p, args=(scale, w), method="lm", x_scale=1.0)
