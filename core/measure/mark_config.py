@@ -326,6 +326,9 @@ class MarkConfig:
     image_fit_max_excess: float = 0.5
     #: SDs: a disk's contrast over its surround at least (no disk is there otherwise)
     image_fit_min_contrast_z: float = 5.0
+    #: points of a neighbouring disk's rim projected to outline its image (its polygon's chords
+    #: fall inside the ellipse by up to r (1 - cos(π / n)): 0.02 px on a disk 17 px in radius)
+    image_fit_neighbour_rim_points: int = 64
 
 
 CONFIG = MarkConfig()

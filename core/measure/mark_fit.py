@@ -29,7 +29,7 @@ from anklescan.core.measure.mark_edges import (
     top_face_pixels,
 )
 from anklescan.core.measure.mark_image_model import fit_disk_image
-from anklescan.core.measure.mark_types import DiskFit, Mark, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_types import DiskFit, KnownDisk, Mark, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
@@ -40,7 +40,7 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
              radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: MarkKind | None = None,
              clipped: np.ndarray | None = None, max_edge_rms: float = CONFIG.max_circle_rms_mm,
-             covariance: bool = True) -> Mark | Refusal:
+             covariance: bool = True, neighbours: tuple[KnownDisk, ...] = ()) -> Mark | Refusal:
     """Fit one candidate: the ``Mark``, or the ``Refusal`` of the first check it failed.
 
     ``radius_mm``: the marks' radius (None: estimated from the blob, for a free fit);
@@ -66,6 +66,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     ``covariance``: False where only the fit's size, kind and step are used (the free pass of
     ``find_marks``): the refits that only carry errors into the covariance are skipped, and the
     mark's ``covariance`` is NaN.
+    ``neighbours``: disks already fitted near this one, modelled in a sticker's image fit
+    (``mark_image_model``).
     """
     shape = blob_shape(blob)
     if shape is None:
@@ -119,7 +121,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     tries = [(MarkKind.STICKER, None)] if lit_sticker_edges else [(k, albedo) for k in kinds]
     bare = border_undecoded(blob, points) > CONFIG.sticker_max_border_undecoded
     cand = _Candidate(image, points, sigma, shape, profiles, cal, centroid, normal, plane_rms, n_in, px_per_mm, step,
-                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance, bare)
+                      surface, clipped, radius_mm, prior_sd, thickness, radius_bounds, max_edge_rms, covariance, bare,
+                      neighbours)
     first: Refusal | None = None
     for kind, alb in tries:
         out = _fit_kind(kind, cand, alb)
@@ -181,6 +184,7 @@ class _Candidate:
     max_edge_rms: float  # mm, edges about the circle
     covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
     bare: bool  # the blob's border is mostly undecoded (CONFIG.sticker_max_border_undecoded): no surface round it
+    neighbours: tuple[KnownDisk, ...]  # disks already fitted near it (a sticker's image fit models them)
 
 
 def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Mark | Refusal:
@@ -314,7 +318,8 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     its own)."""
     use_edges = isinstance(edge_fit, DiskFit) and not cand.bare
     start = (edge_fit.centre, edge_fit.normal) if use_edges else (cand.centroid, cand.normal)
-    fit = fit_disk_image(cand.image, cand.points, cand.cal, start[0], start[1], cand.radius_mm, cand.prior_sd)
+    fit = fit_disk_image(cand.image, cand.points, cand.cal, start[0], start[1], cand.radius_mm, cand.prior_sd,
+                         cand.neighbours)
     if fit is None:
         return None
     what = f"its image fitted as a sticker: diameter {2 * fit.radius:.2f} ± {2 * fit.radius_sd:.2f} mm"

@@ -52,6 +52,15 @@ class SurfaceStep:
     ring_decoded: float  # share of the ring around the disk with a 3-D point
 
 
+@dataclass(frozen=True, eq=False)
+class KnownDisk:
+    """A disk already fitted (another chosen mark), as a neighbour's fit models it. World mm."""
+
+    centre: np.ndarray  # (3,)
+    normal: np.ndarray  # (3,) unit
+    radius: float
+
+
 @dataclass(frozen=True)
 class Refusal:
     """A candidate refused: ``reason`` the check, ``detail`` the one-line message with figures."""

@@ -63,7 +63,7 @@ from anklescan.core.measure.mark_hypotheses import (
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
-from anklescan.core.measure.mark_types import Mark, MarkSet, Refusal, RefusalReason, fitted
+from anklescan.core.measure.mark_types import KnownDisk, Mark, MarkSet, Refusal, RefusalReason, fitted
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS
@@ -169,8 +169,10 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
                   for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0)])
         fits[before:] = _one_predicted_outline(fits[before:])
         selection = select_marks(fits, r0)
-    for f in selection.chosen:
-        out = _fit_hypothesis(f.hypothesis, scene, covariance=True)  # the same fit, with its covariance
+    chosen = [KnownDisk(f.mark.centre, f.mark.normal, f.mark.radius) for f in selection.chosen]
+    for i, f in enumerate(selection.chosen):
+        # the same fit, with its covariance and the other chosen disks beside it
+        out = _fit_hypothesis(f.hypothesis, scene, covariance=True, neighbours=tuple(chosen[:i] + chosen[i + 1:]))
         if isinstance(out, Mark):
             result.marks.append(out)
         else:
@@ -229,18 +231,20 @@ class _Scene:
     prefer_kind: MarkKind | None  # the capture's kind of mark (``_common_kind``)
 
 
-def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool) -> Mark | Refusal:
+def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool,
+                    neighbours: tuple[KnownDisk, ...] = ()) -> Mark | Refusal:
     """One hypothesis fitted as its source says (``HypothesisSource``): a blob with the marks'
     size as a prior; a sticker on the lit image's edges; a derived outline kept only where the
     fit is clearly a disk (``radius_clearly_measured``). Re-cuts and derived outlines search
-    weaker contrast and must be of the capture's kind (``_of_capture_kind``)."""
+    weaker contrast and must be of the capture's kind (``_of_capture_kind``). ``neighbours``: the
+    disks fitted beside it (``fit_mark``)."""
     if h.source is HypothesisSource.LIT_STICKER:
         out = fit_mark(s.image, s.points, h.blob, s.cal, s.radius_mm, s.sigma, prior_sd=s.radius_sd, albedo=s.albedo,
-                       lit_sticker_edges=True, clipped=s.clipped, covariance=covariance)
+                       lit_sticker_edges=True, clipped=s.clipped, covariance=covariance, neighbours=neighbours)
     else:
         out = fit_mark(s.image, s.points, h.blob, s.cal, s.radius_mm, s.sigma, prior_sd=s.radius_sd, albedo=s.albedo,
                        plate_thickness=s.thickness, prefer_kind=s.prefer_kind, clipped=s.clipped,
-                       covariance=covariance)
+                       covariance=covariance, neighbours=neighbours)
     if not isinstance(out, Mark):
         return out
     what = f"{out.kind}, seen at {out.view_deg or 0.0:.0f}°"
