@@ -104,3 +104,25 @@ def test_a_disk_beside_another_is_found_with_the_other_modelled():
     sd = math.sqrt(float(np.trace(both.covariance)))
     assert err < 0.1 and err < 3 * sd, (err, sd)
     assert err < 0.5 * err_alone, (err, err_alone)
+
+
+def test_a_disk_near_an_edge_keeps_its_own_surface():
+    """A disk 1 mm from the plane's front edge (beyond it a vertical face, as a table's, within
+    the surface's reach, decoded densely where the plane seen at 78° decodes one pixel in
+    three): the surface under the disk is the plane, not a fit pulled over the edge, and the
+    centre is within 0.1 mm and 3 SD."""
+    img, points, cal, truth = _scene(78.0, 6.5, (0.0, 0.0), 0.9, 2.0, 0.5, seed=5)
+    edge_y = -6.5 - 1.0  # the plane's front edge, on the camera's side
+    P = points.reshape(-1, 3).astype(np.float64)
+    beyond = P[:, 1] < edge_y
+    P[~beyond & (np.random.default_rng(5).random(len(P)) < 2 / 3)] = np.nan
+    rays = P[beyond] - cal.camera.center
+    t = (edge_y - cal.camera.center[1]) / rays[:, 1]
+    P[beyond] = cal.camera.center + t[:, None] * rays  # where the ray meets the front face
+    points = P.reshape(points.shape).astype(np.float32)
+    fit = fit_disk_image(img, points, cal, truth + [0.4, 0.4, 0.0], np.array([0.0, 0.0, 1.0]), 6.5, 0.05)
+    assert fit is not None
+    err = np.linalg.norm(fit.centre - truth)
+    sd = math.sqrt(float(np.trace(fit.covariance)))
+    assert err < 0.1 and err < 3 * sd, (err, sd)
+    assert fit.surface_rms < 0.1, fit.surface_rms
