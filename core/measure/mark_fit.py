@@ -258,7 +258,11 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
     if off > CONFIG.face_off_share:
         return Refusal(RefusalReason.OUTLINE_THROUGH,
                        f"an outline runs through it ({100 * off:.0f} % of its face off its surface, {what})")
-    limit = face_rms_limit(sigma, interior)
+    # against the predicted SD of the points whose RMS it is: a plate's face; a sticker's surface
+    # round it, its image fit's reach or its rim fit's (a white sticker decodes to 0.10 mm on a
+    # table that decodes to 0.20, and the table's points are most of the surface's)
+    reach = CONFIG.image_fit_surface_reach if imaged else CONFIG.surface_reach
+    limit = face_rms_limit(sigma, interior if kind == MarkKind.PLATE else ellipse_pixels(shape, reach, image.shape))
     if surf_rms > limit:
         return Refusal(RefusalReason.FACE_NOT_SMOOTH,
                        f"face not smooth (surface RMS {surf_rms:.2f} mm, limit {limit:.2f} mm, {what})")
@@ -434,14 +438,15 @@ def radius_disagrees(radius, radius_sd, size, size_sd) -> bool:
 
 def face_rms_limit(sigma, uv) -> float:
     """The face-smoothness limit: ``CONFIG.max_top_face_rms_mm``, or ``CONFIG.face_rms_per_sigma`` times the
-    median predicted SD of the decoded points at pixels ``uv`` where that is larger."""
+    RMS predicted SD of the decoded points at pixels ``uv`` where that is larger (an RMS, as the
+    fit's RMS residual it bounds, over points that decode unequally well)."""
     if sigma is None or not len(uv):
         return CONFIG.max_top_face_rms_mm
-    s = sigma[uv[:, 1], uv[:, 0]]
+    s = sigma[uv[:, 1], uv[:, 0]].astype(np.float64)
     s = s[np.isfinite(s)]
     if not len(s):
         return CONFIG.max_top_face_rms_mm
-    return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.median(s)))
+    return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.sqrt(np.mean(s * s))))
 
 
 def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
