@@ -185,7 +185,7 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
                     float(math.exp(p[3])), excess, seen, float(surface_rms), int(ok.sum()))
 
 
-def _surface_under(L: np.ndarray, radius_mm: float):
+def _surface_under(L: np.ndarray, radius_mm: float) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
     """``fit_quadric`` of the surface under the disk from its decoded points ``L`` (local frame):
     first those under the disk alone, then every point that continues that surface (within
     CONFIG.image_fit_off_surface_sd of its RMS) out to CONFIG.image_fit_surface_reach radii. A

@@ -41,7 +41,8 @@ def _design(x, y):
     return np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
 
 
-def fit_quadric(L: np.ndarray, weights=None, extra=None, iterations: int = 4):
+def fit_quadric(L: np.ndarray, weights: np.ndarray | None = None, extra: np.ndarray | None = None,
+                iterations: int = 4) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
     """Robust weighted least squares z = a x² + b xy + c y² + d x + e y + g (+ Σ k_j extra_j) on
     local points L (N, 3). Returns (coef, rms, kept mask, covariance of coef) or None."""
     if len(L) < CONFIG.min_surface_points:
@@ -51,7 +52,7 @@ def fit_quadric(L: np.ndarray, weights=None, extra=None, iterations: int = 4):
         A = np.column_stack([A, extra])
     w = np.ones(len(L)) if weights is None else np.asarray(weights, float)
     keep = np.ones(len(L), bool)
-    coef = None
+    coef = np.zeros(A.shape[1])
     for _ in range(iterations):
         if keep.sum() < A.shape[1] + 3:
             return None
