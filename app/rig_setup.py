@@ -75,14 +75,25 @@ class RigSetup(QObject):
             self.parts.review.ensure_marks_page()
             return
         from anklescan.app.background import run_in_background
+
+        def failed(error: str) -> None:
+            if not self._window_gone():
+                self.parts.banner.show_message(Severity.ERROR, f"The camera could not be opened: {error}")
+
         run_in_background(lambda: open_rig_safely(backend, scale, device, size, warm=True, profile=profile),
-                          self._rig_opened,
-                          lambda error: self.parts.banner.show_message(Severity.ERROR,
-                                                                     f"The camera could not be opened: {error}"))
+                          self._rig_opened, failed)
+
+    def _window_gone(self) -> bool:
+        """True once the window's widgets are deleted: it was closed while the rig opened."""
+        from shiboken6 import isValid
+        return not isValid(self.parts.camera_holder)
 
     def _rig_opened(self, opened) -> None:
         rig, problem = opened
         self._starting = False
+        if self._window_gone():
+            rig.close()  # nothing left to show it in: release the camera
+            return
         if problem:
             self.parts.banner.show_message(Severity.WARNING, problem)
         self._build_camera_panel()

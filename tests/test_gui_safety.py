@@ -107,3 +107,21 @@ def test_a_database_without_its_tables_is_one_message_not_a_crash(qtbot):
     assert win.banner.kind == "error" and "incomplete" in text and "patients" in text, text
     assert db.read_bytes() == before  # left untouched
     win.close()
+
+
+def test_a_window_closed_while_its_rig_opens_is_no_crash(qtbot):
+    """The window closed (and its widgets deleted) before the rig it opens in the background
+    arrives: the rig is released and nothing touches the deleted widgets (an exception in the
+    Qt event loop fails this test)."""
+    from shiboken6 import delete
+
+    from anklescan.app.background import pending_jobs
+
+    win = MainWindow()
+    setup = win.rig_setup
+    setup.finish_startup()  # what the window's first event-loop turn does: the rig opens on a thread
+    assert setup._starting
+    win.close()
+    delete(win)  # before any event is processed: the rig cannot have been delivered yet
+    qtbot.waitUntil(lambda: pending_jobs() == 0 and not setup._starting, timeout=60_000)
+    assert setup.rig is None
