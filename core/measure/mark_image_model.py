@@ -227,8 +227,9 @@ def _neighbour_distances(cal: Calibration, neighbours: tuple[KnownDisk, ...], uv
     for disk in neighbours:
         F = local_frame(disk.centre, disk.normal)
         rim = cal.camera.project(disk.centre + disk.radius * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1]))
-        if not np.isfinite(rim).all():
-            continue
+        lo, hi = uv.min(axis=0) - reach_px, uv.max(axis=0) + reach_px
+        if not np.isfinite(rim).all() or (rim.max(axis=0) < lo).any() or (rim.min(axis=0) > hi).any():
+            continue  # its image is nowhere near the window
         a, b = rim, np.roll(rim, -1, axis=0)
         ab = b - a  # (M, 2)
         q = uv[:, None, :] - a[None]  # (N, M, 2)
