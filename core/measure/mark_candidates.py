@@ -68,7 +68,7 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     for i in range(3):
         np.subtract(cam[i], mean[i], out=t)
         np.multiply(n[i], t, out=t)
-        facing += t  # as sum_of_products: n0 t0 + n1 t1 + n2 t2, in that order
+        facing += t  # n0 t0 + n1 t1 + n2 t2, in that order
         to_light.append(np.subtract(proj[i], mean[i], out=mean[i]))
     np.sign(facing, out=facing)
     dist = np.multiply(to_light[0], to_light[0])
@@ -92,15 +92,6 @@ def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -
     np.divide(image[box], shade, out=shade)
     shade[~ok] = 0.0
     out[box] = shade
-    return out
-
-
-def sum_of_products(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
-    """a[0] b[0] + a[1] b[1] + a[2] b[2], elementwise: the dot product of two images of vectors
-    kept as one image per coordinate."""
-    out: np.ndarray = a[0] * b[0]
-    out += a[1] * b[1]
-    out += a[2] * b[2]
     return out
 
 
