@@ -330,5 +330,24 @@ class MarkConfig:
     #: fall inside the ellipse by up to r (1 - cos(π / n)): 0.02 px on a disk 17 px in radius)
     image_fit_neighbour_rim_points: int = 64
 
+    # ---- a plate's side wall (``mark_wall``)
+    #: blurs (SD, as read from the image: with the pixel's width): the wall points fitted are imaged at least this far
+    #: from the wall's top and bottom (nearer, the pixel also sees the face or the surface in
+    #: front, and the point is pulled in or out: 0.25-0.3 mm with a 2.4-2.7 px wall at 1 px blur
+    #: and only 1 px margin)
+    wall_margin_blurs: float = 1.25
+    #: degrees: only the wall facing the camera, within this of its direction in the face's plane
+    #: (towards the silhouette the camera sees the wall edge-on, its pixels mixed with what is
+    #: beyond)
+    wall_arc_deg: float = 50.0
+    #: mm: a wall point lies this near the cylinder of the plate's radius round the rim fit's
+    #: axis (the rim fit's centre at a grazing view: within ~0.6 mm)
+    wall_window_mm: float = 1.0
+    #: wall points at least (half of them in each half of the band)
+    wall_min_points: int = 12
+    #: Gauss-Newton iterations of the wall's circle, and its Huber threshold in robust SDs
+    wall_iterations: int = 8
+    wall_huber_k: float = 1.5
+
 
 CONFIG = MarkConfig()

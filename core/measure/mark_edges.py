@@ -209,6 +209,23 @@ def _first_below(prof: np.ndarray, level: np.ndarray, after: np.ndarray) -> np.n
     return np.where(below.any(axis=1), np.argmax(below, axis=1), 0)
 
 
+def edge_blur_px(profiles: EdgeProfiles) -> float:
+    """The image's blur (SD, px) at a disk's rim, from the steepest fall of each edge profile: a
+    step of contrast C blurred by a Gaussian of SD σ falls at most C / (σ √(2π)) per pixel. The
+    median over the rim's edges; an upper bound (the rim's own shading and a side wall widen the
+    fall). NaN without edges."""
+    if len(profiles.rows) == 0:
+        return float("nan")
+    v = profiles.values[profiles.rows]
+    fall = -np.diff(np.where(np.isfinite(v), v, np.nan), axis=1) / CONFIG.profile_step_px
+    steepest = np.nanmax(np.where(np.isnan(fall), -np.inf, fall), axis=1)
+    contrast = profiles.inner[profiles.rows] - profiles.outer[profiles.rows]
+    ok = (steepest > 0) & (contrast > 0)
+    if not ok.any():
+        return float("nan")
+    return float(np.median(contrast[ok] / (math.sqrt(2.0 * math.pi) * steepest[ok])))
+
+
 def plane_basis(normal: np.ndarray) -> np.ndarray:
     """(2, 3): two unit vectors spanning the plane of ``normal`` (unit)."""
     n = np.asarray(normal)

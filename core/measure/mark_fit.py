@@ -21,6 +21,7 @@ from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import (
     EdgeProfiles,
     clean_edge_mask,
+    edge_blur_px,
     edge_profiles,
     face_shape,
     plane_basis,
@@ -30,6 +31,7 @@ from anklescan.core.measure.mark_edges import (
 )
 from anklescan.core.measure.mark_image_model import fit_disk_image
 from anklescan.core.measure.mark_types import DiskFit, KnownDisk, Mark, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_wall import fit_wall, wall_points
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
@@ -222,6 +224,7 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
     if kind == MarkKind.PLATE:
         out, profiles = _without_stray_arc(out, profiles, fit, cal, px_per_mm)
         out = _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped)
+        out = _with_wall(out, cand)
     centre, normal, radius, radius_sd = out.centre, out.normal, out.radius, out.radius_sd
     rms, surf_rms, cov, n_edge, n_in = out.edge_rms, out.face_rms, out.covariance, out.n_edge, n_in0
     what = f"{kind}, seen at {view_deg(cam_c, centre, normal):.0f}°"
@@ -399,6 +402,33 @@ def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
         return out
     half = 0.5 * (np.asarray(other.centre) - np.asarray(out.centre))
     return out.moved(out.centre + half, out.covariance + np.outer(half, half))
+
+
+def _with_wall(out: DiskFit, cand: _Candidate) -> DiskFit:
+    """The plate fit ``out`` updated by its side wall's axis (``mark_wall``) where the camera sees
+    the wall: the wall measures the centre's two in-plane coordinates, combined with the rim's by
+    their covariances (a Kalman update in the face's frame, which keeps the rim fit's correlation
+    of in-plane and depth errors). Where the two disagree beyond their SDs (χ² per degree of
+    freedom over 1), the covariance is scaled by that ratio."""
+    if cand.prior_sd is None or not cand.covariance or cand.thickness <= 0.0:
+        return out
+    cal = cand.cal
+    pixel = cal.camera.project(np.asarray(out.centre, float)[None])[0]
+    reach = (cand.radius_mm + cand.thickness + CONFIG.wall_window_mm) * cand.px_per_mm
+    P = wall_points(cand.points, pixel, reach)
+    blur = edge_blur_px(cand.profiles)
+    wall = fit_wall(P, out.centre, out.normal, cand.radius_mm, cand.prior_sd, cand.thickness, cal.camera.center,
+                    cand.px_per_mm, blur)
+    if wall is None or not np.all(np.isfinite(out.covariance)):
+        return out
+    F = np.vstack([plane_basis(out.normal), out.normal])  # rows: in-plane e1, e2, normal
+    S = F @ out.covariance @ F.T
+    innovation = S[:2, :2] + wall.covariance
+    gain = S[:, :2] @ np.linalg.inv(innovation)  # (3, 2)
+    chi2 = float(wall.offset @ np.linalg.solve(innovation, wall.offset))
+    S_new = S - gain @ S[:2, :]
+    S_new = 0.5 * (S_new + S_new.T) * max(1.0, chi2 / 2.0)
+    return out.moved(out.centre + F.T @ (gain @ wall.offset), F.T @ S_new @ F)
 
 
 def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):
