@@ -22,6 +22,7 @@ import numpy as np
 
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.robust import robust_sigma
 
 
 @dataclass(frozen=True)
@@ -47,13 +48,15 @@ def wall_points(points: np.ndarray, pixel: np.ndarray, reach_px: float) -> np.nd
 def _circle_with_radius(q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Robust (Huber) fit of a circle of known ``radius`` to in-plane points ``q`` (N, 2):
     its centre, the normal matrix JᵀWJ, JᵀW·1 (the centre's sensitivity to the radius, through
-    the normal matrix) and the residuals' robust scale."""
+    the normal matrix) and the residuals' weighted variance; None where the points do not fix
+    the centre."""
     c = np.zeros(2)
+    scale = CONFIG.edge_noise_floor_mm
     for _ in range(CONFIG.wall_iterations):
         diff = q - c
         rho = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-9)
         res = rho - radius
-        scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), CONFIG.edge_noise_floor_mm)
+        scale = max(robust_sigma(res), CONFIG.edge_noise_floor_mm)
         w = np.minimum(1.0, CONFIG.wall_huber_k * scale / np.maximum(np.abs(res), 1e-12))
         J = -diff / rho[:, None]
         JW = J * w[:, None]
