@@ -331,10 +331,10 @@ class MarkConfig:
     image_fit_neighbour_rim_points: int = 64
 
     # ---- a plate's side wall (``mark_wall``)
-    #: blurs (SD, as read from the image: with the pixel's width): the wall points fitted are imaged at least this far
-    #: from the wall's top and bottom (nearer, the pixel also sees the face or the surface in
-    #: front, and the point is pulled in or out: 0.25-0.3 mm with a 2.4-2.7 px wall at 1 px blur
-    #: and only 1 px margin)
+    #: blurs (SD as read from the image, the pixel's width in it): the wall points fitted are
+    #: imaged at least this far from the wall's top and bottom (nearer, the pixel also sees the
+    #: face or the surface in front, and the point is pulled in or out: 0.25-0.3 mm with a
+    #: 2.4-2.7 px wall at 1 px blur and only 1 px margin)
     wall_margin_blurs: float = 1.25
     #: degrees: only the wall facing the camera, within this of its direction in the face's plane
     #: (towards the silhouette the camera sees the wall edge-on, its pixels mixed with what is

@@ -45,6 +45,20 @@ def wall_points(points: np.ndarray, pixel: np.ndarray, reach_px: float) -> np.nd
     return np.asarray(P[np.isfinite(P).all(axis=1)], float)
 
 
+def _weighted(q: np.ndarray, c: np.ndarray, radius: float,
+              scale: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Residuals of points ``q`` about the circle (``c``, ``radius``), their Huber weights, the
+    residuals' Jacobian in the centre, and the scale the weights use (``scale``, or the
+    residuals' robust SD, at least the edges' noise floor)."""
+    diff = q - c
+    rho = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-9)
+    res = rho - radius
+    if scale is None:
+        scale = max(robust_sigma(res), CONFIG.edge_noise_floor_mm)
+    w = np.minimum(1.0, CONFIG.wall_huber_k * scale / np.maximum(np.abs(res), 1e-12))
+    return res, w, -diff / rho[:, None], scale
+
+
 def _circle_with_radius(q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Robust (Huber) fit of a circle of known ``radius`` to in-plane points ``q`` (N, 2):
     its centre, the normal matrix JᵀWJ, JᵀW·1 (the centre's sensitivity to the radius, through
@@ -53,22 +67,14 @@ def _circle_with_radius(q: np.ndarray, radius: float) -> tuple[np.ndarray, np.nd
     c = np.zeros(2)
     scale = CONFIG.edge_noise_floor_mm
     for _ in range(CONFIG.wall_iterations):
-        diff = q - c
-        rho = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-9)
-        res = rho - radius
-        scale = max(robust_sigma(res), CONFIG.edge_noise_floor_mm)
-        w = np.minimum(1.0, CONFIG.wall_huber_k * scale / np.maximum(np.abs(res), 1e-12))
-        J = -diff / rho[:, None]
+        res, w, J, scale = _weighted(q, c, radius)
         JW = J * w[:, None]
         A = JW.T @ J
         if np.linalg.cond(A) > 1e8:
             return None
         c = c - np.linalg.solve(A, JW.T @ res)
-    diff = q - c
-    res = np.hypot(diff[:, 0], diff[:, 1]) - radius
-    w = np.minimum(1.0, CONFIG.wall_huber_k * scale / np.maximum(np.abs(res), 1e-12))
+    res, w, J, _ = _weighted(q, c, radius, scale)  # the last step's weights, at the fitted centre
     s2 = float(np.sum(w * res ** 2) / max(np.sum(w) - 2.0, 1.0))
-    J = -diff / np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-9)[:, None]
     JW = J * w[:, None]
     return c, JW.T @ J, JW.sum(axis=0), s2
 
@@ -81,10 +87,10 @@ def fit_wall(P: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: floa
     ``radius`` ± ``radius_sd``: the plate's; ``thickness``: the face's height over the surface
     round it; ``toward``: the camera's centre; ``px_per_mm``: the image's scale at the plate;
     ``blur_px``: the image's blur there (SD, ``mark_edges.edge_blur_px``). Wall points: imaged
-    ``CONFIG.wall_margin_blurs`` blurs from the wall's top and bottom
-    (the wall's height in the image is its thickness times the sine of the view angle), within
-    ``CONFIG.wall_window_mm`` of the cylinder, on the side that faces the camera (within
-    ``CONFIG.wall_arc_deg`` of its direction in the plane)."""
+    ``CONFIG.wall_margin_blurs`` blurs from the wall's top and bottom (the wall's height in the
+    image is its thickness times the sine of the view angle), within ``CONFIG.wall_window_mm`` of
+    the cylinder, on the side that faces the camera (within ``CONFIG.wall_arc_deg`` of its
+    direction in the plane)."""
     if thickness <= 0.0 or len(P) == 0 or not np.isfinite(blur_px):
         return None
     B = plane_basis(normal)
@@ -117,8 +123,7 @@ def fit_wall(P: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: floa
     cov = s2 * Ainv + radius_sd ** 2 * np.outer(dc_dr, dc_dr)
     # the wall's lower and upper halves: points near either end are pulled by the face or the
     # surface in front sharing their pixels; their disagreement bounds that bias
-    mid = -0.5 * (lo + hi) * thickness
-    halves = [keep & (z < mid), keep & (z >= mid)]
+    halves = [keep & (z < -0.5 * thickness), keep & (z >= -0.5 * thickness)]  # the band is symmetric
     if min(int(h.sum()) for h in halves) < CONFIG.wall_min_points // 2:
         return None  # a wall too short to split: its points' bias cannot be bounded
     parts = [_circle_with_radius(q[h], radius) for h in halves]
