@@ -8,6 +8,7 @@ import pytest
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_fit import plane_from_pixels
 from anklescan.core.scan.camera_response import GAMMA_GRID, response_gamma
+from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_variety import DIAMETER_RANGE_MM, draw_variant, variant_rig
 
 
@@ -142,6 +143,25 @@ def test_the_captures_common_kind_needs_three_marks_and_three_quarters():
     assert _common_kind(["plate", "plate", "plate", "sticker"]) == "plate"
     assert _common_kind(["plate", "plate", "sticker", "sticker"]) is None
     assert _common_kind(["plate", "plate"]) is None
+
+
+def test_the_captures_kind_is_voted_by_the_fits_whose_step_measures_it():
+    """Drawn 1102 (harsh): five stickers with clear flush steps and two ankle stickers whose step
+    nothing measured, fitted as plates because the plate is tried first. Those two are no
+    evidence; the capture is one of stickers. Fewer than three measured steps: every fit votes."""
+    from anklescan.core.measure.marks import Mark, _capture_kind
+
+    def fit(kind, step_mm, step_sd=0.05):
+        return Mark(np.zeros(3), np.array([0.0, 0.0, 1.0]), 7.5, 0.1, 0.1, np.eye(3) * 0.01, (0.0, 0.0), 40, 40,
+                    kind=kind, step_mm=step_mm, step_sd=step_sd)
+
+    flush = [fit(MarkKind.STICKER, s) for s in (0.06, 0.05, 0.21, -0.08, 0.0)]
+    unmeasured = [fit(MarkKind.PLATE, None), fit(MarkKind.PLATE, None)]
+    assert _capture_kind(flush + unmeasured) == MarkKind.STICKER
+    assert _capture_kind(flush[:2] + unmeasured) is None  # two measured: every fit votes, 2 of 4
+    assert _capture_kind(flush[:1] + unmeasured + unmeasured[:1]) == MarkKind.PLATE  # every fit: 3 of 4
+    proud = [fit(MarkKind.PLATE, 1.5) for _ in range(3)]
+    assert _capture_kind(proud + [fit(MarkKind.STICKER, None)]) == MarkKind.PLATE
 
 
 def test_a_sticker_whose_step_cannot_be_measured_is_not_fitted_as_a_plate():
