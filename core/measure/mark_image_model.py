@@ -133,7 +133,8 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     near = decoded & (off <= max(CONFIG.image_fit_off_surface_sd * surface_rms, CONFIG.image_fit_off_surface_mm))
     if near.sum() < CONFIG.min_surface_points:
         return None
-    lit = lum >= CONFIG.image_fit_min_lit_share * float(np.median(lum[near]))
+    level = _surround_light(lum, X, near | ~decoded, radius_mm, (v1 - v0, u1 - u0))
+    lit = lum >= CONFIG.image_fit_min_lit_share * (float(np.median(lum[near])) if level is None else level)
     other = ~(near | (~decoded & lit)).reshape(v1 - v0, u1 - u0)
     hits = np.isfinite(X[:, 0]) & np.isfinite(lum)
     noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
@@ -183,6 +184,22 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
     return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
                     float(math.exp(p[3])), excess, seen, float(surface_rms), int(ok.sum()))
+
+
+def _surround_light(lum: np.ndarray, X: np.ndarray, candidates: np.ndarray, radius_mm: float,
+                    shape: tuple[int, int]) -> float | None:
+    """The surface's light round the disk: the median over the window's pixels off the disk's
+    image by more than the starting guard (``CONFIG.image_fit_guard_blurs`` ×
+    ``CONFIG.image_fit_blur_start_px``) that may see the surface (``candidates``: decoded on it,
+    or undecoded), None where fewer than ``CONFIG.min_surface_points`` are. The undecoded ones
+    count: dim skin round a white disk decodes sparsely, and its decoded pixels alone, or the
+    disk's own light, would set the bar above the skin's and call it a shadow (drawn 1034's
+    front ankle sticker: a guard round that "shadow" left 46 % of the disk)."""
+    on_disk = ~(np.hypot(X[:, 0], X[:, 1]) > radius_mm)  # a ray that misses the surface counts as on it
+    g = int(math.ceil(CONFIG.image_fit_guard_blurs * CONFIG.image_fit_blur_start_px))
+    near_disk = cv2.dilate(on_disk.reshape(shape).astype(np.uint8), np.ones((2 * g + 1, 2 * g + 1), np.uint8))
+    use = candidates & ~near_disk.astype(bool).ravel() & np.isfinite(lum)
+    return float(np.median(lum[use])) if use.sum() >= CONFIG.min_surface_points else None
 
 
 def _surface_under(L: np.ndarray, radius_mm: float) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
