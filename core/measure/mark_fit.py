@@ -313,7 +313,7 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     """The sticker fitted to its image (``mark_image_model``), from the edge fit's centre where
     there is one on a decoded surround, else the blob's first plane. None where there is no such
     fit to make (too few decoded points or pixels round it); a ``Refusal`` where the fit is not
-    a whole disk's image of the marks' size: residuals past CONFIG.image_fit_max_excess, less
+    a whole disk's image of the marks' size: the fitted disk left its window, residuals past CONFIG.image_fit_max_excess, less
     than CONFIG.min_seen_share of the disk's pixels fitted, a contrast within
     CONFIG.image_fit_min_contrast_z SDs of none, or (the size given or measured) a radius that
     disagrees with it (``radius_disagrees``: the image measures a radius to a tenth of a mm, so
@@ -327,8 +327,8 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     start = (edge_fit.centre, edge_fit.normal) if use_edges else (cand.centroid, cand.normal)
     fit = fit_disk_image(cand.image, cand.points, cand.cal, start[0], start[1], cand.radius_mm, cand.prior_sd,
                          cand.neighbours)
-    if fit is None:
-        return None
+    if fit is None or isinstance(fit, Refusal):
+        return fit
     what = f"its image fitted as a sticker: diameter {2 * fit.radius:.2f} ± {2 * fit.radius_sd:.2f} mm"
     if fit.excess > CONFIG.image_fit_max_excess:
         if isinstance(edge_fit, DiskFit) and not cand.bare:
