@@ -9,10 +9,11 @@ how far its fits are trusted against another hypothesis of the same disk
 
 - ``BLOB``: the lit image's compact bright blobs over the whole size range
   (``candidate_blobs``), cut at the seed's level or against the surface round it;
-- ``CORRECTED``: the shading-corrected image's blobs at the marks' size (a disk lit at a
-  grazing angle is hardly brighter than the skin beside it, which faces the light better);
-- ``SIZED``: the lit image's blobs at the marks' size (a disk the range's openings merged with
-  its bright surround);
+- ``CORRECTED``: the shading-corrected image's blobs at the marks' size, and smaller where
+  none is (a disk lit at a grazing angle is hardly brighter than the skin beside it, which
+  faces the light better);
+- ``SIZED``: the lit image's blobs at the marks' size, and smaller where none is (a disk the
+  range's openings merged with its bright surround);
 - ``WIDER``: a blob's wider cut (face and lit side wall together);
 - ``LIT_STICKER``: a blob fitted as a sticker on the lit image's edges (its surround in the
   corrected image is a silhouette's dark band);
@@ -149,7 +150,8 @@ def first_hypotheses(blobs: list[Blob]) -> list[Hypothesis]:
 def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, cal: Calibration,
                      radius_mm: float) -> list[Hypothesis]:
     """Blobs at the marks' size in the shading-corrected and in the lit image, each cut against
-    the surface round it where the cut over the opening leaks. Not where the blob is a patchwork
+    the surface round it where the cut over the opening leaks, and where none lies, at the
+    searched radii below (``_sized_blobs``). Not where the blob is a patchwork
     of decoded and empty pixels (the far, dim floor, CONFIG.second_look_min_decoded) or lies
     along the edge of the reconstruction, where the normals are mixed
     (CONFIG.second_look_max_border_undecoded)."""
@@ -157,17 +159,36 @@ def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, 
     if decoded.sum() < CONFIG.min_interior_points:
         return []
     depth = depth_image(cal, points)
-    size = (radius_mm, radius_mm)
     out = []
     for img, source, cut in ((albedo, HypothesisSource.CORRECTED, CutImage.CORRECTED),
                              (image, HypothesisSource.SIZED, CutImage.LIT)):
-        for blob in candidate_blobs(img, points, cal, noise_sigma(img), size, ring_background=True, depth=depth):
+        for blob in _sized_blobs(img, points, cal, radius_mm, depth):
             if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
                 continue
             if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
                 continue
             out.append(Hypothesis(blob, source, cut))
     return out
+
+
+def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
+                 depth: np.ndarray) -> list[Blob]:
+    """``candidate_blobs`` at the marks' size, then at the searched radii below it (from the low
+    end of ``CONFIG.size_range_mm`` to the size over ``CONFIG.scale_step``) where none of those
+    lies: at the size alone, the opening and the cut's window of a large disk reach its
+    neighbour and the skin round both (two 24 mm ankle stickers 2 mm apart gave no blob there,
+    each one at 6-9 mm)."""
+    noise = noise_sigma(img)
+    blobs = candidate_blobs(img, points, cal, noise, (radius_mm, radius_mm), ring_background=True, depth=depth)
+    below = radius_mm / CONFIG.scale_step
+    if below < CONFIG.size_range_mm[0]:
+        return blobs
+    taken = np.zeros(img.shape, bool)
+    for b in blobs:
+        taken[b["slice"]] |= b["region"]
+    smaller = candidate_blobs(img, points, cal, noise, (CONFIG.size_range_mm[0], below), ring_background=True,
+                              depth=depth)
+    return blobs + [b for b in smaller if not taken[int(round(b["centre"][1])), int(round(b["centre"][0]))]]
 
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,

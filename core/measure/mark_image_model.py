@@ -195,8 +195,8 @@ def _surround_light(lum: np.ndarray, X: np.ndarray, candidates: np.ndarray, radi
     ``CONFIG.image_fit_blur_start_px``) that may see the surface (``candidates``: decoded on it,
     or undecoded), None where fewer than ``CONFIG.min_surface_points`` are. The undecoded ones
     count: dim skin round a white disk decodes sparsely, and its decoded pixels alone, or the
-    disk's own light, would set the bar above the skin's and call it a shadow (drawn 1034's
-    front ankle sticker: a guard round that "shadow" left 46 % of the disk)."""
+    disk's own light, would set the bar above the skin's and call it a shadow (a front ankle
+    sticker on dark skin: the guard round that "shadow" left 46 % of the disk)."""
     on_disk = ~(np.hypot(X[:, 0], X[:, 1]) > radius_mm)  # a ray that misses the surface counts as on it
     g = int(math.ceil(CONFIG.image_fit_guard_blurs * CONFIG.image_fit_blur_start_px))
     near_disk = cv2.dilate(on_disk.reshape(shape).astype(np.uint8), np.ones((2 * g + 1, 2 * g + 1), np.uint8))
