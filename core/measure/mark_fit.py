@@ -313,14 +313,14 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     """The sticker fitted to its image (``mark_image_model``), from the edge fit's centre where
     there is one on a decoded surround, else the blob's first plane. None where there is no such
     fit to make (too few decoded points or pixels round it); a ``Refusal`` where the fit is not
-    a whole disk's image of the marks' size: the fitted disk left its window, residuals past CONFIG.image_fit_max_excess, less
-    than CONFIG.min_seen_share of the disk's pixels fitted, a contrast within
-    CONFIG.image_fit_min_contrast_z SDs of none, or (the size given or measured) a radius that
-    disagrees with it (``radius_disagrees``: the image measures a radius to a tenth of a mm, so
-    a disk cut by an outline or a shadow shows there). Where the residuals alone fail and the
-    edges fitted a disk on a decoded surround, None: the window holds more than the disk and
-    its surround, and the rim's edges may still be its own. Its
-    ``edge_rms`` is its excess on the edges' scale (the limit of one at the limit of the other:
+    a whole disk's image of the marks' size: the fitted disk left its window, residuals past
+    CONFIG.image_fit_max_excess, less than CONFIG.min_seen_share of the disk's pixels fitted, a
+    contrast within CONFIG.image_fit_min_contrast_z SDs of none, or (the size given or measured)
+    a radius that disagrees with it (``radius_disagrees``: the image measures a radius to a
+    tenth of a mm, so a disk cut by an outline or a shadow shows there). Where the residuals
+    alone fail and the edges fitted a disk on a decoded surround, None: the window holds more
+    than the disk and its surround, and the rim's edges may still be its own. Its ``edge_rms``
+    is its excess on the edges' scale (the limit of one at the limit of the other:
     ``mark_selection.fit_score`` scores both alike), its face RMS the edge fit's surface RMS (or
     its own)."""
     use_edges = isinstance(edge_fit, DiskFit) and not cand.bare

@@ -288,7 +288,8 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
            others: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | Refusal | None:
     """Levenberg-Marquardt with Huber weights on the model of the module docstring. Parameters
     (cx, cy, r, log s, a, b0 ... b5, a_1 ... a_K); ``others`` (N, K) the pixels' signed distances
-    from the K neighbours' images; returns (p, covariance, excess) or None."""
+    from the K neighbours' images; returns (p, covariance, excess), a ``Refusal`` where the disk
+    left its window (beyond ``CONFIG.image_fit_reach`` radii of the start), or None."""
     inside = np.hypot(Q[:, 0], Q[:, 1]) < radius_mm
     if inside.sum() < 3 or (~inside).sum() < 3:
         return None
