@@ -7,7 +7,7 @@ pixel, the image noise, and the shading-corrected (albedo-like) image. docs/mark
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, cast
 
 import cv2
@@ -219,10 +219,17 @@ def candidate_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, noi
                                   valid=valid, near_far=near_far)
     lo, hi = radius_range(radius_mm)
     n = max(int(math.ceil(math.log(hi / lo) / math.log(CONFIG.scale_step))), 0) + 1
-    kept, taken = [], np.zeros(image.shape, bool)
-    for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1)):
-        for b in candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump,
-                                    valid=valid, near_far=near_far):
+    return blob_union((candidate_blobs_at(image, points, cal, noise, float(r), ring_background, depth, jump,
+                                          valid=valid, near_far=near_far)
+                       for r in lo * (hi / lo) ** (np.arange(n) / max(n - 1, 1))), image.shape)
+
+
+def blob_union(searches: Iterable[list[Blob]], shape: tuple[int, ...]) -> list[Blob]:
+    """The blobs of several searches of one image, in order: a blob is dropped where its centre
+    lies in one kept before it."""
+    kept, taken = [], np.zeros(shape[:2], bool)
+    for blobs in searches:
+        for b in blobs:
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
             if taken[v, u]:
                 continue

@@ -38,6 +38,7 @@ import numpy as np
 
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import (
+    blob_union,
     border_undecoded,
     candidate_blobs,
     depth_image,
@@ -183,12 +184,9 @@ def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_m
     below = radius_mm / CONFIG.scale_step
     if below < CONFIG.size_range_mm[0]:
         return blobs
-    taken = np.zeros(img.shape, bool)
-    for b in blobs:
-        taken[b["slice"]] |= b["region"]
     smaller = candidate_blobs(img, points, cal, noise, (CONFIG.size_range_mm[0], below), ring_background=True,
                               depth=depth)
-    return blobs + [b for b in smaller if not taken[int(round(b["centre"][1])), int(round(b["centre"][0]))]]
+    return blob_union((blobs, smaller), img.shape)
 
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,

@@ -114,6 +114,11 @@ def fit_wall(P: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: floa
     keep = facing & (np.abs(rho - radius) < CONFIG.wall_window_mm) & (z <= -lo * thickness) & (z >= -hi * thickness)
     if keep.sum() < CONFIG.wall_min_points:
         return None
+    # the wall's lower and upper halves: points near either end are pulled by the face or the
+    # surface in front sharing their pixels; their disagreement bounds that bias
+    halves = [keep & (z < -0.5 * thickness), keep & (z >= -0.5 * thickness)]  # the band is symmetric
+    if min(int(h.sum()) for h in halves) < CONFIG.wall_min_points // 2:
+        return None  # a wall too short to split: its points' bias cannot be bounded
     fit = _circle_with_radius(q[keep], radius)
     if fit is None:
         return None
@@ -121,11 +126,6 @@ def fit_wall(P: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: floa
     Ainv = np.linalg.inv(A)
     dc_dr = Ainv @ sens
     cov = s2 * Ainv + radius_sd ** 2 * np.outer(dc_dr, dc_dr)
-    # the wall's lower and upper halves: points near either end are pulled by the face or the
-    # surface in front sharing their pixels; their disagreement bounds that bias
-    halves = [keep & (z < -0.5 * thickness), keep & (z >= -0.5 * thickness)]  # the band is symmetric
-    if min(int(h.sum()) for h in halves) < CONFIG.wall_min_points // 2:
-        return None  # a wall too short to split: its points' bias cannot be bounded
     parts = [_circle_with_radius(q[h], radius) for h in halves]
     if parts[0] is not None and parts[1] is not None:
         half = 0.5 * (parts[0][0] - parts[1][0])
