@@ -501,8 +501,9 @@ def _may_hit(o, d, bound):
     dist2 = oc @ oc
     if dist2 <= r * r:
         return None
-    s = d @ oc
-    return (s > 0) & (dist2 - s * s <= r * r)
+    # a unit ray touches the sphere where its projection on oc reaches sqrt(|oc|² - r²): one
+    # comparison per ray instead of a square, a difference and two
+    return (d @ oc) >= math.sqrt(dist2 - r * r)
 
 
 # ---- scene builders ---------------------------------------------------------------------

@@ -231,24 +231,30 @@ def affected_pixels(still: SimRig, posed: SimRig, dilate_px: int = 2) -> np.ndar
     their ray meets the subject in either scene, or the subject shades the point they see."""
     import cv2
 
-    cam, prj = still.camera, still.projector
-    truth = still.truth()
-    rays = cam.pixel_grid_rays().reshape(-1, 3)
-    X = truth.points.reshape(-1, 3)
-    seen = truth.seen.ravel()
-    mask = np.zeros(len(rays), bool)
-    for sub in (_subject_scene(still.scene), _subject_scene(posed.scene)):
-        t, _ = sub.intersect(cam.center, rays)
-        mask |= np.isfinite(t)
-        rows = np.flatnonzero(seen & ~mask)
-        to_x = X[rows] - prj.center
-        dist = np.linalg.norm(to_x, axis=1)
-        tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
-        mask[rows[tp < dist - 1e-3]] = True
+    cam = still.camera
+    if "subject_pixels" not in still._cache:  # the subject at rest: the same for every frame
+        still._cache["subject_pixels"] = _subject_pixels(still, still.scene, np.zeros(cam.height * cam.width, bool))
+    mask = _subject_pixels(still, posed.scene, still._cache["subject_pixels"].copy())
     image: np.ndarray = mask.reshape(cam.height, cam.width).astype(np.uint8)
     if dilate_px:
         image = cv2.dilate(image, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
     return image.astype(bool)
+
+
+def _subject_pixels(still: SimRig, scene: Scene, mask: np.ndarray) -> np.ndarray:
+    """``mask`` (H·W,) with the pixels set whose ray meets ``scene``'s subject, or whose point
+    (``still``'s truth) the subject shades from the projector; pixels already set are not tested."""
+    cam, prj = still.camera, still.projector
+    truth = still.truth()
+    sub = _subject_scene(scene)
+    t, _ = sub.intersect(cam.center, cam.pixel_grid_rays().reshape(-1, 3))
+    mask |= np.isfinite(t)
+    rows = np.flatnonzero(truth.seen.ravel() & ~mask)
+    to_x = truth.points.reshape(-1, 3)[rows] - prj.center
+    dist = np.linalg.norm(to_x, axis=1)
+    tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
+    mask[rows[tp < dist - 1e-3]] = True
+    return mask
 
 
 def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:

@@ -387,16 +387,17 @@ class SimRig:
             d = cam.rays(uv)
         t, index = scene.intersect(cam.center, d)
         seen = np.isfinite(t)
-        X = np.full(d.shape, np.nan)
-        X[seen] = cam.center + t[seen, None] * d[seen]
+        with np.errstate(invalid="ignore"):  # inf * 0 where nothing is hit: NaN, as wanted
+            X = t[:, None] * d
+        X += cam.center  # the whole array, then NaN where unseen: no boolean gathers of 3-vectors
+        X[~seen] = np.nan
         normals, albedo = scene.surface(X, index, viewer=cam.center)
-        puv = np.full(uv.shape, np.nan)
-        if seen.any():
-            puv[seen] = prj.project(X[seen])
+        Xp = prj.to_device(X)
+        puv = prj.pixels_from_device(Xp)
+        puv[~seen] = np.nan
         to_p = prj.center - X
         dist = np.linalg.norm(to_p, axis=-1)
         cos = np.einsum("ij,ij->i", normals, to_p) / dist
-        Xp = prj.to_device(X)
         lim = self._field_limits()
         with np.errstate(invalid="ignore", divide="ignore"):
             in_field = seen & (Xp[:, 2] > 0) & (np.abs(Xp[:, 0] / Xp[:, 2]) < lim[0]) & (np.abs(Xp[:, 1] / Xp[:, 2]) < lim[1])
@@ -456,12 +457,14 @@ class SimRig:
     def _build_transport(self) -> LightTransport:
         cam, prj, o = self.camera, self.projector, self.optics
         H, W = cam.height, cam.width
-        offs = self._subpixel_offsets()
-        S = len(offs)
+        S = len(self._subpixel_offsets())
         pad = self._pad()
         Hp, Wp = prj.height + 2 * pad, prj.width + 2 * pad
-        idx = np.zeros((S, H * W), np.int32)
-        w = np.zeros((4, S, H * W), np.float32)
+        taps = np.array([0, 1, Wp, Wp + 1], np.int32)
+        # row r (camera pixel) holds its S sub-samples' 4 taps each, in that order; each band of
+        # rows is written in that layout as it is cast (a transposed copy that stays in cache)
+        cols = np.empty((H * W, S, 4), np.int32)
+        data = np.empty((H * W, S, 4), np.float32)
         ambient = np.zeros(H * W, np.float64)
         for r0, r1, uv, rays in self._camera_ray_chunks():
             c = self._cast(uv, rays)
@@ -476,17 +479,14 @@ class SimRig:
             s = np.where(ok, shade, 0.0)
             sl = slice(r0 * W, r1 * W)
             n = (r1 - r0) * W
-            idx[:, sl] = (y0 * Wp + x0).reshape(S, n)
+            idx = (y0 * Wp + x0).astype(np.int32).reshape(S, n)
+            cols[sl] = (idx[:, :, None] + taps).transpose(1, 0, 2)
             for k, wk in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
-                w[k, :, sl] = (s * wk).reshape(S, n)
+                data[sl, :, k] = (s * wk).reshape(S, n).T
             ambient[sl] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
-        taps = np.array([0, 1, Wp, Wp + 1], np.int32)
-        # row r (camera pixel) holds its S sub-samples' 4 taps each, in that order
-        cols = (idx[None, :, :] + taps[:, None, None]).transpose(2, 1, 0).reshape(-1)
-        data = w.transpose(2, 1, 0).reshape(-1)
-        del idx, w
         per_row = 4 * S
-        matrix = scipy.sparse.csr_matrix((data, cols, np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
+        matrix = scipy.sparse.csr_matrix((data.reshape(-1), cols.reshape(-1),
+                                          np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
                                          shape=(H * W, Hp * Wp))
         return LightTransport(matrix, ambient.reshape(H, W).astype(np.float32), pad, (Hp, Wp))
 

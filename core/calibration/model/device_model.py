@@ -116,7 +116,10 @@ class Device:
     # ---- projection -------------------------------------------------------------------
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (N, 3) to pixel coordinates (N, 2); NaN behind the device."""
-        Xc = self.to_device(X)
+        return self.pixels_from_device(self.to_device(X))
+
+    def pixels_from_device(self, Xc: np.ndarray) -> np.ndarray:
+        """Device coordinates (N, 3) (``to_device``) to pixel coordinates (N, 2); NaN behind the device."""
         z = Xc[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xu = np.where(z > 0, Xc[..., 0] / z, np.nan)
