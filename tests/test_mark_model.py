@@ -203,3 +203,36 @@ def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     for k, m in res.marks.labelled.items():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
     assert all(abs(a["value"] - truth.angles[k]) < 0.2 for k, a in res.angles.items())
+
+
+def _cut(region: np.ndarray, origin: tuple[int, int], seed: tuple[int, int], radius_mm: float) -> dict:
+    """A blob as ``candidate_blobs_at`` cuts it: its region round its seed (its ``centre``)."""
+    x0, y0 = origin
+    return {"slice": (slice(y0, y0 + region.shape[0]), slice(x0, x0 + region.shape[1])), "region": region,
+            "origin": origin, "centre": (float(seed[0]), float(seed[1])), "search_radius_mm": radius_mm}
+
+
+def test_a_seeds_cut_at_another_radius_is_a_hypothesis_where_it_differs_and_suits_the_size():
+    """The first search's radii cut one seed each their way; the union keeps the first radius's
+    blob and lists the others' differing regions as its other cuts, fitted (derived) only from
+    searches within a scale step of the marks' size."""
+    from anklescan.core.measure.mark_candidates import blob_union, same_region
+    from anklescan.core.measure.mark_hypotheses import derived
+
+    yy, xx = np.mgrid[0:60, 0:60]
+    disk = (xx - 30) ** 2 / 20**2 + (yy - 30) ** 2 / 12**2 <= 1  # face and wall: a clean ellipse
+    wall = disk & (xx < 18)  # the bright side wall alone: a sliver at the disk's edge
+    wall_at_5 = wall.copy()
+    wall_at_5[30, 18] = True  # one pixel more: the same region
+    seed = (100 + 14, 200 + 30)  # the brightest pixel, on the wall
+    small = _cut(wall, (100, 200), seed, 3.5)
+    same = _cut(wall_at_5, (100, 200), seed, 5.5)
+    large = _cut(disk, (100, 200), seed, 8.6)
+    assert same_region(small, same) and not same_region(small, large)
+    kept = blob_union(([small], [same], [large]), (400, 400))
+    assert kept == [small] and small["other_cuts"] == [large]
+    # the marks' size 12 mm: the 8.6 mm search suits it (within 1.6x); 3.8 mm: it does not
+    for radius_mm, expected in ((12.0, [large]), (3.8, [])):
+        hyps = derived(small, None, None, None, radius_mm, None, recut=True)
+        assert [h.blob for h in hyps if h.source is HypothesisSource.OTHER_CUT] == expected
+    assert all(h.parent is small for h in derived(small, None, None, None, 12.0, None, recut=True))

@@ -225,17 +225,39 @@ def candidate_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, noi
 
 
 def blob_union(searches: Iterable[list[Blob]], shape: tuple[int, ...]) -> list[Blob]:
-    """The blobs of several searches of one image, in order: a blob is dropped where its centre
-    lies in one kept before it."""
-    kept, taken = [], np.zeros(shape[:2], bool)
+    """The blobs of several searches of one image, in order: a blob whose centre lies in one kept
+    before it is not kept, but where its region differs from that one's (``same_region``) it is
+    listed in that blob's ``"other_cuts"``: the same seed cut at another radius's smoothing and
+    opening (a plate's bright side wall alone at a small radius, its face and wall together at a
+    larger one), a hypothesis where the kept cut fits no disk (``mark_hypotheses.derived``)."""
+    kept: list[Blob] = []
+    owner = np.full(shape[:2], -1, np.int32)  # the first kept blob covering each pixel
     for blobs in searches:
         for b in blobs:
             u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
-            if taken[v, u]:
+            k = int(owner[v, u])
+            if k >= 0:
+                if not same_region(kept[k], b):
+                    kept[k].setdefault("other_cuts", []).append(b)
                 continue
-            taken[b["slice"]] |= b["region"]
+            mine = owner[b["slice"]]
+            mine[b["region"] & (mine < 0)] = len(kept)
             kept.append(b)
     return kept
+
+
+def same_region(a: Blob, b: Blob) -> bool:
+    """True where two blobs' regions overlap by more than 1 / CONFIG.wider_min_growth of their
+    union (a cut that adds or drops less than that share is the same blob)."""
+    (ay, ax), (by, bx) = a["slice"], b["slice"]
+    y0, y1 = min(ay.start, by.start), max(ay.stop, by.stop)
+    x0, x1 = min(ax.start, bx.start), max(ax.stop, bx.stop)
+    both = np.zeros((2, y1 - y0, x1 - x0), bool)
+    both[0, ay.start - y0:ay.stop - y0, ax.start - x0:ax.stop - x0] = a["region"]
+    both[1, by.start - y0:by.stop - y0, bx.start - x0:bx.stop - x0] = b["region"]
+    inter = np.count_nonzero(both[0] & both[1])
+    union = np.count_nonzero(both[0] | both[1])
+    return bool(union and inter * CONFIG.wider_min_growth > union)
 
 
 def candidate_blobs_at(image: np.ndarray, points: np.ndarray, cal: Calibration, noise: float,
@@ -310,6 +332,7 @@ def candidate_blobs_at(image: np.ndarray, points: np.ndarray, cal: Calibration, 
         if blob is None:
             continue
         taken[blob["slice"]] |= blob["region"]
+        blob["search_radius_mm"] = math.sqrt(r_lo * r_hi)  # the disk size this search's scales suit
         blobs.append(blob)
     return blobs
 

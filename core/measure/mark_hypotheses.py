@@ -15,6 +15,9 @@ how far its fits are trusted against another hypothesis of the same disk
 - ``SIZED``: the lit image's blobs at the marks' size, and smaller where none is (a disk the
   range's openings merged with its bright surround);
 - ``WIDER``: a blob's wider cut (face and lit side wall together);
+- ``OTHER_CUT``: the same seed cut at another searched radius, where that region differs from
+  the blob's (``blob_union``: a plate's bright side wall alone at the smallest radius, its face
+  and wall at a larger one) and the radius suits the marks' size (``_suits_size``);
 - ``LIT_STICKER``: a blob fitted as a sticker on the lit image's edges (its surround in the
   corrected image is a silhouette's dark band);
 - ``PREDICTED`` / ``PREDICTED_PLATE``: the disk as it must image on the surface round a blob
@@ -22,14 +25,16 @@ how far its fits are trusted against another hypothesis of the same disk
   slid to where it stands out most (``predicted_disk``, ``disk_contrast_peak``).
 
 Derived hypotheses are made for the blobs whose own cut fits no disk (``derived``): wider cuts
-for every such blob, lit-sticker and predicted disks for the first search's; a re-cut lying on
-a disk already fitted well is a second view of it and is not fitted again, and of a re-cut
-that holds such a disk and more, the rest is the hypothesis (``unexplained``).
+and other radii's cuts for every such blob, lit-sticker and predicted disks for the first
+search's; a re-cut lying on a disk already fitted well is a second view of it and is not fitted
+again, and of a re-cut that holds such a disk and more, the rest is the hypothesis
+(``unexplained``).
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,6 +64,7 @@ class HypothesisSource(enum.Enum):
     CORRECTED = "corrected blob"
     SIZED = "blob at the marks' size"
     WIDER = "wider cut"
+    OTHER_CUT = "cut at another radius"
     LIT_STICKER = "sticker on the lit edges"
     PREDICTED = "predicted disk"
     PREDICTED_PLATE = "predicted plate"
@@ -191,7 +197,8 @@ def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_m
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
             thickness: float | None, *, recut: bool = False) -> list[Hypothesis]:
-    """What a blob that no cut fits may still be: its wider cut; and for a blob of the first
+    """What a blob that no cut fits may still be: its wider cut and its cuts at other radii
+    (``blob_union``'s ``"other_cuts"``); and for a blob of the first
     search (not a ``recut`` at the marks' size, whose surround was already searched at that
     size) a sticker on the lit image's edges, and the disk (and, where the capture's plates
     have a thickness, the plate) of the marks' size predicted on the surface round it, slid to
@@ -199,6 +206,8 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
     out = []
     if blob.get("wider") is not None:
         out.append(Hypothesis(blob["wider"], HypothesisSource.WIDER, CutImage.LIT, blob))
+    out.extend(Hypothesis(b, HypothesisSource.OTHER_CUT, CutImage.LIT, blob) for b in blob.get("other_cuts", ())
+               if _suits_size(b, radius_mm))
     if recut:
         return out
     out.append(Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob))
@@ -210,3 +219,12 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
         if found is not None:
             out.append(Hypothesis(found, source, CutImage.LIT, blob))
     return out
+
+
+def _suits_size(blob: Blob, radius_mm: float) -> bool:
+    """True where ``blob`` was cut by a search at a radius within ``CONFIG.scale_step`` of the marks'
+    radius: its smoothing (a quarter of that radius) and opening (2.2 radii) suit a disk of that
+    size. A much larger search's smoothing blurs a small plate's face into its surround, and its
+    cut holds both (an 8 mm plate cut at 13.5 mm: a face plane tilted 30°, the centre 4.7 mm off)."""
+    r = blob.get("search_radius_mm")
+    return r is None or abs(math.log(float(r) / radius_mm)) <= math.log(CONFIG.scale_step) + 1e-9
