@@ -271,7 +271,7 @@ def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
     assert tr is not None  # prepare() built it
     cam, o = still.camera, still.optics
     W = cam.width
-    with single_threaded_blas():  # type: ignore[no-untyped-call]  # hardware.simrig is not typed yet
+    with single_threaded_blas():
         rows = np.flatnonzero(affected_pixels(still, posed).ravel())
         offs = posed._subpixel_offsets()
         S = len(offs)
@@ -311,7 +311,7 @@ def swaying_capture(rig: SimRig, images: Sequence[np.ndarray], sway: Sway | Comb
         return rig.capture_many(images), [start_s + n * frame_s for n in range(len(images))]
     clock = SwayClock(sway, frame_s, start_s)
     old = rig.motion
-    rig.motion = clock  # type: ignore[assignment]  # SimRig.motion is untyped (None until set): simrig is not typed yet
+    rig.motion = clock
     try:
         frames = [rig.capture(im) for im in images]
     finally:

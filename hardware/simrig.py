@@ -13,10 +13,14 @@ a few multiply-adds, a blur and noise.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Literal, TypeAlias, TypedDict
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse
 from threadpoolctl import threadpool_limits
 
@@ -25,6 +29,9 @@ from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.vocabulary import LABEL_KEYS, Axis
 from anklescan.hardware.camera import Camera, CameraDisconnected, CameraInfo, Control, ProjectorOutput
 from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg_scene
+
+if TYPE_CHECKING:
+    from anklescan.hardware.sim_sway import SwayClock
 
 __all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
@@ -57,27 +64,37 @@ class Optics:
     # (raw, machine-vision cameras), ~2.2 = a webcam's or phone's sRGB-like output
 
 
-def single_threaded_blas():
+def single_threaded_blas() -> AbstractContextManager[object]:
     """Run the ray casting with one BLAS thread.
 
     Its matrix products are (N, 3) @ (3, 3): memory-bound, gaining nothing from threads, and
     OpenBLAS's threads on a busy 2-core machine make them ~30x slower (measured).
     """
-    return threadpool_limits(limits=1, user_api="blas")
+    limits: AbstractContextManager[object] = threadpool_limits(limits=1, user_api="blas")  # threadpoolctl: untyped
+    return limits
 
 
-_RAYS: dict = {"key": None, "chunks": {}}
+# (width, height, K, dist, R, t, axis, sub-pixel offsets): what a camera's rays depend on
+_RaysKey: TypeAlias = tuple[int, int, bytes, bytes, bytes, bytes, Axis, bytes]
 
 
-def _camera_rays_cache(cam: Device, offsets: np.ndarray) -> dict:
+class _RaysCache(TypedDict):
+    key: _RaysKey | None
+    chunks: dict[tuple[int, int], np.ndarray]  # (r0, r1) band of camera rows -> (N, 3) unit world rays
+
+
+_RAYS: _RaysCache = {"key": None, "chunks": {}}
+
+
+def _camera_rays_cache(cam: Device, offsets: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
     """Sub-pixel ray chunks of the last camera used in this process.
 
     Every trial of a session is a new scene before the same camera; its rays (and their
     undistortion, the costliest part of a scene's setup) are the same each time. One camera is
     kept, so the memory is bounded (~100 MB at full resolution with 2x2 sub-samples).
     """
-    key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes(), cam.R.tobytes(), cam.t.tobytes(),
-           cam.axis, offsets.tobytes())
+    key: _RaysKey = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes(), cam.R.tobytes(), cam.t.tobytes(),
+                     cam.axis, offsets.tobytes())
     if _RAYS["key"] != key:
         _RAYS["key"], _RAYS["chunks"] = key, {}
     return _RAYS["chunks"]
@@ -86,7 +103,8 @@ def _camera_rays_cache(cam: Device, offsets: np.ndarray) -> dict:
 # ---- devices ------------------------------------------------------------------------------
 
 
-def _aim(eye, target, K, width, height) -> tuple[np.ndarray, np.ndarray]:
+def _aim(eye: npt.ArrayLike, target: npt.ArrayLike, K: np.ndarray, width: int,
+         height: int) -> tuple[np.ndarray, np.ndarray]:
     """R, t so that ``target`` images at the frame centre despite an off-centre principal point
     (a projector's optical axis points well below its image) and the x axis stays level."""
     R0, _ = look_at(eye, target)
@@ -102,7 +120,7 @@ def _aim(eye, target, K, width, height) -> tuple[np.ndarray, np.ndarray]:
     return R, -R @ np.asarray(eye, float)
 
 
-def _scaled_K(fx, fy, cx, cy, scale):
+def _scaled_K(fx: float, fy: float, cx: float, cy: float, scale: float) -> np.ndarray:
     # Pixel centres are at integers (SPEC §4), so the image edge -0.5 is what scales.
     return np.array([[fx * scale, 0, (cx + 0.5) * scale - 0.5], [0, fy * scale, (cy + 0.5) * scale - 0.5], [0, 0, 1]])
 
@@ -130,7 +148,8 @@ def camera_eye(distance_mm: float, azimuth_deg: float, elevation_deg: float) -> 
 CAMERA_EYE = camera_eye(CAMERA_DISTANCE_MM, CAMERA_AZIMUTH_DEG, CAMERA_ELEVATION_DEG)
 
 
-def default_camera(scale: float = 1.0, *, eye=None, target=None, f=CAMERA_F_PX, dist=(-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:
+def default_camera(scale: float = 1.0, *, eye: npt.ArrayLike | None = None, target: npt.ArrayLike | None = None,
+                   f: float = CAMERA_F_PX, dist: npt.ArrayLike = (-0.08, 0.05, 7e-4, -5e-4, 0.0)) -> Device:
     """1600x1200 camera front-right of the leg (+x, +y), elevated, seeing front, lateral side and table."""
     W, H = round(1600 * scale), round(1200 * scale)
     K = _scaled_K(f, f * 1.0004, 799.5 + 6.3, 599.5 - 4.1, scale)
@@ -153,8 +172,9 @@ def layout_angle(layout: str | float) -> float:
     return float(layout)
 
 
-def default_projector(scale: float = 1.0, *, camera_eye=None, baseline=BASELINE_MM, target=None, f=PROJECTOR_F_PX,
-                      dist=(-0.03, 0.004, 3e-4, -2e-4, 0.0), layout: str | float = "side") -> Device:
+def default_projector(scale: float = 1.0, *, camera_eye: npt.ArrayLike | None = None, baseline: float = BASELINE_MM,
+                      target: npt.ArrayLike | None = None, f: float = PROJECTOR_F_PX,
+                      dist: npt.ArrayLike = (-0.03, 0.004, 3e-4, -2e-4, 0.0), layout: str | float = "side") -> Device:
     """1024x768 projector ``baseline`` mm from the camera, aimed at the same target with its image
     rows level. ``layout`` "side" (default): to the camera's left (lateral), level with it, so the
     baseline runs across projector columns (vertical stripes encode columns); "above": above the
@@ -189,11 +209,11 @@ class Truth:
     seen: np.ndarray  # (H, W) bool: the ray hits the scene
     lit: np.ndarray  # (H, W) bool: seen, inside the projector frame, facing it, not shadowed
     proj_uv: np.ndarray  # (H, W, 2) exact projector pixel coordinates of the hit (NaN if none)
-    marks: dict  # "1".."7" -> (3,) centre of the plate's top face
-    mark_normals: dict  # "1".."7" -> (3,)
-    table_angles: tuple | None  # set (inversion, plantar flexion), deg
-    angles: dict  # SPEC §3 angles from the true mark centres, deg
-    leg_axis_angles: tuple | None  # the leg axis' set (inversion, plantar flexion), deg
+    marks: dict[str, np.ndarray]  # "1".."7" -> (3,) centre of the plate's top face
+    mark_normals: dict[str, np.ndarray]  # "1".."7" -> (3,)
+    table_angles: tuple[float, float] | None  # set (inversion, plantar flexion), deg
+    angles: dict[str, float]  # SPEC §3 angles from the true mark centres, deg
+    leg_axis_angles: tuple[float, float] | None  # the leg axis' set (inversion, plantar flexion), deg
 
 
 # ---- the rig --------------------------------------------------------------------------------
@@ -209,7 +229,44 @@ class LightTransport:
     matrix: scipy.sparse.csr_matrix  # (H*W, Hp*Wp) float32, 4*S entries per row
     ambient: np.ndarray  # (H, W) float32 mean albedo * ambient
     pad: int
-    padded_shape: tuple
+    padded_shape: tuple[int, int]  # (Hp, Wp)
+
+
+class RayCast(TypedDict):
+    """``SimRig._cast``: per camera ray (N rays), everything that does not depend on the projector image."""
+
+    d: np.ndarray  # (N, 3) unit world rays
+    X: np.ndarray  # (N, 3) world hit points, NaN where nothing is hit
+    index: np.ndarray  # (N,) the scene object hit
+    seen: np.ndarray  # (N,) bool: the ray hits the scene
+    normals: np.ndarray  # (N, 3) outward unit normals
+    albedo: np.ndarray  # (N,)
+    proj_uv: np.ndarray  # (N, 2) projector pixel coordinates of the hit, NaN if none
+    cos: np.ndarray  # (N,) cosine of the projector light's incidence, 0 where not facing it
+    dist: np.ndarray  # (N,) hit-to-projector distance, mm
+    lit: np.ndarray  # (N,) bool: facing the projector, inside its field, not shadowed
+
+
+# the RayCast fields the ground truth keeps
+_TruthField: TypeAlias = Literal["X", "normals", "index", "seen", "lit", "proj_uv"]
+
+
+class ExposureSettings(TypedDict):
+    """The keyword arguments ``SimRig.capture`` and ``SimRig._expose`` share."""
+
+    exposure: float | None
+    gain: float
+    noise: bool
+    rng: np.random.Generator | None
+    bit_depth: int | None
+
+
+class RigCache(TypedDict, total=False):
+    """``SimRig._cache``: what a rig computes once."""
+
+    field: np.ndarray  # _field_limits
+    still: SimRig  # _still_rig
+    subject_pixels: np.ndarray  # hardware.sim_sway.affected_pixels: the subject at rest
 
 
 class SimRig:
@@ -223,7 +280,7 @@ class SimRig:
 
     def __init__(self, scene: Scene | None = None, camera: Device | None = None, projector: Device | None = None,
                  *, scale: float = 1.0, optics: Optics | None = None, seed: int | None = 0,
-                 layout: str | float = "side"):
+                 layout: str | float = "side") -> None:
         self.scene = scene if scene is not None else leg_scene()
         self.scale = float(scale)
         self.layout = layout
@@ -234,9 +291,9 @@ class SimRig:
         self.d0 = float(np.linalg.norm(RIG_TARGET - self.projector.center))
         self._transport: LightTransport | None = None
         self._truth: Truth | None = None
-        self._cache: dict = {}
+        self._cache: RigCache = {}
         # hardware.sim_sway.SwayClock: when set, the subject moves between captured frames
-        self.motion = None
+        self.motion: SwayClock | None = None
 
     # ---- public ----------------------------------------------------------------------------
     def true_calibration(self) -> Calibration:
@@ -261,17 +318,19 @@ class SimRig:
         """Noise-free camera irradiance (H, W) float32, 1 = full scale at exposure 1."""
         return next(self.render_linear_many([projector_image], blur=blur))
 
-    def render_linear_many(self, images, *, blur: bool = True):
+    def render_linear_many(self, images: Iterable[np.ndarray], *, blur: bool = True) -> Iterator[np.ndarray]:
         """``render_linear`` of each image in turn, as a generator. A few frames share one pass
         over the transport matrix, ~5x faster than one product per frame (the matrix, not the
         arithmetic, is the cost), with memory bounded by the batch."""
         self.prepare()
         tr = self._transport
+        assert tr is not None  # prepare() built it
         H, W = self.camera.height, self.camera.width
         sigma = self._sigma(self.optics.camera_blur_px)
-        images = list(images)
-        for i in range(0, len(images), _FRAMES_PER_PASS):
-            P = np.stack([self._projector_radiance(im, tr.pad).ravel() for im in images[i:i + _FRAMES_PER_PASS]], axis=1)
+        frames = list(images)
+        for i in range(0, len(frames), _FRAMES_PER_PASS):
+            P = np.stack([self._projector_radiance(im, tr.pad).ravel() for im in frames[i:i + _FRAMES_PER_PASS]],
+                         axis=1)
             lit = tr.matrix @ P
             for k in range(P.shape[1]):
                 img = lit[:, k].reshape(H, W) + tr.ambient
@@ -310,7 +369,7 @@ class SimRig:
             signal = np.clip(signal, 0.0, 1.0) ** np.float32(1.0 / o.camera_gamma)
         depth = bit_depth or o.bit_depth
         full = 65535.0 if depth == 16 else 255.0
-        out = np.clip(np.rint(signal * full), 0, full)
+        out: np.ndarray = np.clip(np.rint(signal * full), 0, full)
         return out.astype(np.uint16 if depth == 16 else np.uint8)
 
     def _still_rig(self) -> SimRig:
@@ -321,11 +380,13 @@ class SimRig:
             self._cache["still"] = still
         return self._cache["still"]
 
-    def capture_many(self, images, *, exposure: float | None = None, gain: float = 1.0, noise: bool = True,
-                     rng: np.random.Generator | None = None, bit_depth: int | None = None) -> list[np.ndarray]:
+    def capture_many(self, images: Iterable[np.ndarray], *, exposure: float | None = None, gain: float = 1.0,
+                     noise: bool = True, rng: np.random.Generator | None = None,
+                     bit_depth: int | None = None) -> list[np.ndarray]:
         """``capture`` of each image in order (the same frames, noise draws included), rendered
         in batches when the subject stands still."""
-        kw = {"exposure": exposure, "gain": gain, "noise": noise, "rng": rng, "bit_depth": bit_depth}
+        kw: ExposureSettings = {"exposure": exposure, "gain": gain, "noise": noise, "rng": rng,
+                                "bit_depth": bit_depth}
         if self.motion is not None:
             return [self.capture(im, **kw) for im in images]
         return [self._expose(linear, **kw) for linear in self.render_linear_many(images)]
@@ -355,7 +416,8 @@ class SimRig:
         else:
             v = np.clip(img.astype(np.float32), 0.0, 1.0)
         o = self.optics
-        rad = np.float32(o.projector_black) + np.float32(1 - o.projector_black) * v ** np.float32(o.projector_gamma)
+        rad: np.ndarray = (np.float32(o.projector_black)
+                           + np.float32(1 - o.projector_black) * v ** np.float32(o.projector_gamma))
         rad = cv2.copyMakeBorder(rad, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
         sigma = self._sigma(o.projector_blur_px)
         if sigma > 0:
@@ -379,7 +441,7 @@ class SimRig:
         xu, yu = p.normalized_from_pixels(corners)
         return np.array([np.abs(xu).max(), np.abs(yu).max()]) * 1.2
 
-    def _cast(self, uv: np.ndarray, d: np.ndarray | None = None) -> dict:
+    def _cast(self, uv: np.ndarray, d: np.ndarray | None = None) -> RayCast:
         """Everything projector-independent about camera rays through pixel coordinates uv (N, 2)
         (``d``: their unit world rays, when already known)."""
         cam, prj, scene = self.camera, self.projector, self.scene
@@ -410,7 +472,7 @@ class SimRig:
         return {"d": d, "X": X, "index": index, "seen": seen, "normals": normals, "albedo": albedo,
                 "proj_uv": puv, "cos": np.where(facing, cos, 0.0), "dist": dist, "lit": facing & unshadowed}
 
-    def _shading(self, c: dict) -> np.ndarray:
+    def _shading(self, c: RayCast) -> np.ndarray:
         """Projector-light weight per ray: albedo cos / (d/d0)^2 (+ optional highlight)."""
         o = self.optics
         inv_sq = (self.d0 / np.where(c["lit"], c["dist"], np.inf)) ** 2
@@ -429,12 +491,12 @@ class SimRig:
         du, dv = np.meshgrid(g, g)
         return np.stack([du.ravel(), dv.ravel()], axis=-1)  # (S, 2)
 
-    def _row_chunks(self, rays_per_row: int):
+    def _row_chunks(self, rays_per_row: int) -> Iterator[tuple[int, int]]:
         rows = max(1, _CHUNK_RAYS // rays_per_row)
         for r0 in range(0, self.camera.height, rows):
             yield r0, min(self.camera.height, r0 + rows)
 
-    def _camera_ray_chunks(self):
+    def _camera_ray_chunks(self) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
         """(r0, r1, sub-pixel uv, unit world rays) for each band of camera rows, the rays from
         this process's cache of the camera."""
         W = self.camera.width
@@ -493,7 +555,8 @@ class SimRig:
     def _build_truth(self) -> Truth:
         cam, prj = self.camera, self.projector
         H, W = cam.height, cam.width
-        out = {k: [] for k in ("X", "normals", "index", "seen", "lit", "proj_uv")}
+        fields: tuple[_TruthField, ...] = ("X", "normals", "index", "seen", "lit", "proj_uv")
+        out: dict[_TruthField, list[np.ndarray]] = {k: [] for k in fields}
         u = np.arange(W, dtype=np.float64)
         for r0, r1 in self._row_chunks(W):
             uu, vv = np.meshgrid(u, np.arange(r0, r1, dtype=np.float64))
@@ -527,7 +590,7 @@ class SimulatedProjector(ProjectorOutput):
     once: when it returns, the simulated camera photographs the new image (app.acquisition uses
     it directly, or feeds it what the real projector window paints)."""
 
-    def __init__(self, width: int, height: int):
+    def __init__(self, width: int, height: int) -> None:
         self._size = (int(width), int(height))
         self.image = np.zeros((height, width), np.uint8)
         self.shown = 0
@@ -558,7 +621,7 @@ class SimulatedCamera(Camera):
 
     PREVIEW_FACTOR = 4
 
-    def __init__(self, rig: SimRig, projector: SimulatedProjector, name: str = "Simulated camera"):
+    def __init__(self, rig: SimRig, projector: SimulatedProjector, name: str = "Simulated camera") -> None:
         self.rig, self.projector = rig, projector
         self._info = CameraInfo(name, "simulated", rig.camera.width, rig.camera.height)
         self._open = False

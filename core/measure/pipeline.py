@@ -7,9 +7,12 @@ write RESULT.json unless all seven marks are found and labelled, and writes it a
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NotRequired, TypedDict, cast
 
 import numpy as np
 
@@ -28,21 +31,42 @@ from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, est
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
 from anklescan.core.scan.triangulate import prepare
+from anklescan.core.vocabulary import JsonObject, MarkLabel
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
+
+
+class MarkDiameter(TypedDict):
+    """``MeasureResult.mark_diameter()``: the marks' diameter, mm."""
+
+    value: float
+    sd: float
+    given: bool  # as given (sd 0), not measured
+
+
+class MotionDetails(TypedDict):
+    """RESULT.json's ``motion``: how the motion estimate went."""
+
+    flagged: bool
+    threshold_mm: float
+    scan_duration_s: float | None
+    looks: int
+    patches: int
+    ambiguity_mm: float | None
+    reason: NotRequired[str]  # why there is no value (only when not measured)
 
 
 @dataclass
 class MeasureResult:
     marks: MarkSet
     angles: AngleResult  # only the angles whose marks were labelled
-    reconstruction: dict = field(default_factory=dict)  # the point cloud's summary
+    reconstruction: JsonObject = field(default_factory=dict)  # the point cloud's summary
     cloud: PointCloud | None = field(default=None, repr=False)  # kept for the viewer and the PLY
     motion: MotionEstimate | None = None  # how far the subject moved during the capture (core/scan/motion.py)
     motion_threshold_mm: float = DEFAULT_THRESHOLD_MM
     duration_s: float | None = None  # the capture's duration, from its frame timestamps
     warnings: list[str] = field(default_factory=list)  # SPEC §6: core/measure/measure_warnings.py
-    mark_uncertainty: dict = field(default_factory=dict)  # label -> MarkUncertainty: where each SD comes from
+    mark_uncertainty: dict[MarkLabel, MarkUncertainty] = field(default_factory=dict)  # where each SD comes from
     position_covariance: JointCovariance | None = None  # the marks' joint covariance the angles' SD come from
 
     @property
@@ -54,7 +78,7 @@ class MeasureResult:
     def complete(self) -> bool:
         return self.marks.complete
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> JsonObject:
         lab = self.marks.labelled
         return {
             "marks": {k: [float(v) for v in lab[k].centre] for k in sorted(lab)},
@@ -69,7 +93,7 @@ class MeasureResult:
             "mark_uncertainty": {str(k): v.to_dict() for k, v in sorted(self.mark_uncertainty.items())},
         }
 
-    def mark_diameter(self) -> dict | None:
+    def mark_diameter(self) -> MarkDiameter | None:
         """The marks' diameter: measured from the capture ({"value", "sd"} mm), or as given."""
         d = self.marks.diameter
         if d is None:
@@ -79,17 +103,19 @@ class MeasureResult:
         """One line for a trial that moved more than the threshold (SPEC §6: ``moved 3.2 mm during the scan``)."""
         if not self.motion_flagged:
             return ""
+        assert self.motion is not None  # motion_flagged says so
         return (f"the subject moved {self.motion.value_mm:.1f} mm during the scan "
                 f"(more than the {self.motion_threshold_mm:g} mm threshold: scan again)")
 
-    def _motion_details(self) -> dict:
+    def _motion_details(self) -> MotionDetails:
         m = self.motion or MotionEstimate(None, None, reason="not estimated")
-        out = {"flagged": self.motion_flagged, "threshold_mm": self.motion_threshold_mm,
-               "scan_duration_s": self.duration_s, "looks": m.looks, "patches": m.patches,
-               "ambiguity_mm": m.ambiguity_mm}
+        out: MotionDetails = {"flagged": self.motion_flagged, "threshold_mm": self.motion_threshold_mm,
+                              "scan_duration_s": self.duration_s, "looks": m.looks, "patches": m.patches,
+                              "ambiguity_mm": m.ambiguity_mm}
         if not m.measured:
             out["reason"] = m.reason
-        return _jsonable(out)
+        details: MotionDetails = _jsonable(out)
+        return details
 
     def format_text(self) -> str:
         lines = ["mark        x          y          z      radius   sd (mm)   seen / lit at"]
@@ -141,7 +167,9 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
         summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
         motion = moved.result()
         angles, shares, joint = honest_angles(marks, calibration, motion)
-        warnings = measure_warnings(WarningContext(marks.centres(), calibration, marks.overexposed_message()))
+        # the detector keys marks by the labels' text ("1".."7"), which the checks parse (parse_label)
+        warnings = measure_warnings(WarningContext(cast("Mapping[MarkLabel, np.ndarray]", marks.centres()), calibration,
+                                                   marks.overexposed_message()))
         warnings += frame_check.result()
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
                          scan_duration_s(capture), warnings, shares, joint)
@@ -152,13 +180,16 @@ def honest_angles(marks: MarkSet, calibration: Calibration, motion: MotionEstima
     """SPEC §3's angles with an SD from every source (core/measure/uncertainty.py)."""
     if not marks.labelled:
         return AngleResult(), {}, None
-    joint, shares = position_uncertainty(calibration, marks.centres(), marks.covariances(),
+    # the detector keys marks by the labels' text ("1".."7"), which position_uncertainty parses (parse_label)
+    joint, shares = position_uncertainty(calibration, cast("Mapping[MarkLabel, np.ndarray]", marks.centres()),
+                                         cast("Mapping[MarkLabel, np.ndarray]", marks.covariances()),
                                          motion_value_mm=None if motion is None else motion.value_mm,
                                          motion_sd_mm_=None if motion is None else motion.sd_mm)
     return compute_angles(marks.centres(), 0.0, joint=joint), shares, joint
 
 
-def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float | None = None, *,
+def run_measure(capture_dir: str | os.PathLike[str], calibration_path: str | os.PathLike[str],
+                out_path: str | os.PathLike[str], mark_diameter_mm: float | None = None, *,
                 motion_threshold_mm: float = DEFAULT_THRESHOLD_MM,
                 loading: Future[Capture] | None = None) -> MeasureResult:
     """The command: RESULT.json only for a complete measurement, else one-line AnkleScanError.
@@ -185,7 +216,8 @@ def run_measure(capture_dir, calibration_path, out_path, mark_diameter_mm: float
     return result
 
 
-def _jsonable(obj):
+def _jsonable(obj: object) -> Any:
+    """``obj`` ready for JSON, same shape: keys as text, tuples as lists, numpy scalars as Python's."""
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
