@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NotRequired, TypedDict, cast
+from typing import Any, NotRequired, TypedDict
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from anklescan.core.scan.motion import DEFAULT_THRESHOLD_MM, MotionEstimate, est
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.scan.reconstruct import check_compatible, cloud_from_decoded
 from anklescan.core.scan.triangulate import prepare
-from anklescan.core.vocabulary import JsonObject, MarkLabel
+from anklescan.core.vocabulary import JsonObject, MarkLabel, parse_label
 
 ANGLE_ORDER = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
@@ -167,8 +167,7 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
         summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
         motion = moved.result()
         angles, shares, joint = honest_angles(marks, calibration, motion)
-        # the detector keys marks by the labels' text ("1".."7"), which the checks parse (parse_label)
-        warnings = measure_warnings(WarningContext(cast("Mapping[MarkLabel, np.ndarray]", marks.centres()), calibration,
+        warnings = measure_warnings(WarningContext(_by_label(marks.centres()), calibration,
                                                    marks.overexposed_message()))
         warnings += frame_check.result()
     return MeasureResult(marks, angles, _jsonable(summary), cloud, motion, float(motion_threshold_mm),
@@ -180,12 +179,15 @@ def honest_angles(marks: MarkSet, calibration: Calibration, motion: MotionEstima
     """SPEC §3's angles with an SD from every source (core/measure/uncertainty.py)."""
     if not marks.labelled:
         return AngleResult(), {}, None
-    # the detector keys marks by the labels' text ("1".."7"), which position_uncertainty parses (parse_label)
-    joint, shares = position_uncertainty(calibration, cast("Mapping[MarkLabel, np.ndarray]", marks.centres()),
-                                         cast("Mapping[MarkLabel, np.ndarray]", marks.covariances()),
+    joint, shares = position_uncertainty(calibration, _by_label(marks.centres()), _by_label(marks.covariances()),
                                          motion_value_mm=None if motion is None else motion.value_mm,
                                          motion_sd_mm_=None if motion is None else motion.sd_mm)
     return compute_angles(marks.centres(), 0.0, joint=joint), shares, joint
+
+
+def _by_label(by_text: Mapping[str, np.ndarray]) -> dict[MarkLabel, np.ndarray]:
+    """The detector's marks keyed by the labels' text ("1".."7") keyed by ``MarkLabel`` instead."""
+    return {parse_label(k): v for k, v in by_text.items()}
 
 
 def run_measure(capture_dir: str | os.PathLike[str], calibration_path: str | os.PathLike[str],
