@@ -264,7 +264,7 @@ def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
     slice of the CSR arrays and is overwritten in place (same layout as SimRig._build_transport)."""
     import scipy.sparse
 
-    from anklescan.hardware.simrig import LightTransport, single_threaded_blas
+    from anklescan.hardware.simrig import LightTransport, single_threaded_blas, transport_taps
 
     still.prepare()
     tr = still._transport
@@ -275,32 +275,20 @@ def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
         rows = np.flatnonzero(affected_pixels(still, posed).ravel())
         offs = posed._subpixel_offsets()
         S = len(offs)
-        Hp, Wp = tr.padded_shape
         base = np.stack([rows % W, rows // W], axis=-1).astype(np.float64)
         uv = (base[None, :, :] + offs[:, None, :]).reshape(-1, 2)
         c = posed._cast(uv)
         shade = posed._shading(c) / S
-    x = c["proj_uv"][:, 0] + tr.pad
-    y = c["proj_uv"][:, 1] + tr.pad
-    ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
-    x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
-    y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
-    fx, fy = np.where(ok, x - x0, 0.0), np.where(ok, y - y0, 0.0)
-    sh = np.where(ok, shade, 0.0)
-    n = len(rows)
-    idx = (y0 * Wp + x0).reshape(S, n)
-    w = np.stack([(sh * wk).reshape(S, n) for wk in ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)])
-    taps = np.array([0, 1, Wp, Wp + 1], np.int64)
-    cols = (idx[None, :, :] + taps[:, None, None]).transpose(2, 1, 0).reshape(-1)
+    cols, weights = transport_taps(c["proj_uv"], shade, tr.pad, tr.padded_shape, S)
     per_row = 4 * S
     where = (rows[:, None] * per_row + np.arange(per_row)[None, :]).ravel()
     data = tr.matrix.data.copy()
     indices = tr.matrix.indices.copy()
-    data[where] = w.transpose(2, 1, 0).reshape(-1)
-    indices[where] = cols
+    data[where] = weights.reshape(-1)
+    indices[where] = cols.reshape(-1)
     matrix = scipy.sparse.csr_matrix((data, indices, tr.matrix.indptr), shape=tr.matrix.shape)
     ambient = tr.ambient.copy()
-    ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
+    ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, -1).mean(axis=0)
     return LightTransport(matrix, ambient, tr.pad, tr.padded_shape)
 
 

@@ -269,6 +269,30 @@ class RigCache(TypedDict, total=False):
     subject_pixels: np.ndarray  # hardware.sim_sway.affected_pixels: the subject at rest
 
 
+def transport_taps(proj_uv: np.ndarray, shade: np.ndarray, pad: int, padded_shape: tuple[int, int],
+                   S: int) -> tuple[np.ndarray, np.ndarray]:
+    """The light transport's rows for n camera pixels of S sub-samples each (``proj_uv`` (S·n, 2)
+    and ``shade`` (S·n,) sub-sample-major, as ``SimRig._cast`` gives them): each sub-sample's 4
+    bilinear taps into the padded projector image, as (columns (n, S, 4) int32, weights
+    (n, S, 4) float32); a sub-sample outside the padded image or unlit has zero weights."""
+    Hp, Wp = padded_shape
+    x = proj_uv[:, 0] + pad
+    y = proj_uv[:, 1] + pad
+    ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
+    x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
+    y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
+    fx = np.where(ok, x - x0, 0.0)
+    fy = np.where(ok, y - y0, 0.0)
+    s = np.where(ok, shade, 0.0)
+    n = len(shade) // S
+    idx = (y0 * Wp + x0).astype(np.int32).reshape(S, n)
+    cols = (idx[:, :, None] + np.array([0, 1, Wp, Wp + 1], np.int32)).transpose(1, 0, 2)
+    data = np.empty((n, S, 4), np.float32)
+    for k, wk in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
+        data[:, :, k] = (s * wk).reshape(S, n).T
+    return cols, data
+
+
 class SimRig:
     """Virtual camera + projector looking at ``scene``.
 
@@ -522,7 +546,6 @@ class SimRig:
         S = len(self._subpixel_offsets())
         pad = self._pad()
         Hp, Wp = prj.height + 2 * pad, prj.width + 2 * pad
-        taps = np.array([0, 1, Wp, Wp + 1], np.int32)
         # row r (camera pixel) holds its S sub-samples' 4 taps each, in that order; each band of
         # rows is written in that layout as it is cast (a transposed copy that stays in cache)
         cols = np.empty((H * W, S, 4), np.int32)
@@ -530,22 +553,9 @@ class SimRig:
         ambient = np.zeros(H * W, np.float64)
         for r0, r1, uv, rays in self._camera_ray_chunks():
             c = self._cast(uv, rays)
-            shade = self._shading(c) / S
-            x = c["proj_uv"][:, 0] + pad
-            y = c["proj_uv"][:, 1] + pad
-            ok = (shade > 0) & (x >= 0) & (y >= 0) & (x < Wp - 1) & (y < Hp - 1)
-            x0 = np.where(ok, np.floor(x), 0).astype(np.int64)
-            y0 = np.where(ok, np.floor(y), 0).astype(np.int64)
-            fx = np.where(ok, x - x0, 0.0)
-            fy = np.where(ok, y - y0, 0.0)
-            s = np.where(ok, shade, 0.0)
             sl = slice(r0 * W, r1 * W)
-            n = (r1 - r0) * W
-            idx = (y0 * Wp + x0).astype(np.int32).reshape(S, n)
-            cols[sl] = (idx[:, :, None] + taps).transpose(1, 0, 2)
-            for k, wk in enumerate(((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)):
-                data[sl, :, k] = (s * wk).reshape(S, n).T
-            ambient[sl] = (c["albedo"] * o.ambient).reshape(S, n).mean(axis=0)
+            cols[sl], data[sl] = transport_taps(c["proj_uv"], self._shading(c) / S, pad, (Hp, Wp), S)
+            ambient[sl] = (c["albedo"] * o.ambient).reshape(S, -1).mean(axis=0)
         per_row = 4 * S
         matrix = scipy.sparse.csr_matrix((data.reshape(-1), cols.reshape(-1),
                                           np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
