@@ -111,8 +111,8 @@ class Case:
 
     def describe(self) -> str:
         """The row's conditions in a few words."""
-        parts = [f"{self.inversion:g}/{self.plantar_flexion:g}",
-                 f"{self.mark_type or 'plate'} {self.diameter_mm or DEFAULT_DIAMETER_MM:g} mm"
+        kind = self.mark_type or (draw_variant(self.variant).mark_type if self.variant is not None else MarkKind.PLATE)
+        parts = [f"{self.inversion:g}/{self.plantar_flexion:g}", f"{kind} {self.true_diameter():.3g} mm"
                  + (f" x {self.thickness_mm:g}" if self.thickness_mm is not None else ""),
                  f"size {self.size}"]
         parts += [f"{label} {v:g}" for label, v in (("noise", self.noise_255), ("blur", self.camera_blur_px),
@@ -201,7 +201,8 @@ def captured(rig: SimRig) -> Any:
 
 def judge(case: Case, result: Any, truth_marks: Mapping[str, np.ndarray], truth_angles: Mapping[str, float],
           seconds: float = 0.0) -> CaseResult:
-    """``measure_capture``'s ``result`` against the true marks and angles."""
+    """``measure_capture``'s ``result`` against the true marks and angles. A refusal is one line and
+    labels no mark wrongly (nearest another true mark, or over ``WRONG_LABEL_MM`` from its own)."""
     labelled = result.marks.labelled
     errors = {k: float(np.linalg.norm(np.asarray(m.centre) - truth_marks[k])) for k, m in sorted(labelled.items())}
     wrong = tuple(k for k, m in sorted(labelled.items())
@@ -214,6 +215,8 @@ def judge(case: Case, result: Any, truth_marks: Mapping[str, np.ndarray], truth_
                   and len(angles) == len(truth_angles))
         return CaseResult(case, Outcome.RIGHT if within else Outcome.WRONG, errors, angles, wrong, "", seconds)
     message = str(result.marks.message())
+    if wrong:  # a refusal that labels another mark (or a false one) still tells the clinician a wrong place
+        return CaseResult(case, Outcome.WRONG, errors, angles, wrong, message, seconds)
     clear = bool(message.strip()) and "\n" not in message
     return CaseResult(case, Outcome.REFUSED if clear else Outcome.CRASH, errors, angles, wrong,
                       message if clear else f"a refusal that is not one line: {message!r}", seconds)

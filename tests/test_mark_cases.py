@@ -108,7 +108,8 @@ class _Result:
 def test_the_judge_tells_right_refused_and_wrong() -> None:
     """Against a scene's true marks and angles: exact is right; a centre 0.31 mm off, an angle
     0.21 deg off or two labels swapped, reported complete, is a WRONG answer; a refusal in one
-    line passes a harsh row only; a refusal over two lines is a fault."""
+    line passes a harsh row only, unless it labels a mark wrongly; a refusal over two lines is a
+    fault."""
     scene = leg_scene(10, -10)
     truth = {k: m.centre for k, m in scene.marks.items()}
     from anklescan.hardware.sim_scene import angles_from_marks
@@ -132,6 +133,9 @@ def test_the_judge_tells_right_refused_and_wrong() -> None:
     for case, passed in ((right, False), (harsh, True)):
         r = judge(case, _Result(marks(), {}, complete=False, message=refusal), truth, angles)
         assert r.outcome == Outcome.REFUSED and r.passed is passed and refusal in r.line()
+    partial = {k: m for k, m in marks(m1=truth["3"], m3=truth["1"]).items() if k != "4"}
+    mislabelled = judge(harsh, _Result(partial, {}, complete=False, message=refusal), truth, angles)
+    assert mislabelled.outcome == Outcome.WRONG and not mislabelled.passed and mislabelled.wrong_labels == ("1", "3")
     two_lines = judge(harsh, _Result(marks(), {}, complete=False, message="found 6\nmissing 4"), truth, angles)
     assert two_lines.outcome == Outcome.CRASH and not two_lines.passed
 
