@@ -233,7 +233,7 @@ def bounded_int(lo: int, hi: int, unit: str = "") -> Callable[[str], int]:
 def bounded_float(lo: float, hi: float, unit: str = "", *, lo_open: bool = False) -> Callable[[str], float]:
     """argparse ``type=`` for a finite number in [lo, hi] (``lo_open``: lo excluded, e.g. a
     length that must be positive: ``bounded_float(0, MAX_OPTION_MM, "mm", lo_open=True)``)."""
-    return Bounded(lo, hi, unit=unit, lo_open=lo_open)  # type: ignore[return-value]
+    return Bounded(lo, hi, unit=unit, lo_open=lo_open)
 
 
 @dataclass(frozen=True)

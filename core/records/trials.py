@@ -72,7 +72,7 @@ def _trial(row: sqlite3.Row) -> Trial:
     for k in ("motion_flagged", "motion_keep", "simulated"):
         d[k] = bool(d.get(k) or 0)
     d["status"] = TrialState(str(d["status"]))
-    return Trial(**d)  # type: ignore[arg-type]  # the table's columns are Trial's fields
+    return Trial(**d)  # the table's columns are Trial's fields
 
 
 # ----------------------------------------------------------------- files
