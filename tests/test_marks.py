@@ -189,6 +189,28 @@ def test_circle_fit_recovers_centre_and_radius_on_a_half_arc():
     assert np.sqrt(np.diag(cov)).max() < 0.05
 
 
+def test_circle_fit_agrees_with_a_least_squares_solver_and_survives_a_singular_start():
+    """Against scipy's least_squares on the same residuals (the radius prior as one more row,
+    its weight fixed at the fit's final one); points all on one ray from the start make the
+    normal equations singular: a step is still taken (minimum norm), no exception."""
+    from scipy.optimize import least_squares
+
+    from anklescan.core.measure.mark_config import CONFIG
+
+    rng = np.random.default_rng(3)
+    phi = np.linspace(0.3, 2.0, 25)
+    q = np.c_[1 + 6.0 * np.cos(phi), 4 + 6.0 * np.sin(phi)] + rng.normal(0, 0.05, (25, 2))
+    c, r, resid, _ = circle_geometric(q, np.array([0.0, 3.0]), 5.5, (6.1, 0.1))
+    w = max(float(np.sqrt(np.mean(resid**2))), CONFIG.edge_noise_floor_mm) / 0.1
+    ref = least_squares(lambda p: np.r_[np.hypot(*(q - p[:2]).T) - p[2], w * (p[2] - 6.1)], [0.0, 3.0, 5.5],
+                        xtol=1e-14, ftol=1e-14).x
+    assert np.allclose(np.r_[c, r], ref, atol=1e-5)
+    assert np.allclose(resid, np.hypot(*(q - c).T) - r)
+    on_a_ray = np.c_[np.arange(1.0, 6.0), np.zeros(5)]
+    out = circle_geometric(on_a_ray, np.array([0.0, 0.0]), 2.0)
+    assert out is None or np.all(np.isfinite(out[0]))
+
+
 def test_plane_fit_rejects_stray_points():
     rng = np.random.default_rng(2)
     P = np.c_[rng.uniform(-5, 5, (200, 2)), rng.normal(0, 0.05, 200)]

@@ -827,54 +827,78 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
     """
     p = np.array([c0[0], c0[1], r0], float)
     scale = CONFIG.edge_noise_floor_mm
+    q = np.asarray(q, float)
     n = len(q)
-    J = np.empty((n + (prior is not None), 3))  # filled in place: one allocation per fit, not per iteration
-    J[:n, 2] = -1.0
-    r = np.empty(len(J))
+    B = np.empty((n, 4))  # columns: the unit vectors from the centre (x, y), 1, the residual
+    B[:, 2] = 1.0
 
-    def prior_row(p: np.ndarray) -> None:
-        w = scale / prior[1]
-        J[n] = (0.0, 0.0, w)
-        r[n] = w * (p[2] - prior[0])
-
-    def system(p: np.ndarray) -> np.ndarray:  # J and r at p; returns the distances |q - c|
+    def system(p: np.ndarray) -> np.ndarray | None:  # B at p, and the normal sums B^T B
         d = q - p[:2]
-        rho = np.linalg.norm(d, axis=1)
-        J[:n, :2] = -d / rho[:, None]
-        r[:n] = rho - p[2]
-        if prior is not None:
-            prior_row(p)
-        return rho
+        rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+        if rho.min() < 1e-9:
+            return None
+        np.divide(d, rho[:, None], out=B[:, :2])
+        np.subtract(rho, p[2], out=B[:, 3])
+        return B.T @ B
 
     for _ in range(iterations):
-        rho = system(p)
-        if np.any(rho < 1e-9):
+        G = system(p)
+        if G is None:
             return None
+        (sxx, sxy, sx, sxr), (_, syy, sy, syr), (_, _, s1, sr), (_, _, _, srr) = G.tolist()
+        # J = -[ux, uy, 1]: J^T J and -J^T r are B's sums; the 3 x 3 solved in Python's floats (on
+        # a fit's 10-100 rows a LAPACK call's overhead was half the fit's time)
+        a22, b0, b1, b2 = s1, sxr, syr, sr
         if prior is not None:
-            scale = max(float(np.sqrt(np.mean(r[:n] ** 2))), CONFIG.edge_noise_floor_mm)
-            prior_row(p)
-        step = _gauss_newton_step(J, r)
+            scale = max(math.sqrt(srr / n), CONFIG.edge_noise_floor_mm)
+            w = scale / prior[1]
+            a22 += w * w
+            b2 -= w * w * (p[2] - prior[0])
+        step = _solve3(sxx, sxy, sx, syy, sy, a22, b0, b1, b2)
+        if step is None:
+            step = _least_squares_step(B, p, None if prior is None else (w, prior[0]))
         p += step
         if np.abs(step).max() < 1e-7:
             break
-    rho = system(p)
-    resid = rho - p[2]
-    dof = max(len(q) - 3, 1)
+    G = system(p)
+    if G is None:
+        return None
+    resid = B[:, 3].copy()
+    JTJ = G[:3, :3].copy()
+    if prior is not None:
+        JTJ[2, 2] += (scale / prior[1]) ** 2
+    dof = max(n - 3, 1)
     try:
-        cov = np.linalg.inv(J.T @ J) * max(float(resid @ resid) / dof, CONFIG.edge_noise_floor_mm**2)
+        cov = np.linalg.inv(JTJ) * max(float(resid @ resid) / dof, CONFIG.edge_noise_floor_mm**2)
     except np.linalg.LinAlgError:
         return None
     return p[:2], float(p[2]), resid, cov[:2, :2]
 
 
-def _gauss_newton_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The step minimising |J step + r|² by the 3 x 3 normal equations (a third of ``lstsq``'s
-    time on a fit's 10-100 rows; the circle's J is well conditioned wherever the fit is used),
-    by ``lstsq``'s minimum-norm solution where they are singular."""
-    try:
-        step: np.ndarray = np.linalg.solve(J.T @ J, -(J.T @ r))
-    except np.linalg.LinAlgError:
-        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+def _solve3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float,
+            b0: float, b1: float, b2: float) -> np.ndarray | None:
+    """x with A x = b for the symmetric 3 x 3 A, by its cofactors; None where A is singular."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if det == 0.0 or not math.isfinite(det):
+        return None
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    return np.array([(c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
+                     (c02 * b0 + c12 * b1 + c22 * b2) / det])
+
+
+def _least_squares_step(B: np.ndarray, p: np.ndarray, prior: tuple[float, float] | None) -> np.ndarray:
+    """``lstsq``'s minimum-norm step where the normal equations are singular; ``prior``: the
+    radius prior's (weight, radius)."""
+    J, r = -B[:, :3], B[:, 3]
+    if prior is not None:
+        w, R = prior
+        J, r = np.vstack([J, [0.0, 0.0, w]]), np.append(r, w * (p[2] - R))
+    step: np.ndarray = np.linalg.lstsq(J, -r, rcond=None)[0]
     return step
 
 
