@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.special
 
-from anklescan.core.calibration.procedures import levelling
+from anklescan.core import planes
+from anklescan.core.calibration.procedures import daily_check, levelling
 from anklescan.core.measure.mark_edges import normal_cdf
 
 
@@ -23,15 +24,27 @@ def test_ransac_inlier_counts_are_those_of_one_candidate_at_a_time() -> None:
     clutter = rng.uniform(-400, 400, (2000, 3))
     X = np.vstack([floor, top, clutter]) + [900.0, -700.0, 1500.0]
     samples = np.stack([X[rng.choice(len(X), 3, replace=False)] for _ in range(120)])
-    normals, points = levelling._sample_planes(samples)
+    normals, points = planes._sample_planes(samples)
     tol = 3.0
     edge = points[:5] + tol * normals[:5] * np.array([[1.0], [-1.0], [1.0], [-1.0], [1.0]])
     X = np.vstack([X, edge])
     direct = np.array([np.count_nonzero(np.abs((X - p) @ n) < tol) for n, p in zip(normals, points, strict=True)])
-    assert np.array_equal(levelling._inlier_counts(X, normals, points, tol), direct)
+    assert np.array_equal(planes._inlier_counts(X, normals, points, tol), direct)
     # the plane found is the first candidate with the most inliers, as the loop found it
     n, p = levelling._ransac_plane(X, tol, np.random.default_rng(0))
     assert abs(abs(n[2]) - 1.0) < 1e-3  # the floor: the plane with the most points
+    # the daily check's plane (250 samples) is that of a loop over the same draws
+    best = planes.ransac_plane(X, tol, np.random.default_rng(5), daily_check.RANSAC_ITERATIONS)
+    loop_rng, loop = np.random.default_rng(5), (None, None, -1)
+    for _ in range(daily_check.RANSAC_ITERATIONS):
+        q = X[loop_rng.choice(len(X), 3, replace=False)]
+        m = np.cross(q[1] - q[0], q[2] - q[0])
+        m = m / np.linalg.norm(m)
+        count = int(np.count_nonzero(np.abs((X - q[0]) @ m) < tol))
+        loop = (m, q[0], count) if count > loop[2] else loop
+    assert best is not None and best.inliers == loop[2]
+    assert np.array_equal(best.normal, loop[0]) and np.array_equal(best.point, loop[1])
+    assert planes.ransac_plane(np.zeros((10, 3)), tol, np.random.default_rng(0), 20) is None  # every sample degenerate
 
 
 def test_normal_cdf_matches_scipy() -> None:

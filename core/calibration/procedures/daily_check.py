@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError, GeometryError
+from anklescan.core.planes import least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject
 
@@ -183,26 +184,10 @@ def table_angles(normal: np.ndarray) -> tuple[float, float]:
     return math.degrees(math.atan2(n[0], n[2])), math.degrees(math.atan2(n[1], n[2]))
 
 
-def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c = X.mean(axis=0)
-    _, _, vt = np.linalg.svd(X - c, full_matrices=False)
-    n = vt[2]
+def _plane_up(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit normal with z >= 0, centroid): the least-squares plane of X, its normal upwards."""
+    n, c = least_squares_plane(X)
     return (n if n[2] >= 0 else -n), c
-
-
-def _ransac(X: np.ndarray, tol: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
-    best_n, best_p, best_cnt = np.array([0.0, 0, 1]), X[0], -1
-    for _ in range(RANSAC_ITERATIONS):
-        p = X[rng.choice(len(X), 3, replace=False)]
-        n = np.cross(p[1] - p[0], p[2] - p[0])
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n = n / norm
-        cnt = int(np.count_nonzero(np.abs((X - p[0]) @ n) < tol))
-        if cnt > best_cnt:
-            best_n, best_p, best_cnt = n, p[0], cnt
-    return best_n, best_p, best_cnt
 
 
 def _in_plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +208,7 @@ def _patch(X: np.ndarray, n: np.ndarray, p0: np.ndarray, tol: float) -> _Patch |
     on = X[np.abs((X - p0) @ n) < tol]
     if len(on) < 50:
         return None
-    n, c = _svd_plane(on)
+    n, c = _plane_up(on)
     on = X[np.abs((X - c) @ n) < tol]
     e1, e2 = _in_plane_axes(n)
     uv = np.stack([(on - c) @ e1, (on - c) @ e2], axis=1)
@@ -263,9 +248,10 @@ def find_top(points: np.ndarray, sigma: np.ndarray | None = None, *, min_area_mm
     for _ in range(MAX_PLANES):
         if len(sample) < 100:
             break
-        n, p0, cnt = _ransac(sample, tol, rng)
-        if cnt < 50:
+        best = ransac_plane(sample, tol, rng, RANSAC_ITERATIONS)
+        if best is None or best.inliers < 50:
             break
+        n, p0 = best.normal, best.point
         sample = sample[np.abs((sample - p0) @ n) >= tol]
         if abs(n[2]) < cos_max:
             continue
@@ -286,12 +272,12 @@ def find_top(points: np.ndarray, sigma: np.ndarray | None = None, *, min_area_mm
 def _robust_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Plane (normal, centre) of X with outliers (> 4 robust sigmas) dropped; and the kept mask."""
     keep = np.ones(len(X), bool)
-    n, c = _svd_plane(X)
+    n, c = _plane_up(X)
     for _ in range(4):
         r = (X - c) @ n
         s = robust_sigma(r[keep], centre=0.0)
         keep = np.abs(r) <= max(4.0 * s, 1e-6)
-        n, c = _svd_plane(X[keep])
+        n, c = _plane_up(X[keep])
     return n, c, keep
 
 
@@ -330,7 +316,7 @@ def _jackknife(X: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[float, floa
     for b in np.unique(block):
         rest = X[block != b]
         if len(rest) >= 3:
-            angles.append(table_angles(_svd_plane(rest)[0]))
+            angles.append(table_angles(_plane_up(rest)[0]))
     g = len(angles)
     if g < 2:
         return float("nan"), float("nan")

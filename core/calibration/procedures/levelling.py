@@ -38,6 +38,7 @@ from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.calibration.model.file import Calibration, moved_trust
 from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
+from anklescan.core.planes import least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
 from anklescan.core.scan.capture import Capture
 
@@ -52,8 +53,6 @@ EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's 
 # the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)
 
 
-_RANSAC_BLOCK_VALUES = 1 << 20  # float32 distances computed at once when counting RANSAC inliers (4 MB)
-_F32_MARGIN_MM = 1e-3  # float32 distances this close to the tolerance are computed again in float64
 SEQUENTIAL_PLANES = 6  # largest planes tried one after another, besides the level surfaces
 
 
@@ -109,68 +108,11 @@ class TableTop:
 
 
 def _ransac_plane(X: np.ndarray, tol: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normal, a point) of the plane holding the most points within ``tol``.
-
-    The RANSAC_ITERATIONS samples are drawn one at a time as always (the same draws in the same
-    order); their inliers are then counted a block of candidates at once in float32, and the few
-    points whose float32 distance lies within _F32_MARGIN_MM of ``tol`` are counted again as
-    before, in float64: the counts, and so the plane, are those of one candidate at a time."""
-    samples = []
-    for _ in range(RANSAC_ITERATIONS):
-        samples.append(X[rng.choice(len(X), 3, replace=False)])
-    if not samples:
+    """(unit normal, a point) of the plane holding the most points within ``tol`` (``ransac_plane``)."""
+    best = ransac_plane(X, tol, rng, RANSAC_ITERATIONS)
+    if best is None:
         raise GeometryError("the table scan holds no plane")
-    normals, points = _sample_planes(np.stack(samples))
-    if not len(normals):
-        raise GeometryError("the table scan holds no plane")
-    counts = _inlier_counts(X, normals, points, tol)
-    best = int(np.argmax(counts))  # the first of the largest counts, as one candidate at a time found it
-    return normals[best], points[best]
-
-
-def _sample_planes(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normals, first points) of the planes through each (3, 3) sample, the degenerate left out."""
-    crossed = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])
-    norms = np.array([np.linalg.norm(n) for n in crossed])  # each as one at a time computed it
-    keep = norms >= 1e-9
-    return crossed[keep] / norms[keep, None], samples[keep, 0]
-
-
-def _inlier_counts(X: np.ndarray, normals: np.ndarray, points: np.ndarray, tol: float) -> np.ndarray:
-    """Per candidate plane, the number of points of X within ``tol`` of it: ``|(X - p) @ n| < tol``.
-
-    Counted in float32: the points surely inside (below ``tol`` - _F32_MARGIN_MM), plus those about
-    on the tolerance's edge (within _F32_MARGIN_MM of it) counted in float64, as one at a time
-    counted them."""
-    centre = X.mean(axis=0)  # float32 distances about the points' centre: no large offsets cancel
-    Xc = np.ascontiguousarray((X - centre).T, dtype=np.float32)
-    n32 = normals.astype(np.float32)
-    off32 = np.einsum("ij,ij->i", points - centre, normals).astype(np.float32)
-    inside, outside = np.float32(tol - _F32_MARGIN_MM), np.float32(tol + _F32_MARGIN_MM)
-    counts = np.empty(len(normals), np.int64)
-    block = max(1, _RANSAC_BLOCK_VALUES // max(X.shape[0], 1))
-    for lo in range(0, len(normals), block):
-        n, off = n32[lo:lo + block], off32[lo:lo + block, None]
-        d = n[:, 0:1] * Xc[0]
-        d += n[:, 1:2] * Xc[1]
-        d += n[:, 2:3] * Xc[2]
-        d -= off
-        np.abs(d, out=d)
-        surely = np.count_nonzero(d < inside, axis=1)
-        maybe = np.count_nonzero(d < outside, axis=1)
-        counts[lo:lo + block] = surely
-        for j in np.flatnonzero(maybe != surely):  # the points about on the edge, counted in float64
-            i = lo + int(j)
-            edge = np.flatnonzero((d[j] >= inside) & (d[j] < outside))
-            counts[i] += np.count_nonzero(np.abs((X[edge] - points[i]) @ normals[i]) < tol)
-    return counts
-
-
-def _svd_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    c = X.mean(axis=0)
-    d = X - c
-    _, v = np.linalg.eigh(d.T @ d)  # the scatter's least direction (= the SVD's last, 3 x 3 only)
-    return v[:, 0], c
+    return best.normal, best.point
 
 
 def _ransac_planes(X: np.ndarray, tol: float, rng: np.random.Generator, count: int) -> list[np.ndarray]:
@@ -184,7 +126,7 @@ def _ransac_planes(X: np.ndarray, tol: float, rng: np.random.Generator, count: i
         on = np.abs((rest - p0) @ n) < tol
         if on.sum() < MIN_TOP_POINTS:
             break
-        nt, c = _svd_plane(rest[on])
+        nt, c = least_squares_plane(rest[on])
         out.append(np.concatenate([nt, c]))
         rest = rest[np.abs((rest - c) @ nt) >= 2 * tol]
     return out
@@ -204,7 +146,7 @@ def floor_normal(points: np.ndarray, camera_centre: np.ndarray, seed: int = 0) -
     on = sub[np.abs((sub - p0) @ n) < PLANE_TOL_MM]
     if len(on) < 0.2 * len(sub):
         return None  # no plane dominates the scan
-    n, c = _svd_plane(on)
+    n, c = least_squares_plane(on)
     return n if n @ (camera_centre - c) > 0 else -n
 
 
@@ -257,20 +199,20 @@ def _top_at(X: np.ndarray, cand: np.ndarray, n: np.ndarray, tol: float, camera_c
         raise GeometryError(f"the table top shows only {len(cand)} points: scan the whole top")
     # the top's own plane (it need not be exactly parallel to the floor): fitted to the candidate's
     # largest connected patch, then grown over the whole cloud along that plane
-    nt, c = _svd_plane(cand)
+    nt, c = least_squares_plane(cand)
     for _ in range(3):
         on = np.abs((cand - c) @ nt) < tol
         if on.sum() < 3:
             raise GeometryError("no table top found in the scan")
-        nt, c = _svd_plane(cand[on])
+        nt, c = least_squares_plane(cand[on])
     patch = _largest_patch(cand[np.abs((cand - c) @ nt) < tol], nt)
     if len(patch) < MIN_TOP_POINTS:
         raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
     for _ in range(2):
-        nt, c = _svd_plane(patch)
+        nt, c = least_squares_plane(patch)
         r = (patch - c) @ nt
         s = robust_sigma(r, centre=0.0)
-        nt, c = _svd_plane(patch[np.abs(r) < max(4 * s, 1e-6)])
+        nt, c = least_squares_plane(patch[np.abs(r) < max(4 * s, 1e-6)])
         patch = _largest_patch(X[np.abs((X - c) @ nt) < tol], nt)
         if len(patch) < MIN_TOP_POINTS:
             raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
@@ -300,11 +242,11 @@ def _top_at(X: np.ndarray, cand: np.ndarray, n: np.ndarray, tol: float, camera_c
     lab_top = (lab == 1 + int(np.argmax(sizes))).astype(np.uint8)
     interior = cv2.erode(lab_top, np.ones((5, 5), np.uint8))[ij[keep][:, 1], ij[keep][:, 0]].astype(bool)
     core_pts = top[interior] if interior.sum() >= 500 else top
-    nt, c = _svd_plane(core_pts)
+    nt, c = least_squares_plane(core_pts)
     for _ in range(3):
         r = (core_pts - c) @ nt
         s = robust_sigma(r, centre=0.0)
-        nt, c = _svd_plane(core_pts[np.abs(r) < max(4 * s, 1e-6)])
+        nt, c = least_squares_plane(core_pts[np.abs(r) < max(4 * s, 1e-6)])
     if nt @ n < 0:
         nt = -nt
     rms = float(np.sqrt(np.mean(((core_pts - c) @ nt) ** 2)))
