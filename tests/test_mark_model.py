@@ -183,6 +183,29 @@ def test_a_blob_of_two_disks_leaves_the_unfitted_one_as_a_hypothesis():
     assert unexplained(alone, points, [left], 12.5) is None
 
 
+def test_a_band_round_the_fitted_disk_is_not_part_of_the_other():
+    """Past ``explained_radii`` a fitted disk leaves a band round it in a re-cut (its blur, its
+    halo in the corrected image); joined to the neighbour by a thin neck it made the rest a disk
+    with a crescent. The rest is the neighbour alone, its own outline whole."""
+    from anklescan.core.measure.mark_hypotheses import unexplained
+
+    points = np.full((40, 80, 3), np.nan, np.float32)
+    points[..., 0] = np.arange(80, dtype=np.float32)[None, :]
+    points[..., 1] = np.arange(40, dtype=np.float32)[:, None] - 20.0
+    points[..., 2] = 300.0
+    yy, xx = np.mgrid[0:40, 0:80]
+    r_left = np.hypot(xx - 20, yy - 20)
+    other = np.hypot(xx - 52, yy - 20) <= 11.5
+    band = (r_left >= 15) & (r_left <= 18) & (yy >= 20)  # a 4 px crescent below the fitted disk
+    neck = (yy >= 20) & (yy <= 21) & (xx >= 37) & (xx <= 41)  # 2 px joining it to the other disk
+    region = (r_left <= 12.5) | band | neck | other
+    blob = {"region": region, "slice": (slice(0, 40), slice(0, 80)), "origin": (0, 0), "centre": (36.0, 20.0)}
+    rest = unexplained(blob, points, [_mark([20.0, 0.0, 300.0], [0.0, 0.0, 1.0])], 12.5)
+    assert rest is not None
+    assert not (rest["region"] & band).any() and (rest["region"] & other).sum() == other.sum()
+    assert abs(rest["centre"][0] - 52) < 0.5 and abs(rest["centre"][1] - 20) < 0.5
+
+
 @pytest.mark.parametrize("inv,pf", [(0, 20), (20, -20)])
 def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     """25 mm stickers with the lateral ankle one 50° round the leg: 2 mm of skin between the

@@ -278,6 +278,9 @@ class MarkConfig:
     #: a re-cut of which less than this share is left unexplained by the fitted disks is another
     #: view of them; with more left, the rest is a hypothesis of its own (two disks cut as one)
     unexplained_min_share: float = 0.25
+    #: px: the rest's bands narrower than twice this (the fitted disk's blurred border, its halo
+    #: in the shading-corrected image) are cut off before its largest part is taken (``unexplained``)
+    unexplained_opening_px: int = 2
     #: the best non-overlapping fits among which the seven the labels accept are chosen
     #: exhaustively (C(10, 7) = 120 labellings)
     selection_pool: int = 10
