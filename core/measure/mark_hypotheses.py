@@ -152,7 +152,7 @@ def _other_disk(rest: np.ndarray) -> np.ndarray:
     border still brightens a cut: its rim's blur, and in the shading-corrected image a halo
     where the surface's normals mix the plate's step with the skin (two 24.8 mm plates 1.7 mm
     apart: a crescent of skin 1.2-1.9 radii from the fitted one's centre, joined to the other
-    disk by a 2-3 px neck, made the rest "not elliptical"). An opening by a disk of
+    disk by a 2-3 px neck, made the rest "not elliptical"). An opening by a disk of radius
     ``CONFIG.unexplained_opening_px`` cuts such bands and necks; the part it leaves is grown back
     within the rest, so the disk's own outline is kept. Where the opening leaves nothing (a
     disk seen so obliquely that it is itself that thin) the rest is taken as it is."""
@@ -167,6 +167,7 @@ def _other_disk(rest: np.ndarray) -> np.ndarray:
 
 
 def _largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected part of a uint8 mask, as a bool mask."""
     count, labels = cv2.connectedComponents(mask, connectivity=8)
     sizes = np.bincount(labels.ravel(), minlength=count)
     sizes[0] = 0
