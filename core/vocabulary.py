@@ -188,12 +188,10 @@ class MarkRecord:
 
 
 @dataclass(frozen=True)
-class Trial:
-    id: int
-    session_id: int
-    created: str
-    ref_inversion: float | None
-    ref_plantar_flexion: float | None
+class TrialAngles:
+    """What a trial was measured at (degrees, SPEC §3), as stored: each angle with its SD, and
+    the mismatch between the leg and the table's reference; None where not measured."""
+
     leg_inversion: float | None = None
     leg_inversion_sd: float | None = None
     leg_plantar_flexion: float | None = None
@@ -206,6 +204,18 @@ class Trial:
     mismatch_inversion_sd: float | None = None
     mismatch_plantar_flexion: float | None = None
     mismatch_plantar_flexion_sd: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Trial(TrialAngles):
+    """A stored trial: its session, references, files, state, motion, and the angles it was
+    measured at (``TrialAngles``' fields, inherited)."""
+
+    id: int
+    session_id: int
+    created: str
+    ref_inversion: float | None
+    ref_plantar_flexion: float | None
     capture_path: str | None = None
     capture_sha256: str | None = None
     cloud_path: str | None = None

@@ -31,7 +31,6 @@ from anklescan.core.records.trials import (
     MOTION_THRESHOLD_MM,
     MarkPosition,
     MarkRepository,
-    TrialAngles,
     TrialRepository,
     Xyz,
     check_state,
@@ -39,7 +38,7 @@ from anklescan.core.records.trials import (
     mark_source,
     sha256_path,
 )
-from anklescan.core.vocabulary import ANGLE_FIELDS, LABELS, MarkLabel, MarkRecord, MarkSource, Trial, TrialState
+from anklescan.core.vocabulary import ANGLE_FIELDS, LABELS, MarkLabel, MarkRecord, MarkSource, Trial, TrialAngles, TrialState
 
 
 @dataclass(frozen=True)

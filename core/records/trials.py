@@ -33,31 +33,13 @@ from anklescan.core.vocabulary import (
     MarkRecord,
     MarkSource,
     Trial,
+    TrialAngles,
     TrialState,
     parse_label,
 )
 
 MOTION_THRESHOLD_MM = 0.5  # default; the app's setting overrides it per call
 Xyz = tuple[float, float, float]
-
-
-@dataclass(frozen=True)
-class TrialAngles:
-    """What a trial was measured at (degrees, SPEC §3), as stored: each angle with its SD, and
-    the mismatch between the leg and the table's reference; None where not measured."""
-
-    leg_inversion: float | None = None
-    leg_inversion_sd: float | None = None
-    leg_plantar_flexion: float | None = None
-    leg_plantar_flexion_sd: float | None = None
-    table_inversion: float | None = None
-    table_inversion_sd: float | None = None
-    table_plantar_flexion: float | None = None
-    table_plantar_flexion_sd: float | None = None
-    mismatch_inversion: float | None = None
-    mismatch_inversion_sd: float | None = None
-    mismatch_plantar_flexion: float | None = None
-    mismatch_plantar_flexion_sd: float | None = None
 
 
 def check_state(status: TrialState | str) -> TrialState:
