@@ -131,7 +131,7 @@ def _trial_figures(job):
         sds = [(float(m.sd), min(np.linalg.norm(m.centre - t) for t in res.truth_marks.values()) < FAKE_MM,
                 f"{m.label or '?'} {m.kind} seen at {m.view_deg:.0f}°, lit at {m.light_deg:.0f}°")
                for m in res.marks.marks]
-        # the doubtful fits kept (free radius far from the size, ``_restore_held``): how far off
+        # the doubtful fits kept (free radius far from the size, ``Mark.doubtful``): how far off
         doubtful = [(k, float(np.linalg.norm(e)), float(np.sqrt(e @ np.linalg.solve(m.covariance, e))))
                     for k, m in res.marks.labelled.items() if m.doubtful for e in [m.centre - res.truth_marks[k]]]
         past_sd = [(k, me[k], zk) for k, zk in z_by.items() if zk > Z_1PCT]  # printed, so a sweep says which

@@ -9,6 +9,7 @@ import pytest
 
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_fit import plane_from_pixels
+from anklescan.core.measure.mark_types import Ellipse, PredictedDisk
 from anklescan.core.scan.camera_response import GAMMA_GRID, response_gamma
 from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_variety import DIAMETER_RANGE_MM, draw_variant, variant_rig
@@ -209,7 +210,7 @@ def test_a_rim_beside_a_darker_region_is_read_against_the_surface_next_to_it():
     yy, xx = np.mgrid[0:100, 0:100].astype(np.float32)
     image = np.where(np.hypot(xx - 50, yy - 50) <= 20, 240.0, np.where(xx < 25, 10.0, 150.0)).astype(np.float32)
     image = cv2.GaussianBlur(image, (0, 0), 0.8)
-    pr = edge_profiles(image, {"centre": (50.0, 50.0), "axes": (20.0, 20.0), "angle": 0.0})
+    pr = edge_profiles(image, Ellipse((50.0, 50.0), (20.0, 20.0), 0.0))
     r = np.hypot(*(pr.points() - 50.0).T)
     assert len(r) > 0.9 * len(pr.dirs)
     assert np.max(np.abs(r - 20.0)) < 0.6, r.max()
@@ -225,7 +226,7 @@ def test_a_clipped_rim_has_a_span_inwards_and_an_unclipped_one_none():
 
     yy, xx = np.mgrid[0:100, 0:100].astype(np.float32)
     true = cv2.GaussianBlur(np.where(np.hypot(xx - 50.3, yy - 49.8) <= 20, 400.0, 100.0).astype(np.float32), (0, 0), 0.8)
-    shape = {"centre": (50.0, 50.0), "axes": (20.0, 20.0), "angle": 0.0}
+    shape = Ellipse((50.0, 50.0), (20.0, 20.0), 0.0)
     pr = edge_profiles(np.minimum(true, 250.0), shape, clipped=true >= 250.0)
     r = np.hypot(*(pr.points() - [50.3, 49.8]).T)
     inner = np.hypot(*(pr.points(pr.s_edge - pr.s_span) - [50.3, 49.8]).T)
@@ -268,11 +269,11 @@ def test_a_disk_beside_its_brighter_side_wall_is_found_by_its_outline():
     image = cv2.GaussianBlur(image, (0, 0), 0.8)
     mask = np.zeros((27, 27), np.uint8)
     cv2.ellipse(mask, (13, 13), (12, 7), 0, 0, 360, 1, -1)
-    blob = disk_contrast_peak(image, {"mask": mask.astype(bool), "centre": (52, 58)})
+    blob = disk_contrast_peak(image, PredictedDisk(mask.astype(bool), (52, 58)))
     assert blob is not None
     covered = np.zeros(face.shape, bool)
-    covered[blob["slice"]] = blob["region"]
-    assert (covered & face).sum() >= 0.8 * face.sum() and np.hypot(blob["centre"][0] - 60, blob["centre"][1] - 58) <= 3.5
+    covered[blob.window] = blob.region
+    assert (covered & face).sum() >= 0.8 * face.sum() and np.hypot(blob.centre[0] - 60, blob.centre[1] - 58) <= 3.5
 
 
 def test_a_dim_face_over_a_bright_wall_is_found_by_the_plate_outline():
@@ -301,10 +302,12 @@ def test_a_dim_face_over_a_bright_wall_is_found_by_the_plate_outline():
         return m.astype(bool)
 
     def found_centre(disk):  # where the face's centre (the frame's) stopped
-        return np.array(disk_contrast_peak(image, disk)["centre"])
+        blob = disk_contrast_peak(image, disk)
+        assert blob is not None
+        return np.array(blob.centre)
 
-    alone = found_centre({"mask": outline(0), "centre": (60, 58)})
-    plate = found_centre({"mask": outline(4), "face": outline(0), "centre": (60, 58)})
+    alone = found_centre(PredictedDisk(outline(0), (60, 58)))
+    plate = found_centre(PredictedDisk(outline(4), (60, 58), face=outline(0)))
     assert abs(alone[1] - 55) >= 3  # the disk alone: over the wall
     assert np.hypot(plate[0] - 60, plate[1] - 55) <= 1.5
 
@@ -316,7 +319,7 @@ def test_a_runaway_circle_fit_draws_no_profiles():
     from anklescan.core.measure.mark_edges import edge_profiles
 
     image = np.zeros((100, 100), np.float32)
-    huge = edge_profiles(image, {"centre": (50.0, 50.0), "axes": (4.0, 4.6e7), "angle": 10.0})
+    huge = edge_profiles(image, Ellipse((50.0, 50.0), (4.0, 4.6e7), 10.0))
     assert len(huge.rows) == 0 and len(huge.points()) == 0
 
 

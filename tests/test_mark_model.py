@@ -15,7 +15,7 @@ from anklescan.core.measure.mark_hypotheses import (
     on_a_fitted_disk,
 )
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, overlaps, select_marks
-from anklescan.core.measure.mark_types import Mark
+from anklescan.core.measure.mark_types import Blob, Mark
 from anklescan.hardware.sim_scene import leg_scene
 
 R = 7.5  # the default scene's plates' radius, mm
@@ -26,8 +26,13 @@ def _mark(centre, normal, *, rms=0.05, face=0.05, radius=R, radius_sd=0.05, doub
                 (0.0, 0.0), 30, 100, radius_sd=radius_sd, doubtful=doubtful)
 
 
+def _whole(region: np.ndarray, centre: tuple[float, float] = (0.0, 0.0)) -> Blob:
+    """A blob whose region is the image's top-left corner the size of ``region``."""
+    return Blob((slice(0, region.shape[0]), slice(0, region.shape[1])), region, centre)
+
+
 def _fit(mark: Mark, source=HypothesisSource.BLOB) -> MarkFit:
-    h = Hypothesis({"centre": (0.0, 0.0)}, source, CutImage.LIT)
+    h = Hypothesis(_whole(np.ones((1, 1), bool)), source, CutImage.LIT)
     return MarkFit(h, mark, fit_score(mark, R, CONFIG.radius_prior_sd_mm, source.tier))
 
 
@@ -112,8 +117,8 @@ def test_a_blob_is_on_a_fitted_disk_by_its_world_points_not_its_pixels():
     points[..., 2] = 300.0
     region = np.zeros((6, 6), bool)
     region[1:5, 1:5] = True
-    blob_a = {"slice": (slice(7, 13), slice(2, 8)), "region": region, "centre": (5.0, 10.0)}
-    blob_b = {"slice": (slice(7, 13), slice(15, 21)), "region": region, "centre": (18.0, 10.0)}
+    blob_a = Blob((slice(7, 13), slice(2, 8)), region, (5.0, 10.0))
+    blob_b = Blob((slice(7, 13), slice(15, 21)), region, (18.0, 10.0))
     pa, pb = blob_point(blob_a, points), blob_point(blob_b, points)
     disk_a = _mark(pa, [0.0, 0.0, 1.0])
     assert on_a_fitted_disk(blob_a, points, [disk_a], R)
@@ -135,6 +140,22 @@ def test_a_tier_is_settled_only_where_none_of_its_fits_could_change_the_choice()
     assert not settled(select_marks(good[:6], R), HypothesisSource.WIDER.tier)  # six marks: a seventh may come
 
 
+def test_a_doubtful_fit_gives_way_to_a_sure_one_and_not_beside_seven():
+    """A doubtful fit (its free radius far from the size) loses its place to a sure fit of the
+    same disk, is kept where nothing else fits there, and is left out beside seven sure marks
+    the labels accept, with the reason."""
+    scene = leg_scene(10, -10)
+    sure = [_fit(_mark(m.centre, m.normal, rms=0.02, face=0.02)) for _, m in sorted(scene.marks.items())]
+    away = scene.marks["1"].centre + [0.0, 0.0, 200.0]  # far from every true mark
+    doubtful_here = _fit(_mark(scene.marks["3"].centre + [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], doubtful=True))
+    sel = select_marks(sure[:6] + [doubtful_here, sure[6]], R)
+    assert all(any(f is c for c in sel.chosen) for f in sure) and not any(f is doubtful_here for f in sel.chosen)
+    alone = _fit(_mark(away, [0.0, 0.0, 1.0], doubtful=True))
+    assert any(f is alone for f in select_marks(sure[:6] + [alone], R).chosen)
+    sel = select_marks(sure + [alone], R)
+    assert not any(f is alone for f in sel.chosen) and "doubtful radius" in sel.left_out[-1]["reason"]
+
+
 def test_a_thin_disk_image_is_elliptical_and_a_crescent_is_not():
     """A disk seen at a grazing angle images as an ellipse a few pixels wide, whose rasterised
     outline's convex hull bridges its pixel steps: at 3 px half-wide its solidity fell to 0.86,
@@ -152,13 +173,13 @@ def test_a_thin_disk_image_is_elliptical_and_a_crescent_is_not():
             cx, cy, ang = rng.uniform(0, 1), rng.uniform(0, 1), rng.uniform(0, math.pi)
             x, y = u - 50 - cx, v - 50 - cy
             xr, yr = x * math.cos(ang) + y * math.sin(ang), -x * math.sin(ang) + y * math.cos(ang)
-            shape = blob_shape({"region": (xr / a) ** 2 + (yr / b) ** 2 <= 1.0, "origin": (0, 0)})
-            assert shape["solidity"] >= min_solidity(min(shape["axes"])), (a, b, shape["solidity"])
+            shape = blob_shape(_whole((xr / a) ** 2 + (yr / b) ** 2 <= 1.0))
+            assert shape is not None and shape.solidity >= min_solidity(min(shape.axes)), (a, b, shape)
     crescent = np.zeros((100, 100), np.uint8)
     cv2.circle(crescent, (50, 50), 20, 1, -1)
     cv2.circle(crescent, (50, 58), 20, 0, -1)
-    shape = blob_shape({"region": crescent.astype(bool), "origin": (0, 0)})
-    assert shape["solidity"] < min_solidity(min(shape["axes"]))
+    shape = blob_shape(_whole(crescent.astype(bool)))
+    assert shape is not None and shape.solidity < min_solidity(min(shape.axes))
     assert min_solidity(10.0) == CONFIG.min_solidity  # a disk well resolved: the fixed limit
 
 
@@ -173,13 +194,13 @@ def test_a_blob_of_two_disks_leaves_the_unfitted_one_as_a_hypothesis():
     points[..., 2] = 300.0
     both = np.zeros((20, 60), bool)
     both[5:15, 5:55] = True  # two 25 mm disks side by side, cut as one
-    blob = {"region": both, "slice": (slice(0, 20), slice(0, 60)), "origin": (0, 0), "centre": (30.0, 10.0)}
+    blob = _whole(both, (30.0, 10.0))
     left = _mark([17.5, 0.0, 300.0], [0.0, 0.0, 1.0])
     rest = unexplained(blob, points, [left], 12.5)
-    assert rest is not None and rest["centre"][0] > 35.0 and rest["region"].sum() < both.sum()
+    assert rest is not None and rest.centre[0] > 35.0 and rest.region.sum() < both.sum()
     assert unexplained(blob, points, [], 12.5) is blob
-    alone = dict(blob, region=np.zeros((20, 60), bool))
-    alone["region"][5:15, 8:27] = True  # the left disk's own pixels only
+    alone = _whole(np.zeros((20, 60), bool), blob.centre)
+    alone.region[5:15, 8:27] = True  # the left disk's own pixels only
     assert unexplained(alone, points, [left], 12.5) is None
 
 
@@ -199,11 +220,11 @@ def test_a_band_round_the_fitted_disk_is_not_part_of_the_other():
     band = (r_left >= 15) & (r_left <= 18) & (yy >= 20)  # a 4 px crescent below the fitted disk
     neck = (yy >= 20) & (yy <= 21) & (xx >= 37) & (xx <= 41)  # 2 px joining it to the other disk
     region = (r_left <= 12.5) | band | neck | other
-    blob = {"region": region, "slice": (slice(0, 40), slice(0, 80)), "origin": (0, 0), "centre": (36.0, 20.0)}
+    blob = _whole(region, (36.0, 20.0))
     rest = unexplained(blob, points, [_mark([20.0, 0.0, 300.0], [0.0, 0.0, 1.0])], 12.5)
     assert rest is not None
-    assert not (rest["region"] & band).any() and (rest["region"] & other).sum() == other.sum()
-    assert abs(rest["centre"][0] - 52) < 0.5 and abs(rest["centre"][1] - 20) < 0.5
+    assert not (rest.region & band).any() and (rest.region & other).sum() == other.sum()
+    assert abs(rest.centre[0] - 52) < 0.5 and abs(rest.centre[1] - 20) < 0.5
 
 
 @pytest.mark.parametrize("inv,pf", [(0, 20), (20, -20)])
@@ -228,11 +249,11 @@ def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     assert all(abs(a["value"] - truth.angles[k]) < 0.2 for k, a in res.angles.items())
 
 
-def _cut(region: np.ndarray, origin: tuple[int, int], seed: tuple[int, int], radius_mm: float) -> dict:
+def _cut(region: np.ndarray, origin: tuple[int, int], seed: tuple[int, int], radius_mm: float) -> Blob:
     """A blob as ``candidate_blobs_at`` cuts it: its region round its seed (its ``centre``)."""
     x0, y0 = origin
-    return {"slice": (slice(y0, y0 + region.shape[0]), slice(x0, x0 + region.shape[1])), "region": region,
-            "origin": origin, "centre": (float(seed[0]), float(seed[1])), "search_radius_mm": radius_mm}
+    return Blob((slice(y0, y0 + region.shape[0]), slice(x0, x0 + region.shape[1])), region,
+                (float(seed[0]), float(seed[1])), search_radius_mm=radius_mm)
 
 
 def test_a_seeds_cut_at_another_radius_is_a_hypothesis_where_it_differs_and_suits_the_size():
@@ -253,7 +274,7 @@ def test_a_seeds_cut_at_another_radius_is_a_hypothesis_where_it_differs_and_suit
     large = _cut(disk, (100, 200), seed, 8.6)
     assert same_region(small, same) and not same_region(small, large)
     kept = blob_union(([small], [same], [large]), (400, 400))
-    assert kept == [small] and small["other_cuts"] == [large]
+    assert kept == [small] and small.other_cuts == [large]
     # the marks' size 12 mm: the 8.6 mm search suits it (within 1.6x); 3.8 mm: it does not
     for radius_mm, expected in ((12.0, [large]), (3.8, [])):
         hyps = derived(small, None, None, None, radius_mm, None, recut=True)

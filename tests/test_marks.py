@@ -1,5 +1,6 @@
 """Mark detection, 3-D centre fit and labelling (anklescan.core.measure.marks)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -361,13 +362,14 @@ def test_profiles_that_end_on_the_plate_give_no_edge():
     on the plate's own falling edge; an "edge" read there lies inside the plate (a front knee
     plate was 0.59 mm off), so such profiles give none. Long enough profiles find the rim."""
     from anklescan.core.measure.mark_edges import edge_profiles
+    from anklescan.core.measure.mark_types import Ellipse
 
     yy, xx = np.mgrid[0:120, 0:120].astype(np.float32)
     r = np.hypot(xx - 60, yy - 60)
     image = (45.0 * (1.0 - np.tanh((r - 20.0) / 1.0))).astype(np.float32)  # a blurred disc, radius 20 px
-    small = edge_profiles(image, {"centre": (60.0, 60.0), "axes": (9.0, 9.0), "angle": 0.0})
+    small = edge_profiles(image, Ellipse((60.0, 60.0), (9.0, 9.0), 0.0))
     assert len(small.rows) == 0
-    whole = edge_profiles(image, {"centre": (60.0, 60.0), "axes": (14.0, 14.0), "angle": 0.0})
+    whole = edge_profiles(image, Ellipse((60.0, 60.0), (14.0, 14.0), 0.0))
     assert len(whole.rows) > 40
     assert np.abs(np.hypot(*(whole.points() - 60.0).T) - 20.0).max() < 0.1
 
@@ -517,14 +519,15 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     eighth mark (10 mm plates, 0/+20, 0.75 scale); half its border has no 3-D point, a disk's
     none."""
     from anklescan.core.measure.mark_config import CONFIG
+    from anklescan.core.measure.mark_types import Blob
     from anklescan.core.measure.marks import border_undecoded
 
     decoded = np.zeros((60, 60), bool)
     decoded[30:] = True
     region = np.zeros((9, 15), bool)
     region[3:6, 2:13] = True
-    streak = {"slice": (slice(27, 36), slice(20, 35)), "region": region}
-    disk = {"slice": (slice(40, 49), slice(20, 35)), "region": region}
+    streak = Blob((slice(27, 36), slice(20, 35)), region, (27.0, 31.0))
+    disk = Blob((slice(40, 49), slice(20, 35)), region, (27.0, 44.0))
     assert border_undecoded(streak, decoded) > CONFIG.second_look_max_border_undecoded
     assert border_undecoded(disk, decoded) == 0.0
 
@@ -551,56 +554,6 @@ def test_a_free_radius_far_from_the_size_in_its_sds_is_doubtful():
     assert radius_disagrees(4.46, 0.05, 4.86, 0.07)
     assert not radius_disagrees(4.66, 0.06, 4.93, 0.05)  # z 3.5, 0.14 mm off (default optics)
     assert not radius_disagrees(4.0, 0.5, 4.9, 0.05)  # a short arc: its own SD is large
-
-
-def test_a_doubtful_mark_gives_way_to_a_better_fit_or_is_kept():
-    """A doubtful fit (``Mark.doubtful``) is replaced by a fit the second look finds at its place,
-    not by another doubtful one, and kept where nothing else is found."""
-    from anklescan.core.measure.marks import _restore_held
-    from anklescan.hardware.simrig import SimRig
-
-    cal = SimRig(leg_scene(0, 0), scale=0.5, seed=0).true_calibration()
-    base = np.array([0.0, 0.0, 0.0])
-
-    def mark(offset_mm, doubtful, n_edge=20):
-        c = base + np.array([offset_mm, 0.0, 0.0])
-        return Mark(c, np.array([0.0, 0.0, 1.0]), 5.0, 0.05, 0.05, np.eye(3) * 0.01,
-                    tuple(float(v) for v in cal.camera.project(c[None])[0]), n_edge, 100, doubtful=doubtful)
-
-    held, better = mark(0.0, True), mark(0.5, False)
-    result = MarkSet(marks=[better])
-    _restore_held(result, [held], cal, 5.0)
-    assert [m is better for m in result.marks] == [True]
-    late = mark(0.5, True, n_edge=40)
-    result = MarkSet(marks=[late])
-    _restore_held(result, [held], cal, 5.0)
-    assert [m is held for m in result.marks] == [True]
-    far = mark(60.0, True)
-    result = MarkSet(marks=[better])
-    _restore_held(result, [far], cal, 5.0)
-    assert len(result.marks) == 2
-
-
-def test_no_doubtful_mark_is_kept_beside_seven_sure_ones():
-    """Seven sure marks leave no place for a doubtful one, however far from them: it is refused,
-    with the reason; with six it is kept."""
-    from anklescan.core.measure.marks import _restore_held
-    from anklescan.hardware.simrig import SimRig
-
-    cal = SimRig(leg_scene(0, 0), scale=0.5, seed=0).true_calibration()
-
-    def mark(x_mm, doubtful):
-        c = np.array([x_mm, 0.0, 0.0])
-        return Mark(c, np.array([0.0, 0.0, 1.0]), 5.0, 0.05, 0.05, np.eye(3) * 0.01,
-                    tuple(float(v) for v in cal.camera.project(c[None])[0]), 20, 100, doubtful=doubtful)
-
-    sure = [mark(40.0 * i, False) for i in range(7)]
-    result = MarkSet(marks=list(sure))
-    _restore_held(result, [mark(-60.0, True)], cal, 5.0)
-    assert result.marks == sure and "seven marks were already kept" in result.rejected[-1]["reason"]
-    result = MarkSet(marks=sure[:6])
-    _restore_held(result, [mark(-60.0, True)], cal, 5.0)
-    assert len(result.marks) == 7
 
 
 def test_face_smoothness_limit_scales_with_the_points_noise():
@@ -755,11 +708,10 @@ def test_a_candidate_is_a_mark_or_a_typed_refusal_and_the_free_pass_skips_only_t
     too_big = fit_mark(lit, points, blob, cal, None, sigma, prior_sd=None, radius_bounds=(12.0, 13.5))
     assert isinstance(too_big, Refusal) and too_big.reason is RefusalReason.RADIUS_OUT_OF_RANGE, too_big
     assert f"radius {mark.radius:.1f}" in str(too_big)[:-1] or "radius 7." in str(too_big)
-    ell = dict(blob)
-    region = blob["region"].copy()
+    region = blob.region.copy()
     h, w = region.shape
     region[: h // 2, : w // 2] = False  # an L, not an ellipse
-    ell["region"] = region
+    ell = dataclasses.replace(blob, region=region)
     bent = fit_mark(lit, points, ell, cal, 7.5, sigma)
     assert isinstance(bent, Refusal) and bent.reason is RefusalReason.NOT_ELLIPTICAL, bent
     for b, _ in plates:

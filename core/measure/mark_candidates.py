@@ -6,9 +6,10 @@ pixel, the image noise, and the shading-corrected (albedo-like) image. docs/mark
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable
-from typing import Any, cast
+from typing import cast
 
 import cv2
 import numpy as np
@@ -16,10 +17,9 @@ import numpy as np
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
+from anklescan.core.measure.mark_types import Blob, BlobCut, BlobShape, Ellipse, PredictedDisk
 from anklescan.core.robust import MAD_TO_SIGMA, robust_sigma
 from anklescan.core.scan.pointcloud import PointCloud
-
-Blob = dict[str, Any]  # a candidate: slice, region, origin, centre and how it was cut (docs/marks.md)
 
 
 def shading_corrected(image: np.ndarray, points: np.ndarray, cal: Calibration) -> np.ndarray:
@@ -227,21 +227,21 @@ def candidate_blobs(image: np.ndarray, points: np.ndarray, cal: Calibration, noi
 def blob_union(searches: Iterable[list[Blob]], shape: tuple[int, ...]) -> list[Blob]:
     """The blobs of several searches of one image, in order: a blob whose centre lies in one kept
     before it is not kept, but where its region differs from that one's (``same_region``) it is
-    listed in that blob's ``"other_cuts"``: the same seed cut at another radius's smoothing and
+    listed in that blob's ``other_cuts``: the same seed cut at another radius's smoothing and
     opening (a plate's bright side wall alone at a small radius, its face and wall together at a
     larger one), a hypothesis where the kept cut fits no disk (``mark_hypotheses.derived``)."""
     kept: list[Blob] = []
     owner = np.full(shape[:2], -1, np.int32)  # the first kept blob covering each pixel
     for blobs in searches:
         for b in blobs:
-            u, v = int(round(b["centre"][0])), int(round(b["centre"][1]))
+            u, v = int(round(b.centre[0])), int(round(b.centre[1]))
             k = int(owner[v, u])
             if k >= 0:
                 if not same_region(kept[k], b):
-                    kept[k].setdefault("other_cuts", []).append(b)
+                    kept[k].other_cuts.append(b)
                 continue
-            mine = owner[b["slice"]]
-            mine[b["region"] & (mine < 0)] = len(kept)
+            mine = owner[b.window]
+            mine[b.region & (mine < 0)] = len(kept)
             kept.append(b)
     return kept
 
@@ -249,12 +249,12 @@ def blob_union(searches: Iterable[list[Blob]], shape: tuple[int, ...]) -> list[B
 def same_region(a: Blob, b: Blob) -> bool:
     """True where two blobs' regions overlap by more than 1 / CONFIG.wider_min_growth of their
     union (a cut that adds or drops less than that share is the same blob)."""
-    (ay, ax), (by, bx) = a["slice"], b["slice"]
+    (ay, ax), (by, bx) = a.window, b.window
     y0, y1 = min(ay.start, by.start), max(ay.stop, by.stop)
     x0, x1 = min(ax.start, bx.start), max(ax.stop, bx.stop)
     both = np.zeros((2, y1 - y0, x1 - x0), bool)
-    both[0, ay.start - y0:ay.stop - y0, ax.start - x0:ax.stop - x0] = a["region"]
-    both[1, by.start - y0:by.stop - y0, bx.start - x0:bx.stop - x0] = b["region"]
+    both[0, ay.start - y0:ay.stop - y0, ax.start - x0:ax.stop - x0] = a.region
+    both[1, by.start - y0:by.stop - y0, bx.start - x0:bx.stop - x0] = b.region
     inter = np.count_nonzero(both[0] & both[1])
     union = np.count_nonzero(both[0] | both[1])
     return bool(union and inter * CONFIG.wider_min_growth > union)
@@ -325,15 +325,15 @@ def candidate_blobs_at(image: np.ndarray, points: np.ndarray, cal: Calibration, 
             if stands and bg is not None:
                 blob = cut_blob(smooth, (u, v), bg, half)
                 if blob is not None:
-                    blob["ring_cut"] = True
+                    blob = dataclasses.replace(blob, cut=BlobCut.RING)
         if blob is None and valid[v, u]:
             outlined = outlined or _without_outlines(smooth, valid, jump() if jump else _depth_steps(depth_img))
             blob = _depth_cut(*outlined, (u, v), background[v, u], half)
         if blob is None:
             continue
-        taken[blob["slice"]] |= blob["region"]
-        blob["search_radius_mm"] = math.sqrt(r_lo * r_hi)  # the disk size this search's scales suit
-        blobs.append(blob)
+        taken[blob.window] |= blob.region
+        # the disk size this search's scales suit
+        blobs.append(dataclasses.replace(blob, search_radius_mm=math.sqrt(r_lo * r_hi)))
     return blobs
 
 
@@ -352,11 +352,10 @@ def _depth_cut(masked: np.ndarray, jump: np.ndarray, seed: tuple[int, int], bg: 
     blob = cut_blob(masked, seed, bg, half)
     if blob is None:
         return None
-    ring = cv2.dilate(blob["region"].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob["region"]
-    if jump[blob["slice"]][ring].mean() < CONFIG.depth_step_min_border:
+    ring = cv2.dilate(blob.region.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~blob.region
+    if jump[blob.window][ring].mean() < CONFIG.depth_step_min_border:
         return None
-    blob["depth_cut"] = True
-    return blob
+    return dataclasses.replace(blob, cut=BlobCut.DEPTH)
 
 
 def _depth_steps(depth: np.ndarray) -> np.ndarray:
@@ -395,7 +394,7 @@ def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal
 
 def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) -> Blob | None:
     """The connected region around ``seed`` above half-way between its level and the
-    background; None where it reaches its window's border inside the image. ``blob["wider"]``,
+    background; None where it reaches its window's border inside the image. Its ``wider``,
     where present: the same from a lower first cut (see CONFIG.first_cut)."""
     u, v = seed
     H, W = smooth.shape
@@ -415,12 +414,9 @@ def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) ->
     cut, wider = regions
     if cut is None:
         return None
-    region = cut
-    blob = {"slice": (slice(y0, y1), slice(x0, x1)), "region": region, "origin": (x0, y0),
-            "centre": (float(u), float(v))}
-    if wider is not None and wider.sum() >= CONFIG.wider_min_growth * region.sum():
-        blob["wider"] = {**blob, "region": wider}
-    return blob
+    window, centre = (slice(y0, y1), slice(x0, x1)), (float(u), float(v))
+    grows = wider is not None and wider.sum() >= CONFIG.wider_min_growth * cut.sum()
+    return Blob(window, cut, centre, wider=Blob(window, wider, centre) if grows and wider is not None else None)
 
 
 def _region_at(roi: np.ndarray, seed: tuple[int, int], level: float) -> np.ndarray:
@@ -431,9 +427,9 @@ def _region_at(roi: np.ndarray, seed: tuple[int, int], level: float) -> np.ndarr
 def border_undecoded(blob: Blob, decoded: np.ndarray) -> float:
     """Fraction of the pixels just outside ``blob`` (a 2-px ring round its region) that have no
     3-D point. ``decoded``: (H, W) bool, or the (H, W, 3) points image."""
-    y0, x0 = blob["slice"][0].start, blob["slice"][1].start
+    x0, y0 = blob.origin
     H, W = decoded.shape[:2]
-    region = np.pad(blob["region"], 3)
+    region = np.pad(blob.region, 3)
     ring = (cv2.dilate(region.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & ~region
     v, u = np.nonzero(ring)
     v, u = v + y0 - 3, u + x0 - 3
@@ -446,9 +442,9 @@ def border_undecoded(blob: Blob, decoded: np.ndarray) -> float:
 
 
 def predicted_disk(points: np.ndarray, cal: Calibration, centre: tuple[float, float], radius_mm: float,
-                   thickness: float = 0.0) -> dict[str, Any] | None:
-    """The image of a disk of ``radius_mm`` lying on the surface near pixel ``centre``: a dict
-    with the filled outline ``mask`` (odd-sized, centred) and ``centre``, from a plane through
+                   thickness: float = 0.0) -> PredictedDisk | None:
+    """The image of a disk of ``radius_mm`` lying on the surface near pixel ``centre``: its
+    filled outline ``mask`` (odd-sized, centred) and ``centre``, from a plane through
     the decoded points within 2.5 radii (None where fewer than a third of them are decoded).
     ``thickness`` > 0: a plate standing that high, its face and side wall: ``mask`` is the
     outline of both (the hull of face and base), ``face`` that of the face alone, in the same
@@ -497,15 +493,15 @@ def predicted_disk(points: np.ndarray, cal: Calibration, centre: tuple[float, fl
     if face_mask.sum() < 5:
         return None
     hull = cv2.convexHull(np.vstack([face, base]).astype(np.float32))[:, 0]
-    return {"mask": filled(hull) | face_mask, "face": face_mask, "centre": (u, v)}
+    return PredictedDisk(filled(hull) | face_mask, (u, v), face_mask)
 
 
-def disk_contrast_peak(image: np.ndarray, disk: dict[str, Any], reach: float = 1.0) -> Blob | None:
+def disk_contrast_peak(image: np.ndarray, disk: PredictedDisk, reach: float = 1.0) -> Blob | None:
     """Where ``disk``'s outline (``predicted_disk``), slid within ``reach`` of its own size
     round its centre, holds the most light over a ring just outside it (a pixel clear of the
     outline, about a fifth of its size wide): a blob of that outline there, of the ``face``
     alone where the disk has one (None at the search window's edge or off the image)."""
-    mask = disk["mask"]
+    mask = disk.mask
     k = mask.shape[0]
     grow = max(k // 10, 1)  # 5 x 5 elliptical dilations, 2 px each
     inner = np.pad(mask, 2 * grow + 2)
@@ -517,7 +513,7 @@ def disk_contrast_peak(image: np.ndarray, disk: dict[str, Any], reach: float = 1
     kern = np.zeros((size, size), np.float32)
     kern[inner] = 1.0 / inner.sum()
     kern[ring] -= 1.0 / ring.sum()
-    u, v = disk["centre"]
+    u, v = disk.centre
     H, W = image.shape
     reach_px = int(math.ceil(reach * k / 2))
     pad = size // 2 + reach_px
@@ -534,15 +530,15 @@ def disk_contrast_peak(image: np.ndarray, disk: dict[str, Any], reach: float = 1
     half = k // 2
     if cv_ - half - 1 < 0 or cu - half - 1 < 0 or cv_ + half + 2 > H or cu + half + 2 > W:
         return None
-    region = np.pad(disk.get("face", mask), 1)
-    return {"slice": (slice(cv_ - half - 1, cv_ + half + 2), slice(cu - half - 1, cu + half + 2)), "region": region,
-            "origin": (cu - half - 1, cv_ - half - 1), "centre": (float(cu), float(cv_)), "predicted": True}
+    region = np.pad(mask if disk.face is None else disk.face, 1)
+    window = (slice(cv_ - half - 1, cv_ + half + 2), slice(cu - half - 1, cu + half + 2))
+    return Blob(window, region, (float(cu), float(cv_)), cut=BlobCut.PREDICTED)
 
 
-def blob_shape(blob: Blob) -> dict[str, Any] | None:
+def blob_shape(blob: Blob) -> BlobShape | None:
     """Ellipse fit and shape measures of a blob's outline, in full-image pixel coordinates."""
-    region = blob["region"].astype(np.uint8)
-    x0, y0 = blob["origin"]
+    region = blob.region.astype(np.uint8)
+    x0, y0 = blob.origin
     contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     c = max(contours, key=cv2.contourArea)
     if len(c) < 5:
@@ -551,13 +547,13 @@ def blob_shape(blob: Blob) -> dict[str, Any] | None:
     # Areas of the outline polygon (through pixel centres), like the ellipse fitted to it, so
     # the fill ratio does not depend on the blob's size in pixels.
     poly, hull = cv2.contourArea(c), cv2.contourArea(cv2.convexHull(c))
-    return {"centre": (cx + x0, cy + y0), "axes": (d1 / 2, d2 / 2), "angle": ang, "area": float(region.sum()),
-            "fill": poly / max(math.pi * d1 * d2 / 4, 1e-9), "solidity": poly / max(hull, 1e-9)}
+    return BlobShape((cx + x0, cy + y0), (d1 / 2, d2 / 2), ang, area=float(region.sum()),
+                     fill=poly / max(math.pi * d1 * d2 / 4, 1e-9), solidity=poly / max(hull, 1e-9))
 
 
-def ellipse_pixels(shape: dict[str, Any], fraction: float, img_shape: tuple[int, ...]) -> np.ndarray:
+def ellipse_pixels(shape: Ellipse, fraction: float, img_shape: tuple[int, ...]) -> np.ndarray:
     """Integer (u, v) pixels inside the blob's ellipse shrunk by ``fraction``."""
-    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    (cx, cy), (a, b) = shape.centre, shape.axes
     h, w = img_shape[:2]
     reach = max(a, b) * fraction + 2
     if not all(np.isfinite([cx, cy, reach])):
@@ -568,7 +564,7 @@ def ellipse_pixels(shape: dict[str, Any], fraction: float, img_shape: tuple[int,
     if x1 <= x0 or y1 <= y0:
         return np.zeros((0, 2), int)
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    cv2.ellipse(mask, ((cx - x0, cy - y0), (2 * a * fraction, 2 * b * fraction), shape["angle"]), 1, -1)
+    cv2.ellipse(mask, ((cx - x0, cy - y0), (2 * a * fraction, 2 * b * fraction), shape.angle), 1, -1)
     v, u = np.nonzero(mask)
     return np.stack([u + x0, v + y0], axis=1)
 

@@ -8,13 +8,13 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_types import Ellipse
 
 
 def ray_plane(origin: np.ndarray, rays: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -65,7 +65,7 @@ def _no_profiles(cx: float, cy: float) -> EdgeProfiles:
 
 
 
-def edge_profiles(image: np.ndarray, shape: dict[str, Any], local_level: bool = False,
+def edge_profiles(image: np.ndarray, shape: Ellipse, local_level: bool = False,
                   clipped: np.ndarray | None = None) -> EdgeProfiles:
     """Sub-pixel outline along radial profiles from the blob's centre: where the image falls
     half-way from the plate's interior level to the darkest level within ~2.5 px outside
@@ -79,12 +79,12 @@ def edge_profiles(image: np.ndarray, shape: dict[str, Any], local_level: bool = 
     clipped, half-way down from that level is outside the true half-way point (the disk is
     brighter than it reads), by up to the width of the fall: ``s_span`` says how far
     (``_clipped_bound``), and the fit carries that into the mark's covariance."""
-    (cx, cy), (a, b) = shape["centre"], shape["axes"]
+    (cx, cy), (a, b) = shape.centre, shape.axes
     if not (np.isfinite([cx, cy, a, b]).all() and min(a, b) > 0 and max(a, b) <= max(image.shape)):
         # no outline on this image (the face of a runaway circle fit, millions of pixels
         # across: its profiles would not fit in memory)
         return _no_profiles(cx, cy)
-    t = math.radians(shape["angle"])
+    t = math.radians(shape.angle)
     ea, eb = np.array([math.cos(t), math.sin(t)]), np.array([-math.sin(t), math.cos(t)])
     n_dir = int(np.clip(2 * math.pi * max(a, b), 48, 240))  # ~1 profile per outline pixel
     phi = np.arange(n_dir) * (2 * math.pi / n_dir)
@@ -440,14 +440,14 @@ def rim_image(cal: Calibration, centre: np.ndarray, normal: np.ndarray, radius_m
     return cal.camera.project(centre + radius_mm * (np.cos(phi)[:, None] * B[0] + np.sin(phi)[:, None] * B[1]))
 
 
-def face_shape(cal: Calibration, centre: np.ndarray, normal: np.ndarray, radius_mm: float) -> dict[str, Any] | None:
+def face_shape(cal: Calibration, centre: np.ndarray, normal: np.ndarray, radius_mm: float) -> Ellipse | None:
     """The image ellipse of the face (centre, normal, radius), as ``blob_shape`` gives a blob's:
     the outline that ``edge_profiles`` draws its profiles across."""
     uv = rim_image(cal, centre, normal, radius_mm, 64)
     if not np.isfinite(uv).all():
         return None
     (cx, cy), (d1, d2), ang = cv2.fitEllipse(uv.astype(np.float32))
-    return {"centre": (cx, cy), "axes": (d1 / 2, d2 / 2), "angle": ang}
+    return Ellipse((cx, cy), (d1 / 2, d2 / 2), ang)
 
 
 def top_face_pixels(cal: Calibration, centre: np.ndarray, normal: np.ndarray, radius_mm: float,

@@ -30,14 +30,24 @@ from anklescan.core.measure.mark_edges import (
     top_face_pixels,
 )
 from anklescan.core.measure.mark_image_model import fit_disk_image
-from anklescan.core.measure.mark_types import DiskFit, KnownDisk, Mark, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_types import (
+    Blob,
+    BlobCut,
+    BlobShape,
+    DiskFit,
+    KnownDisk,
+    Mark,
+    Refusal,
+    RefusalReason,
+    SurfaceStep,
+)
 from anklescan.core.measure.mark_wall import fit_wall, wall_points
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
 
 
-def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration, radius_mm: float | None,
+def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration, radius_mm: float | None,
              sigma: np.ndarray | None = None, *, prior_sd: float | None = CONFIG.radius_prior_sd_mm,
              radius_bounds: tuple[float, float] | None = None, albedo: np.ndarray | None = None,
              plate_thickness: float | None = None, lit_sticker_edges: bool = False, prefer_kind: MarkKind | None = None,
@@ -76,11 +86,11 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
         return Refusal(RefusalReason.TOO_SMALL, "too small to fit")
     # a predicted disk's outline is an ellipse by construction; rasterised a few pixels across
     # (a 15.7 mm plate seen at 74°: 7 px), its own solidity is 0.85-0.87
-    elliptical = (CONFIG.min_fill <= shape["fill"] <= CONFIG.max_fill
-                  and shape["solidity"] >= min_solidity(min(shape["axes"])))
-    if not blob.get("predicted") and not elliptical:
+    elliptical = (CONFIG.min_fill <= shape.fill <= CONFIG.max_fill
+                  and shape.solidity >= min_solidity(min(shape.axes)))
+    if blob.cut is not BlobCut.PREDICTED and not elliptical:
         return Refusal(RefusalReason.NOT_ELLIPTICAL,
-                       f"not elliptical (fill {shape['fill']:.2f}, solidity {shape['solidity']:.2f})")
+                       f"not elliptical (fill {shape.fill:.2f}, solidity {shape.solidity:.2f})")
     interior = ellipse_pixels(shape, CONFIG.interior_fraction, image.shape)
     cam_c = cal.camera.center
     plane = plane_from_pixels(points, sigma, interior, cam_c, consensus=True)
@@ -93,13 +103,13 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: dict, cal: Calibration
     depth = camera_depth(cal, centroid[None])[0]
     px_per_mm = float(plate_radius_px(cal, depth, 1.0))
     if radius_mm is None:
-        radius_mm = max(shape["axes"]) / px_per_mm  # the ellipse's long axis is not foreshortened
+        radius_mm = max(shape.axes) / px_per_mm  # the ellipse's long axis is not foreshortened
     lo, hi = radius_bounds or (radius_mm, radius_mm)
     area_lo = CONFIG.area_range[0] * math.pi * (lo * px_per_mm) ** 2
     area_hi = CONFIG.area_range[1] * math.pi * (hi * px_per_mm) ** 2
-    if not area_lo <= shape["area"] <= area_hi:
+    if not area_lo <= shape.area <= area_hi:
         return Refusal(RefusalReason.WRONG_AREA,
-                       f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape['area']:.0f} px)")
+                       f"wrong size for a mark at {np.linalg.norm(centroid - cam_c):.0f} mm ({shape.area:.0f} px)")
     profiles = edge_profiles(image, shape, clipped=clipped)
     if len(profiles.rows) < CONFIG.min_edge_points:
         return Refusal(RefusalReason.NO_EDGE, "no clear edge")
@@ -154,11 +164,11 @@ def step_kind(step_mm: float | None, step_sd: float) -> MarkKind | None:
     return MarkKind.PLATE if step_mm - 3 * step_sd > CONFIG.sticker_max_step_mm else None
 
 
-def _seen_share(shape: dict, radius_mm: float, px_per_mm: float, view: float) -> float:
+def _seen_share(shape: BlobShape, radius_mm: float, px_per_mm: float, view: float) -> float:
     """The blob's area over the image area of the fitted disk (radius ``radius_mm`` seen at
     ``view`` degrees, ``px_per_mm`` at its depth)."""
     disk_px = math.pi * (radius_mm * px_per_mm) ** 2 * max(math.cos(math.radians(view)), 1e-3)
-    return float(shape["area"]) / disk_px
+    return shape.area / disk_px
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +178,7 @@ class _Candidate:
     image: np.ndarray  # (H, W) lit image
     points: np.ndarray  # (H, W, 3) decoded world points
     sigma: np.ndarray | None  # (H, W) their predicted SD, mm
-    shape: dict  # the blob's image ellipse (``blob_shape``)
+    shape: BlobShape  # the blob's image ellipse (``blob_shape``)
     profiles: EdgeProfiles  # radial edge profiles in the lit image
     cal: Calibration
     centroid: np.ndarray  # first plane: a point on it ...

@@ -36,7 +36,6 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -52,9 +51,7 @@ from anklescan.core.measure.mark_candidates import (
     predicted_disk,
 )
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_types import Mark
-
-Blob = dict[str, Any]  # ``candidate_blobs``' blob: region, slice, origin, centre (u, v), and its cuts
+from anklescan.core.measure.mark_types import Blob, Mark
 
 
 class HypothesisSource(enum.Enum):
@@ -88,7 +85,7 @@ class CutImage(enum.Enum):
 
 @dataclass(frozen=True, eq=False)
 class Hypothesis:
-    """One candidate disk: its blob (``candidate_blobs``' dict, or a predicted outline's), how it
+    """One candidate disk: its blob (``candidate_blobs``', or a predicted outline's), how it
     was made, and the image it was cut from. ``parent``: the blob it was derived from, if any."""
 
     blob: Blob
@@ -99,13 +96,13 @@ class Hypothesis:
     @property
     def pixel(self) -> tuple[float, float]:
         """(u, v) camera pixel of its region's centre."""
-        u, v = self.blob["centre"]
+        u, v = self.blob.centre
         return float(u), float(v)
 
 
 def blob_point(blob: Blob, points: np.ndarray) -> np.ndarray | None:
     """The median world point (mm) of the decoded pixels of ``blob``'s region, or None."""
-    P = points[blob["slice"]][blob["region"]]
+    P = points[blob.window][blob.region]
     P = P[np.isfinite(P[:, 0])]
     return None if not len(P) else np.median(P, axis=0)
 
@@ -127,8 +124,8 @@ def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: fl
     largest remaining connected part where some do (two disks side by side cut as one blob, one
     of them fitted: the other's hypothesis), None where less than CONFIG.unexplained_min_share of
     it remains (another view of a disk fitted: its face, its side wall)."""
-    region = np.asarray(blob["region"], bool)
-    P = points[blob["slice"]]
+    region = np.asarray(blob.region, bool)
+    P = points[blob.window]
     inside = np.zeros(region.shape, bool)
     for m in marks:
         d = np.linalg.norm(P - m.centre, axis=-1)
@@ -141,9 +138,8 @@ def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: fl
         return None
     part = _other_disk(rest)
     v, u = np.nonzero(part)
-    x0, y0 = blob["origin"]
-    return {"region": part, "slice": blob["slice"], "origin": blob["origin"],
-            "centre": (float(u.mean() + x0), float(v.mean() + y0))}
+    x0, y0 = blob.origin
+    return Blob(blob.window, part, (float(u.mean() + x0), float(v.mean() + y0)))
 
 
 def _other_disk(rest: np.ndarray) -> np.ndarray:
@@ -195,7 +191,7 @@ def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, 
     for img, source, cut in ((albedo, HypothesisSource.CORRECTED, CutImage.CORRECTED),
                              (image, HypothesisSource.SIZED, CutImage.LIT)):
         for blob in _sized_blobs(img, points, cal, radius_mm, depth):
-            if decoded[blob["slice"]][blob["region"]].mean() < CONFIG.second_look_min_decoded:
+            if decoded[blob.window][blob.region].mean() < CONFIG.second_look_min_decoded:
                 continue
             if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
                 continue
@@ -223,15 +219,15 @@ def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_m
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
             thickness: float | None, *, recut: bool = False) -> list[Hypothesis]:
     """What a blob that no cut fits may still be: its wider cut and its cuts at other radii
-    (``blob_union``'s ``"other_cuts"``); and for a blob of the first
+    (``blob_union``'s ``other_cuts``); and for a blob of the first
     search (not a ``recut`` at the marks' size, whose surround was already searched at that
     size) a sticker on the lit image's edges, and the disk (and, where the capture's plates
     have a thickness, the plate) of the marks' size predicted on the surface round it, slid to
     where it stands out most."""
     out = []
-    if blob.get("wider") is not None:
-        out.append(Hypothesis(blob["wider"], HypothesisSource.WIDER, CutImage.LIT, blob))
-    out.extend(Hypothesis(b, HypothesisSource.OTHER_CUT, CutImage.LIT, blob) for b in blob.get("other_cuts", ())
+    if blob.wider is not None:
+        out.append(Hypothesis(blob.wider, HypothesisSource.WIDER, CutImage.LIT, blob))
+    out.extend(Hypothesis(b, HypothesisSource.OTHER_CUT, CutImage.LIT, blob) for b in blob.other_cuts
                if _suits_size(b, radius_mm))
     if recut:
         return out
@@ -239,7 +235,7 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
     for height, source in ((0.0, HypothesisSource.PREDICTED), (thickness, HypothesisSource.PREDICTED_PLATE)):
         if height is None or (source is HypothesisSource.PREDICTED_PLATE and not height):
             continue
-        disk = predicted_disk(points, cal, blob["centre"], radius_mm, thickness=height)
+        disk = predicted_disk(points, cal, blob.centre, radius_mm, thickness=height)
         found = None if disk is None else disk_contrast_peak(image, disk)
         if found is not None:
             out.append(Hypothesis(found, source, CutImage.LIT, blob))
@@ -251,5 +247,5 @@ def _suits_size(blob: Blob, radius_mm: float) -> bool:
     radius: its smoothing (a quarter of that radius) and opening (2.2 radii) suit a disk of that
     size. A much larger search's smoothing blurs a small plate's face into its surround, and its
     cut holds both (an 8 mm plate cut at 13.5 mm: a face plane tilted 30°, the centre 4.7 mm off)."""
-    r = blob.get("search_radius_mm")
-    return r is None or abs(math.log(float(r) / radius_mm)) <= math.log(CONFIG.scale_step) + 1e-9
+    r = blob.search_radius_mm
+    return r is None or abs(math.log(r / radius_mm)) <= math.log(CONFIG.scale_step) + 1e-9

@@ -41,6 +41,65 @@ class RefusalReason(enum.Enum):
     WRONG_KIND = "not of the capture's kind of mark"
 
 
+@dataclass(frozen=True)
+class Ellipse:
+    """An outline's image ellipse in full-image pixels, as ``cv2.fitEllipse`` gives it."""
+
+    centre: tuple[float, float]  # (u, v)
+    axes: tuple[float, float]  # semi-axes, px
+    angle: float  # degrees, of the first axis
+
+
+@dataclass(frozen=True)
+class BlobShape(Ellipse):
+    """A blob's ellipse and how well its region fills it (``mark_candidates.blob_shape``)."""
+
+    area: float  # pixels in the region
+    fill: float  # outline polygon's area over the ellipse's
+    solidity: float  # outline polygon's area over its convex hull's
+
+
+class BlobCut(enum.Enum):
+    """How a candidate's region was cut (docs/marks.md, "Candidates")."""
+
+    LEVEL = "half-way over the opening"
+    RING = "half-way over the surround's ring"
+    DEPTH = "within the depth steps round it"
+    PREDICTED = "a predicted disk's outline"
+
+
+@dataclass(frozen=True, eq=False)
+class Blob:
+    """A candidate disk's image region: a bool ``region`` over the image's ``window``
+    (rows, columns), its seed or centre (u, v), and how it was cut. ``search_radius_mm``: the
+    disk size whose search cut it (None: not from a search); ``wider``: the same seed's lower
+    first cut, where it grows the region; ``other_cuts``: the same seed cut at other searched
+    radii (``blob_union``)."""
+
+    window: tuple[slice, slice]
+    region: np.ndarray  # (h, w) bool
+    centre: tuple[float, float]
+    cut: BlobCut = BlobCut.LEVEL
+    search_radius_mm: float | None = None
+    wider: Blob | None = None
+    other_cuts: list[Blob] = field(default_factory=list)
+
+    @property
+    def origin(self) -> tuple[int, int]:
+        """(x0, y0): the full-image pixel of ``region``'s first column and row."""
+        return int(self.window[1].start), int(self.window[0].start)
+
+
+@dataclass(frozen=True, eq=False)
+class PredictedDisk:
+    """The image of a disk of the marks' size on the surface near a pixel
+    (``mark_candidates.predicted_disk``): odd-sized, centred on ``centre`` (u, v)."""
+
+    mask: np.ndarray  # (k, k) bool: the whole outline (a plate's: face and side wall)
+    centre: tuple[int, int]
+    face: np.ndarray | None = None  # (k, k) bool: a plate's face alone
+
+
 @dataclass(frozen=True, eq=False)
 class SurfaceStep:
     """A disk's face over the surface around it (``marks_surface.surface_step``)."""

@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TypedDict
 
 import cv2
 import numpy as np
@@ -51,8 +50,6 @@ from anklescan.core.measure.mark_candidates import (
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_fit import fit_mark, radius_clearly_measured, step_kind
 from anklescan.core.measure.mark_hypotheses import (
-    Blob,
-    CutImage,
     Hypothesis,
     HypothesisSource,
     derived,
@@ -63,7 +60,7 @@ from anklescan.core.measure.mark_hypotheses import (
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
-from anklescan.core.measure.mark_types import KnownDisk, Mark, MarkSet, Refusal, RefusalReason, fitted
+from anklescan.core.measure.mark_types import Blob, BlobCut, KnownDisk, Mark, MarkSet, Refusal, RefusalReason, fitted
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS
@@ -118,16 +115,16 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     prefer = _capture_kind([m for m in free if m is not None])
     if mark_diameter_mm is not None:
         r0, sd0 = 0.5 * float(mark_diameter_mm), CONFIG.radius_prior_sd_mm
-        far = sizes and abs(sizes[0]["radius"] - r0) > max(CONFIG.given_size_tolerance_mm, 3 * sizes[0]["sd"])
-        if far and sizes[0]["n"] >= 3:
-            seen = ", ".join(f"{2 * g['radius']:.1f} ± {2 * g['sd']:.1f} mm ({g['n']} mark{'s' * (g['n'] > 1)})"
+        far = sizes and abs(sizes[0].radius - r0) > max(CONFIG.given_size_tolerance_mm, 3 * sizes[0].sd)
+        if far and sizes[0].n >= 3:
+            seen = ", ".join(f"{2 * g.radius:.1f} ± {2 * g.sd:.1f} mm ({g.n} mark{'s' * (g.n > 1)})"
                              for g in sizes[:3])
             result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
             result.problems.append(result.size_error)
             return result
         result.diameter, result.diameter_given = (float(mark_diameter_mm), 0.0), True
     elif sizes:
-        r0, sd0 = sizes[0]["radius"], max(sizes[0]["sd"], CONFIG.radius_prior_sd_mm)
+        r0, sd0 = sizes[0].radius, max(sizes[0].sd, CONFIG.radius_prior_sd_mm)
         result.diameter = (2 * r0, 2 * sd0)
     else:
         label_marks(result)
@@ -179,7 +176,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
             result.rejected.append({"pixel": f.mark.pixel, "reason": str(out)})
     result.rejected.extend(selection.left_out)
     if mark_diameter_mm is not None and not result.marks:
-        seen = ", ".join(f"{2 * g['radius']:.1f} mm ({g['n']})" for g in sizes[:3]) or "none"
+        seen = ", ".join(f"{2 * g.radius:.1f} mm ({g.n})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
         result.problems.append(result.size_error)
     label_marks(result)
@@ -249,7 +246,7 @@ def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool,
         return out
     what = f"{out.kind}, seen at {out.view_deg or 0.0:.0f}°"
     clear = radius_clearly_measured(out.radius_sd, s.radius_mm)
-    if h.source is HypothesisSource.BLOB and h.blob.get("ring_cut") and not clear:
+    if h.source is HypothesisSource.BLOB and h.blob.cut is BlobCut.RING and not clear:
         # cut against the surface round it, not the opening: a plate's cut with its side wall
         # measures its radius to ± 0.5 mm and its centre ~0.6 mm off; the re-cuts find the face alone
         return Refusal(RefusalReason.SHORT_ARC, f"cut against its surround and not clearly a disk (radius "
@@ -266,7 +263,7 @@ def _fit_hypothesis(h: Hypothesis, s: _Scene, *, covariance: bool,
 
 def size_groups(marks: list[Mark]) -> list[SizeGroup]:
     """Groups of marks whose free radii agree (within CONFIG.size_cluster_rel of the radius or 3 SD),
-    largest first: {"radius", "sd", "n"} with the inverse-variance mean and its SD (scaled up by
+    largest first, each with the inverse-variance mean and its SD (scaled up by
     the scatter where the radii disagree more than their SDs say). SPEC §2: all seven are one
     size, so the largest group is the marks' size."""
     r = np.array([m.radius for m in marks], float)
@@ -289,34 +286,14 @@ def size_groups(marks: list[Mark]) -> list[SizeGroup]:
         sd = math.sqrt(1.0 / w.sum())
         if mem.sum() > 1:
             sd *= max(1.0, math.sqrt(float(w @ (r[mem] - mean) ** 2) / (mem.sum() - 1)))
-        groups.append({"radius": mean, "sd": sd, "n": int(mem.sum())})
+        groups.append(SizeGroup(mean, sd, int(mem.sum())))
         used |= mem
-    return sorted(groups, key=lambda g: -g["n"])
+    return sorted(groups, key=lambda g: -g.n)
 
 
 def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     """A disk of ``radius_mm`` at the mark's depth, in camera pixels."""
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
-
-
-def _restore_held(result: MarkSet, held: list[Mark], cal: Calibration, radius_mm: float) -> None:
-    """The selection (``select_marks``) among ``result``'s marks and the doubtful ones ``held``
-    back from them: marks of the first search (``held`` and the sure ones) before the later
-    doubtful fits in ``result``; a doubtful fit only where no better one overlaps it, and none
-    beyond seven. ``cal``: unused (overlaps are measured in the world)."""
-    del cal
-    late = [m for m in result.marks if m.doubtful]
-    first = [m for m in result.marks if not m.doubtful] + list(held)
-
-    def fit(m: Mark, source: HypothesisSource) -> MarkFit:
-        h = Hypothesis({"centre": m.pixel}, source, CutImage.LIT)
-        return MarkFit(h, m, fit_score(m, radius_mm, CONFIG.radius_prior_sd_mm, source.tier))
-
-    fits = [fit(m, HypothesisSource.BLOB) for m in first] + [fit(m, HypothesisSource.SIZED) for m in late]
-    selection = select_marks(fits, radius_mm)
-    chosen = [f.mark for f in selection.chosen]
-    result.marks = [m for m in first + late if any(m is c for c in chosen)]
-    result.rejected.extend(selection.left_out)
 
 
 def _distinct(marks: list[Mark], cal: Calibration, radius_mm: float) -> list[Mark]:
@@ -360,7 +337,8 @@ def _of_capture_kind(mark: Mark, prefer_kind: MarkKind | None) -> bool:
     return not (prefer_kind == MarkKind.PLATE and step_kind(mark.step_mm, mark.step_sd) == MarkKind.STICKER)
 
 
-class SizeGroup(TypedDict):
+@dataclass(frozen=True)
+class SizeGroup:
     """Marks whose free radii agree (``size_groups``)."""
 
     radius: float  # mm, inverse-variance mean
@@ -385,8 +363,9 @@ class _Click:
 def _pixel_distance(blob: Blob, uv: np.ndarray) -> float:
     """From ``uv`` to the nearest pixel of ``blob``'s region (0 inside it): a large disk partly
     hidden has its blob's centre far from the disk's."""
-    v, u = np.nonzero(blob["region"])
-    return float(np.min(np.hypot(u + blob["origin"][0] - uv[0], v + blob["origin"][1] - uv[1])))
+    v, u = np.nonzero(blob.region)
+    x0, y0 = blob.origin
+    return float(np.min(np.hypot(u + x0 - uv[0], v + y0 - uv[1])))
 
 
 

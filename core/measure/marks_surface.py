@@ -21,7 +21,7 @@ import numpy as np
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import decoded_across, image_scale, plane_basis
-from anklescan.core.measure.mark_types import DiskFit, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_types import DiskFit, Ellipse, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
@@ -232,7 +232,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
     return DiskFit(centre, n, float(radius), float(radius_sd), rms, surf_rms, cov, int(use.sum()))
 
 
-def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: dict, frame_origin: np.ndarray,
+def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: Ellipse, frame_origin: np.ndarray,
                  frame: np.ndarray) -> SurfaceStep | None:
     """Height (mm) of a disk's face over the surface around it, and its SD: one quadric through
     the face's points (within CONFIG.step_face_fraction of the blob's ellipse) and the ring's (CONFIG.step_ring),
