@@ -1,5 +1,6 @@
 """Planes in point clouds (mm), shared by the levelling table finder and the daily check's top
-finder: RANSAC's plane with the most points within a tolerance, and the least-squares plane.
+finder: RANSAC's plane with the most points within a tolerance, the least-squares plane, and
+the largest connected patch of points on a plane.
 
 RANSAC's candidates are drawn one sample at a time (three distinct points each, from the
 caller's generator: a seed gives the same planes), and their inliers counted a block of
@@ -12,10 +13,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 RANSAC_BLOCK_VALUES = 1 << 20  # float32 distances computed at once when counting inliers (4 MB)
 F32_MARGIN_MM = 1e-3  # float32 distances this close to the tolerance are computed again in float64
+MAX_PATCH_CELLS = 25_000_000  # a patch raster larger than this (a plane seen edge-on across the scene) is none
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,53 @@ def least_squares_plane(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     d = X - c
     _, v = np.linalg.eigh(d.T @ d)
     return v[:, 0], c
+
+
+def in_plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes spanning the plane of unit normal ``n``, with ``n`` a right-handed frame."""
+    e1 = np.cross(n, [0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+@dataclass(frozen=True, eq=False)
+class PlanePatch:
+    """The largest connected patch of points on a plane (``largest_patch``)."""
+
+    keep: np.ndarray  # (N,) bool: the points in the patch
+    interior: np.ndarray  # (N,) bool: the points in the patch on a cell away from its edge
+    area_mm2: float  # the patch's cells' area
+
+
+def largest_patch(X: np.ndarray, n: np.ndarray, grid_mm: float, *, edge_cells: int = 1) -> PlanePatch | None:
+    """The points of ``X`` (N, 3) on the largest 8-connected patch of a ``grid_mm`` raster in
+    the plane of unit normal ``n`` (its gaps of one cell closed), and those on cells at least
+    ``edge_cells`` in from the patch's edge. A surface of the same height elsewhere (a shelf, the
+    floor past a gap) is another patch. None where there are no points or the raster would
+    exceed MAX_PATCH_CELLS."""
+    if not len(X):
+        return None
+    e1, e2 = in_plane_axes(n)
+    uv = np.stack([X @ e1, X @ e2], axis=1)
+    ij = np.floor((uv - uv.min(axis=0)) / grid_mm).astype(np.int64) + 1  # a border of empty cells
+    shape = ij.max(axis=0)[::-1] + 2
+    if shape[0] * shape[1] > MAX_PATCH_CELLS:
+        return None
+    grid = np.zeros(shape, np.uint8)
+    grid[ij[:, 1], ij[:, 0]] = 1
+    # outside the raster is empty: OpenCV's default border would let the closing grow the patch
+    # into the empty border, and the erosion keep its edge cells there as interior
+    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                            borderValue=0)
+    count, labels = cv2.connectedComponents(grid, connectivity=8)
+    if count < 2:
+        return None
+    sizes = np.bincount(labels.ravel())[1:]
+    mask = (labels == 1 + int(np.argmax(sizes))).astype(np.uint8)
+    k = 2 * edge_cells + 1
+    inner = cv2.erode(mask, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    keep = mask[ij[:, 1], ij[:, 0]].astype(bool)
+    return PlanePatch(keep, keep & inner[ij[:, 1], ij[:, 0]].astype(bool), float(sizes.max()) * grid_mm**2)
 
 
 def _sample_planes(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from anklescan.core.errors import AnkleScanError, GeometryError
-from anklescan.core.planes import least_squares_plane, ransac_plane
+from anklescan.core.planes import in_plane_axes, largest_patch, least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject
 
@@ -190,12 +190,6 @@ def _plane_up(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (n if n[2] >= 0 else -n), c
 
 
-def _in_plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    e1 = np.cross(n, [0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
-
-
 @dataclass(frozen=True)
 class _Patch:
     points: np.ndarray  # the patch's points
@@ -205,30 +199,17 @@ class _Patch:
 
 
 def _patch(X: np.ndarray, n: np.ndarray, p0: np.ndarray, tol: float) -> _Patch | None:
+    """The largest connected patch of ``X`` within ``tol`` of the plane its points near (n, p0) fit."""
     on = X[np.abs((X - p0) @ n) < tol]
     if len(on) < 50:
         return None
     n, c = _plane_up(on)
     on = X[np.abs((X - c) @ n) < tol]
-    e1, e2 = _in_plane_axes(n)
-    uv = np.stack([(on - c) @ e1, (on - c) @ e2], axis=1)
-    ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64) + 1
-    shape = ij.max(axis=0)[::-1] + 2
-    if shape[0] * shape[1] > 25_000_000:
+    patch = largest_patch(on, n, GRID_MM)
+    if patch is None:
         return None
-    grid = np.zeros(shape, np.uint8)
-    grid[ij[:, 1], ij[:, 0]] = 1
-    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    nlab, lab = cv2.connectedComponents(grid, connectivity=8)
-    if nlab < 2:
-        return None
-    sizes = np.bincount(lab.ravel())[1:]
-    best = 1 + int(np.argmax(sizes))
-    mask = (lab == best).astype(np.uint8)
-    keep = mask[ij[:, 1], ij[:, 0]].astype(bool)
-    inner = cv2.erode(mask, np.ones((3, 3), np.uint8), borderValue=0)[ij[:, 1], ij[:, 0]].astype(bool)[keep]
-    pts = on[keep]
-    return _Patch(pts, inner, float(sizes[best - 1]) * GRID_MM**2, float(pts[:, 2].mean()))
+    pts = on[patch.keep]
+    return _Patch(pts, patch.interior[patch.keep], patch.area_mm2, float(pts[:, 2].mean()))
 
 
 def find_top(points: np.ndarray, sigma: np.ndarray | None = None, *, min_area_mm2: float = DEFAULT_MIN_AREA_MM2,
@@ -285,7 +266,7 @@ def measure_top(patch: _Patch) -> TopFit:
     X = patch.points[patch.interior] if patch.interior.sum() >= 200 else patch.points
     n, c, keep = _robust_plane(X)
     X = X[keep]
-    e1, e2 = _in_plane_axes(n)
+    e1, e2 = in_plane_axes(n)
     u, v = (X - c) @ e1, (X - c) @ e2
     h = (X - c) @ n
     rms = float(np.sqrt(np.mean(h**2)))

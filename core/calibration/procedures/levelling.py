@@ -38,7 +38,7 @@ from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.calibration.model.file import Calibration, moved_trust
 from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
 from anklescan.core.errors import GeometryError
-from anklescan.core.planes import least_squares_plane, ransac_plane
+from anklescan.core.planes import in_plane_axes, largest_patch, least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
 from anklescan.core.scan.capture import Capture
 
@@ -48,6 +48,7 @@ MIN_TOP_POINTS = 500  # and at least this many points
 EDGE_BAND_MM = 8.0  # points this close to a long side of the rectangle take part in its line fit
 RANSAC_ITERATIONS = 300
 GRID_MM = 4.0  # in-plane raster for the connected-patch test
+TOP_EDGE_CELLS = 2  # the top's plane is refitted to the points this many cells in from its edge
 DROP_MM = 10.0  # what lies this far below the top's plane, past its edge, is "something lower"
 EDGE_LOOK_MM = 150.0  # how far past an edge to look for it (at least the top's length: a floor seen past
 # the far edge lies, projected on the top's plane, a table height / tan(elevation) beyond it)
@@ -205,42 +206,21 @@ def _top_at(X: np.ndarray, cand: np.ndarray, n: np.ndarray, tol: float, camera_c
         if on.sum() < 3:
             raise GeometryError("no table top found in the scan")
         nt, c = least_squares_plane(cand[on])
-    patch = _largest_patch(cand[np.abs((cand - c) @ nt) < tol], nt)
-    if len(patch) < MIN_TOP_POINTS:
-        raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
+    # the largest connected patch is the top (not a shelf or the floor at the same height)
+    top, interior = _top_patch(cand[np.abs((cand - c) @ nt) < tol], nt)
     for _ in range(2):
-        nt, c = least_squares_plane(patch)
-        r = (patch - c) @ nt
+        nt, c = least_squares_plane(top)
+        r = (top - c) @ nt
         s = robust_sigma(r, centre=0.0)
-        nt, c = least_squares_plane(patch[np.abs(r) < max(4 * s, 1e-6)])
-        patch = _largest_patch(X[np.abs((X - c) @ nt) < tol], nt)
-        if len(patch) < MIN_TOP_POINTS:
-            raise GeometryError(f"the table top shows only {len(patch)} points: scan the whole top")
+        nt, c = least_squares_plane(top[np.abs(r) < max(4 * s, 1e-6)])
+        top, interior = _top_patch(X[np.abs((X - c) @ nt) < tol], nt)
     if nt @ n < 0:
         nt = -nt
-    top = patch
-    # in-plane coordinates; the largest connected patch is the top (not a shelf at the same height)
-    e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(nt, e1)
+    e1, e2 = in_plane_axes(nt)
     c_uv = c  # the in-plane coordinates' origin (the plane is refined below)
     uv = np.stack([(top - c_uv) @ e1, (top - c_uv) @ e2], axis=1)
-    ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64)
-    grid = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
-    grid[ij[:, 1], ij[:, 0]] = 1
-    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    nlab, lab = cv2.connectedComponents(grid, connectivity=8)
-    if nlab < 2:
-        raise GeometryError("no table top found in the scan")
-    sizes = np.bincount(lab.ravel())[1:]
-    keep = lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))
-    top, uv = top[keep], uv[keep]
-    if len(top) < MIN_TOP_POINTS:
-        raise GeometryError(f"the table top shows only {len(top)} points: scan the whole top")
     # the final plane from the top's interior only: within ``tol`` of the top lie slivers of its
     # side faces and mixed edge pixels, which would tilt the normal
-    lab_top = (lab == 1 + int(np.argmax(sizes))).astype(np.uint8)
-    interior = cv2.erode(lab_top, np.ones((5, 5), np.uint8))[ij[keep][:, 1], ij[keep][:, 0]].astype(bool)
     core_pts = top[interior] if interior.sum() >= 500 else top
     nt, c = least_squares_plane(core_pts)
     for _ in range(3):
@@ -270,26 +250,16 @@ def _top_at(X: np.ndarray, cand: np.ndarray, n: np.ndarray, tol: float, camera_c
     return TableTop(nt, centre, long_axis, (float(w), float(hgt)), rms, int(len(top)))
 
 
-def _largest_patch(P: np.ndarray, nt: np.ndarray) -> np.ndarray:
-    """The points of the largest connected patch (on a GRID_MM raster in the plane of normal ``nt``)."""
-    if len(P) == 0:
-        return P
-    e1 = np.cross(nt, [1.0, 0, 0]) if abs(nt[0]) < 0.9 else np.cross(nt, [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(nt, e1)
-    uv = np.stack([P @ e1, P @ e2], axis=1)
-    ij = np.floor((uv - uv.min(axis=0)) / GRID_MM).astype(np.int64)
-    if ij.max() > 20000:  # a plane seen edge-on across the whole scene: no table top
-        return P[:0]
-    grid = np.zeros(ij.max(axis=0)[::-1] + 1, np.uint8)
-    grid[ij[:, 1], ij[:, 0]] = 1
-    grid = cv2.morphologyEx(grid, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
-    nlab, lab = cv2.connectedComponents(grid, connectivity=8)
-    if nlab < 2:
-        return P[:0]
-    sizes = np.bincount(lab.ravel())[1:]
-    kept: np.ndarray = P[lab[ij[:, 1], ij[:, 0]] == 1 + int(np.argmax(sizes))]
-    return kept
+def _top_patch(near: np.ndarray, nt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points of the largest connected patch of ``near`` (the points near a plane of normal
+    ``nt``), and per point whether it lies TOP_EDGE_CELLS cells in from the patch's edge; a
+    GeometryError where it has fewer than MIN_TOP_POINTS."""
+    patch = largest_patch(near, nt, GRID_MM, edge_cells=TOP_EDGE_CELLS)
+    top = near[patch.keep] if patch is not None else near[:0]
+    if len(top) < MIN_TOP_POINTS:
+        raise GeometryError(f"the table top shows only {len(top)} points: scan the whole top")
+    assert patch is not None
+    return top, patch.interior[patch.keep]
 
 
 def _check_edges(X: np.ndarray, c: np.ndarray, nt: np.ndarray, c_uv: np.ndarray, e1: np.ndarray, e2: np.ndarray,
