@@ -44,6 +44,19 @@ def test_missing_mark_keeps_the_rest_and_says_what_is_missing():
     assert "found 6" in msg and "missing" in msg and "3" in msg
 
 
+@pytest.mark.parametrize("drop, says", [(("5", "6", "7"), "no mark found faces up"),
+                                        (("5", "6"), "only 1 mark found faces up"),
+                                        (("7",), "only 2 marks found face up")])
+def test_table_marks_not_found_is_said_plainly(drop, says):
+    """With fewer than three marks facing up, the refusal says the table marks were not found,
+    not that no three marks lie flat; the leg keeps its labels."""
+    ms = MarkSet(marks=_truth_marks(leg_scene(10, -15), drop=drop))
+    label_marks(ms)
+    assert sorted(ms.missing) == sorted(drop + tuple(k for k in ("5", "6", "7") if k not in drop))
+    assert f"{says} as table marks do (3 expected): table marks not identified" in ms.message()
+    assert "lie flat" not in ms.message() and {m.label for m in ms.marks} >= {"1", "2", "3", "4"}
+
+
 @pytest.mark.parametrize("drop", [("3",), ("4",), ("1", "2"), ("3", "4")])
 def test_partial_leg_marks_are_still_labelled(drop):
     """With two or three leg plates found, the ones the geometry decides keep their labels."""

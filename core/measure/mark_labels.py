@@ -73,7 +73,13 @@ def _table_triple(marks: list[Mark], problems: list[str]) -> set[int] | None:
     scored = sorted((_triple_score([marks[i] for i in t]), t) for t in itertools.combinations(range(len(marks)), 3))
     best, t = scored[0]
     if best > CONFIG.table_normal_spread_deg:
-        problems.append(f"no three marks lie flat in one plane (best {best:.1f}°): table marks not identified")
+        facing_up = sum(bool(abs(m.normal[2]) >= CONFIG.leg_normal_max_z) for m in marks)
+        if facing_up < 3:  # the usual cause, said plainly: the table marks were not found
+            what = ("no mark found faces" if not facing_up
+                    else f"only {facing_up} mark{'s' * (facing_up > 1)} found face{'s' * (facing_up == 1)}")
+            problems.append(f"{what} up as table marks do (3 expected): table marks not identified")
+        else:
+            problems.append(f"no three marks lie flat in one plane (best {best:.1f}°): table marks not identified")
         return None
     if len(scored) > 1 and scored[1][0] - best < CONFIG.ambiguity_margin_deg:
         problems.append(f"two candidate sets of table marks ({best:.1f}° vs {scored[1][0]:.1f}°): ambiguous")
