@@ -232,9 +232,10 @@ def affected_pixels(still: SimRig, posed: SimRig, dilate_px: int = 2) -> np.ndar
     import cv2
 
     cam = still.camera
-    if "subject_pixels" not in still._cache:  # the subject at rest: the same for every frame
-        still._cache["subject_pixels"] = _subject_pixels(still, still.scene, np.zeros(cam.height * cam.width, bool))
-    mask = _subject_pixels(still, posed.scene, still._cache["subject_pixels"].copy())
+    at_rest = still.cache.subject_pixels
+    if at_rest is None:  # the subject at rest: the same for every frame
+        at_rest = still.cache.subject_pixels = _subject_pixels(still, still.scene, np.zeros(cam.height * cam.width, bool))
+    mask = _subject_pixels(still, posed.scene, at_rest.copy())
     image: np.ndarray = mask.reshape(cam.height, cam.width).astype(np.uint8)
     if dilate_px:
         image = cv2.dilate(image, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))

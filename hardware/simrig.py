@@ -261,12 +261,13 @@ class ExposureSettings(TypedDict):
     bit_depth: int | None
 
 
-class RigCache(TypedDict, total=False):
-    """``SimRig._cache``: what a rig computes once."""
+@dataclass
+class RigCache:
+    """``SimRig.cache``: what a rig computes once (None: not yet)."""
 
-    field: np.ndarray  # _field_limits
-    still: SimRig  # _still_rig
-    subject_pixels: np.ndarray  # hardware.sim_sway.affected_pixels: the subject at rest
+    field: np.ndarray | None = None  # _field_limits
+    still: SimRig | None = None  # _still_rig
+    subject_pixels: np.ndarray | None = None  # hardware.sim_sway.affected_pixels: the subject at rest
 
 
 def transport_taps(proj_uv: np.ndarray, shade: np.ndarray, pad: int, padded_shape: tuple[int, int],
@@ -315,7 +316,7 @@ class SimRig:
         self.d0 = float(np.linalg.norm(RIG_TARGET - self.projector.center))
         self._transport: LightTransport | None = None
         self._truth: Truth | None = None
-        self._cache: RigCache = {}
+        self.cache = RigCache()
         # hardware.sim_sway.SwayClock: when set, the subject moves between captured frames
         self.motion: SwayClock | None = None
 
@@ -398,11 +399,11 @@ class SimRig:
 
     def _still_rig(self) -> SimRig:
         """This rig without its motion (a swaying capture's frames at rest share its transport)."""
-        if "still" not in self._cache:
+        if self.cache.still is None:
             still = SimRig(self.scene, self.camera, self.projector, scale=self.scale, optics=self.optics, seed=None)
             still._transport, still._truth = self._transport, self._truth
-            self._cache["still"] = still
-        return self._cache["still"]
+            self.cache.still = still
+        return self.cache.still
 
     def capture_many(self, images: Iterable[np.ndarray], *, exposure: float | None = None, gain: float = 1.0,
                      noise: bool = True, rng: np.random.Generator | None = None,
@@ -453,9 +454,9 @@ class SimRig:
 
     # ---- geometry ---------------------------------------------------------------------------
     def _field_limits(self) -> np.ndarray:
-        if "field" not in self._cache:
-            self._cache["field"] = self._compute_field_limits()
-        return self._cache["field"]
+        if self.cache.field is None:
+            self.cache.field = self._compute_field_limits()
+        return self.cache.field
 
     def _compute_field_limits(self) -> np.ndarray:
         """|x|, |y| bounds of undistorted projector coordinates just beyond the frame: guards
