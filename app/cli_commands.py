@@ -260,7 +260,7 @@ def cmd_angles(args) -> int:
         from anklescan.core.errors import AnkleScanError
 
         raise AnkleScanError(f"{args.marks}: no angle can be computed; {angles.missing_message()}")
-    require_finite(dict(angles), "angle")  # coordinates out of range give nan, never print it
+    require_finite(angles.to_json(), "angle")  # coordinates out of range give nan, never print it
     print(format_angles(angles))
     return 0
 

@@ -115,11 +115,11 @@ def _scan_trial(job: dict) -> dict:
         "joint": None if result.position_covariance is None else
         {"labels": list(result.position_covariance.labels), "matrix": result.position_covariance.matrix.tolist()},
         "warnings": list(result.warnings),
-        "angles": {k: dict(v) for k, v in result.angles.items()},
+        "angles": result.angles.to_json(),
         "mark_type": mark_type,
         "mark_diameter": result.mark_diameter(),
         "mark_errors_mm": {k: float(np.linalg.norm(np.asarray(m.centre) - true_marks[k])) for k, m in found.items()},
-        "angle_errors_deg": {k: float(v["value"] - true_angles[k]) for k, v in result.angles.items()},
+        "angle_errors_deg": {k: float(v.value - true_angles[k]) for k, v in result.angles.items()},
         "accuracy": as_dict(evaluate(result.cloud, rig.truth())) if job["accuracy"] else None,
         "seconds": time.perf_counter() - t0,
     }

@@ -419,7 +419,7 @@ class MarkEditor(QWidget):
                 shown[f"mismatch_{axis}"] = v
         for name, lab in self.angle_labels.items():
             v = shown.get(name)
-            lab.setText("—" if v is None else f"{signed(v['value'], 2)}° ± {v['sd']:.2f}°")
+            lab.setText("—" if v is None else f"{signed(v.value, 2)}° ± {v.sd:.2f}°")
         self.missing_label.setText(self.angles.missing_message())
 
     def show_pick(self, text: str) -> None:

@@ -83,7 +83,7 @@ def _measured(rig, cap, given):
     dt = time.perf_counter() - t
     tr = rig.truth()
     mark_err = {k: float(np.linalg.norm(m.centre - tr.marks[k])) for k, m in res.marks.labelled.items()}
-    ang_err = {k: float(v["value"] - tr.angles[k]) for k, v in res.angles.items()}
+    ang_err = {k: float(v.value - tr.angles[k]) for k, v in res.angles.items()}
     nearest = {}
     for m in res.marks.marks:
         k = min(tr.marks, key=lambda k: np.linalg.norm(tr.marks[k] - m.centre))

@@ -145,7 +145,7 @@ def sweep(seeds: int, noises: tuple[float, ...], raise_mm: float, mark_sd: float
                     knee = max(float(np.linalg.norm(got[k] - marks[k])) for k in (1, 3))
                     for name in ANGLES:
                         rows.append({"boxes": boxes, "noise": noise, "seed": seed, "posture": posture, "angle": name,
-                                     "err": ang[name]["value"] - ref[name], "sd": ang[name]["sd"], "knee_mm": knee,
+                                     "err": ang[name].value - ref[name], "sd": ang[name].sd, "knee_mm": knee,
                                      "outside": max(s.outside_mm for s in shares.values())})
     return rows
 
@@ -173,7 +173,7 @@ def rendered(postures: tuple[tuple[float, float], ...], scale: float, raise_mm: 
             for name in ANGLES:
                 if name in res.angles:
                     rows.append({"boxes": boxes, "noise": 0.2, "seed": i, "posture": posture, "angle": name,
-                                 "err": res.angles[name]["value"] - ref[name], "sd": res.angles[name]["sd"],
+                                 "err": res.angles[name].value - ref[name], "sd": res.angles[name].sd,
                                  "knee_mm": knee, "warnings": res.warnings})
     return rows
 

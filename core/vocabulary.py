@@ -124,6 +124,20 @@ TRIAL_STATES: tuple[TrialState, ...] = tuple(TrialState)
 ANGLE_FIELDS = ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion")
 
 
+@dataclass(frozen=True)
+class Angle:
+    """An angle and its standard deviation, degrees (SPEC §3: ``{"value", "sd"}`` in JSON)."""
+
+    value: float
+    sd: float = 0.0  # an operator-set angle: 0
+
+    def to_json(self, digits: int | None = None) -> dict[str, float]:
+        """``{"value", "sd"}``, rounded to ``digits`` decimals where given."""
+        if digits is None:
+            return {"value": float(self.value), "sd": float(self.sd)}
+        return {"value": round(float(self.value), digits), "sd": round(float(self.sd), digits)}
+
+
 # ------------------------------------------------------------------ records (database rows)
 
 @dataclass(frozen=True)

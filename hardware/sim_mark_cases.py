@@ -208,7 +208,7 @@ def judge(case: Case, result: Any, truth_marks: Mapping[str, np.ndarray], truth_
     wrong = tuple(k for k, m in sorted(labelled.items())
                   if min(truth_marks, key=lambda t: float(np.linalg.norm(truth_marks[t] - np.asarray(m.centre)))) != k
                   or errors[k] > WRONG_LABEL_MM)
-    angles = {k: float(v["value"] - truth_angles[k]) for k, v in result.angles.items() if k in truth_angles}
+    angles = {k: float(v.value - truth_angles[k]) for k, v in result.angles.items() if k in truth_angles}
     if result.complete:
         within = (not wrong and all(e <= TARGET_CENTRE_MM for e in errors.values())
                   and all(math.isfinite(a) and abs(a) <= TARGET_ANGLE_DEG for a in angles.values())

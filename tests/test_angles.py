@@ -16,6 +16,7 @@ from anklescan.core.measure.angles import (
     table_angles,
     table_normal,
 )
+from anklescan.core.vocabulary import Angle
 
 
 def rot_y(deg):
@@ -135,9 +136,10 @@ def test_compute_angles_values_and_json():
               "table_plantar_flexion": 20}
     assert set(r) == set(expect) and r.missing == {}
     for k, v in expect.items():
-        assert r[k]["value"] == pytest.approx(v, abs=1e-9)
-        assert r[k]["sd"] > 0
-    assert set(json.loads(json.dumps(r))) == set(expect)
+        assert r[k].value == pytest.approx(v, abs=1e-9)
+        assert r[k].sd > 0
+    doc = json.loads(json.dumps(r.to_json()))  # RESULT.json's form (SPEC §3)
+    assert doc == {k: {"value": a.value, "sd": a.sd} for k, a in r.items()}
 
 
 def test_compute_angles_string_labels_and_missing():
@@ -174,7 +176,7 @@ def test_sd_matches_monte_carlo_isotropic():
     r = compute_angles(marks, sigma_mm=sigma)
     mc = _monte_carlo_sd(marks, {k: np.eye(3) * sigma**2 for k in marks})
     for k, sd in mc.items():
-        assert r[k]["sd"] == pytest.approx(sd, rel=0.10), k
+        assert r[k].sd == pytest.approx(sd, rel=0.10), k
 
 
 def test_sd_matches_monte_carlo_per_mark_covariance():
@@ -187,7 +189,7 @@ def test_sd_matches_monte_carlo_per_mark_covariance():
     r = compute_angles(marks, sigma_mm=covs)
     mc = _monte_carlo_sd(marks, covs, seed=3)
     for k, sd in mc.items():
-        assert r[k]["sd"] == pytest.approx(sd, rel=0.10), k
+        assert r[k].sd == pytest.approx(sd, rel=0.10), k
 
 
 def test_bad_covariance_rejected():
@@ -201,12 +203,12 @@ def test_bad_covariance_rejected():
 
 def test_mismatch_value_and_sd():
     adj = compute_angles(all_marks(tab_inv=13, tab_pf=22), sigma_mm=0.5)
-    m = mismatch(adj, {"inversion": 15.0, "plantar_flexion": {"value": 20.0, "sd": 0.3}})
-    assert m["inversion"]["value"] == pytest.approx(-2.0, abs=1e-9)
-    assert m["plantar_flexion"]["value"] == pytest.approx(2.0, abs=1e-9)
-    assert m["inversion"]["sd"] == pytest.approx(adj["table_inversion"]["sd"])
-    assert m["plantar_flexion"]["sd"] == pytest.approx(
-        math.hypot(adj["table_plantar_flexion"]["sd"], 0.3))
+    m = mismatch(adj, {"inversion": 15.0, "plantar_flexion": Angle(20.0, 0.3)})
+    assert m["inversion"].value == pytest.approx(-2.0, abs=1e-9)
+    assert m["plantar_flexion"].value == pytest.approx(2.0, abs=1e-9)
+    assert m["inversion"].sd == pytest.approx(adj["table_inversion"].sd)
+    assert m["plantar_flexion"].sd == pytest.approx(
+        math.hypot(adj["table_plantar_flexion"].sd, 0.3))
 
 
 def test_mismatch_missing_axis():

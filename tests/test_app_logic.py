@@ -158,7 +158,7 @@ def test_a_finished_scan_is_recorded_at_once_and_told_as_typed_notes(logic, tmp_
     stored = {m.label: m for m in logic.store.marks.all(trial.id)}
     assert sorted(stored) == list(range(1, 8)) and stored[3].warning == "overexposed" and stored[3].sd_mm == 0.4
     truth = compute_angles(marks, sigma_mm=0.5)
-    assert trial.leg_inversion == truth["leg_inversion"]["value"]
+    assert trial.leg_inversion == truth["leg_inversion"].value
     severities = [n.severity for n in event.notes]
     assert severities == [Severity.WARNING, Severity.WARNING, Severity.WARNING]
     assert event.notes[0].action is NoteAction.SCAN_AGAIN and "moved 0.9 mm" in event.notes[0].text

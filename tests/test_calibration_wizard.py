@@ -355,7 +355,7 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
     marks = {k: mk.centre for k, mk in leg_scene(15, -10).marks.items()}
     want, got = compute_angles(marks), compute_angles({k: M @ v + m for k, v in marks.items()})
     for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
-        assert abs(got[name]["value"] - want[name]["value"]) < 0.05, name
+        assert abs(got[name].value - want[name].value) < 0.05, name
 
 
 def test_box_at_the_table_then_the_knee_by_clicking(setup, qtbot):

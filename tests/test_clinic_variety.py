@@ -128,7 +128,7 @@ def test_marks_on_drawn_clinic_setups(case):
     assert res.complete, res.marks.message()
     errors = {k: float(np.linalg.norm(m.centre - truth.marks[k])) for k, m in res.marks.labelled.items()}
     assert max(errors.values()) < 0.3, errors
-    assert all(abs(a["value"] - truth.angles[k]) < 0.2 for k, a in res.angles.items())
+    assert all(abs(a.value - truth.angles[k]) < 0.2 for k, a in res.angles.items())
 
 
 def test_the_captures_common_kind_needs_three_marks_and_three_quarters():

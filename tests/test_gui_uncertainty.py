@@ -40,7 +40,7 @@ def test_marks_page_shows_the_volume_warning_and_the_honest_sd(qtbot) -> None:
     assert all("outside" not in status[lab] for lab in (2, 4, 5, 6, 7))
     assert "mark 1 lies" in editor.list.item(0, STATUS_COLUMN).toolTip()
     want = compute_angles(marks, 0.0, joint=joint)["leg_plantar_flexion"]
-    assert editor.angle_labels["leg_plantar_flexion"].text() == f"{want['value']:+.2f}° ± {want['sd']:.2f}°"
+    assert editor.angle_labels["leg_plantar_flexion"].text() == f"{want.value:+.2f}° ± {want.sd:.2f}°"
     # a person selects the knee mark's row: the warning is still beside it
     QTest.mouseClick(editor.list.viewport(), Qt.MouseButton.LeftButton,
                      pos=editor.list.visualItemRect(editor.list.item(2, STATUS_COLUMN)).center())

@@ -77,7 +77,7 @@ def test_level_brings_a_tilted_turned_calibration_back_to_the_clinic_frame(table
         want = compute_angles(marks)
         got = compute_angles({k: M @ v + m for k, v in marks.items()})
         for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
-            assert abs(got[name]["value"] - want[name]["value"]) < 0.05, (inv, pf, name)
+            assert abs(got[name].value - want[name].value) < 0.05, (inv, pf, name)
     meta = json.loads((work / "level.json").read_text())["levelled"]
     assert meta["capture"] == "table" and 300 < meta["table_top_mm"][0] < 325
 

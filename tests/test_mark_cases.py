@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from anklescan.core.vocabulary import MarkKind
+from anklescan.core.vocabulary import Angle, MarkKind
 from anklescan.hardware.sim_mark_cases import (
     CASES_FILE,
     Case,
@@ -102,7 +102,7 @@ class _Result:
                  message: str = "") -> None:
         self.marks = _Marks(labelled, complete, message)
         self.complete = complete
-        self.angles = {k: {"value": v, "sd": 0.1} for k, v in angles.items()}
+        self.angles = {k: Angle(v, 0.1) for k, v in angles.items()}
 
 
 def test_the_judge_tells_right_refused_and_wrong() -> None:

@@ -246,7 +246,7 @@ def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
-    assert all(abs(a["value"] - truth.angles[k]) < 0.2 for k, a in res.angles.items())
+    assert all(abs(a.value - truth.angles[k]) < 0.2 for k, a in res.angles.items())
 
 
 def _cut(region: np.ndarray, origin: tuple[int, int], seed: tuple[int, int], radius_mm: float) -> Blob:

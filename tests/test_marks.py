@@ -271,7 +271,7 @@ def test_reduced_scale_table_marks_and_angles(inv, pf):
         assert np.linalg.norm(lab[k].centre - truth.marks[k]) < 1.0
         assert abs(lab[k].radius - 7.5) < 1.0
     for name in ("table_inversion", "table_plantar_flexion"):
-        assert abs(res.angles[name]["value"] - truth.angles[name]) < 0.3
+        assert abs(res.angles[name].value - truth.angles[name]) < 0.3
     # how obliquely each plate is seen and lit, as RESULT.json reports it for the clinician
     for k, m in lab.items():
         plate = rig.scene.marks[k]
@@ -422,7 +422,7 @@ def test_marks_of_any_size_plates_and_stickers(mark_type, diameter, given):
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, (k, m.centre - truth.marks[k])
         assert m.kind == mark_type, (k, m.kind, m.step_mm)
     for name, a in res.angles.items():
-        assert abs(a["value"] - truth.angles[name]) < 0.2
+        assert abs(a.value - truth.angles[name]) < 0.2
     d = res.to_dict()["mark_diameter_mm"]
     if given:
         assert d == {"value": diameter, "sd": 0.0, "given": True}

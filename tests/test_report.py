@@ -14,7 +14,7 @@ from anklescan.core.records import report
 from anklescan.core.records import study_stats as st
 from anklescan.core.records.report import CSV_COLUMNS, UNCONFIRMED_LABEL, write_session_report, write_study_report
 from anklescan.core.records.store import Store
-from anklescan.core.vocabulary import StudyRow
+from anklescan.core.vocabulary import Angle, StudyRow
 
 INV_SETTINGS = (0.0, 20.0)
 PF_SETTINGS = (0.0, 10.0, 20.0, 30.0)
@@ -41,10 +41,10 @@ def synthetic_study(store: Store, n_per_group=3, repeats=2, seed=0):
                             t = store.trials.add(s.id, ref_inversion=inv, ref_plantar_flexion=pf)
                             ti, tp = inv + rng.normal(0, spread), pf + rng.normal(0.05 * pf, spread)
                             store.results.update_angles(t.id, {
-                                "leg_inversion": {"value": rng.normal(2, 1), "sd": 0.1},
-                                "leg_plantar_flexion": {"value": pf * 0.4, "sd": 0.1},
-                                "table_inversion": {"value": ti, "sd": 0.15},
-                                "table_plantar_flexion": {"value": tp, "sd": 0.15}})
+                                "leg_inversion": Angle(rng.normal(2, 1), 0.1),
+                                "leg_plantar_flexion": Angle(pf * 0.4, 0.1),
+                                "table_inversion": Angle(ti, 0.15),
+                                "table_plantar_flexion": Angle(tp, 0.15)})
     return sessions
 
 
@@ -208,7 +208,7 @@ LONG_SOURCE = ("imported from /home/clinic/anklescan/calibrations/2026-11-20_mor
 
 
 def _angles(ti, tp):
-    return {"table_inversion": {"value": ti, "sd": 0.001}, "table_plantar_flexion": {"value": tp, "sd": 0.001}}
+    return {"table_inversion": Angle(ti, 0.001), "table_plantar_flexion": Angle(tp, 0.001)}
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ from anklescan.app.session_view import SessionView, group, trial_tip
 from anklescan.app.viewer import CloudViewer
 from anklescan.core.measure.angles import compute_angles
 from anklescan.core.records.store import Store
+from anklescan.core.vocabulary import Angle
 
 pytestmark = pytest.mark.gui
 
@@ -49,8 +50,8 @@ def test_place_saves_manual_marks_and_updates_angles(editor):
     assert set(stored) == set(MARKS) and {m.source for m in stored.values()} == {"manual"}
     assert stored[3].placed_by == "dr.k"
     want = compute_angles(MARKS)
-    assert ed.angles["leg_inversion"]["value"] == pytest.approx(want["leg_inversion"]["value"])
-    assert ed.angle_labels["table_inversion"].text().startswith(f"{want['table_inversion']['value']:+.2f}")
+    assert ed.angles["leg_inversion"].value == pytest.approx(want["leg_inversion"].value)
+    assert ed.angle_labels["table_inversion"].text().startswith(f"{want['table_inversion'].value:+.2f}")
     assert store.trials.get(tid).mismatch_inversion is not None  # the store recomputed from the marks
     assert set(ed.viewer.marks) == set(MARKS)
 
@@ -113,8 +114,8 @@ def _session_rows(store):
             for _ in range(3):
                 t = store.trials.add(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
                 store.results.update_angles(t.id, {
-                    "table_inversion": {"value": inv + rng.normal(0, 2) + 0.1 * pf, "sd": 0.3},
-                    "table_plantar_flexion": {"value": pf + rng.normal(0, 2), "sd": 0.3}})
+                    "table_inversion": Angle(inv + rng.normal(0, 2) + 0.1 * pf, 0.3),
+                    "table_plantar_flexion": Angle(pf + rng.normal(0, 2), 0.3)})
     store.trials.add(sess.id, ref_inversion=0.0, ref_plantar_flexion=0.0)  # not measured yet
     return sess.id
 
@@ -202,8 +203,8 @@ def test_session_view_states_unconfirmed_marks_and_axis_floor(qtbot, store):
     ids = []
     for pf, d in ((-10.0, 0.0015), (0.0, -0.001), (10.0, 0.0005), (0.0, 25.0), (10.0, -25.0)):
         t = store.trials.add(sess.id, ref_inversion=0.0, ref_plantar_flexion=pf)
-        store.results.update_angles(t.id, {"table_inversion": {"value": d, "sd": 0.001},
-                                         "table_plantar_flexion": {"value": pf + d, "sd": 0.001}})
+        store.results.update_angles(t.id, {"table_inversion": Angle(d, 0.001),
+                                         "table_plantar_flexion": Angle(pf + d, 0.001)})
         ids.append(t.id)
     store.results.update_marks(ids[1], {5: MARKS[5]}, "auto", "", recompute=False)   # detected, not confirmed
     store.trials.set_status(ids[3], "cancelled", "operator stopped the scan")

@@ -13,6 +13,7 @@ import pytest
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.records import database as store_mod
 from anklescan.core.records.store import SCHEMA_VERSION, Store, sha256_path
+from anklescan.core.vocabulary import Angle
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -80,9 +81,9 @@ def test_partial_marks_give_partial_angles(db):
 
 def test_update_trial_angles_with_measured_reference(db):
     *_, t = populate(db)
-    angles = {"table_inversion": {"value": 11.0, "sd": 0.3},
-              "table_plantar_flexion": {"value": 19.0, "sd": 0.4}}
-    ref = {"inversion": {"value": 10.5, "sd": 0.4}, "plantar_flexion": {"value": 20.0, "sd": 0.3}}
+    angles = {"table_inversion": Angle(11.0, 0.3),
+              "table_plantar_flexion": Angle(19.0, 0.4)}
+    ref = {"inversion": Angle(10.5, 0.4), "plantar_flexion": Angle(20.0, 0.3)}
     t2 = db.results.update_angles(t.id, angles, reference=ref)
     assert t2.mismatch_inversion == pytest.approx(0.5)
     assert t2.mismatch_inversion_sd == pytest.approx(0.5)
@@ -382,7 +383,7 @@ def test_finish_trial_records_a_scans_end_in_one_transaction(tmp_path, db):
     assert sorted(stored) == list(range(1, 8)) and {m.source for m in stored.values()} == {"auto"}
     assert stored[3].warning == "overexposed" and stored[5].sd_mm == pytest.approx(0.25)
     truth = compute_angles(marks, sigma_mm=0.5)
-    assert done.table_inversion == pytest.approx(truth["table_inversion"]["value"])
+    assert done.table_inversion == pytest.approx(truth["table_inversion"].value)
     assert done.table_inversion == pytest.approx(10.0, abs=1e-6)
     assert done.mismatch_inversion == pytest.approx(0.0, abs=1e-6)
     assert len(db.events.all("trial", t.id)) == events_before + 1

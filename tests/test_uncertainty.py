@@ -128,7 +128,7 @@ def test_motion_enters_the_sd_as_a_position_uncertainty(truth: Calibration) -> N
     """Without a covariance or volume, leg inversion's SD is the motion's alone: σ √2 / |P1 - P2| in x-z."""
     marks = bench.true_marks((5.0, 5.0))
     joint, _ = position_uncertainty(truth, marks, None, motion_value_mm=0.6, motion_sd_mm_=0.1)
-    sd = compute_angles(marks, 0.0, joint=joint)["leg_inversion"]["sd"]
+    sd = compute_angles(marks, 0.0, joint=joint)["leg_inversion"].sd
     sigma = math.sqrt(0.6**2 / 3 + 0.1**2)
     d = marks[1] - marks[2]
     assert sd == pytest.approx(math.degrees(sigma * math.sqrt(2) / math.hypot(d[0], d[2])), rel=1e-4)
@@ -230,8 +230,8 @@ def test_the_store_keeps_the_honest_sd(tmp_path: Path, table_box: Calibration) -
         s.results.update_marks(t.id, {k: list(v) for k, v in marks.items()}, "auto", "test", sigma_mm=0.0, joint=joint)
         got = s.trials.get(t.id)
     for name in ("leg_inversion", "leg_plantar_flexion", "table_inversion", "table_plantar_flexion"):
-        assert getattr(got, f"{name}_sd") == pytest.approx(want[name]["sd"], rel=1e-9)
-    assert got.leg_inversion_sd != pytest.approx(compute_angles(marks)["leg_inversion"]["sd"], rel=0.05)
+        assert getattr(got, f"{name}_sd") == pytest.approx(want[name].sd, rel=1e-9)
+    assert got.leg_inversion_sd != pytest.approx(compute_angles(marks)["leg_inversion"].sd, rel=0.05)
 
 
 def test_warnings_are_one_line_each_and_extendable(two_boxes: Calibration) -> None:

@@ -9,6 +9,7 @@ from PySide6.QtCore import QPoint, Qt
 from anklescan.app import picking, splat
 from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, RENDER_CLASSIC, RENDER_SPLAT, CloudViewer
 from anklescan.core.scan.pointcloud import PointCloud
+from anklescan.core.vocabulary import Angle
 
 pytestmark = pytest.mark.gui
 
@@ -192,8 +193,8 @@ def test_screenshots(qtbot, qapp, tmp_path):
             for _ in range(4):
                 t = store.trials.add(sess.id, ref_inversion=inv, ref_plantar_flexion=pf)
                 store.results.update_angles(t.id, {
-                    "table_inversion": {"value": inv + rng.normal(0.08 * pf - 0.05 * inv, 1.2 + 0.05 * abs(pf)), "sd": 0.3},
-                    "table_plantar_flexion": {"value": pf + rng.normal(-0.1 * pf, 1.5), "sd": 0.3}})
+                    "table_inversion": Angle(inv + rng.normal(0.08 * pf - 0.05 * inv, 1.2 + 0.05 * abs(pf)), 0.3),
+                    "table_plantar_flexion": Angle(pf + rng.normal(-0.1 * pf, 1.5), 0.3)})
     view = SessionView()
     qtbot.addWidget(view)
     view.resize(1000, 760)

@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from anklescan.core.csv_numbers import finite_number
 from anklescan.core.errors import AnkleScanError, GeometryError
-from anklescan.core.vocabulary import TABLE_LABELS, MarkLabel, parse_label
+from anklescan.core.vocabulary import TABLE_LABELS, Angle, MarkLabel, parse_label
 
 # Mark-centre localisation is worse than the paper's 0.2 mm surface accuracy (a mark is
 # picked on a few mm wide plate), so the default is deliberately more conservative.
@@ -46,19 +46,23 @@ _JACOBIAN_STEP_MM = 1e-3
 
 # a mapping of marks is keyed by label, as a number or its text (``5`` or ``"5"``)
 K = TypeVar("K", bound=MarkLabel | str)
+# a table's angles by axis (``inversion``, or ``compute_angles``' ``table_inversion``): measured,
+# or a number (an operator-set angle, SD 0)
+TableAngles = Mapping[str, Angle | float]
 
 
-class AngleResult(dict[str, dict[str, float]]):
-    """``{angle_name: {"value": deg, "sd": deg}}`` for the angles the marks allow.
+class AngleResult(dict[str, Angle]):
+    """``{angle_name: Angle}`` for the angles the marks allow; ``missing`` maps every angle
+    that could not be computed to the labels it lacks."""
 
-    A plain dict to JSON, so it drops straight into RESULT.json; ``missing`` maps every
-    angle that could not be computed to the labels it lacks.
-    """
-
-    def __init__(self, angles: Mapping[str, dict[str, float]] | None = None, *,
+    def __init__(self, angles: Mapping[str, Angle] | None = None, *,
                  missing: Mapping[str, list[int]] | None = None) -> None:
         super().__init__(angles or {})
         self.missing: dict[str, list[int]] = dict(missing or {})
+
+    def to_json(self) -> dict[str, dict[str, float]]:
+        """``{angle_name: {"value", "sd"}}``, as RESULT.json holds them (SPEC §3)."""
+        return {name: a.to_json() for name, a in self.items()}
 
     @property
     def missing_marks(self) -> list[int]:
@@ -190,7 +194,7 @@ def _jacobian(f: Callable[..., float], pts: list[np.ndarray]) -> np.ndarray:
 
 
 def angle_with_sd(name: str, points: list[npt.ArrayLike], covariances: list[np.ndarray] | None = None,
-                  joint: np.ndarray | None = None) -> dict[str, float]:
+                  joint: np.ndarray | None = None) -> Angle:
     """One angle and its first-order standard deviation (degrees): from per-mark covariances,
     and/or one (3k, 3k) covariance over the angle's k marks together (``joint``)."""
     f = _ANGLE_FUNCS[name]
@@ -200,12 +204,12 @@ def angle_with_sd(name: str, points: list[npt.ArrayLike], covariances: list[np.n
     cov = np.zeros((J.size, J.size)) if joint is None else np.array(joint, dtype=float)
     for k, c in enumerate(covariances or []):
         cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] += c
-    return {"value": float(value), "sd": float(math.sqrt(max(J @ cov @ J, 0.0)))}
+    return Angle(float(value), float(math.sqrt(max(J @ cov @ J, 0.0))))
 
 
 def compute_angles(marks: Mapping[K, npt.ArrayLike], sigma_mm: float | Mapping[Any, npt.ArrayLike] = DEFAULT_SIGMA_MM, *,
                    joint: JointCovariance | None = None) -> AngleResult:
-    """SPEC §3 angles from labelled marks (mm), each ``{"value", "sd"}`` in degrees.
+    """SPEC §3 angles from labelled marks (mm), each an ``Angle`` (value and SD, degrees).
 
     ``sigma_mm`` is the isotropic position SD of every mark, or a mapping label → SD or
     label → 3x3 covariance (mm²); ``joint`` adds a covariance over several marks together (the
@@ -214,7 +218,7 @@ def compute_angles(marks: Mapping[K, npt.ArrayLike], sigma_mm: float | Mapping[A
     GeometryError.
     """
     pts = _normalise_marks(marks)
-    result: dict[str, dict[str, float]] = {}
+    result: dict[str, Angle] = {}
     missing: dict[str, list[int]] = {}
     for name, labels in ANGLE_MARKS.items():
         lacking = [lab for lab in labels if lab not in pts]
@@ -229,13 +233,11 @@ def compute_angles(marks: Mapping[K, npt.ArrayLike], sigma_mm: float | Mapping[A
 
 # -------------------------------------------------------------------- mismatch
 
-def _value_sd(angles: Mapping[str, float | Mapping[str, float]], axis: str, what: str) -> tuple[float, float]:
+def _angle(angles: TableAngles, axis: str, what: str) -> Angle:
     v = angles.get(axis, angles.get(f"table_{axis}"))
     if v is None:
         raise AnkleScanError(f"{what} angles lack {axis}")
-    if isinstance(v, Mapping):
-        return float(v["value"]), float(v.get("sd") or 0.0)
-    return float(v), 0.0
+    return v if isinstance(v, Angle) else Angle(float(v))
 
 
 def wrap_degrees(a: float) -> float:
@@ -244,19 +246,18 @@ def wrap_degrees(a: float) -> float:
     return 180.0 if w == -180.0 else w
 
 
-def mismatch(adjusted_table_angles: Mapping[str, float | Mapping[str, float]],
-             reference_angles: Mapping[str, float | Mapping[str, float]]) -> dict[str, dict[str, float]]:
-    """Per axis adjusted − reference (SPEC §3), ``{"value", "sd"}`` in degrees.
+def mismatch(adjusted_table_angles: TableAngles, reference_angles: TableAngles) -> dict[str, Angle]:
+    """Per axis adjusted − reference (SPEC §3), in degrees.
 
     Each argument maps ``inversion``/``plantar_flexion`` (or the ``table_…`` keys of
-    ``compute_angles``) to a number (an operator-set angle, sd 0) or ``{"value","sd"}``.
-    The two tables are measured independently, so variances add.
+    ``compute_angles``) to an ``Angle`` or a number (an operator-set angle, SD 0). The two
+    tables are measured independently, so variances add.
     """
-    out: dict[str, dict[str, float]] = {}
+    out: dict[str, Angle] = {}
     for axis in ("inversion", "plantar_flexion"):
-        va, sa = _value_sd(adjusted_table_angles, axis, "adjusted table")
-        vr, sr = _value_sd(reference_angles, axis, "reference")
-        out[axis] = {"value": wrap_degrees(va - vr), "sd": math.hypot(sa, sr)}
+        a = _angle(adjusted_table_angles, axis, "adjusted table")
+        r = _angle(reference_angles, axis, "reference")
+        out[axis] = Angle(wrap_degrees(a.value - r.value), math.hypot(a.sd, r.sd))
     return out
 
 
@@ -308,7 +309,7 @@ def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
 
 def format_angles(result: AngleResult) -> str:
     """Human-readable lines for the command line."""
-    lines = [f"{name:24s} {v['value']:8.2f}° ± {v['sd']:.2f}°" for name, v in result.items()]
+    lines = [f"{name:24s} {v.value:8.2f}° ± {v.sd:.2f}°" for name, v in result.items()]
     if result.missing:
         lines.append(result.missing_message())
     return "\n".join(lines)

@@ -82,7 +82,7 @@ class MeasureResult:
         lab = self.marks.labelled
         return {
             "marks": {k: [float(v) for v in lab[k].centre] for k in sorted(lab)},
-            "angles": {k: dict(self.angles[k]) for k in ANGLE_ORDER if k in self.angles},
+            "angles": {k: self.angles[k].to_json() for k in ANGLE_ORDER if k in self.angles},
             "mark_diameter_mm": self.mark_diameter(),
             "mark_details": {k: lab[k].to_dict() for k in sorted(lab)},
             "unlabelled_marks": [m.to_dict() for m in self.marks.unlabelled],
@@ -127,7 +127,7 @@ class MeasureResult:
         for name in ANGLE_ORDER:
             if name in self.angles:
                 a = self.angles[name]
-                lines.append(f"{name:24s} {a['value']:8.2f}° ± {a['sd']:.2f}°")
+                lines.append(f"{name:24s} {a.value:8.2f}° ± {a.sd:.2f}°")
         d = self.mark_diameter()
         if d is not None:
             lines.append(

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy.typing as npt
 
 from anklescan.core.errors import AnkleScanError
-from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, compute_angles, mismatch
+from anklescan.core.measure.angles import DEFAULT_SIGMA_MM, JointCovariance, TableAngles, compute_angles, mismatch
 from anklescan.core.records.database import Database
 from anklescan.core.records.events import EventLog
 from anklescan.core.records.fields import opt_float
@@ -38,7 +38,17 @@ from anklescan.core.records.trials import (
     mark_source,
     sha256_path,
 )
-from anklescan.core.vocabulary import ANGLE_FIELDS, LABELS, MarkLabel, MarkRecord, MarkSource, Trial, TrialAngles, TrialState
+from anklescan.core.vocabulary import (
+    ANGLE_FIELDS,
+    LABELS,
+    Angle,
+    MarkLabel,
+    MarkRecord,
+    MarkSource,
+    Trial,
+    TrialAngles,
+    TrialState,
+)
 
 
 @dataclass(frozen=True)
@@ -79,7 +89,7 @@ class TrialOutcome:
 
 
 Sigma = float | Mapping[MarkLabel, npt.ArrayLike]
-Reference = Mapping[str, float | Mapping[str, float]]
+Reference = TableAngles  # the reference table's angles: measured, or as set
 
 
 def trial_angles(trial: Trial, marks: Mapping[MarkLabel, Xyz], *, sigma_mm: Sigma = DEFAULT_SIGMA_MM,
@@ -88,23 +98,22 @@ def trial_angles(trial: Trial, marks: Mapping[MarkLabel, Xyz], *, sigma_mm: Sigm
     return angles_to_store(trial, compute_angles(marks, sigma_mm=sigma_mm, joint=joint), None)
 
 
-def angles_to_store(trial: Trial, angles: Mapping[str, float | Mapping[str, float]], reference: Reference | None) -> TrialAngles:
-    """``compute_angles`` output (name → {"value", "sd"}) as the trial keeps it, with the mismatch
+def angles_to_store(trial: Trial, angles: Mapping[str, Angle], reference: Reference | None) -> TrialAngles:
+    """``compute_angles`` output (name → ``Angle``) as the trial keeps it, with the mismatch
     of the table angles against ``reference`` (a measured reference table's ``{"inversion":
-    {"value", "sd"}, …}``; None: the trial's set angles)."""
+    Angle, …}``; None: the trial's set angles)."""
     cols: dict[str, float | None] = {}
     for name in ANGLE_FIELDS:
-        v = angles.get(name)
-        got = v if isinstance(v, Mapping) else None
-        cols[name] = opt_float(got["value"], name) if got else None
-        cols[f"{name}_sd"] = opt_float(got.get("sd"), f"{name} sd") if got else None
+        got = angles.get(name)
+        cols[name] = opt_float(got.value, name) if got else None
+        cols[f"{name}_sd"] = opt_float(got.sd, f"{name} sd") if got else None
     if reference is None and trial.ref_inversion is not None and trial.ref_plantar_flexion is not None:
         reference = {"inversion": trial.ref_inversion, "plantar_flexion": trial.ref_plantar_flexion}
     have_table = angles.get("table_inversion") and angles.get("table_plantar_flexion")
     mm = mismatch(angles, reference) if (have_table and reference) else {}
     for axis in ("inversion", "plantar_flexion"):
-        cols[f"mismatch_{axis}"] = mm[axis]["value"] if mm else None
-        cols[f"mismatch_{axis}_sd"] = mm[axis]["sd"] if mm else None
+        cols[f"mismatch_{axis}"] = mm[axis].value if mm else None
+        cols[f"mismatch_{axis}_sd"] = mm[axis].sd if mm else None
     return TrialAngles(**cols)
 
 
@@ -178,12 +187,12 @@ class TrialResults:
             self._trials.set_angles(trial.id, trial_angles(trial, self._marks.positions(trial.id)))
         return self._marks.all(trial_id)
 
-    def update_angles(self, trial_id: int, angles: Mapping[str, float | Mapping[str, float]],
+    def update_angles(self, trial_id: int, angles: Mapping[str, Angle],
                       reference: Reference | None = None) -> Trial:
         """Store measured angles (``compute_angles`` output) and the resulting mismatch.
 
         ``reference`` defaults to the trial's set angles; pass the scanned reference
-        table's ``{"inversion": {"value", "sd"}, ...}`` when it was measured (SPEC §3).
+        table's ``{"inversion": Angle, ...}`` when it was measured (SPEC §3).
         """
         with self._db.transaction():
             self._trials.set_angles(trial_id, angles_to_store(self._trials.get(trial_id), angles, reference))

@@ -40,7 +40,7 @@ import numpy as np
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.planes import in_plane_axes, largest_patch, least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
-from anklescan.core.vocabulary import JsonObject
+from anklescan.core.vocabulary import Angle, JsonObject
 
 if TYPE_CHECKING:
     from anklescan.core.calibration.model.file import Calibration
@@ -57,15 +57,6 @@ GRID_MM = 5.0  # in-plane raster for the connected-patch test
 JACKKNIFE_BLOCKS = 4  # per side of the top
 MAX_SET_ANGLE_DEG = 60.0
 MIN_STEP_MM = 10.0  # the top stands at least this above the surface the object stands on
-
-
-@dataclass(frozen=True)
-class Angle:
-    value: float  # degrees
-    sd: float  # degrees
-
-    def to_json(self) -> JsonObject:
-        return {"value": round(self.value, 4), "sd": round(self.sd, 4)}
 
 
 @dataclass(frozen=True)
@@ -157,7 +148,7 @@ class CheckResult:
     def to_json(self) -> JsonObject:
         t = self.top
         return {
-            "measured": {"inversion": t.inversion.to_json(), "plantar_flexion": t.plantar_flexion.to_json()},
+            "measured": {"inversion": t.inversion.to_json(4), "plantar_flexion": t.plantar_flexion.to_json(4)},
             "expected": {"inversion": self.expected_inversion, "plantar_flexion": self.expected_plantar_flexion},
             "passed": self.passed,
             "difference": {"inversion": round(self.inversion_off, 4),
