@@ -15,7 +15,7 @@ from anklescan.core.measure.mark_hypotheses import (
     on_a_fitted_disk,
 )
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, overlaps, select_marks
-from anklescan.core.measure.mark_types import Blob, Mark
+from anklescan.core.measure.mark_types import Blob, Mark, RefusalReason
 from anklescan.hardware.sim_scene import leg_scene
 
 R = 7.5  # the default scene's plates' radius, mm
@@ -63,7 +63,8 @@ def test_two_fits_of_one_disk_keep_the_better_and_side_by_side_disks_both():
     assert overlaps(a, b, R) and not overlaps(b, touching, R)
     sel = select_marks([_fit(a), _fit(b), _fit(touching)], R)
     assert {id(f.mark) for f in sel.chosen} == {id(b), id(touching)}
-    assert len(sel.left_out) == 1 and "second fit" in sel.left_out[0]["reason"]
+    assert len(sel.left_out) == 1 and sel.left_out[0].reason is RefusalReason.SECOND_FIT
+    assert "second fit" in sel.left_out[0].detail
 
 
 @pytest.mark.parametrize("inv,pf", [(0, 0), (20, -20), (10, 20)])
@@ -93,7 +94,7 @@ def test_selection_chooses_the_seven_the_labels_accept_over_a_better_scored_fals
     assert ms.complete, ms.message()
     for lab, f in fits:
         assert f.mark.label == lab
-    assert any("labels accept" in r["reason"] for r in sel.left_out)
+    assert any(r.reason is RefusalReason.NOT_LABELLED for r in sel.left_out)
 
 
 def test_a_set_that_cannot_be_labelled_reports_the_marks_it_lacks():
@@ -153,7 +154,7 @@ def test_a_doubtful_fit_gives_way_to_a_sure_one_and_not_beside_seven():
     alone = _fit(_mark(away, [0.0, 0.0, 1.0], doubtful=True))
     assert any(f is alone for f in select_marks(sure[:6] + [alone], R).chosen)
     sel = select_marks(sure + [alone], R)
-    assert not any(f is alone for f in sel.chosen) and "doubtful radius" in sel.left_out[-1]["reason"]
+    assert not any(f is alone for f in sel.chosen) and "doubtful radius" in sel.left_out[-1].detail
 
 
 def test_a_thin_disk_image_is_elliptical_and_a_crescent_is_not():

@@ -38,7 +38,7 @@ import numpy as np
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_hypotheses import Hypothesis
 from anklescan.core.measure.mark_labels import label_marks
-from anklescan.core.measure.mark_types import Mark, MarkSet, Rejection
+from anklescan.core.measure.mark_types import Mark, MarkSet, RefusalReason, Rejection
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS
 
 
@@ -89,9 +89,9 @@ def select_marks(fits: list[MarkFit], radius_mm: float) -> Selection:
         if better is None:
             pool.append(f)
         else:
-            left.append({"pixel": f.mark.pixel, "reason": (
+            left.append(Rejection(f.mark.pixel, RefusalReason.SECOND_FIT, (
                 f"a second fit of the mark at pixel ({better.mark.pixel[0]:.0f}, {better.mark.pixel[1]:.0f}) "
-                f"(score {f.score:.1f} against {better.score:.1f})")})
+                f"(score {f.score:.1f} against {better.score:.1f})")))
     n = len(LABELS)
     if len(pool) <= n:
         return Selection(pool, left)
@@ -106,9 +106,9 @@ def select_marks(fits: list[MarkFit], radius_mm: float) -> Selection:
     chosen = list(best) if best is not None else pool[:n]
     for f in pool:
         if not any(f is c for c in chosen):
-            left.append({"pixel": f.mark.pixel, "reason": (
-                f"{'not one of seven marks the labels accept' if best is not None else 'seven marks were already kept'}"
-                f" (score {f.score:.1f}{', doubtful radius' if f.mark.doubtful else ''})")})
+            why = RefusalReason.NOT_LABELLED if best is not None else RefusalReason.SEVEN_KEPT
+            left.append(Rejection(f.mark.pixel, why, (
+                f"{why.value} (score {f.score:.1f}{', doubtful radius' if f.mark.doubtful else ''})")))
     return Selection(sorted(chosen, key=lambda f: -f.score), left)
 
 

@@ -8,7 +8,6 @@ import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import TypedDict
 
 import numpy as np
 
@@ -17,7 +16,8 @@ from anklescan.core.vocabulary import MarkKind
 
 
 class RefusalReason(enum.Enum):
-    """Why a candidate is not a mark: the check of ``mark_fit`` that failed."""
+    """Why a candidate is not a mark: the check of ``mark_fit`` that failed, or the selection
+    that left its fit out."""
 
     TOO_SMALL = "too small to fit"
     NOT_ELLIPTICAL = "not elliptical"
@@ -39,6 +39,10 @@ class RefusalReason(enum.Enum):
     LIT_EDGES_ON_A_LINE = "the lit image's edges lie on a line"
     IMAGES_DISAGREE = "the lit and corrected images place it apart"
     WRONG_KIND = "not of the capture's kind of mark"
+    # left out by the selection (``mark_selection.select_marks``), not by a check of its fit
+    SECOND_FIT = "a second fit of a mark already chosen"
+    NOT_LABELLED = "not one of seven marks the labels accept"
+    SEVEN_KEPT = "seven marks were already kept"
 
 
 @dataclass(frozen=True)
@@ -150,11 +154,21 @@ class DiskFit:
         return dataclasses.replace(self, centre=centre, covariance=covariance)
 
 
-class Rejection(TypedDict):
-    """A candidate that gave no mark: where it was, and why (the one line of its ``Refusal``)."""
+@dataclass(frozen=True)
+class Rejection:
+    """A candidate that gave no mark: where it was, why, and the one line that says so with its
+    figures (its ``Refusal``'s, or the selection's)."""
 
     pixel: tuple[float, float]  # (u, v) camera pixel of its blob's centre
-    reason: str
+    reason: RefusalReason
+    detail: str
+
+    @classmethod
+    def of(cls, pixel: tuple[float, float], refusal: Refusal) -> Rejection:
+        return cls(pixel, refusal.reason, refusal.detail)
+
+    def __str__(self) -> str:
+        return f"({self.pixel[0]:.0f}, {self.pixel[1]:.0f}): {self.detail}"
 
 
 @dataclass(eq=False)
@@ -269,6 +283,5 @@ class MarkSet:
         parts += self.problems
         if self.rejected and len(self.marks) < len(LABELS):
             parts.append(f"{len(self.rejected)} candidate blob(s) rejected, e.g. "
-                         + "; ".join(f"({r['pixel'][0]:.0f}, {r['pixel'][1]:.0f}): {r['reason']}"
-                                     for r in self.rejected[:3]))
+                         + "; ".join(str(r) for r in self.rejected[:3]))
         return "; ".join(parts)

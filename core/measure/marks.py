@@ -60,7 +60,17 @@ from anklescan.core.measure.mark_hypotheses import (
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
-from anklescan.core.measure.mark_types import Blob, BlobCut, KnownDisk, Mark, MarkSet, Refusal, RefusalReason, fitted
+from anklescan.core.measure.mark_types import (
+    Blob,
+    BlobCut,
+    KnownDisk,
+    Mark,
+    MarkSet,
+    Refusal,
+    RefusalReason,
+    Rejection,
+    fitted,
+)
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.scan.pointcloud import PointCloud
 from anklescan.core.vocabulary import LABEL_KEYS as LABELS
@@ -141,7 +151,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
             else:
                 refused.append(h)
                 if h.source is HypothesisSource.BLOB:
-                    result.rejected.append({"pixel": h.pixel, "reason": str(out)})
+                    result.rejected.append(Rejection.of(h.pixel, out))
 
     def sure() -> list[Mark]:
         return [f.mark for f in fits if not f.mark.doubtful]
@@ -173,7 +183,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         if isinstance(out, Mark):
             result.marks.append(out)
         else:
-            result.rejected.append({"pixel": f.mark.pixel, "reason": str(out)})
+            result.rejected.append(Rejection.of(f.mark.pixel, out))
     result.rejected.extend(selection.left_out)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g.radius:.1f} mm ({g.n})" for g in sizes[:3]) or "none"
