@@ -78,7 +78,7 @@ class Blob:
     (rows, columns), its seed or centre (u, v), and how it was cut. ``search_radius_mm``: the
     disk size whose search cut it (None: not from a search); ``wider``: the same seed's lower
     first cut, where it grows the region; ``other_cuts``: the same seed cut at other searched
-    radii (``blob_union``)."""
+    radii (filled by ``blob_union`` as it unites the searches; no field is reassigned)."""
 
     window: tuple[slice, slice]
     region: np.ndarray  # (h, w) bool
@@ -165,6 +165,7 @@ class Rejection:
 
     @classmethod
     def of(cls, pixel: tuple[float, float], refusal: Refusal) -> Rejection:
+        """The candidate at ``pixel`` that its fit's ``refusal`` turned down."""
         return cls(pixel, refusal.reason, refusal.detail)
 
     def __str__(self) -> str:

@@ -256,9 +256,8 @@ def _top_patch(near: np.ndarray, nt: np.ndarray) -> tuple[np.ndarray, np.ndarray
     GeometryError where it has fewer than MIN_TOP_POINTS."""
     patch = largest_patch(near, nt, GRID_MM, edge_cells=TOP_EDGE_CELLS)
     top = near[patch.keep] if patch is not None else near[:0]
-    if len(top) < MIN_TOP_POINTS:
+    if patch is None or len(top) < MIN_TOP_POINTS:
         raise GeometryError(f"the table top shows only {len(top)} points: scan the whole top")
-    assert patch is not None
     return top, patch.interior[patch.keep]
 
 
