@@ -13,6 +13,10 @@ Long work takes the job itself (``pass_job=True``: ``fn(job)``) and then has
 - cancel: the UI calls ``job.cancel()``; the work checks ``job.cancelled`` (a threading.Event,
   so it can also wait on it) or calls ``job.check_cancel()``, which raises ``Cancelled``; a job
   that ends with ``Cancelled`` reports to ``on_cancelled`` instead of ``on_error``.
+
+``owner``: the widget the callbacks act on. A window closed while its job ran is deleted by
+Qt before the result comes; then nothing is delivered (a callback on it would raise
+"Internal C++ object already deleted" in the event loop).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import traceback
 from collections.abc import Callable
 
 from PySide6.QtCore import QObject, Signal, Slot
+from shiboken6 import isValid
 
 _running: set[BackgroundJob] = set()  # keeps each job (and its signal) alive until delivered
 
@@ -39,9 +44,10 @@ class BackgroundJob(QObject):
 
     def __init__(self, fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
                  on_progress: Callable[[int, int, str], None] | None = None,
-                 on_cancelled: Callable[[], None] | None = None, pass_job: bool = False, name: str = "anklescan-job"):
+                 on_cancelled: Callable[[], None] | None = None, pass_job: bool = False, name: str = "anklescan-job",
+                 owner: QObject | None = None):
         super().__init__()
-        self._fn, self._on_done, self._on_error = fn, on_done, on_error
+        self._fn, self._on_done, self._on_error, self._owner = fn, on_done, on_error, owner
         self._on_progress, self._on_cancelled, self._pass_job = on_progress, on_cancelled, pass_job
         self.cancelled = threading.Event()
         self.finished = False  # set on the UI thread once the callbacks have been called
@@ -77,15 +83,20 @@ class BackgroundJob(QObject):
     def cancel(self) -> None:
         self.cancelled.set()
 
+    def _owner_alive(self) -> bool:
+        return self._owner is None or isValid(self._owner)
+
     @Slot(object, object)
     def _call(self, callback, args) -> None:
-        if not self.finished:
+        if not self.finished and self._owner_alive():
             callback(*args)
 
     @Slot(object, str, bool)
     def _deliver(self, result, error: str, cancelled: bool) -> None:
         _running.discard(self)
         self.finished = True
+        if not self._owner_alive():
+            return  # its window was closed: nothing is left to tell
         if cancelled:
             if self._on_cancelled is not None:
                 self._on_cancelled()
@@ -106,9 +117,9 @@ class BackgroundJob(QObject):
 def run_in_background(fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
                       on_progress: Callable[[int, int, str], None] | None = None,
                       on_cancelled: Callable[[], None] | None = None, pass_job: bool = False,
-                      name: str = "anklescan-job") -> BackgroundJob:
+                      name: str = "anklescan-job", owner: QObject | None = None) -> BackgroundJob:
     job = BackgroundJob(fn, on_done, on_error, on_progress=on_progress, on_cancelled=on_cancelled,
-                        pass_job=pass_job, name=name)
+                        pass_job=pass_job, name=name, owner=owner)
     _running.add(job)
     job.thread.start()
     return job

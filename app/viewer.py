@@ -208,7 +208,7 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
             return built["snapper"]
 
         job = run_in_background(build, lambda snapper: self._snapper_ready(job, snapper),
-                                lambda error: self._snapper_failed(job, error))
+                                lambda error: self._snapper_failed(job, error), owner=self)
         self._snapper_job, self._snapper_built = job, built
 
     @property

@@ -362,3 +362,18 @@ def test_point_square_rules(size, window):
         covered = {p for p in range(-10, 10) if lo <= m - p <= hi}
         assert covered == set(range(m - size // 2, m - size // 2 + size))
     assert splat.gl_point_size(2.5) == 2 and splat.gl_point_size(2.6) == 3 and splat.gl_point_size(0.2) == 1
+
+
+def test_a_viewer_closed_while_its_picking_tree_is_built_takes_no_result(qtbot, scan):
+    """The KD-tree for picking is built in the background; a window closed (its viewer deleted
+    by Qt) before it arrives once raised "Internal C++ object already deleted" in the event
+    loop. The job's owner is gone: nothing is delivered, and nothing raises."""
+    import shiboken6
+
+    v = CloudViewer()
+    v.set_cloud(scan["cloud"], scanner_eye=scan["eye"])
+    job = v._snapper_job
+    assert job is not None and not job.finished
+    shiboken6.delete(v)  # what closing its window does
+    assert job.wait(30)
+    qtbot.waitUntil(lambda: job.finished, timeout=5000)  # delivered on the UI thread: no exception
