@@ -78,7 +78,6 @@ def board_views(cols: int, rows: int, square: float) -> list[tuple[Scene, np.nda
     for tx, ty, tz, dz in VIEWS:
         R = rotation(tx, ty, tz)
         centre = RIG_TARGET + np.array([0.0, 0.0, dz])
-        scene = Scene([Plane(kind=ObjectId.FLOOR, albedo=0.35), board_quad(cols, rows, square, centre, R)],
-                      {}, {"kind": "chessboard", "centre": centre, "R": R})
+        scene = Scene([Plane(kind=ObjectId.FLOOR, albedo=0.35), board_quad(cols, rows, square, centre, R)])
         out.append((scene, centre, R))
     return out

@@ -34,6 +34,7 @@ from anklescan.hardware.sim_scene import (
     ObjectId,
     Plane,
     Scene,
+    SceneInfo,
     SceneObject,
     SimMark,
     Sticker,
@@ -155,8 +156,8 @@ def check_scene(inversion_deg: float, plantar_flexion_deg: float, obj: CheckObje
                 st = Sticker(host, X, n, float(mark_radius), 0.9, label)
                 sim_marks[label] = SimMark(label, st.centre, st.normal, None, st)
     stickers = [m.sticker for m in sim_marks.values() if m.sticker is not None]
-    info = {"kind": f"check {obj.value}", "table_angles": (float(inversion_deg), float(plantar_flexion_deg)),
-            "table_normal": n, "table_top_centre": top_c}
+    info = SceneInfo(table_angles=(float(inversion_deg), float(plantar_flexion_deg)), table_normal=n,
+                     table_top_centre=top_c)
     return Scene(objs, sim_marks, info, stickers)
 
 

@@ -413,13 +413,26 @@ class SimMark:
     sticker: Sticker | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class SceneInfo:
+    """The ground truth of a built scene beyond its marks (None: the scene has no such part)."""
+
+    table_angles: tuple[float, float] | None = None  # the table's set (inversion, plantar flexion), deg
+    leg_axis_angles: tuple[float, float] | None = None  # the leg axis' set (inversion, plantar flexion), deg
+    table_normal: np.ndarray | None = None  # (3,) the table top's unit normal
+    table_top_centre: np.ndarray | None = None  # (3,) mm
+    mark_type: MarkKind | None = None
+    mark_radius: float | None = None  # mm
+    lateral_mark_deg: float | None = None  # marks 3 and 4 this far round from straight lateral
+
+
 @dataclass(eq=False)
 class Scene:
     """A set of objects; ``marks`` and ``info`` carry the ground truth of a built scene."""
 
     objects: list
     marks: dict = field(default_factory=dict)  # label -> SimMark
-    info: dict = field(default_factory=dict)
+    info: SceneInfo = field(default_factory=SceneInfo)
 
     stickers: list = field(default_factory=list)  # Sticker decals on objects of ``objects``
 
@@ -631,23 +644,17 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
                         else _sticker(label, table, X, n, mark_radius, mark_albedo))
     objs.extend(m.plate for m in marks.values() if m.plate is not None)
     stickers = [m.sticker for m in marks.values() if m.sticker is not None]
-    info = {
-        "kind": "leg",
-        "mark_type": mark_type,
-        "mark_radius": float(mark_radius),
-        "lateral_mark_deg": float(lateral_mark_deg),
-        "table_angles": (float(table_inversion), float(table_plantar_flexion)),
-        "leg_axis_angles": (float(leg_inversion), float(leg_plantar_flexion)),
-        "table_normal": n,
-        "table_top_centre": top_c,
-    }
+    info = SceneInfo(table_angles=(float(table_inversion), float(table_plantar_flexion)),
+                     leg_axis_angles=(float(leg_inversion), float(leg_plantar_flexion)), table_normal=n,
+                     table_top_centre=top_c, mark_type=mark_type, mark_radius=float(mark_radius),
+                     lateral_mark_deg=float(lateral_mark_deg))
     return Scene(objs, marks, info, stickers)
 
 
 def quad_scene(objects, floor: bool = True, floor_albedo: float = 0.35) -> Scene:
     """Scene of arbitrary objects (e.g. a calibration box's TexturedQuads) over the floor."""
     objs = ([Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)] if floor else []) + list(objects)
-    return Scene(objs, {}, {"kind": "objects"})
+    return Scene(objs)
 
 
 def angles_from_marks(marks: dict) -> dict:

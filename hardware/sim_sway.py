@@ -183,7 +183,7 @@ def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -
     for k, m in scene.marks.items():
         plate = moved[id(m.plate)]
         marks[k] = SimMark(k, plate.top_centre, plate.normal, plate) if plate is not m.plate else m
-    return Scene(objs, marks, dict(scene.info))
+    return Scene(objs, marks, scene.info)
 
 
 @dataclass
@@ -280,7 +280,7 @@ def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
         uv = (base[None, :, :] + offs[:, None, :]).reshape(-1, 2)
         c = posed._cast(uv)
         shade = posed._shading(c) / S
-    cols, weights = transport_taps(c["proj_uv"], shade, tr.pad, tr.padded_shape, S)
+    cols, weights = transport_taps(c.proj_uv, shade, tr.pad, tr.padded_shape, S)
     per_row = 4 * S
     where = (rows[:, None] * per_row + np.arange(per_row)[None, :]).ravel()
     data = tr.matrix.data.copy()
@@ -289,7 +289,7 @@ def frame_transport(still: SimRig, posed: SimRig) -> LightTransport:
     indices[where] = cols.reshape(-1)
     matrix = scipy.sparse.csr_matrix((data, indices, tr.matrix.indptr), shape=tr.matrix.shape)
     ambient = tr.ambient.copy()
-    ambient.ravel()[rows] = (c["albedo"] * o.ambient).reshape(S, -1).mean(axis=0)
+    ambient.ravel()[rows] = (c.albedo * o.ambient).reshape(S, -1).mean(axis=0)
     return LightTransport(matrix, ambient, tr.pad, tr.padded_shape)
 
 

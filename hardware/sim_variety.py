@@ -185,8 +185,9 @@ DEFAULT_VIEW = {"azimuth_deg": CAMERA_AZIMUTH_DEG, "elevation_deg": CAMERA_ELEVA
 def table_view_deg(eye: np.ndarray, inversion: float, plantar_flexion: float) -> float:
     """Degrees between the table top's normal and the ray from its centre to ``eye`` (measured
     from the scene leg_scene builds at that posture)."""
-    info = leg_scene(inversion, plantar_flexion).info
-    d = np.asarray(eye, float) - info["table_top_centre"]
+    centre = leg_scene(inversion, plantar_flexion).info.table_top_centre
+    assert centre is not None  # a leg scene has its table
+    d = np.asarray(eye, float) - centre
     return math.degrees(math.acos(float(table_normal(inversion, plantar_flexion) @ d) / float(np.linalg.norm(d))))
 
 

@@ -16,7 +16,7 @@ import math
 from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Literal, TypeAlias, TypedDict
+from typing import TYPE_CHECKING, TypeAlias, TypedDict
 
 import cv2
 import numpy as np
@@ -232,7 +232,8 @@ class LightTransport:
     padded_shape: tuple[int, int]  # (Hp, Wp)
 
 
-class RayCast(TypedDict):
+@dataclass(frozen=True, eq=False)
+class RayCast:
     """``SimRig._cast``: per camera ray (N rays), everything that does not depend on the projector image."""
 
     d: np.ndarray  # (N, 3) unit world rays
@@ -245,10 +246,6 @@ class RayCast(TypedDict):
     cos: np.ndarray  # (N,) cosine of the projector light's incidence, 0 where not facing it
     dist: np.ndarray  # (N,) hit-to-projector distance, mm
     lit: np.ndarray  # (N,) bool: facing the projector, inside its field, not shadowed
-
-
-# the RayCast fields the ground truth keeps
-_TruthField: TypeAlias = Literal["X", "normals", "index", "seen", "lit", "proj_uv"]
 
 
 class ExposureSettings(TypedDict):
@@ -494,21 +491,21 @@ class SimRig:
         if rows.size:
             tp, _ = scene.intersect(prj.center, -to_p[rows] / dist[rows, None])
             unshadowed[rows] = tp >= dist[rows] - _SHADOW_EPS_MM
-        return {"d": d, "X": X, "index": index, "seen": seen, "normals": normals, "albedo": albedo,
-                "proj_uv": puv, "cos": np.where(facing, cos, 0.0), "dist": dist, "lit": facing & unshadowed}
+        return RayCast(d=d, X=X, index=index, seen=seen, normals=normals, albedo=albedo, proj_uv=puv,
+                       cos=np.where(facing, cos, 0.0), dist=dist, lit=facing & unshadowed)
 
     def _shading(self, c: RayCast) -> np.ndarray:
         """Projector-light weight per ray: albedo cos / (d/d0)^2 (+ optional highlight)."""
         o = self.optics
-        inv_sq = (self.d0 / np.where(c["lit"], c["dist"], np.inf)) ** 2
-        w = c["albedo"] * c["cos"] * inv_sq
+        inv_sq = (self.d0 / np.where(c.lit, c.dist, np.inf)) ** 2
+        w = c.albedo * c.cos * inv_sq
         if o.specular > 0:
-            to_p = (self.projector.center - c["X"]) / c["dist"][:, None]
-            h = to_p - c["d"]
+            to_p = (self.projector.center - c.X) / c.dist[:, None]
+            h = to_p - c.d
             h /= np.linalg.norm(h, axis=-1, keepdims=True)
-            ndh = np.clip(np.einsum("ij,ij->i", np.nan_to_num(c["normals"]), np.nan_to_num(h)), 0, 1)
-            w = w + o.specular * ndh**o.shininess * inv_sq * (c["cos"] > 0)
-        return np.where(c["lit"], w, 0.0)
+            ndh = np.clip(np.einsum("ij,ij->i", np.nan_to_num(c.normals), np.nan_to_num(h)), 0, 1)
+            w = w + o.specular * ndh**o.shininess * inv_sq * (c.cos > 0)
+        return np.where(c.lit, w, 0.0)
 
     def _subpixel_offsets(self) -> np.ndarray:
         n = int(self.optics.supersample)
@@ -555,8 +552,8 @@ class SimRig:
         for r0, r1, uv, rays in self._camera_ray_chunks():
             c = self._cast(uv, rays)
             sl = slice(r0 * W, r1 * W)
-            cols[sl], data[sl] = transport_taps(c["proj_uv"], self._shading(c) / S, pad, (Hp, Wp), S)
-            ambient[sl] = (c["albedo"] * o.ambient).reshape(S, -1).mean(axis=0)
+            cols[sl], data[sl] = transport_taps(c.proj_uv, self._shading(c) / S, pad, (Hp, Wp), S)
+            ambient[sl] = (c.albedo * o.ambient).reshape(S, -1).mean(axis=0)
         per_row = 4 * S
         matrix = scipy.sparse.csr_matrix((data.reshape(-1), cols.reshape(-1),
                                           np.arange(0, per_row * H * W + 1, per_row, dtype=np.int64)),
@@ -566,31 +563,28 @@ class SimRig:
     def _build_truth(self) -> Truth:
         cam, prj = self.camera, self.projector
         H, W = cam.height, cam.width
-        fields: tuple[_TruthField, ...] = ("X", "normals", "index", "seen", "lit", "proj_uv")
-        out: dict[_TruthField, list[np.ndarray]] = {k: [] for k in fields}
         u = np.arange(W, dtype=np.float64)
+        # only the fields the truth keeps, band by band (the whole cast of a full-resolution
+        # image would hold ~90 MB more)
+        kept: list[tuple[np.ndarray, ...]] = []
         for r0, r1 in self._row_chunks(W):
             uu, vv = np.meshgrid(u, np.arange(r0, r1, dtype=np.float64))
             c = self._cast(np.stack([uu.ravel(), vv.ravel()], axis=-1))
-            puv = c["proj_uv"]
+            puv = c.proj_uv
             in_frame = ((puv[:, 0] >= -0.5) & (puv[:, 0] <= prj.width - 0.5)
                         & (puv[:, 1] >= -0.5) & (puv[:, 1] <= prj.height - 0.5))
-            c["lit"] = c["lit"] & in_frame
-            for k in out:
-                out[k].append(c[k])
-        cat = {k: np.concatenate(v) for k, v in out.items()}
-        index = cat["index"]
+            kept.append((c.X, c.normals, c.index, c.seen, c.lit & in_frame, puv))
+        X, normals, index, seen, lit, proj_uv = (np.concatenate(band) for band in zip(*kept, strict=True))
         marks = {k: m.centre.copy() for k, m in sorted(self.scene.marks.items())}
         info = self.scene.info
         angles = angles_from_marks(marks) if all(k in marks for k in LABEL_KEYS) else {}
-        return Truth(points=cat["X"].reshape(H, W, 3), normals=cat["normals"].reshape(H, W, 3),
+        return Truth(points=X.reshape(H, W, 3), normals=normals.reshape(H, W, 3),
                      object_id=self.scene.object_kinds(index).reshape(H, W),
-                     mark_label=self.scene.mark_labels(index, cat["X"], cat["normals"]).reshape(H, W),
-                     seen=cat["seen"].reshape(H, W), lit=cat["lit"].reshape(H, W),
-                     proj_uv=cat["proj_uv"].reshape(H, W, 2), marks=marks,
+                     mark_label=self.scene.mark_labels(index, X, normals).reshape(H, W),
+                     seen=seen.reshape(H, W), lit=lit.reshape(H, W),
+                     proj_uv=proj_uv.reshape(H, W, 2), marks=marks,
                      mark_normals={k: m.normal.copy() for k, m in sorted(self.scene.marks.items())},
-                     table_angles=info.get("table_angles"), angles=angles,
-                     leg_axis_angles=info.get("leg_axis_angles"))
+                     table_angles=info.table_angles, angles=angles, leg_axis_angles=info.leg_axis_angles)
 
 
 # ---- simulated devices ----------------------------------------------------------------------

@@ -190,9 +190,9 @@ def test_adjacent_ankle_disks_leave_the_drawn_gap_along_the_skin(seed: int) -> N
     info, v = rig.scene.info, draw_variant(seed)
     a, b = v.scene["ankle_semi_axes"]
     s = 1.0 + (v.scene["knee_scale"] - 1.0) / v.scene["knee_mark_height"] * v.scene["ankle_mark_height"]
-    arc = section_arc_mm((a * s, b * s), info["lateral_mark_deg"], 90.0)
-    assert arc - 2 * info["mark_radius"] == pytest.approx(case.ankle_gap_mm, abs=0.01)
-    assert 25.0 <= info["lateral_mark_deg"] <= 60.0
+    arc = section_arc_mm((a * s, b * s), info.lateral_mark_deg, 90.0)
+    assert arc - 2 * info.mark_radius == pytest.approx(case.ankle_gap_mm, abs=0.01)
+    assert 25.0 <= info.lateral_mark_deg <= 60.0
     # and the same from the marks' true centres: the chord is shorter than the arc (with mark 4's
     # hand-placed offset along the leg), by little
     skin = {k: m.centre if m.plate is None else m.plate.centre for k, m in rig.scene.marks.items()}  # a plate's foot
@@ -222,4 +222,4 @@ def test_the_default_scene_is_unchanged_by_the_new_parameters() -> None:
     a, b = leg_scene(10, -10), leg_scene(10, -10, ankle_mark_gap_mm=None)
     for k in a.marks:
         assert np.array_equal(a.marks[k].centre, b.marks[k].centre)
-    assert a.info["lateral_mark_deg"] == 35.0
+    assert a.info.lateral_mark_deg == 35.0
