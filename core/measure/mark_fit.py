@@ -67,8 +67,8 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration
     found: on the curved skin the light falls off across the disk (a front sticker lit near the
     terminator was 0.7 mm off with edges from the lit image); with no step in the surface the
     correction is smooth across the disk's rim, which it is not round a plate's side wall.
-    ``plate_thickness``: the step measured on this capture's clear plates, used where this
-    mark's own step is inconclusive (a small blob seen or lit at a grazing angle).
+    ``plate_thickness``: the step measured on this capture's plates (their median), the plate's
+    thickness wherever it is known; this mark's own step then decides only its kind.
     ``lit_sticker_edges``: fit only as a sticker, with edges from the lit image.
     ``prefer_kind``: the kind of this capture's other marks (``find_marks``; a clinic sticks one
     kind), the only one tried where this mark's step is inconclusive or could not be measured.
@@ -119,7 +119,12 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration
     surface = (None if step is None or step.ring_decoded < CONFIG.surface_ring_min_decoded
                else (step.normal, frame[:2], step.slope_cov))
     clear = step is not None and step_kind(step.step_mm, step.step_sd) is not None
-    thickness = float(np.clip(step.step_mm, 0.0, None)) if clear else (plate_thickness or 0.0)
+    # the capture's plates are one kit: one thickness, the median of their steps, where measured.
+    # One plate's own step rests on the surround it sees, which at a grazing view may be a few
+    # points of another face (a 1.1 mm table plate seen at 76° read 2.0 mm, and its wall band
+    # then took the table in front for wall: 0.53 mm off at 3 SD)
+    own = float(np.clip(step.step_mm, 0.0, None)) if clear else 0.0
+    thickness = plate_thickness if plate_thickness is not None else own
     kinds = ((MarkKind.STICKER, MarkKind.PLATE) if step is not None and step.step_mm < CONFIG.sticker_max_step_mm
              else (MarkKind.PLATE, MarkKind.STICKER))
     if clear:
