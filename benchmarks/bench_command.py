@@ -49,9 +49,9 @@ def make_capture(work: Path, layout: str, axes: tuple[str, ...] | None, scale: f
     from anklescan.core.scan.capture import save_capture
     from anklescan.core.scan.patterns import make_pattern_set, render_all
     from anklescan.core.scan.triangulate import scan_axes
-    from anklescan.hardware.simrig import SimRig
+    from anklescan.hardware.simrig import RigLayout, SimRig
 
-    rig = SimRig(scale=scale, layout=layout)
+    rig = SimRig(scale=scale, layout=RigLayout(layout))
     cal = rig.true_calibration()
     axes = axes or scan_axes(cal)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=axes)

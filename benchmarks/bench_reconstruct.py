@@ -34,7 +34,7 @@ from anklescan.core.scan.patterns import make_pattern_set, render_all  # noqa: E
 from anklescan.core.scan.reconstruct import cloud_from_decoded  # noqa: E402
 from anklescan.core.scan.triangulate import cache_for, scan_axes  # noqa: E402
 from anklescan.hardware.sim_accuracy import evaluate  # noqa: E402
-from anklescan.hardware.simrig import SimRig  # noqa: E402
+from anklescan.hardware.simrig import RigLayout, SimRig  # noqa: E402
 
 
 def simulate(rig: SimRig, preset: str, folder: Path, axes=("column",)) -> Path:
@@ -91,7 +91,7 @@ def main() -> None:
     ap.add_argument("--presets", default="default,paper")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="anklescan-bench-"))
-    layout = args.layout if args.layout in ("side", "above", "diagonal", "below") else float(args.layout)
+    layout = RigLayout(args.layout) if args.layout in set(RigLayout) else float(args.layout)
     rig = SimRig(scale=args.scale, layout=layout)
     cal = rig.true_calibration() if args.calibration == "true" else box_calibration(rig, work)
     cal_path = work / "calibration.json"

@@ -41,7 +41,7 @@ from anklescan.hardware.sim_variety import (
     view_devices,
     view_for_table,
 )
-from anklescan.hardware.simrig import Optics, SimRig
+from anklescan.hardware.simrig import Optics, RigLayout, SimRig
 
 TARGET_CENTRE_MM = 0.3  # issue #38's targets under the contract's conditions
 TARGET_ANGLE_DEG = 0.2
@@ -85,7 +85,7 @@ class Case:
     ambient: float | None = None  # of the projector's full white (rig default 0.04)
     size: SizeMode = SizeMode.MEASURED
     variant: int | None = None  # draw_variant's seed: a clinic's leg, marks, optics and camera
-    layout: str | None = None  # the projector round the camera (simrig.RIG_LAYOUTS)
+    layout: RigLayout | None = None  # the projector round the camera
     ankle_gap_mm: float | None = None  # leg_scene's ankle_mark_gap_mm: adjacent ankle disks
     table_view_deg: float | None = None  # camera placed to see the table top this far from its normal
     lateral_mark_deg: float | None = None  # leg_scene's lateral_mark_deg
@@ -143,7 +143,7 @@ class Case:
             view = {}
             own: dict[str, Any] = self.optics()
             optics = replace(Optics(), **own)
-            layout = self.layout or "side"
+            layout = self.layout or RigLayout.SIDE
         for key, value in (("mark_thickness", self.thickness_mm), ("ankle_mark_gap_mm", self.ankle_gap_mm),
                            ("lateral_mark_deg", self.lateral_mark_deg)):
             if value is not None:
@@ -242,7 +242,7 @@ def run_case(case: Case) -> CaseResult:
 # ---- the table ----------------------------------------------------------------------------------
 
 _CONVERT: dict[str, Callable[[str], Any]] = {
-    "mark_type": MarkKind, "expect": Expectation, "size": SizeMode, "variant": int, "seed": int,
+    "mark_type": MarkKind, "expect": Expectation, "size": SizeMode, "layout": RigLayout, "variant": int, "seed": int,
     "suite": lambda s: s.strip().lower() in ("yes", "true", "1")}
 
 

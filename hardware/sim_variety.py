@@ -35,6 +35,7 @@ from anklescan.hardware.simrig import (
     CAMERA_ELEVATION_DEG,
     CAMERA_F_PX,
     Optics,
+    RigLayout,
     SimRig,
     camera_eye,
     default_camera,
@@ -42,7 +43,7 @@ from anklescan.hardware.simrig import (
 )
 
 DIAMETER_RANGE_MM = (8.0, 25.0)  # SPEC §2
-LAYOUTS = ("side", "side", "diagonal", "above")  # beside the camera is the common build
+LAYOUTS = (RigLayout.SIDE, RigLayout.SIDE, RigLayout.DIAGONAL, RigLayout.ABOVE)  # beside the camera is the common build
 MIN_MARK_CONTRAST = 1.15  # mark albedo over the table's, at least
 # From this seed on, the lateral marks are stuck off the front marks' level, as a hand sticks
 # them (knee, ankle: mm along the leg, drawn from these ranges). Earlier seeds keep the level
@@ -65,7 +66,7 @@ class Variant:
     seed: int
     mark_type: MarkKind
     diameter: float
-    layout: str
+    layout: RigLayout
     scene: dict[str, Any] = field(default_factory=dict)
     optics: dict[str, Any] = field(default_factory=dict)
     view: dict[str, float] = field(default_factory=dict)  # VIEW_RANGES' keys; empty: our own rig's view
@@ -90,7 +91,8 @@ class Variant:
         return view_devices(self.view, scale, self.layout)
 
 
-def view_devices(view: dict[str, float], scale: float = 1.0, layout: str = "side") -> tuple[Device, Device]:
+def view_devices(view: dict[str, float], scale: float = 1.0,
+                 layout: RigLayout | float = RigLayout.SIDE) -> tuple[Device, Device]:
     """(camera, projector) standing where ``view`` (VIEW_RANGES' keys) says, at ``scale``."""
     v = view
     eye = camera_eye(v["distance_mm"], v["azimuth_deg"], v["elevation_deg"])
@@ -100,7 +102,7 @@ def view_devices(view: dict[str, float], scale: float = 1.0, layout: str = "side
 
 
 def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: float | None = None,
-                 layout: str | None = None) -> Variant:
+                 layout: RigLayout | None = None) -> Variant:
     """A reproducible clinic-like set-up; unset type, diameter and layout are drawn too."""
     rng = np.random.default_rng([seed, 16])
     u = rng.uniform

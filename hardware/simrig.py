@@ -16,6 +16,7 @@ import math
 from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
+from enum import StrEnum
 from typing import TYPE_CHECKING, TypeAlias, TypedDict
 
 import cv2
@@ -33,7 +34,7 @@ from anklescan.hardware.sim_scene import ObjectId, Scene, angles_from_marks, leg
 if TYPE_CHECKING:
     from anklescan.hardware.sim_sway import SwayClock
 
-__all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RIG_LAYOUTS", "SimulatedCamera",
+__all__ = ["Optics", "SimRig", "Truth", "default_camera", "default_projector", "RigLayout", "SimulatedCamera",
            "SimulatedProjector", "RIG_TARGET", "ObjectId", "leg_scene"]
 
 RIG_TARGET = np.array([0.0, 0.0, 260.0])  # where both devices aim: above the table, between leg and box
@@ -157,28 +158,40 @@ def default_camera(scale: float = 1.0, *, eye: npt.ArrayLike | None = None, targ
     return Device(W, H, K, np.asarray(dist, float), R, t, Axis.BOTH)
 
 
-# Where the projector stands round the camera, as the angle of the baseline from the camera's
-# left towards up, in the plane square to the camera's view: "side" (beside it, the baseline
-# across the projector's columns), "above" (across its rows), "diagonal" (across both).
-RIG_LAYOUTS = {"side": 0.0, "diagonal": 45.0, "above": 90.0, "below": -90.0}
+class RigLayout(StrEnum):
+    """Where the projector stands round the camera: SIDE beside it (the baseline across the
+    projector's columns), ABOVE (across its rows), DIAGONAL (across both), BELOW."""
+
+    SIDE = "side"
+    DIAGONAL = "diagonal"
+    ABOVE = "above"
+    BELOW = "below"
+
+    @property
+    def angle_deg(self) -> float:
+        """The baseline's angle from the camera's left towards up, in the plane square to its view."""
+        return {RigLayout.SIDE: 0.0, RigLayout.DIAGONAL: 45.0, RigLayout.ABOVE: 90.0, RigLayout.BELOW: -90.0}[self]
 
 
-def layout_angle(layout: str | float) -> float:
-    """Degrees from the camera's left towards up for a layout name (or an angle in degrees)."""
-    if isinstance(layout, str):
-        if layout not in RIG_LAYOUTS:
-            raise ValueError(f"unknown rig layout {layout!r}; expected one of {', '.join(RIG_LAYOUTS)} or an angle")
-        return RIG_LAYOUTS[layout]
+def layout_angle(layout: RigLayout | float) -> float:
+    """Degrees from the camera's left towards up for a layout (or an angle in degrees)."""
+    if isinstance(layout, str):  # a RigLayout, or its name where a caller passed the plain text
+        try:
+            return RigLayout(layout).angle_deg
+        except ValueError:
+            names = ", ".join(v.value for v in RigLayout)
+            raise ValueError(f"unknown rig layout {layout!r}; expected one of {names} or an angle") from None
     return float(layout)
 
 
 def default_projector(scale: float = 1.0, *, camera_eye: npt.ArrayLike | None = None, baseline: float = BASELINE_MM,
                       target: npt.ArrayLike | None = None, f: float = PROJECTOR_F_PX,
-                      dist: npt.ArrayLike = (-0.03, 0.004, 3e-4, -2e-4, 0.0), layout: str | float = "side") -> Device:
+                      dist: npt.ArrayLike = (-0.03, 0.004, 3e-4, -2e-4, 0.0),
+                      layout: RigLayout | float = RigLayout.SIDE) -> Device:
     """1024x768 projector ``baseline`` mm from the camera, aimed at the same target with its image
-    rows level. ``layout`` "side" (default): to the camera's left (lateral), level with it, so the
-    baseline runs across projector columns (vertical stripes encode columns); "above": above the
-    camera (across the rows); "diagonal": up and to the left at 45°; or an angle in degrees from
+    rows level. ``layout`` SIDE (default): to the camera's left (lateral), level with it, so the
+    baseline runs across projector columns (vertical stripes encode columns); ABOVE: above the
+    camera (across the rows); DIAGONAL: up and to the left at 45°; or an angle in degrees from
     the camera's left towards up."""
     cam_eye = CAMERA_EYE if camera_eye is None else np.asarray(camera_eye, float)
     tgt = RIG_TARGET if target is None else np.asarray(target, float)
@@ -295,17 +308,18 @@ class SimRig:
     """Virtual camera + projector looking at ``scene``.
 
     ``scale`` shrinks the default devices' resolutions and intrinsics (0.25 for fast tests);
-    ``layout`` places the default projector round the camera ("side", "above", "diagonal", see
+    ``layout`` places the default projector round the camera (a ``RigLayout`` or an angle, see
     :func:`default_projector`); explicit ``camera`` / ``projector`` Devices override the
     defaults (their scale is theirs).
     """
 
     def __init__(self, scene: Scene | None = None, camera: Device | None = None, projector: Device | None = None,
                  *, scale: float = 1.0, optics: Optics | None = None, seed: int | None = 0,
-                 layout: str | float = "side") -> None:
+                 layout: RigLayout | float = RigLayout.SIDE) -> None:
         self.scene = scene if scene is not None else leg_scene()
         self.scale = float(scale)
-        self.layout = layout
+        layout_angle(layout)  # an unknown name is refused here, not at first use
+        self.layout: RigLayout | float = RigLayout(layout) if isinstance(layout, str) else float(layout)
         self.camera = camera if camera is not None else default_camera(scale)
         self.projector = projector if projector is not None else default_projector(scale, layout=layout)
         self.optics = optics or Optics()

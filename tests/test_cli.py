@@ -15,7 +15,7 @@ from anklescan.core.scan.capture import save_capture
 from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.core.scan.pointcloud import read_ply
 from anklescan.hardware.sim_accuracy import evaluate
-from anklescan.hardware.simrig import SimRig
+from anklescan.hardware.simrig import RigLayout, SimRig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -169,7 +169,7 @@ def test_calibrate_box_without_a_box(tmp_path, scan):
 def above(tmp_path_factory):
     """The projector ABOVE the camera: the baseline runs along the projector's columns."""
     work = tmp_path_factory.mktemp("above")
-    rig = SimRig(scale=0.25, layout="above")
+    rig = SimRig(scale=0.25, layout=RigLayout.ABOVE)
     cal = work / "calibration.json"
     save_calibration(rig.true_calibration(), cal)
     return rig, work, cal

@@ -13,6 +13,7 @@ from anklescan.core.measure.mark_types import Ellipse, PredictedDisk
 from anklescan.core.scan.camera_response import GAMMA_GRID, response_gamma
 from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.sim_variety import DIAMETER_RANGE_MM, draw_variant, variant_rig
+from anklescan.hardware.simrig import RigLayout
 
 
 def _capture(rig):
@@ -36,7 +37,7 @@ def test_drawn_setups_are_reproducible_and_within_the_spec():
     for v in map(draw_variant, range(40)):
         assert DIAMETER_RANGE_MM[0] <= v.diameter <= DIAMETER_RANGE_MM[1]  # SPEC §2: 8-25 mm
         assert v.mark_type in ("plate", "sticker") and 1.0 <= v.scene["mark_thickness"] <= 3.0
-    assert {v.layout for v in map(draw_variant, range(40))} == {"side", "diagonal", "above"}
+    assert {v.layout for v in map(draw_variant, range(40))} == {RigLayout.SIDE, RigLayout.DIAGONAL, RigLayout.ABOVE}
     assert draw_variant(1, "plate", 8.0).diameter == 8.0
     # from HAND_PLACED_FROM_SEED on, lateral marks off the front marks' level; before it, level
     from anklescan.hardware.sim_variety import HAND_PLACED_FROM_SEED, LATERAL_OFFSET_RANGES_MM

@@ -33,6 +33,7 @@ from anklescan.hardware.sim_variety import (
     draw_variant,
     table_view_deg,
 )
+from anklescan.hardware.simrig import RigLayout
 
 CASES = load_cases()
 
@@ -176,7 +177,7 @@ def test_drawn_conditions_are_reproducible_in_range_and_leave_the_variants_alone
     assert any(c.ankle_gap_mm is not None and c.table_view_deg is not None for c in drawn)
     # draw_variant's own draws are what they were (recorded figures and tests depend on them)
     v = draw_variant(5)
-    assert (v.mark_type, v.diameter, v.layout) == (MarkKind.STICKER, 15.4, "side"), v.describe()
+    assert (v.mark_type, v.diameter, v.layout) == (MarkKind.STICKER, 15.4, RigLayout.SIDE), v.describe()
 
 
 @pytest.mark.parametrize("seed", [1004, 1007, 1010, 1017])

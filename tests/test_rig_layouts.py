@@ -15,7 +15,7 @@ from anklescan.core.scan.patterns import make_pattern_set, render_all
 from anklescan.core.scan.reconstruct import cloud_from_decoded
 from anklescan.core.scan.triangulate import axis_geometry, scan_axes
 from anklescan.hardware.sim_accuracy import evaluate
-from anklescan.hardware.simrig import RIG_LAYOUTS, SimRig
+from anklescan.hardware.simrig import RigLayout, SimRig
 
 SCALE = 0.25
 
@@ -31,31 +31,37 @@ def _scan(layout, axes=None):
 
 @pytest.fixture(scope="module")
 def side():
-    return _scan("side")
+    return _scan(RigLayout.SIDE)
 
 
 def test_layouts_place_the_projector_round_the_camera():
     cam = SimRig(scale=SCALE).camera
     left, up = -cam.R[0], -cam.R[1]  # the camera's image x runs right, y down
-    for name, angle in RIG_LAYOUTS.items():
+    angles = {RigLayout.SIDE: 0.0, RigLayout.DIAGONAL: 45.0, RigLayout.ABOVE: 90.0, RigLayout.BELOW: -90.0}
+    assert set(angles) == set(RigLayout)
+    for name, angle in angles.items():
         proj = SimRig(scale=SCALE, layout=name).projector
         b = proj.center - cam.center
         assert abs(np.linalg.norm(b) - 500.0) < 1e-6
         a = np.radians(angle)
         assert np.allclose(b / 500.0, np.cos(a) * left + np.sin(a) * up, atol=0.2), name
         assert abs(proj.R[0, 2]) < 0.01  # its image rows stay (nearly) level
+    assert np.allclose(SimRig(scale=SCALE, layout=90.0).projector.center,
+                       SimRig(scale=SCALE, layout=RigLayout.ABOVE).projector.center)  # or an angle
     with pytest.raises(ValueError, match="layout"):
-        SimRig(layout="behind")
+        SimRig(layout="behind")  # type: ignore[arg-type]  # a name no layout has
 
 
 def test_each_layout_needs_its_own_stripes():
-    need = {name: scan_axes(SimRig(scale=SCALE, layout=name).true_calibration()) for name in ("side", "above", "diagonal")}
-    assert need == {"side": ("column",), "above": ("row",), "diagonal": ("column", "row")}
-    above = axis_geometry(SimRig(scale=SCALE, layout="above").true_calibration())
+    need = {name: scan_axes(SimRig(scale=SCALE, layout=name).true_calibration())
+            for name in (RigLayout.SIDE, RigLayout.ABOVE, RigLayout.DIAGONAL)}
+    assert need == {RigLayout.SIDE: ("column",), RigLayout.ABOVE: ("row",), RigLayout.DIAGONAL: ("column", "row")}
+    above = axis_geometry(SimRig(scale=SCALE, layout=RigLayout.ABOVE).true_calibration())
     assert above["column"].angle_deg < 0.5 and above["row"].angle_deg > 20
 
 
-@pytest.mark.parametrize("layout, axes", [("above", None), ("diagonal", None), ("above", ("column", "row"))])
+@pytest.mark.parametrize("layout, axes", [(RigLayout.ABOVE, None), (RigLayout.DIAGONAL, None),
+                                          (RigLayout.ABOVE, ("column", "row"))])
 def test_accuracy_matches_the_side_by_side_rig(side, layout, axes):
     _, side_cloud, ref = side
     rig, cloud, acc = _scan(layout, axes)
