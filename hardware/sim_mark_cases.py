@@ -134,13 +134,13 @@ class Case:
             scene = {**v.scene, "mark_type": self.mark_type or v.mark_type,
                      "mark_radius": (self.diameter_mm or v.diameter) / 2}
             view = v.view
-            overrides: dict[str, Any] = {**v.optics, **self.optics()}
-            optics = replace(Optics(), **overrides)
+            overrides: dict[str, Any] = self.optics()  # Optics' float fields, by name
+            optics = replace(v.optics, **overrides)
             layout = self.layout or v.layout
         else:
             scene = {"mark_type": self.mark_type or MarkKind.PLATE,
                      "mark_radius": (self.diameter_mm or DEFAULT_DIAMETER_MM) / 2}
-            view = {}
+            view = None
             own: dict[str, Any] = self.optics()
             optics = replace(Optics(), **own)
             layout = self.layout or RigLayout.SIDE
@@ -149,8 +149,8 @@ class Case:
             if value is not None:
                 scene[key] = value
         if self.table_view_deg is not None:
-            view = view_for_table(self.table_view_deg, self.inversion, self.plantar_flexion, view or None)
-        camera, projector = view_devices(view, self.scale, layout) if view else (None, None)
+            view = view_for_table(self.table_view_deg, self.inversion, self.plantar_flexion, view)
+        camera, projector = view_devices(view, self.scale, layout) if view is not None else (None, None)
         return SimRig(leg_scene(self.inversion, self.plantar_flexion, **scene), camera, projector, scale=self.scale,
                       optics=optics, seed=self.seed, layout=layout)
 

@@ -55,50 +55,61 @@ LATERAL_OFFSET_RANGES_MM = ((-25.0, 25.0), (-12.0, 12.0))
 # x0.9-1.1 at the rig's resolution), and the projector at another baseline. The ranges keep all
 # seven marks in both fields (checked for the extremes). Earlier seeds keep our own rig's view.
 VIEW_DRAWN_FROM_SEED = 337
+# RigView's fields, each drawn from its range, in this order
 VIEW_RANGES = {"azimuth_deg": (20.0, 45.0), "elevation_deg": (24.0, 40.0), "distance_mm": (950.0, 1300.0),
                "zoom": (0.9, 1.1), "baseline_mm": (380.0, 560.0)}
 
 
 @dataclass(frozen=True)
+class RigView:
+    """Where the camera stands round the leg and how far the projector stands from it."""
+
+    azimuth_deg: float  # from the front towards the lateral side
+    elevation_deg: float  # above the horizontal
+    distance_mm: float  # from the rig's target
+    zoom: float  # pixels per mm against our own rig's at the same distance
+    baseline_mm: float  # camera to projector
+
+
+@dataclass(frozen=True)
 class Variant:
-    """One drawn set-up: keyword arguments for ``leg_scene`` and ``Optics``, and the layout."""
+    """One drawn set-up: keyword arguments for ``leg_scene``, the optics, the layout and the view."""
 
     seed: int
     mark_type: MarkKind
     diameter: float
     layout: RigLayout
     scene: dict[str, Any] = field(default_factory=dict)
-    optics: dict[str, Any] = field(default_factory=dict)
-    view: dict[str, float] = field(default_factory=dict)  # VIEW_RANGES' keys; empty: our own rig's view
+    optics: Optics = field(default_factory=Optics)
+    view: RigView | None = None  # None: our own rig's view
 
     def describe(self) -> str:
-        s, o = self.scene, self.optics
+        s, o, v = self.scene, self.optics, self.view
         return (f"variant {self.seed}: {self.mark_type} {self.diameter:.1f} mm"
                 + (f" x {s['mark_thickness']:.1f}" if self.mark_type == MarkKind.PLATE else "")
                 + f", {self.layout}, ankle {s['ankle_semi_axes'][0]:.0f}x{s['ankle_semi_axes'][1]:.0f} mm"
                 f", lateral marks {s['lateral_mark_deg']:.0f} deg"
                 + (" {:+.0f}/{:+.0f} mm".format(*s["lateral_mark_offsets"]) if "lateral_mark_offsets" in s else "")
                 + f", skin {s['skin_albedo']:.2f}"
-                f", mark {s['mark_albedo']:.2f}, gamma {o['projector_gamma']:.1f}/{o['camera_gamma']:.1f}"
-                f", specular {o['specular']:.2f}, exposure {o['exposure']:.2f}"
-                + (", camera az {azimuth_deg:.0f} el {elevation_deg:.0f} at {distance_mm:.0f} mm, zoom {zoom:.2f}"
-                   ", baseline {baseline_mm:.0f} mm".format(**self.view) if self.view else ""))
+                f", mark {s['mark_albedo']:.2f}, gamma {o.projector_gamma:.1f}/{o.camera_gamma:.1f}"
+                f", specular {o.specular:.2f}, exposure {o.exposure:.2f}"
+                + (f", camera az {v.azimuth_deg:.0f} el {v.elevation_deg:.0f} at {v.distance_mm:.0f} mm,"
+                   f" zoom {v.zoom:.2f}, baseline {v.baseline_mm:.0f} mm" if v is not None else ""))
 
     def devices(self, scale: float = 1.0) -> tuple[Device | None, Device | None]:
         """(camera, projector) for this set-up at ``scale``; (None, None): the rig's defaults."""
-        if not self.view:
+        if self.view is None:
             return None, None
         return view_devices(self.view, scale, self.layout)
 
 
-def view_devices(view: dict[str, float], scale: float = 1.0,
+def view_devices(view: RigView, scale: float = 1.0,
                  layout: RigLayout | float = RigLayout.SIDE) -> tuple[Device, Device]:
-    """(camera, projector) standing where ``view`` (VIEW_RANGES' keys) says, at ``scale``."""
-    v = view
-    eye = camera_eye(v["distance_mm"], v["azimuth_deg"], v["elevation_deg"])
-    f = CAMERA_F_PX * v["zoom"] * v["distance_mm"] / CAMERA_DISTANCE_MM  # same field at zoom 1
+    """(camera, projector) standing where ``view`` says, at ``scale``."""
+    eye = camera_eye(view.distance_mm, view.azimuth_deg, view.elevation_deg)
+    f = CAMERA_F_PX * view.zoom * view.distance_mm / CAMERA_DISTANCE_MM  # same field at zoom 1
     return (default_camera(scale, eye=eye, f=f),
-            default_projector(scale, camera_eye=eye, baseline=v["baseline_mm"], layout=layout))
+            default_projector(scale, camera_eye=eye, baseline=view.baseline_mm, layout=layout))
 
 
 def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: float | None = None,
@@ -121,18 +132,19 @@ def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: f
     # a mark does not stand out from the surface's own shading; no method finds it)
     top = min(0.7, scene["mark_albedo"] / MIN_MARK_CONTRAST)
     scene["table_albedo"] = 0.4 + (top - 0.4) * scene["table_albedo"]
-    optics: dict[str, Any] = dict(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
-                                  camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
-                                  exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
-                                  specular=(0.0, 0.0, u(0.05, 0.25))[int(rng.integers(3))])
+    # keyword arguments are evaluated in order: the draws are those of the dict this was
+    optics = Optics(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
+                    camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
+                    exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
+                    specular=(0.0, 0.0, u(0.05, 0.25))[int(rng.integers(3))])
     if seed >= HAND_PLACED_FROM_SEED:
         # a stream of its own, so that the draws above stay what they were
         hand = np.random.default_rng([seed, 16, 1])
         scene["lateral_mark_offsets"] = tuple(float(hand.uniform(*r)) for r in LATERAL_OFFSET_RANGES_MM)
-    view: dict[str, float] = {}
+    view = None
     if seed >= VIEW_DRAWN_FROM_SEED:
         where = np.random.default_rng([seed, 16, 2])
-        view = {k: float(where.uniform(*r)) for k, r in VIEW_RANGES.items()}
+        view = RigView(**{k: float(where.uniform(*r)) for k, r in VIEW_RANGES.items()})
     return Variant(seed, mark_type, diameter, layout, scene, optics, view)
 
 
@@ -140,7 +152,7 @@ def variant_rig(variant: Variant, inversion: float, plantar_flexion: float, *, s
                 seed: int | None = 0, optics: dict[str, Any] | None = None) -> SimRig:
     """The variant's rig with the table at (inversion, plantar flexion); ``optics`` overrides."""
     scene = leg_scene(inversion, plantar_flexion, **variant.scene)
-    o = replace(Optics(), **{**variant.optics, **(optics or {})})
+    o = replace(variant.optics, **(optics or {}))
     camera, projector = variant.devices(scale)
     return SimRig(scene, camera, projector, scale=scale, optics=o, seed=seed, layout=variant.layout)
 
@@ -180,8 +192,8 @@ TABLE_VIEW_RANGE_DEG = (72.0, 80.0)
 STEEP_POSTURE_RANGES_DEG = ((0.0, 10.0), (-20.0, -8.0))
 STEEP_SHARE = 0.25
 ELEVATION_LIMITS_DEG = (5.0, 50.0)  # where a camera's tripod stands, above the horizontal
-DEFAULT_VIEW = {"azimuth_deg": CAMERA_AZIMUTH_DEG, "elevation_deg": CAMERA_ELEVATION_DEG,
-                "distance_mm": CAMERA_DISTANCE_MM, "zoom": 1.0, "baseline_mm": BASELINE_MM}
+DEFAULT_VIEW = RigView(azimuth_deg=CAMERA_AZIMUTH_DEG, elevation_deg=CAMERA_ELEVATION_DEG,
+                       distance_mm=CAMERA_DISTANCE_MM, zoom=1.0, baseline_mm=BASELINE_MM)
 
 
 def table_view_deg(eye: np.ndarray, inversion: float, plantar_flexion: float) -> float:
@@ -194,14 +206,14 @@ def table_view_deg(eye: np.ndarray, inversion: float, plantar_flexion: float) ->
 
 
 def view_for_table(view_deg: float, inversion: float, plantar_flexion: float,
-                   base: dict[str, float] | None = None) -> dict[str, float]:
-    """``base`` (VIEW_RANGES' keys; None: our own rig's view) with the camera's elevation chosen so
+                   base: RigView | None = None) -> RigView:
+    """``base`` (None: our own rig's view) with the camera's elevation chosen so
     that it sees the table top at ``view_deg`` from its normal. ValueError when no elevation in
     ELEVATION_LIMITS_DEG does (the table tilted towards the camera)."""
-    view = {**DEFAULT_VIEW, **(base or {})}
+    view = base or DEFAULT_VIEW
 
     def seen_at(elevation: float) -> float:
-        return table_view_deg(camera_eye(view["distance_mm"], view["azimuth_deg"], elevation), inversion, plantar_flexion)
+        return table_view_deg(camera_eye(view.distance_mm, view.azimuth_deg, elevation), inversion, plantar_flexion)
 
     lo, hi = ELEVATION_LIMITS_DEG  # the angle falls as the camera rises
     if not seen_at(hi) <= view_deg <= seen_at(lo):
@@ -210,7 +222,7 @@ def view_for_table(view_deg: float, inversion: float, plantar_flexion: float,
     for _ in range(50):
         mid = (lo + hi) / 2
         lo, hi = (mid, hi) if seen_at(mid) > view_deg else (lo, mid)
-    return {**view, "elevation_deg": (lo + hi) / 2}
+    return replace(view, elevation_deg=(lo + hi) / 2)
 
 
 @dataclass(frozen=True)

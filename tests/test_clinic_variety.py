@@ -53,10 +53,10 @@ def test_from_a_seed_on_the_camera_stands_elsewhere_and_still_sees_every_mark():
     baseline. Every mark's centre stays inside both frames, facing the camera, in every posture."""
     from anklescan.hardware.sim_variety import VIEW_DRAWN_FROM_SEED, VIEW_RANGES
 
-    assert not draw_variant(VIEW_DRAWN_FROM_SEED - 1).view and draw_variant(VIEW_DRAWN_FROM_SEED).view
+    assert draw_variant(VIEW_DRAWN_FROM_SEED - 1).view is None and draw_variant(VIEW_DRAWN_FROM_SEED).view is not None
     assert draw_variant(VIEW_DRAWN_FROM_SEED + 3) == draw_variant(VIEW_DRAWN_FROM_SEED + 3)
     for v in map(draw_variant, range(VIEW_DRAWN_FROM_SEED, VIEW_DRAWN_FROM_SEED + 24)):
-        assert all(lo <= v.view[k] <= hi for k, (lo, hi) in VIEW_RANGES.items())
+        assert v.view is not None and all(lo <= getattr(v.view, k) <= hi for k, (lo, hi) in VIEW_RANGES.items())
         for inv, pf in [(0, -20), (0, 20), (20, -20), (20, 20)]:
             rig = variant_rig(v, inv, pf, scale=0.25)
             for m in rig.scene.marks.values():
