@@ -360,8 +360,8 @@ def test_shadow_sliver_width_matches_ray_casting(inv, pf, label):
     exact = np.zeros(len(phi))
     for i in rows:
         hit = rig._cast(uv[i] + xs[:, None] * unit[i])
-        dark = ~hit["lit"] & (np.abs((hit["X"] - c) @ n) > 0.05)  # unlit, not the top face
-        j0 = int(np.argmax(np.abs((hit["X"] - c) @ n) > 0.05))
+        dark = ~hit.lit & (np.abs((hit.X - c) @ n) > 0.05)  # unlit, not the top face
+        j0 = int(np.argmax(np.abs((hit.X - c) @ n) > 0.05))
         run = dark[j0:]
         exact[i] = (np.argmin(run) if not run.all() else len(run)) * 0.01 if run[0] else 0.0
     _, a_c, _ = rim_geometry(rim, cal.camera.rays(uv), c, n, cal.projector.center)
