@@ -281,3 +281,24 @@ def test_a_seeds_cut_at_another_radius_is_a_hypothesis_where_it_differs_and_suit
         hyps = derived(small, None, None, None, radius_mm, None, recut=True)
         assert [h.blob for h in hyps if h.source is HypothesisSource.OTHER_CUT] == expected
     assert all(h.parent is small for h in derived(small, None, None, None, 12.0, None, recut=True))
+
+
+def test_a_plate_capture_makes_no_sticker_hypothesis():
+    """A clinic sticks one kind: where the capture's marks are plates, a blob no cut fits is not
+    tried as a sticker on the lit image's edges. That model puts a plate on the surface under
+    it, its thickness times tan(view) off (drawn 1008's table plate, 1.1 mm seen at 82°: 3.9 mm).
+    Where the kind is stickers or not known, it is tried."""
+    from anklescan.core.measure.mark_hypotheses import derived
+    from anklescan.core.vocabulary import MarkKind
+    from anklescan.hardware.simrig import SimRig
+
+    cal = SimRig(scale=0.25).true_calibration()
+    h, w = cal.camera.height, cal.camera.width
+    nothing = np.full((h, w, 3), np.nan, np.float32)  # no surface: no predicted disk either
+    blob = Blob((slice(100, 109), slice(150, 159)), np.ones((9, 9), bool), (154.0, 104.0), search_radius_mm=7.5)
+
+    def sources(kind):
+        return [hyp.source for hyp in derived(blob, np.zeros((h, w), np.float32), nothing, cal, 7.5, 1.5, kind=kind)]
+
+    assert sources(MarkKind.PLATE) == []
+    assert sources(MarkKind.STICKER) == sources(None) == [HypothesisSource.LIT_STICKER]

@@ -52,6 +52,7 @@ from anklescan.core.measure.mark_candidates import (
 )
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_types import Blob, Mark
+from anklescan.core.vocabulary import MarkKind
 
 
 class HypothesisSource(enum.Enum):
@@ -217,13 +218,15 @@ def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_m
 
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
-            thickness: float | None, *, recut: bool = False) -> list[Hypothesis]:
+            thickness: float | None, *, recut: bool = False, kind: MarkKind | None = None) -> list[Hypothesis]:
     """What a blob that no cut fits may still be: its wider cut and its cuts at other radii
     (``blob_union``'s ``other_cuts``); and for a blob of the first
     search (not a ``recut`` at the marks' size, whose surround was already searched at that
-    size) a sticker on the lit image's edges, and the disk (and, where the capture's plates
-    have a thickness, the plate) of the marks' size predicted on the surface round it, slid to
-    where it stands out most."""
+    size) a sticker on the lit image's edges (not where the capture's ``kind`` is plates: a
+    clinic sticks one kind, and a plate fitted as a sticker on the surface under it lies its
+    thickness times tan(view) off, 3.9 mm for a 1.1 mm table plate seen at 82°), and the disk
+    (and, where the capture's plates have a thickness, the plate) of the marks' size predicted
+    on the surface round it, slid to where it stands out most."""
     out = []
     if blob.wider is not None:
         out.append(Hypothesis(blob.wider, HypothesisSource.WIDER, CutImage.LIT, blob))
@@ -231,7 +234,8 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
                if _suits_size(b, radius_mm))
     if recut:
         return out
-    out.append(Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob))
+    if kind is not MarkKind.PLATE:
+        out.append(Hypothesis(blob, HypothesisSource.LIT_STICKER, CutImage.LIT, blob))
     for height, source in ((0.0, HypothesisSource.PREDICTED), (thickness, HypothesisSource.PREDICTED_PLATE)):
         if height is None or (source is HypothesisSource.PREDICTED_PLATE and not height):
             continue

@@ -173,7 +173,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         kept = [f.mark for f in fits if math.isfinite(f.score)]
         before = len(fits)
         consider([d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
-                  for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0)])
+                  for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0, kind=prefer)])
         fits[before:] = _one_predicted_outline(fits[before:])
         selection = select_marks(fits, r0)
     chosen = [KnownDisk(f.mark.centre, f.mark.normal, f.mark.radius) for f in selection.chosen]
