@@ -196,7 +196,7 @@ class _Candidate:
     clipped: np.ndarray | None  # (H, W) bool, camera saturated
     radius_mm: float  # the marks' radius (the free fit's start where the size is not known)
     prior_sd: float | None  # its SD (None: a free radius)
-    thickness: float  # a plate's step over the surface, mm
+    thickness: float  # a plate's thickness, mm: the capture's (its plates' median step), else its own step
     radius_bounds: tuple[float, float] | None  # the size is not known: the radius must lie in this range
     max_edge_rms: float  # mm, edges about the circle
     covariance: bool  # False: the refits that only feed the covariance are skipped (its value is NaN)
@@ -504,7 +504,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     circle refitted in that plane (``CONFIG.plane_passes`` times). At the lateral plates' ~70° view a
     plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
     r·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
-    ``thickness``: the face's measured height over the surface (side wall, shadow sliver);
+    ``thickness``: the plate's height over the surface (the capture's, ``fit_mark``; side wall, shadow sliver);
     ``plane_px``: the pixels of the first plane (the blob's interior); ``surface``: (normal,
     basis (2, 3), slope covariance) of the surface around the plate (``surface_step``), combined
     with the face's own normal (``combined_normal``).
