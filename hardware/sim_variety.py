@@ -132,7 +132,7 @@ def draw_variant(seed: int, mark_type: MarkKind | str | None = None, diameter: f
     # a mark does not stand out from the surface's own shading; no method finds it)
     top = min(0.7, scene["mark_albedo"] / MIN_MARK_CONTRAST)
     scene["table_albedo"] = 0.4 + (top - 0.4) * scene["table_albedo"]
-    # keyword arguments are evaluated in order: the draws are those of the dict this was
+    # the keyword arguments are evaluated left to right, in the order of the draws
     optics = Optics(projector_gamma=u(1.8, 2.6), camera_gamma=(1.0, 1.0, 2.2)[int(rng.integers(3))],
                     camera_blur_px=u(0.4, 0.8), projector_blur_px=u(0.5, 1.1), ambient=u(0.02, 0.07),
                     exposure=u(0.75, 1.1), noise_sigma=u(1.0, 3.0) / 255.0,
