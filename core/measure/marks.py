@@ -306,18 +306,6 @@ def _radius_px(cal: Calibration, mark: Mark, radius_mm: float) -> float:
     return float(plate_radius_px(cal, camera_depth(cal, mark.centre[None])[0], radius_mm))
 
 
-def _distinct(marks: list[Mark], cal: Calibration, radius_mm: float) -> list[Mark]:
-    """One mark per disk: of fits whose centres image within one radius of each other (two
-    candidate blobs, or a blob's wider cut, on the same disk; disks do not overlap), the one
-    with the most edge points."""
-    kept: list[Mark] = []
-    for m in sorted(marks, key=lambda m: -m.n_edge):
-        r_px = _radius_px(cal, m, radius_mm)
-        if all(np.hypot(*(np.asarray(m.pixel) - np.asarray(o.pixel))) >= r_px for o in kept):
-            kept.append(m)
-    return [m for m in marks if any(m is k for k in kept)]
-
-
 def _capture_kind(free: list[Mark]) -> MarkKind | None:
     """The capture's kind of mark (``_common_kind``), voted by the fits whose step over the surface
     measures their kind (``step_kind``) where three or more do, else by every fit's kind. A fit
