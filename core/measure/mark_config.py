@@ -193,6 +193,11 @@ class MarkConfig:
     #: partly in a cast shadow or hidden, and its visible rim is in part the shadow's edge
     seen_max_light_deg: float = 50.0
     min_seen_share: float = 0.5
+    #: share of a plate's top-face pixels (``top_face_pixels`` of its fit) that decode, at least:
+    #: its plane is fitted to them, and a face mostly undecoded is in a shadow or lit too
+    #: obliquely for its stripes; the few points that decode lie where the stripes blur into the
+    #: dark, off the face (a face 14 % decoded, its points 1 mm off: its plane tilted 6°)
+    min_face_decoded_share: float = 0.5
 
     # ------------------------------------------------------------------ sticker surface (marks_surface.py)
     #: decoded points for the local quadric (6 parameters)

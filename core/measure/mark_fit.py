@@ -272,6 +272,12 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
         return Refusal(RefusalReason.PARTLY_HIDDEN,
                        f"only {100 * seen:.0f} % of its face is bright though it is lit at {light_deg:.0f}°: "
                        f"partly in a shadow or hidden ({what})")
+    if kind == MarkKind.PLATE:
+        decoded = _decoded_share(points, top_face_pixels(cal, centre, normal, radius, image.shape))
+        if decoded < CONFIG.min_face_decoded_share:
+            return Refusal(RefusalReason.FACE_UNDECODED,
+                           f"only {100 * decoded:.0f} % of its face decodes: in a shadow or lit too obliquely "
+                           f"to measure its plane ({what})")
     off = _face_off_surface(points, cal, centre, normal, radius)
     if off > CONFIG.face_off_share:
         return Refusal(RefusalReason.OUTLINE_THROUGH,
@@ -378,6 +384,13 @@ def _face_off_surface(points, cal, centre, normal, radius) -> float:
         return 0.0
     height = np.abs((p - centre) @ normal)
     return float(np.mean(height > max(CONFIG.face_off_mm, CONFIG.face_off_radii * radius)))
+
+
+def _decoded_share(points: np.ndarray, uv: np.ndarray) -> float:
+    """The share of pixels ``uv`` with a decoded point (1 where there are none: nothing to judge)."""
+    if not len(uv):
+        return 1.0
+    return float(np.isfinite(points[uv[:, 1], uv[:, 0], 0]).mean())
 
 
 def _runaway(radius, radius_mm) -> bool:

@@ -34,6 +34,7 @@ class RefusalReason(enum.Enum):
     SHORT_ARC = "too short an arc"
     GRAZING_LIGHT = "lit too obliquely"
     PARTLY_HIDDEN = "partly in a shadow or hidden"
+    FACE_UNDECODED = "its face mostly not decoded"
     OUTLINE_THROUGH = "an outline runs through its face"
     FACE_NOT_SMOOTH = "face not smooth"
     LIT_EDGES_ON_A_LINE = "the lit image's edges lie on a line"
