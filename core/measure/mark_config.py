@@ -321,6 +321,12 @@ class MarkConfig:
     #: tone curve: 0.01-0.14 mm on whole disks), in quadrature with its SD where a radius is
     #: checked against the marks' size
     image_fit_radius_sd_mm: float = 0.075
+    #: samples per pixel side on which the disk is drawn before it is blurred, at most (odd: the
+    #: middle one is the pixel's centre, where the blurred image is read) ...
+    image_fit_subsamples: int = 3
+    #: px: ... as few as move the rim by at most this where its image curves most (``_subsamples``:
+    #: a 6.5 mm disk at 2.5 px/mm read 0.4 % small at 70° drawn once per pixel, 0.2 % thrice)
+    image_fit_max_tip_shift_px: float = 0.05
     #: px: the blur's SD the fit starts from, and the range it may take
     image_fit_blur_start_px: float = 1.0
     image_fit_blur_range_px: tuple[float, float] = (0.3, 4.0)

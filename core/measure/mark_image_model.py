@@ -6,14 +6,17 @@ its minor axis, which the camera's blur spans, and a sticker barely brighter tha
 gives each radial profile a crossing that noise moves by pixels. Every pixel of the disk and
 its surround still carries its information, so the disk is fitted to them all at once:
 
-    I(u, v) = B(u, v) (1 + a Φ(d(u, v) / s) + Σ_k a_k Φ(d_k(u, v) / s))
+    I(u, v) = B(u, v) (1 + a D_s(u, v) + Σ_k a_k Φ(d_k(u, v) / s))
 
-with ``d`` the signed distance (image pixels, positive inside) from the pixel to the rim of
-the disk of centre ``c`` and radius ``r`` on the local surface (the quadric of the decoded
-points round it, ``marks_surface.fit_quadric``): each pixel's ray is cut with the surface, its
-distance from the rim along the surface carried to the image across the rim's image (through
-the camera model's Jacobian there). ``Φ`` is the standard normal
-CDF (a straight edge blurred by a Gaussian of SD ``s`` pixels), ``a`` the disk's contrast
+with ``D_s`` the image of the disk of centre ``c`` and radius ``r`` on the local surface (the
+quadric of the decoded points round it, ``marks_surface.fit_quadric``) blurred by a Gaussian
+of SD ``s`` pixels (``_DrawnDisk``): the disk is drawn on a few samples per pixel, each
+Φ(d / s0), ``d`` the sample's signed distance (image pixels, positive inside) from the rim,
+``Φ`` the standard normal CDF and ``s0`` half a sample (each sample's ray is cut with the
+surface, its distance from the rim along the surface carried to the image across the rim's
+image through the camera model's Jacobian there), and that drawing blurred by √(s² − s0²).
+At a grazing view the disk images as a thin ellipse whose tips curve within the blur, which
+a straight edge's Φ(d / s) per pixel does not model. ``a`` the disk's contrast
 (its albedo over its surround's, less one) and ``B`` the light on the surface there, a quadratic
 in the pixel (the shading of a curved leg; both the disk and its surround are lit by it). The
 parameters are found by robust least squares; pixels that see another surface are left out.
@@ -69,8 +72,25 @@ class ImageFit:
     n_pixels: int  # pixels fitted
 
 
-# d, rho, k, s, z, Φ, B, the neighbours' z and Φ
-_State = tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+@dataclass(frozen=True)
+class _Samples:
+    """The disk drawn on the window's samples before the blur (``_DrawnDisk.at``), all (H f, W f)."""
+
+    cdf: np.ndarray  # Φ of each sample's distance inside the rim, over the samples' own edge blur
+    slope: np.ndarray  # its derivative in the radius (per mm)
+    dx: np.ndarray  # the unit direction from the centre to the sample, on the surface's x ...
+    dy: np.ndarray  # ... and y
+
+
+@dataclass(frozen=True)
+class _State:
+    """One evaluation of ``_solve``'s model: what its Jacobian reuses."""
+
+    disk: _Samples
+    s: float  # the blur, px
+    shade: np.ndarray  # (N,) B at the fitted pixels
+    zk: np.ndarray  # (N, K) the neighbours' distances over the blur
+    cdf_k: np.ndarray  # (N, K) their Φ
 
 
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
@@ -124,6 +144,7 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     rays = cal.camera.rays(uv)
     D = rays @ F.T
     X = ray_quadric(coef, (cam_c - centre) @ F.T, D)
+    grid = _grid(cal, coef, centre, F, radius_mm, window, X)
     crop = np.asarray(image[v0:v1, u0:u1], np.float32)
     lum = crop.astype(np.float64).ravel()
     # only the pixels that see this surface, not another one in the window (an outline, the
@@ -142,23 +163,24 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))))
     # and not within the blur of such a pixel: its light (a shadow's dark, a face's glare) is
     # spread onto the surface's pixels beside it. The blur is the fit's own: fitted once with
-    # the guard its start gives, again where the blur found asks for a wider one
+    # the guard its start gives, again where the blur found asks for a wider one (the distance
+    # is Euclidean: a square's corners, or a guard rounded up to whole pixels, left a small
+    # disk beside an outline a third of the pixels its blur allows)
+    clear = cv2.distanceTransform(np.asarray(~other, np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE).ravel()
     blur = CONFIG.image_fit_blur_start_px
-    guard = -1
+    guard, ok = -1.0, np.zeros_like(hits)
     while True:
-        wanted = int(math.ceil(CONFIG.image_fit_guard_blurs * blur))
-        if wanted <= guard:
+        wanted = CONFIG.image_fit_guard_blurs * blur
+        again = hits & (clear > wanted)
+        if guard >= 0.0 and (wanted <= guard or np.array_equal(again, ok)):
             break
-        guard = wanted
-        size = 2 * guard + 1
-        ok = hits & ~cv2.dilate(other.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool).ravel()
+        guard, ok = wanted, again
         if ok.sum() < CONFIG.min_interior_points:
             return None
         Xo, lumo, uvo = X[ok], lum[ok], uv[ok]
-        grad = _distance_gradient(cal, centre + Xo @ F, F)
         du, dv = uvo[:, 0] - uvo[:, 0].mean(), uvo[:, 1] - uvo[:, 1].mean()
         others = _neighbour_distances(cal, neighbours, uvo, guard)
-        fit = _solve(Xo[:, :2], coef, lumo, du, dv, grad, radius_mm, prior_sd, noise, others)
+        fit = _solve(Xo[:, :2], coef, lumo, du, dv, grid, np.flatnonzero(ok), radius_mm, prior_sd, noise, others)
         if fit is None or isinstance(fit, Refusal):
             return fit
         p, cov, excess = fit
@@ -186,6 +208,63 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     radius_sd = float(math.sqrt(max(cov[2, 2], 0.0)))
     return ImageFit(world, n, r, radius_sd, cov3, float(p[4]), float(math.sqrt(max(cov[4, 4], 0.0))),
                     float(math.exp(p[3])), excess, seen, float(surface_rms), int(ok.sum()))
+
+
+@dataclass(frozen=True, eq=False)
+class _Grid:
+    """The window's pixels, each sampled ``factor`` × ``factor`` times (``CONFIG.image_fit_subsamples``):
+    where the disk's image is drawn before it is blurred (module docstring, "the model")."""
+
+    factor: int
+    Q: np.ndarray  # (H, f, W, f, 2) the samples' local x, y on the surface (NaN: the ray misses it)
+    hit: np.ndarray  # (H, W) the pixel's own ray meets the surface
+    Qp: np.ndarray  # (H, W, 2) the pixels' local x, y (0 where they miss)
+    grad: np.ndarray  # (H, W, 2, 2) ``_distance_gradient`` at the pixels (identity where they miss)
+
+    def centres(self, flat_pixels: np.ndarray) -> np.ndarray:
+        """Flat indices, in the blurred sample image (H f, W f), of the pixels' own centres."""
+        H, f, W, _, _ = self.Q.shape
+        v, u = np.divmod(flat_pixels, W)
+        out: np.ndarray = (v * f + f // 2) * (W * f) + u * f + f // 2
+        return out
+
+
+def _grid(cal: Calibration, coef: np.ndarray, centre: np.ndarray, F: np.ndarray, radius_mm: float,
+          window: tuple[tuple[int, int], tuple[int, int]], X: np.ndarray) -> _Grid:
+    """``_Grid`` of ``window`` on the quadric ``coef`` (local frame ``F`` at ``centre``) for a
+    disk of ``radius_mm``; ``X`` (H W, 3) the pixels' own local points (``ray_quadric``)."""
+    (v0, v1), (u0, u1) = window
+    H, W, f = v1 - v0, u1 - u0, _subsamples(cal, centre, F, radius_mm)
+    off = (np.arange(f) - (f - 1) / 2) / f  # sub-pixel offsets, the middle one the pixel's centre
+    vs = (np.arange(v0, v1)[:, None] + off).ravel()
+    us = (np.arange(u0, u1)[:, None] + off).ravel()
+    vv, uu = np.meshgrid(vs, us, indexing="ij")
+    D = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()])) @ F.T
+    Q = ray_quadric(coef, (cal.camera.center - centre) @ F.T, D)[:, :2].reshape(H, f, W, f, 2)
+    hit = np.isfinite(X[:, 0])
+    grad = np.broadcast_to(np.eye(2), (len(X), 2, 2)).copy()
+    if hit.any():
+        grad[hit] = _distance_gradient(cal, centre + X[hit] @ F, F)
+    Qp = np.where(hit[:, None], X[:, :2], 0.0)
+    return _Grid(f, Q, hit.reshape(H, W), Qp.reshape(H, W, 2), grad.reshape(H, W, 2, 2))
+
+
+def _subsamples(cal: Calibration, centre: np.ndarray, F: np.ndarray, radius_mm: float) -> int:
+    """Samples per pixel side to draw the disk on: the fewest (odd, at most
+    ``CONFIG.image_fit_subsamples``) whose edge, s0 = 1 / (2 f) px wide, moves the rim by at most
+    ``CONFIG.image_fit_max_tip_shift_px`` where the disk's image curves most: its ellipse's tips,
+    of radius ρ = b² / a px, where a straight edge blurred by s0 crosses half its contrast
+    s0² / (2 ρ) inside the rim. A disk seen near face on is drawn once per pixel (a 25 mm
+    sticker's window nine times over cost 2 s a capture); a thin ellipse three times."""
+    h = 0.05  # mm: small against the disk, large against rounding
+    uv = cal.camera.project(centre + h * np.array([F[0], -F[0], F[1], -F[1]]))
+    J = np.column_stack([(uv[0] - uv[1]) / (2 * h), (uv[2] - uv[3]) / (2 * h)])  # image px per mm
+    major, minor = np.linalg.svd(J, compute_uv=False) * radius_mm
+    rho = minor * minor / max(float(major), 1e-9)
+    f = 1
+    while f < CONFIG.image_fit_subsamples and (0.5 / f) ** 2 / (2.0 * rho) > CONFIG.image_fit_max_tip_shift_px:
+        f += 2
+    return f
 
 
 def _surround_light(lum: np.ndarray, X: np.ndarray, candidates: np.ndarray, radius_mm: float,
@@ -283,11 +362,58 @@ def _window(shape: tuple[int, ...], cal: Calibration, centre: np.ndarray, F: np.
     return (v0, v1), (u0, u1)
 
 
-def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, grad: np.ndarray,
-           radius_mm: float, prior_sd: float | None, noise: float,
+class _DrawnDisk:
+    """The disk's image as the camera makes it: drawn on the window's samples (``_Grid``) with an
+    edge ``s0`` = 1 / (2 f) px wide (half a sample: smooth in the parameters, sharp against any
+    blur), blurred by a Gaussian of SD √(s² − s0²), read at the fitted pixels' centres. A
+    straight edge's Φ(d / s) per pixel, with d the pixel's distance from the rim, reads a thin
+    ellipse's tips too bright (they curve within the blur) and so its radius small: −2.7 % at
+    77°, −3.7 % at 80° with a 1.2 px blur, where the drawn disk reads −0.3 %."""
+
+    def __init__(self, grid: _Grid, coef: np.ndarray, centres: np.ndarray):
+        self.grid, self.coef, self.centres = grid, coef, centres
+        H, f, W, _, _ = grid.Q.shape
+        self.shape = (H * f, W * f)
+        self.s0 = 0.5 / f
+        self.miss = ~np.isfinite(grid.Q[..., 0])
+        self.Q = np.where(self.miss[..., None], 0.0, grid.Q)
+
+    def at(self, c: np.ndarray, r: float) -> _Samples:
+        """The disk of centre ``c`` (local x, y) and radius ``r`` (mm) on the samples."""
+        g = self.grid
+        dp = g.Qp - c
+        flat_p = np.maximum(np.hypot(dp[..., 0], dp[..., 1]), 1e-9)
+        # image pixels per mm across the rim, at each pixel: 1 / |∇ρ| (``_distance_gradient``)
+        k = 1.0 / np.maximum(np.linalg.norm(np.einsum("hwij,hwj->hwi", g.grad, dp / flat_p[..., None]), axis=-1),
+                             1e-9)
+        # the length along the surface over the flat one, per pixel: the quadric bends across the
+        # disk, not across a pixel
+        ratio = np.ones_like(flat_p)
+        ratio[g.hit] = surface_lengths(self.coef, c, g.Qp[g.hit]) / flat_p[g.hit]
+        d = self.Q - c
+        flat = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-9)
+        scale = (k / self.s0)[:, None, :, None]
+        z = (r - flat * ratio[:, None, :, None]) * scale
+        # a sample whose ray misses the surface is off the disk
+        cdf = np.where(self.miss, 0.0, _normal_cdf(z))
+        slope = np.where(self.miss, 0.0, np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi) * scale)
+        return _Samples(cdf.reshape(self.shape), slope.reshape(self.shape),
+                        (d[..., 0] / flat).reshape(self.shape), (d[..., 1] / flat).reshape(self.shape))
+
+    def blurred(self, samples: np.ndarray, s: float) -> np.ndarray:
+        """``samples`` (H f, W f) blurred to a total blur of ``s`` px, at the fitted pixels."""
+        sigma = math.sqrt(max(s * s - self.s0**2, 1e-6)) * self.grid.factor
+        out = np.asarray(cv2.GaussianBlur(samples, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE))
+        read: np.ndarray = out.ravel()[self.centres]
+        return read
+
+
+def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv: np.ndarray, grid: _Grid,
+           pixels: np.ndarray, radius_mm: float, prior_sd: float | None, noise: float,
            others: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | Refusal | None:
     """Levenberg-Marquardt with Huber weights on the model of the module docstring. Parameters
-    (cx, cy, r, log s, a, b0 ... b5, a_1 ... a_K); ``others`` (N, K) the pixels' signed distances
+    (cx, cy, r, log s, a, b0 ... b5, a_1 ... a_K); ``Q`` (N, 2) the fitted pixels' local x, y,
+    ``pixels`` their flat indices in ``grid``'s window; ``others`` (N, K) their signed distances
     from the K neighbours' images; returns (p, covariance, excess), a ``Refusal`` where the disk
     left its window (beyond ``CONFIG.image_fit_reach`` radii of the start), or None."""
     inside = np.hypot(Q[:, 0], Q[:, 1]) < radius_mm
@@ -303,34 +429,30 @@ def _solve(Q: np.ndarray, coef: np.ndarray, lum: np.ndarray, du: np.ndarray, dv:
     lam = 1e-3
     huber = CONFIG.image_fit_huber * noise
     prior_w = 0.0 if prior_sd is None else (noise / prior_sd) ** 2
+    drawn = _DrawnDisk(grid, coef, grid.centres(pixels))
 
     def model(p: np.ndarray) -> tuple[np.ndarray, _State]:
-        d = Q - p[:2]
-        flat = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        # image pixels per mm of distance from the rim, across the rim's image: 1 / |∇ρ| in the image
-        k = 1.0 / np.maximum(np.linalg.norm(np.einsum("nij,nj->ni", grad, d / flat[:, None]), axis=1), 1e-9)
-        rho = np.maximum(surface_lengths(coef, p[:2], Q), 1e-9)  # along the surface, as the sticker lies
         s = math.exp(p[3])
-        z = (p[2] - rho) * k / s
-        cdf = _normal_cdf(z)
+        disk = drawn.at(p[:2], p[2])
         shade = basis @ p[5:11]
         zk = others / s
         cdf_k = _normal_cdf(zk)
-        return shade * (1.0 + p[4] * cdf + cdf_k @ p[11:]), (d, rho, k, s, z, cdf, shade, zk, cdf_k)
+        return shade * (1.0 + p[4] * drawn.blurred(disk.cdf, s) + cdf_k @ p[11:]), _State(disk, s, shade, zk, cdf_k)
 
-    def jacobian(p: np.ndarray, state: _State) -> np.ndarray:
-        d, rho, k, s, z, cdf, shade, zk, cdf_k = state
-        phi = np.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
-        phi_k = np.exp(-0.5 * zk * zk) / math.sqrt(2 * math.pi)
-        g = shade * p[4] * phi * k / s  # dm/d(r - rho)
+    def jacobian(p: np.ndarray, st: _State) -> np.ndarray:
+        phi_k = np.exp(-0.5 * st.zk * st.zk) / math.sqrt(2 * math.pi)
+        on = st.shade * p[4]
+        image = drawn.blurred(st.disk.cdf, st.s)
         J = np.empty((len(Q), 11 + n_k))
-        J[:, 0] = g * d[:, 0] / rho  # the surface's slope neglected: the step's direction, not its end
-        J[:, 1] = g * d[:, 1] / rho
-        J[:, 2] = g
-        J[:, 3] = -shade * (p[4] * phi * z + (phi_k * zk) @ p[11:])
-        J[:, 4] = shade * cdf
-        J[:, 5:11] = basis * (1.0 + p[4] * cdf + cdf_k @ p[11:])[:, None]
-        J[:, 11:] = shade[:, None] * cdf_k
+        J[:, 0] = on * drawn.blurred(st.disk.slope * st.disk.dx, st.s)  # the surface's slope neglected
+        J[:, 1] = on * drawn.blurred(st.disk.slope * st.disk.dy, st.s)
+        J[:, 2] = on * drawn.blurred(st.disk.slope, st.s)
+        h = 0.02  # the step in log s of the blur's central difference: 2 % of the blur
+        J[:, 3] = (on * (drawn.blurred(st.disk.cdf, st.s * math.exp(h)) - drawn.blurred(st.disk.cdf, st.s * math.exp(-h)))
+                   / (2 * h) - st.shade * ((phi_k * st.zk) @ p[11:]))
+        J[:, 4] = st.shade * image
+        J[:, 5:11] = basis * (1.0 + p[4] * image + st.cdf_k @ p[11:])[:, None]
+        J[:, 11:] = st.shade[:, None] * st.cdf_k
         return J
 
     def cost(r: np.ndarray) -> float:
