@@ -173,15 +173,22 @@ class RigLayout(StrEnum):
         return {RigLayout.SIDE: 0.0, RigLayout.DIAGONAL: 45.0, RigLayout.ABOVE: 90.0, RigLayout.BELOW: -90.0}[self]
 
 
-def layout_angle(layout: RigLayout | float) -> float:
-    """Degrees from the camera's left towards up for a layout (or an angle in degrees)."""
-    if isinstance(layout, str):  # a RigLayout, or its name where a caller passed the plain text
+def rig_layout(layout: RigLayout | float) -> RigLayout | float:
+    """``layout`` as a ``RigLayout`` (also from its name, where a caller passed the plain text) or
+    an angle in degrees; ValueError naming the layouts for an unknown name."""
+    if isinstance(layout, str):
         try:
-            return RigLayout(layout).angle_deg
+            return RigLayout(layout)
         except ValueError:
             names = ", ".join(v.value for v in RigLayout)
             raise ValueError(f"unknown rig layout {layout!r}; expected one of {names} or an angle") from None
     return float(layout)
+
+
+def layout_angle(layout: RigLayout | float) -> float:
+    """Degrees from the camera's left towards up for a layout (or an angle in degrees)."""
+    known = rig_layout(layout)
+    return known.angle_deg if isinstance(known, RigLayout) else known
 
 
 def default_projector(scale: float = 1.0, *, camera_eye: npt.ArrayLike | None = None, baseline: float = BASELINE_MM,
@@ -318,8 +325,7 @@ class SimRig:
                  layout: RigLayout | float = RigLayout.SIDE) -> None:
         self.scene = scene if scene is not None else leg_scene()
         self.scale = float(scale)
-        layout_angle(layout)  # an unknown name is refused here, not at first use
-        self.layout: RigLayout | float = RigLayout(layout) if isinstance(layout, str) else float(layout)
+        self.layout = rig_layout(layout)  # an unknown name is refused here, not at first use
         self.camera = camera if camera is not None else default_camera(scale)
         self.projector = projector if projector is not None else default_projector(scale, layout=layout)
         self.optics = optics or Optics()
