@@ -778,3 +778,22 @@ def test_a_plate_whose_face_is_mostly_undecoded_is_refused_not_fitted():
     for m in res.marks.marks:
         e = m.centre - min(truth.values(), key=lambda X: float(np.linalg.norm(m.centre - X)))
         assert math.sqrt(e @ np.linalg.solve(m.covariance, e)) < 3.0
+
+
+def test_a_refusal_names_the_candidates_that_came_nearest_to_a_mark():
+    """The message's examples are the rejections of the latest checks (a disk of the wrong size,
+    edges scattering), not the first found (blobs of the wrong shape at the image's border), and
+    never a chosen mark's second view."""
+    from anklescan.core.measure.mark_types import RefusalReason, Rejection
+    R = RefusalReason
+    found = [(R.NOT_ELLIPTICAL, "not elliptical"), (R.SECOND_FIT, "a second fit"),
+             (R.WRONG_RADIUS, "not a 24.8 mm mark"), (R.TOO_FEW_POINTS, "only 3 decoded 3-D points"),
+             (R.NOT_ELLIPTICAL, "not elliptical either"), (R.EDGES_SCATTER, "edges scatter"),
+             (R.FACE_UNDECODED, "only 14 % of its face decodes")]
+    ms = MarkSet(marks=_truth_marks(leg_scene(10, -15), drop=("5",)),
+                 rejected=[Rejection((float(i), 0.0), r, d) for i, (r, d) in enumerate(found)])
+    label_marks(ms)
+    examples = ms.message().split("the nearest to a mark: ")[1].split("; ")[:3]
+    assert examples == ["(6, 0): only 14 % of its face decodes", "(5, 0): edges scatter",
+                        "(2, 0): not a 24.8 mm mark"]
+    assert "7 candidate blob(s) rejected" in ms.message()

@@ -17,7 +17,8 @@ from anklescan.core.vocabulary import MarkKind
 
 class RefusalReason(enum.Enum):
     """Why a candidate is not a mark: the check of ``mark_fit`` that failed, or the selection
-    that left its fit out."""
+    that left its fit out. In the order the checks run: a later reason is a candidate that came
+    nearer to being a mark (``MarkSet.message`` shows those first)."""
 
     TOO_SMALL = "too small to fit"
     NOT_ELLIPTICAL = "not elliptical"
@@ -284,6 +285,19 @@ class MarkSet:
             parts.append(f"missing label{'s' if len(self.missing) > 1 else ''} {', '.join(self.missing)}")
         parts += self.problems
         if self.rejected and len(self.marks) < len(LABELS):
-            parts.append(f"{len(self.rejected)} candidate blob(s) rejected, e.g. "
-                         + "; ".join(str(r) for r in self.rejected[:3]))
+            parts.append(f"{len(self.rejected)} candidate blob(s) rejected, the nearest to a mark: "
+                         + "; ".join(str(r) for r in nearest_misses(self.rejected)))
         return "; ".join(parts)
+
+
+_CHECK_ORDER = {reason: i for i, reason in enumerate(RefusalReason)}
+
+
+def nearest_misses(rejected: list[Rejection], n: int = 3) -> list[Rejection]:
+    """The ``n`` rejections whose candidates came nearest to being a mark: the latest check
+    failed first (``RefusalReason``'s order), ties in the order found; a second view of a mark
+    already chosen is no miss and comes only where nothing else was rejected. A blob at the
+    image's border that is not elliptical says less about a missing mark than a disk of the
+    wrong size on the table."""
+    misses = [r for r in rejected if r.reason is not RefusalReason.SECOND_FIT] or rejected
+    return sorted(misses, key=lambda r: -_CHECK_ORDER[r.reason])[:n]
