@@ -190,7 +190,7 @@ def test_nothing_decoded_is_a_clear_empty_result(recwarn):
     cloud = PointCloud(np.zeros((0, 3), np.float32))
     cloud.pixels = np.zeros((0, 2))
     ms = find_marks(dark, cloud, cal)
-    assert not ms.marks and "found 0" in ms.message()
+    assert not ms.marks and "found 0" in ms.message() and "no candidate blob" in ms.message()
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 

@@ -131,6 +131,21 @@ def test_author_calibration_imported_measures_the_board(capture_1, tmp_path):
     assert m.flatness_rms_mm <= 3.5, m
 
 
+def test_measure_on_a_real_capture_without_marks_refuses_in_one_line(capture_1, tmp_path):
+    """The command a user runs on another lab's photographs (a chessboard, no marks): exit 2, one
+    line saying what the search saw, no RESULT.json."""
+    cap, _ = capture_1
+    assert run("calibrate", "import", DATA / "calibration_result.xml", "--projector", "2048x1536",
+               "--out", tmp_path / "author.json").returncode == 0
+    out = tmp_path / "RESULT.json"
+    done = run("measure", cap.folder, "--calibration", tmp_path / "author.json", "--out", out)
+    assert done.returncode == 2, done.stderr
+    line = done.stderr.strip()
+    assert len(line.splitlines()) == 1 and "Traceback" not in line, line
+    assert "marks not found" in line and "found 0 marks" in line and "candidate blob" in line, line
+    assert not out.exists() and not list(tmp_path.glob("RESULT*"))
+
+
 def test_board_command_needs_two_views_and_a_findable_board(tmp_path, capture_1):
     cap, _ = capture_1
     done = run("calibrate", "board", cap.folder, "--board", "9x7", "--square", "75", "--out", tmp_path / "c.json")

@@ -139,6 +139,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         r0, sd0 = sizes[0].radius, max(sizes[0].sd, CONFIG.radius_prior_sd_mm)
         result.diameter = (2 * r0, 2 * sd0)
     else:
+        lo, hi = (2 * r for r in bounds)
+        result.problems.append(f"none of {len(blobs)} candidate blob(s) fits a disk {lo:g}-{hi:g} mm across" if blobs
+                               else "no candidate blob: no disk stands out in the lit image")
         label_marks(result)
         return result
     scene = _Scene(image, points, sigma, albedo, cal, clipped, r0, sd0, thick, prefer)
