@@ -246,15 +246,11 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
     if _runaway(radius, radius_mm):
         # a nearly straight edge (a lit rim, a silhouette): the free circle runs away
         return Refusal(RefusalReason.EDGES_ON_A_LINE, f"edge points lie on a line, not a circle ({what})")
-    scatter = (f"its rim's edges scatter {rms:.2f} mm about a circle, more than a mark's {max_edge_rms:.2f} mm "
-               f"(diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, {what})")
     if cand.radius_bounds is not None:
         lo, hi = cand.radius_bounds
         if not lo <= radius <= hi:
             return Refusal(RefusalReason.RADIUS_OUT_OF_RANGE,
                            f"not a mark (radius {radius:.2f} ± {radius_sd:.2f} mm, edge RMS {rms:.2f} mm, {what})")
-        if rms > max_edge_rms:
-            return Refusal(RefusalReason.EDGES_SCATTER, scatter)
     else:
         # The free radius is a size check; on the short arc of an oblique plate it is itself
         # uncertain (radius_sd), so the band widens to 3 SD of the fit where that exceeds the
@@ -264,8 +260,10 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
             return Refusal(RefusalReason.WRONG_RADIUS,
                            f"not a {2 * radius_mm:.1f} mm mark (diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, "
                            f"edge RMS {rms:.2f} mm, {what})")
-        if rms > max_edge_rms:
-            return Refusal(RefusalReason.EDGES_SCATTER, scatter)
+    if rms > max_edge_rms:
+        return Refusal(RefusalReason.EDGES_SCATTER,
+                       f"its rim's edges scatter {rms:.2f} mm about a circle, more than a mark's {max_edge_rms:.2f} mm "
+                       f"(diameter {2 * radius:.2f} ± {2 * radius_sd:.2f} mm, {what})")
     if radius_sd > CONFIG.max_radius_sd_mm:
         return Refusal(RefusalReason.SHORT_ARC,
                        f"too short an arc to be a disk (radius {radius:.2f} ± {radius_sd:.2f} mm, {what})")
