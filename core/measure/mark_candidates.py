@@ -18,7 +18,7 @@ from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import plane_basis
 from anklescan.core.measure.mark_types import Blob, BlobCut, BlobShape, Ellipse, PredictedDisk
-from anklescan.core.robust import MAD_TO_SIGMA, robust_sigma
+from anklescan.core.robust import MAD_TO_SIGMA, median_in_place, robust_sigma
 from anklescan.core.scan.pointcloud import PointCloud
 
 
@@ -130,21 +130,10 @@ def noise_sigma(image: np.ndarray) -> float:
     v = r.astype(np.float64).ravel()
     if not v.size or np.isnan(v).any():
         return float(max(robust_sigma(r) * 1.06, 1e-3))
-    centre = _median_in_place(v)
+    centre = median_in_place(v)
     np.subtract(v, centre, out=v)
     np.abs(v, out=v)
-    return float(max(MAD_TO_SIGMA * _median_in_place(v) * 1.06, 1e-3))
-
-
-def _median_in_place(v: np.ndarray) -> float:
-    """``np.median`` of the 1-D float64 ``v`` (no NaN), which it reorders: the middle value, or
-    the mean of the middle two as numpy takes it ((a + b) / 2)."""
-    k = v.size // 2
-    if v.size % 2:
-        v.partition(k)
-        return float(v[k])
-    v.partition((k - 1, k))
-    return float((v[k - 1] + v[k]) / 2.0)
+    return float(max(MAD_TO_SIGMA * median_in_place(v) * 1.06, 1e-3))
 
 
 # ---------------------------------------------------------------------------- candidates
@@ -387,7 +376,7 @@ def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal
     ok = ring & valid[win]
     if ok.sum() < ring.sum() / 3:
         return None
-    return float(np.median(smooth[win][ok]))
+    return median_in_place(smooth[win][ok])
 
 
 
@@ -405,7 +394,7 @@ def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) ->
     for first in (CONFIG.first_cut, CONFIG.wider_first_cut):
         region = _region_at(roi, (u - x0, v - y0), bg + first * (peak - bg))
         # The seed may be a brightly lit sliver of side wall; the plate's own level is its median.
-        region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(float(np.median(roi[region])), peak) - bg))
+        region = _region_at(roi, (u - x0, v - y0), bg + 0.5 * (min(median_in_place(roi[region]), peak) - bg))
         touches = ((region[0].any() and y0 > 0) or (region[-1].any() and y1 < H)
                    or (region[:, 0].any() and x0 > 0) or (region[:, -1].any() and x1 < W))
         if touches and not regions:
