@@ -81,7 +81,7 @@ def _measured(rig, cap, given):
     t = time.perf_counter()
     res = measure_capture(cap, rig.true_calibration(), given)
     dt = time.perf_counter() - t
-    tr = rig.truth()
+    tr = rig.mark_truth()
     mark_err = {k: float(np.linalg.norm(m.centre - tr.marks[k])) for k, m in res.marks.labelled.items()}
     ang_err = {k: float(v.value - tr.angles[k]) for k, v in res.angles.items()}
     nearest = {}

@@ -58,7 +58,7 @@ def _trial(job):
     cap = captured(rig)
     cal = rig.true_calibration()
     res = measure_capture(cap, cal, variant.diameter if given else None)
-    truth = rig.truth()
+    truth = rig.mark_truth()
     found = {min(truth.marks, key=lambda k: np.linalg.norm(truth.marks[k] - m.centre)) for m in res.marks.marks}
     lit = averaged_lit(cap)
     pts, clipped = points_image(res.cloud, lit.shape), clipped_white(cap)

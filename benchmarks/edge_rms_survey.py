@@ -53,7 +53,7 @@ def _trial(job):
     variant = draw_variant(v)
     rig = variant_rig(variant, inv, pf, scale=1.0, seed=i)
     cap = bench_marks.captured(rig)
-    _TRUTH["marks"] = rig.truth().marks
+    _TRUTH["marks"] = rig.mark_truth().marks
     _FOUND.clear()
     for mode in ("unknown", "given"):
         _TRUTH["trial"] = {"variant": v, "posture": f"{inv}/{pf}", "mode": mode, "diameter": variant.diameter}

@@ -233,7 +233,7 @@ def run_case(case: Case) -> CaseResult:
         t0 = time.perf_counter()
         result = measure_capture(cap, rig.true_calibration(), given)
         dt = time.perf_counter() - t0
-        truth = rig.truth()
+        truth = rig.mark_truth()
         return judge(case, result, truth.marks, truth.angles, dt)
     except Exception as exc:  # noqa: BLE001 (a crash is a finding to report, not a reason to stop a sweep)
         return CaseResult(case, Outcome.CRASH, message=f"{type(exc).__name__}: {exc}"[:300])

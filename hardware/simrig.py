@@ -239,6 +239,18 @@ class Truth:
 # ---- the rig --------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class MarkTruth:
+    """The scene's marks and the angles they set: what judging a measurement needs, without
+    ``Truth``'s cast of every camera pixel (a second at full resolution)."""
+
+    marks: dict[str, np.ndarray]  # "1".."7" -> (3,) centre of the plate's top face
+    mark_normals: dict[str, np.ndarray]  # "1".."7" -> (3,)
+    table_angles: tuple[float, float] | None  # set (inversion, plantar flexion), deg
+    angles: dict[str, float]  # SPEC §3 angles from the true mark centres, deg
+    leg_axis_angles: tuple[float, float] | None  # the leg axis' set (inversion, plantar flexion), deg
+
+
 @dataclass(eq=False)
 class LightTransport:
     """What a frame needs, precomputed: per camera pixel, 4 bilinear taps per sub-sample into
@@ -433,6 +445,15 @@ class SimRig:
             return [self.capture(im, **kw) for im in images]
         return [self._expose(linear, **kw) for linear in self.render_linear_many(images)]
 
+    def mark_truth(self) -> MarkTruth:
+        """The scene's marks and angles (``truth()``'s, without casting a ray)."""
+        marks = {k: m.centre.copy() for k, m in sorted(self.scene.marks.items())}
+        info = self.scene.info
+        return MarkTruth(marks=marks, mark_normals={k: m.normal.copy() for k, m in sorted(self.scene.marks.items())},
+                         table_angles=info.table_angles,
+                         angles=angles_from_marks(marks) if all(k in marks for k in LABEL_KEYS) else {},
+                         leg_axis_angles=info.leg_axis_angles)
+
     def truth(self) -> Truth:
         if self._truth is None:
             with single_threaded_blas():
@@ -595,16 +616,13 @@ class SimRig:
                         & (puv[:, 1] >= -0.5) & (puv[:, 1] <= prj.height - 0.5))
             kept.append((c.X, c.normals, c.index, c.seen, c.lit & in_frame, puv))
         X, normals, index, seen, lit, proj_uv = (np.concatenate(band) for band in zip(*kept, strict=True))
-        marks = {k: m.centre.copy() for k, m in sorted(self.scene.marks.items())}
-        info = self.scene.info
-        angles = angles_from_marks(marks) if all(k in marks for k in LABEL_KEYS) else {}
+        m = self.mark_truth()
         return Truth(points=X.reshape(H, W, 3), normals=normals.reshape(H, W, 3),
                      object_id=self.scene.object_kinds(index).reshape(H, W),
                      mark_label=self.scene.mark_labels(index, X, normals).reshape(H, W),
                      seen=seen.reshape(H, W), lit=lit.reshape(H, W),
-                     proj_uv=proj_uv.reshape(H, W, 2), marks=marks,
-                     mark_normals={k: m.normal.copy() for k, m in sorted(self.scene.marks.items())},
-                     table_angles=info.table_angles, angles=angles, leg_axis_angles=info.leg_axis_angles)
+                     proj_uv=proj_uv.reshape(H, W, 2), marks=m.marks, mark_normals=m.mark_normals,
+                     table_angles=m.table_angles, angles=m.angles, leg_axis_angles=m.leg_axis_angles)
 
 
 # ---- simulated devices ----------------------------------------------------------------------

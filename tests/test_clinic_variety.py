@@ -28,7 +28,7 @@ def _capture(rig):
 def _measured(rig):
     from anklescan.core.measure.pipeline import measure_capture
 
-    return measure_capture(_capture(rig), rig.true_calibration()), rig.truth()
+    return measure_capture(_capture(rig), rig.true_calibration()), rig.mark_truth()
 
 
 def test_drawn_setups_are_reproducible_and_within_the_spec():
@@ -322,7 +322,7 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
     rig = variant_rig(draw_variant(variant), inv, pf, scale=1.0, seed=seed)
     cap = _capture(rig)
     res = measure_capture(cap, rig.true_calibration())
-    truth = rig.truth()
+    truth = rig.mark_truth()
     if "2" in res.marks.labelled:  # the search finds it now (its image fitted as a whole): right
         assert np.linalg.norm(res.marks.labelled["2"].centre - truth.marks["2"]) < 0.35
     lit = averaged_lit(cap)
@@ -353,7 +353,7 @@ def test_a_click_is_not_moved_onto_a_doubtful_fit():
     cap = _capture(rig)
     res = measure_capture(cap, rig.true_calibration())
     assert "2" not in res.marks.labelled
-    truth = rig.truth()
+    truth = rig.mark_truth()
     lit = averaged_lit(cap)
     n = truth.mark_normals["2"]
     off = np.cross(n, [0.0, 0.0, 1.0])

@@ -242,7 +242,7 @@ def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     rig = SimRig(leg_scene(inv, pf, mark_type="sticker", mark_radius=12.5, lateral_mark_deg=50.0), scale=0.75, seed=0)
     cal = rig.true_calibration()
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal))
-    res, truth = measure_capture(capture_from_images(pset, rig.capture_many(render_all(pset))), cal), rig.truth()
+    res, truth = measure_capture(capture_from_images(pset, rig.capture_many(render_all(pset))), cal), rig.mark_truth()
     assert float(np.linalg.norm(truth.marks["2"] - truth.marks["4"])) - 25.0 < 2.5  # nearly touching
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():

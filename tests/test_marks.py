@@ -254,7 +254,7 @@ def _measured(inv, pf, scale, seed, **kw):
     """(measure_capture's result with the true calibration, the truth) for ``_scan``'s capture."""
     from anklescan.core.measure.pipeline import measure_capture
     rig, cap = _scan(inv, pf, scale, seed, **kw)
-    return measure_capture(cap, rig.true_calibration()), rig.truth()
+    return measure_capture(cap, rig.true_calibration()), rig.mark_truth()
 
 
 @pytest.mark.parametrize("inv,pf", [(0, 0), (20, -20)])
@@ -264,7 +264,7 @@ def test_reduced_scale_table_marks_and_angles(inv, pf):
 
     rig, cap = _scan(inv, pf, 0.5)
     res = measure_capture(cap, rig.true_calibration())
-    truth = rig.truth()
+    truth = rig.mark_truth()
     lab = res.marks.labelled
     assert {"5", "6", "7"} <= set(lab), res.marks.message()
     for k in ("5", "6", "7"):
@@ -416,7 +416,7 @@ def test_marks_of_any_size_plates_and_stickers(mark_type, diameter, given):
 
     rig, cap = _sized_scan(mark_type, diameter)
     res = measure_capture(cap, rig.true_calibration(), diameter if given else None)
-    truth = rig.truth()
+    truth = rig.mark_truth()
     assert res.complete, res.marks.message()
     for k, m in res.marks.labelled.items():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, (k, m.centre - truth.marks[k])
@@ -452,7 +452,7 @@ def test_click_snaps_to_the_sticker_centre():
     cal = rig.true_calibration()
     lit = averaged_lit(cap)
     pts = points_image(cloud_from_decoded(cap, cal, decode(cap)), lit.shape)
-    truth = rig.truth()
+    truth = rig.mark_truth()
     for k in ("1", "6"):
         n = truth.mark_normals[k]
         off = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -709,7 +709,7 @@ def test_a_candidate_is_a_mark_or_a_typed_refusal_and_the_free_pass_skips_only_t
 
     rig, cap = _sized_scan("plate", 15.0)
     lit, points, sigma, cal = _lit_points(rig, cap)
-    truth = rig.truth().marks
+    truth = rig.mark_truth().marks
     blobs = candidate_blobs(lit, points, cal, noise_sigma(lit), CONFIG.size_range_mm, ring_background=True)
     fits = [(b, fit_mark(lit, points, b, cal, 7.5, sigma)) for b in blobs]
     plates = [(b, m) for b, m in fits if isinstance(m, Mark)]
@@ -751,7 +751,7 @@ def test_a_plate_takes_the_captures_thickness_not_its_own_grazing_step():
     case = Case.drawn(1307, scale=1.0)
     rig = case.rig()
     res = measure_capture(captured(rig), rig.true_calibration())
-    true7 = rig.truth().marks["7"]
+    true7 = rig.mark_truth().marks["7"]
     mark = min(res.marks.marks, key=lambda m: float(np.linalg.norm(m.centre - true7)))
     assert mark.step_mm is not None and mark.step_mm > 1.6  # its own step, as measured
     e = mark.centre - true7
@@ -772,7 +772,7 @@ def test_a_plate_whose_face_is_mostly_undecoded_is_refused_not_fitted():
     assert case.size == SizeMode.GIVEN
     rig = case.rig()
     res = measure_capture(captured(rig), rig.true_calibration(), case.true_diameter())
-    truth = rig.truth().marks
+    truth = rig.mark_truth().marks
     assert not [m for m in res.marks.marks if np.linalg.norm(m.centre - truth["2"]) < 5.0]
     assert "missing label 2" in res.marks.message()
     for m in res.marks.marks:

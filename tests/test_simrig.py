@@ -43,6 +43,19 @@ def test_truth_points_project_to_pixel_centres(rig, truth):
     assert err < 1e-6
 
 
+def test_mark_truth_is_the_truths_marks_and_angles(rig, truth):
+    # the cheap form judges every case row: the same marks, normals and angles as the full truth,
+    # and the angles those marks set (SPEC §3, recomputed here)
+    m = rig.mark_truth()
+    assert m.marks.keys() == truth.marks.keys() == set("1234567")
+    for k in m.marks:
+        assert np.array_equal(m.marks[k], truth.marks[k]) and np.array_equal(m.mark_normals[k], truth.mark_normals[k])
+    assert m.angles == truth.angles == angles_from_marks(truth.marks)
+    assert m.table_angles == truth.table_angles and m.leg_axis_angles == truth.leg_axis_angles
+    m.marks["1"][0] += 1.0  # a copy: the scene's own marks are not the caller's to change
+    assert rig.mark_truth().marks["1"][0] == truth.marks["1"][0]
+
+
 def test_proj_uv_is_the_projection_of_the_point(rig, truth):
     m = truth.seen
     assert np.allclose(rig.projector.project(truth.points[m]), truth.proj_uv[m], atol=1e-9, equal_nan=True)
