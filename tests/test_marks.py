@@ -493,6 +493,7 @@ def test_surface_normal_decides_a_weakly_seen_face_tilt():
     rests on gives it well, and the two are weighted: a face whose tilt is well measured
     stays nearly as it is."""
     from anklescan.core.measure.mark_edges import plane_basis
+    from anklescan.core.measure.mark_types import NormalEstimate
     from anklescan.core.measure.marks_surface import combined_normal
 
     true_n = np.array([0.0, -0.342, 0.940])
@@ -500,19 +501,19 @@ def test_surface_normal_decides_a_weakly_seen_face_tilt():
     B = plane_basis(true_n)
     face = true_n + math.tan(math.radians(3.0)) * B[0]  # 3° off along its weak direction
     face /= np.linalg.norm(face)
-    weak = (plane_basis(face), np.diag(np.radians([4.0, 0.3])) ** 2)
-    surface = (true_n, plane_basis(true_n), np.diag(np.radians([0.1, 0.1])) ** 2)
-    n, (_, C) = combined_normal(face, weak, surface)
-    assert math.degrees(math.acos(min(1.0, n @ true_n))) < 0.3
-    assert np.sqrt(np.linalg.eigvalsh(C)).max() < math.radians(0.6)
-    sure = (plane_basis(face), np.diag(np.radians([0.1, 0.1])) ** 2)
-    n, _ = combined_normal(face, sure, surface)
-    assert math.degrees(math.acos(min(1.0, n @ face))) < 0.2
+    weak = NormalEstimate(face, plane_basis(face), np.diag(np.radians([4.0, 0.3])) ** 2)
+    surface = NormalEstimate(true_n, plane_basis(true_n), np.diag(np.radians([0.1, 0.1])) ** 2)
+    both = combined_normal(weak, surface)
+    assert math.degrees(math.acos(min(1.0, both.normal @ true_n))) < 0.3
+    assert np.sqrt(np.linalg.eigvalsh(both.slope_cov)).max() < math.radians(0.6)
+    sure = NormalEstimate(face, plane_basis(face), np.diag(np.radians([0.1, 0.1])) ** 2)
+    assert math.degrees(math.acos(min(1.0, combined_normal(sure, surface).normal @ face))) < 0.2
 
 
 def test_tilt_error_is_carried_to_the_centre_covariance():
     """The centre moves by J·tilt under a tilt of the plane: the covariance gains J C Jᵀ."""
     from anklescan.core.measure.mark_fit import _tilt_covariance, plane_basis
+    from anklescan.core.measure.mark_types import NormalEstimate
 
     n = np.array([0.0, 0.0, 1.0])
     B = plane_basis(n)
@@ -523,7 +524,7 @@ def test_tilt_error_is_carried_to_the_centre_covariance():
         return (J @ a, None)
 
     C = np.diag([1e-4, 4e-4])
-    assert np.allclose(_tilt_covariance(n, (B, C), refit), J @ C @ J.T, rtol=1e-3)
+    assert np.allclose(_tilt_covariance(NormalEstimate(n, B, C), refit), J @ C @ J.T, rtol=1e-3)
 
 
 def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():

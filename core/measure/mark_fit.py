@@ -37,6 +37,7 @@ from anklescan.core.measure.mark_types import (
     DiskFit,
     KnownDisk,
     Mark,
+    NormalEstimate,
     Refusal,
     RefusalReason,
     SurfaceStep,
@@ -117,7 +118,7 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration
     step = surface_step(points, sigma, shape, centroid, frame)
     # the surface's normal, for a plate's; not from a ring with a gap (an extrapolation on a curved surface)
     surface = (None if step is None or step.ring_decoded < CONFIG.surface_ring_min_decoded
-               else (step.normal, frame[:2], step.slope_cov))
+               else NormalEstimate(step.normal, frame[:2], step.slope_cov))
     clear = step is not None and step_kind(step.step_mm, step.step_sd) is not None
     # the capture's plates are one kit: one thickness, the median of their steps, where measured.
     # One plate's own step rests on the surround it sees, which at a grazing view may be a few
@@ -192,7 +193,7 @@ class _Candidate:
     n_in: int  # interior points of the first plane
     px_per_mm: float  # at the blob's depth
     step: SurfaceStep | None  # ``surface_step``, or None
-    surface: tuple | None  # (normal, basis, slope cov) of the surface round a plate, or None
+    surface: NormalEstimate | None  # the surface round a plate (``surface_step``), or None
     clipped: np.ndarray | None  # (H, W) bool, camera saturated
     radius_mm: float  # the marks' radius (the free fit's start where the size is not known)
     prior_sd: float | None  # its SD (None: a free radius)
@@ -556,7 +557,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         plane_px = top
     tilt = _plane_tilt(points, plane_px, centroid, normal)
     if surface is not None and tilt is not None:
-        normal, tilt = combined_normal(normal, tilt, surface)
+        tilt = combined_normal(tilt, surface)
+        normal = tilt.normal
         fit = circle(rays, normal)
         if fit is None:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
@@ -580,7 +582,7 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
 
     if tilt is not None:
         # the centre found with the plane through the same point tilted to normal n
-        cov = cov + _tilt_covariance(normal, tilt, lambda n: circle(rays, n, relocated))
+        cov = cov + _tilt_covariance(tilt, lambda n: circle(rays, n, relocated))
 
     def refit_edges(shift_px):  # the centre found with every edge moved outwards by shift_px in the image
         shift = shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)
@@ -659,10 +661,10 @@ def _edge_level_covariance(refit_edges, level_px) -> np.ndarray:
     return np.outer(delta, delta)
 
 
-def _plane_tilt(points, uv, centroid, normal):
-    """(basis (2, 3), covariance (2, 2) of the plane's slope along it) from the scatter of the
-    plane's own points at pixels ``uv`` about it: least squares of the height over the plane's
-    x, y, s² (Σ d dᵀ)⁻¹. None if too few points. At a grazing view the top face's points span
+def _plane_tilt(points, uv, centroid, normal) -> NormalEstimate | None:
+    """The plane's ``normal`` with the covariance of its slope along ``plane_basis`` from the
+    scatter of its own points at pixels ``uv`` about it: least squares of the height over the
+    plane's x, y, s² (Σ d dᵀ)⁻¹. None if too few points. At a grazing view the top face's points span
     only a strip of the face, and the slope across it is weakly measured."""
     P = points[uv[:, 1], uv[:, 0]].astype(np.float64) if len(uv) else np.zeros((0, 3))
     P = P[np.isfinite(P[:, 0])]
@@ -680,18 +682,18 @@ def _plane_tilt(points, uv, centroid, normal):
     coef, *_ = np.linalg.lstsq(A, h, rcond=None)
     s2 = max(float(np.sum((h - A @ coef) ** 2)) / max(len(h) - 3, 1), CONFIG.edge_noise_floor_mm**2)
     try:
-        return B, np.linalg.inv(d.T @ d) * s2
+        return NormalEstimate(normal, B, np.linalg.inv(d.T @ d) * s2)
     except np.linalg.LinAlgError:
         return None
 
 
-def _tilt_covariance(normal, tilt, refit) -> np.ndarray:
+def _tilt_covariance(tilt: NormalEstimate, refit) -> np.ndarray:
     """The plane's tilt error carried to the circle's centre: each principal tilt of one SD
-    (``tilt``: basis, slope covariance) applied both ways and the circle refitted
+    (``tilt``'s slope covariance) applied both ways to its normal and the circle refitted
     (``refit(normal)``): half the centre's move, squared. A tilt moves far-side edge points by
     r·tan(tilt)·tan(view): a 10 mm plate seen at 73° was 0.66 mm off with an SD of 0.145 mm
     without this term (docs/marks.md)."""
-    B, C = tilt
+    B, C, normal = tilt.basis, tilt.slope_cov, tilt.normal
     lam, vec = np.linalg.eigh(C)
     out = np.zeros((3, 3))
     for k in range(2):

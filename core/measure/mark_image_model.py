@@ -44,6 +44,7 @@ from anklescan.core.measure.mark_candidates import noise_sigma
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_types import KnownDisk, Refusal, RefusalReason
 from anklescan.core.measure.marks_surface import (
+    QuadricFit,
     fit_quadric,
     local_frame,
     quadric_grad,
@@ -139,7 +140,7 @@ def fit_disk_image(image: np.ndarray, points: np.ndarray, cal: Calibration, cent
     surf = _surface_under(L, radius_mm)
     if surf is None:
         return None
-    coef, surface_rms, keep, coef_cov = surf
+    coef, surface_rms, keep, coef_cov = surf.coef, surf.rms, surf.kept, surf.cov
     vv, uu = np.mgrid[v0:v1, u0:u1]
     uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float64)
     rays = cal.camera.rays(uv)
@@ -284,7 +285,7 @@ def _surround_light(lum: np.ndarray, X: np.ndarray, candidates: np.ndarray, radi
     return float(np.median(lum[use])) if use.sum() >= CONFIG.min_surface_points else None
 
 
-def _surface_under(L: np.ndarray, radius_mm: float) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
+def _surface_under(L: np.ndarray, radius_mm: float) -> QuadricFit | None:
     """``fit_quadric`` of the surface under the disk from its decoded points ``L`` (local frame):
     first those under the disk alone, then every point that continues that surface (within
     CONFIG.image_fit_off_surface_sd of its RMS) out to CONFIG.image_fit_surface_reach radii. A
@@ -295,9 +296,8 @@ def _surface_under(L: np.ndarray, radius_mm: float) -> tuple[np.ndarray, float, 
     first = fit_quadric(L[under]) if under.sum() >= CONFIG.image_fit_min_surface_points else None
     if first is None:
         return fit_quadric(L)
-    coef, rms = first[0], first[1]
-    off = np.abs(L[:, 2] - quadric_z(coef, L[:, 0], L[:, 1]))
-    on = off <= CONFIG.image_fit_off_surface_sd * rms
+    off = np.abs(L[:, 2] - quadric_z(first.coef, L[:, 0], L[:, 1]))
+    on = off <= CONFIG.image_fit_off_surface_sd * first.rms
     return fit_quadric(L[on]) if on.sum() >= CONFIG.image_fit_min_surface_points else first
 
 

@@ -118,6 +118,15 @@ class SurfaceStep:
 
 
 @dataclass(frozen=True, eq=False)
+class NormalEstimate:
+    """A plane's unit normal and how well its tilt is known (a plate's face, the surface round it)."""
+
+    normal: np.ndarray  # (3,) unit normal
+    basis: np.ndarray  # (2, 3) unit axes the slope is measured along (in the plane, or a local frame's)
+    slope_cov: np.ndarray  # (2, 2) covariance of the slope along them, rad²
+
+
+@dataclass(frozen=True, eq=False)
 class KnownDisk:
     """A disk already fitted (another chosen mark), as a neighbour's fit models it. World mm."""
 

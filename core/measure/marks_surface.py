@@ -15,18 +15,41 @@ two; a plate's top face stands its thickness over the surface, a sticker's is th
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_candidates import ellipse_pixels
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_edges import decoded_across, image_scale, plane_basis
-from anklescan.core.measure.mark_types import DiskFit, Ellipse, Refusal, RefusalReason, SurfaceStep
+from anklescan.core.measure.mark_edges import EdgeProfiles, decoded_across, image_scale, plane_basis
+from anklescan.core.measure.mark_types import DiskFit, Ellipse, NormalEstimate, Refusal, RefusalReason, SurfaceStep
 from anklescan.core.robust import robust_sigma
 
 # Gauss-Legendre nodes/weights on [0, 1] for lengths along the surface
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(6)
 _GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
+
+
+@dataclass(frozen=True, eq=False)
+class QuadricFit:
+    """z = a x² + b xy + c y² + d x + e y + g (+ Σ k_j extra_j) fitted to points in a local frame."""
+
+    coef: np.ndarray  # (6 + extras,) a, b, c, d, e, g, then one per extra column
+    rms: float  # mm, the kept points' residual RMS
+    kept: np.ndarray  # (N,) bool: the points not dropped as outliers
+    cov: np.ndarray  # covariance of ``coef``
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceCircle:
+    """A circle of equal length along a quadric from its centre (``circle_on_surface``)."""
+
+    centre: np.ndarray  # (2,) local x, y
+    radius: float  # mm along the surface
+    residuals: np.ndarray  # (N,) mm, weighted as fitted
+    cov: np.ndarray  # (2, 2) covariance of the centre
+    radius_sd: float  # mm
 
 
 def local_frame(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -37,14 +60,14 @@ def local_frame(centre: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(n, e1), n])
 
 
-def _design(x, y):
+def _design(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
 
 
 def fit_quadric(L: np.ndarray, weights: np.ndarray | None = None, extra: np.ndarray | None = None,
-                iterations: int = 4) -> tuple[np.ndarray, float, np.ndarray, np.ndarray] | None:
+                iterations: int = 4) -> QuadricFit | None:
     """Robust weighted least squares z = a x² + b xy + c y² + d x + e y + g (+ Σ k_j extra_j) on
-    local points L (N, 3). Returns (coef, rms, kept mask, covariance of coef) or None."""
+    local points L (N, 3); None where too few points are left or the system is singular."""
     if len(L) < CONFIG.min_surface_points:
         return None
     A = _design(L[:, 0], L[:, 1])
@@ -72,11 +95,12 @@ def fit_quadric(L: np.ndarray, weights: np.ndarray | None = None, extra: np.ndar
         cov = np.linalg.inv(M) * float((w[keep] * r * r).sum()) / dof
     except np.linalg.LinAlgError:
         return None
-    return coef, rms, keep, cov
+    return QuadricFit(coef, rms, keep, cov)
 
 
 def quadric_z(coef: np.ndarray, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
-    return _design(np.atleast_1d(x), np.atleast_1d(y)) @ coef[:6]
+    z: np.ndarray = _design(np.atleast_1d(x), np.atleast_1d(y)) @ coef[:6]
+    return z
 
 
 def quadric_grad(coef: np.ndarray, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
@@ -84,7 +108,7 @@ def quadric_grad(coef: np.ndarray, x: np.ndarray | float, y: np.ndarray | float)
     return np.stack([2 * a * x + b * y + d, b * x + 2 * c * y + e], axis=-1)
 
 
-def ray_quadric(coef, o, D) -> np.ndarray:
+def ray_quadric(coef: np.ndarray, o: np.ndarray, D: np.ndarray) -> np.ndarray:
     """Local points where rays o + t D (o (3,), D (N, 3), in the local frame) meet the quadric
     near the frame's origin: from each ray's hit on the quadric's linear part (the quadric is
     only valid near the origin, the camera is far outside it), the root nearest; NaN where
@@ -104,22 +128,25 @@ def ray_quadric(coef, o, D) -> np.ndarray:
     q = -0.5 * (B + np.copysign(sq, B))
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(np.abs(A) > 1e-15, C / q, -C / B)  # the small root (the other is ~B/A away)
-    return p0 + t[:, None] * D
+    hit: np.ndarray = p0 + t[:, None] * D
+    return hit
 
 
-def surface_lengths(coef, c, P) -> np.ndarray:
+def surface_lengths(coef: np.ndarray, c: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Length on the quadric of the curve over the straight segment from c (2,) to each P (N, 2):
     the distance along the surface, to second order in its curvature."""
     delta = P - c
     pts = c + _GL_X[None, :, None] * delta[:, None, :]  # (N, k, 2)
     slope = np.einsum("nkj,nj->nk", quadric_grad(coef, pts[..., 0], pts[..., 1]), delta)
-    return np.sqrt((delta * delta).sum(axis=1)[:, None] + slope**2) @ _GL_W
+    lengths: np.ndarray = np.sqrt((delta * delta).sum(axis=1)[:, None] + slope**2) @ _GL_W
+    return lengths
 
 
-def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
-    """(centre (2,), radius, residuals, cov of centre (2, 2), radius SD) of the circle of
-    points Q (N, 2) (the local x, y of edge points on the quadric) at equal surface length
-    from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
+def circle_on_surface(coef: np.ndarray, Q: np.ndarray, c0: np.ndarray, r0: float,
+                      prior: tuple[float, float] | None = None,
+                      along: np.ndarray | None = None) -> SurfaceCircle | None:
+    """The circle of points Q (N, 2) (the local x, y of edge points on the quadric) at equal
+    surface length from its centre; ``prior = (R, sd)`` adds r = R ± sd (weighted against the residual RMS,
     as ``anklescan.core.measure.mark_fit.circle_geometric`` does). ``along``: (N, 2) the edge
     rays' local x, y components: each residual weighted by how much of it the camera sees
     (``mark_edges.image_scale``), from the centre the pass before found. None if it fails."""
@@ -127,13 +154,13 @@ def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
 
     floor = 0.03
 
-    def fun(p, scale, w):
-        res = w * (surface_lengths(coef, p[:2], Q) - p[2])
+    def fun(p: np.ndarray, scale: float, w: np.ndarray) -> np.ndarray:
+        res: np.ndarray = w * (surface_lengths(coef, p[:2], Q) - p[2])
         if prior is None:
             return res
-        return np.r_[res, scale / prior[1] * (p[2] - prior[0])]
+        return np.append(res, scale / prior[1] * (p[2] - prior[0]))
 
-    def weights(c):
+    def weights(c: np.ndarray) -> np.ndarray:
         d = Q - c
         return image_scale(d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None], along)
 
@@ -157,10 +184,12 @@ def circle_on_surface(coef, Q, c0, r0, prior=None, along=None):
         cov = np.linalg.inv(J.T @ J) * s2
     except np.linalg.LinAlgError:
         return None
-    return p[:2], float(p[2]), resid, cov[:2, :2], float(math.sqrt(max(cov[2, 2], 0.0)))
+    return SurfaceCircle(p[:2], float(p[2]), resid, cov[:2, :2], float(math.sqrt(max(cov[2, 2], 0.0))))
 
 
-def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius_mm, prior_sd):
+def fit_on_surface(points: np.ndarray, sigma: np.ndarray | None, shape: Ellipse, profiles: EdgeProfiles,
+                   cal: Calibration, centroid: np.ndarray, normal: np.ndarray, radius_mm: float,
+                   prior_sd: float | None) -> DiskFit | Refusal:
     """A sticker: the circle of equal length *along the surface* from its centre, the surface a
     quadric fitted to the decoded points of the disk and just around it (a sticker has no
     edge of its own in 3-D), its edge points the camera rays of the image outline cut with that
@@ -183,7 +212,7 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         q = fit_quadric((P - origin) @ F.T, w)
         if q is None:
             return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {len(P)} decoded 3-D points on the mark")
-        coef, surf_rms, keep, _ = q
+        coef, surf_rms, keep = q.coef, q.rms, q.kept
         D = rays_all @ F.T
         along = D[:, :2] / np.linalg.norm(D, axis=1, keepdims=True)
         E = ray_quadric(coef, (cam_c - origin) @ F.T, D)
@@ -195,19 +224,21 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         use = np.isfinite(E[:, 0]) & (cos_v >= math.cos(math.radians(CONFIG.max_edge_view_deg))) & lit_edge
         if use.sum() < CONFIG.min_edge_points:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
-        fit = circle_on_surface(coef, E[use, :2], c2, r, prior, along[use])
-        if fit is None:
+        first = circle_on_surface(coef, E[use, :2], c2, r, prior, along[use])
+        if first is None:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
+        fit = first
         for _ in range(2):
-            resid = fit[2]
+            resid = fit.residuals
             bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
             if not bad.any() or (~bad).sum() < CONFIG.min_edge_points:
                 break
             use[np.flatnonzero(use)[bad]] = False
-            fit = circle_on_surface(coef, E[use, :2], fit[0], fit[1], prior, along[use])
-            if fit is None:
+            refit = circle_on_surface(coef, E[use, :2], fit.centre, fit.radius, prior, along[use])
+            if refit is None:
                 return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
-        c2, r, resid, cov2, _ = fit
+            fit = refit
+        c2, r, resid, cov2 = fit.centre, fit.radius, fit.residuals, fit.cov
         g = quadric_grad(coef, c2[0], c2[1])
         centre = origin + np.r_[c2, quadric_z(coef, c2[0], c2[1])[0]] @ F
         n_new = np.array([-g[0], -g[1], 1.0]) @ F
@@ -217,8 +248,8 @@ def fit_on_surface(points, sigma, shape, profiles, cal, centroid, normal, radius
         c2 = np.zeros(2)
         if moved < CONFIG.plane_converged_mm:
             break
-    free = circle_on_surface(coef, E[use, :2], fit[0], fit[1], along=along[use]) if prior is not None else fit
-    radius, radius_sd = (free[1], free[4]) if free is not None else (float("nan"), float("inf"))
+    free = circle_on_surface(coef, E[use, :2], fit.centre, fit.radius, along=along[use]) if prior is not None else fit
+    radius, radius_sd = (free.radius, free.radius_sd) if free is not None else (float("nan"), float("inf"))
     rms = float(np.sqrt(np.mean(resid**2)))
     # centre's covariance: the in-surface fit, carried to 3-D along the surface's slope; the
     # surface's height error at the centre carried along the edge rays; the systematic floor
@@ -265,7 +296,7 @@ def surface_step(points: np.ndarray, sigma: np.ndarray | None, shape: Ellipse, f
     fit = fit_quadric(L, w, extra=is_face[ok])
     if fit is None:
         return None
-    coef, rms, _, cov = fit
+    coef, rms, cov = fit.coef, fit.rms, fit.cov
     n = np.array([-coef[3], -coef[4], 1.0]) @ frame
     ring_decoded = float(ok[len(face):].mean())
     step_sd = math.sqrt(max(cov[6, 6], 0.0) + (rms / 3.0) ** 2)
@@ -289,24 +320,23 @@ def _ring_pixels(outer: np.ndarray, inner: np.ndarray) -> tuple[np.ndarray, np.n
     return v + y0, u + x0
 
 
-def combined_normal(normal, tilt, surface):
-    """The plate's normal from its face (``normal``, slope covariance ``tilt``) and from the
-    surface it rests on (``surface``: normal, basis, slope covariance, plus
-    CONFIG.surface_normal_floor_deg), inverse-variance weighted. Returns the normal and its (basis,
-    slope covariance). No consistency gate: the face's SD comes from its points' scatter and
+def combined_normal(face: NormalEstimate, surface: NormalEstimate) -> NormalEstimate:
+    """The plate's normal from its face's and from the surface it rests on (whose slope SD
+    gains CONFIG.surface_normal_floor_deg), inverse-variance weighted; the face's own where the
+    covariances are singular. No consistency gate: the face's SD comes from its points' scatter and
     misses their bias (rim pixels in the strip seen at a grazing view); a chi² gate at 99 %
     kept a face 3.6° off (SD 0.7°) against a surface 0.6° off, and that plate 0.53 mm off."""
-    B, C1 = tilt
-    n2, F2, C2 = surface
-    R = B @ F2.T  # the surface's slope axes into the face's
-    C2 = R @ C2 @ R.T + math.radians(CONFIG.surface_normal_floor_deg) ** 2 * np.eye(2)
+    B, C1, normal = face.basis, face.slope_cov, face.normal
+    n2 = surface.normal
+    R = B @ surface.basis.T  # the surface's slope axes into the face's
+    C2 = R @ surface.slope_cov @ R.T + math.radians(CONFIG.surface_normal_floor_deg) ** 2 * np.eye(2)
     a2 = -(B @ n2) / float(n2 @ normal)  # the surface's slope in the face's frame (the face's is 0)
     try:
         W1, W2 = np.linalg.inv(C1), np.linalg.inv(C2)
         C = np.linalg.inv(W1 + W2)
     except np.linalg.LinAlgError:
-        return normal, tilt
+        return face
     a = C @ (W2 @ a2)
     n = normal - a @ B
     n /= np.linalg.norm(n)
-    return n, (plane_basis(n), C)
+    return NormalEstimate(n, plane_basis(n), C)
