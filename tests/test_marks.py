@@ -153,8 +153,9 @@ def test_circle_prior_holds_a_short_noisy_arc():
     for _ in range(20):
         phi = np.linspace(0, math.pi / 2, 16)
         q = np.c_[7.5 * np.cos(phi), 7.5 * np.sin(phi)] + rng.normal(0, 0.15, (16, 2))
-        c, r, resid, cov = circle_geometric(q, np.array([0.5, 0.5]), 7.5, (7.5, 0.1))
-        errs.append(np.linalg.norm(c))
+        fit = circle_geometric(q, np.array([0.5, 0.5]), 7.5, (7.5, 0.1))
+        assert fit is not None
+        errs.append(np.linalg.norm(fit.centre))
     assert np.sqrt(np.mean(np.square(errs))) < 0.15
 
 
@@ -166,10 +167,13 @@ def test_first_plane_ignores_a_side_wall():
     P = np.vstack([top, wall]).astype(np.float32)
     points = P.reshape(10, 10, 3)
     uv = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2)
-    c, n, rms, k = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]), consensus=True)
+    plane = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]), consensus=True)
+    assert plane is not None
+    c, n, k = plane.centroid, plane.normal, plane.n_kept
     assert n[2] > 0.999 and abs(c[2]) < 0.05 and k <= 66  # a few wall points touch the top face
-    c, n, rms, k = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]))
-    assert n[2] < 0.99  # without the consensus step the wall tilts it by > 8°
+    plane = plane_from_pixels(points, None, uv, np.array([0.0, 0.0, 1000.0]))
+    assert plane is not None
+    assert plane.normal[2] < 0.99  # without the consensus step the wall tilts it by > 8°
 
 
 def test_no_marks_message():
@@ -198,7 +202,9 @@ def test_circle_fit_recovers_centre_and_radius_on_a_half_arc():
     rng = np.random.default_rng(1)
     phi = np.linspace(0, math.pi, 40)
     q = np.c_[3 + 7.5 * np.cos(phi), -2 + 7.5 * np.sin(phi)] + rng.normal(0, 0.03, (40, 2))
-    c, r, resid, cov = circle_geometric(q, np.array([2.0, -1.0]), 7.0)
+    fit = circle_geometric(q, np.array([2.0, -1.0]), 7.0)
+    assert fit is not None
+    c, r, cov = fit.centre, fit.radius, fit.cov
     assert np.allclose(c, [3, -2], atol=0.05) and abs(r - 7.5) < 0.05
     assert np.sqrt(np.diag(cov)).max() < 0.05
 
@@ -214,7 +220,9 @@ def test_circle_fit_agrees_with_a_least_squares_solver_and_survives_a_singular_s
     rng = np.random.default_rng(3)
     phi = np.linspace(0.3, 2.0, 25)
     q = np.c_[1 + 6.0 * np.cos(phi), 4 + 6.0 * np.sin(phi)] + rng.normal(0, 0.05, (25, 2))
-    c, r, resid, _ = circle_geometric(q, np.array([0.0, 3.0]), 5.5, (6.1, 0.1))
+    fit = circle_geometric(q, np.array([0.0, 3.0]), 5.5, (6.1, 0.1))
+    assert fit is not None
+    c, r, resid = fit.centre, fit.radius, fit.residuals
     w = max(float(np.sqrt(np.mean(resid**2))), CONFIG.edge_noise_floor_mm) / 0.1
     ref = least_squares(lambda p: np.r_[np.hypot(*(q - p[:2]).T) - p[2], w * (p[2] - 6.1)], [0.0, 3.0, 5.5],
                         xtol=1e-14, ftol=1e-14).x
@@ -229,7 +237,8 @@ def test_plane_fit_rejects_stray_points():
     rng = np.random.default_rng(2)
     P = np.c_[rng.uniform(-5, 5, (200, 2)), rng.normal(0, 0.05, 200)]
     P[:10, 2] += 3.0  # rim decodes
-    c, n, rms, n_in = fit_plane(P)
+    plane = fit_plane(P)
+    n, rms, n_in = plane.normal, plane.rms, plane.n_kept
     assert abs(abs(n[2]) - 1) < 1e-3 and rms < 0.08 and n_in <= 195
 
 
@@ -521,7 +530,7 @@ def test_tilt_error_is_carried_to_the_centre_covariance():
 
     def refit(m):
         a = -(B @ m) / (m @ n)
-        return (J @ a, None)
+        return J @ a
 
     C = np.diag([1e-4, 4e-4])
     assert np.allclose(_tilt_covariance(NormalEstimate(n, B, C), refit), J @ C @ J.T, rtol=1e-3)

@@ -5,6 +5,7 @@ local quadric), its checks and covariance; the plane and circle fits they use. d
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +47,40 @@ from anklescan.core.measure.mark_wall import fit_wall, wall_points
 from anklescan.core.measure.marks_surface import combined_normal, fit_on_surface, local_frame, surface_step
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import MarkKind
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneFit:
+    """A plane through decoded points (``fit_plane``, ``plane_from_pixels``)."""
+
+    centroid: np.ndarray  # (3,) the kept points' weighted mean, on the plane
+    normal: np.ndarray  # (3,) unit normal (towards the camera from ``plane_from_pixels``)
+    rms: float  # mm, the kept points' distance RMS
+    n_kept: int  # points kept by the rejection
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneCircle:
+    """A circle fitted to points in a plane (``circle_geometric``)."""
+
+    centre: np.ndarray  # (2,)
+    radius: float
+    residuals: np.ndarray  # (N,) the points' distances from the circle
+    cov: np.ndarray  # (2, 2) the centre's covariance
+
+
+@dataclass(frozen=True, eq=False)
+class RimCircle:
+    """A plate's rim circle in its plane (``far_side_circle``)."""
+
+    centre: np.ndarray  # (3,) world mm, from the fit with the radius prior
+    radius: float  # mm, the free fit's radius (NaN where it failed): a check that the blob is a plate
+    rms: float  # mm, the edges' residual RMS about the prior fit
+    cov: np.ndarray  # (2, 2) the centre's covariance along ``basis``
+    basis: np.ndarray  # (2, 3) the plane's axes
+    n_edge: int  # edges used
+    rays: np.ndarray  # (n_edge, 3) their camera rays
+    radius_sd: float  # mm, the free radius's SD
 
 
 def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration, radius_mm: float | None,
@@ -98,7 +133,7 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration
     if plane is None:
         n_dec = int(np.isfinite(points[interior[:, 1], interior[:, 0], 0]).sum())
         return Refusal(RefusalReason.TOO_FEW_POINTS, f"only {n_dec} decoded 3-D points on the mark")
-    centroid, normal, plane_rms, n_in = plane
+    centroid, normal, plane_rms, n_in = plane.centroid, plane.normal, plane.rms, plane.n_kept
     if plane_rms > CONFIG.max_plane_rms_mm:
         return Refusal(RefusalReason.NOT_FLAT, f"not flat (plane RMS {plane_rms:.2f} mm)")
     depth = camera_depth(cal, centroid[None])[0]
@@ -124,10 +159,11 @@ def fit_mark(image: np.ndarray, points: np.ndarray, blob: Blob, cal: Calibration
     # One plate's own step rests on the surround it sees, which at a grazing view may be a few
     # points of another face (a 1.1 mm table plate seen at 76° read 2.0 mm, and its wall band
     # then took the table in front for wall: 0.53 mm off at 3 SD)
-    own = float(np.clip(step.step_mm, 0.0, None)) if clear else 0.0
+    own = float(np.clip(step.step_mm, 0.0, None)) if clear and step is not None else 0.0
     thickness = plate_thickness if plate_thickness is not None else own
-    kinds = ((MarkKind.STICKER, MarkKind.PLATE) if step is not None and step.step_mm < CONFIG.sticker_max_step_mm
-             else (MarkKind.PLATE, MarkKind.STICKER))
+    kinds: tuple[MarkKind, ...] = ((MarkKind.STICKER, MarkKind.PLATE)
+                                   if step is not None and step.step_mm < CONFIG.sticker_max_step_mm
+                                   else (MarkKind.PLATE, MarkKind.STICKER))
     if clear:
         kinds = kinds[:1]  # the step is clear; a small blob at a grazing view may leave it open: try both
     elif prefer_kind in kinds:
@@ -326,7 +362,8 @@ def _fit_kind(kind: MarkKind, cand: _Candidate, albedo: np.ndarray | None) -> Ma
             before = math.sqrt(max(float(np.trace(cov)), 0.0))
             cov = cov + np.outer(other.centre - centre, other.centre - centre) / 3.0
             clipped_rim = math.sqrt(max(float(np.trace(cov)), 0.0)) >= CONFIG.clip_sd_rise * before
-    pixel = tuple(float(v) for v in cal.camera.project(centre[None])[0])
+    u, v = (float(x) for x in cal.camera.project(centre[None])[0])
+    pixel = (u, v)
     return Mark(centre, normal, radius, rms, surf_rms, cov, pixel, n_edge, n_in,
                 view_deg=view_deg(cam_c, centre, normal), light_deg=light_deg,
                 kind=kind, step_mm=None if step is None else float(step.step_mm),
@@ -349,8 +386,8 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     is its excess on the edges' scale (the limit of one at the limit of the other:
     ``mark_selection.fit_score`` scores both alike), its face RMS the edge fit's surface RMS (or
     its own)."""
-    use_edges = isinstance(edge_fit, DiskFit) and not cand.bare
-    start = (edge_fit.centre, edge_fit.normal) if use_edges else (cand.centroid, cand.normal)
+    on_edges = edge_fit if isinstance(edge_fit, DiskFit) and not cand.bare else None
+    start = (on_edges.centre, on_edges.normal) if on_edges is not None else (cand.centroid, cand.normal)
     fit = fit_disk_image(cand.image, cand.points, cand.cal, start[0], start[1], cand.radius_mm, cand.prior_sd,
                          cand.neighbours)
     if fit is None or isinstance(fit, Refusal):
@@ -376,7 +413,8 @@ def _sticker_by_image(cand: _Candidate, edge_fit: DiskFit | Refusal) -> DiskFit 
     return DiskFit(fit.centre, fit.normal, fit.radius, radius_sd, edge_rms, face_rms, cov, n_edge)
 
 
-def _face_off_surface(points, cal, centre, normal, radius) -> float:
+def _face_off_surface(points: np.ndarray, cal: Calibration, centre: np.ndarray, normal: np.ndarray,
+                      radius: float) -> float:
     """The share of decoded points within CONFIG.face_span_fraction of the fitted disk's image that lie
     off its plane by more than max(CONFIG.face_off_mm, CONFIG.face_off_radii x radius); 0 where none is decoded."""
     shape = face_shape(cal, centre, normal, radius)
@@ -398,12 +436,13 @@ def _decoded_share(points: np.ndarray, uv: np.ndarray) -> float:
     return float(np.isfinite(points[uv[:, 1], uv[:, 0], 0]).mean())
 
 
-def _runaway(radius, radius_mm) -> bool:
+def _runaway(radius: float, radius_mm: float) -> bool:
     """A free circle that ran away: its edges lie on a line (a lit rim, a silhouette)."""
     return not (np.isfinite(radius) and radius < 10 * radius_mm)
 
 
-def _with_face_profiles(out, fit, image, cal, radius_mm, prior_sd, clipped):
+def _with_face_profiles(out: DiskFit, fit: Callable[..., DiskFit | Refusal], image: np.ndarray, cal: Calibration,
+                        radius_mm: float, prior_sd: float | None, clipped: np.ndarray | None) -> DiskFit:
     """The plate fit ``out`` with its centre midway to the same fit on edges profiled across the
     image of the face ``out`` found, and half the move between them, along it, in its covariance.
 
@@ -464,7 +503,9 @@ def _with_wall(out: DiskFit, cand: _Candidate) -> DiskFit:
     return out.moved(out.centre + F.T @ (gain @ wall.offset), F.T @ S_new @ F)
 
 
-def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal, radius_mm, prior_sd, centre):
+def _edge_disagreement(points: np.ndarray, sigma: np.ndarray | None, shape: BlobShape, lit_profiles: EdgeProfiles,
+                       cal: Calibration, centroid: np.ndarray, normal: np.ndarray, radius_mm: float,
+                       prior_sd: float | None, centre: np.ndarray) -> np.ndarray | None:
     """Covariance (3, 3) for a sticker fitted on the shading-corrected image's edges: the same fit on
     the lit image's edges, half the centre's move, along it. Both see the same rim; they part
     where the shading model is off (the correction assumes matte skin and a well-measured
@@ -485,21 +526,21 @@ def _edge_disagreement(points, sigma, shape, lit_profiles, cal, centroid, normal
     return np.outer(half, half)
 
 
-def radius_clearly_measured(radius_sd, size) -> bool:
+def radius_clearly_measured(radius_sd: float, size: float) -> bool:
     """True if a free radius is known well enough for its fit to be clearly a disk, where the fit
     is a last chance (a blob's wider cut, a predicted outline): an SD of at most
     CONFIG.wider_max_radius_sd_mm, or CONFIG.wider_max_radius_sd_rel of the marks' radius ``size`` if more."""
     return bool(radius_sd <= max(CONFIG.wider_max_radius_sd_mm, CONFIG.wider_max_radius_sd_rel * float(size)))
 
 
-def radius_disagrees(radius, radius_sd, size, size_sd) -> bool:
+def radius_disagrees(radius: float, radius_sd: float, size: float, size_sd: float) -> bool:
     """True if a free radius is further from the marks' size than ``CONFIG.max_radius_z`` SDs of the
     two (in quadrature): the edge points may not be the disk's rim, and the fit with the size as
     prior would hide it (a short arc trades centre for radius)."""
     return bool(abs(float(radius) - float(size)) > CONFIG.max_radius_z * math.hypot(radius_sd, size_sd))
 
 
-def face_rms_limit(sigma, uv) -> float:
+def face_rms_limit(sigma: np.ndarray | None, uv: np.ndarray) -> float:
     """The face-smoothness limit: ``CONFIG.max_top_face_rms_mm``, or ``CONFIG.face_rms_per_sigma`` times the
     RMS predicted SD of the decoded points at pixels ``uv`` where that is larger (an RMS, as the
     fit's RMS residual it bounds, over points that decode unequally well)."""
@@ -512,9 +553,11 @@ def face_rms_limit(sigma, uv) -> float:
     return float(max(CONFIG.max_top_face_rms_mm, CONFIG.face_rms_per_sigma * np.sqrt(np.mean(s * s))))
 
 
-def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms, n_in, radius_mm, prior_sd,
-               px_per_mm, thickness, plane_px, surface=None, *, covariance: bool = True):
-    """A rigid plate: plane + far-side edge circle; returns the fit tuple or a reason.
+def _fit_plate(image: np.ndarray, points: np.ndarray, sigma: np.ndarray | None, profiles: EdgeProfiles,
+               cal: Calibration, centroid: np.ndarray, normal: np.ndarray, plane_rms: float, n_in: int,
+               radius_mm: float, prior_sd: float | None, px_per_mm: float, thickness: float, plane_px: np.ndarray,
+               surface: NormalEstimate | None = None, *, covariance: bool = True) -> DiskFit | Refusal:
+    """A rigid plate: plane + far-side edge circle; the fit, or the reason it fails.
 
     The plane is first fitted to the blob's shrunken interior (which, at an oblique view, still
     holds side-wall and rim pixels), then refitted to the decoded points of the *top face*
@@ -523,29 +566,35 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
     plane offset δ moves the centre by δ·tan 70° and a tilt moves the edge points by up to
     r·tan(tilt)·tan 70°: the first plane was 0.2 mm / 5° off there (docs/marks.md).
     ``thickness``: the plate's height over the surface (the capture's, ``fit_mark``; side wall, shadow sliver);
-    ``plane_px``: the pixels of the first plane (the blob's interior); ``surface``: (normal,
-    basis (2, 3), slope covariance) of the surface around the plate (``surface_step``), combined
-    with the face's own normal (``combined_normal``).
+    ``plane_px``: the pixels of the first plane (the blob's interior); ``surface``: the normal of
+    the surface around the plate (``surface_step``), combined with the face's own
+    (``combined_normal``).
     The covariance includes the plane's tilt error carried to the centre (``_tilt_covariance``)
     and the rim's edge level error (``_edge_level_covariance``); ``covariance`` False: neither
     (their six refits), and the covariance is NaN (a fit whose centre alone is used).
     """
     cam_c, proj_c = cal.camera.center, cal.projector.center
     rays = cal.camera.rays(profiles.points())
-    fit, last, seen, relocated, s_used = None, None, set(), None, profiles.s_edge
+    last: np.ndarray | None = None
+    seen: set[bytes] = set()
+    relocated: np.ndarray | None = None
+    s_used = profiles.s_edge
+    fit: RimCircle
 
-    def circle(r, n, reloc=None):  # the far-side circle of edge rays r, in the plane through centroid normal to n
+    def circle(r: np.ndarray, n: np.ndarray, reloc: np.ndarray | None = None) -> RimCircle | None:
+        # the far-side circle of edge rays r, in the plane through centroid normal to n
         return far_side_circle(ray_plane(cam_c, r, centroid, n), r, centroid, n, cam_c, proj_c, px_per_mm, radius_mm,
                                reloc, prior_sd=prior_sd, thickness=thickness)
 
     for i in range(CONFIG.plane_passes + 1):
-        fit = circle(rays, normal)
-        if fit is None:
+        found = circle(rays, normal)
+        if found is None:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
-        if i == CONFIG.plane_passes or (last is not None and np.linalg.norm(fit[0] - last) < CONFIG.plane_converged_mm):
+        fit = found
+        if i == CONFIG.plane_passes or (last is not None and np.linalg.norm(fit.centre - last) < CONFIG.plane_converged_mm):
             break
-        last = fit[0]
-        top = top_face_pixels(cal, fit[0], normal, fit[1] if prior_sd is None else radius_mm, image.shape)
+        last = fit.centre
+        top = top_face_pixels(cal, fit.centre, normal, fit.radius if prior_sd is None else radius_mm, image.shape)
         key = top.tobytes()
         if key in seen:
             break  # the same pixels as a pass before: converged (or a 2-cycle of a pixel)
@@ -553,21 +602,22 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         plane = plane_from_pixels(points, sigma, top, cam_c)
         if plane is None:
             break  # keep the plane we have: too few decoded top-face points to do better
-        centroid, normal, plane_rms, n_in = plane
+        centroid, normal, plane_rms, n_in = plane.centroid, plane.normal, plane.rms, plane.n_kept
         plane_px = top
     tilt = _plane_tilt(points, plane_px, centroid, normal)
     if surface is not None and tilt is not None:
         tilt = combined_normal(tilt, surface)
         normal = tilt.normal
-        fit = circle(rays, normal)
-        if fit is None:
+        found = circle(rays, normal)
+        if found is None:
             return Refusal(RefusalReason.NOT_A_CIRCLE, "edge points do not form a circle")
+        fit = found
     for _ in range(CONFIG.sliver_passes if thickness > 0 else 0):
         # re-find the edges that have a shadow sliver beside them (dropped so far), now that
         # the plate's plane and centre say how wide each sliver is
         E = ray_plane(cam_c, rays, centroid, normal)
-        r_now = fit[1] if prior_sd is None else radius_mm
-        s_new, moved = sliver_edges(profiles, cal, E, fit[0], normal, proj_c, r_now, thickness)
+        r_now = fit.radius if prior_sd is None else radius_mm
+        s_new, moved = sliver_edges(profiles, cal, E, fit.centre, normal, proj_c, r_now, thickness)
         if not moved.any():
             break
         rays = cal.camera.rays(profiles.points(s_new))
@@ -575,18 +625,22 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
         if better is None:
             break
         fit, relocated, s_used = better, moved, s_new
-    centre, radius, rms, cov2, basis, n_edge, used_rays, radius_sd = fit
+    centre, radius, rms, radius_sd, n_edge = fit.centre, fit.radius, fit.rms, fit.radius_sd, fit.n_edge
     if not covariance:
         return DiskFit(centre, normal, radius, radius_sd, rms, plane_rms, np.full((3, 3), np.nan), n_edge)
-    cov = _centre_covariance(cov2, basis, normal, used_rays, plane_rms, n_in)
+    cov = _centre_covariance(fit.cov, fit.basis, normal, fit.rays, plane_rms, n_in)
+
+    def centre_of(c: RimCircle | None) -> np.ndarray | None:
+        return None if c is None else c.centre
 
     if tilt is not None:
         # the centre found with the plane through the same point tilted to normal n
-        cov = cov + _tilt_covariance(tilt, lambda n: circle(rays, n, relocated))
+        cov = cov + _tilt_covariance(tilt, lambda n: centre_of(circle(rays, n, relocated)))
 
-    def refit_edges(shift_px):  # the centre found with every edge moved outwards by shift_px in the image
+    def refit_edges(shift_px: float) -> np.ndarray | None:
+        # the centre found with every edge moved outwards by shift_px in the image
         shift = shift_px / np.linalg.norm(profiles.dirs[profiles.rows], axis=1)
-        return circle(cal.camera.rays(profiles.points(s_used + shift)), normal, relocated)
+        return centre_of(circle(cal.camera.rays(profiles.points(s_used + shift)), normal, relocated))
 
     cos_view = math.cos(math.radians(view_deg(cam_c, centre, normal)))
     level_px = CONFIG.edge_level_sd_px / max(cos_view, CONFIG.cos_view_min)
@@ -594,7 +648,8 @@ def _fit_plate(image, points, sigma, profiles, cal, centroid, normal, plane_rms,
                    cov + _edge_level_covariance(refit_edges, level_px), n_edge)
 
 
-def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
+def _without_stray_arc(out: DiskFit, profiles: EdgeProfiles, fit: Callable[..., DiskFit | Refusal], cal: Calibration,
+                       px_per_mm: float) -> tuple[DiskFit, EdgeProfiles]:
     """(fit, profiles): the plate fit ``out`` made again without the edges off its rim, where its
     edges scatter more than a mark's may (CONFIG.max_circle_rms_mm) and that scatters less; else
     ``out`` and ``profiles`` as they are. ``fit``: the plate's fit on given profiles.
@@ -626,7 +681,7 @@ def _without_stray_arc(out, profiles, fit, cal, px_per_mm):
     return again, fewer
 
 
-def _circle_consensus(p, tol) -> np.ndarray:
+def _circle_consensus(p: np.ndarray, tol: float) -> np.ndarray:
     """(n,) bool: the points of ``p`` (n, 2) within ``tol`` of the circle through three of them
     that the most lie near (a fixed sample of CONFIG.stray_arc_trials triples: the same capture gives
     the same marks)."""
@@ -641,10 +696,10 @@ def _circle_consensus(p, tol) -> np.ndarray:
     c = sol[:, :2]
     r = np.sqrt(np.maximum(sol[:, 2] + (c**2).sum(axis=1), 0.0))
     on = np.abs(np.linalg.norm(p[None] - c[:, None], axis=2) - r[:, None]) < tol  # (t, n)
-    return on[int(np.argmax(on.sum(axis=1)))]
+    return np.asarray(on[int(np.argmax(on.sum(axis=1)))])
 
 
-def _edge_level_covariance(refit_edges, level_px) -> np.ndarray:
+def _edge_level_covariance(refit_edges: Callable[[float], np.ndarray | None], level_px: float) -> np.ndarray:
     """The rim's edge level error carried to the centre: every edge moved ``level_px`` outwards
     and inwards in the image and the circle refitted; half the centre's move, squared. A level
     error common to the rim (blur beside a darker or brighter surround, the tone curve) only
@@ -654,14 +709,14 @@ def _edge_level_covariance(refit_edges, level_px) -> np.ndarray:
     grazing view, where a pixel spans face, rim and what lies past it: plates seen at 11-43°
     have free radii within 0.16 px of the truth, while the edges of a 2.9 mm plate seen at 68°
     were about 0.5 px inside its rim, its centre 0.71 mm off."""
-    ends = [refit_edges(s * level_px) for s in (1.0, -1.0)]
-    if any(e is None for e in ends):
+    up, down = refit_edges(level_px), refit_edges(-level_px)
+    if up is None or down is None:
         return np.zeros((3, 3))
-    delta = 0.5 * (ends[0][0] - ends[1][0])
+    delta = 0.5 * (up - down)
     return np.outer(delta, delta)
 
 
-def _plane_tilt(points, uv, centroid, normal) -> NormalEstimate | None:
+def _plane_tilt(points: np.ndarray, uv: np.ndarray, centroid: np.ndarray, normal: np.ndarray) -> NormalEstimate | None:
     """The plane's ``normal`` with the covariance of its slope along ``plane_basis`` from the
     scatter of its own points at pixels ``uv`` about it: least squares of the height over the
     plane's x, y, s² (Σ d dᵀ)⁻¹. None if too few points. At a grazing view the top face's points span
@@ -687,10 +742,10 @@ def _plane_tilt(points, uv, centroid, normal) -> NormalEstimate | None:
         return None
 
 
-def _tilt_covariance(tilt: NormalEstimate, refit) -> np.ndarray:
+def _tilt_covariance(tilt: NormalEstimate, refit: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray:
     """The plane's tilt error carried to the circle's centre: each principal tilt of one SD
     (``tilt``'s slope covariance) applied both ways to its normal and the circle refitted
-    (``refit(normal)``): half the centre's move, squared. A tilt moves far-side edge points by
+    (``refit(normal)``: the centre, or None): half the centre's move, squared. A tilt moves far-side edge points by
     r·tan(tilt)·tan(view): a 10 mm plate seen at 73° was 0.66 mm off with an SD of 0.145 mm
     without this term (docs/marks.md)."""
     B, C, normal = tilt.basis, tilt.slope_cov, tilt.normal
@@ -698,21 +753,22 @@ def _tilt_covariance(tilt: NormalEstimate, refit) -> np.ndarray:
     out = np.zeros((3, 3))
     for k in range(2):
         g = math.sqrt(max(lam[k], 0.0)) * vec[:, k] @ B  # a tilt of one SD: the normal moves by g
-        ends = [refit((normal + s * g) / np.linalg.norm(normal + s * g)) for s in (1.0, -1.0)]
-        if any(e is None for e in ends):
+        up, down = (refit((normal + s * g) / np.linalg.norm(normal + s * g)) for s in (1.0, -1.0))
+        if up is None or down is None:
             continue
-        delta = 0.5 * (ends[0][0] - ends[1][0])
+        delta = 0.5 * (up - down)
         out += np.outer(delta, delta)
     return out
 
 
-def view_deg(cam_c, centre, normal) -> float:
+def view_deg(cam_c: np.ndarray, centre: np.ndarray, normal: np.ndarray) -> float:
     """Angle (deg) between the plate normal and the ray from ``cam_c`` (a device centre) to its centre."""
     d = centre - cam_c
     return math.degrees(math.acos(min(abs(float(d @ normal)) / float(np.linalg.norm(d)), 1.0)))
 
 
-def plane_from_pixels(points, sigma, uv, cam_c, consensus=False):
+def plane_from_pixels(points: np.ndarray, sigma: np.ndarray | None, uv: np.ndarray, cam_c: np.ndarray,
+                      consensus: bool = False) -> PlaneFit | None:
     """Robust plane (weighted by the points' predicted noise ``sigma`` where given) through the
     decoded points at pixels ``uv``, its normal towards the camera; None if fewer than
     CONFIG.min_interior_points. ``consensus``: first keep only the largest set of points within
@@ -730,13 +786,14 @@ def plane_from_pixels(points, sigma, uv, cam_c, consensus=False):
         sel = _plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
         if sel.sum() >= CONFIG.min_interior_points:
             P, w = P[sel], w[sel]
-    c, n, rms, k = fit_plane(P, weights=w, min_keep=CONFIG.min_interior_points)
-    if _tilt_sd(P, c, n, max(rms, float(np.median(s)))) > CONFIG.max_plane_tilt_sd_rad:
+    fit = fit_plane(P, weights=w, min_keep=CONFIG.min_interior_points)
+    c, n = fit.centroid, fit.normal
+    if _tilt_sd(P, c, n, max(fit.rms, float(np.median(s)))) > CONFIG.max_plane_tilt_sd_rad:
         return None
-    return c, (n if n @ (cam_c - c) >= 0 else -n), rms, k
+    return PlaneFit(c, n if n @ (cam_c - c) >= 0 else -n, fit.rms, fit.n_kept)
 
 
-def _tilt_sd(P, c, n, point_sd) -> float:
+def _tilt_sd(P: np.ndarray, c: np.ndarray, n: np.ndarray, point_sd: float) -> float:
     """The SD (rad) of a plane's tilt about the long axis of its points (see CONFIG.max_plane_tilt_sd_rad)."""
     d = (P - c) @ plane_basis(n).T
     minor = float(np.sqrt(max(np.linalg.eigvalsh(d.T @ d / len(d))[0], 0.0)))
@@ -763,15 +820,14 @@ def _plane_consensus(P: np.ndarray, tol: float) -> np.ndarray:
     return np.asarray(inl[int(np.argmax(np.count_nonzero(inl, axis=1)))])
 
 
-def fit_plane(P: np.ndarray, iterations: int = 3, weights=None, min_keep: int = 3):
-    """(Weighted) least-squares plane with MAD-based rejection (stray decodes at the rim).
-    Returns centroid, unit normal, RMS distance of the kept points, number kept. The rejection
+def fit_plane(P: np.ndarray, iterations: int = 3, weights: np.ndarray | None = None, min_keep: int = 3) -> PlaneFit:
+    """(Weighted) least-squares plane with MAD-based rejection (stray decodes at the rim). The rejection
     keeps at least ``min_keep`` points: a plane through three of six points has RMS 0 and any
     tilt (an 8 mm plate seen at 66° went 3.7 mm off, its face "flat" at 0.000 mm)."""
     w = np.ones(len(P)) if weights is None else np.asarray(weights, float)
     keep = np.ones(len(P), bool)
 
-    def solve(sel):
+    def solve(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # centroid, unit normal
         ww = w[sel] / w[sel].sum()
         c = ww @ P[sel]
         _, _, vt = np.linalg.svd((P[sel] - c) * np.sqrt(ww)[:, None], full_matrices=False)
@@ -787,11 +843,12 @@ def fit_plane(P: np.ndarray, iterations: int = 3, weights=None, min_keep: int = 
         keep = new
     c, n = solve(keep)
     rms = float(np.sqrt(np.mean(((P[keep] - c) @ n) ** 2)))
-    return c, n, rms, int(keep.sum())
+    return PlaneFit(c, n, rms, int(keep.sum()))
 
 
-def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius_mm, relocated=None, *,
-                    prior_sd=CONFIG.radius_prior_sd_mm, thickness):
+def far_side_circle(E: np.ndarray, rays: np.ndarray, origin_pt: np.ndarray, normal: np.ndarray, cam_c: np.ndarray,
+                    proj_c: np.ndarray, px_per_mm: float, radius_mm: float, relocated: np.ndarray | None = None, *,
+                    prior_sd: float | None = CONFIG.radius_prior_sd_mm, thickness: float) -> RimCircle | None:
     """Circle through the clean edge points (``clean_edge_mask``), in the plate's plane.
 
     Returns the centre from a fit with the radius prior, and the free fit's radius (a check
@@ -813,23 +870,23 @@ def far_side_circle(E, rays, origin_pt, normal, cam_c, proj_c, px_per_mm, radius
         res = circle_geometric(q[use], centre2, radius_mm, prior)
         if res is None:
             return None
-        centre2, _, resid, cov2 = res
+        centre2, resid, cov2 = res.centre, res.residuals, res.cov
         bad = np.abs(resid) > max(4 * robust_sigma(resid, centre=0.0), 0.05)
         if bad.any() and (~bad).sum() >= CONFIG.min_edge_points:
             use[np.flatnonzero(use)[bad]] = False
             res = circle_geometric(q[use], centre2, radius_mm, prior)
             if res is None:
                 return None
-            centre2, _, resid, cov2 = res
+            centre2, resid, cov2 = res.centre, res.residuals, res.cov
     free = circle_geometric(q[use], centre2, radius_mm)
-    radius = free[1] if free is not None else float("nan")
-    radius_sd = _radius_sd(q[use], free[0], free[1]) if free is not None else float("inf")
+    radius = free.radius if free is not None else float("nan")
+    radius_sd = _radius_sd(q[use], free.centre, free.radius) if free is not None else float("inf")
     centre = origin_pt + centre2 @ B
     rms = float(np.sqrt(np.mean(resid**2)))
-    return centre, radius, rms, cov2, B, int(use.sum()), rays[use], radius_sd
+    return RimCircle(centre, radius, rms, cov2, B, int(use.sum()), rays[use], radius_sd)
 
 
-def _radius_sd(q, c, r) -> float:
+def _radius_sd(q: np.ndarray, c: np.ndarray, r: float) -> float:
     """SD of the *free* circle fit's radius (Gauss-Newton covariance at the solution, scaled
     by the residual scatter, at least CONFIG.edge_noise_floor_mm): small on a long arc, large on the
     short arc of an obliquely seen plate, where centre and radius trade off."""
@@ -846,12 +903,14 @@ def _radius_sd(q, c, r) -> float:
 
 def _circle_kasa(q: np.ndarray) -> np.ndarray:
     A = np.column_stack([2 * q, np.ones(len(q))])
-    sol, *_ = np.linalg.lstsq(A, (q**2).sum(axis=1), rcond=None)
+    sol: np.ndarray = np.linalg.lstsq(A, (q**2).sum(axis=1), rcond=None)[0]
     return sol[:2]
 
 
-def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
-    """Gauss-Newton on the distances |q - c| - r; returns centre, radius, residuals, cov(c).
+def circle_geometric(q: np.ndarray, c0: np.ndarray, r0: float, prior: tuple[float, float] | None = None,
+                     iterations: int = 10) -> PlaneCircle | None:
+    """Gauss-Newton on the distances |q - c| - r; None where a point lies on the centre or the
+    system is singular.
 
     ``prior = (R, sd)`` adds the observation r = R ± sd: a short arc leaves centre and radius
     strongly correlated, and the plate's radius is known to a tenth of a mm. The prior's weight
@@ -906,7 +965,7 @@ def circle_geometric(q, c0, r0, prior=None, iterations: int = 10):
         cov = np.linalg.inv(JTJ) * max(float(resid @ resid) / dof, CONFIG.edge_noise_floor_mm**2)
     except np.linalg.LinAlgError:
         return None
-    return p[:2], float(p[2]), resid, cov[:2, :2]
+    return PlaneCircle(p[:2], float(p[2]), resid, cov[:2, :2])
 
 
 def _solve3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float,
@@ -936,12 +995,14 @@ def _least_squares_step(B: np.ndarray, p: np.ndarray, prior: tuple[float, float]
     return step
 
 
-def _centre_covariance(cov2, basis, normal, rays, plane_rms, n_interior) -> np.ndarray:
+def _centre_covariance(cov2: np.ndarray, basis: np.ndarray, normal: np.ndarray, rays: np.ndarray, plane_rms: float,
+                       n_interior: int) -> np.ndarray:
     """World covariance of the centre: the in-plane circle fit, the plane's offset error
     carried along the edge rays (moving the plane by δ moves each edge point by δ d/(n·d)),
     and the systematic floor."""
     in_plane = basis.T @ cov2 @ basis
     g = (rays / (rays @ normal)[:, None]).mean(axis=0)
     var_offset = plane_rms**2 / max(n_interior, 1)
-    return in_plane + var_offset * np.outer(g, g) + CONFIG.sd_floor_mm**2 * np.eye(3)
+    cov: np.ndarray = in_plane + var_offset * np.outer(g, g) + CONFIG.sd_floor_mm**2 * np.eye(3)
+    return cov
 
