@@ -37,6 +37,7 @@ from anklescan.hardware.sim_scene import (
     SceneInfo,
     SceneObject,
     SimMark,
+    Sphere,
     Sticker,
     frame_from_normal,
     table_normal,
@@ -69,11 +70,11 @@ class ConvexSolid(SceneObject):
         self.offsets = np.asarray(self.offsets, float).reshape(-1)
         self.corners = np.asarray(self.corners, float).reshape(-1, 3)
 
-    def bound(self) -> tuple[np.ndarray, float] | None:
+    def bound(self) -> Sphere | None:
         if not len(self.corners):
             return None
         c = self.corners.mean(axis=0)
-        return c, float(np.linalg.norm(self.corners - c, axis=1).max()) + 1e-6
+        return Sphere(c, float(np.linalg.norm(self.corners - c, axis=1).max()) + 1e-6)
 
     def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         den = d @ self.normals.T  # (N, F)

@@ -14,12 +14,18 @@ World frame per SPEC §1: mm, z up, x to the patient's right, y anterior.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from anklescan.core.vocabulary import MarkKind
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.procedures.box import BoxPose
 
 _EPS_T = 1e-7  # mm: a hit nearer than this to the ray origin is the origin's own surface
 
@@ -36,19 +42,45 @@ class ObjectId(IntEnum):
     STAND = 8
 
 
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+@dataclass(frozen=True, eq=False)
+class Sphere:
+    """A bounding sphere: an object's rays are only cast where they can touch it."""
+
+    centre: np.ndarray  # (3,) mm
+    radius: float  # mm
 
 
-def frame_from_normal(n, x_hint=(1.0, 0.0, 0.0)) -> np.ndarray:
+@dataclass(frozen=True, eq=False)
+class RayHits:
+    """The nearest hit of each ray of a shared origin: ``t`` inf and ``index`` -1 where none."""
+
+    t: np.ndarray  # (N,) ray parameter, mm along unit rays
+    index: np.ndarray  # (N,) int32 index into ``Scene.objects``
+
+
+@dataclass(frozen=True, eq=False)
+class SurfacePoint:
+    """A point on a surface and the outward unit normal there."""
+
+    point: np.ndarray  # (3,) mm
+    normal: np.ndarray  # (3,)
+
+
+def _unit(v: ArrayLike) -> np.ndarray:
+    a = np.asarray(v, dtype=np.float64)
+    out: np.ndarray = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    return out
+
+
+def frame_from_normal(n: ArrayLike, x_hint: ArrayLike = (1.0, 0.0, 0.0)) -> np.ndarray:
     """Right-handed orthonormal frame (columns e1, e2, n) with e1 the projection of x_hint."""
-    n = _unit(n)
-    e1 = _unit(np.asarray(x_hint, float) - np.dot(x_hint, n) * n)
-    return np.stack([e1, np.cross(n, e1), n], axis=1)
+    nu = _unit(n)
+    e1 = _unit(np.asarray(x_hint, float) - np.dot(x_hint, nu) * nu)
+    return np.stack([e1, np.cross(nu, e1), nu], axis=1)
 
 
-def _smallest_positive_root(a, b, c, valid_fn):
+def _smallest_positive_root(a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                            valid_fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """Smallest root > _EPS_T of a t^2 + b t + c = 0 accepted by valid_fn(t); inf if none.
 
     Uses the cancellation-free form q = -(b + sign(b) sqrt(D)) / 2 so hit points keep full
@@ -76,8 +108,8 @@ class SceneObject:
     kind: ObjectId = ObjectId.NONE
     label: str | None = None
 
-    def bound(self) -> tuple[np.ndarray, float] | None:
-        """Bounding sphere (centre, radius), or None if unbounded."""
+    def bound(self) -> Sphere | None:
+        """Bounding sphere, or None if unbounded."""
         return None
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -88,23 +120,29 @@ class SceneObject:
         """Outward unit normals (N, 3) and albedo (N,) at points X on this object."""
         return self._surface(np.asarray(X, float))
 
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        raise NotImplementedError  # each solid casts its own rays
+
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
 
 @dataclass(eq=False)
 class Plane(SceneObject):
     """Infinite plane n·X = offset (the floor); one albedo."""
 
-    normal: tuple = (0.0, 0.0, 1.0)
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
     offset: float = 0.0
     albedo: float = 0.35
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         n = _unit(self.normal)
         den = d @ n
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (self.offset - o @ n) / den
         return np.where(np.isfinite(t) & (t > _EPS_T), t, np.inf)
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.broadcast_to(_unit(self.normal), X.shape).copy(), np.full(len(X), self.albedo)
 
 
@@ -115,17 +153,19 @@ class _Local(SceneObject):
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
     axes: np.ndarray = field(default_factory=lambda: np.eye(3))
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.centre = np.asarray(self.centre, float).reshape(3)
         self.axes = np.asarray(self.axes, float).reshape(3, 3)
 
-    def _to_local(self, o, d):
+    def _to_local(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The shared ray origin and the ray directions in the local frame."""
         return (o - self.centre) @ self.axes, d @ self.axes
 
-    def _local_points(self, X):
-        return (X - self.centre) @ self.axes
+    def _local_points(self, X: np.ndarray) -> np.ndarray:
+        out: np.ndarray = (X - self.centre) @ self.axes
+        return out
 
-    def _world_normals(self, n_local):
+    def _world_normals(self, n_local: np.ndarray) -> np.ndarray:
         return _unit(n_local @ self.axes.T)
 
 
@@ -133,13 +173,13 @@ class _Local(SceneObject):
 class Box(_Local):
     """Oriented box with half extents along its local axes (table board, stand, calibration box)."""
 
-    half: tuple = (1.0, 1.0, 1.0)
+    half: tuple[float, float, float] = (1.0, 1.0, 1.0)
     albedo: float = 0.55
 
-    def bound(self):
-        return self.centre, float(np.linalg.norm(self.half))
+    def bound(self) -> Sphere:
+        return Sphere(self.centre, float(np.linalg.norm(self.half)))
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         ol, dl = self._to_local(o, d)
         h = np.asarray(self.half, float)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -152,7 +192,7 @@ class Box(_Local):
         t = np.where(tmin > _EPS_T, tmin, np.where(tmax > _EPS_T, tmax, np.inf))
         return np.where(hit, t, np.inf)
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = self._local_points(X) / np.asarray(self.half, float)
         axis = np.argmax(np.abs(q), axis=-1)
         n = np.zeros_like(q)
@@ -161,12 +201,13 @@ class Box(_Local):
         return self._world_normals(n), np.full(len(X), self.albedo)
 
 
-def _skin_albedo(X, base):
+def _skin_albedo(X: np.ndarray, base: float) -> np.ndarray:
     """Skin reflectance with a smooth ±5% variation: real skin is not uniform, and the
     decoder must not rely on it being so; the wavelengths (≥ 90 mm) make no false edges."""
     v = (0.035 * np.sin(X[:, 0] / 23.0 + 0.4) * np.cos(X[:, 2] / 41.0)
          + 0.025 * np.sin(X[:, 1] / 17.0 + X[:, 2] / 29.0))
-    return base * (1.0 + v)
+    out: np.ndarray = base * (1.0 + v)
+    return out
 
 
 @dataclass(eq=False)
@@ -178,18 +219,18 @@ class EllipticCone(_Local):
     surface a quadric, so hits are exact roots of a quadratic. Flat caps close the solid.
     """
 
-    semi_axes: tuple = (38.0, 32.0)
+    semi_axes: tuple[float, float] = (38.0, 32.0)
     taper: float = 0.0  # 1/mm
     length: float = 420.0
     albedo: float = 0.45
 
-    def bound(self):
+    def bound(self) -> Sphere:
         a0, b0 = self.semi_axes
         s = 1.0 + self.taper * self.length
         r = math.hypot(self.length / 2, max(a0, b0) * max(s, 1.0))
-        return self.centre + self.axes[:, 2] * self.length / 2, r
+        return Sphere(self.centre + self.axes[:, 2] * self.length / 2, r)
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         ol, dl = self._to_local(o, d)
         a0, b0 = self.semi_axes
         k, L = self.taper, self.length
@@ -198,12 +239,13 @@ class EllipticCone(_Local):
         A = DX * DX + DY * DY - DW * DW
         B = 2.0 * (X0 * DX + Y0 * DY - W0 * DW)
         C = X0 * X0 + Y0 * Y0 - W0 * W0
-        z_of = lambda t: ol[..., 2] + t * dl[:, 2]  # noqa: E731
+        z_of: Callable[[np.ndarray], np.ndarray] = lambda t: ol[..., 2] + t * dl[:, 2]  # noqa: E731
         t_side = _smallest_positive_root(A, B, C, lambda t: (z_of(t) >= 0) & (z_of(t) <= L))
         t_caps = [self._cap(ol, dl, zc) for zc in (0.0, L)]
-        return np.minimum(t_side, np.minimum(*t_caps))
+        out: np.ndarray = np.minimum(t_side, np.minimum(*t_caps))
+        return out
 
-    def _cap(self, ol, dl, zc):
+    def _cap(self, ol: np.ndarray, dl: np.ndarray, zc: float) -> np.ndarray:
         a0, b0 = self.semi_axes
         s = 1.0 + self.taper * zc
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -213,7 +255,7 @@ class EllipticCone(_Local):
         inside = (x / (a0 * s)) ** 2 + (y / (b0 * s)) ** 2 <= 1.0
         return np.where(inside & (t > _EPS_T), t, np.inf)
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self._local_points(X)
         a0, b0 = self.semi_axes
         k, L = self.taper, self.length
@@ -222,27 +264,27 @@ class EllipticCone(_Local):
         n[np.abs(p[:, 2]) < 1e-7] = (0.0, 0.0, -1.0)
         return self._world_normals(n), _skin_albedo(X, self.albedo)
 
-    def point(self, angle_rad: float, z: float) -> tuple[np.ndarray, np.ndarray]:
+    def point(self, angle_rad: float, z: float) -> SurfacePoint:
         """Surface point and outward normal at local polar angle (0 = local +x) and height z."""
         a0, b0 = self.semi_axes
         s = 1.0 + self.taper * z
         p = np.array([a0 * s * math.cos(angle_rad), b0 * s * math.sin(angle_rad), z])
         X = self.centre + self.axes @ p
         n, _ = self._surface(X[None])
-        return X, n[0]
+        return SurfacePoint(X, n[0])
 
 
 @dataclass(eq=False)
 class Ellipsoid(_Local):
     """Ellipsoid with semi-axes along its local axes: the foot."""
 
-    semi_axes: tuple = (47.5, 120.0, 35.0)
+    semi_axes: tuple[float, float, float] = (47.5, 120.0, 35.0)
     albedo: float = 0.45
 
-    def bound(self):
-        return self.centre, float(max(self.semi_axes))
+    def bound(self) -> Sphere:
+        return Sphere(self.centre, float(max(self.semi_axes)))
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         ol, dl = self._to_local(o, d)
         s = np.asarray(self.semi_axes, float)
         os_, ds = ol / s, dl / s
@@ -251,7 +293,7 @@ class Ellipsoid(_Local):
         C = np.broadcast_to(np.sum(os_ * os_, axis=-1) - 1.0, A.shape)
         return _smallest_positive_root(A, B, C, lambda t: np.ones(t.shape, bool))
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self._local_points(X)
         return self._world_normals(p / np.asarray(self.semi_axes, float) ** 2), _skin_albedo(X, self.albedo)
 
@@ -269,16 +311,16 @@ class Cylinder(_Local):
     z1: float = 1.5
     albedo: float = 0.9
 
-    def bound(self):
+    def bound(self) -> Sphere:
         zc = (self.z0 + self.z1) / 2
-        return self.centre + self.axes[:, 2] * zc, math.hypot(self.radius, (self.z1 - self.z0) / 2)
+        return Sphere(self.centre + self.axes[:, 2] * zc, math.hypot(self.radius, (self.z1 - self.z0) / 2))
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         ol, dl = self._to_local(o, d)
         A = dl[:, 0] ** 2 + dl[:, 1] ** 2
         B = 2.0 * (ol[..., 0] * dl[:, 0] + ol[..., 1] * dl[:, 1])
         C = np.broadcast_to(ol[..., 0] ** 2 + ol[..., 1] ** 2 - self.radius**2, A.shape)
-        z_of = lambda t: ol[..., 2] + t * dl[:, 2]  # noqa: E731
+        z_of: Callable[[np.ndarray], np.ndarray] = lambda t: ol[..., 2] + t * dl[:, 2]  # noqa: E731
         t = _smallest_positive_root(A, B, C, lambda t: (z_of(t) >= self.z0) & (z_of(t) <= self.z1))
         for zc in (self.z0, self.z1):
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -289,7 +331,7 @@ class Cylinder(_Local):
             t = np.minimum(t, np.where(ok, tc, np.inf))
         return t
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self._local_points(X)
         n = np.stack([p[:, 0], p[:, 1], np.zeros(len(p))], axis=-1)
         n[np.abs(p[:, 2] - self.z1) < 1e-7] = (0.0, 0.0, 1.0)
@@ -324,27 +366,29 @@ class TexturedQuad(SceneObject):
     kind: ObjectId = ObjectId.QUAD
     two_sided: bool = True
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, float).reshape(3)
         self.u_axis = np.asarray(self.u_axis, float).reshape(3)
         self.v_axis = np.asarray(self.v_axis, float).reshape(3)
         self.texture = np.clip(np.asarray(self.texture, np.float64), 0.0, 1.0)
         if self.texture.ndim != 2:
             raise ValueError("TexturedQuad.texture must be a 2-D albedo array")
-        self.n = _unit(np.cross(self.u_axis, self.v_axis))
+        self.n: np.ndarray = _unit(np.cross(self.u_axis, self.v_axis))
         G = np.array([[self.u_axis @ self.u_axis, self.u_axis @ self.v_axis],
                       [self.u_axis @ self.v_axis, self.v_axis @ self.v_axis]])
-        self._dual = np.linalg.solve(G, np.stack([self.u_axis, self.v_axis]))  # rows: u*, v*
+        self._dual: np.ndarray = np.linalg.solve(G, np.stack([self.u_axis, self.v_axis]))  # rows: u*, v*
 
-    def bound(self):
+    def bound(self) -> Sphere:
         c = self.origin + (self.u_axis + self.v_axis) / 2
-        return c, 0.5 * max(np.linalg.norm(self.u_axis + self.v_axis), np.linalg.norm(self.u_axis - self.v_axis))
+        r = 0.5 * max(np.linalg.norm(self.u_axis + self.v_axis), np.linalg.norm(self.u_axis - self.v_axis))
+        return Sphere(c, float(r))
 
-    def st(self, X) -> np.ndarray:
+    def st(self, X: ArrayLike) -> np.ndarray:
         """Quad parameters (N, 2) of points X on the quad's plane."""
-        return (np.asarray(X, float) - self.origin) @ self._dual.T
+        out: np.ndarray = (np.asarray(X, float) - self.origin) @ self._dual.T
+        return out
 
-    def _hit(self, o, d):
+    def _hit(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         den = d @ self.n
         with np.errstate(divide="ignore", invalid="ignore"):
             t = ((self.origin - o) @ self.n) / den
@@ -353,7 +397,7 @@ class TexturedQuad(SceneObject):
         inside = np.all((st >= 0.0) & (st <= 1.0), axis=-1)
         return np.where(inside & np.isfinite(t) & (t > _EPS_T), t, np.inf)
 
-    def _surface(self, X):
+    def _surface(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         st = self.st(X)
         return np.broadcast_to(self.n, X.shape).copy(), self.sample_texture(st)
 
@@ -368,7 +412,8 @@ class TexturedQuad(SceneObject):
         T = self.texture
         top = T[y0, x0] * (1 - fx) + T[y0, x1] * fx
         bot = T[y1, x0] * (1 - fx) + T[y1, x1] * fx
-        return top * (1 - fy) + bot * fy
+        out: np.ndarray = top * (1 - fy) + bot * fy
+        return out
 
 
 # ---- the scene --------------------------------------------------------------------------
@@ -400,7 +445,8 @@ class Sticker:
         half = 0.5 * np.arccos(np.clip(normals @ self.normal, -1.0, 1.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             s = c * np.where(half > 1e-9, half / np.sin(half), 1.0)
-        return s <= self.radius
+        out: np.ndarray = s <= self.radius
+        return out
 
 
 @dataclass(eq=False)
@@ -430,49 +476,48 @@ class SceneInfo:
 class Scene:
     """A set of objects; ``marks`` and ``info`` carry the ground truth of a built scene."""
 
-    objects: list
-    marks: dict = field(default_factory=dict)  # label -> SimMark
+    objects: list[SceneObject]
+    marks: dict[str, SimMark] = field(default_factory=dict)  # label -> SimMark
     info: SceneInfo = field(default_factory=SceneInfo)
 
-    stickers: list = field(default_factory=list)  # Sticker decals on objects of ``objects``
+    stickers: list[Sticker] = field(default_factory=list)  # Sticker decals on objects of ``objects``
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.objects = list(self.objects)
         self._host = [next(i for i, o in enumerate(self.objects) if o is st.host) for st in self.stickers]
         self._kinds = np.array([int(o.kind) for o in self.objects] or [0], dtype=np.int16)
-        bounds = [o.bound() for o in self.objects]
-        self._bounds = bounds
+        self._bounds = [o.bound() for o in self.objects]
 
     def object_kinds(self, index: np.ndarray) -> np.ndarray:
         """ObjectId per object index (-1 -> NONE)."""
         return np.where(index >= 0, self._kinds[np.maximum(index, 0)], int(ObjectId.NONE)).astype(np.int8)
 
-    def intersect(self, o, d) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit of rays from the shared origin o (3,) along unit d (N, 3).
-
-        Returns (t, index): t = inf and index = -1 where nothing is hit.
-        """
-        o = np.asarray(o, float).reshape(3)
-        d = np.asarray(d, float)
-        t_best = np.full(len(d), np.inf)
-        idx = np.full(len(d), -1, dtype=np.int32)
+    def intersect(self, o: ArrayLike, d: ArrayLike) -> RayHits:
+        """Nearest hit of rays from the shared origin o (3,) along unit d (N, 3)."""
+        origin = np.asarray(o, float).reshape(3)
+        rays = np.asarray(d, float)
+        t_best = np.full(len(rays), np.inf)
+        idx = np.full(len(rays), -1, dtype=np.int32)
         for i, (obj, bnd) in enumerate(zip(self.objects, self._bounds, strict=False)):
-            sel = _may_hit(o, d, bnd)
-            rows = slice(None) if sel is None else np.flatnonzero(sel)
-            if sel is not None and rows.size == 0:
-                continue
-            t = obj.intersect(o, d[rows])
-            nearer = t < t_best[rows]
-            if sel is None:
+            sel = _may_hit(origin, rays, bnd)
+            if sel is None:  # every ray may hit it
+                t = obj.intersect(origin, rays)
+                nearer = t < t_best
                 t_best = np.where(nearer, t, t_best)
                 idx[nearer] = i
-            else:
-                r = rows[nearer]
-                t_best[r] = t[nearer]
-                idx[r] = i
-        return t_best, idx
+                continue
+            rows = np.flatnonzero(sel)
+            if rows.size == 0:
+                continue
+            t = obj.intersect(origin, rays[rows])
+            nearer = t < t_best[rows]
+            r = rows[nearer]
+            t_best[r] = t[nearer]
+            idx[r] = i
+        return RayHits(t_best, idx)
 
-    def surface(self, X: np.ndarray, index: np.ndarray, viewer=None) -> tuple[np.ndarray, np.ndarray]:
+    def surface(self, X: np.ndarray, index: np.ndarray,
+                viewer: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Normals (N, 3) and albedo (N,) at hit points X of objects ``index`` (NaN / 0 for -1).
 
         Two-sided objects (quads) get the normal of the side facing ``viewer`` (a point).
@@ -491,32 +536,34 @@ class Scene:
                 albedo[rows[st.covers(X[rows], normals[rows])]] = st.albedo
         return normals, albedo
 
-    def mark_labels(self, index: np.ndarray, X: np.ndarray | None = None, normals=None) -> np.ndarray:
+    def mark_labels(self, index: np.ndarray, X: np.ndarray | None = None,
+                    normals: np.ndarray | None = None) -> np.ndarray:
         """Mark label (1..7) per object index, 0 where the object is not a mark; with the hit
         points ``X`` and their ``normals``, stickers' pixels carry their label too."""
-        lut = np.array([int(o.label) if o.kind == ObjectId.MARK and str(o.label).isdigit() else 0
+        lut = np.array([int(str(o.label)) if o.kind == ObjectId.MARK and str(o.label).isdigit() else 0
                         for o in self.objects] or [0], dtype=np.int8)
         out = np.where(index >= 0, lut[np.maximum(index, 0)], 0).astype(np.int8)
         if X is not None and normals is not None:
             for st, h in zip(self.stickers, self._host, strict=False):
                 rows = np.flatnonzero(index == h)
                 if rows.size and str(st.label).isdigit():
-                    out[rows[st.covers(X[rows], normals[rows])]] = int(st.label)
+                    out[rows[st.covers(X[rows], normals[rows])]] = int(str(st.label))
         return out
 
 
-def _may_hit(o, d, bound):
+def _may_hit(o: np.ndarray, d: np.ndarray, bound: Sphere | None) -> np.ndarray | None:
     """Rays that can touch the bounding sphere (None = test all); one mat-vec per object."""
     if bound is None:
         return None
-    c, r = bound
+    c, r = bound.centre, bound.radius
     oc = np.asarray(c) - o
     dist2 = oc @ oc
     if dist2 <= r * r:
         return None
     # a unit ray touches the sphere where its projection on oc reaches sqrt(|oc|² - r²): one
     # comparison per ray instead of a square, a difference and two
-    return (d @ oc) >= math.sqrt(dist2 - r * r)
+    out: np.ndarray = (d @ oc) >= math.sqrt(dist2 - r * r)
+    return out
 
 
 # ---- scene builders ---------------------------------------------------------------------
@@ -527,19 +574,20 @@ def table_normal(inversion_deg: float, plantar_flexion_deg: float) -> np.ndarray
     return _unit([math.tan(math.radians(inversion_deg)), math.tan(math.radians(plantar_flexion_deg)), 1.0])
 
 
-def _sticker(label, host, X, n, radius, albedo=0.9) -> SimMark:
+def _sticker(label: str, host: SceneObject, X: ArrayLike, n: ArrayLike, radius: float, albedo: float = 0.9) -> SimMark:
     st = Sticker(host, np.asarray(X, float), _unit(n), float(radius), albedo, label)
     return SimMark(label, st.centre, st.normal, None, st)
 
 
-def _plate(label, foot, n, radius=7.5, thickness=1.5, albedo=0.9) -> SimMark:
+def _plate(label: str, foot: np.ndarray, n: ArrayLike, radius: float = 7.5, thickness: float = 1.5,
+           albedo: float = 0.9) -> SimMark:
     axes = frame_from_normal(n)
     plate = Cylinder(kind=ObjectId.MARK, label=label, centre=foot, axes=axes,
                      radius=radius, z0=-3.0, z1=thickness, albedo=albedo)
     return SimMark(label, plate.top_centre, plate.normal, plate)
 
 
-DEFAULT_TABLE_MARKS = {"5": (80.0, -100.0), "6": (80.0, 95.0), "7": (-48.0, 135.0)}
+DEFAULT_TABLE_MARKS: dict[str, tuple[float, float]] = {"5": (80.0, -100.0), "6": (80.0, 95.0), "7": (-48.0, 135.0)}
 # Where round the leg's lateral side marks 3 and 4 sit: degrees from straight lateral towards
 # the front (the leg section's polar angle). One camera cannot see a plate on the straight
 # lateral side at table inversion 20° (77-87° from the camera ray); the clinician sticks them
@@ -575,15 +623,17 @@ def lateral_deg_for_gap(semi_axes: tuple[float, float], radius_mm: float, gap_mm
 
 def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
               leg_inversion: float | None = None, leg_plantar_flexion: float | None = None, *,
-              leg_offset_deg: tuple = (1.5, -2.0),
-              table_centre=(0.0, 0.0, 120.0), table_size=(220.0, 320.0, 25.0),
-              ankle_semi_axes=(38.0, 32.0), knee_scale=1.38, leg_length=460.0,
-              foot_semi_axes=(47.5, 120.0, 35.0), foot_sink=13.0, foot_shift=-10.0,
-              ankle_back=55.0, ankle_height=20.0,
-              knee_mark_height=380.0, ankle_mark_height=60.0, lateral_mark_deg=LATERAL_MARK_DEG,
-              lateral_mark_offsets=(0.0, 0.0), ankle_mark_gap_mm: float | None = None, table_marks=None,
-              mark_radius=7.5, mark_thickness=1.5, mark_albedo=0.9, mark_type: MarkKind | str = MarkKind.PLATE,
-              floor_albedo=0.5, table_albedo=0.55, skin_albedo=0.45, stand=True) -> Scene:
+              leg_offset_deg: tuple[float, float] = (1.5, -2.0),
+              table_centre: ArrayLike = (0.0, 0.0, 120.0), table_size: tuple[float, float, float] = (220.0, 320.0, 25.0),
+              ankle_semi_axes: tuple[float, float] = (38.0, 32.0), knee_scale: float = 1.38, leg_length: float = 460.0,
+              foot_semi_axes: tuple[float, float, float] = (47.5, 120.0, 35.0), foot_sink: float = 13.0,
+              foot_shift: float = -10.0, ankle_back: float = 55.0, ankle_height: float = 20.0,
+              knee_mark_height: float = 380.0, ankle_mark_height: float = 60.0, lateral_mark_deg: float = LATERAL_MARK_DEG,
+              lateral_mark_offsets: tuple[float, float] = (0.0, 0.0), ankle_mark_gap_mm: float | None = None,
+              table_marks: Mapping[str, tuple[float, float]] | None = None,
+              mark_radius: float = 7.5, mark_thickness: float = 1.5, mark_albedo: float = 0.9,
+              mark_type: MarkKind | str = MarkKind.PLATE,
+              floor_albedo: float = 0.5, table_albedo: float = 0.55, skin_albedo: float = 0.45, stand: bool = True) -> Scene:
     """Right lower leg standing with its foot on the inclined table, seven marks (SPEC §2).
 
     Angles in degrees. The leg axis is ∝ (tan leg_inv, tan leg_pf, 1); unset leg angles are
@@ -612,12 +662,13 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     n = table_normal(table_inversion, table_plantar_flexion)
     T = frame_from_normal(n)  # columns: across (≈x), along (≈y), normal
     w, length, th = table_size
-    objs: list = [Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)]
+    objs: list[SceneObject] = [Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)]
     table = Box(kind=ObjectId.TABLE, centre=top_c - n * th / 2, axes=T, half=(w / 2, length / 2, th / 2), albedo=table_albedo)
     objs.append(table)
     if stand:  # a post so the board does not float; kept under the board's centre
         h = top_c[2] - th
-        objs.append(Box(kind=ObjectId.STAND, centre=(top_c[0], top_c[1], h / 2), half=(30.0, 30.0, h / 2), albedo=0.25))
+        objs.append(Box(kind=ObjectId.STAND, centre=np.array([top_c[0], top_c[1], h / 2]), half=(30.0, 30.0, h / 2),
+                        albedo=0.25))
     foot_c = top_c + T @ np.array([0.0, foot_shift, foot_semi_axes[2] - foot_sink])
     objs.append(Ellipsoid(kind=ObjectId.FOOT, centre=foot_c, axes=T, semi_axes=foot_semi_axes, albedo=skin_albedo))
     axis = _unit([math.tan(math.radians(leg_inversion)), math.tan(math.radians(leg_plantar_flexion)), 1.0])
@@ -626,7 +677,7 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     leg = EllipticCone(kind=ObjectId.LEG, centre=base, axes=frame_from_normal(axis), semi_axes=ankle_semi_axes,
                        taper=taper, length=leg_length, albedo=skin_albedo)
     objs.append(leg)
-    marks = {}
+    marks: dict[str, SimMark] = {}
     knee_off, ankle_off = lateral_mark_offsets
     if ankle_mark_gap_mm is not None:
         s_ankle = 1.0 + taper * ankle_mark_height
@@ -635,7 +686,8 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     for label, ang, z in (("1", math.pi / 2, knee_mark_height), ("2", math.pi / 2, ankle_mark_height),
                           ("3", math.radians(lateral_mark_deg), knee_mark_height + knee_off),
                           ("4", math.radians(lateral_mark_deg), ankle_mark_height + ankle_off)):
-        X, nrm = leg.point(ang, z)
+        on_skin = leg.point(ang, z)
+        X, nrm = on_skin.point, on_skin.normal
         marks[label] = (_plate(label, X, nrm, mark_radius, mark_thickness, mark_albedo) if mark_type == MarkKind.PLATE
                         else _sticker(label, leg, X, nrm, mark_radius, mark_albedo))
     for label, (a, b) in (table_marks or DEFAULT_TABLE_MARKS).items():
@@ -651,13 +703,13 @@ def leg_scene(table_inversion: float = 0.0, table_plantar_flexion: float = 0.0,
     return Scene(objs, marks, info, stickers)
 
 
-def quad_scene(objects, floor: bool = True, floor_albedo: float = 0.35) -> Scene:
+def quad_scene(objects: Iterable[SceneObject], floor: bool = True, floor_albedo: float = 0.35) -> Scene:
     """Scene of arbitrary objects (e.g. a calibration box's TexturedQuads) over the floor."""
-    objs = ([Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)] if floor else []) + list(objects)
+    objs: list[SceneObject] = ([Plane(kind=ObjectId.FLOOR, albedo=floor_albedo)] if floor else []) + list(objects)
     return Scene(objs)
 
 
-def angles_from_marks(marks: dict) -> dict:
+def angles_from_marks(marks: Mapping[str, ArrayLike]) -> dict[str, float]:
     """SPEC §3 angles (degrees) from mark centres {"1": (x, y, z), ...}.
 
     Kept local on purpose: the ground truth must not depend on the code under test
@@ -674,7 +726,7 @@ def angles_from_marks(marks: dict) -> dict:
             "table_plantar_flexion": deg(math.atan2(n[1], n[2]))}
 
 
-def box_scene_objects(px_per_mm: float = 4.0, pose=None) -> list:
+def box_scene_objects(px_per_mm: float = 4.0, pose: BoxPose | None = None) -> list[TexturedQuad]:
     """The calibration box (anklescan.core.calibration.procedures.box's faces and markers) as simulator objects,
     at ``pose`` (a ``BoxPose``: e.g. ``BoxPose.placed(lift_mm=300)``, the box raised to the knee on a
     stand, or turned on the floor); default: its documented place, which defines the world frame."""

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from anklescan.core.vocabulary import LEG_LABEL_KEYS, LEG_LABELS
-from anklescan.hardware.sim_scene import ObjectId, Scene, SceneObject, SimMark
+from anklescan.hardware.sim_scene import Cylinder, ObjectId, Scene, SceneObject, SimMark, _Local
 
 if TYPE_CHECKING:
     from anklescan.hardware.simrig import LightTransport, SimRig
@@ -160,7 +160,14 @@ def ankle_of(scene: Scene) -> np.ndarray:
     legs = [o for o in scene.objects if o.kind == ObjectId.LEG]
     if not legs:
         raise ValueError("the scene has no leg to sway")
-    return np.asarray(legs[0].centre, float).copy()
+    return np.asarray(_framed(legs[0]).centre, float).copy()
+
+
+def _framed(obj: SceneObject) -> _Local:
+    """``obj`` as a solid with a local frame, which the subject's solids (leg, foot, plates) all are."""
+    if not isinstance(obj, _Local):
+        raise TypeError(f"a {type(obj).__name__} has no local frame to move")
+    return obj
 
 
 def _moves(obj: SceneObject) -> bool:
@@ -169,21 +176,27 @@ def _moves(obj: SceneObject) -> bool:
 
 def posed_scene(scene: Scene, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> Scene:
     """A copy of ``scene`` with the subject moved by (R, T) about ``pivot``; the rest shared."""
-    import copy
-
-    objs = []
-    for o in scene.objects:
-        if _moves(o):
-            o = copy.copy(o)
-            o.centre = R @ (np.asarray(o.centre) - pivot) + pivot + T
-            o.axes = R @ np.asarray(o.axes)
-        objs.append(o)
+    objs = [_posed(o, R, T, pivot) if _moves(o) else o for o in scene.objects]
     moved = {id(a): b for a, b in zip(scene.objects, objs, strict=True)}
     marks = {}
     for k, m in scene.marks.items():
         plate = moved[id(m.plate)]
-        marks[k] = SimMark(k, plate.top_centre, plate.normal, plate) if plate is not m.plate else m
+        # a plate that moved is a copy of the mark's Cylinder
+        if isinstance(plate, Cylinder) and plate is not m.plate:
+            marks[k] = SimMark(k, plate.top_centre, plate.normal, plate)
+        else:
+            marks[k] = m
     return Scene(objs, marks, scene.info)
+
+
+def _posed(obj: SceneObject, R: np.ndarray, T: np.ndarray, pivot: np.ndarray) -> SceneObject:
+    """A copy of the subject's solid ``obj`` moved by (R, T) about ``pivot``."""
+    import copy
+
+    o = copy.copy(_framed(obj))
+    o.centre = R @ (np.asarray(o.centre) - pivot) + pivot + T
+    o.axes = R @ np.asarray(o.axes)
+    return o
 
 
 @dataclass
@@ -248,12 +261,12 @@ def _subject_pixels(still: SimRig, scene: Scene, mask: np.ndarray) -> np.ndarray
     cam, prj = still.camera, still.projector
     truth = still.truth()
     sub = _subject_scene(scene)
-    t, _ = sub.intersect(cam.center, cam.pixel_grid_rays().reshape(-1, 3))
+    t = sub.intersect(cam.center, cam.pixel_grid_rays().reshape(-1, 3)).t
     mask |= np.isfinite(t)
     rows = np.flatnonzero(truth.seen.ravel() & ~mask)
     to_x = truth.points.reshape(-1, 3)[rows] - prj.center
     dist = np.linalg.norm(to_x, axis=1)
-    tp, _ = sub.intersect(prj.center, to_x / dist[:, None])
+    tp = sub.intersect(prj.center, to_x / dist[:, None]).t
     mask[rows[tp < dist - 1e-3]] = True
     return mask
 

@@ -510,7 +510,8 @@ class SimRig:
         cam, prj, scene = self.camera, self.projector, self.scene
         if d is None:
             d = cam.rays(uv)
-        t, index = scene.intersect(cam.center, d)
+        hits = scene.intersect(cam.center, d)
+        t, index = hits.t, hits.index
         seen = np.isfinite(t)
         with np.errstate(invalid="ignore"):  # inf * 0 where nothing is hit: NaN, as wanted
             X = t[:, None] * d
@@ -530,7 +531,7 @@ class SimRig:
         unshadowed = np.zeros(len(uv), bool)
         rows = np.flatnonzero(facing)
         if rows.size:
-            tp, _ = scene.intersect(prj.center, -to_p[rows] / dist[rows, None])
+            tp = scene.intersect(prj.center, -to_p[rows] / dist[rows, None]).t
             unshadowed[rows] = tp >= dist[rows] - _SHADOW_EPS_MM
         return RayCast(d=d, X=X, index=index, seen=seen, normals=normals, albedo=albedo, proj_uv=puv,
                        cos=np.where(facing, cos, 0.0), dist=dist, lit=facing & unshadowed)

@@ -92,9 +92,9 @@ def test_mark_centres_lie_on_their_plates(rig, truth):
         assert np.linalg.norm(P - centre, axis=1).max() <= 7.5 + 1e-6
         # The camera ray to the centre ends on this very plate, at the centre.
         d = (centre - cam.center) / np.linalg.norm(centre - cam.center)
-        t, idx = rig.scene.intersect(cam.center, d[None])
-        assert rig.scene.objects[idx[0]].label == label
-        assert abs(t[0] - np.linalg.norm(centre - cam.center)) < 1e-6
+        hits = rig.scene.intersect(cam.center, d[None])
+        assert rig.scene.objects[hits.index[0]].label == label
+        assert abs(hits.t[0] - np.linalg.norm(centre - cam.center)) < 1e-6
 
 
 def test_leg_marks_sit_where_the_spec_puts_them(truth):
@@ -137,7 +137,7 @@ def test_projector_shadow_behind_the_leg_is_dark_and_unlit(rig, truth):
     # Only the leg and foot stand between these points and the projector.
     P = truth.points[shadow]
     d = P - rig.projector.center
-    t, idx = rig.scene.intersect(rig.projector.center, d / np.linalg.norm(d, axis=1, keepdims=True))
+    idx = rig.scene.intersect(rig.projector.center, d / np.linalg.norm(d, axis=1, keepdims=True)).index
     blockers = {rig.scene.objects[i].kind for i in np.unique(idx)}
     assert shadow.sum() > 500
     assert blockers <= {ObjectId.LEG, ObjectId.FOOT, ObjectId.MARK, ObjectId.TABLE}
