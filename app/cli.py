@@ -19,10 +19,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import os
 import signal
 import sys
 import warnings
+from collections.abc import Callable
+from types import FrameType
+from typing import NoReturn
 
 from anklescan.app.cli_commands import (
     cmd_angles,
@@ -71,11 +75,15 @@ _AREA_CM2 = bounded_float(0, 1e6, "cm²", lo_open=True)
 _DATE = date_type()
 _RECORD_ID = bounded_int(1, 10**9)  # a trial or session number (far beyond any clinic's database)
 
+# What every sub-parser's ``set_defaults(func=...)`` names: the command, given the parsed arguments,
+# returning the exit code.
+Command = Callable[[argparse.Namespace], int]
+
 
 class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error (no usage block) and exit 2, like every other error."""
 
-    def error(self, message: str):
+    def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USER_ERROR, f"{_one_line(f'{self.prog}: error: {message}')} (see --help)\n")
 
 
@@ -88,7 +96,7 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
-def _on_sigterm(signum, frame):
+def _on_sigterm(signum: int, frame: FrameType | None) -> NoReturn:
     for s in _CLEAN_EXIT_SIGNALS:  # a second signal must not interrupt the clean-up
         signal.signal(s, signal.SIG_IGN)
     raise Terminated(signum)
@@ -253,9 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _path_arguments(args) -> list[str]:
+def _path_arguments(args: argparse.Namespace) -> list[str | os.PathLike[str]]:
     """Every argument other than --out that names an existing file or folder: the inputs."""
-    values = []
+    values: list[str | os.PathLike[str]] = []
     for key, v in vars(args).items():
         if key == "out" or callable(v):
             continue
@@ -268,7 +276,7 @@ def _path_arguments(args) -> list[str]:
 MAX_MESSAGE_CHARS = 400  # a message quoting a 5000-digit "number" must stay readable
 
 
-def _one_line(text) -> str:
+def _one_line(text: object) -> str:
     line = " ".join(str(text).split())
     return line if len(line) <= MAX_MESSAGE_CHARS else line[:MAX_MESSAGE_CHARS - 1] + "…"
 
@@ -282,7 +290,7 @@ def _say(text: str) -> None:
 PRIVATE_UMASK = 0o077
 
 
-def _check_out_kind(args) -> None:
+def _check_out_kind(args: argparse.Namespace) -> None:
     """A trailing '/' means a folder, as a user (and cp, mv) would read it: a command that
     writes one file refuses it instead of writing a file called like the folder. A command
     writing a folder declares it with ``set_defaults(out_is_folder=True)``."""
@@ -313,10 +321,11 @@ def main(argv: list[str] | None = None) -> int:
         os.umask(umask)
 
 
-def _run_gui(args) -> int:
+def _run_gui(args: argparse.Namespace) -> int:
     """The desktop app: a Qt or OpenGL library that cannot be loaded is one line and exit 2."""
+    command: Command = args.func
     try:
-        return args.func(args)
+        return command(args)
     except ImportError as exc:
         _say(f"error: a library the desktop application needs could not be loaded ({exc.name or 'unknown'}: "
              f"{exc}); check the installation and the memory limits")
@@ -326,17 +335,18 @@ def _run_gui(args) -> int:
         return EXIT_USER_ERROR
 
 
-def _run(args) -> int:
+def _run(args: argparse.Namespace) -> int:
     from anklescan.core.errors import AnkleScanError
 
     set_verbose(getattr(args, "verbose", False))
     # OpenCV's own log lines ("[ WARN:0@...]") would add to the one error line; read when
     # cv2 is first imported, which the commands do lazily after this point
     os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
-    try:  # file names that are not valid UTF-8 print as their bytes, never crash a print
-        sys.stdout.reconfigure(errors="surrogateescape")
-    except (AttributeError, ValueError):
-        pass
+    # file names that are not valid UTF-8 print as their bytes, never crash a print; a stream
+    # that is not a text file (None under pythonw, a replacement without reconfigure) is left as it is
+    if isinstance(sys.stdout, io.TextIOWrapper):
+        with contextlib.suppress(ValueError):
+            sys.stdout.reconfigure(errors="surrogateescape")
     previous = {s: signal.signal(s, _on_sigterm) for s in _CLEAN_EXIT_SIGNALS} if _main_thread() else {}
     try:
         with warnings.catch_warnings():
@@ -354,7 +364,8 @@ def _run(args) -> int:
 
                 guard_output(args.out, inputs, what="--out")
                 _check_out_kind(args)
-            return args.func(args)
+            command: Command = args.func
+            return command(args)
     except AnkleScanError as exc:
         _say(f"error: {exc}")
         return EXIT_USER_ERROR

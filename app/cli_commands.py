@@ -32,13 +32,13 @@ def set_verbose(verbose: bool) -> None:
     _VERBOSE = bool(verbose)
 
 
-def cmd_gui(args) -> int:
+def cmd_gui(args: argparse.Namespace) -> int:
     from anklescan.app.main_window import run_gui
 
     return run_gui(args.qt_args)
 
 
-def cmd_patterns(args) -> int:
+def cmd_patterns(args: argparse.Namespace) -> int:
     from anklescan.core.scan.patterns import make_pattern_set, write_patterns
     from anklescan.core.vocabulary import Axis
 
@@ -71,7 +71,7 @@ def cmd_patterns(args) -> int:
     return 0
 
 
-def cmd_reconstruct(args) -> int:
+def cmd_reconstruct(args: argparse.Namespace) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
     from anklescan.core.calibration.model.file import load_calibration
@@ -103,7 +103,7 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def cmd_calibrate_points(args) -> int:
+def cmd_calibrate_points(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.procedures.calibrate import run_calibrate_points
 
     report = run_calibrate_points(args.camera, args.projector, args.out,
@@ -115,7 +115,7 @@ def cmd_calibrate_points(args) -> int:
     return 0
 
 
-def cmd_calibrate_box(args) -> int:
+def cmd_calibrate_box(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.model.file import save_calibration
     from anklescan.core.calibration.procedures.box import calibrate_from_box_captures, position_summary
 
@@ -131,19 +131,19 @@ def cmd_calibrate_box(args) -> int:
     return 0
 
 
-def cmd_import_opencv_graycode(args) -> int:
+def cmd_import_opencv_graycode(args: argparse.Namespace) -> int:
     from anklescan.core.scan.opencv_graycode import import_opencv_graycode
     from anklescan.core.vocabulary import Axis
 
     width, height = args.projector
     pset = import_opencv_graycode(args.src, args.out, width, height, args.step)
-    ac, ar = pset.axis_code(Axis.COLUMN), pset.axis_code(Axis.ROW)
+    ac, ar = pset.code(Axis.COLUMN), pset.code(Axis.ROW)  # an OpenCV Gray-code set always has both
     print(f"imported {len(pset.frames)} frames ({ac.bits} column bits, {ar.bits} row bits, step {args.step}) "
           f"as a capture in {args.out}")
     return 0
 
 
-def cmd_calibrate_import(args) -> int:
+def cmd_calibrate_import(args: argparse.Namespace) -> int:
     import numpy as np
 
     from anklescan.core.calibration.model.file import save_calibration
@@ -160,7 +160,7 @@ def cmd_calibrate_import(args) -> int:
     return 0
 
 
-def cmd_calibrate_export(args) -> int:
+def cmd_calibrate_export(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.model.file import load_calibration
     from anklescan.core.calibration.procedures.opencv_calibration import export_opencv_calibration
 
@@ -169,7 +169,7 @@ def cmd_calibrate_export(args) -> int:
     return 0
 
 
-def cmd_calibrate_board(args) -> int:
+def cmd_calibrate_board(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.model.file import save_calibration
     from anklescan.core.calibration.procedures.board import calibrate_from_board_captures
 
@@ -187,7 +187,7 @@ def cmd_calibrate_board(args) -> int:
     return 0
 
 
-def cmd_calibrate_level(args) -> int:
+def cmd_calibrate_level(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.model.file import load_calibration, save_calibration
     from anklescan.core.calibration.procedures.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
@@ -202,7 +202,7 @@ def cmd_calibrate_level(args) -> int:
     return 0
 
 
-def cmd_measure(args) -> int:
+def cmd_measure(args: argparse.Namespace) -> int:
     from concurrent.futures import ThreadPoolExecutor
 
     from anklescan.core.errors import AnkleScanError
@@ -250,7 +250,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_angles(args) -> int:
+def cmd_angles(args: argparse.Namespace) -> int:
     from anklescan.core.limits import require_finite
     from anklescan.core.measure.angles import compute_angles, format_angles, read_marks_csv
 
@@ -265,7 +265,7 @@ def cmd_angles(args) -> int:
     return 0
 
 
-def cmd_demo(args) -> int:
+def cmd_demo(args: argparse.Namespace) -> int:
     from anklescan.app.demo import DEMO_SCALE, run_demo
 
     if not (0 <= args.sway < 50):

@@ -11,6 +11,7 @@ import importlib.util
 import re
 from importlib import metadata
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import QStandardPaths, Qt, QUrl
 from PySide6.QtGui import QKeySequence, QPainter
@@ -25,6 +26,9 @@ from PySide6.QtWidgets import (
     QVBoxLayout,
     QWidget,
 )
+
+if TYPE_CHECKING:  # QtPrintSupport is loaded only when the user prints (app.review)
+    from PySide6.QtPrintSupport import QPrinter
 
 GUIDE = "gui.md"
 # keys that act without a menu entry (their widgets' own shortcuts), as a person needs to know them
@@ -86,18 +90,20 @@ class GuideDialog(QDialog):
 
 def shortcut_rows(window: QMainWindow) -> list[tuple[str, str]]:
     """(keys, what) for every menu action with a shortcut, then the widgets' own keys."""
-    rows = []
+    rows: list[tuple[str, str]] = []
 
     def walk(menu: QMenu, path: str) -> None:
         for a in menu.actions():
-            if a.menu() is not None:
-                walk(a.menu(), f"{path} ▸ {a.text().replace('&', '')}")
+            sub = a.menu()  # a QObject to the type stubs; a QMenu in a widgets application
+            if isinstance(sub, QMenu):
+                walk(sub, f"{path} ▸ {a.text().replace('&', '')}")
             elif not a.isSeparator() and not a.shortcut().isEmpty():
                 keys = a.shortcut().toString(QKeySequence.SequenceFormat.NativeText)
                 rows.append((keys, f"{path} ▸ {a.text().replace('&', '')}"))
     for top in window.menuBar().actions():
-        if top.menu() is not None:
-            walk(top.menu(), top.text().replace("&", ""))
+        menu = top.menu()
+        if isinstance(menu, QMenu):
+            walk(menu, top.text().replace("&", ""))
     return rows + list(OTHER_KEYS)
 
 
@@ -150,7 +156,7 @@ def proposed_path(kind: str, code: str | None, day: str | None, suffix: str) -> 
 
 # ---------------------------------------------------------------------------- print
 
-def print_widget_pages(printer, widgets: list[QWidget], heading: str) -> None:
+def print_widget_pages(printer: QPrinter, widgets: list[QWidget], heading: str) -> None:
     """Each widget scaled onto a page of ``printer``, under ``heading`` (e.g. "SIMULATED")."""
     painter = QPainter(printer)
     try:

@@ -37,11 +37,12 @@ class TrialEntry:
     notes: str
 
 
-class AngleField(QWidget):
-    """A reference angle typed by the clinician. Never silently changed: an entry that is not
-    a number, or is outside ±ANGLE_RANGE, is refused with a message at the field."""
+class _NumberField(QWidget):
+    """A number typed by the clinician: the edit, its unit and the message at the field for an entry
+    ``problem`` refuses. A base of its own, not AngleField's: each kind's value has its own type
+    (an angle is always a number, a mark size may be left empty to be measured)."""
 
-    def __init__(self, tip: str, parent=None):
+    def __init__(self, tip: str, parent: QWidget | None = None):
         super().__init__(parent)
         self.edit = QLineEdit("0.0")
         self.edit.setAlignment(Qt.AlignmentFlag.AlignRight)
@@ -67,6 +68,21 @@ class AngleField(QWidget):
 
     def problem(self) -> str:
         """Why the entry cannot be used, or "" when it can."""
+        raise NotImplementedError
+
+    def check(self) -> bool:
+        text = self.problem()
+        self.message.setText(text)
+        self.message.setVisible(bool(text))
+        return not text
+
+
+class AngleField(_NumberField):
+    """A reference angle typed by the clinician. Never silently changed: an entry that is not
+    a number, or is outside ±ANGLE_RANGE, is refused with a message at the field."""
+
+    def problem(self) -> str:
+        """Why the entry cannot be used, or "" when it can."""
         text = self.edit.text().strip().replace(",", ".")
         try:
             v = float(text)
@@ -75,12 +91,6 @@ class AngleField(QWidget):
         if not math.isfinite(v) or abs(v) > ANGLE_RANGE:
             return f"{self.edit.text().strip()}° is outside the tables' range (−{ANGLE_RANGE:g}° to +{ANGLE_RANGE:g}°)."
         return ""
-
-    def check(self) -> bool:
-        text = self.problem()
-        self.message.setText(text)
-        self.message.setVisible(bool(text))
-        return not text
 
     def value(self) -> float:
         text = self.problem()
@@ -96,10 +106,10 @@ class AngleField(QWidget):
 MARK_DIAMETER_RANGE = (8.0, 25.0)  # SPEC §2: marks are 8-25 mm across
 
 
-class MarkSizeField(AngleField):
+class MarkSizeField(_NumberField):
     """The session's mark diameter in mm; empty means "measured from each scan"."""
 
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None):
         super().__init__("The marks' diameter, when known (all seven are one size); leave empty to have it "
                          "measured from each scan.", parent)
         self.edit.setText("")
@@ -132,7 +142,7 @@ class MarkSizeField(AngleField):
 
 
 class TrialForm(QGroupBox):
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None):
         super().__init__("Trial", parent)
         self.inversion = AngleField("Inversion set on the reference (left) table; lateral edge down is positive.")
         self.plantar_flexion = AngleField("Plantar flexion set on the reference (left) table; toes down is positive.")
@@ -159,8 +169,9 @@ class TrialForm(QGroupBox):
         if bad:
             bad[0].edit.setFocus()
             raise ValueError(bad[0].problem())
+        condition: str = self.condition.currentData()  # a CONDITION_TITLES key (the combo's item data)
         return TrialEntry(self.inversion.value(), self.plantar_flexion.value(),
-                          self.condition.currentData(), self.notes.toPlainText().strip())
+                          condition, self.notes.toPlainText().strip())
 
     def set_condition(self, condition: str) -> None:
         index = self.condition.findData(condition)
