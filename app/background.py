@@ -24,11 +24,14 @@ from __future__ import annotations
 import threading
 import traceback
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 from PySide6.QtCore import QObject, Signal, Slot
 from shiboken6 import isValid
 
 _running: set[BackgroundJob] = set()  # keeps each job (and its signal) alive until delivered
+
+T = TypeVar("T")
 
 
 class Cancelled(Exception):
@@ -42,16 +45,19 @@ class BackgroundJob(QObject):
     done = Signal(object, str, bool)  # result, error message ("" when it worked), cancelled
     _posted = Signal(object, object)  # callback, args
 
-    def __init__(self, fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
+    # ``fn`` is called as ``fn(job)`` or ``fn()`` (``pass_job``); its result reaches ``on_done`` through the
+    # ``done`` signal, which carries any object: run_in_background matches the two, so here they are Any
+    def __init__(self, fn: Callable[..., Any], on_done: Callable[[Any], None], on_error: Callable[[str], None], *,
                  on_progress: Callable[[int, int, str], None] | None = None,
                  on_cancelled: Callable[[], None] | None = None, pass_job: bool = False, name: str = "anklescan-job",
-                 owner: QObject | None = None):
+                 owner: QObject | None = None) -> None:
         super().__init__()
         self._fn, self._on_done, self._on_error, self._owner = fn, on_done, on_error, owner
         self._on_progress, self._on_cancelled, self._pass_job = on_progress, on_cancelled, pass_job
         self.cancelled = threading.Event()
         self.finished = False  # set on the UI thread once the callbacks have been called
-        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+        # not ``thread``: that would hide QObject.thread() (the Qt thread the job's slots run in)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.done.connect(self._deliver)
         self._posted.connect(self._call)
 
@@ -71,7 +77,7 @@ class BackgroundJob(QObject):
         if self._on_progress is not None:
             self._posted.emit(self._on_progress, (done, total, text))
 
-    def post(self, callback: Callable, *args) -> None:
+    def post(self, callback: Callable[..., object], *args: object) -> None:
         """Call ``callback(*args)`` on the UI thread (queued, in order with progress and done)."""
         self._posted.emit(callback, args)
 
@@ -87,12 +93,12 @@ class BackgroundJob(QObject):
         return self._owner is None or isValid(self._owner)
 
     @Slot(object, object)
-    def _call(self, callback, args) -> None:
+    def _call(self, callback: Callable[..., object], args: tuple[object, ...]) -> None:
         if not self.finished and self._owner_alive():
             callback(*args)
 
     @Slot(object, str, bool)
-    def _deliver(self, result, error: str, cancelled: bool) -> None:
+    def _deliver(self, result: object, error: str, cancelled: bool) -> None:
         _running.discard(self)
         self.finished = True
         if not self._owner_alive():
@@ -106,22 +112,22 @@ class BackgroundJob(QObject):
             self._on_done(result)
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        self.thread.join(timeout_s)
-        return not self.thread.is_alive()
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
 
     @property
     def running(self) -> bool:
-        return self.thread.is_alive()
+        return self._thread.is_alive()
 
 
-def run_in_background(fn: Callable, on_done: Callable[[object], None], on_error: Callable[[str], None], *,
+def run_in_background(fn: Callable[..., T], on_done: Callable[[T], None], on_error: Callable[[str], None], *,
                       on_progress: Callable[[int, int, str], None] | None = None,
                       on_cancelled: Callable[[], None] | None = None, pass_job: bool = False,
                       name: str = "anklescan-job", owner: QObject | None = None) -> BackgroundJob:
     job = BackgroundJob(fn, on_done, on_error, on_progress=on_progress, on_cancelled=on_cancelled,
                         pass_job=pass_job, name=name, owner=owner)
     _running.add(job)
-    job.thread.start()
+    job._thread.start()
     return job
 
 

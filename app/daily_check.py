@@ -29,7 +29,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
-from anklescan.app.background import run_in_background
+from anklescan.app.background import BackgroundJob, run_in_background
 from anklescan.app.main_parts import no_args
 from anklescan.core.vocabulary import Severity
 
@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from anklescan.app.rig_setup import RigSetup
     from anklescan.app.settings import Settings
     from anklescan.core.calibration.procedures.daily_check import CheckResult
+    from anklescan.core.records.daily_checks import DailyCheckRecord
 
 HISTORY_ROWS = 5
 
@@ -56,6 +57,16 @@ class DailyCheckParts:
     scan_logic: ScanLogic                  # the patterns a scan of this rig projects
     data_folder: Callable[[], Path]
     scan_busy: Callable[[], bool]          # a patient scan is running
+
+
+@dataclass(frozen=True)
+class _CheckRun:
+    """The check being run: where its capture goes, and the object's set angles and tolerance."""
+
+    folder: Path
+    inversion: float
+    plantar_flexion: float
+    tolerance: float
 
 
 def _angle_box(name: str, value: float, low: float, high: float, suffix: str = "°") -> QDoubleSpinBox:
@@ -76,11 +87,11 @@ class DailyCheckDialog(QDialog):
         super().__init__(parent)
         self.setWindowTitle("Daily check")
         self.parts, self.settings = parts, parts.settings
-        self.result = None  # the last CheckResult
-        self.record = None  # its database row (core.records.daily_checks.DailyCheckRecord)
-        self._folder = None
-        self._job = None
-        self._set = (0.0, 0.0, 0.3)
+        # not ``result``: that would hide QDialog.result() (the code the dialog closed with)
+        self.check_result: CheckResult | None = None  # the last check's
+        self.record: DailyCheckRecord | None = None   # its database row
+        self._run: _CheckRun | None = None             # set when a check's scan starts
+        self._job: BackgroundJob | None = None
         s = self.settings
         self.inversion = _angle_box("inversion", s.daily_check_inversion, -45.0, 45.0)
         self.plantar_flexion = _angle_box("plantar_flexion", s.daily_check_plantar_flexion, -45.0, 45.0)
@@ -108,8 +119,8 @@ class DailyCheckDialog(QDialog):
         for w in (intro,):
             lay.addWidget(w)
         lay.addLayout(form)
-        for w in (self.scan_button, self.progress, self.verdict, self.history):
-            lay.addWidget(w)
+        for widget in (self.scan_button, self.progress, self.verdict, self.history):
+            lay.addWidget(widget)
         lay.addStretch(1)
         lay.addWidget(buttons)
         self.resize(560, 420)
@@ -139,13 +150,12 @@ class DailyCheckDialog(QDialog):
         inv, pf, tol = self.inversion.value(), self.plantar_flexion.value(), self.tolerance.value()
         s = self.settings
         s.daily_check_inversion, s.daily_check_plantar_flexion, s.daily_check_tolerance = inv, pf, tol
-        self._set = (inv, pf, tol)
         from anklescan.app.logic.daily_check import check_camera, new_check_folder
         from anklescan.app.scan_worker import ScanJob
         try:
-            self._folder = new_check_folder(parts.data_folder())
+            self._run = _CheckRun(new_check_folder(parts.data_folder()), inv, pf, tol)
             job = ScanJob(parts.scan_logic.pattern_set(rig.projector_size), check_camera(rig, inv, pf),
-                          self._folder, settle_s=self.settings.settle_ms / 1000.0,
+                          self._run.folder, settle_s=self.settings.settle_ms / 1000.0,
                           metadata={"purpose": "daily check", "set_inversion": inv, "set_plantar_flexion": pf})
         except Exception as exc:
             return self._say(f"The check could not start: {exc}", False)
@@ -171,18 +181,19 @@ class DailyCheckDialog(QDialog):
 
     def _captured(self, _scan_result: object) -> None:
         from anklescan.app.logic.daily_check import check_folder
-        inv, pf, tol = self._set
-        folder, cal = self._folder, self.parts.session.calibration
+        run, cal = self._run, self.parts.session.calibration
+        assert run is not None, "only a scan this dialog started reports here"
         self.verdict.setText("Measuring the object's top…")
         self.scan_button.setEnabled(False)
-        self._job = run_in_background(lambda: check_folder(folder, cal, inv, pf, tol), self._checked,
+        self._job = run_in_background(lambda: check_folder(run.folder, cal, run.inversion, run.plantar_flexion,
+                                                           run.tolerance), self._checked,
                                       self._failed, name="daily check")
 
     def _checked(self, result: CheckResult) -> None:
         from anklescan.app.logic.daily_check import record_check
         self._job = None
         self.scan_button.setEnabled(True)
-        self.result = result
+        self.check_result = result
         try:
             self.record = record_check(self.parts.session, result)
         except Exception as exc:

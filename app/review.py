@@ -313,7 +313,7 @@ class Review(QObject):
         job = run_in_background(render, lambda result: self._report_written(pdf, result),
                                 lambda error: parts.banner.show_message(
                                     "error", f"The session report could not be written: {error}"))
-        self.jobs = [j for j in self.jobs if j.thread.is_alive()] + [job]
+        self.jobs = [j for j in self.jobs if j.running] + [job]
         return job
 
     def _report_written(self, pdf: Path, result) -> None:

@@ -13,6 +13,10 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from anklescan.app.logic.settings import AppSettings
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.hardware.camera import Camera, ProjectorOutput
+    from anklescan.hardware.sim_patient import SimulatedPatient, Stance
+    from anklescan.hardware.simrig import SimRig, SimulatedCamera
 
 SIMULATED = "simulated"
 
@@ -20,13 +24,13 @@ SIMULATED = "simulated"
 @dataclass
 class Rig:
     backend: str
-    camera: object
+    camera: Camera                   # on the simulated rig a hardware.simrig.SimulatedCamera
     projector_size: tuple[int, int]
     simulated: bool
-    sim_projector: object = None     # a ProjectorOutput (hardware.simrig); fed with what the window paints
-    calibration: object = None       # anklescan.core.calibration.model.file.Calibration, when known
-    sim_patient: object = None       # hardware.sim_patient.SimulatedPatient standing on the simulated rig
-    stance: object = None            # hardware.sim_patient.Stance of the last trial set up
+    sim_projector: ProjectorOutput | None = None  # the simulated projector; fed with what the window paints
+    calibration: Calibration | None = None        # when known (the simulated rig's true one)
+    sim_patient: SimulatedPatient | None = None   # standing on the simulated rig
+    stance: Stance | None = None                  # of the last trial set up
 
     def set_profile(self, profile: str) -> None:
         """Who stands on the simulated rig ("no sprain", "sprain history"); no effect on a real rig."""
@@ -39,27 +43,39 @@ class Rig:
     def set_sway(self, amplitude_mm: float) -> None:
         """The simulated patient sways sideways, ±A mm at up to A mm/s, while scanned (0: stands still)."""
         if self.simulated:
-            _set_sway(self.camera.rig, amplitude_mm)
+            _set_sway(self._sim_rig(), amplitude_mm)
 
     @property
     def profile_label(self) -> str:
         return self.sim_patient.profile.label if self.sim_patient is not None else ""
 
-    def stand_patient(self, reference: tuple[float | None, float | None], condition: str):
+    def stand_patient(self, reference: tuple[float | None, float | None], condition: str) -> Stance | None:
         """Before a trial on the simulated rig: the reference table at ``reference`` (the angles the
         clinician typed), the simulated patient setting the adjustable table to match, the scene
         the camera sees changed to it. Returns the Stance (None on a real rig)."""
         if not self.simulated or self.sim_patient is None:
             return None
         stance = self.sim_patient.stance(reference, condition)
-        current = self.camera.rig
+        camera = self._sim_camera()
+        current = camera.rig
         posed = current.with_scene(self.sim_patient.scene(stance))
         posed.motion = current.motion
         if posed.motion is not None:
             posed.motion.reset()
-        self.camera.rig = posed
+        camera.rig = posed
         self.stance = stance
         return stance
+
+    def _sim_camera(self) -> SimulatedCamera:
+        """The simulated camera (asked only on the simulated rig, whose camera open_rig made one)."""
+        from anklescan.hardware.simrig import SimulatedCamera
+
+        assert isinstance(self.camera, SimulatedCamera), "a simulated rig has a simulated camera"
+        return self.camera
+
+    def _sim_rig(self) -> SimRig:
+        """The simulated rig (the scene and its sway) the simulated camera photographs."""
+        return self._sim_camera().rig
 
     @property
     def description(self) -> str:
@@ -75,7 +91,7 @@ class Rig:
             pass  # closing a camera that is already gone must not stop the app
 
 
-def camera_name(camera) -> str:
+def camera_name(camera: Camera) -> str:
     try:
         return camera.info.name
     except Exception:  # a camera that has gone away cannot describe itself
@@ -142,7 +158,8 @@ def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
     if backend != SIMULATED:
         from anklescan.hardware import camera
 
-        size = tuple(projector_size) if projector_size else projector_resolution()
+        # a (width, height) pair (a list from the settings file becomes a tuple)
+        size = (projector_size[0], projector_size[1]) if projector_size else projector_resolution()
         return Rig(backend, camera.open_camera(backend, device), size, simulated=False)
     from anklescan.hardware import simrig
 
@@ -150,12 +167,12 @@ def open_rig(backend: str = SIMULATED, scale: float = 0.75, device: str = "",
     _sway_from_environment(rig)
     cam, projector = simrig.simulated_devices(rig)
     cam.open()
-    opened = Rig(SIMULATED, cam, tuple(projector.size), True, projector, rig.true_calibration())
+    opened = Rig(SIMULATED, cam, projector.size, True, projector, rig.true_calibration())
     opened.set_profile(profile)
     return opened
 
 
-def _sway_from_environment(rig) -> None:
+def _sway_from_environment(rig: SimRig) -> None:
     """ANKLESCAN_SIM_SWAY_MM=A: the simulated patient sways sideways, +-A mm at up to A mm/s
     (hardware/sim_sway.py; every camera grab is a webcam frame, 30 ms, later). Each frame is
     then rendered at its own pose, so the camera preview and scans are slower."""
@@ -168,7 +185,7 @@ def _sway_from_environment(rig) -> None:
     _set_sway(rig, amplitude)
 
 
-def _set_sway(rig, amplitude: float) -> None:
+def _set_sway(rig: SimRig, amplitude: float) -> None:
     if 0 < amplitude < 100:
         from anklescan.hardware.sim_sway import FRAME_S, Sway, SwayClock
 

@@ -30,8 +30,9 @@ def _run_check(qtbot, win, inversion: float, plantar_flexion: float) -> str:
         _type(dlg.findChild(QDoubleSpinBox, "inversion"), inversion)
         _type(dlg.findChild(QDoubleSpinBox, "plantar_flexion"), plantar_flexion)
         click(button(dlg, "Scan and check"))
-        qtbot.waitUntil(lambda: dlg.result is not None or "did not complete" in dlg.verdict.text(), timeout=60_000)
-        seen["verdict"], seen["result"] = dlg.verdict.text(), dlg.result
+        qtbot.waitUntil(lambda: dlg.check_result is not None or "did not complete" in dlg.verdict.text(),
+                        timeout=60_000)
+        seen["verdict"], seen["result"] = dlg.verdict.text(), dlg.check_result
         click(button(dlg, "Close"))
 
     with_dialog(qtbot, menu_action(win, "Scan/Daily check…").trigger, drive, timeout_ms=90_000)

@@ -10,33 +10,100 @@ device or a window.
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterable, Mapping, Sequence, Sized
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from anklescan.app.logic.events import Event
 from anklescan.app.logic.session import SessionLogic
 from anklescan.app.logic.settings import AppSettings, CheckPolicy
-from anklescan.core.vocabulary import Severity
+from anklescan.core.vocabulary import Session, Severity
 
 if TYPE_CHECKING:
-    from anklescan.core.records.store import MarkMeasured, TrialOutcome
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.measure.angles import JointCovariance
+    from anklescan.core.records.store import MarkMeasured, Store, TrialOutcome
+    from anklescan.core.scan.patterns import PatternSet
 
 
 class ScanRefused(Exception):
     """Why a scan cannot start now; the message is for the clinician."""
 
 
+class TrialEntryView(Protocol):
+    """What a scan's trial is created from: app.trial_form.TrialEntry (not imported here: that
+    module reaches for Qt)."""
+
+    @property
+    def condition(self) -> str: ...
+    @property
+    def ref_inversion(self) -> float | None: ...
+    @property
+    def ref_plantar_flexion(self) -> float | None: ...
+    @property
+    def notes(self) -> str: ...
+
+
+class MarkQualityView(Protocol):
+    """An automatic mark's certainty: app.scan_worker.MarkQuality (not imported here: Qt)."""
+
+    @property
+    def sd_mm(self) -> float: ...
+    @property
+    def warning(self) -> str: ...
+
+
+class ScanResultView(Protocol):
+    """What a scan that ran to the end reports: app.scan_worker.ScanResult (not imported here: that
+    module reaches for Qt). Only what is recorded or told here."""
+
+    @property
+    def folder(self) -> Path: ...
+    @property
+    def cloud(self) -> Sized | None: ...               # core PointCloud, or None when not reconstructed
+    @property
+    def cloud_path(self) -> Path | None: ...
+    @property
+    def note(self) -> str: ...                         # why there is no cloud
+    @property
+    def marks(self) -> Mapping[int, Iterable[float]]: ...  # label -> xyz mm
+    @property
+    def quality(self) -> Mapping[int, MarkQualityView]: ...
+    @property
+    def marks_note(self) -> str: ...
+    @property
+    def overexposed(self) -> Iterable[str]: ...        # labels
+    @property
+    def warnings(self) -> Sequence[str]: ...
+    @property
+    def position_covariance(self) -> JointCovariance | None: ...
+    @property
+    def capture_sha256(self) -> str: ...
+    @property
+    def cloud_sha256(self) -> str: ...
+    @property
+    def save_error(self) -> str: ...
+    @property
+    def motion_mm(self) -> float | None: ...
+    @property
+    def motion_sd_mm(self) -> float | None: ...
+    @property
+    def motion_flagged(self) -> bool: ...
+    @property
+    def duration_s(self) -> float | None: ...
+
+
 @dataclass
 class ScanPlan:
-    pattern_set: object
+    pattern_set: PatternSet
     folder: Path                  # the trial's capture folder
     cloud_path: Path
-    calibration: object
+    calibration: Calibration
     mark_diameter_mm: float | None
     motion_threshold_mm: float
     settle_s: float
-    metadata: dict = field(default_factory=dict)
+    metadata: dict[str, object] = field(default_factory=dict)  # written beside the capture (JSON)
 
 
 class NoteAction(enum.Enum):
@@ -62,7 +129,7 @@ class TrialFinished:
     complete: bool                      # it gave a cloud, recorded: the trial is complete
     notes: tuple[ScanNote, ...] = ()    # in the order the clinician reads them
     warnings: tuple[str, ...] = ()      # the measurement's one-line warnings (SPEC §6), beside their marks
-    covariance: object = None           # the marks' JointCovariance: the angles' honest ± (SPEC §3)
+    covariance: JointCovariance | None = None  # the marks' joint covariance: the angles' honest ± (SPEC §3)
     has_marks: bool = False             # automatic marks were recorded for the 3-D view to show
 
 
@@ -76,7 +143,7 @@ class ScanLogic:
         self.mixed_note = ""     # the trial joins trials of the other kind (simulated / real): said at its end
         self.trial_finished = Event()  # (TrialFinished): a scan ran to the end and is recorded
 
-    def begin(self, session_id: int | None, entry, mark_diameter_mm: float | None) -> int:
+    def begin(self, session_id: int | None, entry: TrialEntryView, mark_diameter_mm: float | None) -> int:
         """Create the scan's trial; returns the session it belongs to (a new one when the entry's
         condition is not the selected session's). Raises ScanRefused."""
         s = self.session
@@ -88,11 +155,12 @@ class ScanLogic:
         self.mixed_note = ""
         if not s.set_mark_diameter(session_id, mark_diameter_mm):
             raise ScanRefused("the mark diameter was not saved")
-        session = s.store.sessions.get(session_id)
+        session: Session = s.store.sessions.get(session_id)
         if entry.condition != session.condition:
-            session = s.start_session(session.patient_id, entry.condition)
-            if session is None:
+            started: Session | None = s.start_session(session.patient_id, entry.condition)
+            if started is None:
                 raise ScanRefused("no session for that condition")
+            session = started
         try:
             trial = s.store.trials.add(session.id, ref_inversion=entry.ref_inversion,
                                       ref_plantar_flexion=entry.ref_plantar_flexion, notes=entry.notes,
@@ -119,7 +187,7 @@ class ScanLogic:
             raise ScanRefused(f"{text} Scans wait for a passed daily check (the daily check setting).")
         return text
 
-    def pattern_set(self, projector_size: tuple[int, int]):
+    def pattern_set(self, projector_size: tuple[int, int]) -> PatternSet:
         """The patterns this rig's geometry needs (columns beside the camera, rows above, both
         diagonal), with the repeated looks that measure how far the patient moved."""
         from anklescan.core.scan.motion import default_motion_refs
@@ -141,11 +209,11 @@ class ScanLogic:
                         {"device": device, "trial": trial.id, "calibration_id": s.calibration_id})
 
     # ---- outcomes -----------------------------------------------------------------------
-    def finished(self, result) -> bool:
+    def finished(self, result: ScanResultView) -> bool:
         """Record a scan that ran to the end; True when it gave a cloud (the trial is complete)."""
         return self.finish(result).complete
 
-    def finish(self, result) -> TrialFinished:
+    def finish(self, result: ScanResultView) -> TrialFinished:
         """Record a scan that ran to the end (an app.scan_worker.ScanResult) in one transaction:
         files, motion, automatic marks and their angles, and the state; then tell the windows."""
         from anklescan.core.records.store import MarkMeasured, TrialMotion, TrialOutcome
@@ -180,20 +248,20 @@ class ScanLogic:
             store.results.finish(tid, outcome, who=self.session.operator)
             return True
         except Exception as exc:
-            self.notice.emit("error", f"Trial {tid} could not be recorded: {exc}")
+            self.notice.emit(Severity.ERROR, f"Trial {tid} could not be recorded: {exc}")
         try:
             status = "failed" if outcome.status == "complete" else outcome.status
             store.trials.set_status(tid, status, outcome.note or "its outcome could not be recorded",
                                    who=self.session.operator)
         except Exception as exc:
-            self.notice.emit("error", f"Trial {tid} could not be updated: {exc}")
+            self.notice.emit(Severity.ERROR, f"Trial {tid} could not be updated: {exc}")
         return False
 
-    def notes(self, result, has_cloud: bool) -> list[ScanNote]:
+    def notes(self, result: ScanResultView, has_cloud: bool) -> list[ScanNote]:
         """What the clinician is told about a finished scan, most urgent kinds first in each case:
         a cloud that was not saved, motion, overexposed marks, marks outside the calibrated volume,
         marks not found, and a trial that mixes simulated and real patients."""
-        notes = []
+        notes: list[ScanNote] = []
         if result.save_error:
             notes.append(ScanNote(Severity.ERROR, result.save_error))
         if result.motion_flagged:
@@ -225,13 +293,13 @@ class ScanLogic:
             store.trials.set_simulated(tid)
         self.mixed_note = mixed_warning(store, tid, simulated)
 
-    def failed(self, message: str, folder) -> ScanNote:
+    def failed(self, message: str, folder: str | Path) -> ScanNote:
         """Record a scan the worker stopped (a device error); what the clinician is told."""
         self._stop("failed", message, Path(folder))
         return ScanNote(Severity.ERROR, f"{message}\n{frames_in(folder)} frame(s) kept in {folder}; the trial is "
                         "marked failed. The session is intact; check the device and scan again.")
 
-    def cancelled(self, folder) -> ScanNote:
+    def cancelled(self, folder: str | Path) -> ScanNote:
         """Record a scan the operator cancelled; what the clinician is told."""
         self._stop("cancelled", "stopped by the operator", Path(folder))
         return ScanNote(Severity.INFO, "Scan cancelled: the trial is marked cancelled and left out of the "
@@ -252,14 +320,14 @@ class ScanLogic:
         self._finish(TrialOutcome(status, note, capture if capture is not None and capture.exists() else None))
 
 
-def measured_mark(kind: type[MarkMeasured], xyz, quality) -> MarkMeasured:
+def measured_mark(kind: type[MarkMeasured], xyz: Iterable[float], quality: MarkQualityView | None) -> MarkMeasured:
     """An automatic mark (``kind``: core.records.store.MarkMeasured, imported where the store is)
     with its quality (app.scan_worker.MarkQuality, or None: not measured)."""
-    return kind(tuple(float(v) for v in xyz), None if quality is None else quality.sd_mm,
-                "" if quality is None else quality.warning)
+    x, y, z = (float(v) for v in xyz)
+    return kind((x, y, z), None if quality is None else quality.sd_mm, "" if quality is None else quality.warning)
 
 
-def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
+def mixed_warning(store: Store | None, trial_id: int | None, simulated: bool) -> str:
     """A warning when this trial's patient already has trials of the other kind (simulated / real)."""
     if store is None or trial_id is None:
         return ""
@@ -273,7 +341,7 @@ def mixed_warning(store, trial_id: int | None, simulated: bool) -> str:
             "them, but keep simulated patients apart from real ones.")
 
 
-def frames_in(folder) -> int:
+def frames_in(folder: str | Path) -> int:
     """How many frames a (possibly interrupted) capture folder holds."""
     p = Path(folder)
     if not p.is_dir():
