@@ -3,6 +3,8 @@ Result pages. Layout only; what they do is wired in app.main_window and its flow
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (
     QComboBox,
@@ -26,7 +28,7 @@ from anklescan.core.vocabulary import Severity
 PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT, PAGE_MARKS, PAGE_SESSION = range(5)
 
 
-def no_args(slot):
+def no_args(slot: Callable[[], object]) -> Callable[..., object]:
     """Connect ``slot`` so that a signal's arguments (``clicked``/``triggered`` pass ``checked``)
     never reach it: slots that open dialogs take no data, and their data-taking twins are not
     connected to signals."""

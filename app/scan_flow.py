@@ -9,7 +9,7 @@ import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import QTabWidget
@@ -19,10 +19,34 @@ from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, Banner, ResultPage,
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from anklescan.app.camera_panel import CameraPanel
+    from anklescan.app.logic.scan import ScanPlan
     from anklescan.app.logic.session import SessionLogic
+    from anklescan.app.projector_window import ProjectorWindow
     from anklescan.app.records_panel import RecordsPanel
     from anklescan.app.review import Review
-    from anklescan.app.rig_setup import RigSetup
+    from anklescan.app.rig import Rig
+    from anklescan.app.scan_worker import ScanController, ScanJob, ScanResult
+    from anklescan.app.trial_form import TrialEntry
+    from anklescan.hardware.sim_patient import Stance
+
+
+class RigSetupView(Protocol):
+    """What the scan flow uses of app.rig_setup.RigSetup: its rig, projector window and camera panel
+    (each None until made). Not RigSetup itself: its attributes are not annotated yet (rig_setup is on
+    mypy's debt list), so mypy takes them for always None."""
+
+    @property
+    def rig(self) -> Rig | None: ...
+    @property
+    def projector(self) -> ProjectorWindow | None: ...
+    @property
+    def camera_panel(self) -> CameraPanel | None: ...
+    def check_calibration_age(self) -> None: ...
+    def show_projector(self) -> None: ...
+    def _restore_projector(self) -> None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,7 +61,7 @@ class ScanParts:
     session: SessionLogic
     records: RecordsPanel
     review: Review
-    rig_setup: RigSetup                       # the rig, its projector window and camera panel
+    rig_setup: RigSetupView                   # the rig, its projector window and camera panel
     open_daily_check: Callable[[], object]    # the daily check's dialog (the banner's action)
 
 
@@ -48,8 +72,8 @@ class ScanFlow(QObject):
     def __init__(self, parts: ScanParts, logic: ScanLogic, parent: QObject | None = None):
         super().__init__(parent)
         self.parts, self.logic = parts, logic
-        self.controller = None
-        self.last_result = None
+        self.controller: ScanController | None = None
+        self.last_result: ScanResult | None = None
         logic.trial_finished.connect(self._show_finished)
         page = parts.scan_page
         page.scan_button.clicked.connect(no_args(self.start_scan))
@@ -61,7 +85,7 @@ class ScanFlow(QObject):
     def busy(self) -> bool:
         return self.controller is not None and self.controller.busy
 
-    def attach(self, controller) -> None:
+    def attach(self, controller: ScanController) -> None:
         """The acquisition worker's controller, created with the projector window."""
         self.controller = controller
         controller.progress.connect(self._progress)
@@ -103,7 +127,7 @@ class ScanFlow(QObject):
         except (ValueError, ScanRefused) as exc:  # a field shows the same message
             parts.banner.show_message(Severity.WARNING, f"The scan did not start: {exc}")
             return False
-        stance = self._stand_simulated_patient(entry)
+        stance = self._stand_simulated_patient(rig, entry)
         parts.records.show_patient(select_session=session_id)
         try:
             plan = self.logic.plan(rig.projector_size, rig.description)
@@ -120,39 +144,43 @@ class ScanFlow(QObject):
         parts.banner.hide()
         if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
             parts.banner.show_message(Severity.WARNING, self.logic.check_warning, ("Daily check…", parts.open_daily_check))
-        if not parts.rig_setup.projector.isVisible():
+        projector = parts.rig_setup.projector  # made with the controller: never None here
+        if projector is None or not projector.isVisible():
             parts.rig_setup.show_projector()
         self.controller.start(job)
         return True
 
-    def _stand_simulated_patient(self, entry):
+    def _stand_simulated_patient(self, rig: Rig, entry: TrialEntry) -> Stance | None:
         """On the simulated rig: the reference table set to the typed angles, the simulated patient
         setting the adjustable one, and the trial recorded as simulated. The Stance, or None."""
-        rig = self.parts.rig_setup.rig
         stance = rig.stand_patient((entry.ref_inversion, entry.ref_plantar_flexion), entry.condition)
         self.logic.mark_simulated(stance is not None)
         return stance
 
-    def scan_job(self, plan):
+    def scan_job(self, plan: ScanPlan) -> ScanJob:
         from anklescan.app.scan_worker import ScanJob, measure_folder
-        return ScanJob(plan.pattern_set, self.parts.rig_setup.rig.camera, plan.folder, settle_s=plan.settle_s,
+        rig = self.parts.rig_setup.rig
+        assert rig is not None, "a scan is planned only on an open rig (start_scan)"
+        return ScanJob(plan.pattern_set, rig.camera, plan.folder, settle_s=plan.settle_s,
                        calibration=plan.calibration,
                        reconstruct=partial(measure_folder, mark_diameter_mm=plan.mark_diameter_mm,
                                            motion_threshold_mm=plan.motion_threshold_mm),
                        cloud_path=plan.cloud_path, metadata=plan.metadata)
 
     def cancel_scan(self) -> None:
-        if self.busy:
+        if self.controller is not None and self.controller.busy:  # self.busy, spelt out for mypy
             self.parts.scan_page.progress.setFormat("Cancelling…")
             self.controller.cancel()
 
     def stop_for_exit(self) -> None:
         """Cancel the scan, wait for the worker to leave, and close its trial as cancelled, before
         the database closes (its signals are cut first: nothing may arrive after)."""
-        for signal in (self.controller.finished, self.controller.failed, self.controller.cancelled):
+        controller = self.controller
+        assert controller is not None, "called only while a scan runs (busy)"
+        for signal in (controller.finished, controller.failed, controller.cancelled):
             with contextlib.suppress(RuntimeError, TypeError):
                 signal.disconnect()
-        self.controller.stop()
+        controller.stop()
         self.logic.abandon("the application was closed during the scan")
 
     # ---- the worker's reports -----------------------------------------------------------
@@ -173,11 +201,11 @@ class ScanFlow(QObject):
         bar.setValue(done)
         bar.setFormat(text)
 
-    def _frame_captured(self, index: int, image) -> None:
+    def _frame_captured(self, index: int, image: np.ndarray) -> None:
         from anklescan.app.camera_panel import to_display
         self.parts.scan_page.live.set_image(to_display(image[::2, ::2]))  # half size: cheap on the UI thread
 
-    def _finished(self, result) -> None:
+    def _finished(self, result: ScanResult) -> None:
         """The worker's result: recorded by the logic in one transaction (ScanLogic.finish), then shown."""
         self.last_result = result
         self.logic.finish(result)  # -> self._show_finished, through logic.trial_finished
@@ -204,7 +232,7 @@ class ScanFlow(QObject):
         self.parts.tabs.setCurrentIndex(PAGE_SCAN)
         self.start_scan()
 
-    def _show_result(self, result) -> None:
+    def _show_result(self, result: ScanResult) -> None:
         from anklescan.app.projector_window import array_to_qimage
         page = self.parts.result_page
         if result.preview is not None:
@@ -233,11 +261,11 @@ class ScanFlow(QObject):
         show_notes(self.parts.banner, [note], {})
 
 
-def stance_profile(rig) -> str:
+def stance_profile(rig: Rig) -> str:
     return rig.sim_patient.profile.value if rig.sim_patient is not None else ""
 
 
-def show_notes(banner, notes: list[ScanNote], actions: dict[NoteAction, Callable[[], object]]) -> None:
+def show_notes(banner: Banner, notes: list[ScanNote], actions: dict[NoteAction, Callable[[], object]]) -> None:
     """One banner for a scan's notes: the most severe kind, every text in the order given, and the
     first action offered (``actions``: what each NoteAction does here)."""
     severity = max((n.severity for n in notes), key=lambda s: s.rank)

@@ -17,19 +17,35 @@ result. Everything reaches the UI by queued delivery on the UI thread.
 
 from __future__ import annotations
 
+import os
 import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
-from PySide6.QtCore import QObject, Signal
+import numpy.typing as npt
+from PySide6.QtCore import QObject, Signal, SignalInstance
 
 from anklescan.app.acquisition import Acquisition, as_output
-from anklescan.app.background import Cancelled, run_in_background
+from anklescan.app.background import BackgroundJob, Cancelled, run_in_background
 from anklescan.core.errors import AnkleScanError
 from anklescan.hardware.camera import CameraDisconnected
+
+# the core types are imported where used (the module loads fast); here only for the annotations
+if TYPE_CHECKING:
+    from anklescan.app.projector_window import ProjectorWindow
+    from anklescan.core.calibration.model.device_model import Device
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.measure.angles import JointCovariance
+    from anklescan.core.measure.mark_types import Mark
+    from anklescan.core.measure.pipeline import MeasureResult
+    from anklescan.core.scan.patterns import Frame, PatternSet
+    from anklescan.core.scan.pointcloud import PointCloud
+    from anklescan.hardware.camera import Camera, ProjectorOutput
+    from anklescan.hardware.sync import Settle
 
 __all__ = ["Cancelled", "ScanController", "ScanError", "ScanJob", "ScanResult", "run_scan"]
 
@@ -38,16 +54,22 @@ class ScanError(AnkleScanError):
     """A scan that stopped for a reason the clinician must be told about."""
 
 
+# (pattern_set, frame) -> the projector image (uint8, height x width)
+RenderFrame = Callable[["PatternSet", "Frame"], npt.NDArray[np.uint8]]
+# (capture folder, calibration) -> the cloud and the marks on it
+Reconstruct = Callable[[Path, "Calibration"], "MeasureResult"]
+
+
 @dataclass
 class ScanJob:
-    pattern_set: object                 # anklescan.core.scan.patterns.PatternSet
-    camera: object                      # hardware.camera.Camera
+    pattern_set: PatternSet
+    camera: Camera
     folder: Path                        # the capture folder (created; must not hold a capture)
     settle_s: float = 0.03
-    calibration: object = None          # anklescan.core.calibration.model.file.Calibration or None: capture only
-    metadata: dict = field(default_factory=dict)
-    render: Callable | None = None      # (pattern_set, frame) -> uint8 array; anklescan.core.scan.patterns.render_frame
-    reconstruct: Callable | None = None  # (folder, calibration) -> core.measure.pipeline.MeasureResult (measure_folder)
+    calibration: Calibration | None = None  # None: capture only
+    metadata: dict[str, object] = field(default_factory=dict)  # written beside the capture (JSON)
+    render: RenderFrame | None = None   # None: anklescan.core.scan.patterns.render_frame
+    reconstruct: Reconstruct | None = None  # e.g. measure_folder
     cloud_path: Path | None = None      # where to write the cloud (PLY), in the worker thread
 
 
@@ -57,16 +79,16 @@ class ScanResult:
     frames: int
     capture_s: float
     process_s: float = 0.0
-    cloud: object = None                # core PointCloud, or None when not reconstructed
+    cloud: PointCloud | None = None     # None when not reconstructed
     note: str = ""                      # why there is no cloud, when there is none
-    preview: object = None              # (H, W, 3) uint8 RGB: depth image, or the white frame
-    depth_range: tuple = (0.0, 0.0)     # mm from the camera, near and far ends of the colours
-    marks: dict = field(default_factory=dict)  # automatically found marks, label -> xyz mm
+    preview: np.ndarray | None = None   # (H, W, 3) uint8 RGB: depth image, or the white frame
+    depth_range: tuple[float, float] = (0.0, 0.0)  # mm from the camera, near and far ends of the colours
+    marks: dict[int, tuple[float, ...]] = field(default_factory=dict)  # automatically found marks, label -> xyz mm
     marks_note: str = ""                # what the detector could not find, when it missed some
-    overexposed: list = field(default_factory=list)  # labels of the marks whose face saturates the camera
-    warnings: list = field(default_factory=list)  # the measurement's one-line warnings (SPEC §6)
-    position_covariance: object = None  # the marks' JointCovariance: the angles' honest ± (SPEC §3)
-    quality: dict = field(default_factory=dict)  # label -> MarkQuality of the automatic marks
+    overexposed: list[str] = field(default_factory=list)  # labels of the marks whose face saturates the camera
+    warnings: list[str] = field(default_factory=list)  # the measurement's one-line warnings (SPEC §6)
+    position_covariance: JointCovariance | None = None  # the marks' joint covariance: the angles' honest ± (SPEC §3)
+    quality: dict[int, MarkQuality] = field(default_factory=dict)  # label -> MarkQuality of the automatic marks
     cloud_path: Path | None = None      # the saved cloud, when ScanJob.cloud_path was given
     capture_sha256: str = ""            # content hashes, made in the worker: the UI thread only records them
     cloud_sha256: str = ""
@@ -91,9 +113,9 @@ class MarkQuality:
     warning: str = ""
 
 
-def mark_quality(mark) -> MarkQuality:
+def mark_quality(mark: Mark) -> MarkQuality:
     """A measured mark's (core.measure.marks.Mark) SD and warnings, for the marks table and the 3-D view."""
-    notes = []
+    notes: list[str] = []
     if mark.clipped:
         notes.append("overexposed")
     if mark.view_deg is not None and mark.view_deg > OBLIQUE_VIEW_DEG:
@@ -101,7 +123,11 @@ def mark_quality(mark) -> MarkQuality:
     return MarkQuality(float(mark.sd), ", ".join(notes))
 
 
-def run_scan(job: ScanJob, acquisition: Acquisition, bg, on_frame: Callable | None = None) -> ScanResult:
+# (index, image): a captured frame, on the UI thread
+OnFrame = Callable[[int, np.ndarray], None]
+
+
+def run_scan(job: ScanJob, acquisition: Acquisition, bg: BackgroundJob, on_frame: OnFrame | None = None) -> ScanResult:
     """The whole scan, in a background job ``bg`` (app.background.BackgroundJob): acquire and
     store every frame, then reconstruct, preview, save and hash. ``bg.post`` carries each
     captured frame to ``on_frame(index, image)`` on the UI thread."""
@@ -117,9 +143,9 @@ def run_scan(job: ScanJob, acquisition: Acquisition, bg, on_frame: Callable | No
 
 
 class _Scan:
-    def __init__(self, job: ScanJob, acquisition: Acquisition, bg):
+    def __init__(self, job: ScanJob, acquisition: Acquisition, bg: BackgroundJob) -> None:
         self.job, self.acquisition, self.bg = job, acquisition, bg
-        self.on_frame: Callable | None = None  # (index, image) on the UI thread
+        self.on_frame: OnFrame | None = None
 
     def run(self) -> ScanResult:
         t0 = time.perf_counter()
@@ -176,11 +202,13 @@ class _Scan:
 
         pset = self.job.pattern_set
         render = self.job.render or _default_render()
-        settle = self.acquisition.settle()
+        # cast: Acquisition.settle is not annotated yet (app.acquisition is on mypy's debt list); it
+        # returns settle_for's Settle. Once annotated, mypy calls this cast redundant: drop it then.
+        settle = cast("Callable[[], Settle]", self.acquisition.settle)()
         writer = CaptureWriter(self.job.folder, pset, {**_device_metadata(self.job.camera, settle), **self.job.metadata})
         timing = writer.metadata.setdefault("frames", {})
 
-        def store(i, image, frame_timing):
+        def store(i: int, image: np.ndarray, frame_timing: dict[str, object]) -> None:
             timing[pset.frames[i].file] = frame_timing
             writer.add(pset.frames[i].file, image)
             if self.on_frame is not None:
@@ -195,11 +223,11 @@ class _Scan:
         writer.finish()
 
 
-def _device_metadata(camera, settle) -> dict:
+def _device_metadata(camera: Camera, settle: Settle) -> dict[str, object]:
     """Device, backend, exposure, gain ... as the camera reports them; duck-typed cameras
     without ``metadata()`` still get their name recorded."""
     try:
-        meta = dict(camera.metadata())
+        meta: dict[str, object] = dict(camera.metadata())
     except Exception:
         from anklescan.app.rig import camera_name
         meta = {"device": camera_name(camera)}
@@ -210,12 +238,12 @@ def _device_metadata(camera, settle) -> dict:
     return meta
 
 
-def _default_render():
+def _default_render() -> RenderFrame:
     from anklescan.core.scan.patterns import render_frame
     return render_frame
 
 
-def depth_preview(cloud, calibration) -> tuple[np.ndarray, tuple[float, float]]:
+def depth_preview(cloud: PointCloud, calibration: Calibration) -> tuple[np.ndarray, tuple[float, float]]:
     """Camera-view image of the cloud coloured by distance from the camera (near = warm).
 
     Stands in for the 3-D viewer of the next issue; the camera's own viewpoint needs no
@@ -237,13 +265,14 @@ def depth_preview(cloud, calibration) -> tuple[np.ndarray, tuple[float, float]]:
     return image, (float(lo), float(hi))
 
 
-def _project(cam, points):
+def _project(cam: Device, points: np.ndarray) -> np.ndarray:
     x = cam.to_device(points)
     uv = x[:, :2] / x[:, 2:3]
-    return uv * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    out: np.ndarray = uv * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+    return out
 
 
-def white_preview(folder, pattern_set) -> np.ndarray | None:
+def white_preview(folder: str | os.PathLike[str], pattern_set: PatternSet) -> np.ndarray | None:
     """The white frame as RGB: what the camera saw, when there is no cloud to show."""
     white = [f.file for f in pattern_set.frames if f.kind == "white"]
     if not white:
@@ -262,8 +291,8 @@ def white_preview(folder, pattern_set) -> np.ndarray | None:
     return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else np.ascontiguousarray(img[..., ::-1])
 
 
-def measure_folder(folder, calibration, mark_diameter_mm: float | None = None,
-                   motion_threshold_mm: float | None = None):
+def measure_folder(folder: str | os.PathLike[str], calibration: Calibration, mark_diameter_mm: float | None = None,
+                   motion_threshold_mm: float | None = None) -> MeasureResult:
     """Reconstruct the saved frames, find the seven marks on them and how far the subject moved
     (``anklescan measure``); the marks' size is the session's setting, or measured when None."""
     from anklescan.core.measure.pipeline import measure_capture
@@ -273,7 +302,7 @@ def measure_folder(folder, calibration, mark_diameter_mm: float | None = None,
                            motion_threshold_mm=DEFAULT_THRESHOLD_MM if motion_threshold_mm is None else motion_threshold_mm)
 
 
-def reconstruct_folder(folder, calibration):
+def reconstruct_folder(folder: str | os.PathLike[str], calibration: Calibration) -> PointCloud:
     """What ``anklescan reconstruct`` does: load the saved frames, decode, triangulate."""
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.reconstruct import reconstruct
@@ -295,12 +324,12 @@ class ScanController(QObject):
     cancelled = Signal(str)
     busyChanged = Signal(bool)
 
-    def __init__(self, projector, parent=None):
+    def __init__(self, projector: ProjectorOutput | ProjectorWindow, parent: QObject | None = None) -> None:
         super().__init__(parent)
         self.projector = projector
         self.output = as_output(projector)
-        self._job = None       # the running background job
-        self._scan = None      # its ScanJob
+        self._job: BackgroundJob | None = None  # the running background job
+        self._scan: ScanJob | None = None       # its ScanJob
         self._abort_message = ""
 
     @property
@@ -347,22 +376,22 @@ class ScanController(QObject):
             self.busyChanged.emit(False)
         return stopped
 
-    def _progress(self, bg, done, total, text) -> None:
+    def _progress(self, bg: BackgroundJob, done: int, total: int, text: str) -> None:
         if bg is self._job:
             self.progress.emit(done, total, text)
 
-    def _frame_captured(self, bg, index, image) -> None:
+    def _frame_captured(self, bg: BackgroundJob, index: int, image: np.ndarray) -> None:
         if bg is self._job:
             self.frameCaptured.emit(index, image)
 
-    def _ended_by_cancel(self, bg) -> None:
+    def _ended_by_cancel(self, bg: BackgroundJob) -> None:
         folder = str(self._scan.folder) if self._scan is not None else ""
         if self._abort_message:
             self._done(bg, self.failed, self._abort_message, folder)
         else:
             self._done(bg, self.cancelled, folder)
 
-    def _done(self, bg, signal, *args) -> None:
+    def _done(self, bg: BackgroundJob, signal: SignalInstance, *args: object) -> None:
         if bg is not self._job:  # already stopped (quitting): nothing more to report
             return
         self._job = self._scan = None
