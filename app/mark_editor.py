@@ -10,7 +10,9 @@ a "?" until the operator confirms it) or ``manual`` (placed or moved by the oper
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
@@ -31,8 +33,15 @@ from PySide6.QtWidgets import (
 )
 
 from anklescan.app.main_parts import signed
-from anklescan.core.measure.angles import compute_angles
-from anklescan.core.vocabulary import LABELS, MARK_NAMES
+from anklescan.core.measure.angles import AngleResult, compute_angles
+from anklescan.core.vocabulary import LABELS, MARK_NAMES, MarkLabel, MarkRecord, MarkSource
+
+if TYPE_CHECKING:
+    from anklescan.app.logic.scan import MarkQualityView
+    from anklescan.app.viewer import CloudViewer, PickResult
+    from anklescan.core.measure.angles import JointCovariance
+    from anklescan.core.records.store import Store
+    from anklescan.core.scan.pointcloud import PointCloud
 
 ANGLE_TITLES = {"leg_inversion": "Leg inversion θ1", "leg_plantar_flexion": "Leg plantar flexion θ2",
                 "table_inversion": "Table inversion", "table_plantar_flexion": "Table plantar flexion",
@@ -45,7 +54,7 @@ STATUS_COLUMN = 5  # the marks table's last column: automatic / manual, and any 
 class PlacedMark:
     """A mark as the editor holds it: position and provenance (not yet or already saved)."""
     xyz: tuple[float, float, float]
-    source: str = "manual"   # 'auto' | 'manual' (the store's vocabulary)
+    source: MarkSource = MarkSource.MANUAL
     confirmed: bool = True   # auto marks start unconfirmed
     placed_by: str = ""
     sd_mm: float | None = None   # an automatic mark's position SD (None: placed by hand, not measured)
@@ -60,6 +69,22 @@ class PlacedMark:
 
 
 PlacedMarks = dict[int, PlacedMark]
+# some labels' new marks, None for a mark removed: what one edit changes
+MarkChanges = Mapping[int, PlacedMark | None]
+# detected marks are keyed by label, as a number or its text (``5`` or ``"5"``)
+K = TypeVar("K", bound=MarkLabel | str)
+
+
+class MarkSnapper(Protocol):
+    """Moves a click to the centre of the disk under it (app.mark_snap.TrialSnapper); run in the background."""
+
+    def snap(self, point: tuple[float, ...]) -> tuple[float, float, float] | None: ...
+
+
+def _xyz(values: Iterable[float]) -> tuple[float, float, float]:
+    """A position (a sequence or array of three numbers, mm) as three floats."""
+    x, y, z = (float(v) for v in values)
+    return x, y, z
 
 
 # ---------------------------------------------------------------------------- undo commands
@@ -67,7 +92,7 @@ PlacedMarks = dict[int, PlacedMark]
 class _SetMarks(QUndoCommand):
     """Replace some labels' marks (None = absent). Every edit is one of these."""
 
-    def __init__(self, editor: MarkEditor, text: str, after: dict[int, PlacedMark | None]):
+    def __init__(self, editor: MarkEditor, text: str, after: MarkChanges) -> None:
         super().__init__(text)
         self.editor = editor
         self.after = after
@@ -95,19 +120,20 @@ class MarkEditor(QWidget):
     marksChanged = Signal(object)   # dict label → (x, y, z) (object: a dict signal tries to convert to a QVariantMap)
     saveFailed = Signal(str)
 
-    def __init__(self, viewer, operator: str = "", parent=None):
+    def __init__(self, viewer: CloudViewer, operator: str = "", parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.viewer = viewer
         self.operator = operator
-        self.store = None
+        self.store: Store | None = None
         self.trial_id: int | None = None
         self.marks: PlacedMarks = {}
         self.current_label = 1
-        self.angles = {}
-        self.reference = None  # the trial's reference-table angles: the mismatch is measured against them
+        self.angles = AngleResult()
+        # the trial's reference-table angles (axis -> degrees): the mismatch is measured against them
+        self.reference: dict[str, float] | None = None
         self.mark_notes: dict[int, list[str]] = {}  # label -> the measurement's warnings about it
-        self.position_covariance = None  # the measurement's JointCovariance: the honest ± (SPEC §3)
-        self.snapper = None    # moves a click to the centre of the disk under it (app.mark_snap)
+        self.position_covariance: JointCovariance | None = None  # the measurement's: the honest ± (SPEC §3)
+        self.snapper: MarkSnapper | None = None  # moves a click to the centre of the disk under it (app.mark_snap)
         self.undo_stack = QUndoStack(self)
         self._build()
         viewer.picked.connect(self.place_at_pick)
@@ -132,7 +158,9 @@ class MarkEditor(QWidget):
         # a table sized to its columns: the one-line list text was cut off at the panel's width
         self.list = QTableWidget(len(LABELS), 6)
         self.list.setHorizontalHeaderLabels(["", "x mm", "y mm", "z mm", "SD", ""])
-        self.list.horizontalHeaderItem(4).setToolTip("The mark's position SD, mm: how certain its centre is")
+        sd_header = self.list.horizontalHeaderItem(4)
+        if sd_header is not None:  # set just above: Qt says None only for a column without a header label
+            sd_header.setToolTip("The mark's position SD, mm: how certain its centre is")
         self.list.setWordWrap(True)
         self.list.verticalHeader().hide()
         self.list.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
@@ -207,24 +235,25 @@ class MarkEditor(QWidget):
                   context=Qt.ShortcutContext.WindowShortcut)
 
     # ---- loading -------------------------------------------------------------------------
-    def load(self, marks: PlacedMarks, store=None, trial_id: int | None = None) -> None:
+    def load(self, marks: Mapping[int, PlacedMark], store: Store | None = None, trial_id: int | None = None) -> None:
         """Start editing a trial's marks (a fresh undo history)."""
         self.store, self.trial_id = store, trial_id
         self.reference = None
         self.mark_notes, self.position_covariance = {}, None
         if store is not None and trial_id is not None:
             t = store.trials.get(trial_id)
-            if None not in (t.ref_inversion, t.ref_plantar_flexion):
+            if t.ref_inversion is not None and t.ref_plantar_flexion is not None:
                 self.reference = {"inversion": t.ref_inversion, "plantar_flexion": t.ref_plantar_flexion}
         self.marks = dict(marks)
         self.undo_stack.clear()
         self.current_label = next((lab for lab in LABELS if lab not in self.marks), 1)
         self._refresh()
 
-    def load_trial(self, store, trial_id: int) -> None:
+    def load_trial(self, store: Store, trial_id: int) -> None:
         self.load(marks_from_store(store.marks.all(trial_id)), store, trial_id)
 
-    def show_measured(self, store, trial_id: int, warnings: tuple[str, ...] = (), covariance=None) -> None:
+    def show_measured(self, store: Store, trial_id: int, warnings: tuple[str, ...] = (),
+                      covariance: JointCovariance | None = None) -> None:
         """A finished scan's automatic marks, already stored (app.logic.scan records them with the
         trial), shown to confirm, with the measurement's warnings beside the marks they name and its
         JointCovariance for the angles' ±. Nothing is written; undo starts here."""
@@ -236,8 +265,8 @@ class MarkEditor(QWidget):
         self._refresh(save=False)
         self.pick_label.setText("Click the cloud to place the selected mark.")
 
-    def propose_auto(self, detected: dict, quality: dict | None = None, warnings: list[str] | None = None,
-                     covariance=None) -> None:
+    def propose_auto(self, detected: Mapping[K, Iterable[float]], quality: Mapping[int, MarkQualityView] | None = None,
+                     warnings: list[str] | None = None, covariance: JointCovariance | None = None) -> None:
         """Detected marks (label → xyz) to confirm, saved as 'auto', with their SD and warnings
         (``quality``: label → app.scan_worker.MarkQuality). They are where the undo history
         starts: Undo goes back to them, never past them to an empty trial. ``warnings``: the
@@ -246,11 +275,11 @@ class MarkEditor(QWidget):
 
         self.mark_notes = warnings_by_mark(list(warnings or []))
         self.position_covariance = covariance
-        quality = quality or {}
+        qualities = quality or {}
 
-        def placed(k, v) -> PlacedMark:
-            q = quality.get(int(k))
-            return PlacedMark(tuple(map(float, v)), "auto", False, "", None if q is None else q.sd_mm,
+        def placed(k: K, v: Iterable[float]) -> PlacedMark:
+            q = qualities.get(int(k))
+            return PlacedMark(_xyz(v), MarkSource.AUTO, False, "", None if q is None else q.sd_mm,
                               "" if q is None else q.warning)
         after = {int(k): placed(k, v) for k, v in detected.items()}
         self._apply(after)
@@ -262,11 +291,11 @@ class MarkEditor(QWidget):
         self.current_label = int(label)
         self._refresh(save=False)
 
-    def set_snapper(self, snapper) -> None:
+    def set_snapper(self, snapper: MarkSnapper | None) -> None:
         """``snapper.snap(xyz) -> xyz | None`` (app.mark_snap.TrialSnapper), or None: clicks are kept as they land."""
         self.snapper = snapper
 
-    def place_at_pick(self, pick) -> None:
+    def place_at_pick(self, pick: PickResult) -> None:
         if not self.isEnabled():  # a read-only database: the view still orbits and picks, nothing is placed
             self.show_pick("This database is read-only: marks cannot be changed.")
             return
@@ -278,7 +307,7 @@ class MarkEditor(QWidget):
         snapper, trial = self.snapper, self.trial_id
         self.show_pick(f"Finding the mark under the click for mark {label}…")
 
-        def done(centre):
+        def done(centre: tuple[float, float, float] | None) -> None:
             if self.trial_id != trial:  # the operator moved on to another trial meanwhile
                 return
             if centre is None:
@@ -289,16 +318,16 @@ class MarkEditor(QWidget):
             self.place(label, raw if centre is None else centre)
             self.snapped.emit(label)
 
-        def failed(error):
+        def failed(error: str) -> None:
             if self.trial_id == trial:
                 self.show_pick(f"Mark {label} placed where clicked (the disk could not be fitted: {error}).")
                 self.place(label, raw)
                 self.snapped.emit(label)
         run_in_background(lambda: snapper.snap(raw), done, failed)
 
-    def place(self, label: int, xyz) -> None:
+    def place(self, label: int, xyz: Iterable[float]) -> None:
         verb = "move" if label in self.marks else "place"
-        mark = PlacedMark(tuple(float(v) for v in xyz), "manual", True, self.operator)
+        mark = PlacedMark(_xyz(xyz), MarkSource.MANUAL, True, self.operator)
         self.undo_stack.push(_SetMarks(self, f"{verb} mark {label}", {label: mark}))
         if verb == "place":  # the operator usually places marks in order
             self.current_label = next((lab for lab in LABELS if lab not in self.marks), label)
@@ -327,7 +356,7 @@ class MarkEditor(QWidget):
             self.undo_stack.push(_SetMarks(self, "confirm automatic marks", pending))
 
     # ---- the one place state changes -----------------------------------------------------
-    def _apply(self, changes: dict[int, PlacedMark | None]) -> None:
+    def _apply(self, changes: MarkChanges) -> None:
         for lab, m in changes.items():
             if m is None:
                 self.marks.pop(lab, None)
@@ -336,7 +365,7 @@ class MarkEditor(QWidget):
         self._save(changes)
         self._refresh()
 
-    def _save(self, changes: dict[int, PlacedMark | None]) -> None:
+    def _save(self, changes: MarkChanges) -> None:
         if self.store is None or self.trial_id is None:
             return
         try:
@@ -407,7 +436,7 @@ class MarkEditor(QWidget):
             self.angles = compute_angles({lab: m.xyz for lab, m in self.marks.items()},
                                          _sigmas(self.position_covariance), joint=self.position_covariance)
         except Exception as exc:  # degenerate geometry (e.g. 5, 6, 7 collinear) while editing
-            self.angles = {}
+            self.angles = AngleResult()
             self.missing_label.setText(str(exc))
             for lab in self.angle_labels.values():
                 lab.setText("—")
@@ -415,8 +444,8 @@ class MarkEditor(QWidget):
         shown = dict(self.angles)
         if self.reference and self.angles.get("table_inversion") and self.angles.get("table_plantar_flexion"):
             from anklescan.core.measure.angles import mismatch
-            for axis, v in mismatch(self.angles, self.reference).items():
-                shown[f"mismatch_{axis}"] = v
+            for axis, diff in mismatch(self.angles, self.reference).items():
+                shown[f"mismatch_{axis}"] = diff
         for name, lab in self.angle_labels.items():
             v = shown.get(name)
             lab.setText("—" if v is None else f"{signed(v.value, 2)}° ± {v.sd:.2f}°")
@@ -437,7 +466,7 @@ def _status_tip(m: PlacedMark) -> str:
 
 # ---------------------------------------------------------------------------- store glue
 
-def marks_from_store(rows) -> PlacedMarks:
+def marks_from_store(rows: Iterable[MarkRecord]) -> PlacedMarks:
     """anklescan.core.vocabulary.MarkRecord rows → PlacedMarks. An auto mark counts as confirmed once an operator has
     confirmed it (recorded in ``placed_by``; the schema has no column of its own for it)."""
     return {r.label: PlacedMark((r.x, r.y, r.z), r.source,
@@ -455,7 +484,7 @@ def _short(warning: str) -> str:
     return f"{m.group(1)} {m.group(2) or 'out of'} vol."
 
 
-def _sigmas(joint) -> dict[int, float]:
+def _sigmas(joint: JointCovariance | None) -> dict[int, float]:
     """Per-mark SD to add to ``joint`` (which already holds the measured marks' own): the default
     for a mark it does not cover (placed by hand)."""
     from anklescan.core.measure.angles import DEFAULT_SIGMA_MM
@@ -463,18 +492,19 @@ def _sigmas(joint) -> dict[int, float]:
     return {lab: 0.0 if joint is not None and lab in joint.labels else DEFAULT_SIGMA_MM for lab in LABELS}
 
 
-def save_marks(store, trial_id: int, changes: dict[int, PlacedMark | None], joint=None) -> None:
+def save_marks(store: Store, trial_id: int, changes: MarkChanges, joint: JointCovariance | None = None) -> None:
     """Write changed marks (grouped by provenance, as update_marks takes one source per call),
     delete removed ones, and let the store recompute the trial's angles (with the measurement's
     joint covariance ``joint`` when there is one: the honest ±)."""
-    groups: dict[tuple[str, str], dict[int, tuple]] = {}
+    groups: dict[tuple[MarkSource, str], dict[MarkLabel | str, tuple[float, float, float]]] = {}
     for lab, m in changes.items():
         if m is not None:
             groups.setdefault((m.source, m.placed_by), {})[lab] = m.xyz
     for (source, placed_by), marks in groups.items():
         store.results.update_marks(trial_id, marks, source, placed_by, sigma_mm=_sigmas(joint), joint=joint)
-    quality = {lab: (m.sd_mm, m.warning) for lab, m in changes.items()
-               if m is not None and (m.sd_mm is not None or m.warning)}
+    # keyed as the store takes labels (a number or its text): label -> (sd_mm or None, warning)
+    quality: dict[MarkLabel | str, tuple[float | None, str]] = {
+        lab: (m.sd_mm, m.warning) for lab, m in changes.items() if m is not None and (m.sd_mm is not None or m.warning)}
     if quality:  # an automatic mark keeps its SD and warning when confirmed or relabelled
         store.marks.set_quality(trial_id, quality)
     removed = [lab for lab, m in changes.items() if m is None]
@@ -491,11 +521,12 @@ def as_array(marks: PlacedMarks) -> dict[int, np.ndarray]:
 class MarksPage(QWidget):
     """The main window's 3-D page: view controls, the viewer, the mark editor beside it."""
 
-    def __init__(self, operator: str = "", parent=None):
+    def __init__(self, operator: str = "", parent: QWidget | None = None) -> None:
         super().__init__(parent)
         from PySide6.QtWidgets import QComboBox, QSplitter
 
-        from anklescan.app.viewer import COLOR_DEPTH, COLOR_WHITE, CloudViewer
+        from anklescan.app.viewer import CloudViewer
+        from anklescan.app.viewer_gl import COLOR_DEPTH, COLOR_WHITE
         self.viewer = CloudViewer()
         self.editor = MarkEditor(self.viewer, operator)
         self.title = QLabel("3-D view and marks")
@@ -534,6 +565,6 @@ class MarksPage(QWidget):
         outer.addWidget(split, 1)
         outer.addWidget(self.status)
 
-    def open_cloud(self, cloud, scanner_eye=None, title: str = "") -> None:
+    def open_cloud(self, cloud: PointCloud, scanner_eye: np.ndarray | None = None, title: str = "") -> None:
         self.viewer.set_cloud(cloud, scanner_eye=scanner_eye)
         self.title.setText(title or "3-D view and marks")

@@ -17,12 +17,21 @@ from anklescan.app.main_parts import PAGE_MARKS, PAGE_SESSION, deg
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
-    from PySide6.QtGui import QAction
+    from PySide6.QtGui import QAction, QUndoStack
+    from PySide6.QtPrintSupport import QPrinter
     from PySide6.QtWidgets import QStackedWidget, QTabWidget, QWidget
 
+    from anklescan.app.background import BackgroundJob
     from anklescan.app.logic.session import SessionLogic
     from anklescan.app.main_parts import Banner
+    from anklescan.app.mark_editor import MarksPage
+    from anklescan.app.mark_snap import TrialSnapper
     from anklescan.app.records_panel import RecordsPanel
+    from anklescan.app.session_view import SessionView
+    from anklescan.core.measure.angles import JointCovariance
+    from anklescan.core.records.report import ReportResult
+    from anklescan.core.scan.pointcloud import PointCloud
+    from anklescan.core.vocabulary import Session, Trial
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,41 +56,41 @@ class Review(QObject):
         self.parts = parts
         self.undo_action: QAction | None = None  # Edit ▸ Undo / Redo, set by the main window with its menus
         self.redo_action: QAction | None = None
-        self.marks_page = None
-        self.session_view = None
-        self.viewer_trial = None  # the trial whose cloud the viewer shows
-        self.jobs = []            # background jobs (reports) still running
-        self.last_report = None
+        self.marks_page: MarksPage | None = None
+        self.session_view: SessionView | None = None
+        self.viewer_trial: int | None = None  # the trial whose cloud the viewer shows
+        self.jobs: list[BackgroundJob] = []   # background jobs (reports) still running
+        self.last_report: ReportResult | None = None
         parts.tabs.currentChanged.connect(self._tab_changed)
 
-    def ensure_marks_page(self):
+    def ensure_marks_page(self) -> MarksPage:
         if self.marks_page is None:
             from anklescan.app.mark_editor import MarksPage
             parts = self.parts
-            self.marks_page = MarksPage(operator=parts.session.operator or os_user())
-            self.marks_page.editor.saveFailed.connect(lambda text: parts.banner.show_message(Severity.ERROR, text))
-            self.marks_page.editor.marksChanged.connect(lambda _: self.refresh_plots_if_shown())
-            parts.marks_holder.addWidget(self.marks_page)
-            parts.marks_holder.setCurrentWidget(self.marks_page)
-            self.marks_page.editor.setEnabled(not parts.session.read_only)
-            self.marks_page.editor.undo_stack.indexChanged.connect(lambda _: self.update_edit_actions())
-            self.marks_page.editor.undo_stack.cleanChanged.connect(lambda _: self.update_edit_actions())
+            self.marks_page = page = MarksPage(operator=parts.session.operator or os_user())
+            page.editor.saveFailed.connect(lambda text: parts.banner.show_message(Severity.ERROR, text))
+            page.editor.marksChanged.connect(lambda _: self.refresh_plots_if_shown())
+            parts.marks_holder.addWidget(page)
+            parts.marks_holder.setCurrentWidget(page)
+            page.editor.setEnabled(not parts.session.read_only)
+            page.editor.undo_stack.indexChanged.connect(lambda _: self.update_edit_actions())
+            page.editor.undo_stack.cleanChanged.connect(lambda _: self.update_edit_actions())
             self.update_edit_actions()
         return self.marks_page
 
-    def ensure_session_view(self):
+    def ensure_session_view(self) -> SessionView:
         """Built when first needed: importing pyqtgraph takes ~0.6 s on the UI thread (it cannot be
         imported in another thread), so start-up does not pay for it."""
         if self.session_view is None:
             QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)
             try:
                 from anklescan.app.session_view import SessionView
-                self.session_view = SessionView()
+                self.session_view = view = SessionView()
             finally:
                 QApplication.restoreOverrideCursor()
-            self.session_view.trialActivated.connect(self.open_trial)
-            self.parts.session_holder.addWidget(self.session_view)
-            self.parts.session_holder.setCurrentWidget(self.session_view)
+            view.trialActivated.connect(self.open_trial)
+            self.parts.session_holder.addWidget(view)
+            self.parts.session_holder.setCurrentWidget(view)
         return self.session_view
 
     def _tab_changed(self, index: int) -> None:
@@ -101,13 +110,13 @@ class Review(QObject):
         if self.session_view is None or logic.store is None:
             return
         rows = logic.session_rows(sid)
-        title = logic.session_title(sid) if sid is not None else None
+        title = logic.session_title(sid) if sid is not None else ""  # "": no title (set_rows takes a str)
         if title and any(r.simulated for r in rows):  # simulated trials are never shown as patient data
             title += " · SIMULATED patient"
         self.session_view.set_rows(rows, title=title)
 
     # ---- the 3-D view ---------------------------------------------------------------------
-    def show_cloud(self, cloud, trial_id: int | None, title: str | None = None) -> None:
+    def show_cloud(self, cloud: PointCloud, trial_id: int | None, title: str | None = None) -> None:
         page, logic = self.ensure_marks_page(), self.parts.session
         self.viewer_trial = trial_id
         rig = self.parts.rig()
@@ -126,12 +135,13 @@ class Review(QObject):
             page.editor.load({})
             page.editor.set_snapper(None)
 
-    def show_measured_marks(self, trial_id: int, warnings: tuple[str, ...], covariance) -> None:
+    def show_measured_marks(self, trial_id: int, warnings: tuple[str, ...],
+                            covariance: JointCovariance | None) -> None:
         """A finished scan's automatic marks (already stored with the trial) in the 3-D view, to confirm."""
         if self.parts.session.store is not None:
             self.ensure_marks_page().editor.show_measured(self.parts.session.store, trial_id, warnings, covariance)
 
-    def trial_title(self, trial, full: bool = False) -> str:
+    def trial_title(self, trial: Trial, full: bool = False) -> str:
         """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
         its reference angles and any state that leaves it out of the statistics."""
         from anklescan.app.records_panel import trial_number
@@ -144,7 +154,7 @@ class Review(QObject):
             text += f" · {trial.state_text}"
         return text
 
-    def _snapper(self, trial, cloud, session):
+    def _snapper(self, trial: Trial, cloud: PointCloud, session: Session) -> TrialSnapper | None:
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
         from anklescan.app.mark_snap import TrialSnapper
         cal = self.parts.session.trial_calibration(trial, session)
@@ -202,16 +212,17 @@ class Review(QObject):
 
     def update_edit_actions(self) -> None:
         """Edit ▸ Undo / Redo say what they undo ("Undo place mark 1") and are enabled when they can."""
-        if self.undo_action is None or self.redo_action is None:
+        undo_action, redo_action = self.undo_action, self.redo_action
+        if undo_action is None or redo_action is None:
             return
         stack = None if self.marks_page is None else self.marks_page.editor.undo_stack
         with contextlib.suppress(RuntimeError):  # the window is closing: its undo stack is already gone
-            self._show_edit_actions(stack)
+            self._show_edit_actions(stack, undo_action, redo_action)
 
-    def _show_edit_actions(self, stack) -> None:
+    def _show_edit_actions(self, stack: QUndoStack | None, undo_action: QAction, redo_action: QAction) -> None:
         for action, can, text, verb in (
-                (self.undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
-                (self.redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
+                (undo_action, stack is not None and stack.canUndo(), stack and stack.undoText(), "Undo"),
+                (redo_action, stack is not None and stack.canRedo(), stack and stack.redoText(), "Redo")):
             action.setEnabled(bool(can))
             action.setText(f"&{verb} {text}" if can and text else f"&{verb}")
 
@@ -241,15 +252,16 @@ class Review(QObject):
             return False
         return self.print_to(printer)
 
-    def print_to(self, printer) -> bool:
+    def print_to(self, printer: QPrinter) -> bool:
         from anklescan.app.help_menu import print_widget_pages
         parts = self.parts
+        widget: QWidget
         if parts.tabs.currentIndex() == PAGE_MARKS and self.marks_page is not None:
             widget, what = self.marks_page, "3-D marks"
         else:
-            self.ensure_session_view()
+            view = self.ensure_session_view()
             self.refresh_plots()
-            widget, what = self.session_view, "Session plots"
+            widget, what = view, "Session plots"
         sid = parts.records.current_session_id()
         title = parts.session.session_title(sid) if sid is not None and parts.session.store is not None else ""
         simulated = sid is not None and any(t.simulated for t in parts.session.trials(sid))
@@ -271,10 +283,10 @@ class Review(QObject):
         return self.export_plots_to(path) if path else None
 
     def export_plots_to(self, path: str) -> Path | None:
-        self.ensure_session_view()
+        view = self.ensure_session_view()
         self.refresh_plots()
         try:
-            out = self.session_view.export(path)
+            out = view.export(path)
         except Exception as exc:
             self.parts.banner.show_message(Severity.ERROR, f"The plots could not be exported: {exc}")
             return None
@@ -292,7 +304,7 @@ class Review(QObject):
         if path:
             self.write_session_report_to(path)
 
-    def write_session_report_to(self, pdf_path: str):
+    def write_session_report_to(self, pdf_path: str) -> BackgroundJob | None:
         """Render the selected session's PDF + CSV in the background; the banner says when it is saved."""
         from anklescan.app.background import run_in_background
         parts, store = self.parts, self.parts.session.store
@@ -303,7 +315,7 @@ class Review(QObject):
         pdf = Path(pdf_path).with_suffix(".pdf")
         db_path, data_dir = store.path, store.data_dir
 
-        def render():  # its own connection: a Store is not shared between threads
+        def render() -> ReportResult:  # its own connection: a Store is not shared between threads
             from anklescan.core.records.report import write_session_report
             from anklescan.core.records.store import Store
             with Store.open(db_path, data_dir=data_dir) as own:
@@ -312,11 +324,11 @@ class Review(QObject):
         parts.banner.show_message(Severity.INFO, f"Writing the session report to {pdf}…")
         job = run_in_background(render, lambda result: self._report_written(pdf, result),
                                 lambda error: parts.banner.show_message(
-                                    "error", f"The session report could not be written: {error}"))
+                                    Severity.ERROR, f"The session report could not be written: {error}"))
         self.jobs = [j for j in self.jobs if j.running] + [job]
         return job
 
-    def _report_written(self, pdf: Path, result) -> None:
+    def _report_written(self, pdf: Path, result: ReportResult) -> None:
         self.last_report = result
         self.parts.banner.show_message(Severity.INFO, f"Session report saved: {pdf} and {pdf.with_suffix('.csv').name}")
         self.parts.report_written(str(pdf))
