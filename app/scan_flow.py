@@ -216,7 +216,7 @@ class ScanFlow(QObject):
         if result is not None:
             self._show_result(result)
         notes = list(event.notes)
-        if event.complete and tid is not None and result is not None:
+        if event.complete and tid is not None and result is not None and result.cloud is not None:
             parts.review.show_cloud(result.cloud, tid)
             if event.has_marks:  # shown for confirmation in the 3-D view; undo stops here
                 parts.review.show_measured_marks(tid, event.warnings, event.covariance)

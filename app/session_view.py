@@ -70,7 +70,7 @@ def trial_tip(r: StudyRow, axis: str) -> str:
 class SessionView(QWidget):
     trialActivated = Signal(int)
 
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         pg.setConfigOptions(antialias=True)
         self.rows: list[StudyRow] = []

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from anklescan.app.logic.events import Event
 from anklescan.app.logic.settings import AppSettings
-from anklescan.core.vocabulary import Severity, StudyRow
+from anklescan.core.vocabulary import Session, Severity, StudyRow, Trial
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.model.file import Calibration
 
 
 class SessionLogic:
@@ -234,7 +238,7 @@ class SessionLogic:
         except Exception:
             return None
 
-    def trial_calibration(self, trial, session):
+    def trial_calibration(self, trial: Trial, session: Session) -> Calibration | None:
         """The calibration a trial was measured with (None when unknown or unreadable)."""
         cid = trial.calibration_id or session.calibration_id
         if cid is None:
