@@ -30,13 +30,21 @@ import threading
 import time
 import weakref
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from PySide6.QtCore import QObject, QThread, Signal, Slot
 
-from anklescan.app.background import Cancelled, run_in_background
+from anklescan.app.background import BackgroundJob, Cancelled, run_in_background
 from anklescan.core.errors import AnkleScanError
-from anklescan.hardware.camera import ProjectorOutput
+from anklescan.hardware.camera import Camera, ProjectorOutput
+
+if TYPE_CHECKING:
+    from anklescan.app.projector_window import ProjectorWindow
+    from anklescan.hardware.sync import Settle
+
+T = TypeVar("T")
+Timing = dict[str, object]  # one frame's times (and the camera's frame_info), as the capture manifest records them
 
 SLICE_S = 0.05
 SHOW_TIMEOUT_S = 5.0  # a frame not painted by then: the window is closed, hidden or on a lost screen
@@ -52,16 +60,16 @@ class _WindowBridge(QObject):
 
     request = Signal(object, object, str)  # _Pending, image, mode
 
-    def __init__(self, window):
+    def __init__(self, window: ProjectorWindow):
         super().__init__()
-        self.window = window
+        self.window: ProjectorWindow | None = window
         self._waiting: list[_Pending] = []
         self._lock = threading.Lock()
         self.request.connect(self._show)  # queued when emitted from a worker thread
         window.painted.connect(self._painted)
 
     @Slot(object, object, str)
-    def _show(self, pending: _Pending, image, mode: str) -> None:
+    def _show(self, pending: _Pending, image: np.ndarray, mode: str) -> None:
         if pending.abandoned:
             return
         if self.window is None:
@@ -96,7 +104,7 @@ class _WindowBridge(QObject):
 
 
 class _Pending:
-    def __init__(self):
+    def __init__(self) -> None:
         self.event = threading.Event()
         self.token: int | None = None
         self.presented = 0.0
@@ -111,19 +119,23 @@ class WindowOutput(ProjectorOutput):
     thread to paint); ``mirror`` (the simulated projector) is fed every frame the window paints,
     so the simulated camera photographs exactly what is on screen, when it is on screen."""
 
-    def __init__(self, window, mirror: ProjectorOutput | None = None):
+    def __init__(self, window: ProjectorWindow, mirror: ProjectorOutput | None = None):
         self.window = window
         self._bridge = _WindowBridge(window)
-        self._mirror = None
+        self._mirror: Callable[[np.ndarray], None] | None = None
         if mirror is not None:
             self._mirror = mirror.show
             window.frameShown.connect(self._mirror)
 
     @property
     def size(self) -> tuple[int, int]:
-        return tuple(self.window.projector_size)
+        return self.window.projector_size
 
-    def show(self, image: np.ndarray, *, mode: str = "pattern", cancelled: threading.Event | None = None) -> float:
+    def show(self, image: np.ndarray, *, mode: str = "pattern", cancelled: threading.Event | None = None) -> None:
+        """Returns when the frame is presented (``present`` also says when)."""
+        self.present(image, mode=mode, cancelled=cancelled)
+
+    def present(self, image: np.ndarray, *, mode: str = "pattern", cancelled: threading.Event | None = None) -> float:
         """Returns when the frame is presented, with that time (time.monotonic)."""
         if QThread.currentThread() is self._bridge.thread():
             raise RuntimeError("WindowOutput.show waits for the UI thread: call it from a worker")
@@ -151,18 +163,18 @@ class WindowOutput(ProjectorOutput):
             self._mirror = None
 
 
-def as_output(projector) -> ProjectorOutput:
+def as_output(projector: ProjectorOutput | ProjectorWindow) -> ProjectorOutput:
     """A ProjectorOutput for a ProjectorWindow, or the output itself."""
     return projector if isinstance(projector, ProjectorOutput) else WindowOutput(projector)
 
 
 # ---- one lock per camera ------------------------------------------------------------------------
-_LOCKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_LOCKS: weakref.WeakKeyDictionary[object, threading.RLock] = weakref.WeakKeyDictionary()
 _LOCKS_GUARD = threading.Lock()
 _FALLBACK_LOCK = threading.RLock()
 
 
-def camera_lock(camera) -> threading.RLock:
+def camera_lock(camera: object) -> threading.RLock:
     with _LOCKS_GUARD:
         try:
             return _LOCKS.setdefault(camera, threading.RLock())
@@ -174,10 +186,10 @@ def camera_lock(camera) -> threading.RLock:
 class Acquisition:
     """A camera and a projector output, and the show → presented → settle → capture sequence."""
 
-    def __init__(self, camera, output: ProjectorOutput, settle_s: float = 0.03):
+    def __init__(self, camera: Camera, output: ProjectorOutput, settle_s: float = 0.03):
         self.camera, self.output, self.settle_s = camera, output, float(settle_s)
 
-    def settle(self):
+    def settle(self) -> Settle:
         """hardware.sync.Settle: the self-test's (or typed) settle time, else ``settle_s``."""
         from anklescan.hardware.sync import settle_for
         return settle_for(self.camera, self.settle_s)
@@ -185,7 +197,7 @@ class Acquisition:
     def present(self, image: np.ndarray, *, mode: str = "pattern", cancelled: threading.Event | None = None) -> float:
         """Show ``image`` and return once it is presented, with that time (time.monotonic)."""
         if isinstance(self.output, WindowOutput):
-            return self.output.show(image, mode=mode, cancelled=cancelled)
+            return self.output.present(image, mode=mode, cancelled=cancelled)
         self.output.show(image)
         return time.monotonic()
 
@@ -197,17 +209,21 @@ class Acquisition:
         with camera_lock(self.camera):
             return self.camera.preview()
 
-    def acquire(self, frames: Sequence, *, render: Callable | None = None, settle_s: float | None = None,
-                mode: str = "pattern", on_frame: Callable | None = None,
+    def acquire(self, frames: Sequence[Any], *, render: Callable[[Any], np.ndarray] | None = None,
+                settle_s: float | None = None, mode: str = "pattern",
+                on_frame: Callable[[int, np.ndarray, Timing], None] | None = None,
                 progress: Callable[[int, int, str], None] | None = None,
                 cancelled: threading.Event | None = None, keep: bool = True) -> list[np.ndarray]:
         """Show each frame (``render(frame)`` when given, for frames made on demand), wait until it
         is presented, wait the settle time, capture. ``on_frame(index, image, timing)`` is called
         in this thread after each capture (timing: seconds since the first frame was asked for,
         as the capture manifest records them). Raises background.Cancelled on cancel. Returns the
-        images (none when ``keep`` is False: the caller stores them from ``on_frame``)."""
+        images (none when ``keep`` is False: the caller stores them from ``on_frame``).
+
+        ``frames`` are the images to show, or, with ``render``, what it makes each image from."""
         settle = self.settle().seconds if settle_s is None else float(settle_s)
-        images, total, t0 = [], len(frames), time.monotonic()
+        images: list[np.ndarray] = []
+        total, t0 = len(frames), time.monotonic()
         for i, frame in enumerate(frames):
             _check(cancelled)
             if progress is not None:
@@ -225,27 +241,30 @@ class Acquisition:
             progress(total, total, "Capture complete")
         return images
 
-    def _timing(self, t0: float, shown: float, start: float) -> dict:
-        out = {"shown_s": round(shown - t0, 4), "capture_start_s": round(start - t0, 4),
+    def _timing(self, t0: float, shown: float, start: float) -> Timing:
+        out: Timing = {"shown_s": round(shown - t0, 4), "capture_start_s": round(start - t0, 4),
                "capture_end_s": round(time.monotonic() - t0, 4)}
         info = getattr(self.camera, "frame_info", None)
         if callable(info):
             out.update({k: v for k, v in info().items() if k not in ("requested", "returned")})
         return out
 
-    def start(self, frames: Sequence, on_done: Callable[[list], None], on_error: Callable[[str], None], *,
+    def start(self, frames: Sequence[Any], on_done: Callable[[list[np.ndarray]], None],
+              on_error: Callable[[str], None], *,
               on_progress: Callable[[int, int, str], None] | None = None,
               on_frame: Callable[[int, np.ndarray], None] | None = None,
-              on_cancelled: Callable[[], None] | None = None, **acquire_kw):
+              on_cancelled: Callable[[], None] | None = None, **acquire_kw: Any) -> BackgroundJob:
         """From the UI thread: ``acquire`` in a background job; every callback runs on the UI
         thread (``on_frame(index, image)`` for a live thumbnail). Returns the job (``cancel()``)."""
-        def run(job):
+        def run(job: BackgroundJob) -> list[np.ndarray]:
+            post: Callable[[int, np.ndarray, Timing], None] | None
             post = (lambda i, image, _t: job.post(on_frame, i, image)) if on_frame is not None else None
             return self.acquire(frames, on_frame=post, progress=job.progress, cancelled=job.cancelled, **acquire_kw)
         return run_in_background(run, on_done, on_error, on_progress=on_progress, on_cancelled=on_cancelled,
                                  pass_job=True, name="acquisition")
 
-    def run(self, fn: Callable, on_done: Callable, on_error: Callable[[str], None], **kw):
+    def run(self, fn: Callable[[Acquisition], T], on_done: Callable[[T], None], on_error: Callable[[str], None],
+            **kw: Any) -> BackgroundJob:
         """From the UI thread: ``fn(self)`` in a background job (a test shot, the latency self-test)."""
         return run_in_background(lambda: fn(self), on_done, on_error, name="acquisition", **kw)
 

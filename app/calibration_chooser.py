@@ -4,7 +4,12 @@ settings were lost, or to go back to an earlier one)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from PySide6.QtWidgets import QAbstractItemView, QDialog, QDialogButtonBox, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout
+
+if TYPE_CHECKING:
+    from anklescan.core.vocabulary import CalibrationRecord
 
 
 class CalibrationChooser(QDialog):
@@ -43,6 +48,6 @@ class CalibrationChooser(QDialog):
         layout.addWidget(buttons)
         self.resize(720, 360)
 
-    def chosen(self):
+    def chosen(self) -> CalibrationRecord | None:
         row = self.table.currentRow()
         return self.records[row] if 0 <= row < len(self.records) else None

@@ -18,9 +18,12 @@ thread to paint a frame and waits, in the worker, for ``painted``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Protocol, TypeVar
+
 import numpy as np
 from PySide6.QtCore import QPoint, QRect, Qt, QTimer, Signal
-from PySide6.QtGui import QColor, QGuiApplication, QImage, QKeyEvent, QPainter, QScreen
+from PySide6.QtGui import QColor, QGuiApplication, QImage, QKeyEvent, QMouseEvent, QPainter, QPaintEvent, QScreen
 from PySide6.QtWidgets import QWidget
 
 PREVIEW_TITLE = "Projector preview — scaled, one monitor only"
@@ -68,7 +71,8 @@ def spot(size: tuple[int, int], x: float, y: float, radius: float = SPOT_RADIUS)
     w, h = size
     yy, xx = np.mgrid[0:h, 0:w]
     cover = np.clip(radius + 0.5 - np.hypot(xx - x, yy - y), 0.0, 1.0)
-    return np.rint(cover * 255).astype(np.uint8)
+    out: np.ndarray = np.rint(cover * 255).astype(np.uint8)
+    return out
 
 
 class ProjectorWindow(QWidget):
@@ -77,11 +81,12 @@ class ProjectorWindow(QWidget):
     spotMoved = Signal(float, float)  # projector coordinate of the calibration spot's centre
     screenLost = Signal(str)         # the monitor we were on went away
 
-    def __init__(self, size: tuple[int, int], parent=None):
+    def __init__(self, size: tuple[int, int], parent: QWidget | None = None):
         super().__init__(parent, Qt.WindowType.Window)
         self.setAttribute(Qt.WidgetAttribute.WA_OpaquePaintEvent)  # we paint every pixel ourselves
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
-        self._size = tuple(size)
+        w, h = size
+        self._size = (w, h)
         self._frame = solid(self._size, 0)
         self._image = array_to_qimage(self._frame)
         self._token = 0
@@ -92,6 +97,7 @@ class ProjectorWindow(QWidget):
         self._screen_name = ""
         self.setWindowTitle(PREVIEW_TITLE)
         app = QGuiApplication.instance()
+        assert isinstance(app, QGuiApplication), "a widget exists only in a QApplication"
         app.screenAdded.connect(self._screens_changed)
         app.screenRemoved.connect(self._screen_removed)
         self._preferred = ""
@@ -114,7 +120,8 @@ class ProjectorWindow(QWidget):
         return self._native
 
     def set_projector_size(self, size: tuple[int, int]) -> None:
-        self._size = tuple(size)
+        w, h = size
+        self._size = (w, h)
         self.show_black()
 
     def show_frame(self, frame: np.ndarray, mode: str = "pattern") -> int:
@@ -161,7 +168,7 @@ class ProjectorWindow(QWidget):
         tw, th = max(1, int(w * scale)), max(1, int(h * scale))
         return QRect((self.width() - tw) // 2, (self.height() - th) // 2, tw, th)
 
-    def paintEvent(self, event) -> None:
+    def paintEvent(self, event: QPaintEvent) -> None:
         p = QPainter(self)
         p.fillRect(self.rect(), QColor(0, 0, 0))
         if self._native:
@@ -230,7 +237,7 @@ class ProjectorWindow(QWidget):
         self.showNormal()
         self.update()
 
-    def _screens_changed(self, *_):
+    def _screens_changed(self, *_: object) -> None:
         if self.isVisible():
             self.place(self._preferred)
 
@@ -247,18 +254,19 @@ class ProjectorWindow(QWidget):
         mods = event.modifiers()
         step = 10 if mods & Qt.KeyboardModifier.ShiftModifier else (
             SPOT_FINE_STEP if mods & Qt.KeyboardModifier.ControlModifier else 1)
-        moves = {Qt.Key.Key_Left: (-step, 0), Qt.Key.Key_Right: (step, 0),
-                 Qt.Key.Key_Up: (0, -step), Qt.Key.Key_Down: (0, step)}
+        moves: dict[int, tuple[float, float]] = {  # Qt.Key is an int: event.key() finds it
+            Qt.Key.Key_Left: (-step, 0), Qt.Key.Key_Right: (step, 0),
+            Qt.Key.Key_Up: (0, -step), Qt.Key.Key_Down: (0, step)}
         if event.key() in moves and self._mode == "spot":
             dx, dy = moves[event.key()]
             self.show_spot(self._spot[0] + dx, self._spot[1] + dy)
         else:
             super().keyPressEvent(event)
 
-    def mousePressEvent(self, event) -> None:
+    def mousePressEvent(self, event: QMouseEvent) -> None:
         self._move_spot_to(event.position().toPoint())
 
-    def mouseMoveEvent(self, event) -> None:
+    def mouseMoveEvent(self, event: QMouseEvent) -> None:
         if event.buttons() & Qt.MouseButton.LeftButton:
             self._move_spot_to(event.position().toPoint())
 
@@ -271,7 +279,16 @@ class ProjectorWindow(QWidget):
         self.show_spot(x, y)
 
 
-def choose_screen(screens: list, primary, preferred: str = ""):
+class _Named(Protocol):
+    """A monitor as choose_screen sees it: a QScreen, or a test's stand-in."""
+
+    def name(self) -> str: ...
+
+
+_Screen = TypeVar("_Screen", bound=_Named)
+
+
+def choose_screen(screens: Sequence[_Screen], primary: _Screen | None, preferred: str = "") -> _Screen | None:
     """The projector's monitor: the named one, else the first that is not primary, else None."""
     for s in screens:
         if preferred and s.name() == preferred:

@@ -16,14 +16,19 @@ from anklescan.app.main_parts import PAGE_SCAN
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
-    from PySide6.QtWidgets import QLabel, QStackedWidget, QTabWidget, QWidget
+    import numpy as np
+    from PySide6.QtWidgets import QLabel, QMenu, QStackedWidget, QTabWidget, QWidget
 
+    from anklescan.app.camera_panel import CameraPanel
     from anklescan.app.logic.session import SessionLogic
     from anklescan.app.main_parts import Banner
+    from anklescan.app.projector_window import ProjectorWindow
     from anklescan.app.records_panel import RecordsPanel
     from anklescan.app.review import Review
+    from anklescan.app.rig import Rig
     from anklescan.app.scan_flow import ScanFlow
     from anklescan.app.settings import Settings
+    from anklescan.core.calibration.model.file import Calibration
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,10 +54,16 @@ class RigSetup(QObject):
         self.parts = parts
         self.settings = parts.settings
         self.scan_flow: ScanFlow | None = None  # set by the main window once made (it needs this rig)
-        self.rig = None
-        self.projector = None
-        self.camera_panel = None
+        self.rig: Rig | None = None
+        self.projector: ProjectorWindow | None = None
+        self.camera_panel: CameraPanel | None = None
         self._starting = False     # the rig is being opened in the background
+
+    @property
+    def _flow(self) -> ScanFlow:
+        """The scan flow: the main window sets it right after making this, before the rig opens."""
+        assert self.scan_flow is not None, "the main window sets the scan flow first"
+        return self.scan_flow
 
     # ---- start-up -----------------------------------------------------------------------
     def finish_startup(self, in_background: bool = True) -> None:
@@ -88,7 +99,7 @@ class RigSetup(QObject):
         from shiboken6 import isValid
         return not isValid(self.parts.camera_holder)
 
-    def _rig_opened(self, opened) -> None:
+    def _rig_opened(self, opened: tuple[Rig, str]) -> None:
         rig, problem = opened
         self._starting = False
         if self._window_gone():
@@ -128,7 +139,7 @@ class RigSetup(QObject):
         self.switch_backend(backend)
 
     def switch_backend(self, backend: str) -> None:
-        if self.scan_flow.busy:
+        if self._flow.busy:
             return
         old, self.rig = self.rig, None
         if old is not None:
@@ -157,19 +168,21 @@ class RigSetup(QObject):
             self.rig.set_sway(mm)
 
     def _show_rig_label(self) -> None:
-        parts = self.parts
-        parts.rig_label.setText(self.rig.description)
-        parts.rig_label.setObjectName("rigSimulated" if self.rig.simulated else "rigReal")
+        parts, rig = self.parts, self.rig
+        assert rig is not None, "shown once the rig is open"
+        parts.rig_label.setText(rig.description)
+        parts.rig_label.setObjectName("rigSimulated" if rig.simulated else "rigReal")
         parts.rig_label.setStyle(parts.rig_label.style())  # re-polish: the object name picks the style
 
     def _rig_ready(self) -> None:
         from anklescan.app.rig import camera_name
-        parts = self.parts
-        self.camera_panel.set_camera(self.rig.camera, self.rig.backend, camera_name(self.rig.camera))
+        parts, rig, panel = self.parts, self.rig, self.camera_panel
+        assert rig is not None and panel is not None, "called once the rig is open and its panel built"
+        panel.set_camera(rig.camera, rig.backend, camera_name(rig.camera))
         self._apply_stored_controls()
-        self.camera_panel.show_profile(self.rig.simulated)
-        if self.rig.simulated and self.settings.sim_sway_mm > 0:
-            self.rig.set_sway(self.settings.sim_sway_mm)
+        panel.show_profile(rig.simulated)
+        if rig.simulated and self.settings.sim_sway_mm > 0:
+            rig.set_sway(self.settings.sim_sway_mm)
         self._show_rig_label()
         self._ensure_projector()
         if QGuiApplication.screens() and len(QGuiApplication.screens()) > 1:
@@ -180,11 +193,12 @@ class RigSetup(QObject):
             parts.tabs.setCurrentIndex(PAGE_SCAN)
 
     def _apply_stored_controls(self) -> None:
-        s = self.settings
-        for name in self.camera_panel.control_names:
+        s, panel = self.settings, self.camera_panel
+        assert panel is not None, "called once the camera panel is built"
+        for name in panel.control_names:
             value = s.camera_exposure_ms if "exposure" in name.lower() else s.camera_gain if "gain" in name.lower() else 0.0
             if value:  # 0: the device's default
-                self.camera_panel.set_control_value(name, value)
+                panel.set_control_value(name, value)
 
     def _remember_control(self, name: str, value: float) -> None:
         if "exposure" in name.lower():
@@ -202,7 +216,7 @@ class RigSetup(QObject):
             cal, cid = None, None
             self.parts.banner.show_message(Severity.ERROR, f"The current calibration could not be read: {exc}")
         self.parts.session.use_calibration(cal, cid)
-        self.scan_flow.update_enabled()
+        self._flow.update_enabled()
         self.check_calibration_age()
 
     def choose_calibration(self) -> bool:
@@ -211,16 +225,16 @@ class RigSetup(QObject):
         from anklescan.app.logic.calibration import use_stored_calibration
         parts = self.parts
         store = parts.session.store
-        if store is None or self.scan_flow.busy:
+        if store is None or self._flow.busy:
             return False
         records = store.calibrations.all()
         if not records:
             parts.banner.show_message(Severity.INFO, "This data folder's database keeps no calibration yet: run Calibration….")
             return False
         dialog = CalibrationChooser(records, parts.session.calibration_id, parts.dialog_parent)
-        if dialog.exec() != CalibrationChooser.DialogCode.Accepted or dialog.chosen() is None:
+        record = dialog.chosen() if dialog.exec() == CalibrationChooser.DialogCode.Accepted else None
+        if record is None:
             return False
-        record = dialog.chosen()
         try:
             use_stored_calibration(record, parts.data_folder(), self.settings)
         except Exception as exc:
@@ -235,7 +249,7 @@ class RigSetup(QObject):
     def open_calibration(self) -> None:
         from anklescan.app.calibration_wizard import CalibrationWizard
         parts = self.parts
-        if self.rig is None or self.projector is None or self.scan_flow.busy:
+        if self.rig is None or self.projector is None or self._flow.busy:
             if self.rig is None:
                 parts.banner.show_message(Severity.INFO, "The camera is still connecting; try again in a moment.")
             return
@@ -247,10 +261,10 @@ class RigSetup(QObject):
         self._restore_projector()
         self.check_calibration_age()
 
-    def _calibration_accepted(self, cal, cid, path) -> None:
+    def _calibration_accepted(self, cal: Calibration, cid: int | None, path: str) -> None:
         self.parts.session.use_calibration(cal, cid)
-        self.parts.banner.clear("warning")
-        self.scan_flow.update_enabled()
+        self.parts.banner.clear(Severity.WARNING)
+        self._flow.update_enabled()
         if not self.parts.session.operator:  # who calibrated: asked now, not only at the first session
             self.parts.banner.show_message(Severity.INFO, "Calibration saved. Who is operating? Your name or initials sign "
                                          "the sessions, marks and reports.",
@@ -272,17 +286,19 @@ class RigSetup(QObject):
     def _ensure_projector(self) -> None:
         from anklescan.app.projector_window import ProjectorWindow
         from anklescan.app.scan_worker import ScanController
+        rig = self.rig
+        assert rig is not None, "called once the rig is open"
         if self.projector is None:
-            self.projector = ProjectorWindow(self.rig.projector_size)
+            self.projector = ProjectorWindow(rig.projector_size)
             self.projector.screenLost.connect(self._projector_lost)
-            self.scan_flow.attach(ScanController(self.projector, self))
+            self._flow.attach(ScanController(self.projector, self))
             self.projector.frameShown.connect(self._feed_simulated_projector)
             if self.camera_panel is not None:
                 self.camera_panel.set_projector(self.projector)
-        elif self.projector.projector_size != self.rig.projector_size:
-            self.projector.set_projector_size(self.rig.projector_size)
+        elif self.projector.projector_size != rig.projector_size:
+            self.projector.set_projector_size(rig.projector_size)
 
-    def _feed_simulated_projector(self, frame) -> None:
+    def _feed_simulated_projector(self, frame: np.ndarray) -> None:
         # The simulated camera must photograph exactly what the window painted, when it painted.
         if self.rig is not None and self.rig.sim_projector is not None:
             self.rig.sim_projector.show(frame)
@@ -306,7 +322,7 @@ class RigSetup(QObject):
         where = "own monitor, 1:1" if self.projector.is_native else "preview window (one monitor)"
         self.parts.projector_label.setText(f"Projector {w}×{h} · {where}")
 
-    def fill_screen_menu(self, menu) -> None:
+    def fill_screen_menu(self, menu: QMenu) -> None:
         menu.clear()
         group = QActionGroup(menu)
         chosen = self.settings.projector_screen
@@ -322,7 +338,7 @@ class RigSetup(QObject):
         self.show_projector()
 
     def projector_show(self, what: str) -> None:
-        if self.projector is None or self.scan_flow.busy:
+        if self.projector is None or self._flow.busy:
             return
         self.show_projector()
         {"white": self.projector.show_white, "black": self.projector.show_black,
@@ -331,8 +347,9 @@ class RigSetup(QObject):
 
     def _projector_lost(self, name: str) -> None:
         message = f"The projector monitor ({name}) was disconnected."
-        if self.scan_flow.busy:
-            self.scan_flow.controller.abort(message + " The scan stopped; the frames captured so far are kept.")
+        flow = self._flow
+        if flow.busy and flow.controller is not None:  # busy: a controller runs a scan
+            flow.controller.abort(message + " The scan stopped; the frames captured so far are kept.")
         else:
             self.parts.banner.show_message(Severity.WARNING, message + " The projector window moved to a preview.")
         QTimer.singleShot(0, self._update_projector_label)
@@ -344,8 +361,8 @@ class RigSetup(QObject):
             self.rig.close()
 
 
-def open_rig_safely(backend: str, scale: float, device: str, projector, warm: bool = False,
-                    profile: str = "no sprain"):
+def open_rig_safely(backend: str, scale: float, device: str, projector: tuple[int, int], warm: bool = False,
+                    profile: str = "no sprain") -> tuple[Rig, str]:
     """(rig, problem): the chosen camera, or the simulated rig with the reason it had to be used.
     ``warm`` also imports what the 3-D view and the measurement need (a background job's work)."""
     from anklescan.app.rig import SIMULATED, open_rig

@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -202,9 +202,7 @@ class _Scan:
 
         pset = self.job.pattern_set
         render = self.job.render or _default_render()
-        # cast: Acquisition.settle is not annotated yet (app.acquisition is on mypy's debt list); it
-        # returns settle_for's Settle. Once annotated, mypy calls this cast redundant: drop it then.
-        settle = cast("Callable[[], Settle]", self.acquisition.settle)()
+        settle = self.acquisition.settle()
         writer = CaptureWriter(self.job.folder, pset, {**_device_metadata(self.job.camera, settle), **self.job.metadata})
         timing = writer.metadata.setdefault("frames", {})
 
