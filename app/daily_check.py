@@ -202,6 +202,9 @@ class DailyCheckDialog(QDialog):
         from anklescan.app.logic.daily_check import check_folder
         run, cal = self._run, self.parts.session.calibration
         assert run is not None, "only a scan this dialog started reports here"
+        if cal is None:  # start() had one: it was dropped while the object was scanned
+            self._failed("there is no calibration any more: calibrate the scanner first (Scan ▸ Calibration…).")
+            return
         self.verdict.setText("Measuring the object's top…")
         self.scan_button.setEnabled(False)
         self._job = run_in_background(lambda: check_folder(run.folder, cal, run.inversion, run.plantar_flexion,

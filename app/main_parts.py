@@ -4,6 +4,7 @@ Result pages. Layout only; what they do is wired in app.main_window and its flow
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (
@@ -25,6 +26,9 @@ from anklescan.app import resources
 from anklescan.app.trial_form import TrialForm
 from anklescan.core.vocabulary import Severity
 
+if TYPE_CHECKING:
+    from anklescan.core.vocabulary import Trial
+
 PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT, PAGE_MARKS, PAGE_SESSION = range(5)
 
 
@@ -41,7 +45,7 @@ def signed(value: float, digits: int = 1) -> str:
     return text[1:] if float(text) == 0 else text
 
 
-def deg(value) -> str:
+def deg(value: float | None) -> str:
     return "—" if value is None else f"{signed(value)}°"
 
 
@@ -50,7 +54,7 @@ def deg(value) -> str:
 class Banner(QWidget):
     """An inline message above the current step: errors stay visible without blocking work."""
 
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.label = QLabel()
         self.label.setWordWrap(True)
@@ -67,10 +71,10 @@ class Banner(QWidget):
         row.addWidget(self.action)
         row.addWidget(close)
         self.kind: Severity | None = None
-        self._slot = None
+        self._slot: Callable[[], object] | None = None
         self.hide()
 
-    def show_message(self, kind: Severity, text: str, action: tuple[str, object] | None = None) -> None:
+    def show_message(self, kind: Severity, text: str, action: tuple[str, Callable[[], object]] | None = None) -> None:
         self.kind = Severity(kind)
         self.label.setText(text)
         self.label.setStyleSheet(resources.BANNER_STYLE[self.kind])
@@ -98,7 +102,7 @@ class Banner(QWidget):
 class NewPatientDialog(QDialog):
     """Keeps what was typed when the code is refused, and says what a valid code is."""
 
-    def __init__(self, parent=None, exists=lambda code: False):
+    def __init__(self, parent: QWidget | None = None, exists: Callable[[str], bool] = lambda code: False) -> None:
         super().__init__(parent)
         from anklescan.core.records.store import PATIENT_CODE_RULE
         self.setWindowTitle("New patient")
@@ -163,7 +167,7 @@ class NewPatientDialog(QDialog):
 # ---------------------------------------------------------------------------- pages
 
 class ScanPage(QWidget):
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         heading = QLabel("Scan")
         heading.setObjectName("heading")
@@ -212,7 +216,7 @@ class ScanPage(QWidget):
 
 
 class ResultPage(QWidget):
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         heading = QLabel("Result")
         heading.setObjectName("heading")
@@ -237,17 +241,17 @@ class ResultPage(QWidget):
         outer.addWidget(self.angles)
         outer.addLayout(row)
 
-    def show_angles(self, trial) -> None:
+    def show_angles(self, trial: Trial | None) -> None:
         """The trial's mismatch, table and leg angles (± SD), or why there are none yet."""
         if trial is None or trial.table_inversion is None:
             self.angles.setText("Angles: not yet — the marks are placed or confirmed in 4  3-D marks."
                                 if trial is not None else "")
             return
 
-        def value(v, sd) -> str:  # sd None: a set value (the reference), not a measured one
+        def value(v: float | None, sd: float | None) -> str:  # sd None: a set value (the reference), not a measured one
             return "—" if v is None else f"{signed(v, 2)}°" + ("" if sd is None else f" ± {sd:.2f}°")
 
-        def pair(name: str, inv, inv_sd, pf, pf_sd) -> str:
+        def pair(name: str, inv: float | None, inv_sd: float | None, pf: float | None, pf_sd: float | None) -> str:
             one, two = value(inv, inv_sd), value(pf, pf_sd)
             return f"<tr><td>{name}</td><td align=right>{one}</td><td align=right>{two}</td></tr>"
         t = trial

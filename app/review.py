@@ -121,15 +121,15 @@ class Review(QObject):
         self.viewer_trial = trial_id
         rig = self.parts.rig()
         rig_cal = getattr(rig, "calibration", None) if rig is not None else None
-        if title is None and trial_id is not None and logic.store is not None:
-            title = self.trial_title(logic.trial(trial_id))
+        if title is None and trial_id is not None and (store := logic.store) is not None:
+            title = self.trial_title(store.trials.get(trial_id))  # logic.trial(trial_id), never None here
         page.open_cloud(cloud, None if rig_cal is None else rig_cal.camera.center, title or "Point cloud")
-        if trial_id is not None and logic.store is not None:
+        if trial_id is not None and (store := logic.store) is not None:
             # Marks are signed by the session's operator, or the logged-in user when none was entered.
-            trial = logic.trial(trial_id)
-            session = logic.session(trial.session_id)
+            trial = store.trials.get(trial_id)
+            session = store.sessions.get(trial.session_id)
             page.editor.operator = session.operator or os_user()
-            page.editor.load_trial(logic.store, trial_id)
+            page.editor.load_trial(store, trial_id)
             page.editor.set_snapper(self._snapper(trial, cloud, session))
         else:
             page.editor.load({})
@@ -157,24 +157,24 @@ class Review(QObject):
     def _snapper(self, trial: Trial, cloud: PointCloud, session: Session) -> TrialSnapper | None:
         """Snaps clicks to the marks' disks, when the trial has its capture and calibration."""
         from anklescan.app.mark_snap import TrialSnapper
-        cal = self.parts.session.trial_calibration(trial, session)
-        if not trial.capture_path or cal is None:
+        cal, store = self.parts.session.trial_calibration(trial, session), self.parts.session.store
+        if not trial.capture_path or cal is None or store is None:  # a calibration was read: store is open
             return None
-        return TrialSnapper(self.parts.session.store.files.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
+        return TrialSnapper(store.files.resolve(trial.capture_path), cal, cloud, session.mark_diameter_mm)
 
     def open_trial(self, trial_id: int | None, switch_tab: bool = True) -> bool:
         """Open a trial's cloud and marks in the 3-D view (from the trial list or a plot)."""
         from anklescan.core.scan.pointcloud import read_ply
         parts, logic = self.parts, self.parts.session
-        trial = logic.trial(trial_id)
-        if trial is None:
+        trial, store = logic.trial(trial_id), logic.store
+        if trial is None or store is None:  # no store: no trial either
             return False
         parts.records.select_trial_item(trial.id)
         if not trial.cloud_path:
             parts.banner.show_message(Severity.INFO, f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
-            cloud = read_ply(logic.store.files.resolve(trial.cloud_path))
+            cloud = read_ply(store.files.resolve(trial.cloud_path))
         except Exception as exc:
             parts.banner.show_message(Severity.ERROR, f"The point cloud of trial {trial.id} could not be read: {exc}")
             return False

@@ -15,9 +15,11 @@ rounded to 0.1°), so screen and PDF agree.
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 import pyqtgraph as pg
@@ -29,12 +31,25 @@ from anklescan.core.records.report import COLOURS, MIN_HALF_SPAN_DEG, UNCONFIRME
 from anklescan.core.records.study_stats import is_counted
 from anklescan.core.vocabulary import StudyRow
 
+if TYPE_CHECKING:
+    from anklescan.core.records.store import Store
+
 AXES = {"inversion": "Mismatch of inversion (°)", "plantar_flexion": "Mismatch of plantar flexion (°)"}
 PF_LABEL = "Reference plantar flexion (°)"
 
 
-def _setting(v):
-    return None if v is None else round(float(v), 1)
+def _setting(v: float) -> float:
+    return round(float(v), 1)
+
+
+class _Spot(TypedDict):
+    """One trial's point, as pyqtgraph's ScatterPlotItem.addPoints takes it."""
+
+    pos: tuple[float, float | None]  # (reference plantar flexion + the curve's offset, mismatch)
+    data: StudyRow
+    brush: Any  # QBrush (pyqtgraph.mkBrush): pyqtgraph has no types
+    pen: Any  # QPen (pyqtgraph.mkPen)
+    size: float
 
 
 def measured_rows(rows: Iterable[StudyRow]) -> list[StudyRow]:
@@ -49,9 +64,11 @@ def marks_confirmed(r: StudyRow) -> bool:
 
 def group(rows: Iterable[StudyRow], axis: str) -> dict[float, dict[float, list[StudyRow]]]:
     """inversion setting → plantar-flexion setting → the trials (rows) measured there."""
-    out: dict = defaultdict(lambda: defaultdict(list))
+    out: defaultdict[float, dict[float, list[StudyRow]]] = defaultdict(lambda: defaultdict(list))
     for r in measured_rows(rows):
-        out[_setting(r.ref_inversion)][_setting(r.ref_plantar_flexion)].append(r)
+        inv, pf = r.ref_inversion, r.ref_plantar_flexion
+        if inv is not None and pf is not None:  # measured_rows kept only rows with both
+            out[_setting(inv)][_setting(pf)].append(r)  # both levels are defaultdicts
     return out
 
 
@@ -112,7 +129,8 @@ class SessionView(QWidget):
 
     @property
     def axis(self) -> str:
-        return self.axis_box.currentData()
+        axis: str = self.axis_box.currentData()  # a key of AXES (the box's items)
+        return axis
 
     # ---- data ----------------------------------------------------------------------------
     def set_rows(self, rows: list[StudyRow], title: str = "") -> None:
@@ -130,7 +148,7 @@ class SessionView(QWidget):
                           + (f"; {left_out} left out (cancelled, failed, excluded or still scanning)" if left_out else ""))
         self.redraw()
 
-    def load_sessions(self, store, session_ids) -> None:
+    def load_sessions(self, store: Store, session_ids: Iterable[int]) -> None:
         ids = {int(i) for i in session_ids}
         self.set_rows([r for r in store.reports.study_rows() if r.session_id in ids])
 
@@ -148,8 +166,9 @@ class SessionView(QWidget):
         p.setLabel("left", AXES[axis])
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         data = group(self.rows, axis)
-        self.trial_points = {}
-        values, xs = [], []
+        self.trial_points: dict[int, tuple[float, float | None]] = {}  # trial id -> where its point is drawn
+        values: list[float | None] = []
+        xs: list[float] = []
         for k, inv in enumerate(sorted(data)):
             colour = COLOURS[k % len(COLOURS)]
             dx = (k - (len(data) - 1) / 2) * 0.6  # curves side by side, as in the PDF report
@@ -167,14 +186,17 @@ class SessionView(QWidget):
         if not data:
             self._no_data(p)
 
-    def _add_trial_points(self, plot, per_pf, dx, colour, axis) -> list[dict]:
+    def _add_trial_points(self, plot: pg.PlotItem, per_pf: Mapping[float, list[StudyRow]], dx: float, colour: str,
+                          axis: str) -> list[_Spot]:
         """One point per trial: filled when its marks are manual or confirmed, hollow when
         they are automatic and not confirmed yet. Hover names the trial; click opens it."""
         fill, clear = pg.mkBrush(pg.mkColor(colour).lighter(170)), pg.mkBrush(0, 0, 0, 0)
-        spots = [{"pos": (pf + dx, r.mismatch(axis)), "data": r,
-                  **({"brush": fill, "pen": pg.mkPen(colour), "size": 7} if marks_confirmed(r) else
-                     {"brush": clear, "pen": pg.mkPen(colour, width=1.6), "size": 9})}
-                 for pf, rows in per_pf.items() for r in rows]
+
+        def spot(pos: tuple[float, float | None], r: StudyRow) -> _Spot:
+            if marks_confirmed(r):
+                return _Spot(pos=pos, data=r, brush=fill, pen=pg.mkPen(colour), size=7)
+            return _Spot(pos=pos, data=r, brush=clear, pen=pg.mkPen(colour, width=1.6), size=9)
+        spots = [spot((pf + dx, r.mismatch(axis)), r) for pf, rows in per_pf.items() for r in rows]
         scatter = pg.ScatterPlotItem(hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
                                      tip=lambda x, y, data: trial_tip(data, axis))
         scatter.addPoints(spots)
@@ -183,14 +205,14 @@ class SessionView(QWidget):
         return spots
 
     @staticmethod
-    def _legend_unconfirmed(plot, data) -> None:
+    def _legend_unconfirmed(plot: pg.PlotItem, data: Mapping[float, Mapping[float, list[StudyRow]]]) -> None:
         if any(not marks_confirmed(r) for per_pf in data.values() for rows in per_pf.values() for r in rows):
             # an empty ScatterPlotItem: a PlotDataItem without data draws its legend symbol filled
             plot.addItem(pg.ScatterPlotItem(symbol="o", size=9, brush=pg.mkBrush(0, 0, 0, 0),
                                             pen=pg.mkPen("#59636e", width=1.6), name=UNCONFIRMED_LABEL))
 
     @staticmethod
-    def _set_y_span(plot, values, xs=()) -> None:
+    def _set_y_span(plot: pg.PlotItem, values: Iterable[float | None], xs: Sequence[float] = ()) -> None:
         """Zero and every value in view, never less than ±MIN_HALF_SPAN_DEG; the settings
         (x) over at least MIN_X_SPAN_DEG, so one setting is not stretched across the plot."""
         lo, hi = span_limits(values, MIN_HALF_SPAN_DEG)
@@ -198,7 +220,7 @@ class SessionView(QWidget):
         if len(xs):
             plot.setXRange(*x_limits(xs), padding=0)
 
-    def _point_clicked(self, _item, points, _ev=None) -> None:
+    def _point_clicked(self, _item: object, points: Sequence[pg.SpotItem], _ev: object = None) -> None:
         if len(points):
             self.trialActivated.emit(int(points[0].data().trial_id))
 
@@ -234,7 +256,7 @@ class SessionView(QWidget):
             p.addItem(t)
         self._set_y_span(p, [*lo, *hi, *(mean - sd), *(mean + sd)], [*(x - 0.8), *(x + 1.4)])
 
-    def _no_data(self, plot) -> None:
+    def _no_data(self, plot: pg.PlotItem) -> None:
         if self.rows and not any(is_counted(r) for r in self.rows):
             text = "no counted trials: every trial is cancelled, failed or excluded"
         else:
@@ -245,7 +267,7 @@ class SessionView(QWidget):
         self._set_y_span(plot, [], [0.0])
 
     # ---- export --------------------------------------------------------------------------
-    def export(self, path) -> Path:
+    def export(self, path: str | os.PathLike[str]) -> Path:
         """Both plots as one PNG (2× for print) or SVG, chosen by the file's suffix."""
         path = Path(path)
         if path.suffix.lower() == ".svg":

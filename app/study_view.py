@@ -189,7 +189,7 @@ class StudyGui(QObject):
         paths = self._store_paths()
         if paths is None:
             return
-        codes = [p.code for p in self.parts.session.store.patients.all()]
+        codes = [p.code for p in self.parts.session.patients(include_archived=True)]
         dialog = StudyReportDialog(codes, Path(self.parts.data_folder()).parent / "study-report",
                                    self.parts.dialog_parent)
         if dialog.exec() != QDialog.DialogCode.Accepted:

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
@@ -20,8 +22,27 @@ from anklescan.app.logic.settings import AppSettings, CalibrationVerdict
 
 if TYPE_CHECKING:
     from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.calibration.procedures.board import BoardCalibration
+    from anklescan.core.calibration.procedures.calibrate import CalibrationReport
+    from anklescan.core.calibration.procedures.levelling import TableTop
+    from anklescan.core.calibration.procedures.verification import VerificationResult
+    from anklescan.core.records.store import Store
+    from anklescan.core.scan.capture import Image
+    from anklescan.core.scan.decode import DecodeResult
+    from anklescan.core.vocabulary import CalibrationRecord
+    from anklescan.hardware.camera import Camera
+    from anklescan.hardware.sim_scene import Scene
+    from anklescan.hardware.simrig import SimulatedCamera
 
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
+Folder = str | os.PathLike[str]  # a capture folder
+
+
+class RigView(Protocol):
+    """What the cameras here need of the app's rig (app.rig.Rig: not imported, it reaches for Qt)."""
+
+    simulated: bool
+    camera: Camera
 
 
 # ==== the current calibration =============================================================
@@ -81,8 +102,8 @@ def _now_iso() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
-def accept_calibration(cal, report, data_folder: Path, store, settings: AppSettings,
-                       source: str = "box") -> tuple[Path, int | None]:
+def accept_calibration(cal: Calibration, report: CalibrationReport | None, data_folder: Path, store: Store | None,
+                       settings: AppSettings, source: str = "box") -> tuple[Path, int | None]:
     """Save atomically, add to the database (versioned: a new row each time), make current."""
     from anklescan.core.calibration.model.file import calibration_to_dict, save_calibration
     created = _now_iso()
@@ -103,7 +124,7 @@ def accept_calibration(cal, report, data_folder: Path, store, settings: AppSetti
     return path, cid
 
 
-def use_stored_calibration(record, data_folder: Path, settings: AppSettings) -> Path:
+def use_stored_calibration(record: CalibrationRecord, data_folder: Path, settings: AppSettings) -> Path:
     """Make a calibration kept in the database (a CalibrationRecord) the current one: its own file
     when it is still in the data folder and the same, else the database's copy written next to
     the others. Its verification in the database is kept as the current verdict."""
@@ -129,14 +150,14 @@ def _make_current(settings: AppSettings, path: Path, cid: int | None, created: s
     s.sync()
 
 
-def _json_or_none(path: Path):
+def _json_or_none(path: Path) -> object:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
 
 
-def record_verification(result, settings: AppSettings, calibration_path: str | None = None) -> None:
+def record_verification(result: VerificationResult, settings: AppSettings, calibration_path: str | None = None) -> None:
     """Remember the verdict (the banner reads it) and keep the report next to the file."""
     from anklescan.core.atomic import write_text_atomic
     s = settings
@@ -150,9 +171,11 @@ def record_verification(result, settings: AppSettings, calibration_path: str | N
 
 
 # ==== what is in front of the camera ========================================================
-def _scene_camera(rig, scene, name: str):
+def _scene_camera(rig: RigView, scene: Scene, name: str) -> SimulatedCamera:
     from anklescan.hardware.simrig import SimulatedCamera
     cam = rig.camera
+    # the callers check hasattr(rig.camera, "rig"): of the cameras only a simulated one has its rig
+    assert isinstance(cam, SimulatedCamera), "a scene camera is made for the simulated rig only"
     sim = SimulatedCamera(cam.rig.with_scene(scene), cam.projector, name)
     for control, c in cam.controls().items():
         sim.set_control(control, c.value)
@@ -165,7 +188,7 @@ def _scene_camera(rig, scene, name: str):
 SIM_BOX_LIFTS_MM = (0.0, 300.0, 150.0)
 
 
-def box_camera(rig, position: int = 0):
+def box_camera(rig: RigView, position: int = 0) -> Camera:
     """The camera that photographs the box: on the simulated rig a simulated camera on the box
     scene (same devices, same projector image) with the box at ``position`` (``SIM_BOX_LIFTS_MM``);
     on real hardware the rig's own camera."""
@@ -178,7 +201,7 @@ def box_camera(rig, position: int = 0):
                          "Simulated camera (box)")
 
 
-def board_camera(rig, view: int, cols: int, rows: int, square: float):
+def board_camera(rig: RigView, view: int, cols: int, rows: int, square: float) -> Camera:
     """The camera that photographs the chessboard: on the simulated rig a simulated camera on board
     pose ``view`` (hardware.sim_board: the first flat on the table, then tilted; a person moves the
     board between scans); on real hardware the rig's own camera."""
@@ -189,8 +212,8 @@ def board_camera(rig, view: int, cols: int, rows: int, square: float):
     return _scene_camera(rig, views[view % len(views)][0], "Simulated camera (board)")
 
 
-def camera_size(camera) -> tuple[int, int]:
-    info = camera.info() if callable(getattr(camera, "info", None)) else camera.info
+def camera_size(camera: Camera) -> tuple[int, int]:
+    info = camera.info
     return int(info.width), int(info.height)
 
 
@@ -205,25 +228,27 @@ class BoxPoints:
     proj_xyz: np.ndarray
     proj_uv: np.ndarray  # (N, 2) column, row
     proj_cam_uv: np.ndarray  # (N, 2) camera pixel where each projector point was read
-    found: dict = field(default_factory=dict)
+    found: dict[int, np.ndarray] = field(default_factory=dict)  # marker id -> (4, 2) camera corners
 
 
-def observe(white, column, row) -> BoxPoints:
+def observe(white: np.ndarray, column: np.ndarray, row: np.ndarray | None) -> BoxPoints:
     from anklescan.core.calibration.procedures.box import observe_box
     obs = observe_box(white, column, row)
     return BoxPoints(np.asarray(white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
                      obs.proj_cam_uv, obs.found)
 
 
-def calibrate_box(points: BoxPoints, camera_size, projector_size, exclude_flagged: bool = True):
+def calibrate_box(points: BoxPoints, camera_size: tuple[int, int], projector_size: tuple[int, int],
+                  exclude_flagged: bool = True) -> tuple[Calibration, CalibrationReport]:
     from anklescan.core.calibration.procedures.calibrate import calibrate_points
     # radial_terms=2: real lenses (and the simulator's) need k2 beyond the paper's k1.
     return calibrate_points(points.cam_xyz, points.cam_uv, points.proj_xyz, points.proj_uv, camera_size=camera_size,
                             projector_size=projector_size, radial_terms=2, exclude_flagged=exclude_flagged)
 
 
-def kept(n: int, excluded) -> np.ndarray:
-    return np.setdiff1d(np.arange(n), np.asarray(list(excluded), int))
+def kept(n: int, excluded: Iterable[int]) -> np.ndarray:
+    out: np.ndarray = np.setdiff1d(np.arange(n), np.asarray(list(excluded), int))
+    return out
 
 
 def refine_click(image: np.ndarray, x: float, y: float, half_window: int) -> tuple[float, float]:
@@ -250,9 +275,9 @@ def manual_points() -> list[tuple[str, np.ndarray]]:
             for mid, X in sorted(marker_corners_world().items()) for k in range(4)]
 
 
-def cam_pixels_of(proj_xyz, cam_xyz, cam_uv) -> np.ndarray:
+def cam_pixels_of(proj_xyz: np.ndarray, cam_xyz: np.ndarray, cam_uv: np.ndarray) -> np.ndarray:
     """Where to draw each projector residual: its point's camera click, else nowhere (NaN)."""
-    out = []
+    out: list[np.ndarray | tuple[float, float]] = []
     for X in proj_xyz:
         hit = np.flatnonzero(np.all(np.isclose(cam_xyz, X), axis=1))
         out.append(cam_uv[hit[0]] if hit.size else (np.nan, np.nan))
@@ -260,26 +285,34 @@ def cam_pixels_of(proj_xyz, cam_xyz, cam_uv) -> np.ndarray:
 
 
 # ==== work on a capture folder (background jobs) =================================================
-def decode_folder(folder):
+def decode_folder(folder: Folder) -> DecodeResult:
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.decode import decode
     return decode(load_capture(folder))
 
 
-def white_frame(folder):
+def white_frame(folder: Folder) -> Image:
     from anklescan.core.scan.capture import load_capture
     from anklescan.core.scan.patterns import FrameKind
     cap = load_capture(folder)
     return cap.frame(cap.pattern_set.files[cap.pattern_set.index(FrameKind.WHITE)])
 
 
-def calibrate_folder(folder, camera_size, projector_size):
+class BoxFit(NamedTuple):
+    """A box calibration from its scans (a tuple: ``points, cal, report = calibrate_folders(...)``)."""
+
+    points: BoxPoints
+    calibration: Calibration
+    report: CalibrationReport
+
+
+def calibrate_folder(folder: Folder, camera_size: tuple[int, int], projector_size: tuple[int, int]) -> BoxFit:
     """(BoxPoints, Calibration, report) from a box scan; BoxCalibrationRefused (its one line says what
     to do) when the residuals are far beyond the corners' noise."""
     from anklescan.core.calibration.procedures.box import BoxCapture, BoxPose, check_residuals, observe_box
     from anklescan.core.calibration.procedures.frame import FRAME_KEY, FrameSource
     decoded = decode_folder(folder)
-    obs = observe_box(decoded.white, decoded.column, decoded.row)
+    obs = observe_box(decoded.white, decoded.require_column(), decoded.row)
     pts = BoxPoints(np.asarray(decoded.white, np.float32), obs.cam_xyz, obs.cam_uv, obs.proj_xyz, obs.proj_uv,
                     obs.proj_cam_uv, obs.found)
     cal, report = calibrate_box(pts, camera_size, projector_size)
@@ -288,10 +321,11 @@ def calibrate_folder(folder, camera_size, projector_size):
     cal.extra["source"] = f"calibration box scan {Path(folder).name}"
     cal.extra["box"] = {"markers_found": sorted(pts.found), "camera_points": len(pts.cam_xyz),
                         "projector_points": len(pts.proj_xyz), "capture": str(folder)}
-    return pts, cal, report
+    return BoxFit(pts, cal, report)
 
 
-def calibrate_folders(folders, camera_size, projector_size):
+def calibrate_folders(folders: Sequence[Folder], camera_size: tuple[int, int],
+                      projector_size: tuple[int, int]) -> BoxFit:
     """(BoxPoints of all positions, drawn on the last scan's white frame, Calibration, report) from
     box scans at several positions in one fit (core.calibration.procedures.box.calibrate_from_box_captures;
     refused like one scan)."""
@@ -306,23 +340,24 @@ def calibrate_folders(folders, camera_size, projector_size):
                     np.concatenate([c.pose.apply(o.proj_xyz) for c, o in zip(caps, obs, strict=True)]),
                     np.concatenate([o.proj_uv for o in obs]), np.concatenate([o.proj_cam_uv for o in obs]),
                     obs[-1].found)
-    return pts, cal, report
+    return BoxFit(pts, cal, report)
 
 
-def calibrate_board_folders(folders, cols, rows, square):
+def calibrate_board_folders(folders: Sequence[Folder], cols: int, rows: int,
+                            square: float) -> tuple[BoardCalibration, Image]:
     """(board calibration result, the first view's white frame)."""
     from anklescan.core.calibration.procedures.board import calibrate_from_board_captures
     return calibrate_from_board_captures(folders, cols, rows, square), white_frame(folders[0])
 
 
-def check_board_folder(folder, cols, rows) -> Path:
+def check_board_folder(folder: Folder, cols: int, rows: int) -> Path:
     """The folder, once the chessboard's corners are found in its white frame (raises otherwise)."""
     from anklescan.core.calibration.procedures.board import find_corners
     find_corners(white_frame(folder), cols, rows)
     return Path(folder)
 
 
-def level_folder(folder, cal, table_size: str = ""):
+def level_folder(folder: Folder, cal: Calibration, table_size: str = "") -> tuple[Calibration, TableTop]:
     """(levelled calibration, TableTop) from a scan of the level reference table of ``table_size`` ("LxW" mm)."""
     from anklescan.core.calibration.procedures.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
     from anklescan.core.scan.capture import load_capture
@@ -330,8 +365,8 @@ def level_folder(folder, cal, table_size: str = ""):
     return level_calibration(cal, load_capture(folder), table)
 
 
-def verify_folder(folder, cal):
+def verify_folder(folder: Folder, cal: Calibration) -> tuple[np.ndarray, VerificationResult]:
     """(white frame, VerificationResult) of a verification scan of the box."""
     from anklescan.core.calibration.procedures.verification import compare_distances, measure_centres
     decoded = decode_folder(folder)
-    return decoded.white, compare_distances(measure_centres(cal, decoded.white, decoded.column, decoded.row))
+    return decoded.white, compare_distances(measure_centres(cal, decoded.white, decoded.require_column(), decoded.row))

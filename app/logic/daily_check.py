@@ -46,10 +46,7 @@ def check_camera(rig: _RigView, inversion_deg: float, plantar_flexion_deg: float
         return rig.camera
     from anklescan.app.logic.calibration import _scene_camera
     from anklescan.hardware.sim_check import check_scene
-    # app.logic.calibration is not strict-typed yet: its helper's result is Any to mypy
-    camera: Camera = _scene_camera(rig, check_scene(inversion_deg, plantar_flexion_deg),
-                                   "Simulated camera (check object)")
-    return camera
+    return _scene_camera(rig, check_scene(inversion_deg, plantar_flexion_deg), "Simulated camera (check object)")
 
 
 def new_check_folder(data_folder: Path, now: _dt.datetime | None = None) -> Path:

@@ -141,7 +141,7 @@ class ScanLogic:
         self.notice = session.notice
         self.check_warning = ""  # why the rig is not known good, when a scan starts anyway (daily check)
         self.mixed_note = ""     # the trial joins trials of the other kind (simulated / real): said at its end
-        self.trial_finished = Event()  # (TrialFinished): a scan ran to the end and is recorded
+        self.trial_finished: Event[[TrialFinished]] = Event()  # a scan ran to the end and is recorded
 
     def begin(self, session_id: int | None, entry: TrialEntryView, mark_diameter_mm: float | None) -> int:
         """Create the scan's trial; returns the session it belongs to (a new one when the entry's
@@ -201,6 +201,8 @@ class ScanLogic:
     def plan(self, projector_size: tuple[int, int], device: str) -> ScanPlan:
         """What the begun trial's scan projects, where it writes and how it is measured."""
         s, store = self.session, self.session.store
+        # begin() refused a trial without both; the window plans only the trial it began
+        assert store is not None and s.calibration is not None and self.trial_id is not None, "plan() before begin()"
         trial = store.trials.get(self.trial_id)
         folder = store.files.trial_dir(trial.id, create=True) / "capture"
         return ScanPlan(self.pattern_set(projector_size), folder, folder.parent / "cloud.ply", s.calibration,
