@@ -17,15 +17,33 @@ import datetime as _dt
 import json
 import os
 import time
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
 from anklescan.core.atomic import claim_output_dir, copy_private, make_tree_private, seal_output_dir, write_text_atomic
-from anklescan.core.vocabulary import CONDITIONS, LABEL_KEYS, Axis, MarkSource
+from anklescan.core.vocabulary import (
+    CONDITIONS,
+    LABEL_KEYS,
+    Axis,
+    JsonObject,
+    MarkKind,
+    MarkLabel,
+    MarkSource,
+    Trial,
+    parse_label,
+)
 from anklescan.hardware.sim_patient import PATIENTS, SimPatient, table_setting  # noqa: F401  (the patient model)
+
+if TYPE_CHECKING:
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.measure.pipeline import MarkDiameter
+    from anklescan.core.records.store import Store
 
 # The output folder's marker names every file the demo wrote (core.atomic.claim_output_dir):
 # the next demo run replaces exactly those, and refuses a folder holding anything else.
@@ -39,6 +57,91 @@ PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
 # (sprain history vs none) — the study's two comparisons in three sessions, under two minutes
 SESSIONS = (("SIM-01", "barefoot"), ("SIM-01", "shoes"), ("SIM-02", "barefoot"))
 DEMO_SCALE = 0.75  # marks are found reliably from 0.75 up; 0.75 keeps the demo under two minutes
+
+Progress = Callable[[str], object]  # where the lines go: print, the command's quiet-aware printer, a test's list
+
+
+@dataclass(frozen=True)
+class Drift:
+    """A trial's sway: the patient drifts ``mm`` in all along ``direction`` (a horizontal unit vector)."""
+
+    mm: float
+    direction: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class TrialJob:
+    """One trial for a scanning worker (pickled to it): what to simulate, where to save it, how to measure it."""
+
+    label: str
+    table: tuple[float, float]  # the table as the simulated patient set it: (inversion, plantar flexion)
+    scale: float
+    seed: int
+    capture: str  # the capture folder to write
+    cloud: str  # the PLY to write
+    calibration: JsonObject
+    accuracy: bool  # also compare the cloud with the simulator's truth
+    marks: tuple[MarkKind, float, bool]  # the patient's marks: kind, diameter (mm), diameter given by the clinic
+    mark_diameter: float | None  # the session's mark diameter, None: measured
+    sway: Drift | None = None  # None: the patient stands still
+    camera: str = "webcam"  # a key of hardware.sim_sway.FRAME_S
+
+
+class MotionCheck(TypedDict):
+    """A trial's measured motion beside the simulator's truth."""
+
+    mm: float | None
+    sd: float | None
+    flagged: bool
+    duration_s: float | None
+    true_mm: float
+
+
+class JointMatrix(TypedDict):
+    """``JointCovariance`` as plain lists, to come back from a worker."""
+
+    labels: list[MarkLabel]
+    matrix: list[list[float]]
+
+
+class TrialResult(TypedDict):
+    """What a scanning worker sends back for one trial (plain data: it crosses processes)."""
+
+    motion: MotionCheck
+    label: str
+    complete: bool
+    message: str
+    missing: list[str]
+    marks: dict[str, list[float]]  # label key -> centre (mm)
+    covariances: dict[str, list[list[float]]]  # label key -> 3x3 (mm²)
+    joint: JointMatrix | None
+    warnings: list[str]
+    angles: dict[str, dict[str, float]]
+    mark_type: MarkKind
+    mark_diameter: MarkDiameter | None
+    mark_errors_mm: dict[str, float]
+    angle_errors_deg: dict[str, float]
+    accuracy: dict[str, JsonObject] | None  # hardware.sim_accuracy.as_dict, on the trial chosen for it
+    seconds: float
+
+
+@dataclass(frozen=True)
+class BoxCalibration:
+    """The simulated scanner's calibration from the box scan, and its worse RMS (px) of camera and projector."""
+
+    calibration: JsonObject
+    rms: float
+
+
+class PlannedTrial(TypedDict):
+    """One trial of ``study_plan()``."""
+
+    patient: SimPatient
+    condition: str
+    ref: tuple[float, float]  # the reference setting: (inversion, plantar flexion)
+    visit: int  # days after the first visit
+    table: tuple[float, float]  # the table as the simulated patient set it
+    seed: int
 
 
 # ---------------------------------------------------------------------------- workers
@@ -57,10 +160,10 @@ def _worker_init(scale: float | None = None) -> None:
         SimRig(leg_scene(0.0, 0.0), scale=scale).warm_camera_rays()
 
 
-_CALIBRATIONS: dict = {}
+_CALIBRATIONS: dict[str, Calibration] = {}
 
 
-def _calibration(obj: dict):
+def _calibration(obj: JsonObject) -> Calibration:
     """One Calibration object per worker, so its triangulation cache is built once, not per trial."""
     from anklescan.core.calibration.model.file import calibration_from_dict
 
@@ -70,7 +173,7 @@ def _calibration(obj: dict):
     return _CALIBRATIONS[key]
 
 
-def _scan_trial(job: dict) -> dict:
+def _scan_trial(job: TrialJob) -> TrialResult:
     """Simulate one trial's scan, save it, measure it; compare with the truth (demo only)."""
     from anklescan.core.measure.pipeline import measure_capture
     from anklescan.core.scan.capture import load_capture, save_capture
@@ -84,21 +187,23 @@ def _scan_trial(job: dict) -> dict:
     from anklescan.hardware.simrig import SimRig
 
     t0 = time.perf_counter()
-    mark_type, diameter, _ = job["marks"]
-    scene = leg_scene(*job["table"], mark_type=mark_type, mark_radius=diameter / 2)
-    rig = SimRig(scene, scale=job["scale"], seed=job["seed"])
-    cal = _calibration(job["calibration"])
+    mark_type, diameter, _ = job.marks
+    scene = leg_scene(*job.table, mark_type=mark_type, mark_radius=diameter / 2)
+    rig = SimRig(scene, scale=job.scale, seed=job.seed)
+    cal = _calibration(job.calibration)
     pset = make_pattern_set("default", rig.projector.width, rig.projector.height, axes=scan_axes(cal),
                             motion_refs=default_motion_refs("default"))
-    frame_s = FRAME_S[job.get("camera", "webcam")]
-    drift, direction = job.get("sway") or (0.0, (1.0, 0.0, 0.0))
-    sway = Sway.drift(drift, len(pset.frames) * frame_s, direction)
+    frame_s = FRAME_S[job.camera]
+    drift = job.sway or Drift(0.0, (1.0, 0.0, 0.0))
+    sway = Sway.drift(drift.mm, len(pset.frames) * frame_s, drift.direction)
     frames, times = swaying_capture(rig, render_all(pset), sway, frame_s)
-    save_capture(job["capture"], pset, frames,
-                 metadata={"device": "simulated rig", "trial": job["label"], "duration_s": len(frames) * frame_s})
-    capture = load_capture(job["capture"])
-    result = measure_capture(capture, cal, job["mark_diameter"])
-    write_ply(job["cloud"], result.cloud)
+    save_capture(job.capture, pset, frames,
+                 metadata={"device": "simulated rig", "trial": job.label, "duration_s": len(frames) * frame_s})
+    capture = load_capture(job.capture)
+    result = measure_capture(capture, cal, job.mark_diameter)
+    # measure_capture always sets the cloud and the motion (None only in results built elsewhere)
+    assert result.cloud is not None and result.motion is not None
+    write_ply(job.cloud, result.cloud)
     true_marks = {k: np.asarray(m.centre) for k, m in scene.marks.items()}
     true_angles = angles_from_marks(true_marks)
     found = result.marks.labelled
@@ -106,7 +211,7 @@ def _scan_trial(job: dict) -> dict:
     return {
         "motion": {"mm": motion.value_mm, "sd": motion.sd_mm, "flagged": result.motion_flagged,
                    "duration_s": result.duration_s, "true_mm": true_largest_displacement(rig, sway, times)},
-        "label": job["label"],
+        "label": job.label,
         "complete": result.complete,
         "message": "" if result.complete else result.marks.message(),
         "missing": [k for k in LABEL_KEYS if k not in result.marks.labelled],
@@ -120,7 +225,7 @@ def _scan_trial(job: dict) -> dict:
         "mark_diameter": result.mark_diameter(),
         "mark_errors_mm": {k: float(np.linalg.norm(np.asarray(m.centre) - true_marks[k])) for k, m in found.items()},
         "angle_errors_deg": {k: float(v.value - true_angles[k]) for k, v in result.angles.items()},
-        "accuracy": as_dict(evaluate(result.cloud, rig.truth())) if job["accuracy"] else None,
+        "accuracy": as_dict(evaluate(result.cloud, rig.truth())) if job.accuracy else None,
         "seconds": time.perf_counter() - t0,
     }
 
@@ -134,7 +239,7 @@ def _warm_pool(scale: float) -> ProcessPoolExecutor:
     return pool
 
 
-def _calibrate(out: Path, scale: float, progress) -> dict:
+def _calibrate(out: Path, scale: float, progress: Progress) -> BoxCalibration:
     from anklescan.core.calibration.model.file import calibration_to_dict, save_calibration
     from anklescan.core.calibration.procedures.box import calibrate_from_box_capture
     from anklescan.core.scan.capture import save_capture
@@ -151,7 +256,7 @@ def _calibrate(out: Path, scale: float, progress) -> dict:
     cam, proj = report.camera, report.projector
     progress(f"calibrated from the box: camera {cam.n_points} points RMS {cam.rms_px:.3f} px, "
              f"projector {proj.n_points} points RMS {proj.rms_px:.3f} px -> {out / 'calibration.json'}")
-    return {"calibration": calibration_to_dict(cal), "rms": max(cam.rms_px, proj.rms_px)}
+    return BoxCalibration(calibration_to_dict(cal), max(cam.rms_px, proj.rms_px))
 
 
 # ---------------------------------------------------------------------------- the study
@@ -167,20 +272,20 @@ def _finish_out(out: Path) -> None:
     seal_output_dir(out, OUTPUT_COMMAND)
 
 
-def _sway(rng, sway_mm: float):
+def _sway(rng: np.random.Generator, sway_mm: float) -> Drift | None:
     """One trial in three drifts, by a random amount up to ``sway_mm`` in a random horizontal direction."""
     amount, angle, moves = rng.uniform(0.0, sway_mm), rng.uniform(0, 2 * np.pi), rng.uniform() < 1 / 3
-    return (float(amount), (float(np.cos(angle)), float(np.sin(angle)), 0.0)) if (sway_mm > 0 and moves) else None
+    return Drift(float(amount), (float(np.cos(angle)), float(np.sin(angle)), 0.0)) if (sway_mm > 0 and moves) else None
 
 
-def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm: float = 0.0,
-          camera: str = "webcam") -> list[tuple[dict, int]]:
+def _plan(store: Store, cal_id: int, quick: bool, scale: float, cal_dict: JsonObject, sway_mm: float = 0.0,
+          camera: str = "webcam") -> list[tuple[TrialJob, int]]:
     sway_rng = np.random.default_rng(18)
     rng = np.random.default_rng(2026)
     sessions = [s for s in SESSIONS if s[1] == "barefoot"] if quick else SESSIONS
     inversions = (0.0, 20.0) if quick else INVERSIONS
     pfs = (-20.0, 20.0) if quick else PLANTAR_FLEXIONS
-    jobs = []
+    jobs: list[tuple[TrialJob, int]] = []
     for p in PATIENTS:
         store.patients.add(p.code, sprain_count=p.sprain_count, last_sprain=p.last_sprain,
                           affected_side="right" if p.sprain_count else None, notes=p.notes)
@@ -194,38 +299,42 @@ def _plan(store, cal_id: int, quick: bool, scale: float, cal_dict: dict, sway_mm
                     trial = store.trials.add(session.id, ref_inversion=inv, ref_plantar_flexion=pf)
                     table = table_setting(p, condition, inv, pf, rng)
                     folder = store.files.trial_dir(trial.id, create=True)
-                    jobs.append(({"label": f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
-                                  "table": table, "scale": scale, "seed": int(rng.integers(2**31)),
-                                  "capture": str(folder / "capture"), "cloud": str(folder / "cloud.ply"),
-                                  "calibration": cal_dict, "accuracy": False, "marks": p.marks,
-                                  "mark_diameter": session.mark_diameter_mm,
-                                  "sway": _sway(sway_rng, sway_mm), "camera": camera}, trial.id))
+                    jobs.append((TrialJob(label=f"{p.code} {condition:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
+                                          table=table, scale=scale, seed=int(rng.integers(2**31)),
+                                          capture=str(folder / "capture"), cloud=str(folder / "cloud.ply"),
+                                          calibration=cal_dict, accuracy=False, marks=p.marks,
+                                          mark_diameter=session.mark_diameter_mm,
+                                          sway=_sway(sway_rng, sway_mm), camera=camera), trial.id))
     # the scanner's accuracy against the truth: on the first trial whose patient stood still
-    still = [j for j, _ in jobs if not j["sway"]]
+    still = [i for i, (j, _) in enumerate(jobs) if j.sway is None]
     if still:
-        still[0]["accuracy"] = True
+        job, trial_id = jobs[still[0]]
+        jobs[still[0]] = (replace(job, accuracy=True), trial_id)
     return jobs
 
 
-def _record(store, trial_id: int, job: dict, res: dict) -> None:
+def _record(store: Store, trial_id: int, job: TrialJob, res: TrialResult) -> None:
     store.trials.set_simulated(trial_id)  # a simulated patient: every report and CSV says so
-    store.trials.set_files(trial_id, capture=job["capture"], cloud=job["cloud"])
+    store.trials.set_files(trial_id, capture=Path(job.capture), cloud=Path(job.cloud))
     m = res["motion"]
     store.trials.set_motion(trial_id, m["mm"], m["sd"], scan_duration_s=m["duration_s"])
     if res["marks"]:
         # store the measured marks; the store recomputes the angles and mismatch from them
         # the marks' joint covariance (calibration, model, mark centres, motion: SPEC §3) gives the SD
+        # a copy typed as update_marks takes the marks (a Mapping's key type is invariant)
+        marks: dict[MarkLabel | str, list[float]] = {k: c for k, c in res["marks"].items()}
         joint = res.get("joint")
         if joint is not None:
             from anklescan.core.measure.angles import JointCovariance
-            store.results.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo", sigma_mm=0.0,
+            store.results.update_marks(trial_id, marks, MarkSource.AUTO, "anklescan demo", sigma_mm=0.0,
                                joint=JointCovariance(tuple(joint["labels"]), np.asarray(joint["matrix"])))
         else:
-            store.results.update_marks(trial_id, res["marks"], MarkSource.AUTO, "anklescan demo",
-                               sigma_mm={k: np.asarray(c) for k, c in res["covariances"].items()})
+            store.results.update_marks(trial_id, marks, MarkSource.AUTO, "anklescan demo",
+                               sigma_mm={parse_label(k): np.asarray(c) for k, c in res["covariances"].items()})
 
 
-def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO_SCALE, sway_mm: float = 0.0,
+def run_demo(out: Path, quick: bool = False, progress: Progress = print, scale: float = DEMO_SCALE,
+             sway_mm: float = 0.0,
              camera: str = "webcam") -> int:
     from anklescan.core.records.report import write_session_report, write_study_report
     from anklescan.core.records.store import Store
@@ -237,10 +346,10 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
         progress("calibrating the simulated scanner from a scan of the calibration box (about 20 s)…")
         cal = _calibrate(out, scale, progress)
-        cal_id = store.calibrations.add(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
-        jobs = _plan(store, cal_id, quick, scale, cal["calibration"], sway_mm, camera)
+        cal_id = store.calibrations.add(cal.calibration, rms=cal.rms, source="demo: simulated box scan").id
+        jobs = _plan(store, cal_id, quick, scale, cal.calibration, sway_mm, camera)
         progress(f"scanning {len(jobs)} trials of {len(PATIENTS)} simulated patients on {os.cpu_count()} cores")
-        results = []
+        results: list[TrialResult] = []
         for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]),
                                                        strict=True), start=1):
             _record(store, trial_id, job, res)
@@ -248,7 +357,7 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
             progress(f"[{k}/{len(jobs)}] {_clinical_line(res, store.trials.get(trial_id))}")
             if res["accuracy"]:
                 acc = res["accuracy"]["subject"]
-                copy_private(job["cloud"], out / "scan.ply")
+                copy_private(job.cloud, out / "scan.ply")
                 progress(f"scanner accuracy vs ground truth (leg, foot, table, marks), box calibration: "
                          f"RMS {acc['rms_mm']:.3f} mm, outliers {100 * acc['outlier_fraction']:.3f} %, "
                          f"coverage {100 * acc['coverage']:.1f} % -> {out / 'scan.ply'}")
@@ -263,10 +372,10 @@ def run_demo(out: Path, quick: bool = False, progress=print, scale: float = DEMO
     return 0  # plates left for manual placement are a normal outcome, not a failure of the run
 
 
-def _clinical_line(res: dict, trial) -> str:
+def _clinical_line(res: TrialResult, trial: Trial) -> str:
     """One trial as a clinician reads it: who, the reference, the mismatch, and what to do (the
     comparison with the simulator's truth goes to summary.json, not here)."""
-    def deg(v) -> str:
+    def deg(v: float | None) -> str:
         if v is None:
             return "—"
         text = f"{v:+.1f}"
@@ -281,7 +390,7 @@ def _clinical_line(res: dict, trial) -> str:
     return text
 
 
-def _summarise(results: list[dict], out: Path, progress) -> None:
+def _summarise(results: list[TrialResult], out: Path, progress: Progress) -> None:
     mark_err = [e for r in results for e in r["mark_errors_mm"].values()]
     ang_err = [abs(e) for r in results for e in r["angle_errors_deg"].values()]
     complete = sum(r["complete"] for r in results)
@@ -330,12 +439,13 @@ STUDY_PLANTAR_FLEXIONS = (-20.0, 0.0, 20.0)
 STUDY_VISITS = (0, 28)   # days after the first visit
 
 
-def study_plan(patients=STUDY_PATIENTS, inversions=STUDY_INVERSIONS, pfs=STUDY_PLANTAR_FLEXIONS,
-               seed: int = 2027, visits=STUDY_VISITS) -> list[dict]:
+def study_plan(patients: Sequence[SimPatient] = STUDY_PATIENTS, inversions: Sequence[float] = STUDY_INVERSIONS,
+               pfs: Sequence[float] = STUDY_PLANTAR_FLEXIONS, seed: int = 2027,
+               visits: Sequence[int] = STUDY_VISITS) -> list[PlannedTrial]:
     """Every trial of the simulated study, in scanning order: patient, visit (days after the first),
     condition, reference setting, the table setting the simulated patient chose, and the simulator's seed."""
     rng = np.random.default_rng(seed)
-    plan = []
+    plan: list[PlannedTrial] = []
     for visit in visits:
         for p in patients:
             for condition in CONDITIONS:
@@ -347,7 +457,8 @@ def study_plan(patients=STUDY_PATIENTS, inversions=STUDY_INVERSIONS, pfs=STUDY_P
     return plan
 
 
-def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: list[dict] | None = None) -> int:
+def run_study_demo(out: Path, progress: Progress = print, scale: float = DEMO_SCALE,
+                   plan: list[PlannedTrial] | None = None) -> int:
     """The whole simulated study: box calibration, every trial of ``study_plan()`` scanned and
     measured by the product's pipeline, the study report (with the group page's tests), the CSV and
     one session report per patient (barefoot and shoes)."""
@@ -360,11 +471,12 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     out = _prepare_out(out)
     progress(f"simulated study at scale {scale}: {len({t['patient'].code for t in plan})} patients, "
              f"{len(plan)} trials; output in {out}")
-    results = []
+    results: list[TrialResult] = []
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
         cal = _calibrate(out, scale, progress)
-        cal_id = store.calibrations.add(cal["calibration"], rms=cal["rms"], source="demo: simulated box scan").id
-        sessions, jobs = {}, []
+        cal_id = store.calibrations.add(cal.calibration, rms=cal.rms, source="demo: simulated box scan").id
+        sessions: dict[tuple[str, str, int], int] = {}  # (patient, condition, visit) -> session id
+        jobs: list[tuple[TrialJob, int]] = []
         for t in plan:
             p = t["patient"]
             if p.code not in {q.code for q in store.patients.all()}:
@@ -382,10 +494,10 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
             inv, pf = t["ref"]
             trial = store.trials.add(sessions[key], ref_inversion=inv, ref_plantar_flexion=pf, calibration_id=cal_id)
             folder = store.files.trial_dir(trial.id, create=True)
-            jobs.append(({"label": f"{p.code} {t['condition']:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
-                          "table": t["table"], "scale": scale, "seed": t["seed"], "capture": str(folder / "capture"),
-                          "cloud": str(folder / "cloud.ply"), "calibration": cal["calibration"],
-                          "accuracy": False, "marks": p.marks, "mark_diameter": mark_diameter}, trial.id))
+            jobs.append((TrialJob(label=f"{p.code} {t['condition']:8s} ref inv {inv:+5.1f} pf {pf:+5.1f}",
+                                  table=t["table"], scale=scale, seed=t["seed"], capture=str(folder / "capture"),
+                                  cloud=str(folder / "cloud.ply"), calibration=cal.calibration,
+                                  accuracy=False, marks=p.marks, mark_diameter=mark_diameter), trial.id))
         for k, ((job, trial_id), res) in enumerate(zip(jobs, pool.map(_scan_trial, [j for j, _ in jobs]), strict=False), 1):
             _record(store, trial_id, job, res)
             results.append(res)
@@ -412,7 +524,7 @@ def run_study_demo(out: Path, progress=print, scale: float = DEMO_SCALE, plan: l
     return 0
 
 
-def _reliability_summary(folder: Path, progress) -> None:
+def _reliability_summary(folder: Path, progress: Progress) -> None:
     """The reliability rows, one line each (the PDF's last page has them with Bland–Altman plots)."""
     import csv
 
@@ -423,7 +535,7 @@ def _reliability_summary(folder: Path, progress) -> None:
                      f"MDC95 {r['mdc95'][:5] + '°' if r['mdc95'] else '–'}")
 
 
-def _study_summary(store, progress) -> None:
+def _study_summary(store: Store, progress: Progress) -> None:
     """The group page's two questions, one line each (the PDF has every test)."""
     from anklescan.core.records import study_stats as st
 

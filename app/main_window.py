@@ -20,15 +20,19 @@ import logging
 import sys
 import time
 import traceback
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
+from types import TracebackType
 
 from PySide6.QtCore import QTimer, Signal
-from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtGui import QAction, QCloseEvent, QKeySequence
 from PySide6.QtWidgets import (
     QApplication,
     QFileDialog,
     QLabel,
     QMainWindow,
+    QMenu,
     QMessageBox,
     QSplitter,
     QStackedWidget,
@@ -48,7 +52,7 @@ from anklescan.app.rig_setup import RigParts, RigSetup
 from anklescan.app.scan_flow import ScanFlow, ScanParts
 from anklescan.app.settings import Settings
 from anklescan.app.study_view import StudyGui, StudyParts
-from anklescan.core.vocabulary import Severity
+from anklescan.core.vocabulary import Session, Severity
 
 log = logging.getLogger("anklescan.gui")
 
@@ -105,7 +109,7 @@ class MainWindow(QMainWindow):
             self.tabs.addTab(page, title)
         self.tabs.setCurrentIndex(PAGE_SCAN)
         centre = QWidget()
-        cv = QVBoxLayout(centre)
+        cv = self._centre_layout = QVBoxLayout(centre)  # the banner's: a settings banner goes above it
         cv.addWidget(self.banner)
         cv.addWidget(self.tabs, 1)
         splitter = QSplitter()
@@ -125,7 +129,7 @@ class MainWindow(QMainWindow):
         if problem:
             # a banner of its own: the next notice (e.g. "No calibration") must not take it away
             self.settings_banner = Banner()
-            self.banner.parentWidget().layout().insertWidget(0, self.settings_banner)
+            self._centre_layout.insertWidget(0, self.settings_banner)
             self.settings_banner.show_message(Severity.ERROR, problem)
             self.settings_label = QLabel("Settings are NOT saved")
             self.settings_label.setToolTip(problem)
@@ -138,7 +142,8 @@ class MainWindow(QMainWindow):
         holder.addWidget(QLabel(text))
         return holder
 
-    def _action(self, menu, text, slot, shortcut=None) -> QAction:
+    def _action(self, menu: QMenu, text: str, slot: Callable[[], object],
+                shortcut: str | QKeySequence.StandardKey | None = None) -> QAction:
         a = QAction(text, self)
         if shortcut:
             a.setShortcut(QKeySequence(shortcut))
@@ -181,10 +186,10 @@ class MainWindow(QMainWindow):
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
                            ("Calibration spot (arrow keys move it)", "spot")):
-            act(project, text, lambda w=what: rig.projector_show(w))
+            act(project, text, partial(rig.projector_show, what))
         view = self.menuBar().addMenu("&View")
         for i, name in enumerate(("&Camera setup", "S&can", "&Result", "3-D &marks", "Session &plots")):
-            act(view, name, lambda i=i: self.tabs.setCurrentIndex(i), f"Ctrl+{i + 1}")
+            act(view, name, partial(self.tabs.setCurrentIndex, i), f"Ctrl+{i + 1}")
         view.addSeparator()
         screens = view.addMenu("Projector &monitor")
         screens.aboutToShow.connect(lambda: rig.fill_screen_menu(screens))
@@ -212,7 +217,7 @@ class MainWindow(QMainWindow):
             self.review.marks_page.editor.setEnabled(not self.session.read_only)
         self.scan_flow.update_enabled()
 
-    def _session_shown(self, session) -> None:
+    def _session_shown(self, session: Session | None) -> None:
         if session is not None:
             self.scan_page.form.set_condition(session.condition)
             self.scan_page.form.mark_diameter.setValue(session.mark_diameter_mm)
@@ -239,7 +244,7 @@ class MainWindow(QMainWindow):
     def open_daily_check(self) -> None:
         open_daily_check(self.daily_check_parts, self)
 
-    def data_folder(self):
+    def data_folder(self) -> Path:
         return self.settings.data_folder
 
     def choose_data_folder(self) -> None:
@@ -276,7 +281,7 @@ class MainWindow(QMainWindow):
         else:
             self.resize(1200, 760)
 
-    def closeEvent(self, event) -> None:
+    def closeEvent(self, event: QCloseEvent) -> None:
         if self.scan_flow.busy:
             if not confirm(self, "Quit AnkleScan", "A scan is running. Stop the scan and quit? The trial is "
                            "kept, marked cancelled."):
@@ -285,7 +290,7 @@ class MainWindow(QMainWindow):
             self.scan_flow.stop_for_exit()
         self.review.wait_for_jobs()
         self.study.wait_for_jobs()
-        self.settings.window_geometry = bytes(self.saveGeometry())
+        self.settings.window_geometry = bytes(self.saveGeometry().data())  # the stubs lack bytes(QByteArray)
         self.settings.sync()
         self.rig_setup.close()
         self.session.close()
@@ -294,9 +299,9 @@ class MainWindow(QMainWindow):
 
 # ---------------------------------------------------------------------------- entry point
 
-def install_excepthook(window_getter) -> None:
+def install_excepthook(window_getter: Callable[[], MainWindow | None]) -> None:
     """Log any uncaught exception and tell the user, instead of Qt aborting the process."""
-    def hook(exc_type, exc, tb):
+    def hook(exc_type: type[BaseException], exc: BaseException, tb: TracebackType | None) -> None:
         text = "".join(traceback.format_exception(exc_type, exc, tb))
         log.error("uncaught exception:\n%s", text)
         print(text, file=sys.stderr)
@@ -314,7 +319,8 @@ def run_gui(argv: list[str] | None = None) -> int:
     quit_when_shown = "--quit-when-shown" in argv
     argv = [a for a in argv if a != "--quit-when-shown"] or ["anklescan"]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    app = QApplication.instance() or QApplication(argv)
+    existing = QApplication.instance()  # typed as a QCoreApplication: the GUI's is a QApplication
+    app = existing if isinstance(existing, QApplication) else QApplication(argv)
     app.setApplicationName("AnkleScan")
     app.setOrganizationName("AnkleScan")
     app.setStyleSheet(resources.STYLE)
@@ -322,7 +328,7 @@ def run_gui(argv: list[str] | None = None) -> int:
     install_excepthook(lambda: window)
     window.show()
     if quit_when_shown:
-        def report():
+        def report() -> None:
             print(f"first window shown after {time.perf_counter() - t0:.3f} s", flush=True)
             window.close()
             app.quit()
