@@ -4,6 +4,8 @@ are app.logic.session's; this widget shows its state and asks the clinician."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QAction, QKeySequence
 from PySide6.QtWidgets import (
@@ -24,6 +26,9 @@ from PySide6.QtWidgets import (
 from anklescan.app.main_parts import NewPatientDialog, deg, no_args
 from anklescan.core.vocabulary import CONDITION_TITLES, Severity
 
+if TYPE_CHECKING:
+    from anklescan.app.logic.session import SessionLogic
+
 ID = Qt.ItemDataRole.UserRole
 
 
@@ -33,7 +38,7 @@ class RecordsPanel(QWidget):
     sessionShown = Signal(object)    # the selected session (or None)
     operatorChanged = Signal(str)
 
-    def __init__(self, logic, parent=None):
+    def __init__(self, logic: SessionLogic, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.logic = logic
         self.patients, self.sessions, self.trials = QListWidget(), QListWidget(), QListWidget()
