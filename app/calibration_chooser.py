@@ -4,16 +4,27 @@ settings were lost, or to go back to an earlier one)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
-from PySide6.QtWidgets import QAbstractItemView, QDialog, QDialogButtonBox, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout
+from PySide6.QtWidgets import (
+    QAbstractItemView,
+    QDialog,
+    QDialogButtonBox,
+    QLabel,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
 
 if TYPE_CHECKING:
     from anklescan.core.vocabulary import CalibrationRecord
 
 
 class CalibrationChooser(QDialog):
-    def __init__(self, records: list, current_id: int | None, parent=None):
+    def __init__(self, records: Iterable[CalibrationRecord], current_id: int | None,
+                 parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.setWindowTitle("Choose calibration")
         self.records = list(records)

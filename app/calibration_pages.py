@@ -5,12 +5,15 @@ the flow (scans, background jobs, accepting); the logic without widgets is app.l
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Literal
+
 import cv2
 import numpy as np
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QKeySequence, QShortcut
 from PySide6.QtWidgets import (
     QCheckBox,
+    QDialog,
     QDoubleSpinBox,
     QGroupBox,
     QHBoxLayout,
@@ -29,14 +32,49 @@ from PySide6.QtWidgets import (
 )
 
 from anklescan.app.calibration_views import ZoomView, arrow_gain, gray_rgb, residual_overlay
-from anklescan.app.logic.calibration import kept
+from anklescan.app.logic.calibration import BoxPoints, kept
+
+if TYPE_CHECKING:
+    from anklescan.app.scan_worker import ScanController
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.calibration.procedures.board import BoardCalibration
+    from anklescan.core.calibration.procedures.calibrate import CalibrationReport
+    from anklescan.core.calibration.procedures.verification import VerificationResult
+
+    _DialogBase = QDialog  # the mixin's host: mypy sees the dialog's methods (reject, QHBoxLayout(self))
+else:
+    _DialogBase = object
 
 STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")
 PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)
+ProjectorShows = Literal["white", "spot"]  # what the dialog puts on the projector
+ScanPurpose = Literal["calibrate", "board", "verify", "level"]  # what a scan of the dialog is for
 
 
-class WizardPages:
+class WizardPages(_DialogBase):
     """Builds the pages (attributes of the dialog) and draws the report and the verification."""
+
+    if TYPE_CHECKING:  # the rest of the dialog: app.calibration_wizard and app.calibration_manual
+        controller: ScanController
+        points: BoxPoints | None
+        calibration: Calibration | None
+        report: CalibrationReport | None
+        board_result: BoardCalibration | None
+        _manual_index: int
+
+        def go(self, page: int) -> None: ...
+        def start_scan(self, purpose: ScanPurpose) -> bool: ...
+        def calibrate_board(self) -> bool: ...
+        def _update_board_count(self) -> None: ...
+        def accept_current(self) -> bool: ...
+        def add_box_position(self) -> bool: ...
+        def pick_camera(self, x: float, y: float) -> tuple[float, float]: ...
+        def manual_goto(self, index: int) -> None: ...
+        def manual_undo(self) -> None: ...
+        def _manual_white(self) -> None: ...
+        def _manual_spot(self) -> None: ...
+        def record_spot(self, position: tuple[float, float] | None = None) -> None: ...
+        def calibrate_manual(self) -> bool: ...
 
     def _build(self) -> None:
         self.steps = QListWidget()
@@ -236,10 +274,13 @@ class WizardPages:
 
     # ---- pictures ------------------------------------------------------------------------
 
-    def show_report(self, board_white=None) -> None:
+    def show_report(self, board_white: np.ndarray | None = None) -> None:
         pts, rep = self.points, self.report
         self.add_position_button.setEnabled(False)  # a box scan's report enables it (more positions)
+        assert rep is not None, "a report is shown once a calibration was made"
         if pts is None:  # a chessboard calibration: the first view with its corners, the report as text
+            assert self.board_result is not None and board_white is not None, \
+                "a chessboard calibration's report comes with its result and its first view"
             img = gray_rgb(board_white)
             for v in self.board_result.views[:1]:
                 for c in v.corners:
@@ -259,7 +300,7 @@ class WizardPages:
         self.report_view.set_image(img, fit=True)
         self._report_summary_text(rep)
 
-    def _report_summary_text(self, rep) -> None:
+    def _report_summary_text(self, rep: CalibrationReport) -> None:
         ok = rep.camera.rms_px < 1.0 and rep.projector.rms_px < 1.0 and not rep.warnings
         worst = max(rep.camera.rms_px, rep.projector.rms_px)
         if ok:
@@ -280,8 +321,9 @@ class WizardPages:
                f"<span style='color:#b3261e'>{len(rep.warnings)} warning(s), see below</span>"))
         self.report_text.setPlainText(rep.format_text())
 
-    def show_verification(self, white, res) -> None:
+    def show_verification(self, white: np.ndarray, res: VerificationResult) -> None:
         cal = self.calibration
+        assert cal is not None, "a verification scan is made with a calibration (start_scan)"
         img = gray_rgb(white)
         uv = {mid: cal.camera.project(X[None])[0] for mid, X in res.centres.items()}
         for mid, p in uv.items():

@@ -6,11 +6,14 @@ exactly what the clinician sees.
 
 from __future__ import annotations
 
+from collections.abc import Collection, Iterable, Sequence
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 from PySide6.QtCore import QPointF, QRectF, Qt, Signal
-from PySide6.QtGui import QBrush, QColor, QPainter, QPen, QPixmap
-from PySide6.QtWidgets import QGraphicsScene, QGraphicsView
+from PySide6.QtGui import QBrush, QColor, QMouseEvent, QPainter, QPen, QPixmap, QResizeEvent, QShowEvent, QWheelEvent
+from PySide6.QtWidgets import QGraphicsItem, QGraphicsPixmapItem, QGraphicsScene, QGraphicsView, QWidget
 
 from anklescan.app.camera_panel import to_display
 
@@ -30,11 +33,11 @@ def gray_rgb(image: np.ndarray) -> np.ndarray:
     return np.repeat(g[..., None], 3, axis=2)
 
 
-def _thickness(shape) -> int:
+def _thickness(shape: tuple[int, ...]) -> int:
     return max(1, round(shape[1] / 800))
 
 
-def draw_outlines(image: np.ndarray, found: dict) -> np.ndarray:
+def draw_outlines(image: np.ndarray, found: dict[int, np.ndarray]) -> np.ndarray:
     """RGB image with each detected marker outlined and labelled with its id."""
     out = gray_rgb(image)
     t = _thickness(out.shape)
@@ -46,8 +49,9 @@ def draw_outlines(image: np.ndarray, found: dict) -> np.ndarray:
     return out
 
 
-def residual_overlay(image: np.ndarray, cam_uv, cam_res, proj_uv_cam, proj_res, *, gain: float,
-                     cam_flagged=(), proj_flagged=()) -> np.ndarray:
+def residual_overlay(image: np.ndarray, cam_uv: npt.ArrayLike, cam_res: npt.ArrayLike, proj_uv_cam: npt.ArrayLike,
+                     proj_res: npt.ArrayLike, *, gain: float, cam_flagged: Collection[int] = (),
+                     proj_flagged: Collection[int] = ()) -> np.ndarray:
     """Camera and projector reprojection residuals as arrows at their points on the camera image.
 
     Arrows are ``gain`` times the residual, so sub-pixel errors are visible; the legend gives the
@@ -88,7 +92,7 @@ def _legend(out: np.ndarray, gain: float, t: int) -> None:
     cv2.putText(out, "ring: flagged / left out", (x, y + 2 * lh), f, s, FLAGGED, t, cv2.LINE_AA)
 
 
-def arrow_gain(residuals: list, image_width: int) -> float:
+def arrow_gain(residuals: Sequence[np.ndarray], image_width: int) -> float:
     """A round gain that makes the 95th-percentile residual ~4 % of the image width."""
     lengths = np.concatenate([np.linalg.norm(np.asarray(r, float).reshape(len(r), -1), axis=1) for r in residuals
                               if len(r)])
@@ -106,15 +110,15 @@ class ZoomView(QGraphicsView):
 
     picked = Signal(float, float)
 
-    def __init__(self, parent=None):
+    def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.setScene(QGraphicsScene(self))
         self.setRenderHint(QPainter.RenderHint.Antialiasing)
         self.setTransformationAnchor(QGraphicsView.ViewportAnchor.AnchorUnderMouse)
         self.setBackgroundBrush(QColor(30, 35, 40))
         self.setMinimumSize(480, 360)
-        self._pixmap = None
-        self._marks = []
+        self._pixmap: QGraphicsPixmapItem | None = None
+        self._marks: list[QGraphicsItem] = []
         self._size = (0, 0)
         self._auto_fit = True  # until the user zooms: keep the whole image in view
 
@@ -138,12 +142,12 @@ class ZoomView(QGraphicsView):
         self._auto_fit = True
         self.fitInView(self.sceneRect(), Qt.AspectRatioMode.KeepAspectRatio)
 
-    def resizeEvent(self, event) -> None:
+    def resizeEvent(self, event: QResizeEvent) -> None:
         super().resizeEvent(event)
         if self._auto_fit and self._pixmap is not None:
             self.fitInView(self.sceneRect(), Qt.AspectRatioMode.KeepAspectRatio)
 
-    def showEvent(self, event) -> None:
+    def showEvent(self, event: QShowEvent) -> None:
         super().showEvent(event)
         if self._auto_fit and self._pixmap is not None:
             self.fitInView(self.sceneRect(), Qt.AspectRatioMode.KeepAspectRatio)
@@ -154,7 +158,7 @@ class ZoomView(QGraphicsView):
         self.scale(factor, factor)
         self.centerOn(x, y)
 
-    def set_marks(self, points: list, current=None) -> None:
+    def set_marks(self, points: Iterable[tuple[float, float]], current: tuple[float, float] | None = None) -> None:
         """Crosses at picked points (green) and a ring at the point being placed (orange)."""
         for m in self._marks:
             self.scene().removeItem(m)
@@ -168,12 +172,12 @@ class ZoomView(QGraphicsView):
             self._marks.append(self.scene().addEllipse(current[0] - 2 * r, current[1] - 2 * r, 4 * r, 4 * r,
                                                        QPen(QColor(255, 150, 40), 0), QBrush(Qt.BrushStyle.NoBrush)))
 
-    def wheelEvent(self, event) -> None:
+    def wheelEvent(self, event: QWheelEvent) -> None:
         f = 1.25 if event.angleDelta().y() > 0 else 0.8
         self._auto_fit = False
         self.scale(f, f)
 
-    def mousePressEvent(self, event) -> None:
+    def mousePressEvent(self, event: QMouseEvent) -> None:
         if event.button() == Qt.MouseButton.LeftButton and self._pixmap is not None:
             p: QPointF = self.mapToScene(event.position().toPoint())
             self.picked.emit(p.x(), p.y())
@@ -183,6 +187,6 @@ class ZoomView(QGraphicsView):
         else:
             super().mousePressEvent(event)
 
-    def mouseReleaseEvent(self, event) -> None:
+    def mouseReleaseEvent(self, event: QMouseEvent) -> None:
         super().mouseReleaseEvent(event)
         self.setDragMode(QGraphicsView.DragMode.NoDrag)

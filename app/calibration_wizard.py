@@ -34,17 +34,30 @@ simulated camera that shares the rig's devices and projector (``box_camera``).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
+import numpy as np
 from PySide6.QtCore import QTimer, Signal
-from PySide6.QtWidgets import QDialog
+from PySide6.QtWidgets import QDialog, QWidget
 
 from anklescan.app.acquisition import Acquisition, WindowOutput
 from anklescan.app.background import run_in_background
 from anklescan.app.calibration_manual import ManualCalibration
-from anklescan.app.calibration_pages import PAGE_MANUAL, PAGE_PLACE, PAGE_REPORT, PAGE_SCAN, PAGE_VERIFY, WizardPages
+from anklescan.app.calibration_pages import (
+    PAGE_MANUAL,
+    PAGE_PLACE,
+    PAGE_REPORT,
+    PAGE_SCAN,
+    PAGE_VERIFY,
+    ProjectorShows,
+    ScanPurpose,
+    WizardPages,
+)
 from anklescan.app.calibration_views import draw_outlines, gray_rgb
 from anklescan.app.logic.calibration import (
+    BoxFit,
     BoxPoints,
     accept_calibration,
     board_camera,
@@ -64,6 +77,22 @@ from anklescan.app.logic.calibration import (
 from anklescan.app.settings import Settings
 from anklescan.core.vocabulary import Axis
 
+if TYPE_CHECKING:
+    from anklescan.app.background import BackgroundJob
+    from anklescan.app.projector_window import ProjectorWindow
+    from anklescan.app.rig import Rig
+    from anklescan.app.scan_worker import ScanResult
+    from anklescan.core.calibration.model.file import Calibration
+    from anklescan.core.calibration.procedures.board import BoardCalibration
+    from anklescan.core.calibration.procedures.calibrate import CalibrationReport
+    from anklescan.core.calibration.procedures.levelling import TableTop
+    from anklescan.core.calibration.procedures.verification import VerificationResult
+    from anklescan.core.records.store import Store
+    from anklescan.core.scan.capture import Image
+    from anklescan.hardware.camera import Camera
+
+T = TypeVar("T")
+
 # The current calibration's functions (app.logic.calibration) and the page numbers are also
 # reached through this module: the main window and the tests import them from here.
 __all__ = ["CalibrationWizard", "PAGE_MANUAL", "PAGE_PLACE", "PAGE_REPORT", "PAGE_SCAN", "PAGE_VERIFY",
@@ -72,15 +101,23 @@ __all__ = ["CalibrationWizard", "PAGE_MANUAL", "PAGE_PLACE", "PAGE_REPORT", "PAG
 PREVIEW_MS = 300
 
 
-def preview_frame(acquisition, detect: bool):
+class PreviewFrame(NamedTuple):
+    """A preview photograph and what is shown of it."""
+
+    frame: np.ndarray  # the camera frame
+    picture: np.ndarray  # RGB: the frame stretched, with the detected markers outlined when detected
+    markers: int | None  # markers found; None when not detected
+
+
+def preview_frame(acquisition: Acquisition, detect: bool) -> PreviewFrame:
     """(camera frame, RGB picture, markers found or None), in a background job: on the first page
     with the detected markers outlined, else the frame stretched."""
     frame = acquisition.capture()
     if not detect:
-        return frame, gray_rgb(frame), None
+        return PreviewFrame(frame, gray_rgb(frame), None)
     from anklescan.core.calibration.procedures.box import detect_markers
     found = detect_markers(frame, refine_edges=False)  # outlines only: no need for edge-fitted corners
-    return frame, draw_outlines(frame, found), len(found)
+    return PreviewFrame(frame, draw_outlines(frame, found), len(found))
 
 
 class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
@@ -89,8 +126,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     calibrationAccepted = Signal(object, object, str)  # Calibration, database id or None, file path
     verificationDone = Signal(object)  # anklescan.core.calibration.procedures.verification.VerificationResult
 
-    def __init__(self, rig, projector, *, store=None, data_folder: Path | None = None, settle_s: float = 0.03,
-                 parent=None):
+    def __init__(self, rig: Rig, projector: ProjectorWindow, *, store: Store | None = None,
+                 data_folder: Path | None = None, settle_s: float = 0.03, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.setWindowTitle("Calibration")
         self.resize(1180, 760)
@@ -98,7 +135,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.settings = Settings()
         self.data_folder = Path(data_folder) if data_folder else self.settings.data_folder
         self.settle_s = settle_s
-        self.camera = box_camera(rig)
+        self.camera: Camera = box_camera(rig)
         self.camera_size = camera_size(self.camera)
         # the window, and on the simulated rig the simulated projector it feeds (what the camera sees)
         self.output = WindowOutput(projector, mirror=rig.sim_projector)
@@ -107,21 +144,22 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.board_captures: list[Path] = []  # chessboard views scanned so far
         self.box_captures: list[Path] = []  # box positions of the calibration being made (table, knee, ...)
         self._adding_position = False  # the next box scan adds a position instead of starting afresh
-        self.board_result = None
-        self.calibration = self.report = None
-        self.verification = None
+        self.board_result: BoardCalibration | None = None
+        self.calibration: Calibration | None = None
+        self.report: CalibrationReport | None = None
+        self.verification: VerificationResult | None = None
         self.accepted_path: Path | None = None
-        self._job = None  # the background job working on a capture
-        self._preview_job = None
-        self._scan_purpose = ""
+        self._job: BackgroundJob | None = None  # the background job working on a capture
+        self._preview_job: BackgroundJob | None = None
+        self._scan_purpose: ScanPurpose | None = None
         self._last_frame = None
         self._white_frame = None
         self._manual_index = 0
-        self._manual_cam: dict = {}  # point index -> (u, v)
-        self._manual_proj: dict = {}  # point index -> (column, row)
-        self._manual_steered: dict = {}  # point index -> (column, row) where the operator left the spot
+        self._manual_cam = {}  # point index -> (u, v)
+        self._manual_proj = {}  # point index -> (column, row)
+        self._manual_steered = {}  # point index -> (column, row) where the operator left the spot
         self._refining = False
-        self._manual_history: list = []  # ("cam" | "proj", index) for undo
+        self._manual_history = []  # ManualStep(camera | projector, index) for undo
         self._manual_list = manual_points()
         from anklescan.app.scan_worker import ScanController
         self.controller = ScanController(self.output, self)
@@ -154,10 +192,11 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self._run(lambda: calibrate_board_folders(folders, cols, rows, square), self._board_calibrated)
         return True
 
-    def _board_calibrated(self, result) -> None:
-        self.board_result, white = result
+    def _board_calibrated(self, result: tuple[BoardCalibration, Image]) -> None:
+        board_result, white = result
+        self.board_result = board_result
         self.points = None
-        self.calibration, self.report = self.board_result.calibration, self.board_result.report
+        self.calibration, self.report = board_result.calibration, board_result.report
         self.show_report(white)
         self.go(PAGE_REPORT)
         self.status.setText("Check the report, then accept.")
@@ -178,7 +217,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         if page == PAGE_MANUAL:
             self.manual_goto(self._manual_index)
 
-    def _show_on_projector(self, what: str) -> None:
+    def _show_on_projector(self, what: ProjectorShows) -> None:
         if not self.projector.isVisible():
             self.projector.place(self.settings.projector_screen)
         {"white": self.projector.show_white, "spot": self.projector.show_spot}[what]()
@@ -192,7 +231,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
                                                  lambda result: self._preview_done(page, mode, result),
                                                  self._preview_failed)
 
-    def _preview_done(self, page: int, mode: str, result) -> None:
+    def _preview_done(self, page: int, mode: str, result: PreviewFrame) -> None:
         self._preview_job = None
         if not self._timer.isActive() or page != self.pages.currentIndex():
             return  # stopped, or another page, meanwhile: the picture is stale
@@ -205,6 +244,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
                 self.place_count.setText("Lighting the box with the projector…")
                 self.place_count.setStyleSheet("")
                 return
+            assert n is not None, "the first page's preview detects the markers (_pull_preview)"
             self.show_place_frame(rgb, n)
         elif page == PAGE_MANUAL:
             # clicks are refined on the box under white light, not the spot: white at both ends
@@ -215,7 +255,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self._timer.stop()
         self.status.setText(f"Camera preview stopped: {message}")
 
-    def show_place_frame(self, picture, n: int) -> int:
+    def show_place_frame(self, picture: np.ndarray, n: int) -> int:
         self.place_view.set_image(picture)
         self.place_count.setText(f"{n} of 27 markers found" + ("" if n >= 18 else " — move the box fully into view"))
         self.place_count.setStyleSheet("color: #2e6b3a; font-weight: 600;" if n >= 18 else "color: #b3261e;")
@@ -223,7 +263,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
 
     # ---- scanning ------------------------------------------------------------------------
 
-    def start_scan(self, purpose: str) -> bool:
+    def start_scan(self, purpose: ScanPurpose) -> bool:
         from anklescan.app.scan_worker import ScanJob
         from anklescan.core.scan.patterns import make_pattern_set
         if self.controller.busy or self._job is not None:
@@ -270,21 +310,22 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.status.setText(f"The scan stopped: {message}")
         self.go(PAGE_PLACE if self._scan_purpose in ("calibrate", "board") else self.pages.currentIndex())
 
-    def _scan_finished(self, result) -> None:
+    def _scan_finished(self, result: ScanResult) -> None:
         folder = result.folder
         if self._scan_purpose == "board":
             cols, rows = self.board_cols.value(), self.board_rows.value()
             self._run(lambda: check_board_folder(folder, cols, rows), self._board_view_scanned)
             return
         if self._scan_purpose == "level":
-            cal = self.calibration
+            to_level = self.calibration  # a name of its own: mypy keeps its narrowing in the lambda
+            assert to_level is not None, "start_scan levels only with a calibration"
             table_size = str(self.settings.table_size)
             self.status.setText(f"Finding the table top ({table_size} mm)…")
-            self._run(lambda: level_folder(folder, cal, table_size), self._levelled)
+            self._run(lambda: level_folder(folder, to_level, table_size), self._levelled)
             return
         self.status.setText("Finding the control points…")
         if self._scan_purpose == "calibrate":
-            size_c, size_p = self.camera_size, tuple(self.projector.projector_size)
+            size_c, size_p = self.camera_size, self.projector.projector_size  # a tuple already
             if not self._adding_position:
                 self.box_captures = []
             self._adding_position = False
@@ -293,9 +334,10 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             self._run(lambda: calibrate_folders(folders, size_c, size_p), self._calibrated)
         else:
             cal = self.calibration
+            assert cal is not None, "start_scan verifies only with a calibration"
             self._run(lambda: verify_folder(folder, cal), self._verified)
 
-    def _levelled(self, result) -> None:
+    def _levelled(self, result: tuple[Calibration, TableTop]) -> None:
         cal, top = result
         cal.extra["source"] = f"{cal.extra.get('source', 'calibration')}, levelled"
         self.calibration = cal
@@ -305,18 +347,19 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
                             + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
         self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
 
-    def _board_view_scanned(self, folder) -> None:
+    def _board_view_scanned(self, folder: Path) -> None:
         self.board_captures.append(folder)
         self._update_board_count()
         self.go(PAGE_PLACE)
         self.status.setText(f"Board view {len(self.board_captures)} scanned: tilt or move the board and scan "
                             "again, or calibrate.")
 
-    def _run(self, fn, on_done) -> None:
-        self._job = run_in_background(fn, lambda result: self._job_done(result, "", on_done),
-                                      lambda error: self._job_done(None, error, on_done), name="calibration")
+    def _run(self, fn: Callable[[], T], on_done: Callable[[T], None]) -> None:
+        self._job = run_in_background(fn, lambda result: self._job_done("", lambda: on_done(result)),
+                                      lambda error: self._job_done(error, lambda: None), name="calibration")
 
-    def _job_done(self, result, error: str, on_done) -> None:
+    def _job_done(self, error: str, deliver: Callable[[], None]) -> None:
+        """``deliver``: hands the job's result on (not called when the job failed)."""
         self._job = None
         if error:
             if self._scan_purpose == "calibrate" and self.box_captures:
@@ -325,14 +368,14 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             if self._scan_purpose in ("board", "calibrate"):  # back to placing the box: scan it again
                 self.go(PAGE_PLACE)
             return
-        on_done(result)
+        deliver()
 
     def busy(self) -> bool:
         return self.controller.busy or self._job is not None
 
     # ---- report --------------------------------------------------------------------------
 
-    def _calibrated(self, result) -> None:
+    def _calibrated(self, result: BoxFit) -> None:
         self.points, self.calibration, self.report = result
         self.show_report()
         self.go(PAGE_REPORT)
@@ -370,7 +413,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
 
     # ---- verification --------------------------------------------------------------------
 
-    def _verified(self, result) -> None:
+    def _verified(self, result: tuple[np.ndarray, VerificationResult]) -> None:
         white, res = result
         self.verification = res
         record_verification(res, self.settings, calibration_path=str(self.accepted_path) if self.accepted_path else None)
