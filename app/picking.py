@@ -13,10 +13,13 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])  # SPEC §1: z up
 BACKGROUND_DEPTH = 1.0  # the cleared depth buffer; anything smaller is a drawn point
+# A GL viewport: x, y of its bottom-left corner and its width, height (device pixels)
+Viewport = tuple[int, int, int, int]
 
 
 # ---------------------------------------------------------------------------- matrices
@@ -30,7 +33,7 @@ def perspective(fovy_deg: float, aspect: float, near: float, far: float) -> np.n
                      [0, 0, -1, 0]], dtype=np.float64)
 
 
-def look_at(eye, target, up=WORLD_UP) -> np.ndarray:
+def look_at(eye: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = WORLD_UP) -> np.ndarray:
     """gluLookAt's matrix (world → eye, the eye looking down its −z)."""
     eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
     f = target - eye
@@ -46,7 +49,8 @@ def look_at(eye, target, up=WORLD_UP) -> np.ndarray:
     return m
 
 
-def near_far(modelview: np.ndarray, lo, hi, min_near_ratio: float = 1e-4) -> tuple[float, float]:
+def near_far(modelview: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+             min_near_ratio: float = 1e-4) -> tuple[float, float]:
     """Near/far planes hugging the cloud's bounding box (its 8 corners' eye depths), so the
     24-bit depth buffer spends its precision on the cloud, not on empty space. When the eye is
     inside the box, near stops at ``far * min_near_ratio``: 0.06 mm depth steps at 1 m still."""
@@ -60,25 +64,28 @@ def near_far(modelview: np.ndarray, lo, hi, min_near_ratio: float = 1e-4) -> tup
 
 # ---------------------------------------------------------------------------- project / unproject
 
-def project(points, modelview, projection, viewport) -> np.ndarray:
+def project(points: npt.ArrayLike, modelview: np.ndarray, projection: np.ndarray, viewport: Viewport) -> np.ndarray:
     """World points (N, 3) → window (N, 3): x, y in framebuffer pixels from the bottom-left, depth."""
     p = np.atleast_2d(np.asarray(points, dtype=np.float64))
     h = np.c_[p, np.ones(len(p))] @ (projection @ modelview).T
     ndc = h[:, :3] / h[:, 3:4]
     x0, y0, w, hgt = viewport
-    return np.c_[x0 + (ndc[:, 0] + 1) * w / 2, y0 + (ndc[:, 1] + 1) * hgt / 2, (ndc[:, 2] + 1) / 2]
+    out: np.ndarray = np.c_[x0 + (ndc[:, 0] + 1) * w / 2, y0 + (ndc[:, 1] + 1) * hgt / 2, (ndc[:, 2] + 1) / 2]
+    return out
 
 
-def unproject(win, modelview, projection, viewport) -> np.ndarray:
+def unproject(win: npt.ArrayLike, modelview: np.ndarray, projection: np.ndarray, viewport: Viewport) -> np.ndarray:
     """Window (x, y, depth) → world: gluUnProject, i.e. the inverted projection·modelview·viewport."""
-    win = np.atleast_2d(np.asarray(win, dtype=np.float64))
+    xyd = np.atleast_2d(np.asarray(win, dtype=np.float64))
     x0, y0, w, hgt = viewport
-    ndc = np.c_[2 * (win[:, 0] - x0) / w - 1, 2 * (win[:, 1] - y0) / hgt - 1, 2 * win[:, 2] - 1, np.ones(len(win))]
+    ndc = np.c_[2 * (xyd[:, 0] - x0) / w - 1, 2 * (xyd[:, 1] - y0) / hgt - 1, 2 * xyd[:, 2] - 1, np.ones(len(xyd))]
     h = ndc @ np.linalg.inv(projection @ modelview).T
-    return h[:, :3] / h[:, 3:4]
+    out: np.ndarray = h[:, :3] / h[:, 3:4]
+    return out
 
 
-def eye_ray(x: float, y: float, modelview, projection, viewport) -> tuple[np.ndarray, np.ndarray]:
+def eye_ray(x: float, y: float, modelview: np.ndarray, projection: np.ndarray,
+            viewport: Viewport) -> tuple[np.ndarray, np.ndarray]:
     """World origin and unit direction of the ray through window point (x, y)."""
     a, b = unproject([[x, y, 0.0], [x, y, 1.0]], modelview, projection, viewport)
     d = b - a
@@ -109,7 +116,7 @@ class Snapper:
     points: np.ndarray
     tree: cKDTree = field(init=False, repr=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float32)
         self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
 
@@ -121,11 +128,12 @@ class Snapper:
         d, _ = self.tree.query(self.points[::step], k=2)
         return float(np.median(d[:, 1])) or 1.0
 
-    def nearest(self, xyz) -> tuple[int, float]:
+    def nearest(self, xyz: npt.ArrayLike) -> tuple[int, float]:
         d, i = self.tree.query(np.asarray(xyz, dtype=np.float64))
         return int(i), float(d)
 
-    def snap(self, xyz, ray_origin, ray_dir, radius: float) -> tuple[int, float]:
+    def snap(self, xyz: npt.ArrayLike, ray_origin: np.ndarray, ray_dir: np.ndarray,
+             radius: float) -> tuple[int, float]:
         """Index of the point nearest the click ray among those within ``radius`` of the
         depth-buffer position, and its distance to that position.
 
@@ -134,15 +142,15 @@ class Snapper:
         samples, while the ray through the clicked pixel passes right by the point the
         operator aimed at. Falls back to the plain 3-D nearest when nothing is in range.
         """
-        xyz = np.asarray(xyz, dtype=np.float64)
-        idx = self.tree.query_ball_point(xyz, radius)
+        at = np.asarray(xyz, dtype=np.float64)
+        idx = self.tree.query_ball_point(at, radius)
         if not idx:
-            return self.nearest(xyz)
+            return self.nearest(at)
         cand = self.points[idx].astype(np.float64)
         rel = cand - ray_origin
         perp = rel - np.outer(rel @ ray_dir, ray_dir)
         k = int(np.argmin(np.einsum("ij,ij->i", perp, perp)))
-        return int(idx[k]), float(np.linalg.norm(cand[k] - xyz))
+        return int(idx[k]), float(np.linalg.norm(cand[k] - at))
 
 
 # ---------------------------------------------------------------------------- orbit camera
@@ -205,7 +213,7 @@ class OrbitCamera:
         """factor > 1 moves closer."""
         self.distance = max(self.distance / factor, min_distance)
 
-    def fit(self, centre, radius: float) -> None:
+    def fit(self, centre: npt.ArrayLike, radius: float) -> None:
         """Target the bounding sphere and back off until it fills the view's height."""
         self.target = np.asarray(centre, dtype=np.float64).copy()
         self.distance = max(radius, 1e-3) / math.sin(math.radians(self.fovy) / 2) * 1.05
@@ -213,7 +221,7 @@ class OrbitCamera:
     def set_view(self, name: str) -> None:
         self.azimuth, self.elevation = STANDARD_VIEWS[name]
 
-    def look_from(self, eye) -> None:
+    def look_from(self, eye: npt.ArrayLike) -> None:
         """Put the eye at a world position (e.g. the scanner camera), keeping the target."""
         v = np.asarray(eye, dtype=np.float64) - self.target
         self.distance = float(np.linalg.norm(v))
@@ -231,7 +239,7 @@ def robust_sphere(points: np.ndarray, pct: float = 2.0) -> tuple[np.ndarray, flo
     return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2) or 1.0
 
 
-def table_plane_quad(p5, p6, p7, margin: float = 0.25) -> np.ndarray:
+def table_plane_quad(p5: npt.ArrayLike, p6: npt.ArrayLike, p7: npt.ArrayLike, margin: float = 0.25) -> np.ndarray:
     """Four corners of the table plane through marks 5, 6, 7: their bounding parallelogram in
     the plane's own axes, grown by ``margin`` so the plane reads as a surface, not a triangle."""
     p = np.array([p5, p6, p7], dtype=np.float64)

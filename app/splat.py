@@ -32,6 +32,9 @@ and the viewer keeps the classic fixed-function path.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import numpy as np
 from OpenGL import GL
 
@@ -165,11 +168,11 @@ def gl_mvp() -> np.ndarray:
     return np.ascontiguousarray(out.T, np.float32)
 
 
-def _text(log) -> str:
+def _text(log: object) -> str:
     return log.decode(errors="replace").strip() if isinstance(log, bytes) else str(log)
 
 
-def _checked(obj: int, ok, log, delete, what: str) -> int:
+def _checked(obj: int, ok: int, log: Callable[[int], object], delete: Callable[[int], object], what: str) -> int:
     """``obj`` if its status ``ok`` holds, else delete it and raise with its info log."""
     if not ok:
         text = _text(log(obj))
@@ -178,7 +181,7 @@ def _checked(obj: int, ok, log, delete, what: str) -> int:
     return obj
 
 
-def _compile(kind, source: str) -> int:
+def _compile(kind: int, source: str) -> int:
     shader = GL.glCreateShader(kind)
     GL.glShaderSource(shader, source)
     GL.glCompileShader(shader)
@@ -207,15 +210,22 @@ def context_version() -> tuple[int, int]:
         return int(major), int(minor)
 
 
+class _ResolveProgram(NamedTuple):
+    """A linked resolve program (one per point size) and its uniforms' locations by name."""
+
+    program: int
+    uniforms: dict[str, int]
+
+
 class SplatRenderer:
     """GL objects of the splat path. Create, use and delete with the viewer's context current."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         version = context_version()
         if version < (4, 3):
             raise SplatUnavailable(f"OpenGL {version[0]}.{version[1]} context, compute shaders need 4.3")
         self.version = version
-        self._programs: dict = {}
+        self._programs: dict[int, _ResolveProgram] = {}
         self._buffers: list[int] = []
         self._textures: list[int] = []
         try:
@@ -244,13 +254,13 @@ class SplatRenderer:
         self._textures.append(t)
         return t
 
-    def _resolve_program(self, size: int) -> tuple[int, dict]:
+    def _resolve_program(self, size: int) -> _ResolveProgram:
         if size not in self._programs:
             lo, hi = resolve_window(size)
             fs = RESOLVE_FS.replace("LO", str(lo)).replace("HI", str(hi))
             program = _link(_compile(GL.GL_VERTEX_SHADER, RESOLVE_VS), _compile(GL.GL_FRAGMENT_SHADER, fs))
-            self._programs[size] = (program, {name: GL.glGetUniformLocation(program, name)
-                                              for name in ("image", "palette", "size", "background")})
+            self._programs[size] = _ResolveProgram(program, {name: GL.glGetUniformLocation(program, name)
+                                                             for name in ("image", "palette", "size", "background")})
         return self._programs[size]
 
     def delete(self) -> None:
@@ -302,7 +312,7 @@ class SplatRenderer:
         self.image_size = (w, h)
 
     # ---- drawing -------------------------------------------------------------------------
-    def draw(self, w: int, h: int, point_size: float, background) -> None:
+    def draw(self, w: int, h: int, point_size: float, background: tuple[float, float, float]) -> None:
         """Splat + resolve into the bound framebuffer. Expects glViewport(0, 0, w, h) and the
         fixed-function projection/modelview of the frame already loaded; leaves the depth
         test on with GL_LESS, depth writes on, no program bound."""
@@ -364,7 +374,8 @@ class SplatRenderer:
 
 def grey_palette() -> np.ndarray:
     ramp = np.arange(256, dtype=np.uint8)
-    return np.c_[ramp, ramp, ramp, np.full(256, 255, np.uint8)]
+    out: np.ndarray = np.c_[ramp, ramp, ramp, np.full(256, 255, np.uint8)]
+    return out
 
 
 def indexed_colours(rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -375,7 +386,8 @@ def indexed_colours(rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     if len(rgb) == 0:
         return np.zeros(0, np.uint8), grey_palette(), True
     if np.array_equal(rgb[:, 0], rgb[:, 1]) and np.array_equal(rgb[:, 0], rgb[:, 2]):
-        return np.ascontiguousarray(rgb[:, 0]), grey_palette(), True
+        grey: np.ndarray = np.ascontiguousarray(rgb[:, 0])
+        return grey, grey_palette(), True
     palette = median_cut(rgb[:: max(1, len(rgb) // 32768)], 256)
     # every 5-bit-per-channel colour cell to its nearest palette entry, then a table lookup
     cells = (np.indices((32, 32, 32)).reshape(3, -1).T * 8 + 4).astype(np.float32)
@@ -393,8 +405,9 @@ def indexed_colours(rgba: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 def median_cut(rgb: np.ndarray, n: int) -> np.ndarray:
     """Up to ``n`` representative colours (RGBA uint8, padded to ``n`` rows) of ``rgb``:
     repeatedly split the box with the widest channel range at its median."""
-    def spread(b):
-        return (b.max(0) - b.min(0)) if len(b) > 1 else np.zeros(3, np.int16)
+    def spread(b: np.ndarray) -> np.ndarray:
+        out: np.ndarray = (b.max(0) - b.min(0)) if len(b) > 1 else np.zeros(3, np.int16)
+        return out
 
     boxes = [np.asarray(rgb, np.int16)]
     spreads = [spread(boxes[0])]

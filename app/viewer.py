@@ -32,15 +32,20 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from OpenGL import GL, GLU
 from PySide6.QtCore import QPoint, Qt, QTimer, Signal
+from PySide6.QtGui import QKeyEvent, QMouseEvent, QResizeEvent, QWheelEvent
 from PySide6.QtOpenGLWidgets import QOpenGLWidget
+from PySide6.QtWidgets import QWidget
 
 from anklescan.app import picking, splat
-from anklescan.app.background import run_in_background
+from anklescan.app.background import BackgroundJob, run_in_background
 from anklescan.app.viewer_gl import (
     COLOR_DEPTH,
     COLOR_WHITE,
@@ -55,6 +60,9 @@ from anklescan.app.viewer_gl import (
     white_colours,
 )
 from anklescan.app.viewer_labels import Overlay, OverlayPainting
+
+if TYPE_CHECKING:
+    from anklescan.core.scan.pointcloud import PointCloud
 
 RENDER_PATH_ENV = "ANKLESCAN_VIEWER_PATH"  # "classic" forces the fixed-function path
 PICK_WINDOW = 7  # px (device pixels) searched around a click for a drawn point
@@ -87,7 +95,7 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
     picked = Signal(object)          # PickResult (clicks on the cloud)
     statusMessage = Signal(str)
 
-    def __init__(self, parent=None, render_path: str | None = None):
+    def __init__(self, parent: QWidget | None = None, render_path: str | None = None) -> None:
         """``render_path``: ``"splat"``, ``"classic"`` or None (splat where the context allows
         it, unless the environment variable ANKLESCAN_VIEWER_PATH=classic)."""
         super().__init__(parent)
@@ -133,16 +141,16 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self._colours: dict[str, Colours] = {}
         self._vbos: dict[str, int] = {}
         self._splat_mode = None
-        self._snapper_job = None  # the KD-tree being built (app.background), None once delivered
+        self._snapper_job: BackgroundJob | None = None  # the KD-tree being built, None once delivered
         self._snapper: picking.Snapper | None = None
-        self._snapper_built: dict = {}
+        self._snapper_built: dict[str, picking.Snapper] = {}
         self.centre, self.radius = np.zeros(3), 1.0
         self.spacing_mm: float | None = None
         self.lo, self.hi = -np.ones(3), np.ones(3)  # the full bounding box, for near/far
-        self.scanner_eye = None
+        self.scanner_eye: np.ndarray | None = None
 
     # ---- the cloud -----------------------------------------------------------------------
-    def set_cloud(self, cloud, scanner_eye=None, keep_view: bool = False) -> None:
+    def set_cloud(self, cloud: PointCloud, scanner_eye: npt.ArrayLike | None = None, keep_view: bool = False) -> None:
         """Show a PointCloud. Points are shuffled once so that any prefix is a uniform
         subsample: the drag-time level of detail is then just a shorter glDrawArrays."""
         n = len(cloud)
@@ -200,10 +208,10 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self.update()
 
     def _build_snapper(self) -> None:
-        built: dict = {}  # filled on the worker thread: a pick that cannot wait for delivery reads it
+        built: dict[str, picking.Snapper] = {}  # filled on the worker thread: a pick that cannot wait reads it
         points = self.points
 
-        def build():
+        def build() -> picking.Snapper:
             built["snapper"] = picking.Snapper(points)
             return built["snapper"]
 
@@ -220,14 +228,14 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
             self._snapper = self._snapper_built.get("snapper")  # None if the build failed
         return self._snapper
 
-    def _snapper_ready(self, job, snapper: picking.Snapper) -> None:
+    def _snapper_ready(self, job: BackgroundJob, snapper: picking.Snapper) -> None:
         if job is not self._snapper_job:
             return  # a cloud shown since replaced this one
         self._snapper_job, self._snapper = None, snapper
         self.spacing_mm = snapper.spacing()
         self.update()  # the automatic point size knows the spacing now
 
-    def _snapper_failed(self, job, error: str) -> None:
+    def _snapper_failed(self, job: BackgroundJob, error: str) -> None:
         if job is self._snapper_job:
             self._snapper_job = None
             self.statusMessage.emit(f"Picking is unavailable for this cloud: {error}")
@@ -248,7 +256,8 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
     def mm_per_pixel(self) -> float:
         """Footprint of one device pixel at the view target's depth."""
         h = max(self.viewport[3], 1)
-        return 2 * self.camera.distance * np.tan(np.radians(self.camera.fovy) / 2) / h
+        mm: float = 2 * self.camera.distance * np.tan(np.radians(self.camera.fovy) / 2) / h
+        return mm
 
     def effective_point_size(self) -> float:
         """Automatic size: the cloud's point spacing in pixels, 1–5. Zoomed out, points are
@@ -260,8 +269,8 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
             return 1.0
         return float(np.clip(np.ceil(self.spacing_mm / self.mm_per_pixel() - 0.25), 1, 5))
 
-    def set_marks(self, marks: dict, unconfirmed=(), selected: int | None = None,
-                  notes: dict[int, str] | None = None) -> None:
+    def set_marks(self, marks: Mapping[int, npt.ArrayLike], unconfirmed: Iterable[int] = (),
+                  selected: int | None = None, notes: dict[int, str] | None = None) -> None:
         """``notes``: label -> its SD and any warning, written beside the mark's label."""
         self.marks = {int(k): np.asarray(v, np.float64) for k, v in marks.items()}
         self.unconfirmed = set(unconfirmed)
@@ -270,7 +279,7 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self.update()
 
     # ---- overlays (QPainter part: text after GL) -----------------------------------------
-    def resizeEvent(self, event) -> None:
+    def resizeEvent(self, event: QResizeEvent) -> None:
         super().resizeEvent(event)
         self.overlay.setGeometry(self.rect())
 
@@ -323,7 +332,8 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         """A few screen pixels' worth of mm at the picked depth (at least 3 mm)."""
         eye_z = abs(picking.unproject([[0, 0, depth]], np.eye(4), self.projection, (0, 0, 1, 1))[0, 2])
         mm_per_px = 2 * eye_z * np.tan(np.radians(self.camera.fovy) / 2) / max(self.viewport[3], 1)
-        return max(3.0, (PICK_WINDOW + 2) * mm_per_px)
+        radius: float = max(3.0, (PICK_WINDOW + 2) * mm_per_px)
+        return radius
 
     def render_now(self) -> None:
         """Draw a frame synchronously (QOpenGLWidget.repaint() only schedules one)."""
@@ -342,12 +352,12 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self.update()
 
     # ---- mouse ---------------------------------------------------------------------------
-    def mousePressEvent(self, event) -> None:
+    def mousePressEvent(self, event: QMouseEvent) -> None:
         self._press = event.position().toPoint()
         self._last = self._press
         self._dragging = False
 
-    def mouseMoveEvent(self, event) -> None:
+    def mouseMoveEvent(self, event: QMouseEvent) -> None:
         if self._press is None:
             return
         pos = event.position().toPoint()
@@ -364,7 +374,7 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
             self.camera.orbit(-d.x() * 0.4, d.y() * 0.4)
         self._interaction_step()
 
-    def mouseReleaseEvent(self, event) -> None:
+    def mouseReleaseEvent(self, event: QMouseEvent) -> None:
         was_drag, self._press = self._dragging, None
         self._dragging = False
         if was_drag:
@@ -382,13 +392,15 @@ class CloudViewer(GLDrawing, OverlayPainting, QOpenGLWidget):
         self.picked.emit(result)
         return result
 
-    def wheelEvent(self, event) -> None:
+    def wheelEvent(self, event: QWheelEvent) -> None:
         steps = event.angleDelta().y() / 120.0
         self.camera.zoom(1.15 ** steps, min_distance=self.radius * 0.05)
         self._interaction_step()
 
-    def keyPressEvent(self, event) -> None:
-        keys = {Qt.Key.Key_F: lambda: self.set_view("front"), Qt.Key.Key_L: lambda: self.set_view("lateral"),
+    def keyPressEvent(self, event: QKeyEvent) -> None:
+        # Qt.Key is an int: event.key() finds it
+        keys: dict[int, Callable[[], None]] = {
+                Qt.Key.Key_F: lambda: self.set_view("front"), Qt.Key.Key_L: lambda: self.set_view("lateral"),
                 Qt.Key.Key_T: lambda: self.set_view("top"), Qt.Key.Key_R: self.reset_view,
                 Qt.Key.Key_D: lambda: self.set_color_mode(COLOR_DEPTH if self.color_mode == COLOR_WHITE else COLOR_WHITE)}
         action = keys.get(event.key())

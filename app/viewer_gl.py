@@ -6,13 +6,28 @@ colours the points are drawn in."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 from OpenGL import GL, GLU
 from PySide6.QtGui import QColor, QSurfaceFormat
 
 from anklescan.app import picking, splat
 from anklescan.core.vocabulary import TABLE_LABELS
+
+if TYPE_CHECKING:
+    from PySide6.QtOpenGLWidgets import QOpenGLWidget
+    from PySide6.QtWidgets import QWidget
+
+    from anklescan.core.scan.pointcloud import PointCloud
+
+    # The mixin is only ever mixed into a QOpenGLWidget (app.viewer.CloudViewer): the type checker
+    # sees that base, the running program a plain object (so the MRO stays as it is).
+    _GLWidget = QOpenGLWidget
+else:
+    _GLWidget = object
 
 log = logging.getLogger("anklescan.app.viewer")
 
@@ -40,11 +55,12 @@ def default_format() -> QSurfaceFormat:
     return fmt
 
 
-def depth_colours(points: np.ndarray, eye=None) -> np.ndarray:
+def depth_colours(points: np.ndarray, eye: npt.ArrayLike | None = None) -> np.ndarray:
     """RGBA uint8 by distance from ``eye`` (the scanner camera), or by height when it is unknown;
     near/high = warm, like the scan page's depth preview. Percentiles keep outliers from
     flattening the ramp."""
-    return depth_palette()[depth_levels(points, eye)]
+    out: np.ndarray = depth_palette()[depth_levels(points, eye)]
+    return out
 
 
 def depth_palette() -> np.ndarray:
@@ -52,10 +68,11 @@ def depth_palette() -> np.ndarray:
     import cv2
 
     rgb = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
-    return np.c_[rgb, np.full(256, 255, np.uint8)]
+    out: np.ndarray = np.c_[rgb, np.full(256, 255, np.uint8)]
+    return out
 
 
-def depth_levels(points: np.ndarray, eye=None) -> np.ndarray:
+def depth_levels(points: np.ndarray, eye: npt.ArrayLike | None = None) -> np.ndarray:
     """0–255 per point for ``depth_palette``: far/low = 0, near/high = 255."""
     if eye is not None:
         d = points - np.asarray(eye, np.float32)  # float32 throughout: 2 M points in ~0.1 s
@@ -63,13 +80,15 @@ def depth_levels(points: np.ndarray, eye=None) -> np.ndarray:
     else:
         value = points[:, 2]
     lo, hi = np.percentile(value[:: max(1, len(value) // 200_000)], [1, 99]) if len(value) > 1 else (0, 1)
-    return np.clip((value - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
+    out: np.ndarray = np.clip((value - lo) * (255.0 / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
+    return out
 
 
-def white_colours(cloud) -> np.ndarray:
+def white_colours(cloud: PointCloud) -> np.ndarray:
     if cloud.colors is None:
         return np.full((len(cloud), 4), 200, np.uint8)
-    return np.c_[cloud.colors, np.full(len(cloud), 255, np.uint8)]
+    out: np.ndarray = np.c_[cloud.colors, np.full(len(cloud), 255, np.uint8)]
+    return out
 
 
 class Colours:
@@ -77,24 +96,58 @@ class Colours:
     256-entry palette (splat path); each made from the other on first use."""
 
     def __init__(self, rgba: np.ndarray | None = None, index: np.ndarray | None = None,
-                 palette: np.ndarray | None = None):
+                 palette: np.ndarray | None = None) -> None:
         self._rgba, self._index, self._palette = rgba, index, palette
 
     def rgba(self) -> np.ndarray:
         if self._rgba is None:
+            assert self._palette is not None and self._index is not None  # made from one or the other
             self._rgba = self._palette[self._index]
         return self._rgba
 
     def indexed(self) -> tuple[np.ndarray, np.ndarray]:
         if self._index is None:
+            assert self._rgba is not None  # made from one or the other
             self._index, self._palette, exact = splat.indexed_colours(self._rgba)
             if not exact:
                 log.info("colour cloud shown with a 256-colour palette on the splat path")
+        assert self._palette is not None  # an index always comes with its palette
         return self._index, self._palette
 
 
-class GLDrawing:
+class GLDrawing(_GLWidget):
     """CloudViewer's GL half (a mixin: it reads and sets the viewer's state)."""
+
+    # The viewer's state this half reads and sets (made in app.viewer.CloudViewer.__init__).
+    points: np.ndarray
+    _colours: dict[str, Colours]
+    _vbos: dict[str, int]
+    _splat: splat.SplatRenderer | None
+    _splat_mode: str | None  # colour mode whose indices are in the splat buffer
+    wanted_render_path: str
+    render_path: str
+    render_path_info: str
+    lod_points: int
+    color_mode: str
+    camera: picking.OrbitCamera
+    lo: np.ndarray
+    hi: np.ndarray
+    radius: float
+    marks: dict[int, np.ndarray]
+    unconfirmed: set[int]
+    selected_mark: int | None
+    overlay: QWidget
+    _gl_ready: bool
+    _pending_upload: bool
+    _interacting: bool
+    last_frame_full: bool
+    _quadric: object | None  # the GLU quadric the mark spheres are drawn with
+    modelview: np.ndarray
+    projection: np.ndarray
+    viewport: picking.Viewport
+    # ... and two of its methods
+    effective_point_size: Callable[[], float]
+    _delete_vbos: Callable[[], None]
 
     def initializeGL(self) -> None:
         self._gl_ready = True
@@ -149,19 +202,19 @@ class GLDrawing:
         self._splat_mode = None
         if len(self.points):
             if self._splat is not None:
-                self._upload_splat()
+                self._upload_splat(self._splat)
             else:
                 self._vbos = {"points": make_vbo(self.points)}
                 for mode, colours in self._colours.items():
                     self._vbos[mode] = make_vbo(colours.rgba())
         self._pending_upload = False
 
-    def _upload_splat(self) -> None:
+    def _upload_splat(self, renderer: splat.SplatRenderer) -> None:
         """Positions + the current colour mode's palette indices (a mode switch re-uploads)."""
         mode = self._shown_colour_mode()
         index, palette = self._colours[mode].indexed()
-        self._splat.upload(self.points, index)
-        self._splat.set_palette(palette)
+        renderer.upload(self.points, index)
+        renderer.set_palette(palette)
         self._splat_mode = mode
 
     def _shown_colour_mode(self) -> str:
@@ -209,7 +262,7 @@ class GLDrawing:
     def _draw_points(self) -> None:
         if self._splat is not None and len(self.points):
             try:
-                self._draw_splat()
+                self._draw_splat(self._splat)
                 return
             except Exception as e:  # e.g. an out-of-memory GL error on a huge window
                 self._fall_back_to_classic(e)
@@ -232,22 +285,23 @@ class GLDrawing:
         GL.glDisableClientState(GL.GL_COLOR_ARRAY)
         GL.glDisableClientState(GL.GL_VERTEX_ARRAY)
 
-    def _draw_splat(self) -> None:
+    def _draw_splat(self, renderer: splat.SplatRenderer) -> None:
         """Every point, every frame (app.splat): no level of detail needed."""
         if self._splat_mode != self._shown_colour_mode():
-            self._upload_splat()
+            self._upload_splat(renderer)
         _, _, w, h = GL.glGetIntegerv(GL.GL_VIEWPORT)
-        self._splat.draw(int(w), int(h), self.effective_point_size(), BACKGROUND)
+        renderer.draw(int(w), int(h), self.effective_point_size(), BACKGROUND)
         self.last_frame_full = True
 
     def _read_back_matrices(self) -> None:
         # The paper's step: acquire the matrices "set up to the CG hardware at present".
-        self._gl_modelview = GL.glGetDoublev(GL.GL_MODELVIEW_MATRIX)
-        self._gl_projection = GL.glGetDoublev(GL.GL_PROJECTION_MATRIX)
-        self._gl_viewport = GL.glGetIntegerv(GL.GL_VIEWPORT)
+        self._gl_modelview: np.ndarray = GL.glGetDoublev(GL.GL_MODELVIEW_MATRIX)
+        self._gl_projection: np.ndarray = GL.glGetDoublev(GL.GL_PROJECTION_MATRIX)
+        self._gl_viewport: np.ndarray = GL.glGetIntegerv(GL.GL_VIEWPORT)
         self.modelview = np.array(self._gl_modelview, np.float64).reshape(4, 4).T
         self.projection = np.array(self._gl_projection, np.float64).reshape(4, 4).T
-        self.viewport = tuple(int(v) for v in self._gl_viewport)
+        x, y, w, h = (int(v) for v in self._gl_viewport)
+        self.viewport = (x, y, w, h)
 
     # ---- overlays (GL part: never writes depth) ------------------------------------------
     def mark_radius(self) -> float:
@@ -265,7 +319,8 @@ class GLDrawing:
         if not all(k in self.marks for k in TABLE_LABELS):
             return
         try:
-            quad = picking.table_plane_quad(*(self.marks[k] for k in TABLE_LABELS))
+            p5, p6, p7 = (self.marks[k] for k in TABLE_LABELS)
+            quad = picking.table_plane_quad(p5, p6, p7)
         except ValueError:
             return
         GL.glEnable(GL.GL_BLEND)

@@ -3,20 +3,44 @@ triad and the info line, painted with QPainter on a transparent child widget ove
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
 from PySide6.QtCore import QPointF, QRectF, Qt
-from PySide6.QtGui import QColor, QFont, QPainter, QPen
+from PySide6.QtGui import QColor, QFont, QPainter, QPaintEvent, QPen
 from PySide6.QtWidgets import QWidget
 
 from anklescan.app import picking
 from anklescan.app.viewer_gl import COLOR_WHITE, MARK_COLOURS, RENDER_CLASSIC, UNCONFIRMED_COLOUR
 
+if TYPE_CHECKING:
+    # The mixin is only ever mixed into a widget (app.viewer.CloudViewer): the type checker sees
+    # that base, the running program a plain object (so the MRO stays as it is).
+    _Widget = QWidget
+else:
+    _Widget = object
+
 WARNING_MARK = "⚠"  # in a mark's note: its position is less certain than usual (the note says why)
 WARNING_COLOUR = "#ff8a00"
 
 
-class OverlayPainting:
+class OverlayPainting(_Widget):
     """CloudViewer's QPainter half (a mixin: it reads the viewer's state and last matrices)."""
+
+    # The viewer's state this half reads (made in app.viewer.CloudViewer.__init__).
+    points: np.ndarray
+    marks: dict[int, np.ndarray]
+    unconfirmed: set[int]
+    mark_notes: dict[int, str]
+    color_mode: str
+    scanner_eye: np.ndarray | None
+    render_path: str
+    lod_points: int
+    _interacting: bool
+    modelview: np.ndarray  # the last frame's matrices and viewport (app.viewer_gl)
+    projection: np.ndarray
+    viewport: picking.Viewport
 
     def paint_overlay(self, painter: QPainter) -> None:
         """Text and the axis triad, painted by the raster engine on a transparent child widget:
@@ -26,11 +50,12 @@ class OverlayPainting:
         self._paint_axes(painter)
         self._paint_info(painter)
 
-    def widget_pos_of(self, world) -> np.ndarray:
+    def widget_pos_of(self, world: npt.ArrayLike) -> np.ndarray:
         """Logical widget coordinates (Qt, y down) of world points, with the last frame's matrices."""
         win = picking.project(world, self.modelview, self.projection, self.viewport)
         dpr = self.devicePixelRatioF()
-        return np.c_[win[:, 0] / dpr, (self.viewport[3] - win[:, 1]) / dpr, win[:, 2]]
+        out: np.ndarray = np.c_[win[:, 0] / dpr, (self.viewport[3] - win[:, 1]) / dpr, win[:, 2]]
+        return out
 
     def _paint_mark_labels(self, painter: QPainter) -> None:
         if not self.marks:
@@ -92,13 +117,13 @@ class OverlayPainting:
 class Overlay(QWidget):
     """Transparent to the mouse; paints the viewer's text after each GL frame."""
 
-    def __init__(self, viewer):
+    def __init__(self, viewer: OverlayPainting) -> None:
         super().__init__(viewer)
         self.viewer = viewer
         self.setAttribute(Qt.WidgetAttribute.WA_TransparentForMouseEvents)
         self.setAttribute(Qt.WidgetAttribute.WA_NoSystemBackground)
 
-    def paintEvent(self, event) -> None:
+    def paintEvent(self, event: QPaintEvent) -> None:
         painter = QPainter(self)
         painter.setRenderHint(QPainter.RenderHint.Antialiasing)
         painter.setRenderHint(QPainter.RenderHint.TextAntialiasing)
@@ -106,7 +131,7 @@ class Overlay(QWidget):
         painter.end()
 
 
-def _free_spot(at: QPointF, width: float, height: float, taken: list) -> QPointF:
+def _free_spot(at: QPointF, width: float, height: float, taken: list[QRectF]) -> QPointF:
     """Where a label of this size can stand near ``at`` (its baseline start) without covering
     one already drawn: marks 1 and 3 (and 2 and 4) often project a few pixels apart."""
     for step in range(12):
