@@ -9,9 +9,12 @@ indicator is the one number the clinician must watch while setting exposure.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
+
 import numpy as np
 from PySide6.QtCore import Qt, QTimer, Signal
-from PySide6.QtGui import QImage, QPixmap
+from PySide6.QtGui import QImage, QPixmap, QResizeEvent
 from PySide6.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -29,31 +32,48 @@ from PySide6.QtWidgets import (
 
 from anklescan.hardware.sim_patient import PatientProfile
 
+if TYPE_CHECKING:
+    from anklescan.app.acquisition import Acquisition
+    from anklescan.app.background import BackgroundJob
+    from anklescan.app.projector_window import ProjectorWindow
+    from anklescan.hardware.camera import Camera, ProjectorOutput
+    from anklescan.hardware.sync import LatencyResult
+    from anklescan.hardware.usb_discovery import UsbWatcher
+
 PREVIEW_MS = 100
 USB_POLL_MS = 2000  # plug/unplug shows within 2 s; one enumeration costs well under a millisecond
 WARN_PERCENT = 0.5  # above this share of saturated pixels the stripes start to be lost
 
 
-def control_specs(camera) -> list[dict]:
-    """The device's controls as dicts: name, label, min, max, value, step, unit."""
+@dataclass(frozen=True)
+class ControlSpec:
+    """One of the device's controls as the panel shows it (``choices``: named settings, value an index)."""
+
+    name: str
+    label: str
+    min: float
+    max: float
+    value: float
+    step: float
+    unit: str
+    choices: tuple[str, ...]
+
+
+def control_specs(camera: Camera) -> list[ControlSpec]:
+    """The device's controls (hardware.camera.Control) as the panel shows them."""
     try:
         raw = camera.controls()
     except Exception:
         return []
-    items = raw.items() if isinstance(raw, dict) else ((getattr(c, "name", None), c) for c in raw or [])
     specs = []
-    for name, c in items:
-        get = (lambda k, d=None, c=c: c.get(k, d)) if isinstance(c, dict) else (lambda k, d=None, c=c: getattr(c, k, d))
-        name = name or get("name")
-        lo, hi = get("min", get("minimum", 0.0)), get("max", get("maximum", 100.0))
-        value = get("value", get("default", lo))
-        if name is None or lo is None or hi is None:
-            continue
-        specs.append(dict(name=str(name), label=str(get("label", str(name).replace("_", " ").capitalize())),
-                          min=float(lo), max=float(hi), value=float(value),
-                          step=float(get("step", 0) or 0) or (float(hi) - float(lo)) / 100.0,
-                          unit={"x": "×"}.get(str(get("unit", "") or ""), str(get("unit", "") or "")),
-                          choices=tuple(get("choices", ()) or ())))
+    for key, c in raw.items():
+        name = key or c.name
+        lo, hi = c.minimum, c.maximum
+        unit = str(c.unit or "")
+        specs.append(ControlSpec(name=str(name), label=str(name).replace("_", " ").capitalize(),
+                                 min=float(lo), max=float(hi), value=float(c.value),
+                                 step=float(c.step or 0) or (float(hi) - float(lo)) / 100.0,
+                                 unit={"x": "×"}.get(unit, unit), choices=tuple(c.choices or ())))
     return specs
 
 
@@ -84,9 +104,9 @@ def to_display(image: np.ndarray, zebra_level: int | None = None) -> QImage:
 class ImageView(QLabel):
     """A label that keeps its image scaled to fit, aspect ratio kept."""
 
-    def __init__(self, placeholder: str = "", parent=None):
+    def __init__(self, placeholder: str = "", parent: QWidget | None = None) -> None:
         super().__init__(placeholder, parent)
-        self._pixmap = None
+        self._pixmap: QPixmap | None = None
         self.setAlignment(Qt.AlignmentFlag.AlignCenter)
         self.setMinimumSize(320, 240)
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
@@ -96,7 +116,7 @@ class ImageView(QLabel):
         self._pixmap = QPixmap.fromImage(image)
         self._rescale()
 
-    def resizeEvent(self, event) -> None:
+    def resizeEvent(self, event: QResizeEvent) -> None:
         super().resizeEvent(event)
         self._rescale()
 
@@ -115,11 +135,12 @@ class CameraPanel(QWidget):
     profileChanged = Signal(str)               # the simulated patient's profile (PatientProfile value)
     swayChanged = Signal(float)                # how far the simulated patient sways, mm (0: still)
 
-    def __init__(self, backends: list[tuple[str, str]], saturation_level: int = 250, parent=None):
+    def __init__(self, backends: list[tuple[str, str]], saturation_level: int = 250,
+                 parent: QWidget | None = None) -> None:
         super().__init__(parent)
-        self._camera = None
+        self._camera: Camera | None = None
         self._level = saturation_level
-        self._boxes: dict[str, QDoubleSpinBox] = {}
+        self._boxes: dict[str, QDoubleSpinBox | QComboBox] = {}
         self.preview = ImageView("No camera image yet")
         self.backend = QComboBox()
         for key, label in backends:
@@ -144,13 +165,13 @@ class CameraPanel(QWidget):
         self.latency_button.clicked.connect(self.run_latency_test)
         self.latency_result = QLabel("Not measured: the settle time is the stored one.")
         self.latency_result.setWordWrap(True)
-        self._projector = None
-        self._output = None   # the projector window behind app.acquisition's ProjectorOutput
-        self._runner = None   # the latency self-test's background job
-        self._preview_job = None
-        self._shot_job = None
+        self._projector: ProjectorWindow | None = None
+        self._output: ProjectorOutput | None = None   # the projector window behind app.acquisition's ProjectorOutput
+        self._runner: BackgroundJob | None = None     # the latency self-test's background job
+        self._preview_job: BackgroundJob | None = None
+        self._shot_job: BackgroundJob | None = None
         self._backend_key = ""
-        self._watcher = None
+        self._watcher: UsbWatcher | None = None
         self._usb_timer = QTimer(self)
         self._usb_timer.setInterval(USB_POLL_MS)
         self._usb_timer.timeout.connect(self.poll_usb)
@@ -231,7 +252,7 @@ class CameraPanel(QWidget):
         outer.addLayout(right, 1)
 
     # ---- the camera ---------------------------------------------------------------------
-    def set_camera(self, camera, backend: str, device_label: str) -> None:
+    def set_camera(self, camera: Camera, backend: str, device_label: str) -> None:
         self._camera = camera
         index = self.backend.findData(backend)
         if index >= 0 and index != self.backend.currentIndex():
@@ -267,35 +288,37 @@ class CameraPanel(QWidget):
         self._boxes.clear()
         specs = control_specs(self._camera) if self._camera is not None else []
         for spec in specs:
-            self._controls_form.addRow(spec["label"], self._control_box(spec))
+            self._controls_form.addRow(spec.label, self._control_box(spec))
         if not specs:
             self._controls_form.addRow(QLabel("This device reports no adjustable controls."))
 
-    def _control_box(self, spec: dict):
-        if spec["choices"]:
+    def _control_box(self, spec: ControlSpec) -> QDoubleSpinBox | QComboBox:
+        if spec.choices:
             return self._choice_box(spec)
         box = QDoubleSpinBox()
-        box.setRange(spec["min"], spec["max"])
-        box.setSingleStep(spec["step"])
-        box.setDecimals(0 if spec["step"] >= 1 else 2)
-        box.setValue(spec["value"])
-        if spec["unit"]:
-            box.setSuffix(f" {spec['unit']}")
+        box.setRange(spec.min, spec.max)
+        box.setSingleStep(spec.step)
+        box.setDecimals(0 if spec.step >= 1 else 2)
+        box.setValue(spec.value)
+        if spec.unit:
+            box.setSuffix(f" {spec.unit}")
         box.setAlignment(Qt.AlignmentFlag.AlignRight)
-        box.valueChanged.connect(lambda v, n=spec["name"]: self._set_control(n, v))
-        self._boxes[spec["name"]] = box
+        box.valueChanged.connect(lambda v, n=spec.name: self._set_control(n, v))
+        self._boxes[spec.name] = box
         return box
 
-    def _choice_box(self, spec: dict) -> QComboBox:
+    def _choice_box(self, spec: ControlSpec) -> QComboBox:
         # ISO, shutter, aperture ...: the camera's own words, the index is what is set.
         box = QComboBox()
-        box.addItems(list(spec["choices"]))
-        box.setCurrentIndex(int(spec["value"]))
-        box.currentIndexChanged.connect(lambda i, n=spec["name"]: self._set_control(n, float(i)))
-        self._boxes[spec["name"]] = box
+        box.addItems(list(spec.choices))
+        box.setCurrentIndex(int(spec.value))
+        box.currentIndexChanged.connect(lambda i, n=spec.name: self._set_control(n, float(i)))
+        self._boxes[spec.name] = box
         return box
 
     def _set_control(self, name: str, value: float) -> None:
+        if self._camera is None:
+            return  # no boxes without a camera (set_camera builds them)
         try:
             self._camera.set_control(name, value)
         except Exception as exc:
@@ -333,20 +356,23 @@ class CameraPanel(QWidget):
     def _live_toggled(self, on: bool) -> None:
         self._timer.start() if on else self._timer.stop()
 
-    def _acquisition(self):
+    def _acquisition(self, camera: Camera) -> Acquisition:
         from anklescan.app.acquisition import Acquisition
-        return Acquisition(self._camera, self._output, self.settle.value() / 1000.0)
+        # Before a projector is set there is no output: preview and capture never show, only the
+        # latency self-test does, and it runs only once set_projector gave one.
+        output = cast("ProjectorOutput", self._output)
+        return Acquisition(camera, output, self.settle.value() / 1000.0)
 
     def _pull_preview(self) -> None:
         """One preview frame, grabbed in the background; the next tick waits for it."""
         if self._camera is None or self._preview_job is not None:
             return
         camera = self._camera
-        self._preview_job = self._acquisition().run(
+        self._preview_job = self._acquisition(camera).run(
             lambda acq: acq.preview(), lambda image: self._preview_done(camera, image),
             lambda message: self._preview_done(camera, None, message))
 
-    def _preview_done(self, camera, image, message: str = "") -> None:
+    def _preview_done(self, camera: Camera, image: np.ndarray | None, message: str = "") -> None:
         self._preview_job = None
         if camera is not self._camera:
             return  # the camera was switched meanwhile
@@ -357,15 +383,16 @@ class CameraPanel(QWidget):
         self.live.setChecked(False)
         self.saturation.setText(f"Preview stopped: {message}")
 
-    def test_capture(self):
+    def test_capture(self) -> BackgroundJob | None:
         """A full frame, captured in the background; ``testCaptured`` carries it. Returns the job."""
         if self._camera is None or self._shot_job is not None:
             return None
         self.test_button.setEnabled(False)
-        self._shot_job = self._acquisition().run(lambda acq: acq.capture(), self._test_captured, self._test_failed)
+        self._shot_job = self._acquisition(self._camera).run(lambda acq: acq.capture(), self._test_captured,
+                                                             self._test_failed)
         return self._shot_job
 
-    def _test_captured(self, image) -> None:
+    def _test_captured(self, image: np.ndarray) -> None:
         self._shot_job = None
         self.test_button.setEnabled(self._runner is None and self.backend.isEnabled())
         self.show_image(image)
@@ -411,12 +438,12 @@ class CameraPanel(QWidget):
         if device_id is not None:
             self.deviceChanged.emit(self._backend_key, device_id)
 
-    def start_usb_watch(self, watcher=None) -> None:
+    def start_usb_watch(self, watcher: UsbWatcher | None = None) -> None:
         """Poll USB every 2 s for cameras coming and going (``watcher`` for tests)."""
         from anklescan.hardware.usb_discovery import UsbWatcher
-        self._watcher = watcher or UsbWatcher()
+        self._watcher = started = watcher or UsbWatcher()
         self.poll_usb()
-        if not self._watcher.unavailable:
+        if not started.unavailable:
             self._usb_timer.start()
 
     def poll_usb(self) -> None:
@@ -440,12 +467,12 @@ class CameraPanel(QWidget):
         self.usb_status.setStyleSheet("color: #b3261e;" if error else "color: #5f6b76;")
 
     # ---- synchronisation ----------------------------------------------------------------
-    def set_projector(self, projector) -> None:
-        """The projector window (or any ProjectorOutput) the latency self-test shows black and
-        white on, through app.acquisition."""
+    def set_projector(self, projector: ProjectorWindow) -> None:
+        """The projector window the latency self-test shows black and white on, through
+        app.acquisition (its ProjectorOutput; the self-test needs the window's visibility)."""
         from anklescan.app.acquisition import as_output
         if projector is not self._projector:
-            if self._output is not None and self._output is not self._projector:
+            if self._output is not None:  # the previous window's output, never the window itself
                 self._output.close()
             self._projector, self._output = projector, as_output(projector)
 
@@ -461,17 +488,19 @@ class CameraPanel(QWidget):
             remember(self._camera, Settle(ms / 1000.0, SettleSource.MANUAL))
         self.settleChanged.emit(float(ms))
 
-    def _show_settle_of(self, camera) -> None:
+    def _show_settle_of(self, camera: Camera) -> None:
         from anklescan.hardware.sync import settle_for
         settle = settle_for(camera, self.settle.value() / 1000.0)
         self.set_settle_ms(settle.seconds * 1000)
         self.latency_result.setText(settle.result.summary() if settle.result else
                                     "Not measured: the settle time is the stored one.")
 
-    def _find_projector(self):
+    def _find_projector(self) -> ProjectorWindow | None:
         # The main window owns the projector window; until it hands it over explicitly, use its.
-        if self._projector is None and getattr(self.window(), "projector", None) is not None:
-            self.set_projector(self.window().projector)
+        if self._projector is None:
+            owned: ProjectorWindow | None = getattr(self.window(), "projector", None)
+            if owned is not None:
+                self.set_projector(owned)
         return self._projector
 
     def _show_projector(self) -> bool:
@@ -482,7 +511,7 @@ class CameraPanel(QWidget):
         projector = self._find_projector()
         return bool(projector is not None and projector.isVisible())
 
-    def run_latency_test(self, **kw) -> bool:
+    def run_latency_test(self, **kw: Any) -> bool:
         """hardware.sync's self-test, in the background, on the acquisition's show and capture."""
         projector = self._find_projector()
         if self._camera is None or projector is None or self._runner is not None:
@@ -496,12 +525,12 @@ class CameraPanel(QWidget):
         self.test_button.setEnabled(False)
         self.latency_result.setText("Measuring… keep the camera pointed at the projected area.")
         camera = self._camera
-        self._runner = self._acquisition().run(lambda acq: latency_test(acq, **kw),
+        self._runner = self._acquisition(camera).run(lambda acq: latency_test(acq, **kw),
                                                lambda result: self._latency_done(camera, result, ""),
                                                lambda message: self._latency_done(camera, None, message))
         return True
 
-    def _latency_done(self, camera, result, message: str) -> None:
+    def _latency_done(self, camera: Camera, result: LatencyResult | None, message: str) -> None:
         from anklescan.hardware.sync import Settle, SettleSource, remember
         self._runner = None
         self.latency_button.setEnabled(True)
@@ -519,7 +548,7 @@ class CameraPanel(QWidget):
         self.settleChanged.emit(result.settle_s * 1000)
 
 
-def latency_test(acquisition, **test_kw):
+def latency_test(acquisition: Acquisition, **test_kw: Any) -> LatencyResult:
     """hardware.sync.run_latency_test with the acquisition's show (black or white, returning
     when presented) and capture; in a worker thread."""
     from anklescan.hardware.sync import run_latency_test

@@ -4,7 +4,8 @@ are app.logic.session's; this widget shows its state and asks the clinician."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from PySide6.QtCore import Qt, Signal
 from PySide6.QtGui import QAction, QKeySequence
@@ -28,6 +29,8 @@ from anklescan.core.vocabulary import CONDITION_TITLES, Severity
 
 if TYPE_CHECKING:
     from anklescan.app.logic.session import SessionLogic
+    from anklescan.core.records.store import Store
+    from anklescan.core.vocabulary import Session, Trial
 
 ID = Qt.ItemDataRole.UserRole
 
@@ -68,7 +71,7 @@ class RecordsPanel(QWidget):
         logic.storeOpened.connect(self.apply_read_only)
         self.update_trial_buttons()
 
-    def _action(self, text, slot, shortcut=None) -> QAction:
+    def _action(self, text: str, slot: Callable[[], object], shortcut: str | None = None) -> QAction:
         a = QAction(text, self)
         if shortcut:
             a.setShortcut(QKeySequence(shortcut))
@@ -93,21 +96,25 @@ class RecordsPanel(QWidget):
         self.setMinimumWidth(240)
 
     # ---- what is selected -------------------------------------------------------------
-    def _current(self, widget, role=ID):
+    def _current(self, widget: QListWidget, role: int = ID) -> Any:  # what the refresh stored: Qt's data is Any
         item = widget.currentItem()
         return item.data(role) if item else None
 
     def current_patient_id(self) -> int | None:
-        return self._current(self.patients)
+        out: int | None = self._current(self.patients)
+        return out
 
     def current_code(self) -> str | None:
-        return self._current(self.patients, ID + 1)
+        out: str | None = self._current(self.patients, ID + 1)
+        return out
 
     def current_session_id(self) -> int | None:
-        return self._current(self.sessions)
+        out: int | None = self._current(self.sessions)
+        return out
 
     def current_trial_id(self) -> int | None:
-        return self._current(self.trials)
+        out: int | None = self._current(self.trials)
+        return out
 
     # ---- the lists --------------------------------------------------------------------
     def refresh_patients(self, select_code: str | None = None) -> None:
@@ -173,7 +180,7 @@ class RecordsPanel(QWidget):
                 self.trials.blockSignals(False)
                 self.update_trial_buttons()
 
-    def _trial_clicked(self, item) -> None:
+    def _trial_clicked(self, item: QListWidgetItem | None) -> None:
         self.update_trial_buttons()
         if item is not None:
             self.trialChosen.emit(item.data(ID))
@@ -214,11 +221,11 @@ class RecordsPanel(QWidget):
             self.refresh_patients(select_code=patient.code)
         return patient is not None
 
-    def new_session(self):
+    def new_session(self) -> Session | None:
         """A session for the selected patient, in the condition chosen beside the button."""
         return self.start_session(self.new_session_condition.currentData())
 
-    def start_session(self, condition: str):
+    def start_session(self, condition: str) -> Session | None:
         if self.current_patient_id() is not None and not self.logic.operator:
             self.ask_operator()
         session = self.logic.start_session(self.current_patient_id(), condition)
@@ -275,18 +282,18 @@ class RecordsPanel(QWidget):
         return confirm(self.window(), title, text)
 
 
-def confirm(parent, title: str, text: str) -> bool:
+def confirm(parent: QWidget | None, title: str, text: str) -> bool:
     answer = QMessageBox.question(parent, title, text, QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
                                   QMessageBox.StandardButton.No)
     return answer == QMessageBox.StandardButton.Yes
 
 
-def trial_number(store, trial) -> int:
+def trial_number(store: Store, trial: Trial) -> int:
     """The trial's number in its session (1, 2, ...), as the trials list shows it."""
     return sum(1 for t in store.trials.all(trial.session_id) if t.id <= trial.id)
 
 
-def _trial_tip(t) -> str:
+def _trial_tip(t: Trial) -> str:
     moved = ("" if t.motion_mm is None else f"; moved {t.motion_mm:.1f} ± {t.motion_sd_mm or 0:.1f} mm"
              + (f" in a {t.scan_duration_s:.1f} s scan" if t.scan_duration_s else "")
              + (" (flagged, kept)" if t.motion_flagged and t.motion_keep else ""))

@@ -145,7 +145,9 @@ class Review(QObject):
         """"Trial 2" (its number in its session), "· simulated" on the simulated rig; ``full``: with
         its reference angles and any state that leaves it out of the statistics."""
         from anklescan.app.records_panel import trial_number
-        text = f"Trial {trial_number(self.parts.session.store, trial)}"
+        store = self.parts.session.store
+        assert store is not None, "a trial is read from the open database"
+        text = f"Trial {trial_number(store, trial)}"
         if full:
             text += f" · reference {deg(trial.ref_inversion)} / {deg(trial.ref_plantar_flexion)}"
         if trial.simulated:

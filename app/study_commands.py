@@ -4,15 +4,23 @@ changes the records; the only file it may add to the data folder is the site's M
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 from anklescan.app.cli_commands import Progress
 from anklescan.core.errors import AnkleScanError
 
+if TYPE_CHECKING:
+    from anklescan.core.records.store import Store
+
+T = TypeVar("T")
+
 DEMO_DB = "anklescan.db"   # `anklescan demo --out DIR` keeps its database here, its files under DIR/data
 
 
-def open_data_folder(folder: str | Path):
+def open_data_folder(folder: str | Path) -> Store:
     """The data folder's database, read-only: DIR/anklescan.sqlite (the app's), or a demo folder's."""
     from anklescan.core.records.store import DB_FILENAME, Store
 
@@ -26,7 +34,7 @@ def open_data_folder(folder: str | Path):
     raise AnkleScanError(f"{d} holds no AnkleScan database ({DB_FILENAME}); give the app's data folder")
 
 
-def cmd_report(args) -> int:
+def cmd_report(args: argparse.Namespace) -> int:
     from anklescan.core.records.study import StudyFilter, write_study_folder
 
     if args.date_from and args.date_to and args.date_from > args.date_to:
@@ -43,7 +51,7 @@ def cmd_report(args) -> int:
     return 0
 
 
-def cmd_export(args) -> int:
+def cmd_export(args: argparse.Namespace) -> int:
     from anklescan.core.records import tables
 
     out = Path(args.out)
@@ -82,7 +90,7 @@ def cmd_export(args) -> int:
     return 0
 
 
-def _get(getter, key: int, what: str):
+def _get(getter: Callable[[int], T], key: int, what: str) -> T:
     try:
         return getter(key)
     except (KeyError, LookupError, AnkleScanError):

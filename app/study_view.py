@@ -52,7 +52,7 @@ def _date_row(label: str) -> tuple[QCheckBox, QDateEdit, QWidget]:
 class StudyReportDialog(QDialog):
     """Which patients and visits, and the output folder."""
 
-    def __init__(self, codes: list[str], default_out: Path, parent=None):
+    def __init__(self, codes: list[str], default_out: Path, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.setWindowTitle("Study report")
         form = QFormLayout(self)
@@ -85,7 +85,7 @@ class StudyReportDialog(QDialog):
         if path:
             self.out.setText(path)
 
-    def choice(self):
+    def choice(self) -> StudyFilter:
         from anklescan.core.records.study import StudyFilter
 
         code = self.patient.currentText()
@@ -99,7 +99,7 @@ class PatientHistoryDialog(QDialog):
 
     HEAD = ("Visit", "Condition", "Axis", "n", "AE (°)", "CE (°)", "VE (°)", "Change of AE (°)", "vs MDC95")
 
-    def __init__(self, tables, patient: str, parent=None):
+    def __init__(self, tables: StudyTables, patient: str, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
         from matplotlib.figure import Figure
@@ -118,7 +118,7 @@ class PatientHistoryDialog(QDialog):
                "no MDC yet (it needs 3 patients with two visits): no change can be called real.")))
         fig = Figure(figsize=(8, 4.6))
         report.draw_history(fig, self.visits, tables.site_mdc, bottom=0.1, height=0.3, gap=0.17)
-        self.canvas = FigureCanvasQTAgg(fig)
+        self.canvas = FigureCanvasQTAgg(fig)  # type: ignore[no-untyped-call]  # matplotlib leaves it unannotated
         lay.addWidget(self.canvas, 3)
         cells = report.history_cells(self.visits)
         self.table = QTableWidget(len(cells), len(self.HEAD))
@@ -136,9 +136,20 @@ class PatientHistoryDialog(QDialog):
 if TYPE_CHECKING:
     from PySide6.QtWidgets import QStatusBar, QWidget
 
+    from anklescan.app.background import BackgroundJob
     from anklescan.app.logic.session import SessionLogic
     from anklescan.app.main_parts import Banner
     from anklescan.app.records_panel import RecordsPanel
+    from anklescan.core.records.study import StudyFilter, StudyOutputs, StudyTables
+    from anklescan.core.vocabulary import ReportInput
+
+
+@dataclass(frozen=True)
+class StorePaths:
+    """Where the open database is, for a job's own read-only connection."""
+
+    db: Path
+    data_dir: Path
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,11 +168,11 @@ class StudyParts:
 class StudyGui(QObject):
     """The two actions, wired by the main window."""
 
-    def __init__(self, parts: StudyParts, parent: QObject | None = None):
+    def __init__(self, parts: StudyParts, parent: QObject | None = None) -> None:
         super().__init__(parent)
         self.parts = parts
-        self.jobs: list = []
-        self.last_result = None
+        self.jobs: list[BackgroundJob] = []
+        self.last_result: StudyOutputs | None = None
         self.progress: QProgressBar | None = None
         self.history: PatientHistoryDialog | None = None
         # the records sidebar: right-click a patient for the history (the File menu has it too)
@@ -171,18 +182,17 @@ class StudyGui(QObject):
         patients.addAction(self.history_action)
         patients.setContextMenuPolicy(Qt.ContextMenuPolicy.ActionsContextMenu)
 
-    def _store_paths(self):
+    def _store_paths(self) -> StorePaths | None:
         store = self.parts.session.store
         if store is None:
             self.parts.banner.show_message(Severity.WARNING, "No database is open: choose a data folder first.")
             return None
-        return store.path, store.data_dir
+        return StorePaths(store.path, store.data_dir)
 
-    def _report_input(self, paths):
+    def _report_input(self, paths: StorePaths) -> ReportInput:
         from anklescan.core.records.store import Store
 
-        db, data_dir = paths
-        with Store.open(db, data_dir=data_dir, read_only=True) as own:  # its own connection, read-only
+        with Store.open(paths.db, data_dir=paths.data_dir, read_only=True) as own:  # its own connection, read-only
             return own.reports.report_input()
 
     def open_study_report(self) -> None:
@@ -196,7 +206,7 @@ class StudyGui(QObject):
             return
         self.write_study_report(dialog.choice(), Path(dialog.out.text()))
 
-    def write_study_report(self, flt, out: Path):
+    def write_study_report(self, flt: StudyFilter, out: Path) -> BackgroundJob | None:
         from anklescan.app.background import run_in_background
         from anklescan.core.atomic import guard_output
 
@@ -205,19 +215,19 @@ class StudyGui(QObject):
             return None
         parts = self.parts
         try:
-            guard_output(out, [paths[1]], what="the study report folder")
+            guard_output(out, [paths.data_dir], what="the study report folder")
         except Exception as exc:   # one line in the banner, the folder untouched
             parts.banner.show_message(Severity.ERROR, f"The study report was not written: {exc}")
             return None
         whole = flt.patient is None and flt.date_from is None and flt.date_to is None
 
-        def render(job):
+        def render(job: BackgroundJob) -> StudyOutputs:
             from anklescan.core.records.study import write_study_folder
 
             job.progress(0, 3, "reading the database")
             data = self._report_input(paths)
             steps = iter(range(1, 3))
-            return write_study_folder(data, out, flt, data_dir=paths[1], keep_site_mdc=whole,
+            return write_study_folder(data, out, flt, data_dir=paths.data_dir, keep_site_mdc=whole,
                                       progress=lambda text: job.progress(next(steps, 2), 3, text))
 
         self.progress = QProgressBar()
@@ -241,7 +251,7 @@ class StudyGui(QObject):
             self.progress.deleteLater()
             self.progress = None
 
-    def _written(self, result) -> None:
+    def _written(self, result: StudyOutputs) -> None:
         self._end_progress()
         self.last_result = result
         self.parts.banner.show_message(Severity.INFO, f"Study report saved in {result.folder}: report.pdf ({result.pages} "
@@ -262,7 +272,7 @@ class StudyGui(QObject):
         if code is None:
             self.parts.banner.show_message(Severity.WARNING, "Select a patient first.")
             return None
-        tables = study_tables(self._report_input(paths), data_dir=paths[1])
+        tables = study_tables(self._report_input(paths), data_dir=paths.data_dir)
         self.history = PatientHistoryDialog(tables, code, self.parts.dialog_parent)
         self.history.show()
         return self.history
