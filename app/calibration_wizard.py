@@ -146,6 +146,9 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self._adding_position = False  # the next box scan adds a position instead of starting afresh
         self.board_result: BoardCalibration | None = None
         self.calibration: Calibration | None = None
+        # the current (accepted) calibration, which a verification's verdict is kept with; a fit
+        # shown on the report but not accepted yet is not it
+        self.accepted_calibration: Calibration | None = None
         self.report: CalibrationReport | None = None
         self.verification: VerificationResult | None = None
         self.accepted_path: Path | None = None
@@ -270,9 +273,15 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             return False
         if purpose in ("verify", "level") and self.calibration is None:
             self.calibration, _ = load_current_calibration(self.settings)
+            self.accepted_calibration = self.calibration
             if self.calibration is None:
                 self.status.setText(f"There is no calibration to {purpose} yet.")
                 return False
+        if purpose == "verify" and self.calibration is not self.accepted_calibration:
+            # its verdict would be written to the current calibration's record, not to this fit's
+            self.status.setText("This calibration is not accepted yet: accept it on the quality report (step 3) "
+                                "first. A verification's verdict is kept with the current calibration.")
+            return False
         self._timer.stop()
         self._scan_purpose = purpose
         w, h = self.projector.projector_size
@@ -340,7 +349,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
     def _levelled(self, result: tuple[Calibration, TableTop]) -> None:
         cal, top = result
         cal.extra["source"] = f"{cal.extra.get('source', 'calibration')}, levelled"
-        self.calibration = cal
+        self.calibration = self.accepted_calibration = cal
         self.accepted_path, cid = accept_calibration(cal, self.report, self.data_folder, self.store, self.settings,
                                                      source="levelled")
         self.status.setText(f"Levelled on the table top found ({top.describe()}): saved as {self.accepted_path.name}"
@@ -405,6 +414,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             return False
         self.accepted_path, cid = accept_calibration(self.calibration, self.report, self.data_folder, self.store, self.settings,
                                                      source=self.calibration.extra.get("source", "box"))
+        self.accepted_calibration = self.calibration
         self.status.setText(f"Saved as {self.accepted_path.name}" + (f" (calibration #{cid})" if cid else "")
                             + ". It is now the current calibration; verify it next.")
         self.calibrationAccepted.emit(self.calibration, cid, str(self.accepted_path))

@@ -55,6 +55,14 @@ def _leg_rms(rig, cal, folder):
     return evaluate(reconstruct(load_capture(folder), cal), sim.truth())["subject"].rms_mm
 
 
+def _click_step(qtbot, wiz, page):
+    """A click on the dialog's step list, on step ``page``."""
+    from PySide6.QtCore import Qt
+
+    rect = wiz.steps.visualItemRect(wiz.steps.item(page))
+    qtbot.mouseClick(wiz.steps.viewport(), Qt.MouseButton.LeftButton, pos=rect.center())
+
+
 def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     from PySide6.QtCore import Qt
 
@@ -84,6 +92,16 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     wiz.report_details.click()
     assert wiz.calibration.projector.axis == "both"  # rows were scanned: the full 2-D model
     _shot(wiz, "calib_report.png")
+
+    # the fit is not accepted yet: the step list still leads to "5 Verify", but its scan is refused
+    # (its verdict would be written to the calibration in use), and nothing is recorded
+    before = current_calibration_info(Settings())
+    _click_step(qtbot, wiz, PAGE_VERIFY)
+    assert wiz.pages.currentIndex() == PAGE_VERIFY
+    qtbot.mouseClick(wiz.verify_button, Qt.MouseButton.LeftButton)
+    assert "not accepted yet" in wiz.status.text() and not wiz.controller.busy and wiz.verification is None
+    assert current_calibration_info(Settings()) == before
+    _click_step(qtbot, wiz, PAGE_REPORT)
 
     qtbot.mouseClick(wiz.accept_button, Qt.MouseButton.LeftButton)
     assert wiz.pages.currentIndex() == PAGE_VERIFY
