@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (
@@ -35,32 +35,15 @@ from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
 if TYPE_CHECKING:
-    from anklescan.app.camera_panel import CameraPanel
     from anklescan.app.logic.scan import ScanLogic
     from anklescan.app.logic.session import SessionLogic
     from anklescan.app.main_parts import Banner
-    from anklescan.app.projector_window import ProjectorWindow
-    from anklescan.app.rig import Rig
+    from anklescan.app.rig_setup import RigSetup
     from anklescan.app.settings import Settings
     from anklescan.core.calibration.procedures.daily_check import CheckResult
     from anklescan.core.records.daily_checks import DailyCheckRecord
 
 HISTORY_ROWS = 5
-
-
-class RigSetupView(Protocol):
-    """What the daily check uses of app.rig_setup.RigSetup: its rig, projector window and camera
-    panel (each None until made). Not RigSetup itself: its attributes are not annotated yet (rig_setup
-    is on mypy's debt list), so mypy takes them for always None and skips all that follows a check."""
-
-    @property
-    def rig(self) -> Rig | None: ...
-    @property
-    def projector(self) -> ProjectorWindow | None: ...
-    @property
-    def camera_panel(self) -> CameraPanel | None: ...
-    def show_projector(self) -> None: ...
-    def _restore_projector(self) -> None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +53,7 @@ class DailyCheckParts:
     session: SessionLogic
     settings: Settings
     banner: Banner
-    rig_setup: RigSetupView                # the rig, its projector window and camera panel
+    rig_setup: RigSetup                    # the rig, its projector window and camera panel
     scan_logic: ScanLogic                  # the patterns a scan of this rig projects
     data_folder: Callable[[], Path]
     scan_busy: Callable[[], bool]          # a patient scan is running

@@ -9,7 +9,7 @@ import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import QTabWidget
@@ -21,32 +21,15 @@ from anklescan.core.vocabulary import Severity
 if TYPE_CHECKING:
     import numpy as np
 
-    from anklescan.app.camera_panel import CameraPanel
     from anklescan.app.logic.scan import ScanPlan
     from anklescan.app.logic.session import SessionLogic
-    from anklescan.app.projector_window import ProjectorWindow
     from anklescan.app.records_panel import RecordsPanel
     from anklescan.app.review import Review
     from anklescan.app.rig import Rig
+    from anklescan.app.rig_setup import RigSetup
     from anklescan.app.scan_worker import ScanController, ScanJob, ScanResult
     from anklescan.app.trial_form import TrialEntry
     from anklescan.hardware.sim_patient import Stance
-
-
-class RigSetupView(Protocol):
-    """What the scan flow uses of app.rig_setup.RigSetup: its rig, projector window and camera panel
-    (each None until made). Not RigSetup itself: its attributes are not annotated yet (rig_setup is on
-    mypy's debt list), so mypy takes them for always None."""
-
-    @property
-    def rig(self) -> Rig | None: ...
-    @property
-    def projector(self) -> ProjectorWindow | None: ...
-    @property
-    def camera_panel(self) -> CameraPanel | None: ...
-    def check_calibration_age(self) -> None: ...
-    def show_projector(self) -> None: ...
-    def _restore_projector(self) -> None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +44,7 @@ class ScanParts:
     session: SessionLogic
     records: RecordsPanel
     review: Review
-    rig_setup: RigSetupView                   # the rig, its projector window and camera panel
+    rig_setup: RigSetup                       # the rig, its projector window and camera panel
     open_daily_check: Callable[[], object]    # the daily check's dialog (the banner's action)
 
 
