@@ -374,7 +374,7 @@ def _decode_phase(frames: Frames, ac: AxisCode, gray_centre: Mat, min_modulation
     column = cv2.addWeighted(phi, period / (2 * np.pi), k, -period, 0.0)
     inconsistent = cv2.compare(cv2.absdiff(column, gray_centre), scalar(tol), cv2.CMP_GT)
     # modulation B = 2/N * |(S, C)|; B < min_modulation means the phase is noise
-    mag = cv2.magnitude(s_sum, c_sum)
+    mag = _magnitude(s_sum, c_sum)
     weak = cv2.compare(mag, scalar(min_modulation * n / 2.0), cv2.CMP_LT)
     lo, hi = min(ac.phase), max(ac.phase)
     if hi - lo + 1 == len(ac.phase):  # contiguous in the stack: one numpy reduction
@@ -390,6 +390,19 @@ def _decode_phase(frames: Frames, ac: AxisCode, gray_centre: Mat, min_modulation
 
 
 MAX_CLIPPED_FRACTION = 0.5  # of the N phase samples; more and the clipped waveform has too little shape left
+
+
+def _magnitude(x: Mat, y: Mat) -> Mat:
+    """sqrt(x² + y²), float32, the same bits wherever the arrays lie in memory.
+
+    ``cv2.magnitude`` fuses a multiply-add in its vector loop but not in its scalar one, and
+    which elements take which depends on the output's address: the same capture decoded twice
+    gave phase SDs (and so point SDs, and the weak-modulation test) 1 ulp apart. Numpy's
+    elementwise float32 operations are each correctly rounded, vectorised or not."""
+    mag: Mat = np.multiply(x, x)
+    mag += np.multiply(y, y)
+    np.sqrt(mag, out=mag)
+    return mag
 
 
 def _too_clipped(frames: Frames, ac: AxisCode, saturation: float) -> Mat:
