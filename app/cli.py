@@ -258,14 +258,37 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("marks")
     a.add_argument("--sigma", type=_LENGTH_MM, default=0.2, help="mark position uncertainty, mm (default 0.2)")
     a.set_defaults(func=cmd_angles)
+    _declare_non_path_options(p)
     return p
 
 
+# Free-text option values that are codes or words, never files (a patient code, stripe axes, a
+# distortion model, a table size, Qt's own arguments).
+_TEXT_OPTIONS = frozenset({"patient", "axes", "distortion", "table_size", "qt_args"})
+
+
+def _declare_non_path_options(parser: argparse.ArgumentParser) -> None:
+    """Set ``non_path_options`` on every (sub-)parser: the arguments whose values never name a
+    file: keywords (``choices``: ``--preset default``, ``--camera webcam``, ``--format fhir``),
+    typed values, flags and _TEXT_OPTIONS. ``_path_arguments`` skips them, so a folder that
+    happens to be called like a keyword (``patterns --out default``, run twice) is not taken
+    for the command's input. Any other string argument is a path, a new one included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _declare_non_path_options(sub)
+    words = {a.dest for a in parser._actions
+             if a.choices is not None or a.type is not None or a.nargs == 0 or a.dest in _TEXT_OPTIONS}
+    parser.set_defaults(non_path_options=frozenset(words))
+
+
 def _path_arguments(args: argparse.Namespace) -> list[str | os.PathLike[str]]:
-    """Every argument other than --out that names an existing file or folder: the inputs."""
+    """Every path argument other than --out that names an existing file or folder: the inputs
+    (not a keyword or code that happens to be a file's name too: ``_declare_non_path_options``)."""
     values: list[str | os.PathLike[str]] = []
+    not_paths: frozenset[str] = getattr(args, "non_path_options", frozenset())
     for key, v in vars(args).items():
-        if key == "out" or callable(v):
+        if key == "out" or key in not_paths or callable(v):
             continue
         for item in (v if isinstance(v, (list, tuple)) else [v]):
             if isinstance(item, (str, os.PathLike)) and str(item) and os.path.lexists(item):

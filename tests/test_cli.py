@@ -233,3 +233,26 @@ def test_an_all_black_capture_is_exit_2_and_no_file(tmp_path, scan):
     # refused where the capture is read (an unlit capture), before decoding finds nothing
     assert_user_error(run("reconstruct", black, "--calibration", cal, "--out", out), "white frame is no brighter")
     assert not out.exists() and not list(tmp_path.glob(".cloud.ply*"))
+
+
+# ---- arguments that are words, not files (audit-cli) -----------------------------------------
+@pytest.mark.parametrize("args", [
+    ["patterns", "--projector", "64x48", "--out", "default"],  # --preset's default is the word 'default'
+    ["patterns", "--projector", "64x48", "--preset", "paper", "--out", "paper"],
+])
+def test_an_output_named_like_a_keyword_can_be_written_again(tmp_path, args):
+    """A keyword option's value (--preset default) is not an input even when a folder has its name:
+    rerunning the command onto its own earlier output replaces it (it was refused as 'the input')."""
+    for _ in range(2):
+        done = run(*args, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+    assert (tmp_path / args[-1] / "manifest.json").is_file()
+
+
+def test_a_path_argument_naming_the_output_is_still_refused(tmp_path, scan):
+    _, capture, cal = scan
+    out = tmp_path / "cal.json"
+    shutil.copy(cal, out)
+    assert_user_error(run("reconstruct", capture, "--calibration", out, "--out", tmp_path / "." / "cal.json"),
+                      "is the input")
+
