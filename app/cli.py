@@ -108,6 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="progress messages on stderr even when it is not a terminal (else stdout)")
+    # no command (``anklescan -q``, not only a bare ``anklescan``) is the desktop app, as SPEC §6 says
+    p.set_defaults(func=cmd_gui, qt_args=[])
     sub = p.add_subparsers(dest="command")
 
     g = sub.add_parser("gui", help="the desktop application (default)")

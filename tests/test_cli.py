@@ -256,3 +256,13 @@ def test_a_path_argument_naming_the_output_is_still_refused(tmp_path, scan):
     assert_user_error(run("reconstruct", capture, "--calibration", out, "--out", tmp_path / "." / "cal.json"),
                       "is the input")
 
+
+@pytest.mark.parametrize("argv", [["-q"], ["-v"], []])
+def test_no_command_with_only_global_flags_is_the_desktop_app(monkeypatch, argv):
+    """SPEC §6: `anklescan` is the desktop application; `anklescan -q` was an AttributeError traceback."""
+    from anklescan.app import cli
+
+    started = []
+    monkeypatch.setattr(cli, "cmd_gui", lambda args: started.append(args.qt_args) or 0)
+    assert cli.main(argv) == 0
+    assert started == [[]]
