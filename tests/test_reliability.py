@@ -293,6 +293,29 @@ def test_absurd_calibration_refused_at_load(capfd, work, case, words):
                    "--out", work / "x.ply", words=words)
 
 
+@pytest.mark.parametrize("where, value, words", [
+    (("camera", "K", 0, 0), "1000", ["camera.K", "not numeric"]),  # numpy would read 1000.0
+    (("camera", "K", 0, 0), True, ["camera.K", "not numeric"]),    # numpy would read fx = 1
+    (("projector", "dist", 0), "0.1", ["projector.dist"]),
+    (("camera", "width"), True, ["camera.width"]),                  # bool is an int in Python
+    (("volume", "min", 0), "0", ["volume"]),
+    (("model_error", "sd_mm"), "0.05", ["model_error"]),
+])
+def test_calibration_values_of_the_wrong_json_type_are_refused(capfd, work, where, value, words):
+    """SPEC §4's numbers must be JSON numbers: a string or true/false in their place was read as a
+    number (fx = "1000" -> 1000.0, fx = true -> 1.0) and the scan was made with it, exit 0."""
+    cal = json.loads((work / "cal.json").read_text())
+    cal.setdefault("volume", {"min": [0, 0, 0], "max": [1, 1, 1]})
+    cal.setdefault("model_error", {"sd_mm": 0.0, "growth_mm_per_mm": 0.0})
+    node = cal
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    (work / "typed.json").write_text(json.dumps(cal))
+    assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "typed.json",
+                   "--out", work / "x.ply", words=words)
+
+
 @pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
 def test_special_file_inputs_are_refused(capfd, tmp_path, special):
     if special == "fifo":
