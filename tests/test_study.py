@@ -217,6 +217,22 @@ def test_report_refuses_foreign_folder_and_replaces_its_own(data, report, tmp_pa
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+def test_report_keeps_an_earlier_reports_file_the_user_edited(data, report, tmp_path, capfd):
+    """A table of an earlier report that the user has since changed (notes added in a spreadsheet)
+    is theirs: the folder is refused untouched. It was replaced, the notes lost, exit 0."""
+    earlier = tmp_path / "earlier"
+    shutil.copytree(report, earlier)
+    with open(earlier / "trials.csv", "a", encoding="utf-8") as fh:
+        fh.write("my notes on P2,,,\n")
+    before = (earlier / "trials.csv").read_bytes()
+    code, _, err = run(capfd, "report", "--data", data, "--out", earlier)
+    assert code == 2 and len(err) == 1 and "did not write" in err[0], err
+    assert (earlier / "trials.csv").read_bytes() == before
+    (earlier / "trials.csv").unlink()  # a file of the report removed by the user: the rest is still the report's
+    code, _, err = run(capfd, "report", "--data", data, "--out", earlier)
+    assert code == 0 and (earlier / "trials.csv").is_file(), err
+
+
 def test_export_c3d_reads_back_with_seven_labelled_marks(data, tmp_path, capfd):
     import c3d
 
