@@ -266,3 +266,16 @@ def test_no_command_with_only_global_flags_is_the_desktop_app(monkeypatch, argv)
     monkeypatch.setattr(cli, "cmd_gui", lambda args: started.append(args.qt_args) or 0)
     assert cli.main(argv) == 0
     assert started == [[]]
+
+
+@pytest.mark.parametrize("rows, words", [
+    ("1,10,0,400,5\n", ["t.csv:2", "5 fields", "header has 4"]),  # z written with a decimal comma: 400,5
+    ("1,10,0\n", ["t.csv:2", "3 fields"]),
+])
+def test_angles_rows_not_matching_the_header_are_malformed(tmp_path, rows, words):
+    """`angles` took the first fields of a longer row (z = 400 from '400,5'), exit 0."""
+    csv = tmp_path / "t.csv"
+    csv.write_text("label,x,y,z\n" + rows + "2,0,0,0\n3,40,30,400\n4,40,0,0\n")
+    assert_user_error(run("angles", csv), *words)
+    csv.write_text("label,x,x,y,z\n1,10,0,0,400\n2,0,0,0,0\n")  # which x is the mark's?
+    assert_user_error(run("angles", csv), "repeats a column")

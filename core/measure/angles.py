@@ -271,11 +271,14 @@ def _header_columns(header: list[str], path: Path) -> dict[str, int]:
             raise AnkleScanError(f"{path}: header must name columns label,x,y,z "
                                  f"(found {','.join(names) or 'nothing'})")
         cols[want] = names.index(want)
+    if len(set(names)) != len(names):  # which 'x' is the mark's? refuse rather than pick one
+        raise AnkleScanError(f"{path}: the header repeats a column name ({','.join(names)})")
     return cols
 
 
 def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
-    """Marks from a ``label,x,y,z`` CSV (header required; extra columns ignored)."""
+    """Marks from a ``label,x,y,z`` CSV (header required; extra named columns ignored; every row
+    has the header's number of fields)."""
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
@@ -290,8 +293,9 @@ def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
     marks: dict[int, np.ndarray] = {}
     for line_no, row in enumerate(rows[1:], start=2):
         where = f"{path}:{line_no}"
-        if len(row) <= max(cols.values()):
-            raise AnkleScanError(f"{where}: expected label,x,y,z, got {len(row)} fields")
+        if len(row) != len(rows[0]):  # a field more is as malformed as one less (a decimal comma: 10,5)
+            raise AnkleScanError(f"{where}: {len(row)} fields, the header has {len(rows[0])} "
+                                 f"({','.join(h.strip() for h in rows[0])})")
         raw = row[cols["label"]].strip()
         if not raw:
             raise AnkleScanError(f"{where}: missing mark label")
