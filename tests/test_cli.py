@@ -279,3 +279,10 @@ def test_angles_rows_not_matching_the_header_are_malformed(tmp_path, rows, words
     assert_user_error(run("angles", csv), *words)
     csv.write_text("label,x,x,y,z\n1,10,0,0,400\n2,0,0,0,0\n")  # which x is the mark's?
     assert_user_error(run("angles", csv), "repeats a column")
+
+
+def test_angles_errors_name_the_line_of_the_file(tmp_path):
+    """Blank lines were dropped before counting: the error named line 3 for a value on line 5."""
+    csv = tmp_path / "m.csv"
+    csv.write_text("label,x,y,z\n\n1,10,0,400\n\n2,0,0,abc\n")
+    assert_user_error(run("angles", csv), "m.csv:5", "abc")

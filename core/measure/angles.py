@@ -282,20 +282,23 @@ def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+            reader = csv.reader(fh)
+            # each row with its line in the file (blank lines skipped, so not its index) for the messages
+            numbered = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]
     except (OSError, UnicodeDecodeError) as e:
         raise AnkleScanError(f"cannot read marks file {path}: {e}") from None
     except csv.Error as e:
         raise AnkleScanError(f"{path}: malformed CSV: {e}") from None
-    if not rows:
+    if not numbered:
         raise AnkleScanError(f"{path}: empty file (expected header label,x,y,z)")
-    cols = _header_columns(rows[0], path)
+    (_, header), body = numbered[0], numbered[1:]
+    cols = _header_columns(header, path)
     marks: dict[int, np.ndarray] = {}
-    for line_no, row in enumerate(rows[1:], start=2):
+    for line_no, row in body:
         where = f"{path}:{line_no}"
-        if len(row) != len(rows[0]):  # a field more is as malformed as one less (a decimal comma: 10,5)
-            raise AnkleScanError(f"{where}: {len(row)} fields, the header has {len(rows[0])} "
-                                 f"({','.join(h.strip() for h in rows[0])})")
+        if len(row) != len(header):  # a field more is as malformed as one less (a decimal comma: 10,5)
+            raise AnkleScanError(f"{where}: {len(row)} fields, the header has {len(header)} "
+                                 f"({','.join(h.strip() for h in header)})")
         raw = row[cols["label"]].strip()
         if not raw:
             raise AnkleScanError(f"{where}: missing mark label")
