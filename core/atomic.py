@@ -135,11 +135,18 @@ def mkdtemp_beside(target: str | os.PathLike[str], tag: str = "tmp") -> Path:
     target = Path(target)
     clean_stale_temporaries(target.parent)
     prefix, suffix = temp_affixes(target.name, tag)
-    tmp = Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    except OSError as e:  # a read-only or full disk: name the user's output, never our temporary
+        raise WriteError(f"cannot write {target}: {e.strerror or e}") from None
     marker = {"host": socket.gethostname(), "pid": os.getpid(), "created": time.time(), "for": target.name}
-    fd = os.open(tmp / TEMP_MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(json.dumps(marker, ensure_ascii=True))
+    try:
+        fd = os.open(tmp / TEMP_MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(json.dumps(marker, ensure_ascii=True))
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise WriteError(f"cannot write {target}: {e.strerror or e}") from None
     return tmp
 
 

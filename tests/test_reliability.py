@@ -606,3 +606,13 @@ def test_database_on_a_read_only_mount_opens_for_reading(read_only_mount, monkey
         assert [p.code for p in s.patients.all()] == ["P1"]
         with pytest.raises(AnkleScanError, match="read-only"):
             s.patients.add("P2")
+
+
+def test_an_unwritable_output_folder_is_named_not_our_temporary(read_only_mount, capfd):
+    """A folder output on a read-only disk: the line named the hidden temporary
+    ("Read-only file system (.../.p.1k8luznx.tmp)"), a path the user never gave."""
+    mnt, make_read_only = read_only_mount
+    make_read_only()
+    code, lines = cli(capfd, "patterns", "--out", mnt / "p", "--projector", "64x48")
+    assert code == 2 and len(lines) == 1, lines
+    assert f"cannot write {mnt / 'p'}:" in lines[0] and "Read-only" in lines[0] and ".tmp" not in lines[0], lines
