@@ -278,6 +278,17 @@ def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
     assert code == 2 and len(err) == 1 and not (tmp_path / "n.json").exists()
 
 
+def test_export_fhir_of_one_failed_trial_says_so(data, tmp_path, capfd):
+    """`export --trial N --format fhir` of a failed trial said "the session has no complete trial",
+    naming neither the trial asked for nor why."""
+    with Store.open(data_dir=data, read_only=True) as store:
+        failed = next(t for t in store.trials.all(store.sessions.all("P1")[0].id) if t.status == "failed")
+    out = tmp_path / "t.json"
+    code, _, err = run(capfd, "export", "--data", data, "--trial", failed.id, "--format", "fhir", "--out", out)
+    assert code == 2 and len(err) == 1 and f"trial {failed.id} failed" in err[0], err
+    assert not out.exists()
+
+
 def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
     """No "-0.00" anywhere; a page whose settings all have one trial says so and asks for repeats;
     one trial is one point; legends sit above the axes, off the data."""
