@@ -359,3 +359,13 @@ def test_c3d_keeps_seven_labels_when_marks_are_missing(tmp_path):
         (_, pts, _), = list(reader.read_frames())
     assert (pts[[2, 3], 3] == -1).all() and (pts[[0, 1, 4, 5, 6], 3] >= 0).all()
     assert np.allclose(pts[4, :3], marks[5], atol=1e-3)
+
+
+def test_report_on_an_empty_database_file_says_it_is_empty(tmp_path, capfd):
+    """A 0-byte anklescan.sqlite (a failed copy) was said not to exist."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    (folder / "anklescan.sqlite").write_bytes(b"")
+    code, _, err = run(capfd, "report", "--data", folder, "--out", tmp_path / "out")
+    assert code == 2 and len(err) == 1 and "is empty" in err[0] and "not exist" not in err[0], err
+    assert not (tmp_path / "out").exists() and (folder / "anklescan.sqlite").read_bytes() == b""
