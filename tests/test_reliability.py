@@ -162,6 +162,20 @@ def test_patterns_never_deletes_files_it_did_not_write(capfd, tmp_path):
     assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "scan", "--projector", "64x48")
 
 
+def test_patterns_never_replace_a_capture_photographed_from_them(capfd, tmp_path):
+    """SPEC §5: a camera that photographs the pattern folder file by file makes a capture with the
+    same manifest.json and file names. `patterns --out` onto it deleted the scan (exit 0)."""
+    assert cli(capfd, "patterns", "--out", tmp_path / "p", "--projector", "64x48")[0] == 0
+    shutil.copytree(tmp_path / "p", tmp_path / "scan")
+    for f in _manifest(tmp_path / "scan")["frames"]:  # the "photographs": dimmer, offset
+        img = cv2.imread(str(tmp_path / "p" / f["file"]), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / "scan" / f["file"]), (img // 2 + 20).astype(np.uint8))
+    assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "scan", "--projector", "64x48",
+                   words=("did not write",))
+    # the pattern folder itself is still ours and is replaced
+    assert cli(capfd, "patterns", "--out", tmp_path / "p", "--projector", "32x24")[0] == 0
+
+
 def test_sigterm_during_patterns_leaves_no_temporary(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "anklescan.app.cli", "-q", "patterns", "--out", str(tmp_path / "big"),
                              "--projector", "8000x6000"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
