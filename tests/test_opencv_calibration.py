@@ -103,3 +103,19 @@ def test_cli_export_and_its_guards(tmp_path, cal):
     back = load_calibration(tmp_path / "back.json")
     assert np.allclose(back.projector.t, cal.projector.t, atol=1e-9)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["back.json", "cal.json", "cal.yml"]  # no temporaries
+
+
+def test_cli_import_refuses_a_camera_size_the_file_contradicts(tmp_path, cal):
+    """--camera 640x480 for a file saying 256x192 wrote a calibration of no camera (the file's
+    intrinsics on another sensor), exit 0; now one line naming both sizes, nothing written."""
+    save_calibration(cal, tmp_path / "cal.json")
+    assert run("calibrate", "export", tmp_path / "cal.json", "--out", tmp_path / "cal.yml").returncode == 0
+    w, h = cal.camera.width, cal.camera.height
+    done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--camera", f"{2 * w}x{2 * h}",
+               "--out", tmp_path / "back.json")
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"{w}x{h}" in done.stderr and f"{2 * w}x{2 * h}" in done.stderr, done.stderr
+    assert not (tmp_path / "back.json").exists()
+    done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--camera", f"{w}x{h}",
+               "--out", tmp_path / "back.json")
+    assert done.returncode == 0, done.stderr  # the same size said twice is fine

@@ -136,17 +136,24 @@ def _rotation(a: np.ndarray, key: str, path: Path) -> np.ndarray:
 
 
 def _camera_size(fs: cv2.FileStorage, path: Path, given: tuple[int, int] | None) -> tuple[int, int]:
-    if given is not None:
-        return int(given[0]), int(given[1])
+    """The camera's size: the file's, else ``given`` (--camera). Both, and different, is refused:
+    the intrinsics are the file's camera's, so another size would make a calibration of no camera."""
     for key, order in (("img_shape", "hw"), ("image_size", "wh"), ("imageSize", "wh"), ("camera_size", "wh")):
         n = fs.getNode(key)
         if n.empty() or n.isNone():
             continue
         a = _array(n, key, path).ravel()
         if a.size >= 2 and np.all(a[:2] > 0) and np.all(a[:2] == np.round(a[:2])):
-            w, h = (a[1], a[0]) if order == "hw" else (a[0], a[1])
-            return int(w), int(h)
-        raise CalibrationError(f"{path}: '{key}' is not an image size")
+            w, h = (int(a[1]), int(a[0])) if order == "hw" else (int(a[0]), int(a[1]))
+            if given is not None and (int(given[0]), int(given[1])) != (w, h):
+                raise CalibrationError(f"{path}: its '{key}' says the camera is {w}x{h}, --camera says "
+                                       f"{given[0]}x{given[1]}; leave --camera out, or check the file")
+            return w, h
+        if given is None:
+            raise CalibrationError(f"{path}: '{key}' is not an image size")
+        break
+    if given is not None:
+        return int(given[0]), int(given[1])
     raise CalibrationError(f"{path}: the camera's image size is not in the file (img_shape / image_size); "
                            f"give it with --camera WxH")
 
