@@ -119,3 +119,10 @@ def test_cli_import_refuses_a_camera_size_the_file_contradicts(tmp_path, cal):
     done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--camera", f"{w}x{h}",
                "--out", tmp_path / "back.json")
     assert done.returncode == 0, done.stderr  # the same size said twice is fine
+
+
+def test_cli_import_of_a_folder_says_it_is_a_folder(tmp_path):
+    """A folder given as FILE was "not found", though the user can see it."""
+    (tmp_path / "stereo").mkdir()
+    done = run("calibrate", "import", tmp_path / "stereo", "--projector", "1024x768", "--out", tmp_path / "c.json")
+    assert done.returncode == 2 and "is a folder" in done.stderr and "not found" not in done.stderr, done.stderr

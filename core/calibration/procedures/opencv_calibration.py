@@ -44,6 +44,8 @@ SUFFIXES = (".xml", ".yml", ".yaml", ".json")
 
 
 def _read_storage(path: Path) -> cv2.FileStorage:
+    if path.is_dir():  # as load_json says it: "not found" for a folder the user can see misleads
+        raise CalibrationError(f"calibration file {path} is a folder, not a file")
     if not path.is_file():
         raise CalibrationError(f"calibration file not found: {path}")
     try:
