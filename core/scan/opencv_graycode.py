@@ -92,6 +92,8 @@ def import_opencv_graycode(src: str | os.PathLike[str], out: str | os.PathLike[s
         same = False
     if same:
         raise CaptureError(f"output {out} is the source folder or inside it; choose another --out")
+    if out.is_symlink():  # found before copying anything, and said as every folder output says it
+        raise CaptureError(f"output {out} is a symbolic link; give the real folder or a new one")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise CaptureError(f"output {out} already exists and is not an empty folder; choose another --out")
     if not out.parent.is_dir():
