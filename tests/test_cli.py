@@ -286,3 +286,13 @@ def test_angles_errors_name_the_line_of_the_file(tmp_path):
     csv = tmp_path / "m.csv"
     csv.write_text("label,x,y,z\n\n1,10,0,400\n\n2,0,0,abc\n")
     assert_user_error(run("angles", csv), "m.csv:5", "abc")
+
+
+@pytest.mark.parametrize("out", [".", "./", ".."])
+def test_a_folder_output_onto_the_current_folder_is_one_clear_line(tmp_path, out):
+    """`patterns --out .` in an empty folder put its temporary inside '.', then said the folder "holds
+    files this command did not write"; `import --out .` said "Invalid argument (.)"."""
+    here = tmp_path / "here"
+    here.mkdir()
+    assert_user_error(run("patterns", "--projector", "64x48", "--out", out, cwd=here), "current folder")
+    assert list(here.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["here"]
