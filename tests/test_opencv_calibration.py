@@ -126,3 +126,25 @@ def test_cli_import_of_a_folder_says_it_is_a_folder(tmp_path):
     (tmp_path / "stereo").mkdir()
     done = run("calibrate", "import", tmp_path / "stereo", "--projector", "1024x768", "--out", tmp_path / "c.json")
     assert done.returncode == 2 and "is a folder" in done.stderr and "not found" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".xml", ".json"])
+def test_a_column_only_projector_stays_column_only_through_export_and_import(tmp_path, cal, suffix):
+    """SPEC §4: a projector calibrated from vertical stripes only has no row intrinsics ("axis":
+    "column"). Exported and imported back it came out as a 2-D projector whose nominal K2 row was
+    taken for calibrated: row stripes would have been triangulated with made-up geometry."""
+    import json
+
+    from anklescan.core.calibration.model.file import calibration_to_dict
+
+    obj = calibration_to_dict(cal)
+    obj["projector"]["axis"] = "column"
+    obj["projector"]["K"][1] = None
+    (tmp_path / "ours.json").write_text(json.dumps(obj))
+    assert run("calibrate", "export", tmp_path / "ours.json", "--out", tmp_path / f"col{suffix}").returncode == 0
+    done = run("calibrate", "import", tmp_path / f"col{suffix}", "--projector",
+               f"{cal.projector.width}x{cal.projector.height}", "--out", tmp_path / "back.json")
+    assert done.returncode == 0, done.stderr
+    back = load_calibration(tmp_path / "back.json")
+    assert back.projector.axis == "column"
+    assert np.allclose(back.projector.K[0], cal.projector.K[0]) and np.allclose(back.projector.t, cal.projector.t)
