@@ -296,3 +296,19 @@ def test_a_folder_output_onto_the_current_folder_is_one_clear_line(tmp_path, out
     here.mkdir()
     assert_user_error(run("patterns", "--projector", "64x48", "--out", out, cwd=here), "current folder")
     assert list(here.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["here"]
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda p: p.mkdir(), ["is a folder"]),
+    (lambda p: p.write_bytes(b"label,x,y,z\n1,10,0,400\xe9\n"), ["not UTF-8", "byte 22"]),  # a Latin-1 export
+])
+def test_csv_inputs_that_cannot_be_read_say_why_plainly(tmp_path, make, words):
+    """The line quoted Python's exception ("[Errno 21] Is a directory: 'm.csv'", "'utf-8' codec
+    can't decode byte 0xe9 in position 22: invalid continuation byte")."""
+    make(tmp_path / "m.csv")
+    for args in (["angles", tmp_path / "m.csv"],
+                 ["calibrate", "points", "--camera", tmp_path / "m.csv", "--projector", tmp_path / "m.csv",
+                  "--out", tmp_path / "c.json"]):
+        done = run(*args)
+        assert_user_error(done, *words)
+        assert "Errno" not in done.stderr and "codec" not in done.stderr

@@ -285,8 +285,14 @@ def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
             reader = csv.reader(fh)
             # each row with its line in the file (blank lines skipped, so not its index) for the messages
             numbered = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]
-    except (OSError, UnicodeDecodeError) as e:
-        raise AnkleScanError(f"cannot read marks file {path}: {e}") from None
+    except FileNotFoundError:
+        raise AnkleScanError(f"cannot read marks file {path}: it does not exist") from None
+    except IsADirectoryError:
+        raise AnkleScanError(f"cannot read marks file {path}: it is a folder, not a file") from None
+    except OSError as e:  # the reason alone: str(e) repeats the path as "[Errno 13] ...: 'm.csv'"
+        raise AnkleScanError(f"cannot read marks file {path}: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise AnkleScanError(f"marks file {path} is not UTF-8 text (byte {e.start}); save it as UTF-8 CSV") from None
     except csv.Error as e:
         raise AnkleScanError(f"{path}: malformed CSV: {e}") from None
     if not numbered:
