@@ -333,6 +333,26 @@ def _check_out_kind(args: argparse.Namespace) -> None:
     check_may_replace(out, "--out")
 
 
+def _check_not_current_folder(out: str | os.PathLike[str]) -> None:
+    """--out may not be the folder the user stands in, or one above it ('.', '..'): a folder output
+    is built beside its target, which for '.' is inside it, and replacing it would leave the
+    user's shell in a removed folder. (The desktop app's folders are chosen whole, so this is the
+    command line's rule, not guard_output's.)"""
+    from anklescan.core.errors import AnkleScanError
+
+    try:
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:  # the current folder was removed: nothing to protect
+        return
+    target = os.path.realpath(out)
+    try:
+        above = os.path.commonpath([cwd, target]) == target
+    except ValueError:  # on different drives (Windows): not above it
+        above = False
+    if above:
+        raise AnkleScanError(f"--out {os.fsdecode(out)} is the current folder or holds it; give a new folder's name")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()
@@ -388,6 +408,7 @@ def _run(args: argparse.Namespace) -> int:
                 from anklescan.core.atomic import guard_output
 
                 guard_output(args.out, inputs, what="--out")
+                _check_not_current_folder(args.out)
                 _check_out_kind(args)
             command: Command = args.func
             return command(args)

@@ -450,8 +450,7 @@ def guard_output(out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike
     folder (it would add to or replace a file of, e.g., a capture); ``out`` is a folder
     that contains an input (replacing it would delete the input); ``out`` is a hard link
     to a file inside an input folder; ``out`` is empty or an existing device, pipe or socket
-    (``/dev/null`` would be replaced by a file); ``out`` is the current folder or holds it
-    (``.``, ``..``). ``None`` inputs are skipped. Returns
+    (``/dev/null`` would be replaced by a file). ``None`` inputs are skipped. Returns
     ``Path(out)``.
     """
     if not str(out).strip():
@@ -465,14 +464,6 @@ def guard_output(out: str | os.PathLike[str], inputs: Iterable[str | os.PathLike
         raise AnkleScanError(f"{what} {out} is a device, pipe or socket, not a file; choose a file name")
     out_real = os.path.realpath(out_path)
     out_id = _identity(out_path)
-    try:
-        cwd = os.path.realpath(os.getcwd())
-    except OSError:  # the current folder was removed: nothing to protect
-        cwd = None
-    if cwd is not None and _inside(cwd, out_real):
-        # a folder output built beside its target cannot replace the folder the user stands in
-        # ('.', '..'): its temporary would land inside it, or the user's shell be left in a removed folder
-        raise AnkleScanError(f"{what} {out} is the current folder or holds it; give a new folder's name")
     for inp in inputs:
         if inp is None:
             continue
