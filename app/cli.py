@@ -108,6 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="progress messages on stderr even when it is not a terminal (else stdout)")
+    # no command (``anklescan -q``, not only a bare ``anklescan``) is the desktop app, as SPEC §6 says
+    p.set_defaults(func=cmd_gui, qt_args=[])
     sub = p.add_subparsers(dest="command")
 
     g = sub.add_parser("gui", help="the desktop application (default)")
@@ -258,14 +260,37 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("marks")
     a.add_argument("--sigma", type=_LENGTH_MM, default=0.2, help="mark position uncertainty, mm (default 0.2)")
     a.set_defaults(func=cmd_angles)
+    _declare_non_path_options(p)
     return p
 
 
+# Free-text option values that are codes or words, never files (a patient code, stripe axes, a
+# distortion model, a table size, Qt's own arguments).
+_TEXT_OPTIONS = frozenset({"patient", "axes", "distortion", "table_size", "qt_args"})
+
+
+def _declare_non_path_options(parser: argparse.ArgumentParser) -> None:
+    """Set ``non_path_options`` on every (sub-)parser: the arguments whose values never name a
+    file: keywords (``choices``: ``--preset default``, ``--camera webcam``, ``--format fhir``),
+    typed values, flags and _TEXT_OPTIONS. ``_path_arguments`` skips them, so a folder that
+    happens to be called like a keyword (``patterns --out default``, run twice) is not taken
+    for the command's input. Any other string argument is a path, a new one included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _declare_non_path_options(sub)
+    words = {a.dest for a in parser._actions
+             if a.choices is not None or a.type is not None or a.nargs == 0 or a.dest in _TEXT_OPTIONS}
+    parser.set_defaults(non_path_options=frozenset(words))
+
+
 def _path_arguments(args: argparse.Namespace) -> list[str | os.PathLike[str]]:
-    """Every argument other than --out that names an existing file or folder: the inputs."""
+    """Every path argument other than --out that names an existing file or folder: the inputs
+    (not a keyword or code that happens to be a file's name too: ``_declare_non_path_options``)."""
     values: list[str | os.PathLike[str]] = []
+    not_paths: frozenset[str] = getattr(args, "non_path_options", frozenset())
     for key, v in vars(args).items():
-        if key == "out" or callable(v):
+        if key == "out" or key in not_paths or callable(v):
             continue
         for item in (v if isinstance(v, (list, tuple)) else [v]):
             if isinstance(item, (str, os.PathLike)) and str(item) and os.path.lexists(item):
@@ -306,6 +331,26 @@ def _check_out_kind(args: argparse.Namespace) -> None:
     from anklescan.core.atomic import check_may_replace
 
     check_may_replace(out, "--out")
+
+
+def _check_not_current_folder(out: str | os.PathLike[str]) -> None:
+    """--out may not be the folder the user stands in, or one above it ('.', '..'): a folder output
+    is built beside its target, which for '.' is inside it, and replacing it would leave the
+    user's shell in a removed folder. (The desktop app's folders are chosen whole, so this is the
+    command line's rule, not guard_output's.)"""
+    from anklescan.core.errors import AnkleScanError
+
+    try:
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:  # the current folder was removed: nothing to protect
+        return
+    target = os.path.realpath(out)
+    try:
+        above = os.path.commonpath([cwd, target]) == target
+    except ValueError:  # on different drives (Windows): not above it
+        above = False
+    if above:
+        raise AnkleScanError(f"--out {os.fsdecode(out)} is the current folder or holds it; give a new folder's name")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -363,6 +408,7 @@ def _run(args: argparse.Namespace) -> int:
                 from anklescan.core.atomic import guard_output
 
                 guard_output(args.out, inputs, what="--out")
+                _check_not_current_folder(args.out)
                 _check_out_kind(args)
             command: Command = args.func
             return command(args)

@@ -19,6 +19,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -26,7 +27,7 @@ from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
-from anklescan.core.atomic import claim_output_dir, copy_private, make_tree_private, seal_output_dir, write_text_atomic
+from anklescan.core.atomic import copy_private, filling_output_dir, make_tree_private, seal_output_dir, write_text_atomic
 from anklescan.core.vocabulary import (
     CONDITIONS,
     LABEL_KEYS,
@@ -260,11 +261,12 @@ def _calibrate(out: Path, scale: float, progress: Progress) -> BoxCalibration:
 
 
 # ---------------------------------------------------------------------------- the study
-def _prepare_out(out: Path) -> Path:
+def _filling_out(out: Path) -> AbstractContextManager[Path]:
     """An empty or new folder, or an earlier demo's own output (its files only are removed);
-    anything else is refused before any work (core.atomic.claim_output_dir). Returns the
-    folder's real path, which the run writes into."""
-    return claim_output_dir(out, OUTPUT_COMMAND)
+    anything else is refused before any work. Yields the folder's real path, which the run writes
+    into; a run that fails or is interrupted leaves nothing of its own there
+    (core.atomic.filling_output_dir)."""
+    return filling_output_dir(out, OUTPUT_COMMAND)
 
 
 def _finish_out(out: Path) -> None:
@@ -336,11 +338,15 @@ def _record(store: Store, trial_id: int, job: TrialJob, res: TrialResult) -> Non
 def run_demo(out: Path, quick: bool = False, progress: Progress = print, scale: float = DEMO_SCALE,
              sway_mm: float = 0.0,
              camera: str = "webcam") -> int:
+    with _filling_out(out) as real:
+        return _run_demo(real, quick, progress, scale, sway_mm, camera)
+
+
+def _run_demo(out: Path, quick: bool, progress: Progress, scale: float, sway_mm: float, camera: str) -> int:
     from anklescan.core.records.report import write_session_report, write_study_report
     from anklescan.core.records.store import Store
 
     t_start = time.perf_counter()
-    out = _prepare_out(out)
     progress(f"simulated rig at scale {scale} (camera {round(1600 * scale)}x{round(1200 * scale)}, projector "
              f"{round(1024 * scale)}x{round(768 * scale)}); output in {out}")
     with _warm_pool(scale) as pool, Store.open(out / "anklescan.db", data_dir=out / "data") as store:
@@ -462,13 +468,16 @@ def run_study_demo(out: Path, progress: Progress = print, scale: float = DEMO_SC
     """The whole simulated study: box calibration, every trial of ``study_plan()`` scanned and
     measured by the product's pipeline, the study report (with the group page's tests), the CSV and
     one session report per patient (barefoot and shoes)."""
+    with _filling_out(out) as real:
+        return _run_study_demo(real, progress, scale, study_plan() if plan is None else plan)
+
+
+def _run_study_demo(out: Path, progress: Progress, scale: float, plan: list[PlannedTrial]) -> int:
     from anklescan.core.records.report import write_session_report, write_study_report
     from anklescan.core.records.store import Store
 
     t_start = time.perf_counter()
-    plan = study_plan() if plan is None else plan
     first_day = _dt.date.today() - _dt.timedelta(days=max(t.get("visit", 0) for t in plan))
-    out = _prepare_out(out)
     progress(f"simulated study at scale {scale}: {len({t['patient'].code for t in plan})} patients, "
              f"{len(plan)} trials; output in {out}")
     results: list[TrialResult] = []

@@ -17,7 +17,8 @@
   folder in place (``demo``, ``report``): the folder's marker (``OUTPUT_MARKER``) lists every
   file the command wrote, with its size and modification time; the next run removes exactly
   those files and refuses, untouched, a folder holding anything else (a user's note, another
-  program's file, a file of ours changed since).
+  program's file, a file of ours changed since). ``filling_output_dir`` claims and, when the run
+  fails or is interrupted before sealing, removes what it wrote.
 - Permissions: an existing file is only ever replaced when the user may write it (as ``cp``
   would), and the final rename goes through a handle on the target's folder opened once, so
   a folder swapped for a symlink during a run cannot redirect it.
@@ -135,11 +136,18 @@ def mkdtemp_beside(target: str | os.PathLike[str], tag: str = "tmp") -> Path:
     target = Path(target)
     clean_stale_temporaries(target.parent)
     prefix, suffix = temp_affixes(target.name, tag)
-    tmp = Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(suffix=suffix, prefix=prefix, dir=target.parent))
+    except OSError as e:  # a read-only or full disk: name the user's output, never our temporary
+        raise WriteError(f"cannot write {target}: {e.strerror or e}") from None
     marker = {"host": socket.gethostname(), "pid": os.getpid(), "created": time.time(), "for": target.name}
-    fd = os.open(tmp / TEMP_MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(json.dumps(marker, ensure_ascii=True))
+    try:
+        fd = os.open(tmp / TEMP_MARKER, os.O_WRONLY | os.O_CREAT | os.O_EXCL, PRIVATE_FILE_MODE)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(json.dumps(marker, ensure_ascii=True))
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise WriteError(f"cannot write {target}: {e.strerror or e}") from None
     return tmp
 
 
@@ -604,6 +612,32 @@ def claim_output_dir(folder: str | os.PathLike[str], command: str) -> Path:
     (folder / OUTPUT_MARKER).unlink()
     make_private(folder)
     return folder.resolve()
+
+
+@contextmanager
+def filling_output_dir(folder: str | os.PathLike[str], command: str) -> Iterator[Path]:
+    """``claim_output_dir`` for a run that fills ``folder`` in place, undone if the run does not
+    finish: when the block fails or is interrupted (Ctrl-C, SIGTERM) before ``seal_output_dir``,
+    everything in the folder is removed (the claim left it empty, so all of it is this run's) and
+    the folder itself when the claim created it; no half-written output is left behind, nor a folder
+    the next run would refuse. A refused claim changes nothing; a sealed output is kept."""
+    folder = Path(folder)
+    existed = folder.exists() or folder.is_symlink()
+    real = claim_output_dir(folder, command)
+    try:
+        yield real
+    except BaseException:
+        if _read_output_marker(real, command) is None:  # not sealed: the run's partial output
+            if existed:
+                for entry in list(real.iterdir()):
+                    if entry.is_dir() and not entry.is_symlink():
+                        shutil.rmtree(entry, ignore_errors=True)
+                    else:
+                        with suppress(OSError):
+                            entry.unlink()
+            else:
+                shutil.rmtree(real, ignore_errors=True)
+        raise
 
 
 def seal_output_dir(folder: str | os.PathLike[str], command: str) -> int:

@@ -7,7 +7,8 @@ internal error. The limits sit far beyond any real camera, projector or rig, so 
 refuse a real input; each is a documented constant here so the other modules share them.
 
 - ``load_json`` / ``parse_json``: THE way to read a user's JSON (manifest, calibration, ...):
-  size, nesting depth, integer length and finite floats are checked.
+  size, nesting depth, integer length and finite floats are checked; ``is_json_numbers``: a
+  value that must be numbers is numbers (not ``true`` or ``"1000"``).
 - ``image_size``: an image file's width and height from its header, without decoding it.
 - ``check_image_side``: a width/height against ``MAX_IMAGE_SIDE``.
 - ``require_finite``: a result (dict/list/array of numbers) must hold only finite numbers.
@@ -141,6 +142,21 @@ def parse_json(text: str, where: str, error: type[AnkleScanError] = AnkleScanErr
     if not _depth_ok(obj):
         raise error(f"{where}: JSON nested more than {MAX_JSON_DEPTH} levels deep")
     return obj
+
+
+def is_json_numbers(value: object, null_ok: bool = False) -> bool:
+    """True when ``value`` is a JSON number or a (nested) list of them (``null`` too with
+    ``null_ok``). ``true``/``false`` and strings are not numbers: numpy would read ``true`` as
+    1 and ``"1000"`` as 1000.0, so a mistyped file would load as another calibration without
+    a word; check with this before ``np.asarray(value, dtype=float)``."""
+    stack = [value]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, list):
+            stack.extend(node)
+        elif not (isinstance(node, (int, float)) and not isinstance(node, bool)) and not (null_ok and node is None):
+            return False
+    return True
 
 
 def check_input_file(path: str | os.PathLike[str], what: str, error: type[AnkleScanError] = AnkleScanError,

@@ -113,6 +113,23 @@ def test_whole_box_path(box_capture):
     assert np.sqrt(np.mean(cam_err**2)) < 0.1 and np.sqrt(np.mean(proj_err**2)) < 0.1
 
 
+@pytest.mark.parametrize("second", ["trailing-slash", "copy"])
+def test_box_command_refuses_one_capture_given_twice(box_capture, tmp_path, second):
+    """The same capture twice (by another spelling, or copied) doubled every control point: exit 0
+    with 214 points from 107 and SDs 1/sqrt(2) of what the data supports."""
+    import shutil
+    import subprocess
+    import sys
+
+    folder, _ = box_capture
+    other = f"{folder}/" if second == "trailing-slash" else shutil.copytree(folder, tmp_path / "box copy")
+    done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "calibrate", "box", str(folder), str(other),
+                           "--out", str(tmp_path / "cal.json")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.splitlines()) == 1 and ("twice" in done.stderr or "copy of" in done.stderr), done.stderr
+    assert not (tmp_path / "cal.json").exists()
+
+
 def test_shipped_drawing_and_description_are_current():
     import xml.etree.ElementTree as ET
     from pathlib import Path

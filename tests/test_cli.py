@@ -233,3 +233,82 @@ def test_an_all_black_capture_is_exit_2_and_no_file(tmp_path, scan):
     # refused where the capture is read (an unlit capture), before decoding finds nothing
     assert_user_error(run("reconstruct", black, "--calibration", cal, "--out", out), "white frame is no brighter")
     assert not out.exists() and not list(tmp_path.glob(".cloud.ply*"))
+
+
+# ---- arguments that are words, not files (audit-cli) -----------------------------------------
+@pytest.mark.parametrize("args", [
+    ["patterns", "--projector", "64x48", "--out", "default"],  # --preset's default is the word 'default'
+    ["patterns", "--projector", "64x48", "--preset", "paper", "--out", "paper"],
+])
+def test_an_output_named_like_a_keyword_can_be_written_again(tmp_path, args):
+    """A keyword option's value (--preset default) is not an input even when a folder has its name:
+    rerunning the command onto its own earlier output replaces it (it was refused as 'the input')."""
+    for _ in range(2):
+        done = run(*args, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+    assert (tmp_path / args[-1] / "manifest.json").is_file()
+
+
+def test_a_path_argument_naming_the_output_is_still_refused(tmp_path, scan):
+    _, capture, cal = scan
+    out = tmp_path / "cal.json"
+    shutil.copy(cal, out)
+    assert_user_error(run("reconstruct", capture, "--calibration", out, "--out", tmp_path / "." / "cal.json"),
+                      "is the input")
+
+
+@pytest.mark.parametrize("argv", [["-q"], ["-v"], []])
+def test_no_command_with_only_global_flags_is_the_desktop_app(monkeypatch, argv):
+    """SPEC §6: `anklescan` is the desktop application; `anklescan -q` was an AttributeError traceback."""
+    from anklescan.app import cli
+
+    started = []
+    monkeypatch.setattr(cli, "cmd_gui", lambda args: started.append(args.qt_args) or 0)
+    assert cli.main(argv) == 0
+    assert started == [[]]
+
+
+@pytest.mark.parametrize("rows, words", [
+    ("1,10,0,400,5\n", ["t.csv:2", "5 fields", "header has 4"]),  # z written with a decimal comma: 400,5
+    ("1,10,0\n", ["t.csv:2", "3 fields"]),
+])
+def test_angles_rows_not_matching_the_header_are_malformed(tmp_path, rows, words):
+    """`angles` took the first fields of a longer row (z = 400 from '400,5'), exit 0."""
+    csv = tmp_path / "t.csv"
+    csv.write_text("label,x,y,z\n" + rows + "2,0,0,0\n3,40,30,400\n4,40,0,0\n")
+    assert_user_error(run("angles", csv), *words)
+    csv.write_text("label,x,x,y,z\n1,10,0,0,400\n2,0,0,0,0\n")  # which x is the mark's?
+    assert_user_error(run("angles", csv), "repeats a column")
+
+
+def test_angles_errors_name_the_line_of_the_file(tmp_path):
+    """Blank lines were dropped before counting: the error named line 3 for a value on line 5."""
+    csv = tmp_path / "m.csv"
+    csv.write_text("label,x,y,z\n\n1,10,0,400\n\n2,0,0,abc\n")
+    assert_user_error(run("angles", csv), "m.csv:5", "abc")
+
+
+@pytest.mark.parametrize("out", [".", "./", ".."])
+def test_a_folder_output_onto_the_current_folder_is_one_clear_line(tmp_path, out):
+    """`patterns --out .` in an empty folder put its temporary inside '.', then said the folder "holds
+    files this command did not write"; `import --out .` said "Invalid argument (.)"."""
+    here = tmp_path / "here"
+    here.mkdir()
+    assert_user_error(run("patterns", "--projector", "64x48", "--out", out, cwd=here), "current folder")
+    assert list(here.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["here"]
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda p: p.mkdir(), ["is a folder"]),
+    (lambda p: p.write_bytes(b"label,x,y,z\n1,10,0,400\xe9\n"), ["not UTF-8", "byte 22"]),  # a Latin-1 export
+])
+def test_csv_inputs_that_cannot_be_read_say_why_plainly(tmp_path, make, words):
+    """The line quoted Python's exception ("[Errno 21] Is a directory: 'm.csv'", "'utf-8' codec
+    can't decode byte 0xe9 in position 22: invalid continuation byte")."""
+    make(tmp_path / "m.csv")
+    for args in (["angles", tmp_path / "m.csv"],
+                 ["calibrate", "points", "--camera", tmp_path / "m.csv", "--projector", tmp_path / "m.csv",
+                  "--out", tmp_path / "c.json"]):
+        done = run(*args)
+        assert_user_error(done, *words)
+        assert "Errno" not in done.stderr and "codec" not in done.stderr

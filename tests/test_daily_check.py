@@ -159,6 +159,20 @@ def test_bad_input_is_one_line_exit_2_and_no_output(rig_files, capsys, tmp_path)
     assert not out.exists()
 
 
+def test_a_calibration_in_the_camera_frame_is_refused_not_called_drifted(rig_files, capsys, tmp_path):
+    """`calibrate import` gives the camera's frame (SPEC §1: level it first). The check compared
+    angles in it and said the rig had drifted (exit 3, "recalibrate"): real procam-calibration data
+    with its author's calibration did so."""
+    work, _ = rig_files
+    cal = json.loads((work / "true.json").read_text())
+    cal["frame_source"] = "camera"
+    (tmp_path / "camera.json").write_text(json.dumps(cal))
+    err = _refused(capsys, work / "wedge", "--calibration", tmp_path / "camera.json", "--inversion", INV,
+                   "--plantar-flexion", PF, "--out", tmp_path / "c.json")
+    assert "camera's" in err and "calibrate level" in err, err
+    assert not (tmp_path / "c.json").exists()
+
+
 def test_command_exit_code_from_a_real_process(rig_files):
     work, _ = rig_files
     done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "check", str(work / "wedge"),

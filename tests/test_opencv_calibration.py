@@ -103,3 +103,48 @@ def test_cli_export_and_its_guards(tmp_path, cal):
     back = load_calibration(tmp_path / "back.json")
     assert np.allclose(back.projector.t, cal.projector.t, atol=1e-9)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["back.json", "cal.json", "cal.yml"]  # no temporaries
+
+
+def test_cli_import_refuses_a_camera_size_the_file_contradicts(tmp_path, cal):
+    """--camera 640x480 for a file saying 256x192 wrote a calibration of no camera (the file's
+    intrinsics on another sensor), exit 0; now one line naming both sizes, nothing written."""
+    save_calibration(cal, tmp_path / "cal.json")
+    assert run("calibrate", "export", tmp_path / "cal.json", "--out", tmp_path / "cal.yml").returncode == 0
+    w, h = cal.camera.width, cal.camera.height
+    done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--camera", f"{2 * w}x{2 * h}",
+               "--out", tmp_path / "back.json")
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"{w}x{h}" in done.stderr and f"{2 * w}x{2 * h}" in done.stderr, done.stderr
+    assert not (tmp_path / "back.json").exists()
+    done = run("calibrate", "import", tmp_path / "cal.yml", "--projector", "256x192", "--camera", f"{w}x{h}",
+               "--out", tmp_path / "back.json")
+    assert done.returncode == 0, done.stderr  # the same size said twice is fine
+
+
+def test_cli_import_of_a_folder_says_it_is_a_folder(tmp_path):
+    """A folder given as FILE was "not found", though the user can see it."""
+    (tmp_path / "stereo").mkdir()
+    done = run("calibrate", "import", tmp_path / "stereo", "--projector", "1024x768", "--out", tmp_path / "c.json")
+    assert done.returncode == 2 and "is a folder" in done.stderr and "not found" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("suffix", [".yml", ".xml", ".json"])
+def test_a_column_only_projector_stays_column_only_through_export_and_import(tmp_path, cal, suffix):
+    """SPEC §4: a projector calibrated from vertical stripes only has no row intrinsics ("axis":
+    "column"). Exported and imported back it came out as a 2-D projector whose nominal K2 row was
+    taken for calibrated: row stripes would have been triangulated with made-up geometry."""
+    import json
+
+    from anklescan.core.calibration.model.file import calibration_to_dict
+
+    obj = calibration_to_dict(cal)
+    obj["projector"]["axis"] = "column"
+    obj["projector"]["K"][1] = None
+    (tmp_path / "ours.json").write_text(json.dumps(obj))
+    assert run("calibrate", "export", tmp_path / "ours.json", "--out", tmp_path / f"col{suffix}").returncode == 0
+    done = run("calibrate", "import", tmp_path / f"col{suffix}", "--projector",
+               f"{cal.projector.width}x{cal.projector.height}", "--out", tmp_path / "back.json")
+    assert done.returncode == 0, done.stderr
+    back = load_calibration(tmp_path / "back.json")
+    assert back.projector.axis == "column"
+    assert np.allclose(back.projector.K[0], cal.projector.K[0]) and np.allclose(back.projector.t, cal.projector.t)

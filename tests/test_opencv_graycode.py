@@ -72,3 +72,34 @@ def test_import_refuses_an_unreadable_frame_and_writes_nothing(tmp_path):
     (src / "f11.png").unlink()
     with pytest.raises(CaptureError, match="11 images"):
         import_opencv_graycode(src, tmp_path / "out", 8, 4, 1)
+
+
+def test_cli_import_names_the_users_damaged_frame_not_a_temporary(tmp_path):
+    """The line named our hidden copy (".out.zg8gjrdz.tmp/f11.png"), a file the user cannot find."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for i, img in enumerate(opencv_frames(8, 4, 1)):
+        cv2.imwrite(str(src / f"f{i:02d}.png"), img)
+    (src / "f11.png").write_bytes((src / "f11.png").read_bytes()[:60])  # truncated
+    done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "import", "opencv-graycode", str(src),
+                           "--projector", "8x4", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert str(src / "f11.png") in done.stderr and ".tmp" not in done.stderr, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+
+
+def test_cli_import_into_a_link_to_an_empty_folder_is_one_clear_line(tmp_path):
+    """--out naming a symbolic link to an empty folder failed after copying every frame, with
+    "Not a directory (out)"; now refused first, as every folder output refuses a link."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for i, img in enumerate(opencv_frames(8, 4, 1)):
+        cv2.imwrite(str(src / f"f{i:02d}.png"), img)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "out").symlink_to("empty")
+    done = subprocess.run([sys.executable, "-m", "anklescan.app.cli", "-q", "import", "opencv-graycode", str(src),
+                           "--projector", "8x4", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2 and "symbolic link" in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "out", "src"] and not any((tmp_path / "empty").iterdir())

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import filecmp
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -156,4 +157,14 @@ def test_board_command_needs_two_views_and_a_findable_board(tmp_path, capture_1)
     # OpenCV finds an 8x7 grid inside this 9x7 board: the wrong size is caught, not calibrated
     done = run("calibrate", "board", cap.folder, "--board", "8x7", "--square", "75", "--out", tmp_path / "c.json")
     assert done.returncode == 2 and "more inner corners than --board 8x7" in done.stderr, done.stderr
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_board_command_refuses_a_copy_of_a_view(tmp_path, capture_1):
+    """A copied capture is the same view: it calibrated (exit 0, fx 3022 ± 185 from one pose)."""
+    cap, _ = capture_1
+    copy = tmp_path / "copy of capture_1"
+    shutil.copytree(cap.folder, copy)
+    done = run("calibrate", "board", cap.folder, copy, "--board", "9x7", "--square", "75", "--out", tmp_path / "c.json")
+    assert done.returncode == 2 and "copy of" in done.stderr and len(done.stderr.splitlines()) == 1, done.stderr
     assert not (tmp_path / "c.json").exists()

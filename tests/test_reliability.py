@@ -162,6 +162,20 @@ def test_patterns_never_deletes_files_it_did_not_write(capfd, tmp_path):
     assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "scan", "--projector", "64x48")
 
 
+def test_patterns_never_replace_a_capture_photographed_from_them(capfd, tmp_path):
+    """SPEC §5: a camera that photographs the pattern folder file by file makes a capture with the
+    same manifest.json and file names. `patterns --out` onto it deleted the scan (exit 0)."""
+    assert cli(capfd, "patterns", "--out", tmp_path / "p", "--projector", "64x48")[0] == 0
+    shutil.copytree(tmp_path / "p", tmp_path / "scan")
+    for f in _manifest(tmp_path / "scan")["frames"]:  # the "photographs": dimmer, offset
+        img = cv2.imread(str(tmp_path / "p" / f["file"]), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / "scan" / f["file"]), (img // 2 + 20).astype(np.uint8))
+    assert_refused(capfd, tmp_path, "patterns", "--out", tmp_path / "scan", "--projector", "64x48",
+                   words=("did not write",))
+    # the pattern folder itself is still ours and is replaced
+    assert cli(capfd, "patterns", "--out", tmp_path / "p", "--projector", "32x24")[0] == 0
+
+
 def test_sigterm_during_patterns_leaves_no_temporary(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "anklescan.app.cli", "-q", "patterns", "--out", str(tmp_path / "big"),
                              "--projector", "8000x6000"], cwd=ROOT, stderr=subprocess.PIPE, text=True)
@@ -290,6 +304,29 @@ def test_absurd_calibration_refused_at_load(capfd, work, case, words):
         text = text.replace('"t": [', '"t": [NaN, ', 1)
     (work / "bad.json").write_text(text)
     assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "bad.json",
+                   "--out", work / "x.ply", words=words)
+
+
+@pytest.mark.parametrize("where, value, words", [
+    (("camera", "K", 0, 0), "1000", ["camera.K", "not numeric"]),  # numpy would read 1000.0
+    (("camera", "K", 0, 0), True, ["camera.K", "not numeric"]),    # numpy would read fx = 1
+    (("projector", "dist", 0), "0.1", ["projector.dist"]),
+    (("camera", "width"), True, ["camera.width"]),                  # bool is an int in Python
+    (("volume", "min", 0), "0", ["volume"]),
+    (("model_error", "sd_mm"), "0.05", ["model_error"]),
+])
+def test_calibration_values_of_the_wrong_json_type_are_refused(capfd, work, where, value, words):
+    """SPEC §4's numbers must be JSON numbers: a string or true/false in their place was read as a
+    number (fx = "1000" -> 1000.0, fx = true -> 1.0) and the scan was made with it, exit 0."""
+    cal = json.loads((work / "cal.json").read_text())
+    cal.setdefault("volume", {"min": [0, 0, 0], "max": [1, 1, 1]})
+    cal.setdefault("model_error", {"sd_mm": 0.0, "growth_mm_per_mm": 0.0})
+    node = cal
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    (work / "typed.json").write_text(json.dumps(cal))
+    assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "typed.json",
                    "--out", work / "x.ply", words=words)
 
 
@@ -583,3 +620,13 @@ def test_database_on_a_read_only_mount_opens_for_reading(read_only_mount, monkey
         assert [p.code for p in s.patients.all()] == ["P1"]
         with pytest.raises(AnkleScanError, match="read-only"):
             s.patients.add("P2")
+
+
+def test_an_unwritable_output_folder_is_named_not_our_temporary(read_only_mount, capfd):
+    """A folder output on a read-only disk: the line named the hidden temporary
+    ("Read-only file system (.../.p.1k8luznx.tmp)"), a path the user never gave."""
+    mnt, make_read_only = read_only_mount
+    make_read_only()
+    code, lines = cli(capfd, "patterns", "--out", mnt / "p", "--projector", "64x48")
+    assert code == 2 and len(lines) == 1, lines
+    assert f"cannot write {mnt / 'p'}:" in lines[0] and "Read-only" in lines[0] and ".tmp" not in lines[0], lines

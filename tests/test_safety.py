@@ -93,6 +93,26 @@ def test_demo_refuses_when_its_database_was_replaced_by_another_programs(tmp_pat
     assert tree(out) == before
 
 
+@pytest.mark.parametrize("exists", [False, True])
+def test_an_interrupted_demo_leaves_none_of_its_output(tmp_path, monkeypatch, capsys, exists):
+    """Ctrl-C (or SIGTERM, the same path) in the middle of `demo` left the database and the
+    calibration in --out, unsealed, and the next run refused the folder ("holds no complete earlier
+    'demo' output") until the user deleted it by hand."""
+    from anklescan.app import demo
+
+    def interrupted(out, scale, progress):
+        (out / "calibration.json").write_text("{}")  # the run has written part of its output
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo, "_calibrate", interrupted)
+    out = tmp_path / "demo"
+    if exists:
+        out.mkdir()  # an empty folder the user made for it stays, empty
+    assert cli.main(["-q", "demo", "--quick", "--out", str(out)]) == 130
+    assert (list(out.iterdir()) == []) if exists else not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["demo"] if exists else [])
+
+
 def test_a_folder_without_marker_or_with_a_link_is_refused(tmp_path):
     plain = tmp_path / "plain"
     plain.mkdir()

@@ -217,6 +217,22 @@ def test_report_refuses_foreign_folder_and_replaces_its_own(data, report, tmp_pa
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+def test_report_keeps_an_earlier_reports_file_the_user_edited(data, report, tmp_path, capfd):
+    """A table of an earlier report that the user has since changed (notes added in a spreadsheet)
+    is theirs: the folder is refused untouched. It was replaced, the notes lost, exit 0."""
+    earlier = tmp_path / "earlier"
+    shutil.copytree(report, earlier)
+    with open(earlier / "trials.csv", "a", encoding="utf-8") as fh:
+        fh.write("my notes on P2,,,\n")
+    before = (earlier / "trials.csv").read_bytes()
+    code, _, err = run(capfd, "report", "--data", data, "--out", earlier)
+    assert code == 2 and len(err) == 1 and "did not write" in err[0], err
+    assert (earlier / "trials.csv").read_bytes() == before
+    (earlier / "trials.csv").unlink()  # a file of the report removed by the user: the rest is still the report's
+    code, _, err = run(capfd, "report", "--data", data, "--out", earlier)
+    assert code == 0 and (earlier / "trials.csv").is_file(), err
+
+
 def test_export_c3d_reads_back_with_seven_labelled_marks(data, tmp_path, capfd):
     import c3d
 
@@ -260,6 +276,17 @@ def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
     code, _, err = run(capfd, "export", "--data", data, "--session", 999, "--format", "fhir", "--out",
                        tmp_path / "n.json")
     assert code == 2 and len(err) == 1 and not (tmp_path / "n.json").exists()
+
+
+def test_export_fhir_of_one_failed_trial_says_so(data, tmp_path, capfd):
+    """`export --trial N --format fhir` of a failed trial said "the session has no complete trial",
+    naming neither the trial asked for nor why."""
+    with Store.open(data_dir=data, read_only=True) as store:
+        failed = next(t for t in store.trials.all(store.sessions.all("P1")[0].id) if t.status == "failed")
+    out = tmp_path / "t.json"
+    code, _, err = run(capfd, "export", "--data", data, "--trial", failed.id, "--format", "fhir", "--out", out)
+    assert code == 2 and len(err) == 1 and f"trial {failed.id} failed" in err[0], err
+    assert not out.exists()
 
 
 def test_report_pages_follow_the_drawing_rules(report, data, tmp_path):
@@ -332,3 +359,13 @@ def test_c3d_keeps_seven_labels_when_marks_are_missing(tmp_path):
         (_, pts, _), = list(reader.read_frames())
     assert (pts[[2, 3], 3] == -1).all() and (pts[[0, 1, 4, 5, 6], 3] >= 0).all()
     assert np.allclose(pts[4, :3], marks[5], atol=1e-3)
+
+
+def test_report_on_an_empty_database_file_says_it_is_empty(tmp_path, capfd):
+    """A 0-byte anklescan.sqlite (a failed copy) was said not to exist."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    (folder / "anklescan.sqlite").write_bytes(b"")
+    code, _, err = run(capfd, "report", "--data", folder, "--out", tmp_path / "out")
+    assert code == 2 and len(err) == 1 and "is empty" in err[0] and "not exist" not in err[0], err
+    assert not (tmp_path / "out").exists() and (folder / "anklescan.sqlite").read_bytes() == b""

@@ -271,27 +271,40 @@ def _header_columns(header: list[str], path: Path) -> dict[str, int]:
             raise AnkleScanError(f"{path}: header must name columns label,x,y,z "
                                  f"(found {','.join(names) or 'nothing'})")
         cols[want] = names.index(want)
+    if len(set(names)) != len(names):  # which 'x' is the mark's? refuse rather than pick one
+        raise AnkleScanError(f"{path}: the header repeats a column name ({','.join(names)})")
     return cols
 
 
 def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
-    """Marks from a ``label,x,y,z`` CSV (header required; extra columns ignored)."""
+    """Marks from a ``label,x,y,z`` CSV (header required; extra named columns ignored; every row
+    has the header's number of fields)."""
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
-    except (OSError, UnicodeDecodeError) as e:
-        raise AnkleScanError(f"cannot read marks file {path}: {e}") from None
+            reader = csv.reader(fh)
+            # each row with its line in the file (blank lines skipped, so not its index) for the messages
+            numbered = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]
+    except FileNotFoundError:
+        raise AnkleScanError(f"cannot read marks file {path}: it does not exist") from None
+    except IsADirectoryError:
+        raise AnkleScanError(f"cannot read marks file {path}: it is a folder, not a file") from None
+    except OSError as e:  # the reason alone: str(e) repeats the path as "[Errno 13] ...: 'm.csv'"
+        raise AnkleScanError(f"cannot read marks file {path}: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise AnkleScanError(f"marks file {path} is not UTF-8 text (byte {e.start}); save it as UTF-8 CSV") from None
     except csv.Error as e:
         raise AnkleScanError(f"{path}: malformed CSV: {e}") from None
-    if not rows:
+    if not numbered:
         raise AnkleScanError(f"{path}: empty file (expected header label,x,y,z)")
-    cols = _header_columns(rows[0], path)
+    (_, header), body = numbered[0], numbered[1:]
+    cols = _header_columns(header, path)
     marks: dict[int, np.ndarray] = {}
-    for line_no, row in enumerate(rows[1:], start=2):
+    for line_no, row in body:
         where = f"{path}:{line_no}"
-        if len(row) <= max(cols.values()):
-            raise AnkleScanError(f"{where}: expected label,x,y,z, got {len(row)} fields")
+        if len(row) != len(header):  # a field more is as malformed as one less (a decimal comma: 10,5)
+            raise AnkleScanError(f"{where}: {len(row)} fields, the header has {len(header)} "
+                                 f"({','.join(h.strip() for h in header)})")
         raw = row[cols["label"]].strip()
         if not raw:
             raise AnkleScanError(f"{where}: missing mark label")

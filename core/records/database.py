@@ -556,7 +556,8 @@ class Database:
         reason = "opened read-only on request" if read_only else _read_only_reason(path, exists)
         if reason:
             if not exists and read_only:
-                raise AnkleScanError(f"database {path} does not exist (nothing to open read-only)")
+                what = "is empty (0 bytes: no records)" if path.exists() else "does not exist"
+                raise AnkleScanError(f"database {path} {what}; nothing to open read-only")
             if not exists:
                 raise AnkleScanError(f"cannot create database {path}: {reason}")
             return cls._open_read_only(path, timeout, reason)

@@ -100,7 +100,10 @@ def session_bundle(trials: Sequence[TrialExport], patient_code: str, affected_si
     done = [t for t in trials if t.status == TrialState.COMPLETE and any(
         t.value(k) is not None for k in COMPONENTS if not k.startswith("reference_"))]
     if not done:
-        raise AnkleScanError("the session has no complete trial with a measured angle; nothing to export")
+        # say which trials were looked at and their states: `--trial N` asks for one, not the session
+        states = ", ".join(f"trial {t.trial} {t.status}" for t in trials[:10]) + (", …" if len(trials) > 10 else "")
+        raise AnkleScanError(f"no complete trial with a measured angle to export ({states or 'no trials'}); "
+                             "FHIR holds complete trials only; nothing written")
     pid = "patient-1"
     patient = {"resourceType": "Patient", "id": pid,
                "identifier": [{"system": "urn:anklescan:patient-code", "value": patient_code}]}

@@ -4,8 +4,8 @@
 study's tables; ``write_study_folder`` writes OUTDIR: report.pdf, trials.csv, trials.xlsx,
 data_dictionary.csv, position_sense.csv and reliability.csv, all built in a temporary folder beside it
 and moved into place together (core.scan.patterns.replace_dir). OUTDIR may be new, empty, or an earlier
-report folder (recognised by its marker file, which lists the files the report wrote); any other folder
-is refused untouched.
+report folder (recognised by its marker file, which lists the files the report wrote with their sizes and
+modification times, so a file edited since is not the report's); any other folder is refused untouched.
 """
 
 from __future__ import annotations
@@ -83,15 +83,27 @@ def study_tables(data: ReportInput, flt: StudyFilter = StudyFilter(), data_dir: 
                        rel.mdc_lookup(all_errors, data_dir))
 
 
+def _file_stamp(path: Path) -> list[int]:
+    """[size, mtime_ns]: what the marker records of each file, to know it unchanged later."""
+    st = path.stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
 def is_report_output(folder: Path) -> bool:
-    """An earlier report folder: the marker, and nothing but the files it lists."""
+    """An earlier report folder: the marker, and nothing but the files it lists, each as the report
+    wrote it (its size and modification time in the marker): a table the user has since edited
+    (notes added to trials.csv) is theirs, and replacing the folder would lose it."""
     folder = Path(folder)
     try:
-        listed = set(json.loads((folder / MARKER).read_text(encoding="utf-8"))["files"])
+        marker = json.loads((folder / MARKER).read_text(encoding="utf-8"))
+        listed = set(marker["files"])
+        stamps = marker.get("stamps")  # absent from the markers of reports written before it was kept
         entries = list(folder.iterdir())
-    except (OSError, ValueError, KeyError, TypeError):
+        if not all(e.name in listed | {MARKER} and e.is_file() and not e.is_symlink() for e in entries):
+            return False
+        return stamps is None or all(e.name == MARKER or stamps.get(e.name) == _file_stamp(e) for e in entries)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
-    return all(e.name in listed | {MARKER} and e.is_file() and not e.is_symlink() for e in entries)
 
 
 def write_study_folder(data: ReportInput, out_dir: Path, flt: StudyFilter = StudyFilter(),
@@ -121,8 +133,9 @@ def write_study_folder(data: ReportInput, out_dir: Path, flt: StudyFilter = Stud
                                                               ("reliability.csv", rel.COLUMNS)))
         say(f"drawing report.pdf ({len(t.trials)} trials)")
         pages = write_study_pages(t, tmp / "report.pdf")
-        (tmp / MARKER).write_text(json.dumps({"written_by": "anklescan report", "files": list(FILES)}) + "\n",
-                                  encoding="utf-8")
+        stamps = {name: _file_stamp(tmp / name) for name in FILES}
+        (tmp / MARKER).write_text(json.dumps({"written_by": "anklescan report", "files": list(FILES),
+                                              "stamps": stamps}) + "\n", encoding="utf-8")
         replace_dir(tmp, out_dir, is_report_output)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -13,6 +13,7 @@ the sensor saturates.
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import os
 import shutil
@@ -156,6 +157,29 @@ def load_capture(folder: str | os.PathLike[str]) -> Capture:
     capture = Capture(folder, pset, stack, color, metadata)
     check_lit(capture)
     return capture
+
+
+def check_distinct_captures(folders: Sequence[str | os.PathLike[str]]) -> None:
+    """Refuse a capture given twice to one calibration (one capture per box position or board
+    view): the same folder by any spelling (a trailing '/', a symbolic link) or a copy of it
+    (the same white frame, byte for byte, which two photographs never are). Its points would
+    count twice, and the calibration would claim twice the evidence it has (its SDs too small).
+    A folder that cannot be read is left for ``load_capture`` to report."""
+    seen: dict[tuple[str, object], Path] = {}
+    for f in folders:
+        folder = Path(f)
+        try:
+            pset = PatternSet.from_manifest(load_json(folder / MANIFEST, "manifest", CaptureError),
+                                            str(folder / MANIFEST))
+            white = (folder / pset.files[pset.index(FrameKind.WHITE)]).read_bytes()
+            keys = [("folder", folder.resolve()), ("white", hashlib.sha256(white).digest())]
+        except (OSError, CaptureError):
+            continue
+        for key in keys:
+            if key in seen:
+                same = "is given twice" if key[0] == "folder" else f"is a copy of {seen[key]} (the same frames)"
+                raise CaptureError(f"capture {folder} {same}: give each position or view its own capture")
+        seen.update((key, folder) for key in keys)
 
 
 def _check_sizes(paths: list[Path]) -> None:

@@ -92,6 +92,8 @@ def import_opencv_graycode(src: str | os.PathLike[str], out: str | os.PathLike[s
         same = False
     if same:
         raise CaptureError(f"output {out} is the source folder or inside it; choose another --out")
+    if out.is_symlink():  # found before copying anything, and said as every folder output says it
+        raise CaptureError(f"output {out} is a symbolic link; give the real folder or a new one")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise CaptureError(f"output {out} already exists and is not an empty folder; choose another --out")
     if not out.parent.is_dir():
@@ -104,7 +106,11 @@ def import_opencv_graycode(src: str | os.PathLike[str], out: str | os.PathLike[s
         manifest["capture"] = {"imported_from": str(src), "tool": "OpenCV structured_light.GrayCodePattern",
                                "graycode_step": step}
         write_json_atomic(tmp / MANIFEST, manifest)
-        load_capture(tmp)  # every frame readable, one size, one bit depth: or nothing is written
+        try:
+            load_capture(tmp)  # every frame readable, one size, one bit depth: or nothing is written
+        except CaptureError as e:
+            # the frames are byte copies: name the user's file, not our hidden temporary's
+            raise CaptureError(str(e).replace(str(tmp), str(src))) from None
         if out.exists():
             out.rmdir()  # the empty folder the user made for it
         replace_dir(tmp, out)

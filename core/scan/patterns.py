@@ -651,7 +651,21 @@ def is_pattern_output(folder: str | os.PathLike[str], allow_capture: bool = Fals
     if "capture" in manifest and not allow_capture:
         return False
     allowed = set(pset.files) | {"manifest.json"}
-    return all(e.name in allowed and e.is_file() and not e.is_symlink() for e in entries)
+    if not all(e.name in allowed and e.is_file() and not e.is_symlink() for e in entries):
+        return False
+    # A capture made by photographing the pattern folder file by file has the same manifest and
+    # names (SPEC §5): only frames that are still exactly our renders make the folder ours.
+    return allow_capture or all(_is_our_render(folder / f.file, pset, f) for f in pset.frames
+                                if (folder / f.file).exists())
+
+
+def _is_our_render(path: Path, pset: PatternSet, frame: Frame) -> bool:
+    """``path`` decodes to exactly the image ``write_patterns`` writes for ``frame`` (lossless PNG)."""
+    try:
+        img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except (OSError, ValueError, cv2.error):
+        return False
+    return img is not None and np.array_equal(img, render_frame(pset, frame))
 
 
 __all__ = ["Frame", "AxisCode", "PatternSet", "make_pattern_set", "render_frame",

@@ -26,6 +26,7 @@ from anklescan.core.limits import (
     MAX_TRANSLATION_MM,
     MIN_BASELINE_MM,
     MIN_FOCAL_PX,
+    is_json_numbers,
     load_json,
 )
 from anklescan.core.vocabulary import Axis, JsonObject
@@ -47,6 +48,8 @@ def _matrix(obj: JsonObject, device: str, key: str, shape: tuple[int, ...], allo
     if allow_null_row is not None and isinstance(value, list) and len(value) == shape[0]:
         value = [[math.nan] * shape[1] if r == allow_null_row and (row is None or any(v is None for v in row)) else row
                  for r, row in enumerate(value)]
+    if not is_json_numbers(value, null_ok=allow_null_row is not None):
+        raise CalibrationError(f"calibration: {device}.{key} is not numeric")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -66,7 +69,7 @@ def device_from_dict(obj: object, device: str) -> Device:
     for key in ("width", "height"):
         if key not in obj:
             raise CalibrationError(f"calibration: {device} is missing '{key}'")
-        if not isinstance(obj[key], int) or obj[key] <= 0:
+        if not isinstance(obj[key], int) or isinstance(obj[key], bool) or obj[key] <= 0:
             raise CalibrationError(f"calibration: {device}.{key} must be a positive integer, not {obj[key]!r}")
     K = _matrix(obj, device, "K", (3, 3), allow_null_row=1 if axis == Axis.COLUMN else None)
     if axis == Axis.COLUMN and not np.isfinite(K[1]).all():
@@ -114,6 +117,8 @@ def _check_plausible(device: str, width: int, height: int, K: np.ndarray, dist: 
 
 
 def _numeric_list(value: object) -> bool:
+    if not is_json_numbers(value):
+        return False
     try:
         np.asarray(value, dtype=np.float64)
         return True

@@ -33,6 +33,7 @@ import numpy as np
 
 from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.errors import CalibrationError
+from anklescan.core.limits import is_json_numbers
 from anklescan.core.vocabulary import JsonObject
 
 COVARIANCE_FORM = "opencv-device (rotation in the device frame, rad; t mm; K px; dist)"
@@ -104,6 +105,8 @@ class CalibratedVolume:
         if not isinstance(obj, dict) or "min" not in obj or "max" not in obj:
             raise CalibrationError("calibration: volume must be {\"min\": [x,y,z], \"max\": [x,y,z]}")
         try:
+            if not (is_json_numbers(obj["min"]) and is_json_numbers(obj["max"])):
+                raise ValueError("not numbers")
             lo, hi = np.asarray(obj["min"], dtype=np.float64), np.asarray(obj["max"], dtype=np.float64)
         except (TypeError, ValueError):
             raise CalibrationError("calibration: volume min/max are not numeric") from None
@@ -111,6 +114,11 @@ class CalibratedVolume:
                 or (hi < lo).any():
             raise CalibrationError("calibration: volume min/max must be 3 finite numbers each, min <= max")
         return CalibratedVolume(lo, hi)
+
+
+def _json_float(value: object) -> float | None:
+    """A JSON number as a float, else None: float() would also take "0.1" and true."""
+    return float(value) if is_json_numbers(value) and isinstance(value, (int, float)) else None
 
 
 @dataclass(frozen=True)
@@ -131,10 +139,9 @@ class ModelError:
 
     @staticmethod
     def from_dict(obj: object) -> ModelError:
-        try:
-            a, g = float(obj["sd_mm"]), float(obj["growth_mm_per_mm"])  # type: ignore[index]
-        except (TypeError, KeyError, ValueError):
-            raise CalibrationError("calibration: model_error must be {\"sd_mm\": a, \"growth_mm_per_mm\": g}") from None
+        a, g = (_json_float(obj.get(k)) for k in ("sd_mm", "growth_mm_per_mm")) if isinstance(obj, dict) else (None, None)
+        if a is None or g is None:
+            raise CalibrationError("calibration: model_error must be {\"sd_mm\": a, \"growth_mm_per_mm\": g}")
         if not (math.isfinite(a) and math.isfinite(g) and a >= 0 and g >= 0):
             raise CalibrationError("calibration: model_error values must be finite and >= 0")
         return ModelError(a, g)
@@ -174,6 +181,8 @@ class ParameterCovariance:
         if obj.get("form", COVARIANCE_FORM) != COVARIANCE_FORM:
             raise CalibrationError(f"calibration: covariance form {obj.get('form')!r} is not {COVARIANCE_FORM!r}")
         try:
+            if not is_json_numbers(obj["matrix"]):
+                raise ValueError("not numbers")
             m = np.asarray(obj["matrix"], dtype=np.float64)
         except (TypeError, ValueError):
             raise CalibrationError("calibration: covariance matrix is not numeric") from None

@@ -578,15 +578,13 @@ def _board_trust(x: np.ndarray, lay: _Layout, cov: np.ndarray | None, A: np.ndar
 
 def calibrate_from_board_captures(capture_dirs: Sequence[str | os.PathLike[str]], cols: int, rows: int, square: float,
                                   model: str = DEFAULT_DIST) -> BoardCalibration:
-    from anklescan.core.scan.capture import load_capture
+    from anklescan.core.scan.capture import check_distinct_captures, load_capture
 
     if cols < 2 or rows < 2:
         raise CalibrationError(f"--board needs at least 2x2 inner corners, got {cols}x{rows}")
     if not (math.isfinite(square) and square > 0):
         raise CalibrationError(f"--square must be a positive length in mm, not {square}")
-    resolved = [Path(d).resolve() for d in capture_dirs]
-    if len(set(resolved)) != len(resolved):
-        raise CalibrationError("the same capture is given twice: each board view must be its own capture")
+    check_distinct_captures(capture_dirs)
     views: list[BoardView] = []
     psize: tuple[int, int] | None = None
     for d in capture_dirs:

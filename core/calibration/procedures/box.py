@@ -582,10 +582,12 @@ def calibrate_from_box_captures(capture_dirs: Sequence[str | os.PathLike[str]], 
     points go into one fit, alternating ``POSE_ROUNDS`` times. Refused (``BoxCalibrationRefused``) when the
     residuals are far beyond the noise (``check``)."""
     from anklescan.core.calibration.procedures.calibrate import calibrate_points
+    from anklescan.core.scan.capture import check_distinct_captures
 
     dirs = [Path(d) for d in capture_dirs]
     if not dirs:
         raise CalibrationError("no box capture given")
+    check_distinct_captures(dirs)
     seen: list[str] = []
     captures: list[BoxCapture] = []
     sizes: tuple[tuple[int, int], tuple[int, int]] | None = None

@@ -613,7 +613,14 @@ def _read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
             out = list(csv.reader(f))
     except FileNotFoundError:
         raise CalibrationError(f"control-point file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+    except IsADirectoryError:
+        raise CalibrationError(f"control-point file {path} is a folder, not a file") from None
+    except OSError as exc:  # the reason alone: str(exc) repeats the path as "[Errno 13] ...: 'c.csv'"
+        raise CalibrationError(f"cannot read control-point file {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"control-point file {path} is not UTF-8 text (byte {exc.start}); "
+                               "save it as UTF-8 CSV") from None
+    except csv.Error as exc:
         raise CalibrationError(f"cannot read control-point file {path}: {exc}") from None
     numbered = [(i + 1, r) for i, r in enumerate(out)]
     return [(i, r) for i, r in numbered if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]

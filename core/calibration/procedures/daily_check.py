@@ -37,7 +37,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from anklescan.core.errors import AnkleScanError, GeometryError
+from anklescan.core.calibration.procedures.frame import LEVEL_HINT, FrameSource, frame_source
+from anklescan.core.errors import AnkleScanError, CalibrationError, GeometryError
 from anklescan.core.planes import in_plane_axes, largest_patch, least_squares_plane, ransac_plane
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import Angle, JsonObject
@@ -305,6 +306,10 @@ def run_check(capture: Capture, cal: Calibration, inversion_deg: float, plantar_
     settings = settings or CheckSettings()
     inv = check_set_angle(inversion_deg, "the set inversion")
     pf = check_set_angle(plantar_flexion_deg, "the set plantar flexion")
+    if frame_source(cal.extra) == FrameSource.CAMERA:
+        # not drift (exit 3, "recalibrate"): in the camera's frame the set angles are not comparable at all
+        raise CalibrationError("the calibration's world frame is the camera's (calibrate import), so the object's "
+                               f"angles cannot be compared with the set ones; {LEVEL_HINT} first")
     cloud = reconstruct(capture, cal)
     if len(cloud) == 0:
         raise AnkleScanError(f"nothing could be decoded from the check capture ({cloud.meta.get('summary', '')})")

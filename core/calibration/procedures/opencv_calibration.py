@@ -30,6 +30,7 @@ from anklescan.core.calibration.model.device_model import Device
 from anklescan.core.calibration.model.file import Calibration, calibration_from_dict, calibration_to_dict
 from anklescan.core.errors import CalibrationError
 from anklescan.core.limits import MIN_BASELINE_MM
+from anklescan.core.vocabulary import Axis
 
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 NAMES = {  # role -> accepted keys, first found wins
@@ -41,9 +42,12 @@ NAMES = {  # role -> accepted keys, first found wins
     "T": ("translation", "T"),
 }
 SUFFIXES = (".xml", ".yml", ".yaml", ".json")
+PROJECTOR_AXIS_KEY = "projector_axis"  # written by our export for a column-only projector (SPEC §4 "axis")
 
 
 def _read_storage(path: Path) -> cv2.FileStorage:
+    if path.is_dir():  # as load_json says it: "not found" for a folder the user can see misleads
+        raise CalibrationError(f"calibration file {path} is a folder, not a file")
     if not path.is_file():
         raise CalibrationError(f"calibration file not found: {path}")
     try:
@@ -136,17 +140,24 @@ def _rotation(a: np.ndarray, key: str, path: Path) -> np.ndarray:
 
 
 def _camera_size(fs: cv2.FileStorage, path: Path, given: tuple[int, int] | None) -> tuple[int, int]:
-    if given is not None:
-        return int(given[0]), int(given[1])
+    """The camera's size: the file's, else ``given`` (--camera). Both, and different, is refused:
+    the intrinsics are the file's camera's, so another size would make a calibration of no camera."""
     for key, order in (("img_shape", "hw"), ("image_size", "wh"), ("imageSize", "wh"), ("camera_size", "wh")):
         n = fs.getNode(key)
         if n.empty() or n.isNone():
             continue
         a = _array(n, key, path).ravel()
         if a.size >= 2 and np.all(a[:2] > 0) and np.all(a[:2] == np.round(a[:2])):
-            w, h = (a[1], a[0]) if order == "hw" else (a[0], a[1])
-            return int(w), int(h)
-        raise CalibrationError(f"{path}: '{key}' is not an image size")
+            w, h = (int(a[1]), int(a[0])) if order == "hw" else (int(a[0]), int(a[1]))
+            if given is not None and (int(given[0]), int(given[1])) != (w, h):
+                raise CalibrationError(f"{path}: its '{key}' says the camera is {w}x{h}, --camera says "
+                                       f"{given[0]}x{given[1]}; leave --camera out, or check the file")
+            return w, h
+        if given is None:
+            raise CalibrationError(f"{path}: '{key}' is not an image size")
+        break
+    if given is not None:
+        return int(given[0]), int(given[1])
     raise CalibrationError(f"{path}: the camera's image size is not in the file (img_shape / image_size); "
                            f"give it with --camera WxH")
 
@@ -170,6 +181,9 @@ def import_opencv_calibration(path: str | os.PathLike[str], projector_size: tupl
         rms_node = fs.getNode("rms")
         rms = float(rms_node.real()) if not rms_node.empty() and (rms_node.isReal() or rms_node.isInt()) else None
         # our own export keeps its world frame; anything else is in the camera's
+        # our own export of a column-only projector (SPEC §4 "axis": "column"): its K2 row is nominal
+        axis_node = fs.getNode(PROJECTOR_AXIS_KEY)
+        axis = Axis.COLUMN if axis_node.isString() and axis_node.string() == Axis.COLUMN else Axis.BOTH
         Rw = fs.getNode("R_world_camera")
         world = None
         if not Rw.empty() and not fs.getNode("t_world_camera").empty():
@@ -192,7 +206,7 @@ def import_opencv_calibration(path: str | os.PathLike[str], projector_size: tupl
     R = _rotation(R, kr, path)
     camera = Device(cw, ch, _K(cam_K, kc, path), _dist(cam_d, kcd, path), Rc, tc * s)
     projector = Device(pw, ph, _K(proj_K, kp, path), _dist(proj_d, kpd, path), R @ Rc,
-                       R @ (tc * s) + T.ravel() * s)
+                       R @ (tc * s) + T.ravel() * s, axis)
     extra = {"source": f"imported from OpenCV FileStorage {path.name}",
              "frame": ("camera (not levelled: run 'anklescan calibrate level' before measuring angles)"
                        if world is None else "the exporting tool's world frame (R_world_camera, t_world_camera)"),
@@ -227,6 +241,11 @@ def export_opencv_calibration(cal: Calibration, out: str | os.PathLike[str]) -> 
     if not fs.isOpened():
         raise CalibrationError(f"cannot write {out}")
     fs.writeComment("AnkleScan calibration: K1/D1 camera, K2/D2 projector, x_proj = R x_cam + T (mm)")
+    if p.axis == Axis.COLUMN:
+        # FileStorage has no "unknown" for K2's second row (nominal here): say so, or a re-import
+        # would take the projector's rows for calibrated and triangulate row stripes with them
+        fs.writeComment("the projector's rows are not calibrated: K2's second row is nominal, use columns only")
+        fs.write(PROJECTOR_AXIS_KEY, str(Axis.COLUMN))
     fs.write("image_size", np.array([c.width, c.height], np.float64))
     fs.write("projector_size", np.array([p.width, p.height], np.float64))
     for k, v in (("K1", c.K), ("D1", c.dist.reshape(1, 5)), ("K2", p.K), ("D2", p.dist.reshape(1, 5)),
