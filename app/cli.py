@@ -58,6 +58,7 @@ from anklescan.core.limits import (
     date_type,
     size_type,
 )
+from anklescan.core.output_files import OutputFile
 
 EXIT_USER_ERROR = 2
 EXIT_INTERNAL = 1
@@ -152,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("capture")
     r.add_argument("--calibration", required=True)
     r.add_argument("--out", required=True)
-    r.set_defaults(func=cmd_reconstruct)
+    r.set_defaults(func=cmd_reconstruct, out_file=OutputFile.POINT_CLOUD)
 
     c = sub.add_parser("calibrate", help="calibrate camera and projector")
     csub = c.add_subparsers(dest="calibrate_command", required=True)
@@ -164,13 +165,13 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--out", required=True)
     cp.add_argument("--camera-size", type=_size, default=(1600, 1200), help="camera resolution WxH")
     cp.add_argument("--projector-size", type=_size, default=(1024, 768), help="projector resolution WxH")
-    cp.set_defaults(func=cmd_calibrate_points)
+    cp.set_defaults(func=cmd_calibrate_points, out_file=OutputFile.CALIBRATION)
     cb = csub.add_parser("box", help="automatic calibration from a scan of the calibration box")
     cb.add_argument("captures", nargs="+", metavar="CAPTURE",
                     help="one capture per box position: first at the table's height (it defines the world frame), "
                          "then at the knee's")
     cb.add_argument("--out", required=True)
-    cb.set_defaults(func=cmd_calibrate_box)
+    cb.set_defaults(func=cmd_calibrate_box, out_file=OutputFile.CALIBRATION)
     cbo = csub.add_parser("board", help="camera and projector from Gray-code captures of a printed chessboard")
     cbo.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture folders (column and row patterns)")
     cbo.add_argument("--board", type=_BOARD, required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x7")
@@ -179,25 +180,25 @@ def build_parser() -> argparse.ArgumentParser:
                      help="free lens distortion terms: k1, k1k2 (default), k1k2p (+ tangential), full (+ k3), "
                           "for both devices or CAMERA/PROJECTOR such as k1/k1k2")
     cbo.add_argument("--out", required=True)
-    cbo.set_defaults(func=cmd_calibrate_board)
+    cbo.set_defaults(func=cmd_calibrate_board, out_file=OutputFile.CALIBRATION)
     cl = csub.add_parser("level", help="the same calibration in the clinic's frame, from a scan of the level table")
     cl.add_argument("calibration", metavar="CAL.json")
     cl.add_argument("capture", metavar="TABLE_CAPTURE")
     cl.add_argument("--out", required=True)
     cl.add_argument("--table-size", default=None, metavar="LxW",
                     help="the reference table's top in mm, long side first (default 320x220: docs/calibration.md)")
-    cl.set_defaults(func=cmd_calibrate_level)
+    cl.set_defaults(func=cmd_calibrate_level, out_file=OutputFile.CALIBRATION)
     ci = csub.add_parser("import", help="an OpenCV FileStorage (XML/YAML) projector-camera calibration")
     ci.add_argument("file")
     ci.add_argument("--projector", type=_size, required=True, help="projector resolution WxH")
     ci.add_argument("--camera", type=_size, default=None, help="camera resolution WxH (if not in the file)")
     ci.add_argument("--unit", default="mm", choices=["mm", "cm", "m", "in"], help="the file's length unit")
     ci.add_argument("--out", required=True)
-    ci.set_defaults(func=cmd_calibrate_import)
+    ci.set_defaults(func=cmd_calibrate_import, out_file=OutputFile.CALIBRATION)
     ce = csub.add_parser("export", help="our calibration as an OpenCV FileStorage (.yml, .xml or .json)")
     ce.add_argument("calibration", metavar="CAL.json")
     ce.add_argument("--out", required=True)
-    ce.set_defaults(func=cmd_calibrate_export)
+    ce.set_defaults(func=cmd_calibrate_export, out_file=OutputFile.OPENCV_CALIBRATION)
 
     im = sub.add_parser("import", help="bring another tool's capture in as a capture")
     isub = im.add_subparsers(dest="import_command", required=True)
@@ -219,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "measurement")
     m.add_argument("--motion-threshold", type=_LENGTH_MM, default=0.5, metavar="MM",
                    help="flag the trial when the subject moved more than this during the scan, mm (default 0.5)")
-    m.set_defaults(func=cmd_measure)
+    m.set_defaults(func=cmd_measure, out_file=OutputFile.MEASUREMENT)
 
     ck = sub.add_parser("check", help="the daily check: measure a known-angle object and compare with its set angles")
     ck.add_argument("capture")
@@ -234,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     ck.add_argument("--min-area", type=_AREA_CM2, default=100.0, metavar="CM2",
                     help="the object's top is at least this large, cm² (default 100)")
     ck.add_argument("--out", default=None, metavar="CHECK.json")
-    ck.set_defaults(func=cmd_check)
+    ck.set_defaults(func=cmd_check, out_file=OutputFile.DAILY_CHECK)
 
     rp = sub.add_parser("report", help="the study from a data folder's own database (SPEC §7)")
     rp.add_argument("--data", required=True, metavar="DIR", help="the data folder (its anklescan.sqlite)")
@@ -329,8 +330,21 @@ def _check_out_kind(args: argparse.Namespace) -> None:
         raise AnkleScanError(f"--out {text} ends with '/', which names a folder, but this command writes "
                              f"one file: give a file name (e.g. {text.rstrip('/' + os.sep)}/result)")
     from anklescan.core.atomic import check_may_replace
+    from anklescan.core.output_files import may_replace
 
     check_may_replace(out, "--out")
+    kind = _output_file(args)
+    if kind is not None and not may_replace(out, kind):
+        raise AnkleScanError(f"--out {text} is a file this command did not write (not a {kind}); it was left "
+                             "untouched: give another name, or move that file away first")
+
+
+def _output_file(args: argparse.Namespace) -> OutputFile | None:
+    """The kind of file the command writes at --out (``export``'s by its --format)."""
+    if args.func is cmd_export:
+        return OutputFile.C3D if args.format == "c3d" else OutputFile.FHIR_BUNDLE
+    kind: OutputFile | None = getattr(args, "out_file", None)
+    return kind
 
 
 def _check_not_current_folder(out: str | os.PathLike[str]) -> None:

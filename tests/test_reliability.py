@@ -125,6 +125,41 @@ def test_out_that_is_an_input_is_refused(capfd, work, case):
     assert_refused(capfd, work, *args, words=("--out",))
 
 
+@pytest.mark.parametrize("command", ["reconstruct", "calibrate box", "calibrate export", "check"])
+def test_out_onto_a_file_the_command_did_not_write_is_refused(capfd, work, command):
+    """A mistyped --out naming the user's other file (notes, a photo's PLY, a spreadsheet) is
+    refused, the file untouched; the command's own earlier output, or an empty file, is replaced."""
+    os.chdir(work)
+    out = work / "notes.txt"
+    out.write_text("the patient's history, typed by hand\n")
+    args = {"reconstruct": ["reconstruct", "capture", "--calibration", "cal.json"],
+            "calibrate box": ["calibrate", "box", "capture"],
+            "calibrate export": ["calibrate", "export", "cal.json"],
+            "check": ["check", "capture", "--calibration", "cal.json", "--inversion", "0", "--plantar-flexion", "0"],
+            }[command]
+    line = assert_refused(capfd, work, *args, "--out", out, words=("did not write", "left untouched"))
+    assert "notes.txt" in line
+
+
+def test_out_replaces_the_commands_own_earlier_output(capfd, work):
+    os.chdir(work)
+    ply = work / "scan.ply"
+    assert cli(capfd, "reconstruct", "capture", "--calibration", "cal.json", "--out", ply)[0] == 0
+    first = ply.read_bytes()
+    ply.write_bytes(first[:-12])  # an earlier cloud of ours (another run's): replaced
+    assert cli(capfd, "reconstruct", "capture", "--calibration", "cal.json", "--out", ply)[0] == 0
+    assert ply.read_bytes() == first
+    other = work / "other.ply"  # another program's PLY of the same name is not ours
+    other.write_bytes(b"ply\nformat ascii 1.0\ncomment scanned elsewhere\nelement vertex 0\nend_header\n")
+    assert_refused(capfd, work, "reconstruct", "capture", "--calibration", "cal.json", "--out", other,
+                   words=("did not write",))
+    empty = work / "empty.yml"
+    empty.touch()
+    assert cli(capfd, "calibrate", "export", "cal.json", "--out", empty)[0] == 0
+    assert cli(capfd, "calibrate", "export", "cal.json", "--out", empty)[0] == 0  # its own export, again
+    assert empty.stat().st_size > 0
+
+
 @pytest.mark.parametrize("out", ["/dev/null", ""])
 def test_out_that_is_a_device_or_empty_is_refused(capfd, work, out):
     assert_refused(capfd, work, "reconstruct", work / "capture", "--calibration", work / "cal.json", "--out", out)

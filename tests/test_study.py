@@ -276,6 +276,16 @@ def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
     code, _, err = run(capfd, "export", "--data", data, "--session", 999, "--format", "fhir", "--out",
                        tmp_path / "n.json")
     assert code == 2 and len(err) == 1 and not (tmp_path / "n.json").exists()
+    # the same export again replaces its own bundle; a C3D export onto it, or a FHIR export onto
+    # another JSON (a measurement result), is refused and leaves that file as it was
+    assert run(capfd, "export", "--data", data, "--session", 1, "--format", "fhir", "--out", out)[0] == 0
+    before = out.read_bytes()
+    trial = tmp_path / "trial.json"
+    trial.write_text('{"marks": {}, "angles": {}}')
+    for fmt, target in (("c3d", out), ("fhir", trial)):
+        code, _, err = run(capfd, "export", "--data", data, "--session", 1, "--format", fmt, "--out", target)
+        assert code == 2 and len(err) == 1 and "did not write" in err[0], err
+    assert out.read_bytes() == before and trial.read_text() == '{"marks": {}, "angles": {}}'
 
 
 def test_export_fhir_of_one_failed_trial_says_so(data, tmp_path, capfd):
