@@ -5,7 +5,7 @@ session, ...), each driven through the real menus, buttons and dialogs."""
 from __future__ import annotations
 
 import pytest
-from gui_actions import button, calibrated_window, click, menu_action, press_accept, with_dialog
+from gui_actions import button, calibrated_window, click, dismiss, fill_and_ok, menu_action, press_accept, with_dialog
 from PySide6.QtTest import QTest
 
 pytestmark = pytest.mark.gui
@@ -38,3 +38,29 @@ def test_the_data_folder_and_calibration_cannot_change_under_a_running_scan(qtbo
     (trial,) = win.store.trials.all(win.records.current_session_id())
     assert trial.status == "complete"
     win.close()
+
+
+@pytest.fixture
+def new_clinician(qtbot):
+    """The app as it first opens: no operator known yet."""
+    from anklescan.app.main_window import MainWindow
+    win = MainWindow()
+    qtbot.addWidget(win)
+    win.show()
+    qtbot.waitExposed(win)
+    qtbot.waitUntil(lambda: win.rig is not None, timeout=60_000)
+    yield win
+    win.close()
+
+
+def test_cancelling_the_operator_question_starts_no_session(qtbot, new_clinician):
+    """New session asks who operates; Cancel used to start the session anyway, signed by nobody."""
+    win = new_clinician
+    _add_patient(qtbot, win, "P-202")
+    with_dialog(qtbot, lambda: click(button(win, "New session")), dismiss)
+    assert win.records.sessions.count() == 0
+    assert win.store.sessions.all(win.records.current_patient_id()) == []
+    assert "No session was started" in win.banner.text and "Operator" in win.banner.text
+    with_dialog(qtbot, lambda: click(button(win, "New session")), fill_and_ok({"": "Dr. Bea"}))
+    (session,) = win.store.sessions.all(win.records.current_patient_id())
+    assert session.operator == "Dr. Bea" and win.records.sessions.count() == 1

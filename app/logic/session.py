@@ -181,6 +181,10 @@ class SessionLogic:
         if patient_id is None or self.store is None:
             self.notice.emit(Severity.WARNING, "Select or add a patient first (File ▸ New patient…).")
             return None
+        if not self.operator:  # the question was cancelled: a session nobody signed is not started
+            self.notice.emit(Severity.WARNING, "No session was started: a session is signed by who measures. "
+                             "Enter your name or initials (File ▸ Operator…), then start the session.")
+            return None
         return self._write("The session could not be started", lambda: self._open().sessions.start(
             patient_id, condition=condition, calibration_id=self.calibration_id, operator=self.operator))
 
