@@ -209,7 +209,7 @@ class RecordsPanel(QWidget):
     def new_patient(self) -> None:
         if not self.logic.require_store():
             return
-        dialog = NewPatientDialog(self.window(), exists=self.logic.patient_exists)
+        dialog = NewPatientDialog(self.window(), existing=self.logic.existing_patient)
         if dialog.exec() == QDialog.DialogCode.Accepted:
             self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData(),
                              dialog.last_sprain_date())

@@ -64,3 +64,25 @@ def test_cancelling_the_operator_question_starts_no_session(qtbot, new_clinician
     with_dialog(qtbot, lambda: click(button(win, "New session")), fill_and_ok({"": "Dr. Bea"}))
     (session,) = win.store.sessions.all(win.records.current_patient_id())
     assert session.operator == "Dr. Bea" and win.records.sessions.count() == 1
+
+
+def test_a_patient_code_that_differs_only_in_case_is_a_duplicate(qtbot, new_clinician):
+    """"p-203" typed for the existing P-203 made a second patient: one person's trials in two."""
+    win = new_clinician
+    _add_patient(qtbot, win, "P-203")
+    said = []
+
+    def same_code_in_lower_case(dialog):
+        QTest.keyClicks(dialog.code, "p-203")
+        press_accept(dialog)
+        said.append((dialog.isVisible(), dialog.code.text(), dialog.message.text()))
+        dismiss(dialog)
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), same_code_in_lower_case)
+    assert said == [(True, "p-203", "Patient P-203 already exists: choose another code.")]
+    assert [p.code for p in win.store.patients.all(include_archived=True)] == ["P-203"]
+    # an archived patient is not in the list, so the refusal says where it is
+    win.settings.operator = "op"
+    with_dialog(qtbot, menu_action(win, "File/Archive patient…").trigger, press_accept)
+    said.clear()
+    with_dialog(qtbot, lambda: click(button(win, "New patient…")), same_code_in_lower_case)
+    assert said[0][0] and "archived: tick Show archived" in said[0][2]

@@ -146,12 +146,11 @@ class SessionLogic:
     def session(self, session_id: int | None) -> Session | None:
         return None if self.store is None or session_id is None else self.store.sessions.get(session_id)
 
-    def patient_exists(self, code: str) -> bool:
-        try:
-            self._open().patients.get(code)
-            return True
-        except Exception:
-            return False
+    def existing_patient(self, code: str) -> Patient | None:
+        """The patient (archived ones too) that a new ``code`` would duplicate, or None. Codes are
+        compared without case: "p-017" typed for P-017 would split one patient's records in two."""
+        wanted = code.strip().casefold()
+        return next((p for p in self.patients(include_archived=True) if p.code.casefold() == wanted), None)
 
     def session_title(self, session_id: int) -> str:
         store = self._open()
