@@ -86,3 +86,31 @@ def test_a_patient_code_that_differs_only_in_case_is_a_duplicate(qtbot, new_clin
     said.clear()
     with_dialog(qtbot, lambda: click(button(win, "New patient…")), same_code_in_lower_case)
     assert said[0][0] and "archived: tick Show archived" in said[0][2]
+
+
+def _click_item(widget, row: int) -> None:
+    from PySide6.QtCore import Qt
+    QTest.mouseClick(widget.viewport(), Qt.MouseButton.LeftButton,
+                     pos=widget.visualItemRect(widget.item(row)).center())
+
+
+def test_exclude_asks_about_the_trial_by_the_number_the_list_shows(qtbot, new_clinician):
+    """The list numbers trials per session (Trial 1, 2, ...); Exclude asked about "trial 3", the
+    database id, for the second patient's first trial."""
+    win = new_clinician
+    store = win.store
+    for code, n in (("P-204", 2), ("P-205", 1)):  # earlier work in the database
+        session = store.sessions.start(store.patients.add(code).id, condition="barefoot", operator="op")
+        for _ in range(n):
+            store.trials.add(session.id, ref_inversion=0.0, ref_plantar_flexion=0.0, status="complete")
+    win.records.refresh_patients()
+    _click_item(win.records.patients, 1)
+    _click_item(win.records.trials, 0)
+    assert win.records.trials.item(0).text().startswith("Trial 1")
+    asked = []
+
+    def read_and_cancel(dialog):
+        asked.append(dialog.labelText())
+        dismiss(dialog)
+    with_dialog(qtbot, lambda: click(win.records.exclude_button), read_and_cancel)
+    assert asked == ["Why is trial 1 left out of the statistics?"]
