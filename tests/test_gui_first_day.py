@@ -114,3 +114,37 @@ def test_exclude_asks_about_the_trial_by_the_number_the_list_shows(qtbot, new_cl
         dismiss(dialog)
     with_dialog(qtbot, lambda: click(win.records.exclude_button), read_and_cancel)
     assert asked == ["Why is trial 1 left out of the statistics?"]
+
+
+def test_the_verification_table_shows_every_column(qtbot, tmp_path):
+    """The wizard's verification table (Verify, after Run verification scan) hid its Check column
+    ("ok" / "over limit") past a horizontal scroll bar at the wizard's own size."""
+    import os
+    from pathlib import Path
+
+    from PySide6.QtCore import Qt
+
+    from anklescan.app.calibration_wizard import PAGE_VERIFY
+    Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")  # the box needs the pixels
+    win = calibrated_window(qtbot)
+    seen = {}
+
+    def verify(wiz):
+        steps = wiz.steps
+        QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
+                         pos=steps.visualItemRect(steps.item(PAGE_VERIFY)).center())
+        click(button(wiz, "Run verification scan"))
+        qtbot.waitUntil(lambda: wiz.verify_table.rowCount() > 0, timeout=120_000)
+        qtbot.wait(50)
+        table = wiz.verify_table
+        last = table.columnCount() - 1
+        seen["verdict"] = wiz.verify_verdict.text()
+        seen["check"] = table.item(0, last).text()
+        seen["scrolls"] = table.horizontalScrollBar().maximum()
+        seen["check_right"] = table.columnViewportPosition(last) + table.columnWidth(last)
+        seen["viewport"] = table.viewport().width()
+        click(button(wiz, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Calibration…").trigger, verify, timeout_ms=180_000)
+    assert "PASS" in seen["verdict"] and seen["check"] == "ok"
+    assert seen["scrolls"] == 0 and seen["check_right"] <= seen["viewport"], seen
+    win.close()
