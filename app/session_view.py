@@ -110,8 +110,11 @@ class SessionView(QWidget):
         controls.addWidget(self.info)
         self.layout_widget = pg.GraphicsLayoutWidget()
         self.layout_widget.setBackground("w")
-        self.fig10 = self.layout_widget.addPlot(row=0, col=0)
-        self.error_plot = self.layout_widget.addPlot(row=1, col=0)
+        # Each plot's legend sits in a row of its own above it, as in the PDF report: anchored in
+        # the plot (pyqtgraph's addLegend) it covered the points at the lowest settings, e.g. the
+        # trial at plantar flexion -10° under "inversion 5°".
+        self.titles: dict[int, pg.LabelItem] = {}  # id(plot) -> the title above its legend
+        self.fig10, self.error_plot = (self._plot_with_legend(row) for row in (0, 3))
         for p in (self.fig10, self.error_plot):
             p.showGrid(x=True, y=True, alpha=0.15)
             p.setLabel("bottom", PF_LABEL)
@@ -126,6 +129,19 @@ class SessionView(QWidget):
         outer.addLayout(controls)
         outer.addWidget(self.layout_widget, 1)
         self.redraw()
+
+    def _plot_with_legend(self, row: int) -> pg.PlotItem:
+        """Rows ``row``..``row + 2``: the title, the legend, the plot."""
+        title = self.layout_widget.addLabel("", row=row, col=0, size="10pt")
+        legend = pg.LegendItem(offset=None, labelTextSize="9pt", colCount=4)
+        self.layout_widget.addItem(legend, row=row + 1, col=0)
+        plot = self.layout_widget.addPlot(row=row + 2, col=0)
+        plot.legend = legend  # named items added to the plot are listed in it (PlotItem.addItem)
+        self.titles[id(plot)] = title
+        return plot
+
+    def _set_title(self, plot: pg.PlotItem, text: str) -> None:
+        self.titles[id(plot)].setText(text, size="10pt")
 
     @property
     def axis(self) -> str:
@@ -160,9 +176,9 @@ class SessionView(QWidget):
     def _draw_fig10(self) -> None:
         p, axis = self.fig10, self.axis
         p.clear()
-        p.addLegend(offset=(10, 10), labelTextSize="9pt")
-        p.setTitle("Mismatch against plantar flexion, one curve per inversion setting"
-                   + (f" — {self.title}" if self.title else ""), size="10pt")
+        p.legend.clear()
+        self._set_title(p, "Mismatch against plantar flexion, one curve per inversion setting"
+                        + (f" — {self.title}" if self.title else ""))
         p.setLabel("left", AXES[axis])
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         data = group(self.rows, axis)
@@ -227,16 +243,16 @@ class SessionView(QWidget):
     def _draw_error_range(self) -> None:
         p, axis = self.error_plot, self.axis
         p.clear()
+        p.legend.clear()
         inv = self.inversion_box.currentData()
         p.setLabel("left", AXES[axis])
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         per_pf = group(self.rows, axis).get(inv, {}) if inv is not None else {}
-        p.setTitle(f"Error range of the mismatch — inversion setting {inv:g}°" if inv is not None
-                   else "Error range of the mismatch", size="10pt")
+        self._set_title(p, f"Error range of the mismatch — inversion setting {inv:g}°" if inv is not None
+                        else "Error range of the mismatch")
         if not per_pf:
             self._no_data(p)
             return
-        p.addLegend(offset=(10, 10), labelTextSize="9pt")
         pfs = sorted(per_pf)
         values = [np.array([r.mismatch(axis) for r in per_pf[pf]]) for pf in pfs]
         x = np.array(pfs, float)

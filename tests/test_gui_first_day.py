@@ -148,3 +148,30 @@ def test_the_verification_table_shows_every_column(qtbot, tmp_path):
     assert "PASS" in seen["verdict"] and seen["check"] == "ok"
     assert seen["scrolls"] == 0 and seen["check_right"] <= seen["viewport"], seen
     win.close()
+
+
+def test_the_session_plots_legends_cover_no_point(qtbot, new_clinician):
+    """The legends sat inside the plots, over the trials at the lowest settings: on the walk's
+    session the point of the trial at 5° / -10° was under "inversion 5°"."""
+    from PySide6.QtCore import Qt
+
+    from anklescan.app.main_parts import PAGE_SESSION
+    from anklescan.core.measure.angles import Angle
+    win = new_clinician
+    store = win.store
+    session = store.sessions.start(store.patients.add("P-206").id, condition="barefoot", operator="op")
+    for inv, pf, mismatch in ((5.0, -10.0, 0.38), (0.0, 0.0, 0.66), (10.0, 10.0, 0.03)):
+        t = store.trials.add(session.id, ref_inversion=inv, ref_plantar_flexion=pf)
+        store.results.update_angles(t.id, {"table_inversion": Angle(inv + mismatch, 0.06),
+                                           "table_plantar_flexion": Angle(pf + 0.1, 0.04)})
+    win.records.refresh_patients()
+    _click_item(win.records.patients, 0)
+    bar = win.tabs.tabBar()
+    QTest.mouseClick(bar, Qt.MouseButton.LeftButton, pos=bar.tabRect(PAGE_SESSION).center())
+    view = win.session_view
+    qtbot.waitUntil(lambda: view is not None and view.isVisible() and bool(view.trial_points), timeout=10_000)
+    qtbot.wait(100)
+    for plot in (view.fig10, view.error_plot):
+        assert plot.legend.items, "each plot keeps its legend"
+        legend, data = plot.legend.sceneBoundingRect(), plot.vb.sceneBoundingRect()
+        assert not legend.intersects(data), (legend, data)
