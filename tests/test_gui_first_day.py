@@ -175,3 +175,38 @@ def test_the_session_plots_legends_cover_no_point(qtbot, new_clinician):
         assert plot.legend.items, "each plot keeps its legend"
         legend, data = plot.legend.sceneBoundingRect(), plot.vb.sceneBoundingRect()
         assert not legend.intersects(data), (legend, data)
+
+
+def test_a_trial_without_a_cloud_leaves_the_3d_view_not_the_previous_trial(qtbot):
+    """Clicking a cancelled trial in the list highlighted it, but the 3-D view kept the trial it
+    showed, titled and editable: a click in that cloud placed a mark on a trial no longer selected."""
+    import numpy as np
+    from gui_actions import click_at
+    from PySide6.QtCore import Qt
+    win = calibrated_window(qtbot)
+    _add_patient(qtbot, win, "P-207")
+    click(button(win, "New session"))
+    with qtbot.waitSignal(win.controller.busyChanged, timeout=60_000, check_params_cb=lambda b: b is False):
+        click(win.scan_page.scan_button)
+    click(win.result_page.new_trial)  # back to the Scan page; the second scan is cancelled
+    captured: list[int] = []
+    win.controller.frameCaptured.connect(lambda i, _image: captured.append(i))
+    click(win.scan_page.scan_button)
+    qtbot.waitUntil(lambda: len(captured) >= 2, timeout=30_000)
+    with qtbot.waitSignal(win.controller.cancelled, timeout=5000):
+        click(win.scan_page.cancel_button)
+    first, cancelled = (t.id for t in win.store.trials.all(win.records.current_session_id()))
+    _click_item(win.records.trials, 0)
+    page = win.marks_page
+    assert page.title.text().startswith("Trial 1") and len(page.viewer.points) > 0
+    qtbot.wait(100)
+    page.viewer.render_now()
+    x, y, _ = page.viewer.widget_pos_of(np.median(page.viewer.points, axis=0)[None])[0]
+    _click_item(win.records.trials, 1)
+    assert win.records.trials.currentItem().data(Qt.ItemDataRole.UserRole) == cancelled
+    assert page.title.text().startswith("Trial 2") and "no point cloud" in page.title.text()
+    assert "Trial 2" in win.banner.text and "no point cloud" in win.banner.text
+    click_at(page.viewer, int(x), int(y))  # where trial 1's leg was
+    qtbot.wait(500)
+    assert win.store.marks.all(first) == [] and win.store.marks.all(cancelled) == []
+    win.close()
