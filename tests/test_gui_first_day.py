@@ -210,3 +210,29 @@ def test_a_trial_without_a_cloud_leaves_the_3d_view_not_the_previous_trial(qtbot
     qtbot.wait(500)
     assert win.store.marks.all(first) == [] and win.store.marks.all(cancelled) == []
     win.close()
+
+
+def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
+    """The daily check's list of earlier checks said "passed  inversion +0.00°, plantar flexion
+    +0.00°": the error read as the angle measured, and without the ± its verdict line has."""
+    from PySide6.QtCore import Qt
+    from PySide6.QtWidgets import QDoubleSpinBox
+    win = calibrated_window(qtbot)
+    seen = {}
+
+    def check(dialog):
+        box = dialog.findChild(QDoubleSpinBox, "inversion")
+        box.setFocus()
+        box.selectAll()
+        QTest.keyClicks(box, "10.00")
+        QTest.keyClick(box, Qt.Key.Key_Tab)
+        click(button(dialog, "Scan and check"))
+        qtbot.waitUntil(lambda: dialog.check_result is not None, timeout=60_000)
+        seen["verdict"], seen["history"] = dialog.verdict.text(), dialog.history.text()
+        click(button(dialog, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Daily check…").trigger, check, timeout_ms=90_000)
+    assert seen["verdict"].startswith("PASSED"), seen
+    line = seen["history"].splitlines()[1]
+    assert "passed  inversion off by " in line and "plantar flexion off by " in line, line
+    assert line.count(" ± ") == 2 and line.endswith("(set +10.0° / +0.0°)") and "-0.00" not in line, line
+    win.close()
