@@ -322,6 +322,12 @@ class WizardPages(_DialogBase):
                f"<span style='color:#b3261e'>{len(rep.warnings)} warning(s), see below</span>"))
         self.report_text.setPlainText(rep.format_text())
 
+    def show_unverified(self, text: str) -> None:
+        """The Verify page once another calibration became current: the verdict and distances shown
+        were the previous calibration's, and its record is not verified."""
+        self.verify_verdict.setText(text)
+        self.verify_table.setRowCount(0)
+
     def show_verification(self, white: np.ndarray, res: VerificationResult) -> None:
         cal = self.calibration
         assert cal is not None, "a verification scan is made with a calibration (start_scan)"

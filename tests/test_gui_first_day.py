@@ -236,3 +236,33 @@ def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
     assert "passed  inversion off by " in line and "plantar flexion off by " in line, line
     assert line.count(" ± ") == 2 and line.endswith("(set +10.0° / +0.0°)") and "-0.00" not in line, line
     win.close()
+
+
+def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
+    """Verify, then Level from the reference table: levelling saves a new calibration version,
+    recorded as not verified, but the Verify page kept showing the previous version's PASS."""
+    import os
+    from pathlib import Path
+
+    from PySide6.QtCore import Qt
+
+    from anklescan.app.calibration_wizard import PAGE_VERIFY
+    Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
+    win = calibrated_window(qtbot)
+    seen = {}
+
+    def verify_then_level(wiz):
+        steps = wiz.steps
+        QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
+                         pos=steps.visualItemRect(steps.item(PAGE_VERIFY)).center())
+        click(button(wiz, "Run verification scan"))
+        qtbot.waitUntil(lambda: "PASS" in wiz.verify_verdict.text(), timeout=120_000)
+        click(button(wiz, "Level from the reference table"))
+        qtbot.waitUntil(lambda: "Levelled" in wiz.status.text(), timeout=120_000)
+        seen["verdict"], seen["rows"] = wiz.verify_verdict.text(), wiz.verify_table.rowCount()
+        click(button(wiz, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Calibration…").trigger, verify_then_level, timeout_ms=240_000)
+    current = win.store.calibrations.get(win.calibration_id)
+    assert "levelled" in current.source and not current.verified
+    assert "PASS" not in seen["verdict"] and "Not verified yet" in seen["verdict"] and seen["rows"] == 0, seen
+    win.close()
