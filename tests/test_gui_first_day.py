@@ -266,3 +266,29 @@ def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
     assert "levelled" in current.source and not current.verified
     assert "PASS" not in seen["verdict"] and "Not verified yet" in seen["verdict"] and seen["rows"] == 0, seen
     win.close()
+
+
+def test_the_scan_banner_is_sentences(qtbot):
+    """After a scan with the knee above the calibrated volume the banner read "... and scan again.
+    mark 1 lies 107 mm outside the calibrated volume ...": a sentence begun in lower case."""
+    import copy
+    import os
+    from pathlib import Path
+
+    from anklescan.app.calibration_wizard import accept_calibration
+    Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")  # marks found automatically
+    win = calibrated_window(qtbot)
+    # a calibration made with the box on the floor only: the knee marks lie above its volume
+    low_box = copy.deepcopy(win.rig.calibration)
+    low_box.extra["volume"] = {"min": [-400.0, -400.0, -60.0], "max": [400.0, 400.0, 250.0]}
+    accept_calibration(low_box, None, win.data_folder(), win.store, win.settings, source="box on the floor (test)")
+    win.rig_setup.load_calibration()
+    _add_patient(qtbot, win, "P-208")
+    click(button(win, "New session"))
+    with qtbot.waitSignal(win.controller.busyChanged, timeout=120_000, check_params_cb=lambda b: b is False):
+        click(win.scan_page.scan_button)
+    text = win.banner.text
+    assert "outside the calibrated volume" in text, text
+    sentences = [s.strip() for s in text.replace("?", ".").split(". ") if s.strip()]
+    assert all(s[0].isupper() for s in sentences), sentences
+    win.close()
