@@ -72,12 +72,22 @@ def group(rows: Iterable[StudyRow], axis: str) -> dict[float, dict[float, list[S
     return out
 
 
-def trial_tip(r: StudyRow, axis: str) -> str:
+def trial_numbers(rows: Iterable[StudyRow]) -> dict[int, int]:
+    """trial id -> its number in its session (1, 2, ...), as the trials list numbers it: rows hold
+    every trial of their sessions, counted or not."""
+    by_session: defaultdict[int, list[int]] = defaultdict(list)
+    for r in rows:
+        by_session[r.session_id].append(r.trial_id)
+    return {tid: n for ids in by_session.values() for n, tid in enumerate(sorted(ids), start=1)}
+
+
+def trial_tip(r: StudyRow, axis: str, number: int | None = None) -> str:
+    """``number``: the trial's number in its session (the database id is not what the list shows)."""
     def deg(v: float | None, digits: int = 1) -> str:  # a plotted trial has them all
         return "–" if v is None else signed(v, digits)
 
     sd = r.mismatch_sd(axis)
-    return (f"Trial {r.trial_id} · {r.patient_code} {r.session_date}\n"
+    return (f"Trial {r.trial_id if number is None else number} · {r.patient_code} {r.session_date}\n"
             f"reference inv {deg(r.ref_inversion)}°, PF {deg(r.ref_plantar_flexion)}°\n"
             f"mismatch {axis.replace('_', ' ')} {deg(r.mismatch(axis), 2)}°"
             + (f" ± {sd:.2f}°" if sd is not None else "")
@@ -91,6 +101,7 @@ class SessionView(QWidget):
         super().__init__(parent)
         pg.setConfigOptions(antialias=True)
         self.rows: list[StudyRow] = []
+        self.numbers: dict[int, int] = {}  # trial id -> its number in its session
         self.title = ""
         self.axis_box = QComboBox()
         for key, label in AXES.items():
@@ -152,6 +163,7 @@ class SessionView(QWidget):
     def set_rows(self, rows: list[StudyRow], title: str = "") -> None:
         """Rows as ``store.reports.study_rows()`` gives them (one session's or several)."""
         self.rows, self.title = list(rows), title
+        self.numbers = trial_numbers(self.rows)
         settings = sorted(group(self.rows, "inversion"))
         self.inversion_box.blockSignals(True)
         self.inversion_box.clear()
@@ -214,7 +226,7 @@ class SessionView(QWidget):
             return _Spot(pos=pos, data=r, brush=clear, pen=pg.mkPen(colour, width=1.6), size=9)
         spots = [spot((pf + dx, r.mismatch(axis)), r) for pf, rows in per_pf.items() for r in rows]
         scatter = pg.ScatterPlotItem(hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
-                                     tip=lambda x, y, data: trial_tip(data, axis))
+                                     tip=lambda x, y, data: trial_tip(data, axis, self.numbers.get(data.trial_id)))
         scatter.addPoints(spots)
         scatter.sigClicked.connect(self._point_clicked)
         plot.addItem(scatter)

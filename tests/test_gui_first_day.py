@@ -292,3 +292,43 @@ def test_the_scan_banner_is_sentences(qtbot):
     sentences = [s.strip() for s in text.replace("?", ".").split(". ") if s.strip()]
     assert all(s[0].isupper() for s in sentences), sentences
     win.close()
+
+
+def test_a_plotted_trial_is_named_by_its_number_in_the_session(qtbot, new_clinician):
+    """Hovering a point of the session plots named the trial by its database id ("Trial 3") where
+    the list beside it says Trial 1."""
+    import pyqtgraph as pg
+    from PySide6.QtCore import QPoint, Qt
+
+    from anklescan.app.main_parts import PAGE_SESSION
+    from anklescan.core.measure.angles import Angle
+    win = new_clinician
+    store = win.store
+    for code, n in (("P-209", 2), ("P-210", 1)):
+        session = store.sessions.start(store.patients.add(code).id, condition="barefoot", operator="op")
+        for _ in range(n):
+            t = store.trials.add(session.id, ref_inversion=5.0, ref_plantar_flexion=0.0)
+            store.results.update_angles(t.id, {"table_inversion": Angle(5.4, 0.06),
+                                               "table_plantar_flexion": Angle(0.1, 0.04)})
+    win.records.refresh_patients()
+    _click_item(win.records.patients, 1)
+    assert win.records.trials.item(0).text().startswith("Trial 1")
+    bar = win.tabs.tabBar()
+    QTest.mouseClick(bar, Qt.MouseButton.LeftButton, pos=bar.tabRect(PAGE_SESSION).center())
+    view = win.session_view
+    qtbot.waitUntil(lambda: view is not None and view.isVisible() and bool(view.trial_points), timeout=10_000)
+    qtbot.wait(100)
+    (tid,) = view.trial_points
+    scene_pos = view.fig10.vb.mapViewToScene(pg.Point(*view.trial_points[tid]))
+    where = view.layout_widget.mapFromScene(scene_pos)
+    viewport = view.layout_widget.viewport()
+    tip = view.fig10.vb.toolTip  # where pyqtgraph puts a hovered point's tip
+
+    def hover() -> bool:  # onto the point, as a hand does: pyqtgraph drops moves closer than 1/60 s
+        QTest.mouseMove(viewport, QPoint(where.x() + 8, where.y() + 8))
+        qtbot.wait(40)
+        QTest.mouseMove(viewport, QPoint(where.x(), where.y()))
+        qtbot.wait(40)
+        return bool(tip())
+    qtbot.waitUntil(hover, timeout=5000)
+    assert tip().startswith("Trial 1 · P-210"), tip()
