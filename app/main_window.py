@@ -263,6 +263,12 @@ class MainWindow(QMainWindow):
             self.banner.show_message(Severity.WARNING, "A scan is running: finish or cancel it before choosing "
                                      "another data folder.")
             return
+        if self.settings.data_folder_from_environment:
+            # a folder chosen here was kept in the settings and silently not used: the same folder reopened
+            self.banner.show_message(Severity.WARNING, f"The data folder is {self.data_folder()}, named by the "
+                                     "environment variable ANKLESCAN_DATA; start AnkleScan without it to choose "
+                                     "another here.")
+            return
         folder = QFileDialog.getExistingDirectory(self, "Data folder", str(self.data_folder()))
         if folder:
             self.settings.chosen_data_folder = Path(folder)

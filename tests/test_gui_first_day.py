@@ -332,3 +332,30 @@ def test_a_plotted_trial_is_named_by_its_number_in_the_session(qtbot, new_clinic
         return bool(tip())
     qtbot.waitUntil(hover, timeout=5000)
     assert tip().startswith("Trial 1 · P-210"), tip()
+
+
+def test_a_data_folder_named_by_the_environment_is_said_not_silently_kept(qtbot, new_clinician, tmp_path):
+    """With ANKLESCAN_DATA set (as a clinic may, per workstation), File ▸ Data folder… let the
+    clinician choose another folder, then reopened the same one without a word."""
+    from PySide6.QtCore import QTimer
+    from PySide6.QtWidgets import QApplication, QFileDialog
+    win = new_clinician
+    before = win.store.path
+    other = tmp_path / "another folder"
+    other.mkdir()
+    dialogs = []
+
+    def choose_if_asked():  # a person picks the folder in whatever dialog opens
+        w = QApplication.activeModalWidget()
+        if isinstance(w, QFileDialog) and w.isVisible():
+            dialogs.append(w.windowTitle())
+            w.selectFile(str(other))
+            w.accept()
+    poll = QTimer()
+    poll.timeout.connect(choose_if_asked)
+    poll.start(20)
+    menu_action(win, "File/Data folder…").trigger()
+    qtbot.wait(200)
+    poll.stop()
+    assert win.store.path == before
+    assert "ANKLESCAN_DATA" in win.banner.text and dialogs == [], (win.banner.text, dialogs)
