@@ -1,12 +1,34 @@
-"""A clinician's first day on the simulated rig, as it is clicked: what the walk through the whole
-path found (the data folder changed under a running scan, a cancelled question that still made a
-session, ...), each driven through the real menus, buttons and dialogs."""
+"""A clinician's first day on the simulated rig, as it is clicked: what a walk through the whole path
+(calibration wizard, levelling, daily check, session, trials, marks, plots, report, reopening)
+found, each driven through the real menus, buttons and dialogs and checked on what the clinician
+sees (docs/gui.md)."""
 
 from __future__ import annotations
 
+import copy
+import os
+from pathlib import Path
+
+import numpy as np
 import pytest
-from gui_actions import button, calibrated_window, click, dismiss, fill_and_ok, menu_action, press_accept, with_dialog
+from gui_actions import (
+    button,
+    calibrated_window,
+    click,
+    click_at,
+    dismiss,
+    fill_and_ok,
+    menu_action,
+    press_accept,
+    with_dialog,
+)
+from PySide6.QtCore import QPoint, Qt, QTimer
 from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QApplication, QDoubleSpinBox, QFileDialog
+
+from anklescan.app.calibration_wizard import PAGE_VERIFY, accept_calibration
+from anklescan.app.main_parts import PAGE_SESSION
+from anklescan.core.measure.angles import Angle
 
 pytestmark = pytest.mark.gui
 
@@ -89,7 +111,6 @@ def test_a_patient_code_that_differs_only_in_case_is_a_duplicate(qtbot, new_clin
 
 
 def _click_item(widget, row: int) -> None:
-    from PySide6.QtCore import Qt
     QTest.mouseClick(widget.viewport(), Qt.MouseButton.LeftButton,
                      pos=widget.visualItemRect(widget.item(row)).center())
 
@@ -119,12 +140,8 @@ def test_exclude_asks_about_the_trial_by_the_number_the_list_shows(qtbot, new_cl
 def test_the_verification_table_shows_every_column(qtbot, tmp_path):
     """The wizard's verification table (Verify, after Run verification scan) hid its Check column
     ("ok" / "over limit") past a horizontal scroll bar at the wizard's own size."""
-    import os
-    from pathlib import Path
 
-    from PySide6.QtCore import Qt
 
-    from anklescan.app.calibration_wizard import PAGE_VERIFY
     Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")  # the box needs the pixels
     win = calibrated_window(qtbot)
     seen = {}
@@ -153,10 +170,6 @@ def test_the_verification_table_shows_every_column(qtbot, tmp_path):
 def test_the_session_plots_legends_cover_no_point(qtbot, new_clinician):
     """The legends sat inside the plots, over the trials at the lowest settings: on the walk's
     session the point of the trial at 5° / -10° was under "inversion 5°"."""
-    from PySide6.QtCore import Qt
-
-    from anklescan.app.main_parts import PAGE_SESSION
-    from anklescan.core.measure.angles import Angle
     win = new_clinician
     store = win.store
     session = store.sessions.start(store.patients.add("P-206").id, condition="barefoot", operator="op")
@@ -180,9 +193,6 @@ def test_the_session_plots_legends_cover_no_point(qtbot, new_clinician):
 def test_a_trial_without_a_cloud_leaves_the_3d_view_not_the_previous_trial(qtbot):
     """Clicking a cancelled trial in the list highlighted it, but the 3-D view kept the trial it
     showed, titled and editable: a click in that cloud placed a mark on a trial no longer selected."""
-    import numpy as np
-    from gui_actions import click_at
-    from PySide6.QtCore import Qt
     win = calibrated_window(qtbot)
     _add_patient(qtbot, win, "P-207")
     click(button(win, "New session"))
@@ -215,8 +225,6 @@ def test_a_trial_without_a_cloud_leaves_the_3d_view_not_the_previous_trial(qtbot
 def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
     """The daily check's list of earlier checks said "passed  inversion +0.00°, plantar flexion
     +0.00°": the error read as the angle measured, and without the ± its verdict line has."""
-    from PySide6.QtCore import Qt
-    from PySide6.QtWidgets import QDoubleSpinBox
     win = calibrated_window(qtbot)
     seen = {}
 
@@ -241,12 +249,8 @@ def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
 def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
     """Verify, then Level from the reference table: levelling saves a new calibration version,
     recorded as not verified, but the Verify page kept showing the previous version's PASS."""
-    import os
-    from pathlib import Path
 
-    from PySide6.QtCore import Qt
 
-    from anklescan.app.calibration_wizard import PAGE_VERIFY
     Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
     win = calibrated_window(qtbot)
     seen = {}
@@ -271,11 +275,6 @@ def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
 def test_the_scan_banner_is_sentences(qtbot):
     """After a scan with the knee above the calibrated volume the banner read "... and scan again.
     mark 1 lies 107 mm outside the calibrated volume ...": a sentence begun in lower case."""
-    import copy
-    import os
-    from pathlib import Path
-
-    from anklescan.app.calibration_wizard import accept_calibration
     Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")  # marks found automatically
     win = calibrated_window(qtbot)
     # a calibration made with the box on the floor only: the knee marks lie above its volume
@@ -298,10 +297,7 @@ def test_a_plotted_trial_is_named_by_its_number_in_the_session(qtbot, new_clinic
     """Hovering a point of the session plots named the trial by its database id ("Trial 3") where
     the list beside it says Trial 1."""
     import pyqtgraph as pg
-    from PySide6.QtCore import QPoint, Qt
 
-    from anklescan.app.main_parts import PAGE_SESSION
-    from anklescan.core.measure.angles import Angle
     win = new_clinician
     store = win.store
     for code, n in (("P-209", 2), ("P-210", 1)):
@@ -337,8 +333,6 @@ def test_a_plotted_trial_is_named_by_its_number_in_the_session(qtbot, new_clinic
 def test_a_data_folder_named_by_the_environment_is_said_not_silently_kept(qtbot, new_clinician, tmp_path):
     """With ANKLESCAN_DATA set (as a clinic may, per workstation), File ▸ Data folder… let the
     clinician choose another folder, then reopened the same one without a word."""
-    from PySide6.QtCore import QTimer
-    from PySide6.QtWidgets import QApplication, QFileDialog
     win = new_clinician
     before = win.store.path
     other = tmp_path / "another folder"
