@@ -254,6 +254,7 @@ class WizardPages(_DialogBase):
         self.verify_table = QTableWidget(0, 5)
         self.verify_table.setHorizontalHeaderLabels(["Markers", "True (mm)", "Measured (mm)", "Error (mm)", "Check"])
         self.verify_table.horizontalHeader().setStretchLastSection(True)
+        self.verify_table.verticalHeader().hide()  # the rows are ranked worst first; their numbers say nothing
         self.verify_view = ZoomView()
         split = QSplitter()
         split.addWidget(self.verify_view)
@@ -321,6 +322,12 @@ class WizardPages(_DialogBase):
                f"<span style='color:#b3261e'>{len(rep.warnings)} warning(s), see below</span>"))
         self.report_text.setPlainText(rep.format_text())
 
+    def show_unverified(self, text: str) -> None:
+        """The Verify page once another calibration became current: the verdict and distances shown
+        were the previous calibration's, and its record is not verified."""
+        self.verify_verdict.setText(text)
+        self.verify_table.setRowCount(0)
+
     def show_verification(self, white: np.ndarray, res: VerificationResult) -> None:
         cal = self.calibration
         assert cal is not None, "a verification scan is made with a calibration (start_scan)"
@@ -349,3 +356,8 @@ class WizardPages(_DialogBase):
                 item.setTextAlignment(Qt.AlignmentFlag.AlignRight | Qt.AlignmentFlag.AlignVCenter)
                 self.verify_table.setItem(r, c, item)
         self.verify_table.resizeColumnsToContents()
+        # Wide enough for every column: the splitter gave it 420 px, and the Check column ("ok",
+        # "over limit") was cut off past a horizontal scroll bar. The picture beside it shrinks instead.
+        table = self.verify_table
+        table.setMinimumWidth(table.horizontalHeader().length() + table.verticalScrollBar().sizeHint().width()
+                              + 2 * table.frameWidth())

@@ -354,6 +354,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
                                                      source="levelled")
         self.status.setText(f"Levelled on the table top found ({top.describe()}): saved as {self.accepted_path.name}"
                             + (f" (calibration #{cid})" if cid else "") + ", now the current calibration.")
+        self._new_current(cid)
         self.calibrationAccepted.emit(cal, cid, str(self.accepted_path))
 
     def _board_view_scanned(self, folder: Path) -> None:
@@ -418,8 +419,16 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         self.status.setText(f"Saved as {self.accepted_path.name}" + (f" (calibration #{cid})" if cid else "")
                             + ". It is now the current calibration; verify it next.")
         self.calibrationAccepted.emit(self.calibration, cid, str(self.accepted_path))
+        self._new_current(cid)
         self.go(PAGE_VERIFY)
         return True
+
+    def _new_current(self, cid: int | None) -> None:
+        """A new version is current (accepted, or levelled): it is kept as not verified, so the
+        Verify page stops showing the previous version's PASS beside it."""
+        self.verification = None
+        self.show_unverified("Not verified yet" + (f": calibration #{cid} is a new version" if cid else "")
+                             + ". Run the verification scan to verify it.")
 
     # ---- verification --------------------------------------------------------------------
 

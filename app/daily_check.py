@@ -30,7 +30,7 @@ from PySide6.QtWidgets import (
 )
 
 from anklescan.app.background import BackgroundJob, run_in_background
-from anklescan.app.main_parts import no_args
+from anklescan.app.main_parts import no_args, signed
 from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
@@ -238,8 +238,10 @@ class DailyCheckDialog(QDialog):
             self.history.setText("No check kept yet.")
             return
         lines = [f"{r.when.astimezone().strftime('%Y-%m-%d %H:%M')}  {'passed' if r.passed else 'FAILED'}  "
-                 f"inversion {r.measured_inversion - r.expected_inversion:+.2f}°, plantar flexion "
-                 f"{r.measured_plantar_flexion - r.expected_plantar_flexion:+.2f}°" for r in rows]
+                 + _off_by("inversion", r.measured_inversion - r.expected_inversion, r.measured_inversion_sd)
+                 + ", " + _off_by("plantar flexion", r.measured_plantar_flexion - r.expected_plantar_flexion,
+                                  r.measured_plantar_flexion_sd)
+                 + f" (set {r.expected_inversion:+.1f}° / {r.expected_plantar_flexion:+.1f}°)" for r in rows]
         self.history.setText("Last checks:\n" + "\n".join(lines))
 
     def done(self, code: int) -> None:
@@ -250,6 +252,12 @@ class DailyCheckDialog(QDialog):
             self._job.wait(30)
             self._job = None
         super().done(code)
+
+
+def _off_by(axis: str, error: float, sd: float | None) -> str:
+    """One axis of a kept check: how far the measurement was from the set angle, with its SD (the
+    bare "inversion +0.02°" read as the angle measured, and had no ±)."""
+    return f"{axis} off by {signed(error, 2)}" + (f" ± {sd:.2f}°" if sd is not None else "°")
 
 
 def open_daily_check(parts: DailyCheckParts, parent: QWidget | None = None) -> None:

@@ -27,7 +27,7 @@ from anklescan.app.trial_form import TrialForm
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
-    from anklescan.core.vocabulary import Trial
+    from anklescan.core.vocabulary import Patient, Trial
 
 PAGE_CAMERA, PAGE_SCAN, PAGE_RESULT, PAGE_MARKS, PAGE_SESSION = range(5)
 
@@ -102,11 +102,12 @@ class Banner(QWidget):
 class NewPatientDialog(QDialog):
     """Keeps what was typed when the code is refused, and says what a valid code is."""
 
-    def __init__(self, parent: QWidget | None = None, exists: Callable[[str], bool] = lambda code: False) -> None:
+    def __init__(self, parent: QWidget | None = None,
+                 existing: Callable[[str], Patient | None] = lambda code: None) -> None:
         super().__init__(parent)
         from anklescan.core.records.store import PATIENT_CODE_RULE
         self.setWindowTitle("New patient")
-        self._exists = exists
+        self._existing = existing  # the patient a new code would duplicate, or None
         self.code = QLineEdit()
         self.code.setPlaceholderText("Pseudonym, e.g. P-017 (no names)")
         self.code.setToolTip("Patient code: " + PATIENT_CODE_RULE)
@@ -136,8 +137,7 @@ class NewPatientDialog(QDialog):
     def accept(self) -> None:
         from anklescan.core.records.store import patient_code_problem
         code = self.code.text().strip()
-        problem = (patient_code_problem(code) or (f"Patient {code} already exists: choose another code."
-                                                  if self._exists(code) else "") or self.last_sprain_problem())
+        problem = patient_code_problem(code) or self._duplicate_problem(code) or self.last_sprain_problem()
         if problem:  # stay open with everything typed, and say why
             self.message.setText(problem)
             self.message.setStyleSheet("color: #b3261e;")
@@ -145,6 +145,13 @@ class NewPatientDialog(QDialog):
             self.code.selectAll()
             return
         super().accept()
+
+    def _duplicate_problem(self, code: str) -> str:
+        existing = self._existing(code)
+        if existing is None:
+            return ""
+        where = " (archived: tick Show archived to see it)" if existing.archived else ""
+        return f"Patient {existing.code} already exists{where}: choose another code."
 
     def last_sprain_date(self) -> str | None:
         text = self.last_sprain.text().strip()

@@ -155,7 +155,7 @@ class MainWindow(QMainWindow):
         act, rec, rig, review = self._action, self.records, self.rig_setup, self.review
         file = self.menuBar().addMenu("&File")
         file.addActions([rec.new_patient_action, rec.new_session_action, rec.operator_action])
-        act(file, "Data &folder…", self.choose_data_folder)
+        self.data_folder_action = act(file, "Data &folder…", self.choose_data_folder)
         file.addSeparator()
         act(file, "Open point &cloud…", review.open_cloud_file, "Ctrl+O")
         act(file, "Export session p&lots (PNG/SVG)…", review.export_plots)
@@ -179,10 +179,11 @@ class MainWindow(QMainWindow):
         self.cancel_action.setEnabled(False)
         self.scan_flow.canScanChanged.connect(self.scan_action.setEnabled)
         self.scan_flow.busyChanged.connect(self.cancel_action.setEnabled)
+        self.scan_flow.busyChanged.connect(lambda _busy: self._update_rig_actions())
         scan.addSeparator()
         self.calibration_action = act(scan, "Ca&libration…", rig.open_calibration)
         self.daily_check_action = act(scan, "&Daily check…", self.open_daily_check)
-        act(scan, "C&hoose calibration…", rig.choose_calibration)
+        self.choose_calibration_action = act(scan, "C&hoose calibration…", rig.choose_calibration)
         project = scan.addMenu("&Projector shows")
         for text, what in (("White", "white"), ("Black", "black"), ("Crosshair", "crosshair"),
                            ("Calibration spot (arrow keys move it)", "spot")):
@@ -212,10 +213,20 @@ class MainWindow(QMainWindow):
 
     def _store_opened(self) -> None:
         self.data_label.setText(f"Data: {self.data_folder()}")
-        self.calibration_action.setEnabled(not self.session.read_only)
+        self._update_rig_actions()
         if self.review.marks_page is not None:
             self.review.marks_page.editor.setEnabled(not self.session.read_only)
         self.scan_flow.update_enabled()
+
+    def _update_rig_actions(self) -> None:
+        """What cannot change under a running scan is greyed while it runs: another data folder
+        would close the database its trial is being recorded in (the trial was left 'scanning' and
+        its results written against the new folder's trial of that number), and a calibration
+        opened or chosen then would not be the one the scan is measured with."""
+        busy = self.scan_flow.busy
+        self.data_folder_action.setEnabled(not busy)
+        self.calibration_action.setEnabled(not busy and not self.session.read_only)
+        self.choose_calibration_action.setEnabled(not busy)
 
     def _session_shown(self, session: Session | None) -> None:
         if session is not None:
@@ -248,6 +259,16 @@ class MainWindow(QMainWindow):
         return self.settings.data_folder
 
     def choose_data_folder(self) -> None:
+        if self.scan_flow.busy:  # the action is greyed then; this is for any other way in
+            self.banner.show_message(Severity.WARNING, "A scan is running: finish or cancel it before choosing "
+                                     "another data folder.")
+            return
+        if self.settings.data_folder_from_environment:
+            # a folder chosen here was kept in the settings and silently not used: the same folder reopened
+            self.banner.show_message(Severity.WARNING, f"The data folder is {self.data_folder()}, named by the "
+                                     "environment variable ANKLESCAN_DATA; start AnkleScan without it to choose "
+                                     "another here.")
+            return
         folder = QFileDialog.getExistingDirectory(self, "Data folder", str(self.data_folder()))
         if folder:
             self.settings.chosen_data_folder = Path(folder)

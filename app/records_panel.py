@@ -209,7 +209,7 @@ class RecordsPanel(QWidget):
     def new_patient(self) -> None:
         if not self.logic.require_store():
             return
-        dialog = NewPatientDialog(self.window(), exists=self.logic.patient_exists)
+        dialog = NewPatientDialog(self.window(), existing=self.logic.existing_patient)
         if dialog.exec() == QDialog.DialogCode.Accepted:
             self.add_patient(dialog.code.text(), dialog.sprains.value(), dialog.side.currentData(),
                              dialog.last_sprain_date())
@@ -247,8 +247,11 @@ class RecordsPanel(QWidget):
         if tid is None or self.logic.store is None:
             self.logic.notice.emit(Severity.WARNING, "Select a trial first.")
             return
+        # the trial as the list numbers it in its session, not its database id
+        trial = self.logic.trial(tid)
+        number = trial_number(self.logic.store, trial) if trial is not None else tid
         reason, ok = QInputDialog.getText(self.window(), "Exclude trial",
-                                          f"Why is trial {tid} left out of the statistics?")
+                                          f"Why is trial {number} left out of the statistics?")
         if ok and self.logic.exclude_trial(tid, reason):
             self._changed(tid)
 

@@ -173,17 +173,33 @@ class Review(QObject):
             return False
         parts.records.select_trial_item(trial.id)
         if not trial.cloud_path:
+            self._show_without_cloud(trial)
             parts.banner.show_message(Severity.INFO, f"{self.trial_title(trial)} has no point cloud ({trial.state_text}).")
             return False
         try:
             cloud = read_ply(store.files.resolve(trial.cloud_path))
         except Exception as exc:
-            parts.banner.show_message(Severity.ERROR, f"The point cloud of trial {trial.id} could not be read: {exc}")
+            self._show_without_cloud(trial)
+            parts.banner.show_message(Severity.ERROR,
+                                      f"The point cloud of {self.trial_title(trial)} could not be read: {exc}")
             return False
         self.show_cloud(cloud, trial.id, self.trial_title(trial, full=True))
         if switch_tab:
             parts.tabs.setCurrentIndex(PAGE_MARKS)
         return True
+
+    def _show_without_cloud(self, trial: Trial) -> None:
+        """The list's highlight is on ``trial``, which has no cloud to show: the 3-D view leaves the
+        trial it showed. (It used to keep it, titled with the other trial, so a click in that cloud
+        placed a mark on a trial the list no longer highlighted.)"""
+        self.viewer_trial = None
+        page = self.marks_page
+        if page is None:  # not built yet: it shows nothing
+            return
+        page.viewer.clear()
+        page.editor.load({})
+        page.editor.set_snapper(None)
+        page.title.setText(f"{self.trial_title(trial, full=True)} · no point cloud")
 
     def open_cloud_file(self) -> bool:
         path, _ = QFileDialog.getOpenFileName(self.parts.dialog_parent, "Open point cloud",

@@ -72,12 +72,22 @@ def group(rows: Iterable[StudyRow], axis: str) -> dict[float, dict[float, list[S
     return out
 
 
-def trial_tip(r: StudyRow, axis: str) -> str:
+def trial_numbers(rows: Iterable[StudyRow]) -> dict[int, int]:
+    """trial id -> its number in its session (1, 2, ...), as the trials list numbers it: rows hold
+    every trial of their sessions, counted or not."""
+    by_session: defaultdict[int, list[int]] = defaultdict(list)
+    for r in rows:
+        by_session[r.session_id].append(r.trial_id)
+    return {tid: n for ids in by_session.values() for n, tid in enumerate(sorted(ids), start=1)}
+
+
+def trial_tip(r: StudyRow, axis: str, number: int | None = None) -> str:
+    """``number``: the trial's number in its session (the database id is not what the list shows)."""
     def deg(v: float | None, digits: int = 1) -> str:  # a plotted trial has them all
         return "–" if v is None else signed(v, digits)
 
     sd = r.mismatch_sd(axis)
-    return (f"Trial {r.trial_id} · {r.patient_code} {r.session_date}\n"
+    return (f"Trial {r.trial_id if number is None else number} · {r.patient_code} {r.session_date}\n"
             f"reference inv {deg(r.ref_inversion)}°, PF {deg(r.ref_plantar_flexion)}°\n"
             f"mismatch {axis.replace('_', ' ')} {deg(r.mismatch(axis), 2)}°"
             + (f" ± {sd:.2f}°" if sd is not None else "")
@@ -91,6 +101,7 @@ class SessionView(QWidget):
         super().__init__(parent)
         pg.setConfigOptions(antialias=True)
         self.rows: list[StudyRow] = []
+        self.numbers: dict[int, int] = {}  # trial id -> its number in its session
         self.title = ""
         self.axis_box = QComboBox()
         for key, label in AXES.items():
@@ -110,8 +121,11 @@ class SessionView(QWidget):
         controls.addWidget(self.info)
         self.layout_widget = pg.GraphicsLayoutWidget()
         self.layout_widget.setBackground("w")
-        self.fig10 = self.layout_widget.addPlot(row=0, col=0)
-        self.error_plot = self.layout_widget.addPlot(row=1, col=0)
+        # Each plot's legend sits in a row of its own above it, as in the PDF report: anchored in
+        # the plot (pyqtgraph's addLegend) it covered the points at the lowest settings, e.g. the
+        # trial at plantar flexion -10° under "inversion 5°".
+        self.titles: dict[int, pg.LabelItem] = {}  # id(plot) -> the title above its legend
+        self.fig10, self.error_plot = (self._plot_with_legend(row) for row in (0, 3))
         for p in (self.fig10, self.error_plot):
             p.showGrid(x=True, y=True, alpha=0.15)
             p.setLabel("bottom", PF_LABEL)
@@ -127,6 +141,19 @@ class SessionView(QWidget):
         outer.addWidget(self.layout_widget, 1)
         self.redraw()
 
+    def _plot_with_legend(self, row: int) -> pg.PlotItem:
+        """Rows ``row``..``row + 2``: the title, the legend, the plot."""
+        title = self.layout_widget.addLabel("", row=row, col=0, size="10pt")
+        legend = pg.LegendItem(offset=None, labelTextSize="9pt", colCount=4)
+        self.layout_widget.addItem(legend, row=row + 1, col=0)
+        plot = self.layout_widget.addPlot(row=row + 2, col=0)
+        plot.legend = legend  # named items added to the plot are listed in it (PlotItem.addItem)
+        self.titles[id(plot)] = title
+        return plot
+
+    def _set_title(self, plot: pg.PlotItem, text: str) -> None:
+        self.titles[id(plot)].setText(text, size="10pt")
+
     @property
     def axis(self) -> str:
         axis: str = self.axis_box.currentData()  # a key of AXES (the box's items)
@@ -136,6 +163,7 @@ class SessionView(QWidget):
     def set_rows(self, rows: list[StudyRow], title: str = "") -> None:
         """Rows as ``store.reports.study_rows()`` gives them (one session's or several)."""
         self.rows, self.title = list(rows), title
+        self.numbers = trial_numbers(self.rows)
         settings = sorted(group(self.rows, "inversion"))
         self.inversion_box.blockSignals(True)
         self.inversion_box.clear()
@@ -160,9 +188,9 @@ class SessionView(QWidget):
     def _draw_fig10(self) -> None:
         p, axis = self.fig10, self.axis
         p.clear()
-        p.addLegend(offset=(10, 10), labelTextSize="9pt")
-        p.setTitle("Mismatch against plantar flexion, one curve per inversion setting"
-                   + (f" — {self.title}" if self.title else ""), size="10pt")
+        p.legend.clear()
+        self._set_title(p, "Mismatch against plantar flexion, one curve per inversion setting"
+                        + (f" — {self.title}" if self.title else ""))
         p.setLabel("left", AXES[axis])
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         data = group(self.rows, axis)
@@ -198,7 +226,7 @@ class SessionView(QWidget):
             return _Spot(pos=pos, data=r, brush=clear, pen=pg.mkPen(colour, width=1.6), size=9)
         spots = [spot((pf + dx, r.mismatch(axis)), r) for pf, rows in per_pf.items() for r in rows]
         scatter = pg.ScatterPlotItem(hoverable=True, hoverSize=11, hoverBrush=pg.mkBrush(colour),
-                                     tip=lambda x, y, data: trial_tip(data, axis))
+                                     tip=lambda x, y, data: trial_tip(data, axis, self.numbers.get(data.trial_id)))
         scatter.addPoints(spots)
         scatter.sigClicked.connect(self._point_clicked)
         plot.addItem(scatter)
@@ -227,16 +255,16 @@ class SessionView(QWidget):
     def _draw_error_range(self) -> None:
         p, axis = self.error_plot, self.axis
         p.clear()
+        p.legend.clear()
         inv = self.inversion_box.currentData()
         p.setLabel("left", AXES[axis])
         p.addItem(pg.InfiniteLine(0, angle=0, pen=pg.mkPen("#9aa5b1", width=1)))
         per_pf = group(self.rows, axis).get(inv, {}) if inv is not None else {}
-        p.setTitle(f"Error range of the mismatch — inversion setting {inv:g}°" if inv is not None
-                   else "Error range of the mismatch", size="10pt")
+        self._set_title(p, f"Error range of the mismatch — inversion setting {inv:g}°" if inv is not None
+                        else "Error range of the mismatch")
         if not per_pf:
             self._no_data(p)
             return
-        p.addLegend(offset=(10, 10), labelTextSize="9pt")
         pfs = sorted(per_pf)
         values = [np.array([r.mismatch(axis) for r in per_pf[pf]]) for pf in pfs]
         x = np.array(pfs, float)

@@ -79,12 +79,17 @@ class Settings(AppSettings):
         return ""
 
     @property
+    def data_folder_from_environment(self) -> bool:
+        """ANKLESCAN_DATA names the data folder: a folder chosen in File ▸ Data folder does not apply."""
+        return bool(os.environ.get("ANKLESCAN_DATA"))
+
+    @property
     def data_folder(self) -> Path:
         """The one answer to "where are the patients' data": ANKLESCAN_DATA, else the folder chosen
         in File ▸ Data folder, else the command line's default (core.records.store.default_data_dir).
         Releases before this one defaulted to ~/AnkleScan in the app: a database there is kept."""
         from anklescan.core.records.store import DB_FILENAME, default_data_dir
-        env, chosen = os.environ.get("ANKLESCAN_DATA"), self.chosen_data_folder
+        env, chosen = self.data_folder_from_environment, self.chosen_data_folder
         if env or chosen is None:
             legacy = Path.home() / "AnkleScan"
             return legacy if not env and (legacy / DB_FILENAME).exists() else default_data_dir()

@@ -267,7 +267,8 @@ class ScanLogic:
         if result.save_error:
             notes.append(ScanNote(Severity.ERROR, result.save_error))
         if result.motion_flagged:
-            notes.append(ScanNote(Severity.WARNING, f"moved {result.motion_mm:.1f} mm during the scan: scan again? "
+            notes.append(ScanNote(Severity.WARNING, f"The patient moved {result.motion_mm:.1f} mm during the scan: "
+                                  "scan again? "
                                   "(The trial is flagged and left out of the statistics unless kept.)",
                                   NoteAction.SCAN_AGAIN))
         overexposed = list(result.overexposed)
@@ -278,8 +279,9 @@ class ScanLogic:
                                   "is less certain: lower the exposure in the camera panel and scan again."))
         if has_cloud:
             volume = [w for w in result.warnings if "outside the calibrated volume" in w]
-            if volume:
-                notes.append(ScanNote(Severity.WARNING, "; ".join(volume) + "."))
+            if volume:  # the measurement's lines begin in lower case ("mark 1 lies ..."): here a sentence
+                text = "; ".join(volume) + "."
+                notes.append(ScanNote(Severity.WARNING, text[:1].upper() + text[1:]))
             if result.marks_note:
                 notes.append(ScanNote(Severity.INFO, "Some marks were not found automatically: place them in the "
                                       f"3-D view ({result.marks_note})."))

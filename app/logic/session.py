@@ -146,12 +146,11 @@ class SessionLogic:
     def session(self, session_id: int | None) -> Session | None:
         return None if self.store is None or session_id is None else self.store.sessions.get(session_id)
 
-    def patient_exists(self, code: str) -> bool:
-        try:
-            self._open().patients.get(code)
-            return True
-        except Exception:
-            return False
+    def existing_patient(self, code: str) -> Patient | None:
+        """The patient (archived ones too) that a new ``code`` would duplicate, or None. Codes are
+        compared without case: "p-017" typed for P-017 would split one patient's records in two."""
+        wanted = code.strip().casefold()
+        return next((p for p in self.patients(include_archived=True) if p.code.casefold() == wanted), None)
 
     def session_title(self, session_id: int) -> str:
         store = self._open()
@@ -180,6 +179,10 @@ class SessionLogic:
     def start_session(self, patient_id: int | None, condition: str) -> Session | None:
         if patient_id is None or self.store is None:
             self.notice.emit(Severity.WARNING, "Select or add a patient first (File ▸ New patient…).")
+            return None
+        if not self.operator:  # the question was cancelled: a session nobody signed is not started
+            self.notice.emit(Severity.WARNING, "No session was started: a session is signed by who measures. "
+                             "Enter your name or initials (File ▸ Operator…), then start the session.")
             return None
         return self._write("The session could not be started", lambda: self._open().sessions.start(
             patient_id, condition=condition, calibration_id=self.calibration_id, operator=self.operator))
