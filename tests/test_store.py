@@ -93,6 +93,7 @@ def test_update_trial_angles_with_measured_reference(db):
 @pytest.mark.parametrize("call,msg", [
     (lambda s: s.patients.add("John Smith"), "pseudonym"),
     (lambda s: s.patients.add("P-001"), "already exists"),
+    (lambda s: s.patients.add("p-001"), "P-001's, written in other case"),
     (lambda s: s.patients.add("P-9", sprain_count=-1), "sprain count"),
     (lambda s: s.patients.add("P-9", last_sprain="yesterday"), "date"),
     (lambda s: s.sessions.start("P-001", condition="socks"), "condition"),

@@ -44,8 +44,13 @@ class PatientRepository:
         if affected_side is not None and affected_side not in SIDES:
             raise AnkleScanError(f"affected side must be one of {', '.join(SIDES)}")
         last = iso_date(last_sprain, "last sprain date")
-        if self._db.one("SELECT 1 FROM patients WHERE code = ?", (code,)):
-            raise AnkleScanError(f"patient code {code} already exists")
+        # codes differing only in case are one patient's (P-017 typed as p-017): a second record
+        # would split their history in two
+        same = self._db.one("SELECT code FROM patients WHERE code = ? COLLATE NOCASE", (code,))
+        if same:
+            taken = same["code"]
+            raise AnkleScanError(f"patient code {code} already exists" if taken == code
+                                 else f"patient code {code} is {taken}'s, written in other case: use {taken}")
         with self._db.transaction() as c:
             pid = c.execute(
                 "INSERT INTO patients (code, sprain_count, last_sprain, affected_side, notes,"
