@@ -92,3 +92,26 @@ def test_result_reports_the_mark_diameter():
     res = MeasureResult(ms, AngleResult())
     assert res.to_dict()["mark_diameter_mm"] == {"value": 12.04, "sd": 0.06, "given": False}
     assert "mark diameter" in res.format_text() and "12.04 mm ± 0.06" in res.format_text()
+
+
+def test_the_wider_cloud_holds_the_cloud_and_the_noisier_points():
+    """``cloud_from_decoded(max_sigma_mm=)``, which the marks' re-cuts read: every point of the
+    cloud, at the same pixel and to the bit, and the points past its noise limit up to the wider
+    one (a scan's noisiest: quarter resolution, a table at -20°)."""
+    from anklescan.core.scan.decode import decode
+    from anklescan.core.scan.reconstruct import MAX_POINT_SIGMA_MM, cloud_from_decoded
+    from anklescan.hardware.sim_mark_cases import captured
+    from anklescan.hardware.simrig import SimRig
+
+    rig = SimRig(leg_scene(0, -20), scale=0.25, seed=5)
+    cap, cal = captured(rig), rig.true_calibration()
+    decoded = decode(cap)
+    cloud = cloud_from_decoded(cap, cal, decoded)
+    wide = cloud_from_decoded(cap, cal, decoded, max_sigma_mm=2.0)
+    assert cloud.sigma is not None and wide.sigma is not None and wide.pixels is not None
+    assert cloud.sigma.max() <= MAX_POINT_SIGMA_MM < wide.sigma.max() <= 2.0
+    inside = wide.sigma <= MAX_POINT_SIGMA_MM
+    assert np.count_nonzero(~inside) > 0 and np.count_nonzero(inside) == len(cloud)
+    for name in ("points", "pixels", "sigma", "colors", "quality"):
+        assert np.array_equal(getattr(wide, name)[inside], getattr(cloud, name)), name
+    assert wide.meta["sigma_limit_mm"] == 2.0 and cloud.meta["sigma_limit_mm"] == MAX_POINT_SIGMA_MM

@@ -28,6 +28,12 @@ class MarkConfig:
     min_contrast_sigmas: float = 8.0
     #: px: decoded points averaged before differencing for a normal (a disk is ~20 px across)
     normal_window_px: int = 7
+    #: mm: the re-cuts at the marks' size are made a second time from every decoded point up to
+    #: this predicted SD, past the cloud's own limit (``core/scan/reconstruct.MAX_POINT_SIGMA_MM``),
+    #: with their own shading correction: a table lit and seen obliquely decodes most of its pixels
+    #: at 0.5-2 mm, and without them neither its irradiance nor a disk on it is known. Averaged into
+    #: normals these points are no worse; the fits still rest on the cloud's points
+    hypothesis_max_point_sd_mm: float = 2.0
     #: candidate searches at radii this factor apart span a size range (one opening wide enough for
     #: the largest disk swallows a leg as narrow as three disks)
     scale_step: float = 1.6

@@ -49,6 +49,7 @@ from anklescan.core.measure.mark_candidates import (
     disk_contrast_peak,
     noise_sigma,
     predicted_disk,
+    same_region,
 )
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_types import Blob, Mark
@@ -197,6 +198,16 @@ def sized_hypotheses(image: np.ndarray, albedo: np.ndarray, points: np.ndarray, 
             if border_undecoded(blob, decoded) > CONFIG.second_look_max_border_undecoded:
                 continue
             out.append(Hypothesis(blob, source, cut))
+    return out
+
+
+def with_new_regions(first: list[Hypothesis], more: list[Hypothesis]) -> list[Hypothesis]:
+    """``first``, then each of ``more`` whose region no hypothesis of its source already holds
+    (``same_region``): the same search over two sets of points or images, each blob once."""
+    out = list(first)
+    for h in more:
+        if not any(g.source is h.source and same_region(g.blob, h.blob) for g in out):
+            out.append(h)
     return out
 
 

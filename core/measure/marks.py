@@ -28,7 +28,7 @@ says what is missing, so an operator can correct it; ``anklescan.core.measure.pi
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -59,6 +59,7 @@ from anklescan.core.measure.mark_hypotheses import (
     on_a_fitted_disk,
     sized_hypotheses,
     unexplained,
+    with_new_regions,
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
@@ -87,7 +88,8 @@ __all__ = [  # the public API; Mark, MarkSet and the rest are defined in the mod
 # ---------------------------------------------------------------------------- public entry
 
 def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
-               mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None) -> MarkSet:
+               mark_diameter_mm: float | None = None, clipped: np.ndarray | None = None,
+               wide_points: Callable[[], PointCloud] | None = None) -> MarkSet:
     """Detect, fit and label the marks of one scan: rigid plates or stickers, of one size.
 
     ``lit``: the projector's light alone per camera pixel (white − black, or better
@@ -96,7 +98,10 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     ``mark_diameter_mm``: the marks' diameter when known, else it is measured (``diameter``);
     ``clipped``: (H, W) bool, where the camera's white frame is saturated (``clipped_white``):
     a rim read there may lie inside where it is read, and the mark's covariance says how far
-    (``edge_profiles``).
+    (``edge_profiles``); ``wide_points``: makes the cloud of every point up to
+    ``CONFIG.hypothesis_max_point_sd_mm``, from which the re-cuts at the marks' size are made a
+    second time (a table lit and seen obliquely decodes mostly past the cloud's limit); called
+    only where the re-cuts are needed.
 
     The model (docs/marks.md, "Stages"): the marks' size, thickness and kind from every blob
     fitted with its own free radius (``size_groups``); then (1) every hypothesis of a disk
@@ -165,8 +170,15 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     # each tier's hypotheses are made unless no fit of theirs could change the choice (``settled``)
     selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.SIZED.tier):
-        recuts = [(h, unexplained(h.blob, points, sure(), r0))
-                  for h in sized_hypotheses(image, albedo, points, cal, r0)]
+        hyps = sized_hypotheses(image, albedo, points, cal, r0)
+        if wide_points is not None:
+            # and the re-cuts of every decoded point, past the cloud's noise limit too: averaged
+            # into normals (the shading correction) and as a sign of a decoded surface they are
+            # no worse, and a table lit and seen obliquely decodes mostly past that limit. The
+            # fits still rest on the cloud's points and its shading correction.
+            wide = points_image(wide_points(), image.shape)
+            hyps = with_new_regions(hyps, sized_hypotheses(image, shading_corrected(image, wide, cal), wide, cal, r0))
+        recuts = [(h, unexplained(h.blob, points, sure(), r0)) for h in hyps]
         consider([h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob)
                   for h, rest in recuts if rest is not None])
         selection = select_marks(fits, r0)

@@ -21,6 +21,7 @@ from anklescan.core.calibration.model.file import Calibration, load_calibration
 from anklescan.core.calibration.procedures.frame import frame_warnings
 from anklescan.core.errors import AnkleScanError
 from anklescan.core.measure.angles import AngleResult, JointCovariance, compute_angles
+from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.marks import MarkSet, find_marks
 from anklescan.core.measure.measure_warnings import WarningContext, measure_warnings
 from anklescan.core.measure.uncertainty import MarkUncertainty, position_uncertainty
@@ -163,7 +164,9 @@ def measure_capture(capture: Capture, calibration: Calibration, mark_diameter_mm
         frame_check = pool.submit(frame_warnings, calibration.extra, cloud.points, calibration.camera.center)
         moved = pool.submit(estimate_motion, capture, calibration, decoded, cloud)
         marks = find_marks(lit_job.result(), cloud, calibration, mark_diameter_mm=mark_diameter_mm,
-                           clipped=clipped_white(capture))
+                           clipped=clipped_white(capture),
+                           wide_points=lambda: cloud_from_decoded(capture, calibration, decoded,
+                                                                  max_sigma_mm=CONFIG.hypothesis_max_point_sd_mm))
         summary = {k: v for k, v in cloud.meta.items() if k in ("points", "decoded_pixels", "rejected", "summary")}
         motion = moved.result()
         angles, shares, joint = honest_angles(marks, calibration, motion)

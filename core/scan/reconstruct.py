@@ -116,9 +116,11 @@ _D2_V = _D2_H.T.copy()
 
 
 def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult, *,
-                       axes: tuple[Axis, ...] | None = None) -> PointCloud:
+                       axes: tuple[Axis, ...] | None = None, max_sigma_mm: float = MAX_POINT_SIGMA_MM) -> PointCloud:
     """Triangulate a decoded capture with every stripe axis it has that the rig can use (or
-    ``axes``); raises a one-line error instead of returning an empty cloud."""
+    ``axes``); raises a one-line error instead of returning an empty cloud. ``max_sigma_mm``:
+    the largest predicted SD a phase-decoded point may have (the cloud's, ``MAX_POINT_SIGMA_MM``,
+    unless a caller wants the noisier points too)."""
     if axes is None:
         axes = triangulation_axes(capture, cal)
     else:
@@ -152,7 +154,7 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
         raise CaptureError(f"nothing decodable in {capture.folder}: {_undecodable_reason(decoded)}")
     has_phase = all(code.phase for code in codes.values())
     tri = triangulate_maps(cal, decoded.column, decoded.row, valid, column_sigma=decoded.column_sigma,
-                           row_sigma=decoded.row_sigma, max_sigma_mm=MAX_POINT_SIGMA_MM if has_phase else None,
+                           row_sigma=decoded.row_sigma, max_sigma_mm=max_sigma_mm if has_phase else None,
                            axes=axes)
     points, idx, sigma = tri.points, tri.index, tri.sigma
     if not idx.size:
@@ -186,7 +188,7 @@ def cloud_from_decoded(capture: Capture, cal: Calibration, decoded: DecodeResult
         "axes": list(axes),
         "points_by_axes": {name: int(per_axis[code]) for name, code in
                            ((Axis.COLUMN, 1), (Axis.ROW, 2), (Axis.BOTH, 3)) if per_axis[code]},
-        "sigma_limit_mm": MAX_POINT_SIGMA_MM if has_phase else None,
+        "sigma_limit_mm": max_sigma_mm if has_phase else None,
         "rejected": rejected,
         "thresholds": decoded.thresholds,
         "summary": f"{len(cloud)} points from {n_pix} pixels ({100.0 * len(cloud) / n_pix:.1f} %)",
