@@ -170,18 +170,26 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     # each tier's hypotheses are made unless no fit of theirs could change the choice (``settled``)
     selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.SIZED.tier):
+        explained = sure()
+
+        def recut(hyps: list[Hypothesis]) -> list[Hypothesis]:  # less what the first fits' sure ones explain
+            rests = [(h, unexplained(h.blob, points, explained, r0)) for h in hyps]
+            return [h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob) for h, rest in rests
+                    if rest is not None]
+
         hyps = sized_hypotheses(image, albedo, points, cal, r0)
-        if wide_points is not None:
+        consider(recut(hyps))
+        selection = select_marks(fits, r0)
+        if wide_points is not None and not settled(selection, HypothesisSource.SIZED.tier):
             # and the re-cuts of every decoded point, past the cloud's noise limit too: averaged
             # into normals (the shading correction) and as a sign of a decoded surface they are
             # no worse, and a table lit and seen obliquely decodes mostly past that limit. The
-            # fits still rest on the cloud's points and its shading correction.
+            # fits still rest on the cloud's points and its shading correction. Where the cloud's
+            # re-cuts settle the choice, these could not change it (``settled``) and are not made.
             wide = points_image(wide_points(), image.shape)
-            hyps = with_new_regions(hyps, sized_hypotheses(image, shading_corrected(image, wide, cal), wide, cal, r0))
-        recuts = [(h, unexplained(h.blob, points, sure(), r0)) for h in hyps]
-        consider([h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob)
-                  for h, rest in recuts if rest is not None])
-        selection = select_marks(fits, r0)
+            more = sized_hypotheses(image, shading_corrected(image, wide, cal), wide, cal, r0)
+            consider(recut(with_new_regions(hyps, more)[len(hyps):]))
+            selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.WIDER.tier):
         parents = [h for h in refused if h.source.tier < HypothesisSource.WIDER.tier]
         # derived only where no cut gives a disk, not even a doubtful one: there a cut's fit is no
