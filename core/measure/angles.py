@@ -8,7 +8,6 @@ below the scanner's ~0.2 mm noise and we avoid maintaining hand-derived derivati
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Callable, Mapping
@@ -19,7 +18,7 @@ from typing import Any, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from anklescan.core.csv_numbers import finite_number
+from anklescan.core.csv_numbers import finite_number, read_csv_rows
 from anklescan.core.errors import AnkleScanError, GeometryError
 from anklescan.core.vocabulary import TABLE_LABELS, Angle, MarkLabel, parse_label
 
@@ -280,21 +279,7 @@ def read_marks_csv(path: str | os.PathLike[str]) -> dict[int, np.ndarray]:
     """Marks from a ``label,x,y,z`` CSV (header required; extra named columns ignored; every row
     has the header's number of fields)."""
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            reader = csv.reader(fh)
-            # each row with its line in the file (blank lines skipped, so not its index) for the messages
-            numbered = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]
-    except FileNotFoundError:
-        raise AnkleScanError(f"cannot read marks file {path}: it does not exist") from None
-    except IsADirectoryError:
-        raise AnkleScanError(f"cannot read marks file {path}: it is a folder, not a file") from None
-    except OSError as e:  # the reason alone: str(e) repeats the path as "[Errno 13] ...: 'm.csv'"
-        raise AnkleScanError(f"cannot read marks file {path}: {e.strerror or e}") from None
-    except UnicodeDecodeError as e:
-        raise AnkleScanError(f"marks file {path} is not UTF-8 text (byte {e.start}); save it as UTF-8 CSV") from None
-    except csv.Error as e:
-        raise AnkleScanError(f"{path}: malformed CSV: {e}") from None
+    numbered = read_csv_rows(path, "marks file")
     if not numbered:
         raise AnkleScanError(f"{path}: empty file (expected header label,x,y,z)")
     (_, header), body = numbered[0], numbered[1:]

@@ -17,7 +17,6 @@ GeometryError.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Callable, Sequence
@@ -42,7 +41,7 @@ from anklescan.core.calibration.model.uncertainty import (
     form_covariance,
     joined,
 )
-from anklescan.core.csv_numbers import finite_number
+from anklescan.core.csv_numbers import finite_number, read_csv_rows
 from anklescan.core.errors import CalibrationError, GeometryError
 from anklescan.core.robust import robust_sigma
 from anklescan.core.vocabulary import JsonObject, TextEnum
@@ -608,22 +607,9 @@ def _check_csv_range(path: Path, data: np.ndarray, lines: list[int]) -> None:
 
 
 def _read_csv_rows(path: Path) -> list[tuple[int, list[str]]]:
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
-            out = list(csv.reader(f))
-    except FileNotFoundError:
-        raise CalibrationError(f"control-point file not found: {path}") from None
-    except IsADirectoryError:
-        raise CalibrationError(f"control-point file {path} is a folder, not a file") from None
-    except OSError as exc:  # the reason alone: str(exc) repeats the path as "[Errno 13] ...: 'c.csv'"
-        raise CalibrationError(f"cannot read control-point file {path}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError as exc:
-        raise CalibrationError(f"control-point file {path} is not UTF-8 text (byte {exc.start}); "
-                               "save it as UTF-8 CSV") from None
-    except csv.Error as exc:
-        raise CalibrationError(f"cannot read control-point file {path}: {exc}") from None
-    numbered = [(i + 1, r) for i, r in enumerate(out)]
-    return [(i, r) for i, r in numbered if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    """The control points' rows with their lines, '#' comment rows left out."""
+    return [(i, r) for i, r in read_csv_rows(path, "control-point file", CalibrationError)
+            if not r[0].lstrip().startswith("#")]
 
 
 def _parse_row(path: Path, line: int, row: list[str], cols: list[int], n_names: int) -> list[float]:
