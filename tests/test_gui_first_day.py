@@ -137,20 +137,23 @@ def test_exclude_asks_about_the_trial_by_the_number_the_list_shows(qtbot, new_cl
     assert asked == ["Why is trial 1 left out of the statistics?"]
 
 
+def _start_verification(wiz):
+    """Click step 5 in the wizard's step list, then its Run verification scan button."""
+    steps = wiz.steps
+    QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
+                     pos=steps.visualItemRect(steps.item(PAGE_VERIFY)).center())
+    click(button(wiz, "Run verification scan"))
+
+
 def test_the_verification_table_shows_every_column(qtbot, tmp_path):
     """The wizard's verification table (Verify, after Run verification scan) hid its Check column
     ("ok" / "over limit") past a horizontal scroll bar at the wizard's own size."""
-
-
     Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")  # the box needs the pixels
     win = calibrated_window(qtbot)
     seen = {}
 
     def verify(wiz):
-        steps = wiz.steps
-        QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
-                         pos=steps.visualItemRect(steps.item(PAGE_VERIFY)).center())
-        click(button(wiz, "Run verification scan"))
+        _start_verification(wiz)
         qtbot.waitUntil(lambda: wiz.verify_table.rowCount() > 0, timeout=120_000)
         qtbot.wait(50)
         table = wiz.verify_table
@@ -249,17 +252,12 @@ def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
 def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
     """Verify, then Level from the reference table: levelling saves a new calibration version,
     recorded as not verified, but the Verify page kept showing the previous version's PASS."""
-
-
     Path(os.environ["ANKLESCAN_SETTINGS"]).write_text("[scan]\nsim_scale=0.5\n")
     win = calibrated_window(qtbot)
     seen = {}
 
     def verify_then_level(wiz):
-        steps = wiz.steps
-        QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
-                         pos=steps.visualItemRect(steps.item(PAGE_VERIFY)).center())
-        click(button(wiz, "Run verification scan"))
+        _start_verification(wiz)
         qtbot.waitUntil(lambda: "PASS" in wiz.verify_verdict.text(), timeout=120_000)
         click(button(wiz, "Level from the reference table"))
         qtbot.waitUntil(lambda: "Levelled" in wiz.status.text(), timeout=120_000)
