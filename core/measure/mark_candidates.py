@@ -239,6 +239,8 @@ def same_region(a: Blob, b: Blob) -> bool:
     """True where two blobs' regions overlap by more than 1 / CONFIG.wider_min_growth of their
     union (a cut that adds or drops less than that share is the same blob)."""
     (ay, ax), (by, bx) = a.window, b.window
+    if ay.stop <= by.start or by.stop <= ay.start or ax.stop <= bx.start or bx.stop <= ax.start:
+        return False  # disjoint windows: no overlap (most pairs; no images made for them)
     y0, y1 = min(ay.start, by.start), max(ay.stop, by.stop)
     x0, x1 = min(ax.start, bx.start), max(ax.stop, bx.stop)
     both = np.zeros((2, y1 - y0, x1 - x0), bool)
