@@ -130,6 +130,7 @@ def test_a_box_with_a_face_off_is_refused_naming_its_markers(true_cal, tmp_path)
     assert not (tmp_path / "cal.json").exists()
 
 
+@pytest.mark.slow
 def test_a_turned_box_warns_until_levelled(boxes, table_cal, true_cal, tmp_path):
     """The box turned 30° on the floor turns the frame with it: angles 12° off. measure says so in
     its warnings; once levelled from the reference table, no warning and the angles are right."""

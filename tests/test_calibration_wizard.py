@@ -63,6 +63,7 @@ def _click_step(qtbot, wiz, page):
     qtbot.mouseClick(wiz.steps.viewport(), Qt.MouseButton.LeftButton, pos=rect.center())
 
 
+@pytest.mark.slow
 def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     from PySide6.QtCore import Qt
 
@@ -199,6 +200,7 @@ def _visible_corners(sim_box, cal):
     return out
 
 
+@pytest.mark.slow
 def test_manual_flow_reaches_focal_length(setup, qtbot):
     from PySide6.QtCore import Qt
 
@@ -311,6 +313,7 @@ def test_spot_refinement_without_the_projector_window_keeps_the_steered_spot(set
     assert "could not be taken" in wiz.status.text() and "projector window" in wiz.status.text()
 
 
+@pytest.mark.slow
 def test_board_flow_by_clicking_calibrates_and_accepts(setup, qtbot):
     """The chessboard beside the box: two views scanned by clicking (the simulated person lays the
     board flat, then tilts it), calibrated, reported and accepted like the box."""
@@ -376,6 +379,7 @@ def test_level_by_clicking_brings_the_current_calibration_into_the_clinic_frame(
         assert abs(got[name].value - want[name].value) < 0.05, name
 
 
+@pytest.mark.slow
 def test_box_at_the_table_then_the_knee_by_clicking(setup, qtbot):
     """Scan the box, click Add a box position, scan it again (the simulated person stood it on a
     300 mm stand): one calibration of both positions, accepted, right at the knee."""

@@ -116,6 +116,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(CASES))
 def test_marks_on_drawn_clinic_setups(case):
     """0.75 scale: all seven found and labelled, centres within 0.3 mm, angles within 0.2°."""
@@ -160,6 +161,7 @@ def test_the_captures_kind_is_voted_by_the_fits_whose_step_measures_it():
     assert _capture_kind(proud + [fit(MarkKind.STICKER, None)]) == MarkKind.PLATE
 
 
+@pytest.mark.slow
 def test_a_sticker_whose_step_cannot_be_measured_is_not_fitted_as_a_plate():
     """Variant 21 at 0/+20: the 12.5 mm front ankle sticker, lit at 80°, has too little decoded
     round it for a step; fitted as a plate it passed 0.56 mm off at 4 SD. Now only as a sticker
@@ -171,6 +173,7 @@ def test_a_sticker_whose_step_cannot_be_measured_is_not_fitted_as_a_plate():
         assert np.linalg.norm(m.centre - truth.marks[k]) < 0.3, k
 
 
+@pytest.mark.slow
 def test_a_mark_lit_past_85_degrees_is_not_measured():
     """Variant 4 at 0/+20 (projector diagonal to the camera): the front knee sticker is lit at
     88°, 3.5 % of the light, and was fitted 0.45 mm off at 7 SD. It is refused, and says why."""
@@ -218,6 +221,7 @@ def test_a_clipped_rim_has_a_span_inwards_and_an_unclipped_one_none():
     assert not np.any(edge_profiles(true, shape, clipped=np.zeros(true.shape, bool)).s_span)
 
 
+@pytest.mark.slow
 def test_an_overexposed_mark_says_so_and_its_sd_covers_its_error():
     """Our default scene at 0/0 with the exposure at 1.25: the table-facing lateral knee plate,
     lit at 20°, saturates the camera, and its rim read half-way down from the clip is 0.3 mm
@@ -306,6 +310,7 @@ def test_a_runaway_circle_fit_draws_no_profiles():
     assert len(huge.rows) == 0 and len(huge.points()) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant, inv, pf, seed", [(155, 0, 20, 1), (177, 0, -20, 0)])
 def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, inv, pf, seed):
     """Manual placement where the automatic search fails, full resolution. Variant 155 at 0/+20:
@@ -338,6 +343,7 @@ def test_a_click_on_a_sticker_the_search_refused_snaps_to_its_centre(variant, in
         assert float(np.sqrt(e @ np.linalg.solve(m.covariance, e))) < 3.37, sign
 
 
+@pytest.mark.slow
 def test_a_click_is_not_moved_onto_a_doubtful_fit():
     """Held-out variant 173 at 20/+20, full resolution (11.3 mm plates): the front ankle plate,
     lit at 77°, is missed by the search. A click 3 mm beside it was snapped onto a fit of its lit

@@ -85,6 +85,7 @@ def test_study_plan_is_the_papers_cohort():
     assert err(True, "barefoot") > 2 * err(False, "barefoot") and err(True, "shoes") < err(True, "barefoot")
 
 
+@pytest.mark.slow
 def test_study_demo_runs_end_to_end_on_a_small_plan(tmp_path):
     """`demo --study` through its real scan path, on two trials (a merge once left its jobs
     without the marks' type, and only the structure was tested)."""

@@ -40,6 +40,7 @@ def _run_check(qtbot, win, inversion: float, plantar_flexion: float) -> str:
     return seen["verdict"]
 
 
+@pytest.mark.slow
 def test_daily_check_from_the_menu_passes_the_true_rig_and_a_failed_one_warns_the_scan(qtbot):
     win = calibrated_window(qtbot)
     # the simulated rig scans a wedge block set at the typed angles: the true calibration passes

@@ -249,6 +249,7 @@ def test_the_daily_checks_kept_say_how_far_off_with_their_sd(qtbot):
     win.close()
 
 
+@pytest.mark.slow
 def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
     """Verify, then Level from the reference table: levelling saves a new calibration version,
     recorded as not verified, but the Verify page kept showing the previous version's PASS."""
@@ -270,6 +271,7 @@ def test_levelling_after_a_verification_does_not_keep_its_pass(qtbot):
     win.close()
 
 
+@pytest.mark.slow
 def test_the_scan_banner_is_sentences(qtbot):
     """After a scan with the knee above the calibrated volume the banner read "... and scan again.
     mark 1 lies 107 mm outside the calibrated volume ...": a sentence begun in lower case."""

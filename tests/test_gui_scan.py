@@ -138,6 +138,7 @@ def test_gui_starts_quickly():
     assert shown < 3.0
 
 
+@pytest.mark.slow
 def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     """At the app's default rig scale the detector runs after the scan: marks appear in the 3-D
     view for confirmation and are saved as automatic, with the angles computed from them."""

@@ -123,6 +123,7 @@ def test_three_trials_on_the_simulated_rig_follow_the_references(qtbot, tmp_path
     win.close()
 
 
+@pytest.mark.slow
 def test_an_uncertain_mark_is_shown_where_it_is_and_only_where_it_holds(qtbot, tmp_path, monkeypatch):
     """The lateral knee plate clips at plantar flexion +20 and not at -20 (the table now follows
     the reference): after the +20 scan mark 3's SD and 'overexposed' are in the marks table, beside

@@ -52,6 +52,7 @@ def win(qtbot):
     w.close()
 
 
+@pytest.mark.slow
 def test_study_report_and_patient_history_by_clicks(qtbot, win, tmp_path):
     SHOTS.mkdir(parents=True, exist_ok=True)
     out = tmp_path / "étude"

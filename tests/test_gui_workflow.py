@@ -309,6 +309,7 @@ def test_trial_exclusion_archive_and_cancelled_state(qtbot, fresh):
     _no_error(win)
 
 
+@pytest.mark.slow
 def test_every_enabled_menu_action_runs_without_an_error(qtbot, fresh, tmp_path):
     win = fresh
     use_true_calibration(win)
@@ -444,6 +445,7 @@ def test_a_read_only_database_opens_for_review_with_editing_disabled(qtbot, tmp_
     assert {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in data.iterdir()} == before  # untouched
 
 
+@pytest.mark.slow
 def test_a_patient_who_moved_is_flagged_and_can_be_kept(qtbot, tmp_path, monkeypatch):
     """The simulated patient sways 3 mm: the scan says so at once, with Scan again; the trial is
     flagged (left out of the statistics) until the clinician keeps it with Restore trial."""
@@ -482,6 +484,7 @@ def _set_camera_control(win, label: str, value: str) -> None:
     assert box.value() == pytest.approx(float(value))
 
 
+@pytest.mark.slow
 def test_an_overexposed_mark_is_said_and_lowering_the_exposure_clears_it(qtbot, tmp_path):
     """Our default simulated scene's lateral knee plate saturates the camera at plantar flexion
     +20 (by design: hardware/simrig.py). The scan says which mark and what to do; the clinician

@@ -228,6 +228,7 @@ def test_a_band_round_the_fitted_disk_is_not_part_of_the_other():
     assert abs(rest.centre[0] - 52) < 0.5 and abs(rest.centre[1] - 20) < 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("inv,pf", [(0, 20), (20, -20)])
 def test_two_ankle_stickers_nearly_touching_are_both_found(inv, pf):
     """25 mm stickers with the lateral ankle one 50° round the leg: 2 mm of skin between the

@@ -555,6 +555,7 @@ def test_second_look_skips_a_streak_at_the_edge_of_the_reconstruction():
     assert border_undecoded(disk, decoded) == 0.0
 
 
+@pytest.mark.slow
 def test_small_plate_seen_at_a_grazing_angle_is_centred_and_its_sd_covers_it():
     """10 mm plates, table 0/-20, full resolution: the table plates are seen 67-73° from the
     camera, where the top face's points span a strip and its tilt across it was 2-4° off; the
@@ -749,6 +750,7 @@ def test_a_candidate_is_a_mark_or_a_typed_refusal_and_the_free_pass_skips_only_t
             assert np.isnan(free_fast.covariance).all()
 
 
+@pytest.mark.slow
 def test_a_plate_takes_the_captures_thickness_not_its_own_grazing_step():
     """Drawn 1307 at full resolution: 24.9 x 1.1 mm plates, the table seen at 78°. Table mark 7's
     own step reads ~2 mm: round it the camera sees a few points of the table's other faces. The
@@ -769,6 +771,7 @@ def test_a_plate_takes_the_captures_thickness_not_its_own_grazing_step():
     assert math.sqrt(e @ np.linalg.solve(mark.covariance, e)) < 2.0
 
 
+@pytest.mark.slow
 def test_a_plate_whose_face_is_mostly_undecoded_is_refused_not_fitted():
     """Drawn 1403 at full resolution: 23.6 x 2.1 mm ankle plates 1.5 mm apart. The front one is
     lit at 81° past the lateral one: 14 % of its face decodes, the points that do lie about 1 mm

@@ -52,6 +52,7 @@ def test_the_wheel_holds_only_anklescan_and_its_icon(wheel):
     assert {"anklescan/" + s for s in sources} <= set(names)
 
 
+@pytest.mark.slow
 @pytest.mark.gui  # the GUI check needs the X server pytest-xvfb starts
 def test_a_plain_install_runs_the_gui_with_its_icon(wheel, tmp_path):
     env_dir = tmp_path / "venv"

@@ -147,6 +147,7 @@ def test_measure_on_a_real_capture_without_marks_refuses_in_one_line(capture_1, 
     assert not out.exists() and not list(tmp_path.glob("RESULT*"))
 
 
+@pytest.mark.slow
 def test_board_command_needs_two_views_and_a_findable_board(tmp_path, capture_1):
     cap, _ = capture_1
     done = run("calibrate", "board", cap.folder, "--board", "9x7", "--square", "75", "--out", tmp_path / "c.json")

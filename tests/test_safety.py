@@ -93,6 +93,7 @@ def test_demo_refuses_when_its_database_was_replaced_by_another_programs(tmp_pat
     assert tree(out) == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("exists", [False, True])
 def test_an_interrupted_demo_leaves_none_of_its_output(tmp_path, monkeypatch, capsys, exists):
     """Ctrl-C (or SIGTERM, the same path) in the middle of `demo` left the database and the

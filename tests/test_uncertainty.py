@@ -187,6 +187,7 @@ def test_cli_calibrate_points_takes_several_files(tmp_path: Path, truth: Calibra
     assert not (d / "same.json").exists()
 
 
+@pytest.mark.slow
 def test_measure_writes_the_warnings_and_an_honest_sd(tmp_path: Path) -> None:
     """A rendered capture of the leg (0.5 scale) measured with the table box's calibration, then
     with the box at two heights: RESULT.json names marks 1 and 3, then nothing; every angle within
