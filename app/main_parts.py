@@ -74,9 +74,12 @@ class Banner(QWidget):
         self._slot: Callable[[], object] | None = None
         self.hide()
 
-    def show_message(self, kind: Severity, text: str, action: tuple[str, Callable[[], object]] | None = None) -> None:
+    def show_message(self, kind: Severity, text: str, action: tuple[str, Callable[[], object]] | None = None,
+                     detail: str = "") -> None:
+        """``detail``: the technical line behind ``text`` (the detector's), on the text's tooltip."""
         self.kind = Severity(kind)
         self.label.setText(text)
+        self.label.setToolTip(detail)
         self.label.setStyleSheet(resources.BANNER_STYLE[self.kind])
         self._slot = action[1] if action else None
         self.action.setText(action[0] if action else "")
@@ -251,7 +254,7 @@ class ResultPage(QWidget):
     def show_angles(self, trial: Trial | None) -> None:
         """The trial's mismatch, table and leg angles (± SD), or why there are none yet."""
         if trial is None or trial.table_inversion is None:
-            self.angles.setText("Angles: not yet — the marks are placed or confirmed in 4  3-D marks."
+            self.angles.setText("Angles: not yet — place or confirm the marks on the 3-D marks tab."
                                 if trial is not None else "")
             return
 

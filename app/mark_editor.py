@@ -32,6 +32,7 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from anklescan.app.logic.mark_words import angles_not_computed
 from anklescan.app.main_parts import signed
 from anklescan.core.measure.angles import AngleResult, compute_angles
 from anklescan.core.vocabulary import LABELS, MARK_NAMES, MarkLabel, MarkRecord, MarkSource
@@ -449,7 +450,7 @@ class MarkEditor(QWidget):
         for name, lab in self.angle_labels.items():
             v = shown.get(name)
             lab.setText("—" if v is None else f"{signed(v.value, 2)}° ± {v.sd:.2f}°")
-        self.missing_label.setText(self.angles.missing_message())
+        self.missing_label.setText(angles_not_computed(self.angles.missing))
 
     def show_pick(self, text: str) -> None:
         self.pick_label.setText(text)

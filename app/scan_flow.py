@@ -254,4 +254,5 @@ def show_notes(banner: Banner, notes: list[ScanNote], actions: dict[NoteAction, 
     severity = max((n.severity for n in notes), key=lambda s: s.rank)
     action = next((n.action for n in notes if n.action is not None and n.action in actions), None)
     banner.show_message(severity, " ".join(n.text for n in notes),
-                        None if action is None else (action.value, actions[action]))
+                        None if action is None else (action.value, actions[action]),
+                        detail="\n".join(n.detail for n in notes if n.detail))

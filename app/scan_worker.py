@@ -84,7 +84,8 @@ class ScanResult:
     preview: np.ndarray | None = None   # (H, W, 3) uint8 RGB: depth image, or the white frame
     depth_range: tuple[float, float] = (0.0, 0.0)  # mm from the camera, near and far ends of the colours
     marks: dict[int, tuple[float, ...]] = field(default_factory=dict)  # automatically found marks, label -> xyz mm
-    marks_note: str = ""                # what the detector could not find, when it missed some
+    marks_note: str = ""                # what the detector could not find, when it missed some (its own words)
+    marks_missing: list[int] = field(default_factory=list)  # the labels it did not find
     overexposed: list[str] = field(default_factory=list)  # labels of the marks whose face saturates the camera
     warnings: list[str] = field(default_factory=list)  # the measurement's one-line warnings (SPEC §6)
     position_covariance: JointCovariance | None = None  # the marks' joint covariance: the angles' honest ± (SPEC §3)
@@ -165,6 +166,7 @@ class _Scan:
         result.cloud = out.cloud
         result.marks = {int(k): tuple(float(v) for v in m.centre) for k, m in out.marks.labelled.items()}
         result.marks_note = "" if out.complete else out.marks.message()
+        result.marks_missing = [int(label) for label in out.marks.missing]
         result.overexposed = out.marks.overexposed()
         result.warnings = list(out.warnings)
         result.position_covariance = out.position_covariance

@@ -41,6 +41,7 @@ class Result:  # what the acquisition worker reports at the end of a scan
     warnings: tuple = ()
     marks: dict = field(default_factory=dict)
     marks_note: str = ""
+    marks_missing: tuple = ()
     quality: dict = field(default_factory=dict)
     position_covariance: object = None
 
@@ -180,3 +181,32 @@ def test_a_finish_the_store_refuses_leaves_no_half_recorded_trial(logic):
     assert trial.status == "failed" and trial.capture_path is None and trial.motion_mm is None
     assert logic.store.marks.all(trial.id) == []
     assert logic.notices[-1][0] == "error" and "could not be recorded" in logic.notices[-1][1]
+
+
+def test_missing_marks_are_said_in_the_clinics_words():
+    """The banner after a scan read "Some marks were not found automatically: place them in the
+    3-D view (found 6 marks (1 at pixel (831, 325), ...); missing label 2; 2 candidate blob(s)
+    rejected ...)": the detector's line, for an engineer. Now the marks by number and name; the
+    detector's line is the note's detail."""
+    from anklescan.app.logic.mark_words import angles_not_computed, missing_marks_sentence
+
+    assert missing_marks_sentence(["2"]) == ("Mark 2 (front of the ankle) was not found automatically: "
+                                             "place it in the 3-D view.")
+    assert missing_marks_sentence([7, 1, 5, 6]) == ("Marks 1 (front of the knee) and 5, 6 and 7 (table) were not "
+                                                    "found automatically: place them in the 3-D view.")
+    assert "need checking" in missing_marks_sentence([])
+    assert missing_marks_sentence(range(1, 8)) == "No mark was found automatically: place the seven in the 3-D view."
+    text = angles_not_computed({"leg_inversion": [2], "leg_plantar_flexion": [2], "table_inversion": [5, 6]})
+    assert text == ("Leg inversion and leg plantar flexion need mark 2 (front of the ankle). "
+                    "Table inversion needs marks 5 and 6 (table).")
+    assert angles_not_computed({}) == ""
+
+
+def test_a_scan_missing_a_mark_names_it_and_keeps_the_detectors_line_as_detail(logic, tmp_path):
+    scan = ScanLogic(logic, logic.settings)
+    line = "found 6 marks (1 at pixel (831, 325)); missing label 2; 2 candidate blob(s) rejected"
+    result = Result(folder=tmp_path, cloud=[0] * 10, marks_note=line, marks_missing=(2,))
+    notes = [n for n in scan.notes(result, has_cloud=True) if "not found" in n.text]
+    assert [n.text for n in notes] == ["Mark 2 (front of the ankle) was not found automatically: place it in "
+                                       "the 3-D view."]
+    assert "pixel" not in notes[0].text and line in notes[0].detail

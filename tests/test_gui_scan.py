@@ -162,3 +162,27 @@ def test_scan_proposes_the_marks_it_finds(qtbot, tmp_path, monkeypatch):
     assert {lab: m.xyz for lab, m in editor.marks.items()} == {m.label: (m.x, m.y, m.z) for m in stored}
     assert editor.position_covariance is result.position_covariance and editor.undo_stack.count() == 0
     win.close()
+
+
+def test_marks_the_search_missed_are_named_in_the_clinics_words(qtbot, window):
+    """At quarter scale the search finds no mark. The banner read "Some marks were not found
+    automatically: place them in the 3-D view (found 0 marks; missing labels 1, 2, 3, 4, 5, 6,
+    7; none of 11 candidate blob(s) fits a disk 7-27 mm across; ...)". Now a sentence; the
+    search's own line is the banner's tooltip; the angles waiting for marks say which, in words
+    (tests/test_app_logic.py: one mark missing, named by number and place)."""
+    _run_scan(qtbot, window)
+    result = window.last_result
+    assert result is not None and result.cloud is not None, window.banner.text
+    missing = sorted(set(range(1, 8)) - set(result.marks))
+    assert missing == list(range(1, 8)), "the quarter-scale scan finds no mark: this test reads that banner"
+    text = window.banner.text
+    assert "No mark was found automatically: place the seven in the 3-D view." in text, text
+    assert "pixel" not in text and "blob" not in text and "label" not in text
+    detail = window.banner.label.toolTip()
+    assert detail.startswith("Mark search: ") and "missing labels 1, 2" in detail, detail
+    # the angles wait for marks: said in words, each angle once
+    waiting = window.marks_page.editor.missing_label.text()
+    print("\nbanner:", text, "\ntooltip:", detail, "\nangles:", waiting)
+    assert waiting == ("Leg inversion needs marks 1 (front of the knee) and 2 (front of the ankle). Leg plantar "
+                       "flexion needs marks 3 (lateral knee) and 4 (lateral ankle). Table inversion and table "
+                       "plantar flexion need marks 5, 6 and 7 (table)."), waiting

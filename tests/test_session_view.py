@@ -72,6 +72,9 @@ def test_undo_redo_move_relabel_delete(editor):
     ed.delete(2)
     assert 2 not in _stored(store, tid) and 2 not in ed.marks
     assert "leg_inversion" not in ed.angles and "2" in ed.missing_label.text()
+    # the clinic's words, not RESULT.json's keys
+    assert "Leg inversion" in ed.missing_label.text() and "front of the ankle" in ed.missing_label.text()
+    assert "_" not in ed.missing_label.text()
     ed.undo_stack.undo()  # undelete
     assert _stored(store, tid)[2].x == 11.0
     while ed.undo_stack.canUndo():

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from anklescan.app.logic.events import Event
+from anklescan.app.logic.mark_words import missing_marks_sentence
 from anklescan.app.logic.session import SessionLogic
 from anklescan.app.logic.settings import AppSettings, CheckPolicy
 from anklescan.core.vocabulary import Session, Severity
@@ -71,7 +72,9 @@ class ScanResultView(Protocol):
     @property
     def quality(self) -> Mapping[int, MarkQualityView]: ...
     @property
-    def marks_note(self) -> str: ...
+    def marks_note(self) -> str: ...                   # the detector's line on what it missed
+    @property
+    def marks_missing(self) -> Sequence[int]: ...      # the labels not found automatically
     @property
     def overexposed(self) -> Iterable[str]: ...        # labels
     @property
@@ -119,6 +122,7 @@ class ScanNote:
     severity: Severity
     text: str
     action: NoteAction | None = None
+    detail: str = ""  # the engineer's words behind the sentence (the detector's line): shown on request
 
 
 @dataclass(frozen=True, eq=False)
@@ -283,8 +287,8 @@ class ScanLogic:
                 text = "; ".join(volume) + "."
                 notes.append(ScanNote(Severity.WARNING, text[:1].upper() + text[1:]))
             if result.marks_note:
-                notes.append(ScanNote(Severity.INFO, "Some marks were not found automatically: place them in the "
-                                      f"3-D view ({result.marks_note})."))
+                notes.append(ScanNote(Severity.INFO, missing_marks_sentence(result.marks_missing),
+                                      detail=f"Mark search: {result.marks_note}"))
         if self.mixed_note:
             notes.append(ScanNote(Severity.WARNING, self.mixed_note))
         return notes
