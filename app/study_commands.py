@@ -72,7 +72,9 @@ def cmd_export(args: argparse.Namespace) -> int:
             session = store.sessions.get(trial.session_id)
             patient = store.patients.get(session.patient_id)
             n = write_c3d(marks, out, description=patient.code)
-            print(f"wrote trial {trial.id}'s marks ({n} of 7, mm, labels 1-7) as C3D to {out}")
+            # a trial the statistics leave out is still exported (its marks are what they are), but said so
+            aside = "" if trial.counted else f"; the trial is not counted in the statistics ({trial.state_text})"
+            print(f"wrote trial {trial.id}'s marks ({n} of 7, mm, labels 1-7) as C3D to {out}{aside}")
             return 0
         from anklescan.core.records.fhir import session_bundle, write_bundle
 

@@ -255,6 +255,19 @@ def test_export_c3d_reads_back_with_seven_labelled_marks(data, tmp_path, capfd):
     code, _, err = run(capfd, "export", "--data", data, "--session", 1, "--format", "c3d",
                        "--out", out.with_suffix(".x"))
     assert code == 2 and len(err) == 1
+    code, said, _ = run(capfd, "export", "--data", data, "--trial", trial.id, "--format", "c3d", "--out", out)
+    assert code == 0 and "C3D" in said and "not counted" not in said
+
+
+def test_export_c3d_of_an_excluded_trial_says_so(data, tmp_path, capfd):
+    """An excluded trial's marks are exported as they are, but the line said nothing of its
+    state: a C3D of the sneeze trial read like any other."""
+    with Store.open(data_dir=data, read_only=True) as store:
+        trial = next(t for t in store.trials.all(store.sessions.all("P1")[0].id) if t.excluded_reason)
+    code, said, err = run(capfd, "export", "--data", data, "--trial", trial.id, "--format", "c3d",
+                          "--out", tmp_path / "sneeze.c3d")
+    assert code == 0, err
+    assert said.strip().endswith("; the trial is not counted in the statistics (excluded: =patient sneezed)"), said
 
 
 def test_export_fhir_bundle_is_valid(data, tmp_path, capfd):
