@@ -7,6 +7,7 @@ pixel, the image noise, and the shading-corrected (albedo-like) image. docs/mark
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Iterable
 from typing import cast
@@ -371,9 +372,10 @@ def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal
     r = float(plate_radius_px(cal, camera_depth(cal, points[v, u][None])[0], radius_mm))
     h = int(math.ceil(2.6 * r))
     H, W = valid.shape
-    win = (slice(max(v - h, 0), min(v + h + 1, H)), slice(max(u - h, 0), min(u + h + 1, W)))
-    yy, xx = np.mgrid[win]
-    d = np.hypot(xx - u, yy - v)
+    y0, x0 = max(v - h, 0), max(u - h, 0)
+    win = (slice(y0, min(v + h + 1, H)), slice(x0, min(u + h + 1, W)))
+    # the pixels' distances from the seed: the centred table's part inside the image
+    d = _distances(h)[y0 - v + h:win[0].stop - v + h, x0 - u + h:win[1].stop - u + h]
     ring = (d >= 1.6 * r) & (d <= 2.6 * r)
     ok = ring & valid[win]
     if ok.sum() < ring.sum() / 3:
@@ -381,6 +383,15 @@ def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal
     return median_in_place(smooth[win][ok])
 
 
+
+
+@functools.lru_cache(maxsize=64)
+def _distances(h: int) -> np.ndarray:
+    """(2h + 1, 2h + 1) distances of each pixel from the centre one (read-only: shared)."""
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+    d = np.hypot(xx, yy)
+    d.flags.writeable = False
+    return d
 
 
 def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) -> Blob | None:
@@ -411,7 +422,8 @@ def cut_blob(smooth: np.ndarray, seed: tuple[int, int], bg: float, half: int) ->
 
 
 def _region_at(roi: np.ndarray, seed: tuple[int, int], level: float) -> np.ndarray:
-    _, lab = cv2.connectedComponents((roi > level).astype(np.uint8), connectivity=8)
+    # a bool array's bytes are 0 and 1: its uint8 view is the binary image, without a copy
+    _, lab = cv2.connectedComponents(np.greater(roi, level).view(np.uint8), connectivity=8)
     return np.asarray(lab == lab[seed[1], seed[0]])
 
 
