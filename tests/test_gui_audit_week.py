@@ -1,0 +1,66 @@
+"""A clinician's first week on the simulated rig, as it is clicked: what a walk through the
+calibration wizard, the daily check and the review of past trials (excluding, marks, plots,
+reports) found, each driven through the real menus, buttons and dialogs and checked on what the
+clinician sees (docs/gui.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gui_actions import calibrated_window, click
+from PySide6.QtCore import Qt
+from PySide6.QtTest import QTest
+
+pytestmark = pytest.mark.gui
+
+
+def _click_item(widget, row: int) -> None:
+    QTest.mouseClick(widget.viewport(), Qt.MouseButton.LeftButton,
+                     pos=widget.visualItemRect(widget.item(row)).center())
+
+
+# a tilted table top with three automatic marks on it: what a finished scan leaves for review
+_AUTO_MARKS = {5: (60.0, -60.0, 132.0), 6: (60.0, 60.0, 132.0), 7: (-60.0, 0.0, 108.0)}
+
+
+def _trial_with_automatic_marks(win, code: str, n_trials: int = 1) -> list[int]:
+    """A patient with a session of ``n_trials`` scanned trials, each with its cloud and its
+    automatic (not yet confirmed) table marks, listed in the window; their ids."""
+    from anklescan.core.scan.pointcloud import PointCloud, write_ply
+    store = win.store
+    session = store.sessions.start(store.patients.add(code).id, condition="barefoot", operator="op")
+    g = np.linspace(-100, 100, 101)
+    xx, yy = np.meshgrid(g, g)
+    pts = np.c_[xx.ravel(), yy.ravel(), 120 + 0.2 * xx.ravel()].astype(np.float32)
+    ids = []
+    for _ in range(n_trials):
+        trial = store.trials.add(session.id, ref_inversion=10.0, ref_plantar_flexion=0.0, status="complete")
+        path = store.files.trial_dir(trial.id, create=True) / "cloud.ply"
+        write_ply(path, PointCloud(pts, np.full((len(pts), 3), 200, np.uint8)))
+        store.trials.set_files(trial.id, cloud=path)
+        store.results.update_marks(trial.id, _AUTO_MARKS, "auto", "")
+        ids.append(trial.id)
+    win.records.refresh_patients(select_code=code)
+    return ids
+
+
+def test_a_relabelled_automatic_mark_stays_confirmed(qtbot):
+    """Relabel as… (the fix when the detector swapped two marks) showed both marks confirmed, but
+    after the trial was opened again they were "to confirm" once more, and the session report drew
+    the trial hollow as "automatic marks, not confirmed by an operator"."""
+    win = calibrated_window(qtbot, operator="Dr. Bea")
+    first, _second = _trial_with_automatic_marks(win, "P-301", n_trials=2)
+    _click_item(win.records.trials, 0)
+    editor = win.marks_page.editor
+    click(editor.label_buttons.button(5))
+    click(editor.relabel_buttons.button(6))  # 5 and 6 swapped
+    click(editor.confirm_button)             # and 7 confirmed as found
+    status = [editor.list.item(row, 5).text() for row in (4, 5, 6)]
+    assert status == ["auto", "auto", "auto"] and not editor.confirm_button.isEnabled()
+    _click_item(win.records.trials, 1)  # another trial, then back
+    _click_item(win.records.trials, 0)
+    reopened = [editor.list.item(row, 5).text() for row in (4, 5, 6)]
+    assert reopened == status and not editor.confirm_button.isEnabled(), reopened
+    (row,) = [r for r in win.store.reports.study_rows() if r.id == first]
+    assert row.marks_confirmed
+    win.close()
