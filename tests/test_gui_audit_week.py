@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gui_actions import calibrated_window, click
+from gui_actions import button, calibrated_window, click, menu_action, with_dialog
 from PySide6.QtCore import Qt
 from PySide6.QtTest import QTest
 
@@ -63,4 +63,45 @@ def test_a_relabelled_automatic_mark_stays_confirmed(qtbot):
     assert reopened == status and not editor.confirm_button.isEnabled(), reopened
     (row,) = [r for r in win.store.reports.study_rows() if r.id == first]
     assert row.marks_confirmed
+    win.close()
+
+
+def _type(box, value: float) -> None:
+    box.setFocus()
+    box.selectAll()
+    QTest.keyClicks(box, f"{value:.2f}")
+    QTest.keyClick(box, Qt.Key.Key_Tab)
+
+
+def _turned_calibration(win) -> None:
+    """The current calibration's frame turned 2° (a wrong levelling): the daily check fails."""
+    from anklescan.app.calibration_wizard import accept_calibration
+    from anklescan.hardware.sim_check import rotated_frame
+    accept_calibration(rotated_frame(win.rig.calibration, 2.0, "y"), None, win.data_folder(), win.store,
+                       win.settings, source="test: frame turned 2°")
+    win.rig_setup.load_calibration()
+
+
+def test_closing_the_daily_check_while_it_measures_keeps_nothing(qtbot):
+    """Close while the dialog said "Measuring the object's top…" (angles typed wrong, say) closed
+    it, but the check was measured anyway: kept as the day's check (FAILED, so every scan then
+    warned or was refused) and put in the banner, although the dialog says closing records nothing."""
+    from PySide6.QtWidgets import QDoubleSpinBox
+
+    from anklescan.core.records.daily_checks import list_checks
+    win = calibrated_window(qtbot)
+    _turned_calibration(win)
+    seen = {}
+
+    def close_while_measuring(dialog):
+        _type(dialog.findChild(QDoubleSpinBox, "inversion"), 10.0)
+        click(button(dialog, "Scan and check"))
+        qtbot.waitUntil(lambda: dialog.verdict.text().startswith("Measuring"), timeout=60_000)
+        seen["job"] = dialog._job
+        click(button(dialog, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Daily check…").trigger, close_while_measuring, timeout_ms=90_000)
+    qtbot.waitUntil(lambda: seen["job"].finished, timeout=60_000)
+    qtbot.wait(100)
+    assert list_checks(win.store) == []
+    assert "daily check" not in win.banner.text, win.banner.text
     win.close()
