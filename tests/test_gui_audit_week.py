@@ -105,3 +105,34 @@ def test_closing_the_daily_check_while_it_measures_keeps_nothing(qtbot):
     assert list_checks(win.store) == []
     assert "daily check" not in win.banner.text, win.banner.text
     win.close()
+
+
+def _check_once(qtbot, win, inversion: float = 10.0) -> str:
+    """Scan ▸ Daily check…: type the object's inversion, scan, read the verdict, Close."""
+    from PySide6.QtWidgets import QDoubleSpinBox
+    seen = {}
+
+    def drive(dialog):
+        _type(dialog.findChild(QDoubleSpinBox, "inversion"), inversion)
+        click(button(dialog, "Scan and check"))
+        qtbot.waitUntil(lambda: dialog.check_result is not None, timeout=60_000)
+        seen["verdict"] = dialog.verdict.text()
+        click(button(dialog, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Daily check…").trigger, drive, timeout_ms=90_000)
+    return seen["verdict"]
+
+
+def test_a_passed_daily_check_takes_back_the_failed_ones_warning(qtbot):
+    """A failed daily check put "The daily check failed: …" in the banner; once its cause was put
+    right (here the calibration, as a wedge set right would on a real rig) the next check PASSED,
+    but the banner went on saying the rig had failed."""
+    from gui_actions import use_true_calibration
+    win = calibrated_window(qtbot)
+    _turned_calibration(win)
+    assert _check_once(qtbot, win).startswith("FAILED")
+    failed_banner = win.banner.text
+    use_true_calibration(win)  # the cause put right
+    assert _check_once(qtbot, win).startswith("PASSED")
+    assert failed_banner.startswith("The daily check failed")
+    assert "daily check failed" not in win.banner.text, win.banner.text
+    win.close()
