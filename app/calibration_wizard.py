@@ -213,6 +213,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             self.steps.blockSignals(True)
             self.steps.setCurrentRow(page)
             self.steps.blockSignals(False)
+        # a fit to accept: not before one is made (the page is in the step list), nor once it is accepted
+        self.accept_button.setEnabled(self.calibration is not None and self.calibration is not self.accepted_calibration)
         live = page in (PAGE_PLACE, PAGE_MANUAL) and not self.controller.busy
         self._timer.start() if live else self._timer.stop()
         if page == PAGE_PLACE and live:

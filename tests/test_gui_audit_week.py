@@ -136,3 +136,30 @@ def test_a_passed_daily_check_takes_back_the_failed_ones_warning(qtbot):
     assert failed_banner.startswith("The daily check failed")
     assert "daily check failed" not in win.banner.text, win.banner.text
     win.close()
+
+
+def _click_step(wiz, page: int) -> None:
+    steps = wiz.steps
+    QTest.mouseClick(steps.viewport(), Qt.MouseButton.LeftButton,
+                     pos=steps.visualItemRect(steps.item(page)).center())
+
+
+def test_the_wizard_greys_what_has_nothing_to_act_on(qtbot):
+    """Opened from the step list before any scan, the Quality report offered "Accept and save" and
+    "Add a box position (knee)…", and the Scan page its Cancel, all enabled: clicked, nothing
+    happened and nothing was said."""
+    from anklescan.app.calibration_wizard import PAGE_REPORT, PAGE_SCAN
+    win = calibrated_window(qtbot)
+    seen = {}
+
+    def look(wiz):
+        _click_step(wiz, PAGE_REPORT)
+        seen["report"] = {b.text(): b.isEnabled() for b in (wiz.accept_button, wiz.add_position_button)}
+        _click_step(wiz, PAGE_SCAN)
+        seen["scan"] = {wiz.scan_cancel.text(): wiz.scan_cancel.isEnabled()}
+        click(button(wiz, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Calibration…").trigger, look)
+    assert seen == {"report": {"Accept and save": False, "Add a box position (knee)…": False},
+                    "scan": {"Cancel": False}}, seen
+    win.close()
+
