@@ -163,3 +163,26 @@ def test_the_wizard_greys_what_has_nothing_to_act_on(qtbot):
                     "scan": {"Cancel": False}}, seen
     win.close()
 
+
+def test_a_refused_levelling_is_not_called_a_failed_calibration(qtbot):
+    """Level from the reference table, with no top of the set size in view, said "Calibration
+    failed: …": the clinician read that the current calibration was broken, when only the
+    levelling was refused and the calibration was unchanged."""
+    from anklescan.app.calibration_wizard import PAGE_VERIFY
+    win = calibrated_window(qtbot)
+    win.settings.table_size = "600x500"  # a table the clinic does not have
+    before = win.calibration_id
+    seen = {}
+
+    def level(wiz):
+        _click_step(wiz, PAGE_VERIFY)
+        click(button(wiz, "Level from the reference table"))
+        qtbot.waitUntil(lambda: not wiz.busy(), timeout=60_000)
+        seen["status"] = wiz.status.text()
+        click(button(wiz, "Close"))
+    with_dialog(qtbot, menu_action(win, "Scan/Calibration…").trigger, level, timeout_ms=90_000)
+    assert win.calibration_id == before
+    assert "Calibration failed" not in seen["status"], seen["status"]
+    assert seen["status"].startswith("Levelling failed (the current calibration is unchanged): "), seen["status"]
+    win.close()
+
