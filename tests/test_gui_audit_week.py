@@ -186,3 +186,20 @@ def test_a_refused_levelling_is_not_called_a_failed_calibration(qtbot):
     assert seen["status"].startswith("Levelling failed (the current calibration is unchanged): "), seen["status"]
     win.close()
 
+
+def test_the_3d_view_title_follows_an_exclusion(qtbot):
+    """The 3-D view's title names a trial's state when it is left out ("· excluded: …"); excluding
+    the trial on view (Exclude trial… beside it) left the title as it was, and Restore trial after
+    that left "excluded" on a trial that counted again."""
+    from gui_actions import fill_and_ok
+    win = calibrated_window(qtbot)
+    _trial_with_automatic_marks(win, "P-302")
+    _click_item(win.records.trials, 0)
+    title = win.marks_page.title
+    assert title.text().startswith("Trial 1") and "excluded" not in title.text()
+    with_dialog(qtbot, lambda: click(win.records.exclude_button), fill_and_ok({"": "patient stepped off"}))
+    excluded = title.text()
+    click(win.records.restore_button)
+    assert "excluded: patient stepped off" in excluded, excluded
+    assert title.text().startswith("Trial 1") and "excluded" not in title.text(), title.text()
+    win.close()
