@@ -154,6 +154,8 @@ class WizardPages(_DialogBase):
         self.scan_progress = QProgressBar()
         self.scan_cancel = QPushButton("Cancel")
         self.scan_cancel.clicked.connect(self.controller.cancel)
+        self.scan_cancel.setEnabled(False)  # only while a scan runs: the page is also opened from the step list
+        self.controller.busyChanged.connect(self.scan_cancel.setEnabled)
         row = QHBoxLayout()
         row.addWidget(self.scan_progress, 1)
         row.addWidget(self.scan_cancel)
@@ -201,6 +203,7 @@ class WizardPages(_DialogBase):
                                             "all positions go into one fit, so the calibration covers the table "
                                             "and the knee")
         self.add_position_button.clicked.connect(self.add_box_position)
+        self.add_position_button.setEnabled(False)  # a box scan's report enables it (_calibrated)
         row = QHBoxLayout()
         row.addWidget(manual)
         row.addStretch(1)

@@ -99,6 +99,11 @@ __all__ = ["CalibrationWizard", "PAGE_MANUAL", "PAGE_PLACE", "PAGE_REPORT", "PAG
            "accept_calibration", "calibration_warning", "current_calibration_info", "load_current_calibration",
            "manual_points", "preview_frame"]
 PREVIEW_MS = 300
+# what the status line says when the work on a capture fails, by what the capture was for
+JOB_FAILED: dict[ScanPurpose, str] = {
+    "calibrate": "Calibration failed", "board": "Calibration failed",
+    "verify": "The verification could not be made (the current calibration is unchanged)",
+    "level": "Levelling failed (the current calibration is unchanged)"}
 
 
 class PreviewFrame(NamedTuple):
@@ -213,6 +218,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             self.steps.blockSignals(True)
             self.steps.setCurrentRow(page)
             self.steps.blockSignals(False)
+        # a fit to accept: not before one is made (the page is in the step list), nor once it is accepted
+        self.accept_button.setEnabled(self.calibration is not None and self.calibration is not self.accepted_calibration)
         live = page in (PAGE_PLACE, PAGE_MANUAL) and not self.controller.busy
         self._timer.start() if live else self._timer.stop()
         if page == PAGE_PLACE and live:
@@ -374,7 +381,8 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         if error:
             if self._scan_purpose == "calibrate" and self.box_captures:
                 self.box_captures.pop()  # a refused position is not kept
-            self.status.setText(f"Calibration failed: {error}")
+            # the job's own words: a refused levelling or verification leaves the calibration as it was
+            self.status.setText(f"{JOB_FAILED.get(self._scan_purpose or 'calibrate', 'Calibration failed')}: {error}")
             if self._scan_purpose in ("board", "calibrate"):  # back to placing the box: scan it again
                 self.go(PAGE_PLACE)
             return

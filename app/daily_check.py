@@ -30,7 +30,7 @@ from PySide6.QtWidgets import (
 )
 
 from anklescan.app.background import BackgroundJob, run_in_background
-from anklescan.app.main_parts import no_args, signed
+from anklescan.app.main_parts import DAILY_CHECK_TOPIC, no_args, signed
 from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
@@ -192,10 +192,12 @@ class DailyCheckDialog(QDialog):
         self.scan_button.setEnabled(False)
         self._job = run_in_background(lambda: check_folder(run.folder, cal, run.inversion, run.plantar_flexion,
                                                            run.tolerance), self._checked,
-                                      self._failed, name="daily check")
+                                      self._measure_failed, name="daily check")
 
     def _checked(self, result: CheckResult) -> None:
         from anklescan.app.logic.daily_check import record_check
+        if self._job is None:  # closed while measuring (done): nothing is kept, nothing is said
+            return
         self._job = None
         self.scan_button.setEnabled(True)
         self.check_result = result
@@ -208,10 +210,17 @@ class DailyCheckDialog(QDialog):
         self.verdict.setStyleSheet(f"font-weight: bold; color: {'#1b7a1b' if ok else '#b00020'};")
         self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
         if not ok:
-            self.parts.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.")
+            self.parts.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.",
+                                           topic=DAILY_CHECK_TOPIC)
+        else:  # an earlier failure's warning (or a scan's "no daily check yet") no longer holds
+            self.parts.banner.clear(topic=DAILY_CHECK_TOPIC)
         if self.record is not None:
             self._show_history()
         self.checkDone.emit(result)
+
+    def _measure_failed(self, message: str) -> None:
+        if self._job is not None:  # not closed meanwhile
+            self._failed(message)
 
     def _failed(self, message: str) -> None:
         self._job = None
@@ -245,12 +254,12 @@ class DailyCheckDialog(QDialog):
         self.history.setText("Last checks:\n" + "\n".join(lines))
 
     def done(self, code: int) -> None:
-        """Closing stops a running scan first (its frames are kept; nothing is recorded)."""
+        """Closing stops a running scan first (its frames are kept; nothing is recorded). A
+        measurement under way is let go: its result arrives after, and is neither kept nor shown
+        (it was recorded, and a failed one put in the banner, after the clinician closed)."""
         if self.controller.busy:
             self.controller.stop()
-        if self._job is not None:
-            self._job.wait(30)
-            self._job = None
+        self._job = None
         super().done(code)
 
 

@@ -51,6 +51,9 @@ def deg(value: float | None) -> str:
 
 # ---------------------------------------------------------------------------- small widgets
 
+DAILY_CHECK_TOPIC = "daily check"  # the banner's messages about the rig's daily check: a passed check takes them back
+
+
 class Banner(QWidget):
     """An inline message above the current step: errors stay visible without blocking work."""
 
@@ -71,13 +74,16 @@ class Banner(QWidget):
         row.addWidget(self.action)
         row.addWidget(close)
         self.kind: Severity | None = None
+        self.topic = ""  # what the message shown is about (show_message), "" for anything else
         self._slot: Callable[[], object] | None = None
         self.hide()
 
     def show_message(self, kind: Severity, text: str, action: tuple[str, Callable[[], object]] | None = None,
-                     detail: str = "") -> None:
-        """``detail``: the technical line behind ``text`` (the detector's), on the text's tooltip."""
+                     detail: str = "", topic: str = "") -> None:
+        """``detail``: the technical line behind ``text`` (the detector's), on the text's tooltip.
+        ``topic``: what the message is about, so that what settles it can take it back (``clear``)."""
         self.kind = Severity(kind)
+        self.topic = topic
         self.label.setText(text)
         self.label.setToolTip(detail)
         self.label.setStyleSheet(resources.BANNER_STYLE[self.kind])
@@ -86,9 +92,9 @@ class Banner(QWidget):
         self.action.setVisible(action is not None)
         self.show()
 
-    def clear(self, kind: Severity | None = None) -> None:
-        """Hide the banner (only if it shows ``kind``, when given)."""
-        if kind is None or self.kind == kind:
+    def clear(self, kind: Severity | None = None, topic: str | None = None) -> None:
+        """Hide the banner (only if it shows ``kind``, and a message about ``topic``, when given)."""
+        if (kind is None or self.kind == kind) and (topic is None or self.topic == topic):
             self.hide()
 
     def _act(self) -> None:

@@ -206,7 +206,7 @@ class MainWindow(QMainWindow):
         self.session.storeOpened.connect(self._store_opened)
         self.records.trialChosen.connect(
             lambda tid: self.review.open_trial(tid, switch_tab=self.tabs.currentIndex() != PAGE_SESSION))
-        self.records.recordsChanged.connect(self.review.refresh_plots_if_shown)
+        self.records.recordsChanged.connect(self.review.records_changed)
         self.records.sessionShown.connect(self._session_shown)
         self.records.operatorChanged.connect(self._operator_changed)
         self.scan_page.calibrate_button.clicked.connect(no_args(self.rig_setup.open_calibration))

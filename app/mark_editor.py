@@ -344,15 +344,24 @@ class MarkEditor(QWidget):
         if old == new or old not in self.marks:
             return
         a, b = self.marks[old], self.marks.get(new)
-        a = replace(a, confirmed=True, placed_by=self.operator or a.placed_by)
-        after = {new: a, old: None if b is None else replace(b, confirmed=True)}
+        after = {new: self._confirmed(a), old: None if b is None else self._confirmed(b, sign=False)}
         self.undo_stack.push(_SetMarks(self, f"relabel mark {old} as {new}", after))
         self.current_label = new
         self._refresh(save=False)
 
+    def _confirmed(self, m: PlacedMark, sign: bool = True) -> PlacedMark:
+        """``m`` confirmed by the operator. An automatic mark's confirmation is kept in its
+        ``placed_by`` ("confirmed by …", marks_from_store and the reports read it there): a
+        relabelled one signed with the bare name came back "to confirm" when the trial was reopened.
+        ``sign``: a mark placed by hand is signed by the operator (not one only swapped into place)."""
+        if m.source == MarkSource.AUTO:
+            by = m.placed_by if m.confirmed and m.placed_by.startswith(CONFIRMED_PREFIX) else \
+                CONFIRMED_PREFIX + (self.operator or "operator")
+            return replace(m, confirmed=True, placed_by=by)
+        return replace(m, confirmed=True, placed_by=(self.operator if sign else "") or m.placed_by)
+
     def confirm_all(self) -> None:
-        pending = {lab: replace(m, confirmed=True, placed_by=CONFIRMED_PREFIX + (self.operator or "operator"))
-                   for lab, m in self.marks.items() if not m.confirmed}
+        pending = {lab: self._confirmed(m) for lab, m in self.marks.items() if not m.confirmed}
         if pending:
             self.undo_stack.push(_SetMarks(self, "confirm automatic marks", pending))
 

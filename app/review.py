@@ -105,6 +105,14 @@ class Review(QObject):
         if self.session_view is not None and self.parts.tabs.currentIndex() == PAGE_SESSION:
             self.refresh_plots()
 
+    def records_changed(self) -> None:
+        """A trial was excluded or restored (records panel): the plots, and the 3-D view's title,
+        which names a trial's state when it is left out, follow."""
+        self.refresh_plots_if_shown()
+        trial = self.parts.session.trial(self.viewer_trial) if self.viewer_trial is not None else None
+        if trial is not None and self.marks_page is not None:
+            self.marks_page.title.setText(self.trial_title(trial, full=True))
+
     def refresh_plots(self) -> None:
         sid, logic = self.parts.records.current_session_id(), self.parts.session
         if self.session_view is None or logic.store is None:
