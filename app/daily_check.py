@@ -30,7 +30,7 @@ from PySide6.QtWidgets import (
 )
 
 from anklescan.app.background import BackgroundJob, run_in_background
-from anklescan.app.main_parts import DAILY_CHECK_TOPIC, no_args, signed
+from anklescan.app.main_parts import BannerTopic, no_args, signed
 from anklescan.core.vocabulary import Severity
 
 # app.logic.daily_check (numpy, OpenCV) is imported in the methods: the window opens before they load
@@ -211,9 +211,9 @@ class DailyCheckDialog(QDialog):
         self.verdict.setText(("PASSED: " if ok else "FAILED: ") + result.details())
         if not ok:
             self.parts.banner.show_message(Severity.WARNING, f"The daily check failed: {result.details()}.",
-                                           topic=DAILY_CHECK_TOPIC)
+                                           topic=BannerTopic.DAILY_CHECK)
         else:  # an earlier failure's warning (or a scan's "no daily check yet") no longer holds
-            self.parts.banner.clear(topic=DAILY_CHECK_TOPIC)
+            self.parts.banner.clear(topic=BannerTopic.DAILY_CHECK)
         if self.record is not None:
             self._show_history()
         self.checkDone.emit(result)

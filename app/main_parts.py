@@ -3,6 +3,7 @@ Result pages. Layout only; what they do is wired in app.main_window and its flow
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -51,7 +52,11 @@ def deg(value: float | None) -> str:
 
 # ---------------------------------------------------------------------------- small widgets
 
-DAILY_CHECK_TOPIC = "daily check"  # the banner's messages about the rig's daily check: a passed check takes them back
+class BannerTopic(enum.Enum):
+    """What a banner message is about, where something later settles it and takes it back."""
+
+    OTHER = "other"
+    DAILY_CHECK = "daily check"  # the rig's daily check failed or is missing: a passed check takes it back
 
 
 class Banner(QWidget):
@@ -74,12 +79,12 @@ class Banner(QWidget):
         row.addWidget(self.action)
         row.addWidget(close)
         self.kind: Severity | None = None
-        self.topic = ""  # what the message shown is about (show_message), "" for anything else
+        self.topic = BannerTopic.OTHER  # what the message shown is about (show_message)
         self._slot: Callable[[], object] | None = None
         self.hide()
 
     def show_message(self, kind: Severity, text: str, action: tuple[str, Callable[[], object]] | None = None,
-                     detail: str = "", topic: str = "") -> None:
+                     detail: str = "", topic: BannerTopic = BannerTopic.OTHER) -> None:
         """``detail``: the technical line behind ``text`` (the detector's), on the text's tooltip.
         ``topic``: what the message is about, so that what settles it can take it back (``clear``)."""
         self.kind = Severity(kind)
@@ -92,7 +97,7 @@ class Banner(QWidget):
         self.action.setVisible(action is not None)
         self.show()
 
-    def clear(self, kind: Severity | None = None, topic: str | None = None) -> None:
+    def clear(self, kind: Severity | None = None, topic: BannerTopic | None = None) -> None:
         """Hide the banner (only if it shows ``kind``, and a message about ``topic``, when given)."""
         if (kind is None or self.kind == kind) and (topic is None or self.topic == topic):
             self.hide()

@@ -15,7 +15,7 @@ from PySide6.QtCore import QObject, Signal
 from PySide6.QtWidgets import QTabWidget
 
 from anklescan.app.logic.scan import NoteAction, ScanLogic, ScanNote, ScanRefused, TrialFinished
-from anklescan.app.main_parts import DAILY_CHECK_TOPIC, PAGE_RESULT, PAGE_SCAN, Banner, ResultPage, ScanPage, no_args
+from anklescan.app.main_parts import PAGE_RESULT, PAGE_SCAN, Banner, BannerTopic, ResultPage, ScanPage, no_args
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
@@ -127,7 +127,7 @@ class ScanFlow(QObject):
         parts.banner.hide()
         if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
             parts.banner.show_message(Severity.WARNING, self.logic.check_warning, ("Daily check…", parts.open_daily_check),
-                                      topic=DAILY_CHECK_TOPIC)
+                                      topic=BannerTopic.DAILY_CHECK)
         projector = parts.rig_setup.projector  # made with the controller: never None here
         if projector is None or not projector.isVisible():
             parts.rig_setup.show_projector()

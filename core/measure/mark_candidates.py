@@ -389,7 +389,7 @@ def ring_level(smooth: np.ndarray, valid: np.ndarray, seed: tuple[int, int], cal
 def _distances(h: int) -> np.ndarray:
     """(2h + 1, 2h + 1) distances of each pixel from the centre one (read-only: shared)."""
     yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
-    d = np.hypot(xx, yy)
+    d: np.ndarray = np.hypot(xx, yy)
     d.flags.writeable = False
     return d
 
