@@ -189,13 +189,21 @@ def cmd_calibrate_board(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_level(args: argparse.Namespace) -> int:
     from anklescan.core.calibration.model.file import load_calibration, save_calibration
-    from anklescan.core.calibration.procedures.levelling import DEFAULT_TABLE, level_calibration, parse_table_size
+    from anklescan.core.calibration.procedures.levelling import (
+        DEFAULT_TABLE,
+        TableSizeError,
+        level_calibration,
+        parse_table_size,
+    )
     from anklescan.core.scan.capture import load_capture
 
     table = DEFAULT_TABLE if args.table_size is None else parse_table_size(args.table_size)
     cal = load_calibration(args.calibration)
     capture = load_capture(args.capture)
-    new, top = level_calibration(cal, capture, table)
+    try:
+        new, top = level_calibration(cal, capture, table)
+    except TableSizeError as e:
+        raise TableSizeError(f"{e} (--table-size LxW)") from None
     save_calibration(new, args.out)
     print(f"table top found: {top.describe()} (the reference table: {table.describe()})")
     print(f"wrote levelled calibration to {args.out}")

@@ -184,6 +184,8 @@ def test_a_refused_levelling_is_not_called_a_failed_calibration(qtbot):
     assert win.calibration_id == before
     assert "Calibration failed" not in seen["status"], seen["status"]
     assert seen["status"].startswith("Levelling failed (the current calibration is unchanged): "), seen["status"]
+    # the command line's flag is not the clinician's way to set the table's size
+    assert "--table-size" not in seen["status"] and "correct the size set" in seen["status"], seen["status"]
     win.close()
 
 

@@ -198,6 +198,7 @@ def test_level_takes_the_table_sized_top_not_a_higher_small_patch(tmp_path):
                "--out", tmp_path / "big.json")
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "500 x 400 mm" in done.stderr and "mm RMS" in done.stderr and "points" in done.stderr
+    assert "(--table-size LxW)" in done.stderr  # the command line's way to set the size; the app has its own
     assert not (tmp_path / "big.json").exists()
     done = run("calibrate", "level", tmp_path / "cal.json", tmp_path / "table", "--table-size", "big",
                "--out", tmp_path / "big.json")

@@ -82,6 +82,12 @@ class TableSpec:
 DEFAULT_TABLE = TableSpec()
 
 
+class TableSizeError(GeometryError):
+    """No planar region of the scan has the reference table's size: the table is not (all) in
+    view, or the size set is not the clinic's table. Its message names no way of setting the
+    size: the command line and the app each say theirs."""
+
+
 def parse_table_size(text: str) -> TableSpec:
     """``"340x260"`` (mm, either order) as a TableSpec; GeometryError on anything else."""
     parts = str(text).lower().replace("×", "x").split("x")
@@ -189,9 +195,9 @@ def find_table_top(points: np.ndarray, camera_centre: np.ndarray, sigma: np.ndar
         return max(good, key=lambda t: t.n_points)
     if tops:
         biggest = max(tops, key=lambda t: t.size_mm[0] * t.size_mm[1])
-        raise GeometryError(f"no table top of the reference table's size ({table.describe()}, --table-size) fits "
-                            f"well in the scan: the largest planar region found is {biggest.describe()}; scan the "
-                            f"level reference table with all of its top in view")
+        raise TableSizeError(f"no table top of the reference table's size ({table.describe()}, as set) fits well in "
+                             f"the scan: the largest planar region found is {biggest.describe()}; scan the level "
+                             f"reference table with all of its top in view, or correct the size set")
     raise errors[0] if errors else GeometryError("no level surface in the table scan")
 
 
