@@ -108,7 +108,11 @@ class ScanFlow(QObject):
                 raise ValueError(form.mark_diameter.problem())
             session_id = self.logic.begin(parts.records.current_session_id(), entry, form.mark_diameter.value())
         except (ValueError, ScanRefused) as exc:  # a field shows the same message
-            parts.banner.show_message(Severity.WARNING, f"The scan did not start: {exc}")
+            # a scan that waits for the daily check is one click from it, as the warning's banner is
+            check = isinstance(exc, ScanRefused) and exc.action is NoteAction.DAILY_CHECK
+            parts.banner.show_message(Severity.WARNING, f"The scan did not start: {exc}",
+                                      (NoteAction.DAILY_CHECK.value, parts.open_daily_check) if check else None,
+                                      topic=BannerTopic.DAILY_CHECK if check else BannerTopic.OTHER)
             return False
         stance = self._stand_simulated_patient(rig, entry)
         parts.records.show_patient(select_session=session_id)
@@ -126,8 +130,8 @@ class ScanFlow(QObject):
             return False
         parts.banner.hide()
         if self.logic.check_warning:  # the daily check's warning (a blocking policy refused in begin)
-            parts.banner.show_message(Severity.WARNING, self.logic.check_warning, ("Daily check…", parts.open_daily_check),
-                                      topic=BannerTopic.DAILY_CHECK)
+            parts.banner.show_message(Severity.WARNING, self.logic.check_warning,
+                                      (NoteAction.DAILY_CHECK.value, parts.open_daily_check), topic=BannerTopic.DAILY_CHECK)
         projector = parts.rig_setup.projector  # made with the controller: never None here
         if projector is None or not projector.isVisible():
             parts.rig_setup.show_projector()

@@ -205,3 +205,26 @@ def test_the_3d_view_title_follows_an_exclusion(qtbot):
     assert "excluded: patient stepped off" in excluded, excluded
     assert title.text().startswith("Trial 1") and "excluded" not in title.text(), title.text()
     win.close()
+
+
+def test_a_scan_that_waits_for_the_daily_check_offers_it(qtbot):
+    """With the daily check set to block, a scan before today's check was refused with "... Scans
+    wait for a passed daily check" and no way forward in the banner (the warning policy's banner
+    has its Daily check… button). Now the refusal has it too, and it opens the check."""
+    from anklescan.app.logic.settings import CheckPolicy
+    win = calibrated_window(qtbot)
+    win.settings.daily_check_policy = CheckPolicy.BLOCK
+    win.records.add_patient("P-301", 0, None)
+    win.records.start_session("barefoot")
+    click(win.scan_page.scan_button)
+    assert not win.controller.busy
+    assert "Scans wait for a passed daily check" in win.banner.text, win.banner.text
+    assert win.banner.action.isVisible() and win.banner.action.text() == "Daily check…"
+    opened = {}
+
+    def close(dlg):
+        opened["title"] = dlg.windowTitle()
+        click(button(dlg, "Close"))
+    with_dialog(qtbot, lambda: click(win.banner.action), close)
+    assert "daily check" in opened["title"].lower(), opened
+    win.close()

@@ -29,7 +29,12 @@ if TYPE_CHECKING:
 
 
 class ScanRefused(Exception):
-    """Why a scan cannot start now; the message is for the clinician."""
+    """Why a scan cannot start now; the message is for the clinician. ``action``: what they can
+    do about it, where the window offers it (the daily check a blocking policy waits for)."""
+
+    def __init__(self, message: str, action: NoteAction | None = None) -> None:
+        super().__init__(message)
+        self.action = action
 
 
 class TrialEntryView(Protocol):
@@ -113,6 +118,7 @@ class NoteAction(enum.Enum):
     """What a note offers the clinician to do (the window provides the button)."""
 
     SCAN_AGAIN = "Scan again"
+    DAILY_CHECK = "Daily check…"
 
 
 @dataclass(frozen=True)
@@ -188,7 +194,8 @@ class ScanLogic:
         else:
             text = "" if standing is None or standing.ok else standing.message
         if text and policy is CheckPolicy.BLOCK:
-            raise ScanRefused(f"{text} Scans wait for a passed daily check (the daily check setting).")
+            raise ScanRefused(f"{text} Scans wait for a passed daily check (the daily check setting).",
+                              NoteAction.DAILY_CHECK)
         return text
 
     def pattern_set(self, projector_size: tuple[int, int]) -> PatternSet:
