@@ -9,11 +9,6 @@ from collections.abc import Iterable, Mapping, Sequence
 
 from anklescan.core.vocabulary import LABELS, MARK_NAMES, MarkLabel
 
-# the angles' names in a sentence (RESULT.json's keys, SPEC §3)
-ANGLE_WORDS: dict[str, str] = {
-    "leg_inversion": "leg inversion", "leg_plantar_flexion": "leg plantar flexion",
-    "table_inversion": "table inversion", "table_plantar_flexion": "table plantar flexion"}
-
 
 def _joined(words: Sequence[str]) -> str:
     """'a', 'a and b', 'a, b and c'."""
@@ -38,10 +33,9 @@ def missing_marks_sentence(missing: Iterable[MarkLabel | str]) -> str:
     labels = {int(label) for label in missing}
     if labels >= set(LABELS):
         return "No mark was found automatically: place the seven in the 3-D view."
-    named = marks_named(labels)
-    if not named:  # all seven labelled, yet the set needs a look (a mark too many, a doubtful one)
+    if not labels:  # all seven labelled, yet the set needs a look (a mark too many, a doubtful one)
         return "The marks found automatically need checking: confirm or move them in the 3-D view."
-    one = named.startswith("mark ")
+    named, one = marks_named(labels), len(labels) == 1
     return (f"{named[:1].upper()}{named[1:]} {'was' if one else 'were'} not found automatically: "
             f"place {'it' if one else 'them'} in the 3-D view.")
 
@@ -49,9 +43,9 @@ def missing_marks_sentence(missing: Iterable[MarkLabel | str]) -> str:
 def angles_not_computed(missing: Mapping[str, Sequence[MarkLabel | str]]) -> str:
     """'Leg inversion and leg plantar flexion need mark 2 (front of the ankle).': one sentence
     per set of marks the angles wait for ('' when every angle is computed)."""
-    by_marks: dict[tuple[int, ...], list[str]] = {}
+    by_marks: dict[tuple[int, ...], list[str]] = {}  # RESULT.json's angle keys (SPEC §3) read as words
     for angle, labels in missing.items():
-        by_marks.setdefault(tuple(sorted(int(lab) for lab in labels)), []).append(ANGLE_WORDS.get(angle, angle))
+        by_marks.setdefault(tuple(sorted(int(lab) for lab in labels)), []).append(angle.replace("_", " "))
     sentences = []
     for labels, angles in by_marks.items():
         text = f"{_joined(angles)} need{'s' * (len(angles) == 1)} {marks_named(labels)}."
