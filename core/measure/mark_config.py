@@ -349,6 +349,26 @@ class MarkConfig:
     #: points of a neighbouring disk's rim projected to outline its image (its polygon's chords
     #: fall inside the ellipse by up to r (1 - cos(π / n)): 0.02 px on a disk 17 px in radius)
     image_fit_neighbour_rim_points: int = 64
+    #: a plate on the table plates' plane (``mark_plate_image``): rounds of its face's height
+    #: from its own decoded points, ...
+    plate_image_height_rounds: int = 3
+    #: mm: ... until the height and the centre move less than this, ...
+    plate_image_height_tol_mm: float = 0.01
+    #: ... counting the pixels whose blurred light is at least this share the face's, ...
+    plate_image_face_share: float = 0.99
+    #: ... where at least this many decode (else the plane's height alone). Its thickness is
+    #: fitted (the wall's height sets where the face's rim is read), up to this many times the capture's
+    plate_image_min_face_points: int = 10
+    plate_image_max_thickness_ratio: float = 3.0
+    #: deg: the SD of one plate's face normal, where the table's plane is that one plate's (the
+    #: face's own height is then corrected by its decoded points, above; the tilt shapes the ellipse)
+    plate_image_one_plate_tilt_deg: float = 0.5
+    #: a plate so fitted is one of the kit's: its face's light at least this share of the found
+    #: table plates' (one albedo, one table; the plate nearest the foot gets 25-30 % less light)
+    plate_image_min_light_share: float = 0.5
+    #: share of the face's light the model's light may be off by (Lambert's law per plate, not per
+    #: point; the table lit linearly), in quadrature with the noise's allowance
+    plate_image_model_error: float = 0.03
 
     # ---- a plate's side wall (``mark_wall``)
     #: blurs (SD as read from the image, the pixel's width in it): the wall points fitted are

@@ -62,6 +62,7 @@ from anklescan.core.measure.mark_hypotheses import (
     with_new_regions,
 )
 from anklescan.core.measure.mark_labels import label_marks
+from anklescan.core.measure.mark_plate_image import PlateStart, table_plates_by_image
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
 from anklescan.core.measure.mark_types import (
     Blob,
@@ -108,7 +109,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     (``mark_hypotheses``), (2) each fitted once with that size as a prior, without its
     covariance, and scored in SD units (``mark_selection.fit_score``), (3) the non-overlapping
     set of seven the labels accept with the best total score (``select_marks``), and only those
-    fitted again with their covariance.
+    fitted again with their covariance; (4) in a capture of plates, the table plates those
+    seven lack fitted to their image on the found table plates' plane (``table_plates_by_image``).
     """
     image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
@@ -218,6 +220,14 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         else:
             result.rejected.append(Rejection.of(f.mark.pixel, out))
     result.rejected.extend(selection.left_out)
+    if prefer is MarkKind.PLATE and thick is not None:
+        # table plates seen too obliquely for their rims: drawn whole on the plane of those found
+        starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in refused]
+        for plate in table_plates_by_image(result.marks, starts, image, points, cal, r0, thick):
+            result.marks.append(plate)
+            result.rejected = [r for r in result.rejected
+                               if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
+                               > _radius_px(cal, plate, r0)]
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g.radius:.1f} mm ({g.n})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"

@@ -1,0 +1,532 @@
+"""A plate on a known plane fitted to its image: face, lit side wall and cast shadow drawn at once.
+
+A table plate seen at 72–80° from its normal images as a thin ellipse a few pixels across its
+short axis, and its near side wall, seen nearly face-on, images as a band as tall as the face's
+ellipse is short. Neither rim is an edge one can read: the far rim lies against table that
+decodes nothing at such a view and is about as bright as the face, and the near rim is the
+wall's. Every pixel still carries the plate's image, so the plate is drawn and fitted to them all:
+
+    I(u, v) = F (w_face + λ(φ) w_wall) + (1 − w_solid)(1 − w_shadow) B(u, v)
+
+per sample ray of each pixel (``CONFIG.image_fit_subsamples`` squared), with ``w_face`` the
+ray meeting the face (a disk of radius r in the face's plane), ``w_solid`` the ray passing
+through the plate (the segment it runs between the face's plane and the table's, T below,
+coming within r of the plate's axis) and ``w_wall`` = w_solid − w_face; ``w_shadow`` the table
+point the ray meets hidden from the projector by the plate (the segment from it towards the
+projector, up to the face's height, within r of the axis). Each is Φ of the signed distance
+(mm, carried to sample pixels through the plane's image Jacobian) over half a sample. ``F`` is
+the face's light, ``B`` the table's (linear in the pixel), both fitted linearly; the wall's light
+is the face's times Lambert's ratio λ(φ) = max(0, m·l) / (n·l) (one albedo, the projector's light
+alone in the lit image; m the wall's normal where the ray enters it, l towards the projector,
+n the plane's normal): left free, a wall 2 px tall under a 1 px blur images its height times its
+brightness, and the centre moves along the view by the trade between them. The drawing is
+blurred by a Gaussian of SD s px (fitted) and averaged to pixels.
+
+The plane is not this plate's own: round such a plate the table decodes few or none of its
+pixels, and its face a handful. It is the plane of the other table plates' faces (``FacePlane``:
+SPEC §2's three plates lie on one flat table), so only the centre in that plane and the blur are
+fitted, by robust least squares over the pixels that see the plate or the table (a decoded pixel
+off both planes sees something else). The centre's covariance is the fit's, scaled by its
+residuals, plus the plane's own uncertainty carried along the camera ray.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import ndtr
+
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.measure.mark_candidates import ellipse_pixels, noise_sigma
+from anklescan.core.measure.mark_config import CONFIG
+from anklescan.core.measure.mark_edges import face_shape
+from anklescan.core.measure.mark_types import Mark
+from anklescan.core.measure.marks_surface import local_frame
+from anklescan.core.robust import robust_sigma
+from anklescan.core.vocabulary import LABEL_KEYS, TABLE_LABEL_KEYS, MarkKind
+
+
+@dataclass(frozen=True)
+class FacePlane:
+    """The plane of the table plates' faces, from the plates found on it."""
+
+    point: np.ndarray  # (3,) a point on it, mm (the plates' mean centre)
+    normal: np.ndarray  # (3,) unit, towards the camera
+    offset_sd: float  # mm, SD of the plane along its normal at its point
+    tilt_sd: float  # rad, SD of its normal's direction
+
+    def offset_sd_at(self, x: np.ndarray) -> float:
+        """SD of the plane along its normal at world point ``x`` (its offset and its tilt)."""
+        d = float(np.linalg.norm((x - self.point) - ((x - self.point) @ self.normal) * self.normal))
+        return math.hypot(self.offset_sd, d * self.tilt_sd)
+
+
+def face_plane(plates: Sequence[Mark], camera_centre: np.ndarray) -> FacePlane:
+    """The plane through the plates' face centres whose normal is their normals' mean (of two,
+    its component along the line of their centres dropped: the centres fix that direction; of
+    three or more, the centres' own plane). Its tilt's SD is the normals' scatter (at least the
+    angle the centres' SDs allow over their span; of one plate, CONFIG.plate_image_one_plate_tilt_deg);
+    its offset's SD that of the centres along the normal, over their number."""
+    C = np.array([m.centre for m in plates], float)
+    N = np.array([m.normal if m.normal @ (camera_centre - m.centre) >= 0 else -m.normal for m in plates], float)
+    n = N.mean(axis=0)
+    if len(C) == 1:
+        n /= np.linalg.norm(n)
+        sd = math.sqrt(max(float(n @ plates[0].covariance @ n), 0.0))
+        return FacePlane(C[0], n, sd, math.radians(CONFIG.plate_image_one_plate_tilt_deg))
+    span = C - C.mean(axis=0)
+    _, _, vt = np.linalg.svd(span, full_matrices=False)
+    along = vt[0]
+    n = n - (n @ along) * along if len(C) == 2 else _plane_normal(C, n)
+    n /= np.linalg.norm(n)
+    var_n = np.array([float(n @ m.covariance @ n) for m in plates])
+    width = max(float(np.max(np.linalg.norm(span, axis=1))), 1e-6)
+    scatter = float(np.sqrt(np.mean(np.sum((N - n) ** 2, axis=1))))
+    tilt = max(scatter, math.sqrt(2.0 * float(var_n.mean())) / width)
+    return FacePlane(C.mean(axis=0), n, math.sqrt(float(var_n.mean()) / len(C)), tilt)
+
+
+def _plane_normal(C: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """The least-squares normal of three or more points, on ``towards``' side."""
+    _, _, vt = np.linalg.svd(C - C.mean(axis=0))
+    n: np.ndarray = vt[-1] if vt[-1] @ towards >= 0 else -vt[-1]
+    return n
+
+
+@dataclass(frozen=True)
+class PlateStart:
+    """Where a hypothesis no fit took may be a plate: its camera pixel and, where its blob
+    decodes, its median world point (mm)."""
+
+    pixel: tuple[float, float]
+    point: np.ndarray | None
+
+
+def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], image: np.ndarray,
+                          points: np.ndarray, cal: Calibration, radius_mm: float, thickness_mm: float) -> list[Mark]:
+    """The table plates the search missed, where the marks found hold one or two plates facing
+    up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z) whose normals agree within
+    CONFIG.table_normal_spread_deg: each of ``starts`` (the hypotheses no fit took) fitted on
+    those plates' plane (``fit_plate_image``), unless it lies on a found mark, its blob's decoded
+    point lies off the plate's height over the table (by CONFIG.image_fit_off_surface_mm: it is
+    on the leg), or a plate fitted from another start covers its pixel. Of the fits that pass
+    the sticker image fit's checks (residuals within CONFIG.image_fit_max_excess of the noise,
+    a contrast of CONFIG.image_fit_min_contrast_z SDs, CONFIG.min_seen_share of the face seen)
+    and lie on no found mark, the best (least residuals) that do not overlap, as many as the
+    table lacks."""
+    up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is MarkKind.PLATE]
+    need = len(TABLE_LABEL_KEYS) - len(up)
+    if not 0 < need < len(TABLE_LABEL_KEYS) or len(marks) >= len(LABEL_KEYS):
+        return []
+    spread = max(math.degrees(math.acos(min(abs(float(p.normal @ q.normal)), 1.0))) for p in up for q in up)
+    if spread > CONFIG.table_normal_spread_deg:
+        return []
+    plane = face_plane(up, cal.camera.center)
+    o = cal.camera.center
+    passed: list[PlateImageFit] = []
+    tried: list[PlateImageFit] = []
+    level = _face_level(image, cal, up, radius_mm)
+    for st in starts:
+        # a table plate's face decodes where it is lit: a blob with no decoded point on the
+        # table's band is a shadow, the dark past an outline, or on the leg
+        if st.point is None or not _on_or_between(st.point, plane, thickness_mm):
+            continue
+        d = cal.camera.rays(np.array([st.pixel], float))[0]
+        if d @ plane.normal >= 0.0:
+            continue
+        start = o + float((plane.point - o) @ plane.normal / (d @ plane.normal)) * d
+        covered = [m.centre for m in marks] + [t.centre for t in tried]
+        if _on_a_mark(start, marks, radius_mm) or any(_in_image_of(cal, c, st.pixel, radius_mm, plane.normal)
+                                                       for c in covered):
+            continue
+        fit = fit_plate_image(image, points, cal, plane, start, radius_mm, thickness_mm)
+        if fit is None:
+            continue
+        tried.append(fit)
+        if _passes(fit, level) and not _on_a_mark(fit.centre, marks, radius_mm):
+            passed.append(fit)
+    out: list[Mark] = []
+    for fit in sorted(passed, key=lambda f: f.excess):
+        if len(out) < need and not _on_a_mark(fit.centre, out, radius_mm):
+            edge_rms = CONFIG.max_circle_rms_mm * max(fit.excess, 0.0) / CONFIG.image_fit_max_excess
+            out.append(Mark(fit.centre, plane.normal.copy(), radius_mm, edge_rms, fit.face_rms, fit.covariance,
+                            fit.pixel, 0, fit.n_pixels, view_deg=fit.view_deg, light_deg=fit.light_deg,
+                            kind=MarkKind.PLATE, step_mm=fit.thickness_mm))
+    return out
+
+
+def _face_level(image: np.ndarray, cal: Calibration, plates: Sequence[Mark], radius_mm: float) -> float:
+    """The median lit light on the found plates' faces (within CONFIG.face_span_fraction of
+    their images): the kit's one albedo on the same table, lit alike."""
+    values = []
+    for m in plates:
+        shape = face_shape(cal, m.centre, m.normal, radius_mm)
+        if shape is not None:
+            uv = ellipse_pixels(shape, CONFIG.face_span_fraction, image.shape)
+            values.append(image[uv[:, 1], uv[:, 0]])
+    v = np.concatenate(values) if values else np.zeros(0)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if len(v) else 0.0
+
+
+def _passes(fit: PlateImageFit, level: float) -> bool:
+    """A plate of the kit's: its face's light at least CONFIG.plate_image_min_light_share of
+    the found plates' (``level``), a contrast of CONFIG.image_fit_min_contrast_z SDs,
+    CONFIG.min_seen_share of its face seen, its face's decoded points on the plane (their
+    median within 3 SD of the plane's height there), and residuals within the noise and the
+    model's own error (CONFIG.image_fit_max_excess of the noise, and
+    CONFIG.plate_image_model_error of the face's light, in quadrature: the light is modelled to
+    a few per cent, Lambert's law per plate and a table lit linearly, which a bright face shows
+    above the noise)."""
+    return (fit.face_light >= CONFIG.plate_image_min_light_share * level
+            and fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
+            and fit.face_on_plane and _within_model(fit))
+
+
+def _within_model(fit: PlateImageFit) -> bool:
+    """Residuals within the noise and the model's error (``_passes``)."""
+    allowed = math.hypot(1.0 + CONFIG.image_fit_max_excess, CONFIG.plate_image_model_error * fit.face_light / fit.noise)
+    return 1.0 + fit.excess <= allowed
+
+
+def _on_or_between(x: np.ndarray, plane: FacePlane, thickness_mm: float) -> bool:
+    """``x`` on or between the face's plane and the table's (CONFIG.image_fit_off_surface_mm)."""
+    return bool(_sees_plate_or_table(np.asarray(x, float)[None], plane, thickness_mm)[0])
+
+
+def _on_a_mark(x: np.ndarray, marks: Sequence[Mark], radius_mm: float) -> bool:
+    """``x`` within CONFIG.overlap_radii radii of a mark's centre: a view of that disk."""
+    return any(float(np.linalg.norm(x - m.centre)) < CONFIG.overlap_radii * radius_mm for m in marks)
+
+
+def _in_image_of(cal: Calibration, centre: np.ndarray, uv: tuple[float, float], radius_mm: float,
+                 normal: np.ndarray) -> bool:
+    """The pixel ``uv`` within the longest radius (pixels) of the image of a plate at ``centre``
+    on the table's plane: a start on a mark found, or one a fit has tried."""
+    F = local_frame(centre, normal)
+    ends = cal.camera.project(np.vstack([centre, centre + radius_mm * np.array([F[0], -F[0], F[1], -F[1]])]))
+    semi = float(np.max(np.linalg.norm(ends[1:] - ends[0], axis=1)))
+    return bool(np.linalg.norm(np.asarray(uv) - ends[0]) <= semi)
+
+
+@dataclass(frozen=True)
+class PlateImageFit:
+    """A plate's face centre fitted to its image on a known plane (``fit_plate_image``)."""
+
+    centre: np.ndarray  # (3,) world mm, on the plane
+    covariance: np.ndarray  # (3, 3) mm², fit + plane + CONFIG.sd_floor_mm
+    pixel: tuple[float, float]  # its camera pixel
+    blur_px: float  # the fitted blur's SD
+    thickness_mm: float  # the fitted thickness (the wall's height)
+    excess: float  # robust RMS residual over the image's noise, less one
+    contrast_z: float  # the face's light over the table's, in the fit's SDs
+    n_pixels: int  # pixels fitted
+    seen: float  # share of the face's pixels fitted (the rest see another surface)
+    face_light: float  # the face's fitted light (lit image units)
+    noise: float  # the window's per-pixel noise SD
+    face_on_plane: bool  # at least CONFIG.plate_image_min_face_points of its face decode, on the plane
+    face_rms: float  # mm, the face's decoded points about its plane (0 where none decode)
+    view_deg: float  # between the normal and the camera ray
+    light_deg: float  # between the normal and the projector ray
+
+
+@dataclass(frozen=True, eq=False)
+class _Rays:
+    """The padded window's sample rays, in the face plane's 2-D frame as complex numbers x + iy
+    (elementwise arithmetic: reductions over a last axis of two cost most of the fit's time)."""
+
+    a: np.ndarray  # (Hs, Ws) complex: where each sample's ray meets the face's plane, mm
+    w: np.ndarray  # (Hs, Ws) complex: its in-plane move per mm down to the table's plane
+    jx: np.ndarray  # (Hs, Ws) complex: d a_x / du + i d a_x / dv, per sample
+    jy: np.ndarray  # (Hs, Ws) complex: d a_y / du + i d a_y / dv
+    shadow_step: complex  # in-plane move per mm up towards the projector
+    light_2d: complex  # the projector's direction's in-plane part
+    n_dot_l: float
+
+
+def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane,
+                    start: np.ndarray, radius_mm: float, thickness_mm: float) -> PlateImageFit | None:
+    """The plate of radius ``radius_mm`` and thickness ``thickness_mm`` whose face lies on
+    ``plane``, fitted to ``image`` (the lit image) from the world point ``start`` (mm, moved
+    onto the plane). ``points``: (H, W, 3) decoded world points per pixel (those off both the
+    face's and the table's plane are left out; those on the fitted face set its height, below).
+    None where the window leaves the image, too few pixels are left, or the fit does not
+    converge or moves beyond CONFIG.image_fit_reach radii of the start in the image (``_near_start``).
+
+    The plane's height at the plate is the plane's, corrected by the face's own decoded points
+    (the pixels whose light is the face's alone, ``CONFIG.plate_image_face_share``), each
+    weighted by its variance: two plates' normals fix the plane's tilt to a tenth of a degree,
+    which is 0.4 mm of height 200 mm away and 1.6 mm along a ray at 76°."""
+    n = plane.normal
+    start = np.asarray(start, float)
+    var_plane = plane.offset_sd_at(start) ** 2
+    offset, var_offset, var_h_last, h_last = 0.0, var_plane, 0.0, math.inf
+    heights = np.zeros(0)
+    out: PlateImageFit | None = None
+    for _ in range(CONFIG.plate_image_height_rounds):
+        here = FacePlane(plane.point + offset * n, n, plane.offset_sd, plane.tilt_sd)
+        fitted = _fit_on_plane(image, points, cal, here, out.centre if out else start, radius_mm, thickness_mm,
+                               var_offset)
+        if fitted is None:
+            return None
+        moved = float("inf") if out is None else float(np.linalg.norm(fitted[0].centre - out.centre))
+        out, heights = fitted
+        if not _within_model(out):
+            break  # its height would not make it match: the rounds refine a fit that does
+        if len(heights) >= CONFIG.plate_image_min_face_points:
+            h = float(np.median(heights)) + offset
+            h_last = h
+            # the median's SD: 1.2533 σ / √N
+            var_h = max((1.2533 * robust_sigma(heights)) ** 2 / len(heights), 1e-12)
+            var_h_last = var_h
+            var_offset = 1.0 / (1.0 / var_h + 1.0 / var_plane)
+            moved = max(moved, abs(h * var_offset / var_h - offset))
+            offset = h * var_offset / var_h
+        if moved < CONFIG.plate_image_height_tol_mm:
+            break
+    if out is None or not _near_start(cal, out, start, plane.normal, radius_mm):
+        return None
+    # the face's decoded points' height over the found plates' plane, against both SDs
+    return replace(out, face_on_plane=abs(h_last) <= 3.0 * math.sqrt(var_plane + var_h_last))
+
+
+def _near_start(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal: np.ndarray,
+                radius_mm: float) -> bool:
+    """The fitted plate's image within CONFIG.image_fit_reach of its radii (its image's longest,
+    pixels) of the start's: at a grazing view a pixel across the ellipse spans millimetres, and
+    a start a few pixels off (a blob of face, wall and shadow) is a radius off in the plane."""
+    F = local_frame(fit.centre, normal)
+    rim = cal.camera.project(fit.centre + radius_mm * np.array([F[0], -F[0], F[1], -F[1]]))
+    uv = cal.camera.project(np.vstack([fit.centre, start]))
+    semi = float(np.max(np.linalg.norm(rim - uv[0], axis=1)))
+    return bool(np.linalg.norm(uv[1] - uv[0]) <= CONFIG.image_fit_reach * semi)
+
+
+def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
+                  radius_mm: float, thickness_mm: float,
+                  var_offset: float) -> tuple[PlateImageFit, np.ndarray] | None:
+    """``fit_plate_image`` on one plane (of height variance ``var_offset`` at the plate), and
+    the heights over it of the decoded points on the fitted face."""
+    F = local_frame(plane.point, plane.normal)
+    E, n = F[:2], F[2]
+    start = start - ((start - plane.point) @ n) * n
+    f = CONFIG.image_fit_subsamples
+    pad = int(math.ceil(3.0 * CONFIG.image_fit_blur_range_px[1]))
+    window = _window(image.shape, cal, plane, start, radius_mm, thickness_mm, pad)
+    if window is None:
+        return None
+    (v0, v1), (u0, u1) = window
+    rays = _sample_rays(cal, plane, F, (v0 - pad, v1 + pad), (u0 - pad, u1 + pad), f, start)
+    crop = np.asarray(image[v0:v1, u0:u1], np.float64)
+    P = points[v0:v1, u0:u1].reshape(-1, 3).astype(np.float64)
+    keep = _sees_plate_or_table(P, plane, thickness_mm).reshape(crop.shape) & np.isfinite(crop)
+    if int(keep.sum()) < CONFIG.min_interior_points:
+        return None
+    noise = noise_sigma(np.nan_to_num(crop, nan=float(np.nanmedian(crop))).astype(np.float32))
+    noise = max(noise, 1e-6)
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    du, dv = (uu - uu.mean()) / max(u1 - u0, 1), (vv - vv.mean()) / max(v1 - v0, 1)
+    c0 = (start - plane.point) @ E.T
+    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv)
+    lo, hi = CONFIG.image_fit_blur_range_px
+    p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm])
+    t_hi = CONFIG.plate_image_max_thickness_ratio * thickness_mm
+    try:
+        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
+                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2]),
+                            bounds=([-np.inf, -np.inf, math.log(lo), 0.0], [np.inf, np.inf, math.log(hi), t_hi]),
+                            diff_step=np.full(4, 1e-3), max_nfev=CONFIG.image_fit_iterations * 5)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    c2 = sol.x[:2]
+    if not np.isfinite(sol.x).all():
+        return None
+    cov2 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)
+    if cov2 is None:
+        return None
+    r = model.residuals(sol.x)
+    sd = robust_sigma(r, 0.0)
+    coef = model.last_coef
+    world = plane.point + c2 @ E
+    ray = (world - cal.camera.center) / np.linalg.norm(world - cal.camera.center)
+    along = ray / abs(float(ray @ n))
+    cov3 = E.T @ cov2 @ E + var_offset * np.outer(along, along) + CONFIG.sd_floor_mm**2 * np.eye(3)
+    light = cal.projector.center - world
+    light /= np.linalg.norm(light)
+    uv = cal.camera.project(world[None])[0]
+    face_sd = model.coef_sd(sd)
+    share = model.face_share(sol.x)
+    on_face = (share >= CONFIG.plate_image_face_share) & np.isfinite(P[:, 0])
+    heights = (P[on_face] - plane.point) @ n
+    face = share >= 0.5
+    seen = float(keep.ravel()[face].mean()) if face.any() else 0.0
+    fit = PlateImageFit(world, cov3, (float(uv[0]), float(uv[1])), float(math.exp(sol.x[2])), float(sol.x[3]),
+                        sd / noise - 1.0,
+                        float((coef[0] - coef[1]) / max(face_sd, 1e-12)), int(keep.sum()), seen, float(coef[0]),
+                        noise, False,
+                        robust_sigma(heights) if len(heights) > 1 else 0.0,
+                        math.degrees(math.acos(min(abs(float(ray @ n)), 1.0))),
+                        math.degrees(math.acos(min(abs(float(light @ n)), 1.0))))
+    return fit, heights
+
+
+def _window(shape: tuple[int, ...], cal: Calibration, plane: FacePlane, centre: np.ndarray, radius_mm: float,
+            thickness_mm: float, pad: int) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """Rows and columns of the pixels round the plate's image (face and base rims out to
+    CONFIG.image_fit_reach + 1 radii), with room for the blur's ``pad`` inside the image."""
+    F = local_frame(plane.point, plane.normal)
+    t = np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)
+    reach = (CONFIG.image_fit_reach + 1.0) * radius_mm
+    ring = centre + reach * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    uv = cal.camera.project(np.vstack([ring, ring - thickness_mm * F[2]]))
+    if not np.isfinite(uv).all():
+        return None
+    m = CONFIG.image_fit_margin_px
+    u0, v0 = np.floor(uv.min(axis=0)).astype(int) - m
+    u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + m + 1
+    H, W = shape[:2]
+    if u0 - pad < 0 or v0 - pad < 0 or u1 + pad > W or v1 + pad > H:
+        return None
+    return (int(v0), int(v1)), (int(u0), int(u1))
+
+
+def _sample_rays(cal: Calibration, plane: FacePlane, F: np.ndarray, rows: tuple[int, int], cols: tuple[int, int],
+                 f: int, centre: np.ndarray) -> _Rays:
+    """Each sample's ray cut with the face's plane (``_Rays``)."""
+    E, n = F[:2], F[2]
+    offs = (np.arange(f) + 0.5) / f - 0.5
+    us = (np.arange(cols[0], cols[1])[:, None] + offs).ravel()
+    vs = (np.arange(rows[0], rows[1])[:, None] + offs).ravel()
+    uu, vv = np.meshgrid(us, vs)
+    D = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()]))
+    o = cal.camera.center
+    dn = D @ n
+    t = ((plane.point - o) @ n) / dn
+    Q = o + t[:, None] * D
+    a2 = ((Q - plane.point) @ E.T).reshape(len(vs), len(us), 2)
+    w2 = (-(D @ E.T) / dn[:, None]).reshape(len(vs), len(us), 2)
+    jx, jy = (np.gradient(a2[..., k], axis=1) + 1j * np.gradient(a2[..., k], axis=0) for k in range(2))
+    light = cal.projector.center - centre
+    light /= np.linalg.norm(light)
+    nl = float(light @ n)
+    l2 = light @ E.T
+    return _Rays(a2[..., 0] + 1j * a2[..., 1], w2[..., 0] + 1j * w2[..., 1], jx, jy,
+                 complex(l2[0], l2[1]) / nl, complex(l2[0], l2[1]), nl)
+
+
+def _sees_plate_or_table(P: np.ndarray, plane: FacePlane, thickness_mm: float) -> np.ndarray:
+    """(N,) of the points ``P`` (N, 3): undecoded, or decoded on or between the face's plane and the table's."""
+    h = (P - plane.point) @ plane.normal
+    tol = CONFIG.image_fit_off_surface_mm
+    out: np.ndarray = ~np.isfinite(h) | ((h >= -thickness_mm - tol) & (h <= tol))
+    return out
+
+
+class _Model:
+    """The drawn plate's pixels for one centre and blur, its light solved linearly."""
+
+    def __init__(self, rays: _Rays, radius_mm: float, f: int, pad: int, keep: np.ndarray,
+                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray):
+        self.rays, self.r, self.f, self.pad = rays, radius_mm, f, pad
+        self.keep, self.lum = keep.ravel(), crop.ravel()
+        self.du, self.dv = du.ravel(), dv.ravel()
+        self.last_coef = np.zeros(4)
+        self._last_A: np.ndarray | None = None
+
+    def _signed(self, p: np.ndarray, mm: np.ndarray) -> np.ndarray:
+        """``mm`` (r minus a distance from the axis at in-plane offset ``p``, complex) in samples."""
+        unit = p / np.maximum(np.abs(p), 1e-9)
+        g = unit.real * self.rays.jx + unit.imag * self.rays.jy
+        out: np.ndarray = mm / np.maximum(np.abs(g), 1e-9)
+        return out
+
+    def _occupancy(self, c: complex, T: float) -> tuple[np.ndarray, np.ndarray]:
+        """(plate light per unit face light, table's visible share) per sample, the plate ``T`` mm thick."""
+        R, r = self.rays, self.r
+        T = max(T, 1e-6)
+        a = R.a - c
+        wT = T * R.w
+        A2 = wT.real**2 + wT.imag**2
+        B2 = (a * wT.conjugate()).real
+        near = a + np.clip(-B2 / np.maximum(A2, 1e-12), 0.0, 1.0) * wT
+        rho = np.abs(a)
+        h = 0.5  # Φ(d / (half a sample))
+        face = ndtr(self._signed(a, r - rho) / h)
+        solid = ndtr(self._signed(near, r - np.abs(near)) / h)
+        wall = np.maximum(solid - face, 0.0)
+        # where the ray enters the wall: the segment's first point at distance r from the axis
+        disc = np.maximum(B2 * B2 - A2 * (rho * rho - r * r), 0.0)
+        entry = a + np.clip((-B2 - np.sqrt(disc)) / np.maximum(A2, 1e-12), 0.0, 1.0) * wT
+        m = entry / np.maximum(np.abs(entry), 1e-9)
+        lam = np.maximum((m * R.light_2d.conjugate()).real, 0.0) / R.n_dot_l
+        b = a + wT
+        up = T * R.shadow_step
+        sh = b + np.clip(-(b * up.conjugate()).real / max(abs(up) ** 2, 1e-12), 0.0, 1.0) * up
+        shadow = ndtr(self._signed(sh, r - np.abs(sh)) / h)
+        return face + lam * wall, (1.0 - solid) * (1.0 - shadow)
+
+    def _pixels(self, sample: np.ndarray, blur: float) -> np.ndarray:
+        """Blurred by ``blur`` px, averaged to pixels, cropped to the window; flat."""
+        f, pad = self.f, self.pad
+        img = cv2.GaussianBlur(sample, (0, 0), blur * f)
+        Hs, Ws = img.shape
+        px = img.reshape(Hs // f, f, Ws // f, f).mean(axis=(1, 3))
+        out: np.ndarray = px[pad:-pad, pad:-pad].ravel()
+        return out
+
+    def face_share(self, p: np.ndarray) -> np.ndarray:
+        """Per pixel (flat), the share of its blurred light that is the face's."""
+        a = self.rays.a - complex(p[0], p[1])
+        face = ndtr(self._signed(a, self.r - np.abs(a)) / 0.5)
+        return self._pixels(face, math.exp(p[2]))
+
+    def design(self, p: np.ndarray) -> np.ndarray:
+        plate, table = self._occupancy(complex(p[0], p[1]), float(p[3]))
+        blur = math.exp(p[2])
+        P, Tb = self._pixels(plate, blur), self._pixels(table, blur)
+        return np.column_stack([P, Tb, Tb * self.du, Tb * self.dv])
+
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        A = self.design(p)[self.keep]
+        y = self.lum[self.keep]
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        self.last_coef, self._last_A = coef, A
+        out: np.ndarray = A @ coef - y
+        return out
+
+    def covariance(self, p: np.ndarray, huber: float) -> np.ndarray | None:
+        """(2, 2) the centre's covariance at ``p``, with the blur and the thickness it trades
+        with: central differences (least_squares' own Jacobian is of its robust loss, and a
+        parameter at a round value can get a zero column), Huber weights, the residuals' robust
+        SD. None where singular."""
+        r = self.residuals(p)
+        w = np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-12))
+        steps = np.array([0.01, 0.01, 0.01, 0.01])
+        cols = []
+        for k, h in enumerate(steps):
+            e = np.zeros_like(p)
+            e[k] = h
+            cols.append((self.residuals(p + e) - self.residuals(p - e)) / (2.0 * h))
+        J = np.column_stack(cols)
+        self.residuals(p)  # leave the solution's light as the last solved
+        try:
+            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J))[:2, :2] * robust_sigma(r, 0.0) ** 2
+        except np.linalg.LinAlgError:
+            return None
+        return cov if np.isfinite(cov).all() else None
+
+    def coef_sd(self, sd: float) -> float:
+        """SD of the face's light less the table's (first two coefficients), at residual SD ``sd``."""
+        if self._last_A is None:
+            return float("inf")
+        try:
+            cov = np.linalg.inv(self._last_A.T @ self._last_A) * sd**2
+        except np.linalg.LinAlgError:
+            return float("inf")
+        g = np.array([1.0, -1.0, 0.0, 0.0])
+        return float(math.sqrt(max(float(g @ cov @ g), 0.0)))

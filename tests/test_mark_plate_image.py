@@ -1,0 +1,156 @@
+"""A table plate seen at a grazing view, fitted to its image on the other plates' plane
+(``core/measure/mark_plate_image.py``): against an independent ray tracer of one plate, and
+the plane those plates give. The whole chain on simulated captures is the case table's
+(tests/data/mark_cases.csv, "drawn 1419 full")."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from anklescan.core.calibration.model.file import Calibration
+from anklescan.core.measure.mark_plate_image import FacePlane, PlateStart, face_plane, fit_plate_image, table_plates_by_image
+from anklescan.core.measure.mark_types import Mark
+from anklescan.core.measure.marks_surface import local_frame
+from anklescan.hardware.simrig import SimRig
+
+
+def _tilted_plane(cal: Calibration, view_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A face centre 900 mm out along the camera's central ray and a normal ``view_deg`` from
+    the ray back to the camera, tilted towards the projector (so it is lit)."""
+    W, H = cal.camera.width, cal.camera.height
+    o = cal.camera.center
+    X = o + 900.0 * cal.camera.rays(np.array([[W / 2, H / 2 + 150]], float))[0]
+    v = (o - X) / np.linalg.norm(o - X)
+    to_proj = cal.projector.center - X
+    perp = np.cross(v, np.cross(to_proj, v))
+    perp = perp / np.linalg.norm(perp) if np.linalg.norm(perp) > 1e-9 else local_frame(X, v)[0]
+    a = math.radians(view_deg)
+    return X, math.cos(a) * v + math.sin(a) * perp
+
+
+def _traced(cal: Calibration, X: np.ndarray, n: np.ndarray, r: float, T: float, *, blur: float, noise: float,
+            seed: int) -> np.ndarray:
+    """The lit image of a plate (face centre ``X``, normal ``n``, radius ``r``, thickness ``T``)
+    on its table, by exact ray hits: face, side wall (cylinder), or table (dark where the
+    plate hides the projector), each Lambertian towards the projector per point (albedo 0.9 on
+    the plate, 0.45 on the table), 6 × 6 samples a pixel, a Gaussian blur, Gaussian noise."""
+    W, H = cal.camera.width, cal.camera.height
+    out: np.ndarray = np.zeros((H, W), np.float64)
+    F = local_frame(X, n)
+    ring = X + 2.5 * r * np.stack([np.cos(t) * F[0] + np.sin(t) * F[1] for t in np.linspace(0, 2 * np.pi, 36)])
+    uv = cal.camera.project(ring)
+    u0, v0 = np.floor(uv.min(axis=0)).astype(int) - 30  # past any window the fit reads
+    u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + 30
+    k = 6
+    off = (np.arange(k) + 0.5) / k - 0.5
+    us = (np.arange(u0, u1)[:, None] + off).ravel()
+    vs = (np.arange(v0, v1)[:, None] + off).ravel()
+    uu, vv = np.meshgrid(us, vs)
+    d = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()]))
+    o, P = cal.camera.center, cal.projector.center
+
+    def lambert(q: np.ndarray, m: np.ndarray) -> np.ndarray:
+        lt = (P - q) / np.linalg.norm(P - q, axis=1, keepdims=True)
+        out: np.ndarray = np.maximum(np.sum(lt * m, axis=1), 0.0)
+        return out
+
+    shade = np.zeros(len(d))
+    tf = ((X - o) @ n) / (d @ n)
+    qf = o + tf[:, None] * d
+    face = np.linalg.norm(qf - X, axis=1) <= r
+    shade[face] = 0.9 * lambert(qf[face], np.broadcast_to(n, qf[face].shape))
+    # the side wall: the ray against the cylinder round the axis, between the table and the face
+    dp = d - (d @ n)[:, None] * n
+    wp = (o - X) - ((o - X) @ n) * n
+    A, B, C = np.sum(dp * dp, axis=1), 2 * np.sum(dp * wp, axis=1), float(wp @ wp) - r * r
+    disc = B * B - 4 * A * C
+    tw = (-B - np.sqrt(np.maximum(disc, 0.0))) / (2 * A)
+    qw = o + tw[:, None] * d
+    hw = (qw - X) @ n
+    wall = ~face & (disc > 0) & (hw <= 0) & (hw >= -T)
+    m = (qw[wall] - X) - (hw[wall])[:, None] * n
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    shade[wall] = 0.9 * lambert(qw[wall], m)
+    table = ~face & ~wall
+    base = X - T * n
+    tt = ((base - o) @ n) / (d[table] @ n)
+    qt = o + tt[:, None] * d[table]
+    lit = lambert(qt, np.broadcast_to(n, qt.shape)) * 0.45
+    # hidden from the projector: the segment towards it, up to the face's height, passes the axis within r
+    toward = P - qt
+    s = np.linspace(0.0, 1.0, 64)[None, :, None] * (T / (toward @ n))[:, None, None] * toward[:, None, :]
+    up = qt[:, None, :] + s - base
+    radial = up - (up @ n)[..., None] * n
+    lit[np.any(np.linalg.norm(radial, axis=2) < r, axis=1)] = 0.0
+    shade[table] = lit
+    img = shade.reshape(len(vs) // k, k, len(us) // k, k).mean(axis=(1, 3))
+    out[v0:v1, u0:u1] = img
+    out = cv2.GaussianBlur(out, (0, 0), blur)
+    rng = np.random.default_rng(seed)
+    return (out + rng.normal(0.0, noise, out.shape)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def cal() -> Calibration:
+    return SimRig(scale=1.0).true_calibration()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("view_deg", "r", "T"), [(75.0, 8.0, 1.9), (78.0, 11.85, 1.3)])
+def test_plate_seen_at_a_grazing_view_is_placed_by_its_image(cal: Calibration, view_deg: float, r: float,
+                                                              T: float) -> None:
+    X, n = _tilted_plane(cal, view_deg)
+    image = _traced(cal, X, n, r, T, blur=1.0, noise=0.01, seed=int(view_deg))
+    points = np.full(image.shape + (3,), np.nan, np.float32)  # a table at such a view decodes nothing round it
+    plane = FacePlane(X + 40.0 * local_frame(X, n)[0], n, 0.05, 1e-4)
+    F = local_frame(X, n)
+    start = X + 4.0 * F[0] - 3.0 * F[1]  # a blob's centroid is millimetres off at such a view
+    fit = fit_plate_image(image, points, cal, plane, start, r, 1.5)
+    assert fit is not None
+    err = float(np.linalg.norm(fit.centre - X))
+    assert err < 0.1, err
+    assert abs(fit.thickness_mm - T) < 0.3
+    assert fit.excess < 0.5 and fit.seen == 1.0
+    assert abs(fit.view_deg - view_deg) < 1.0
+    # its SD is honest: the plane's offset (0.05 mm) alone moves it 0.05 / cos(view) along the ray
+    sd_along = math.sqrt(float(np.max(np.linalg.eigvalsh(fit.covariance))))
+    assert sd_along > 0.05 / math.cos(math.radians(view_deg)) and err < 3 * sd_along
+
+
+def _plate(centre: npt.ArrayLike, normal: npt.ArrayLike, sd: float = 0.05) -> Mark:
+    n = np.asarray(normal, float)
+    return Mark(np.asarray(centre, float), n / np.linalg.norm(n), 8.0, 0.05, 0.05,
+                sd**2 * np.eye(3), (0.0, 0.0), 20, 50)
+
+
+def test_face_plane_of_two_plates_keeps_their_line_and_their_normals() -> None:
+    n = np.array([0.1, -0.26, 0.96])
+    n /= np.linalg.norm(n)
+    F = local_frame(np.zeros(3), n)
+    c1, c2 = 100.0 * F[0], -60.0 * F[0] + 30.0 * F[1]
+    tilt = 0.01 * np.cross(n, F[0])
+    plane = face_plane([_plate(c1, n + tilt), _plate(c2, n - tilt)], np.array([0.0, -2000.0, 800.0]))
+    assert abs(plane.normal @ (c2 - c1)) < 1e-9  # the centres lie in it
+    assert math.degrees(math.acos(min(float(plane.normal @ n), 1.0))) < 0.05
+    assert np.allclose(plane.point, 0.5 * (c1 + c2))
+    # farther from the plates the plane's height is less sure
+    assert plane.offset_sd_at(300.0 * F[1]) > plane.offset_sd_at(plane.point) == pytest.approx(0.05 / math.sqrt(2))
+
+
+def test_no_table_plates_without_one_found_or_one_table(cal: Calibration) -> None:
+    image = np.zeros((cal.camera.height, cal.camera.width), np.float32)
+    points = np.full(image.shape + (3,), np.nan, np.float32)
+    up, side = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    start = [PlateStart((800.0, 600.0), None)]
+    none_up = [_plate([0, 0, 0], side), _plate([0, 100, 0], side)]
+    assert table_plates_by_image(none_up, start, image, points, cal, 8.0, 1.5) == []
+    crossed = [_plate([0, 0, 0], up), _plate([100, 0, 0], [0.0, 0.3, 0.95])]  # 17° apart: not one table
+    assert table_plates_by_image(crossed, start, image, points, cal, 8.0, 1.5) == []
+    # a blob whose decoded points stand off the table (the leg) is not fitted as a table plate
+    on_leg = [PlateStart((800.0, 600.0), np.array([0.0, 0.0, 60.0]))]
+    assert table_plates_by_image([_plate([0, 0, 0], up)], on_leg, image, points, cal, 8.0, 1.5) == []
