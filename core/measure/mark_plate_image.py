@@ -67,11 +67,11 @@ class FacePlane:
 
 
 def face_plane(plates: Sequence[Mark], camera_centre: np.ndarray) -> FacePlane:
-    """The plane through the plates' face centres whose normal is their normals' mean (of two,
-    its component along the line of their centres dropped: the centres fix that direction; of
-    three or more, the centres' own plane). Its tilt's SD is the normals' scatter (at least the
-    angle the centres' SDs allow over their span; of one plate, CONFIG.plate_image_one_plate_tilt_deg);
-    its offset's SD that of the centres along the normal, over their number."""
+    """The plane of one or two plates' faces: through their centres, its normal their normals'
+    mean (of two, its component along the line of their centres dropped: the centres fix that
+    direction). Its tilt's SD is the normals' scatter (at least the angle the centres' SDs
+    allow over their span; of one plate, CONFIG.plate_image_one_plate_tilt_deg); its offset's
+    SD that of the centres along the normal, over their number."""
     C = np.array([m.centre for m in plates], float)
     N = np.array([m.normal if m.normal @ (camera_centre - m.centre) >= 0 else -m.normal for m in plates], float)
     n = N.mean(axis=0)
@@ -80,22 +80,14 @@ def face_plane(plates: Sequence[Mark], camera_centre: np.ndarray) -> FacePlane:
         sd = math.sqrt(max(float(n @ plates[0].covariance @ n), 0.0))
         return FacePlane(C[0], n, sd, math.radians(CONFIG.plate_image_one_plate_tilt_deg))
     span = C - C.mean(axis=0)
-    _, _, vt = np.linalg.svd(span, full_matrices=False)
-    along = vt[0]
-    n = n - (n @ along) * along if len(C) == 2 else _plane_normal(C, n)
+    along = (C[1] - C[0]) / np.linalg.norm(C[1] - C[0])
+    n = n - (n @ along) * along
     n /= np.linalg.norm(n)
     var_n = np.array([float(n @ m.covariance @ n) for m in plates])
     width = max(float(np.max(np.linalg.norm(span, axis=1))), 1e-6)
     scatter = float(np.sqrt(np.mean(np.sum((N - n) ** 2, axis=1))))
     tilt = max(scatter, math.sqrt(2.0 * float(var_n.mean())) / width)
     return FacePlane(C.mean(axis=0), n, math.sqrt(float(var_n.mean()) / len(C)), tilt)
-
-
-def _plane_normal(C: np.ndarray, towards: np.ndarray) -> np.ndarray:
-    """The least-squares normal of three or more points, on ``towards``' side."""
-    _, _, vt = np.linalg.svd(C - C.mean(axis=0))
-    n: np.ndarray = vt[-1] if vt[-1] @ towards >= 0 else -vt[-1]
-    return n
 
 
 @dataclass(frozen=True)
@@ -112,13 +104,11 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     """The table plates the search missed, where the marks found hold one or two plates facing
     up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z) whose normals agree within
     CONFIG.table_normal_spread_deg: each of ``starts`` (the hypotheses no fit took) fitted on
-    those plates' plane (``fit_plate_image``), unless it lies on a found mark, its blob's decoded
-    point lies off the plate's height over the table (by CONFIG.image_fit_off_surface_mm: it is
-    on the leg), or a plate fitted from another start covers its pixel. Of the fits that pass
-    the sticker image fit's checks (residuals within CONFIG.image_fit_max_excess of the noise,
-    a contrast of CONFIG.image_fit_min_contrast_z SDs, CONFIG.min_seen_share of the face seen)
-    and lie on no found mark, the best (least residuals) that do not overlap, as many as the
-    table lacks."""
+    those plates' plane (``fit_plate_image``), unless it lies on a found mark, its blob has no
+    decoded point on the plate's height over the table (by CONFIG.image_fit_off_surface_mm), or
+    a plate fitted from another start covers its pixel. Of the fits that are one of the kit's
+    plates (``_passes``) and lie on no found mark, the best (least residuals) that do not
+    overlap, as many as the table lacks."""
     up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is MarkKind.PLATE]
     need = len(TABLE_LABEL_KEYS) - len(up)
     if not 0 < need < len(TABLE_LABEL_KEYS) or len(marks) >= len(LABEL_KEYS):
@@ -208,10 +198,16 @@ def _in_image_of(cal: Calibration, centre: np.ndarray, uv: tuple[float, float], 
                  normal: np.ndarray) -> bool:
     """The pixel ``uv`` within the longest radius (pixels) of the image of a plate at ``centre``
     on the table's plane: a start on a mark found, or one a fit has tried."""
+    pixel, semi = _image_radius(cal, centre, normal, radius_mm)
+    return bool(np.linalg.norm(np.asarray(uv) - pixel) <= semi)
+
+
+def _image_radius(cal: Calibration, centre: np.ndarray, normal: np.ndarray,
+                  radius_mm: float) -> tuple[np.ndarray, float]:
+    """The camera pixel of a plate's centre and its image's longest radius (pixels)."""
     F = local_frame(centre, normal)
     ends = cal.camera.project(np.vstack([centre, centre + radius_mm * np.array([F[0], -F[0], F[1], -F[1]])]))
-    semi = float(np.max(np.linalg.norm(ends[1:] - ends[0], axis=1)))
-    return bool(np.linalg.norm(np.asarray(uv) - ends[0]) <= semi)
+    return ends[0], float(np.max(np.linalg.norm(ends[1:] - ends[0], axis=1)))
 
 
 @dataclass(frozen=True)
@@ -266,7 +262,6 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
     start = np.asarray(start, float)
     var_plane = plane.offset_sd_at(start) ** 2
     offset, var_offset, var_h_last, h_last = 0.0, var_plane, 0.0, math.inf
-    heights = np.zeros(0)
     out: PlateImageFit | None = None
     for _ in range(CONFIG.plate_image_height_rounds):
         here = FacePlane(plane.point + offset * n, n, plane.offset_sd, plane.tilt_sd)
@@ -279,14 +274,12 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
         if not _within_model(out):
             break  # its height would not make it match: the rounds refine a fit that does
         if len(heights) >= CONFIG.plate_image_min_face_points:
-            h = float(np.median(heights)) + offset
-            h_last = h
+            h_last = float(np.median(heights)) + offset  # over the found plates' plane
             # the median's SD: 1.2533 σ / √N
-            var_h = max((1.2533 * robust_sigma(heights)) ** 2 / len(heights), 1e-12)
-            var_h_last = var_h
-            var_offset = 1.0 / (1.0 / var_h + 1.0 / var_plane)
-            moved = max(moved, abs(h * var_offset / var_h - offset))
-            offset = h * var_offset / var_h
+            var_h_last = max((1.2533 * robust_sigma(heights)) ** 2 / len(heights), 1e-12)
+            var_offset = 1.0 / (1.0 / var_h_last + 1.0 / var_plane)
+            moved = max(moved, abs(h_last * var_offset / var_h_last - offset))
+            offset = h_last * var_offset / var_h_last
         if moved < CONFIG.plate_image_height_tol_mm:
             break
     if out is None or not _near_start(cal, out, start, plane.normal, radius_mm):
@@ -300,11 +293,8 @@ def _near_start(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal:
     """The fitted plate's image within CONFIG.image_fit_reach of its radii (its image's longest,
     pixels) of the start's: at a grazing view a pixel across the ellipse spans millimetres, and
     a start a few pixels off (a blob of face, wall and shadow) is a radius off in the plane."""
-    F = local_frame(fit.centre, normal)
-    rim = cal.camera.project(fit.centre + radius_mm * np.array([F[0], -F[0], F[1], -F[1]]))
-    uv = cal.camera.project(np.vstack([fit.centre, start]))
-    semi = float(np.max(np.linalg.norm(rim - uv[0], axis=1)))
-    return bool(np.linalg.norm(uv[1] - uv[0]) <= CONFIG.image_fit_reach * semi)
+    pixel, semi = _image_radius(cal, fit.centre, normal, radius_mm)
+    return bool(np.linalg.norm(cal.camera.project(start[None])[0] - pixel) <= CONFIG.image_fit_reach * semi)
 
 
 def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
