@@ -13,7 +13,14 @@ import numpy.typing as npt
 import pytest
 
 from anklescan.core.calibration.model.file import Calibration
-from anklescan.core.measure.mark_plate_image import FacePlane, PlateStart, face_plane, fit_plate_image, table_plates_by_image
+from anklescan.core.measure.mark_plate_image import (
+    FacePlane,
+    PlateStart,
+    face_plane,
+    fit_plate_image,
+    surround_plane,
+    table_plates_by_image,
+)
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.hardware.simrig import SimRig
@@ -122,6 +129,49 @@ def test_plate_seen_at_a_grazing_view_is_placed_by_its_image(cal: Calibration, v
     assert sd_along > 0.05 / math.cos(math.radians(view_deg)) and err < 3 * sd_along
 
 
+def _table_points(cal: Calibration, base: np.ndarray, n: np.ndarray, r: float, shape: tuple[int, ...],
+                  noise_mm: float, seed: int) -> np.ndarray:
+    """(H, W, 3) decoded points: the table's (through ``base``, normal ``n``) seen past 2.2 plate
+    radii from the plate's axis, off by Gaussian noise along each ray; NaN elsewhere."""
+    H, W = shape[:2]
+    points = np.full((H, W, 3), np.nan, np.float32)
+    F = local_frame(base, n)
+    ring = base + 5.0 * r * np.stack([np.cos(t) * F[0] + np.sin(t) * F[1] for t in np.linspace(0, 2 * np.pi, 36)])
+    uv = cal.camera.project(ring)
+    u0, v0 = np.floor(uv.min(axis=0)).astype(int)
+    u1, v1 = np.ceil(uv.max(axis=0)).astype(int)
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    d = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()]).astype(float))
+    o = cal.camera.center
+    t = ((base - o) @ n) / (d @ n)
+    t += np.random.default_rng(seed).normal(0.0, noise_mm, len(t))
+    Q = o + t[:, None] * d
+    off = (Q - base) - ((Q - base) @ n)[:, None] * n
+    far = np.linalg.norm(off, axis=1) > 2.2 * r
+    points[vv.ravel()[far], uu.ravel()[far]] = Q[far]
+    return points
+
+
+@pytest.mark.slow
+def test_plate_on_the_table_round_it_is_placed_with_its_own_thickness(cal: Calibration) -> None:
+    """No table plate found: the plane is the table's decoded surround, and the face is the
+    fitted thickness above it, though the capture's thickness is read 5 % low."""
+    view_deg, r, T = 77.0, 5.35, 2.48
+    X, n = _tilted_plane(cal, view_deg)
+    image = _traced(cal, X, n, r, T, blur=0.9, noise=0.01, seed=77)
+    points = _table_points(cal, X - T * n, n, r, image.shape, 0.2, 7)
+    F = local_frame(X, n)
+    plane = surround_plane(points, None, cal, X + 1.5 * F[0], r, 2.35, 0.02)
+    assert plane is not None and plane.from_table
+    assert math.degrees(math.acos(min(float(plane.normal @ n), 1.0))) < 0.3
+    fit = fit_plate_image(image, points, cal, plane, X + 2.0 * F[0] - 1.5 * F[1], r, 2.35)
+    assert fit is not None and fit.face_on_plane
+    err = float(np.linalg.norm(fit.centre - X))
+    assert abs(fit.thickness_mm - T) < 0.05, fit.thickness_mm
+    sd_along = math.sqrt(float(np.max(np.linalg.eigvalsh(fit.covariance))))
+    assert err < 0.15 and err < 3 * sd_along, (err, sd_along)
+
+
 def _plate(centre: npt.ArrayLike, normal: npt.ArrayLike, sd: float = 0.05) -> Mark:
     n = np.asarray(normal, float)
     return Mark(np.asarray(centre, float), n / np.linalg.norm(n), 8.0, 0.05, 0.05,
@@ -142,15 +192,16 @@ def test_face_plane_of_two_plates_keeps_their_line_and_their_normals() -> None:
     assert plane.offset_sd_at(300.0 * F[1]) > plane.offset_sd_at(plane.point) == pytest.approx(0.05 / math.sqrt(2))
 
 
-def test_no_table_plates_without_one_found_or_one_table(cal: Calibration) -> None:
+def test_no_table_plates_without_a_table(cal: Calibration) -> None:
     image = np.zeros((cal.camera.height, cal.camera.width), np.float32)
     points = np.full(image.shape + (3,), np.nan, np.float32)
     up, side = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
-    start = [PlateStart((800.0, 600.0), None)]
+    # no table plate found and nothing decoded round the start: no plane to fit on
+    start = [PlateStart((800.0, 600.0), np.array([0.0, 0.0, 0.0]))]
     none_up = [_plate([0, 0, 0], side), _plate([0, 100, 0], side)]
-    assert table_plates_by_image(none_up, start, image, points, cal, 8.0, 1.5) == []
+    assert table_plates_by_image(none_up, start, image, points, None, cal, 8.0, 1.5) == []
     crossed = [_plate([0, 0, 0], up), _plate([100, 0, 0], [0.0, 0.3, 0.95])]  # 17° apart: not one table
-    assert table_plates_by_image(crossed, start, image, points, cal, 8.0, 1.5) == []
+    assert table_plates_by_image(crossed, start, image, points, None, cal, 8.0, 1.5) == []
     # a blob whose decoded points stand off the table (the leg) is not fitted as a table plate
     on_leg = [PlateStart((800.0, 600.0), np.array([0.0, 0.0, 60.0]))]
-    assert table_plates_by_image([_plate([0, 0, 0], up)], on_leg, image, points, cal, 8.0, 1.5) == []
+    assert table_plates_by_image([_plate([0, 0, 0], up)], on_leg, image, points, None, cal, 8.0, 1.5) == []

@@ -363,12 +363,23 @@ class MarkConfig:
     #: deg: the SD of one plate's face normal, where the table's plane is that one plate's (the
     #: face's own height is then corrected by its decoded points, above; the tilt shapes the ellipse)
     plate_image_one_plate_tilt_deg: float = 0.5
-    #: a plate so fitted is one of the kit's: its face's light at least this share of the found
-    #: table plates' (one albedo, one table; the plate nearest the foot gets 25-30 % less light)
+    #: radii of the mark's: where no table plate is found, the table's plane is that of the
+    #: decoded points between these distances of a plate's blob (inside: the plate, its wall and
+    #: its shadow, which at 78° light reaches 4.7 thicknesses past the rim)
+    plate_image_surround_radii: tuple[float, float] = (2.0, 4.0)
+    #: share of the capture's thickness a plate so fitted on the table's plane may differ by (the
+    #: capture's is read where the leg plates meet the skin, which curves away: 5 % low seen)
+    plate_image_thickness_tolerance: float = 0.25
+    #: a plate so fitted is one of the kit's: its face's light at least this share of what the
+    #: found plates' one albedo gives there by Lambert's law (their faces' light over the
+    #: projector's irradiance: the cosine of its incidence over the distance squared)
     plate_image_min_light_share: float = 0.5
     #: share of the face's light the model's light may be off by (Lambert's law per plate, not per
     #: point; the table lit linearly), in quadrature with the noise's allowance
     plate_image_model_error: float = 0.03
+    #: px: the same model's error in where it places the plate's image (a blur that is not one
+    #: Gaussian beside a wall on one side only), in its covariance
+    plate_image_model_error_px: float = 0.1
 
     # ---- a plate's side wall (``mark_wall``)
     #: blurs (SD as read from the image, the pixel's width in it): the wall points fitted are

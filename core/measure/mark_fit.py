@@ -783,24 +783,24 @@ def plane_from_pixels(points: np.ndarray, sigma: np.ndarray | None, uv: np.ndarr
     s = np.maximum(np.nan_to_num(s, nan=0.5), 0.01)
     w = 1.0 / s**2
     if consensus and len(P) > CONFIG.min_interior_points:
-        sel = _plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
+        sel = plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
         if sel.sum() >= CONFIG.min_interior_points:
             P, w = P[sel], w[sel]
     fit = fit_plane(P, weights=w, min_keep=CONFIG.min_interior_points)
     c, n = fit.centroid, fit.normal
-    if _tilt_sd(P, c, n, max(fit.rms, float(np.median(s)))) > CONFIG.max_plane_tilt_sd_rad:
+    if plane_tilt_sd(P, c, n, max(fit.rms, float(np.median(s)))) > CONFIG.max_plane_tilt_sd_rad:
         return None
     return PlaneFit(c, n if n @ (cam_c - c) >= 0 else -n, fit.rms, fit.n_kept)
 
 
-def _tilt_sd(P: np.ndarray, c: np.ndarray, n: np.ndarray, point_sd: float) -> float:
+def plane_tilt_sd(P: np.ndarray, c: np.ndarray, n: np.ndarray, point_sd: float) -> float:
     """The SD (rad) of a plane's tilt about the long axis of its points (see CONFIG.max_plane_tilt_sd_rad)."""
     d = (P - c) @ plane_basis(n).T
     minor = float(np.sqrt(max(np.linalg.eigvalsh(d.T @ d / len(d))[0], 0.0)))
     return point_sd / max(minor * math.sqrt(len(d)), 1e-12)
 
 
-def _plane_consensus(P: np.ndarray, tol: float) -> np.ndarray:
+def plane_consensus(P: np.ndarray, tol: float) -> np.ndarray:
     """Inliers of the plane through three of the points that has the most points within
     ``tol`` (deterministic sampling; the first such plane of the samples). All the samples'
     planes and inlier counts at once: the same triples, normals and counts as one sample at a

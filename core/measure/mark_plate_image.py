@@ -22,12 +22,14 @@ n the plane's normal): left free, a wall 2 px tall under a 1 px blur images its 
 brightness, and the centre moves along the view by the trade between them. The drawing is
 blurred by a Gaussian of SD s px (fitted) and averaged to pixels.
 
-The plane is not this plate's own: round such a plate the table decodes few or none of its
-pixels, and its face a handful. It is the plane of the other table plates' faces (``FacePlane``:
-SPEC §2's three plates lie on one flat table), so only the centre in that plane and the blur are
-fitted, by robust least squares over the pixels that see the plate or the table (a decoded pixel
-off both planes sees something else). The centre's covariance is the fit's, scaled by its
-residuals, plus the plane's own uncertainty carried along the camera ray.
+The plane is not this plate's own: its face decodes a handful of pixels. It is the plane of
+the other table plates' faces (``face_plane``: SPEC §2's three plates lie on one flat table), or
+where fewer than two were found, the table's decoded surface round the plate (``surround_plane``,
+where the face lies the fitted thickness above it). So only the centre in that plane, the blur
+and the thickness are fitted, by robust least squares over the pixels that see the plate or
+the table (a decoded pixel off both planes sees something else). The centre's covariance is the
+fit's, scaled by its residuals, plus the model's error in placing the image and the plane's own
+uncertainty carried along the camera ray.
 """
 
 from __future__ import annotations
@@ -42,9 +44,10 @@ from scipy.optimize import least_squares
 from scipy.special import ndtr
 
 from anklescan.core.calibration.model.file import Calibration
-from anklescan.core.measure.mark_candidates import ellipse_pixels, noise_sigma
+from anklescan.core.measure.mark_candidates import ellipse_pixels, noise_sigma, plate_radius_px
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import face_shape
+from anklescan.core.measure.mark_fit import fit_plane, plane_consensus, plane_tilt_sd
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.robust import robust_sigma
@@ -59,6 +62,8 @@ class FacePlane:
     normal: np.ndarray  # (3,) unit, towards the camera
     offset_sd: float  # mm, SD of the plane along its normal at its point
     tilt_sd: float  # rad, SD of its normal's direction
+    # measured at the table, a thickness below: the face lies the fitted thickness above the table
+    from_table: bool = False
 
     def offset_sd_at(self, x: np.ndarray) -> float:
         """SD of the plane along its normal at world point ``x`` (its offset and its tilt)."""
@@ -90,6 +95,38 @@ def face_plane(plates: Sequence[Mark], camera_centre: np.ndarray) -> FacePlane:
     return FacePlane(C.mean(axis=0), n, math.sqrt(float(var_n.mean()) / len(C)), tilt)
 
 
+def surround_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
+                   radius_mm: float, thickness_mm: float, thickness_sd: float) -> FacePlane | None:
+    """The plane of a plate's face from the surface round it: the plane through the decoded
+    points between CONFIG.plate_image_surround_radii of ``at`` (a world point on the plate:
+    inside lie the plate, its wall and its shadow) that most of them lie within 3 SD of, fitted
+    by weighted least squares, then raised ``thickness_mm`` towards the camera (its SD
+    ``thickness_sd`` added to the offset's). None where fewer than CONFIG.min_interior_points
+    decode there. Its tilt's SD is about the points' narrowest spread."""
+    inner, outer = (k * radius_mm for k in CONFIG.plate_image_surround_radii)
+    depth = float(np.linalg.norm(at - cal.camera.center))
+    half = int(math.ceil(float(plate_radius_px(cal, depth, outer))))
+    u, v = (int(round(float(x))) for x in cal.camera.project(np.asarray(at, float)[None])[0])
+    H, W = points.shape[:2]
+    rows, cols = slice(max(v - half, 0), min(v + half + 1, H)), slice(max(u - half, 0), min(u + half + 1, W))
+    P = points[rows, cols].reshape(-1, 3).astype(np.float64)
+    s = (sigma[rows, cols].ravel().astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
+    dist = np.linalg.norm(P - at, axis=1)
+    ok = np.isfinite(dist) & (dist >= inner) & (dist <= outer)
+    if int(ok.sum()) < CONFIG.min_interior_points:
+        return None
+    P, s = P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01)
+    sel = plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
+    if int(sel.sum()) < CONFIG.min_interior_points:
+        return None
+    fit = fit_plane(P[sel], weights=1.0 / s[sel] ** 2, min_keep=CONFIG.min_interior_points)
+    n = fit.normal if fit.normal @ (cal.camera.center - fit.centroid) >= 0 else -fit.normal
+    point_sd = max(fit.rms, float(np.median(s[sel])))
+    tilt = plane_tilt_sd(P[sel], fit.centroid, n, point_sd)
+    offset_sd = math.hypot(point_sd / math.sqrt(fit.n_kept), thickness_sd)
+    return FacePlane(fit.centroid + thickness_mm * n, n, offset_sd, tilt, from_table=True)
+
+
 @dataclass(frozen=True)
 class PlateStart:
     """Where a hypothesis no fit took may be a plate: its camera pixel and, where its blob
@@ -100,31 +137,39 @@ class PlateStart:
 
 
 def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], image: np.ndarray,
-                          points: np.ndarray, cal: Calibration, radius_mm: float, thickness_mm: float) -> list[Mark]:
-    """The table plates the search missed, where the marks found hold one or two plates facing
-    up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z) whose normals agree within
-    CONFIG.table_normal_spread_deg: each of ``starts`` (the hypotheses no fit took) fitted on
-    those plates' plane (``fit_plate_image``), unless it lies on a found mark, its blob has no
-    decoded point on the plate's height over the table (by CONFIG.image_fit_off_surface_mm), or
-    a plate fitted from another start covers its pixel. Of the fits that are one of the kit's
+                          points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, radius_mm: float,
+                          thickness_mm: float) -> list[Mark]:
+    """The table plates the search missed, in a capture of plates where fewer than seven marks
+    and fewer than three plates facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z)
+    were found. Each of ``starts`` (the hypotheses no fit took) is fitted on a plane
+    (``fit_plate_image``): that of two found table plates (``face_plane``) where their normals
+    agree within CONFIG.table_normal_spread_deg, else the table round the start
+    (``surround_plane``; facing up, and within that spread of a found table plate's normal),
+    else one found table plate's. A start is skipped where it lies on a found mark, its blob has
+    no decoded point on the plate's height over the table (by CONFIG.image_fit_off_surface_mm),
+    or a plate fitted from another start covers its pixel. Of the fits that are one of the kit's
     plates (``_passes``) and lie on no found mark, the best (least residuals) that do not
     overlap, as many as the table lacks."""
     up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is MarkKind.PLATE]
     need = len(TABLE_LABEL_KEYS) - len(up)
-    if not 0 < need < len(TABLE_LABEL_KEYS) or len(marks) >= len(LABEL_KEYS):
+    if need <= 0 or len(marks) >= len(LABEL_KEYS):
         return []
-    spread = max(math.degrees(math.acos(min(abs(float(p.normal @ q.normal)), 1.0))) for p in up for q in up)
-    if spread > CONFIG.table_normal_spread_deg:
+    if len(up) == 2 and _spread_deg([m.normal for m in up]) > CONFIG.table_normal_spread_deg:
         return []
-    plane = face_plane(up, cal.camera.center)
+    shared = face_plane(up, cal.camera.center) if len(up) == 2 else None
+    plates = [m for m in marks if m.kind is MarkKind.PLATE]
+    albedo = _albedo(image, cal, plates, radius_mm)
+    thickness_sd = _thickness_sd(plates)
     o = cal.camera.center
-    passed: list[PlateImageFit] = []
+    passed: list[tuple[PlateImageFit, FacePlane]] = []
     tried: list[PlateImageFit] = []
-    level = _face_level(image, cal, up, radius_mm)
     for st in starts:
+        if st.point is None:
+            continue
+        plane = shared or _table_plane(points, sigma, cal, st.point, up, radius_mm, thickness_mm, thickness_sd)
         # a table plate's face decodes where it is lit: a blob with no decoded point on the
         # table's band is a shadow, the dark past an outline, or on the leg
-        if st.point is None or not _on_or_between(st.point, plane, thickness_mm):
+        if plane is None or not _on_or_between(st.point, plane, thickness_mm):
             continue
         d = cal.camera.rays(np.array([st.pixel], float))[0]
         if d @ plane.normal >= 0.0:
@@ -138,10 +183,11 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
         if fit is None:
             continue
         tried.append(fit)
-        if _passes(fit, level) and not _on_a_mark(fit.centre, marks, radius_mm):
-            passed.append(fit)
+        expected = albedo * _irradiance(cal, fit.centre, plane.normal)
+        if _passes(fit, expected) and not _on_a_mark(fit.centre, marks, radius_mm):
+            passed.append((fit, plane))
     out: list[Mark] = []
-    for fit in sorted(passed, key=lambda f: f.excess):
+    for fit, plane in sorted(passed, key=lambda fp: fp[0].excess):
         if len(out) < need and not _on_a_mark(fit.centre, out, radius_mm):
             edge_rms = CONFIG.max_circle_rms_mm * max(fit.excess, 0.0) / CONFIG.image_fit_max_excess
             out.append(Mark(fit.centre, plane.normal.copy(), radius_mm, edge_rms, fit.face_rms, fit.covariance,
@@ -150,30 +196,64 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     return out
 
 
-def _face_level(image: np.ndarray, cal: Calibration, plates: Sequence[Mark], radius_mm: float) -> float:
-    """The median lit light on the found plates' faces (within CONFIG.face_span_fraction of
-    their images): the kit's one albedo on the same table, lit alike."""
+def _table_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
+                 up: Sequence[Mark], radius_mm: float, thickness_mm: float, thickness_sd: float) -> FacePlane | None:
+    """The face plane of a table plate at ``at`` where fewer than two table plates were found
+    (``table_plates_by_image``): the table round it, where it faces up and agrees with the
+    found table plate; else that one plate's plane; else None."""
+    plane = surround_plane(points, sigma, cal, at, radius_mm, thickness_mm, thickness_sd)
+    if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
+            and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
+        return plane
+    return face_plane(up, cal.camera.center) if up else None
+
+
+def _spread_deg(normals: Sequence[np.ndarray]) -> float:
+    """The largest angle (deg) between two of ``normals`` (their signs ignored)."""
+    return max((math.degrees(math.acos(min(abs(float(p @ q)), 1.0))) for p in normals for q in normals), default=0.0)
+
+
+def _irradiance(cal: Calibration, x: np.ndarray, normal: np.ndarray) -> float:
+    """The projector's light on a surface at ``x`` facing ``normal``, per unit of its own
+    (Lambert's law: the cosine of its incidence over the distance squared)."""
+    d = cal.projector.center - x
+    r2 = float(d @ d)
+    return abs(float(d @ normal)) / (math.sqrt(r2) * r2)
+
+
+def _albedo(image: np.ndarray, cal: Calibration, plates: Sequence[Mark], radius_mm: float) -> float:
+    """The kit's one albedo: the median over the found plates of their faces' median lit light
+    (within CONFIG.face_span_fraction of their images) over their ``_irradiance``."""
     values = []
     for m in plates:
         shape = face_shape(cal, m.centre, m.normal, radius_mm)
-        if shape is not None:
-            uv = ellipse_pixels(shape, CONFIG.face_span_fraction, image.shape)
-            values.append(image[uv[:, 1], uv[:, 0]])
-    v = np.concatenate(values) if values else np.zeros(0)
-    v = v[np.isfinite(v)]
-    return float(np.median(v)) if len(v) else 0.0
+        if shape is None:
+            continue
+        uv = ellipse_pixels(shape, CONFIG.face_span_fraction, image.shape)
+        v = image[uv[:, 1], uv[:, 0]]
+        v = v[np.isfinite(v)]
+        if len(v):
+            values.append(float(np.median(v)) / max(_irradiance(cal, m.centre, m.normal), 1e-300))
+    return float(np.median(values)) if values else 0.0
 
 
-def _passes(fit: PlateImageFit, level: float) -> bool:
+def _thickness_sd(plates: Sequence[Mark]) -> float:
+    """The SD (mm) of the kit's thickness as the median of the found plates' steps (1.2533 of
+    their robust SD over √N; 0 for fewer than two)."""
+    steps = np.array([m.step_mm for m in plates if m.step_mm is not None], float)
+    return 1.2533 * robust_sigma(steps) / math.sqrt(len(steps)) if len(steps) > 1 else 0.0
+
+
+def _passes(fit: PlateImageFit, expected: float) -> bool:
     """A plate of the kit's: its face's light at least CONFIG.plate_image_min_light_share of
-    the found plates' (``level``), a contrast of CONFIG.image_fit_min_contrast_z SDs,
+    what the found plates' albedo gives there (``expected``), a contrast of CONFIG.image_fit_min_contrast_z SDs,
     CONFIG.min_seen_share of its face seen, its face's decoded points on the plane (their
     median within 3 SD of the plane's height there), and residuals within the noise and the
     model's own error (CONFIG.image_fit_max_excess of the noise, and
     CONFIG.plate_image_model_error of the face's light, in quadrature: the light is modelled to
     a few per cent, Lambert's law per plate and a table lit linearly, which a bright face shows
     above the noise)."""
-    return (fit.face_light >= CONFIG.plate_image_min_light_share * level
+    return (fit.face_light >= CONFIG.plate_image_min_light_share * expected
             and fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
             and fit.face_on_plane and _within_model(fit))
 
@@ -219,13 +299,14 @@ class PlateImageFit:
     pixel: tuple[float, float]  # its camera pixel
     blur_px: float  # the fitted blur's SD
     thickness_mm: float  # the fitted thickness (the wall's height)
+    thickness_sd: float  # its SD, mm
     excess: float  # robust RMS residual over the image's noise, less one
     contrast_z: float  # the face's light over the table's, in the fit's SDs
     n_pixels: int  # pixels fitted
     seen: float  # share of the face's pixels fitted (the rest see another surface)
     face_light: float  # the face's fitted light (lit image units)
     noise: float  # the window's per-pixel noise SD
-    face_on_plane: bool  # at least CONFIG.plate_image_min_face_points of its face decode, on the plane
+    face_on_plane: bool  # its face where the plane puts it (``fit_plate_image``, ``_fit_on_table``)
     face_rms: float  # mm, the face's decoded points about its plane (0 where none decode)
     view_deg: float  # between the normal and the camera ray
     light_deg: float  # between the normal and the projector ray
@@ -261,10 +342,12 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
     n = plane.normal
     start = np.asarray(start, float)
     var_plane = plane.offset_sd_at(start) ** 2
+    if plane.from_table:
+        return _fit_on_table(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane)
     offset, var_offset, var_h_last, h_last = 0.0, var_plane, 0.0, math.inf
     out: PlateImageFit | None = None
     for _ in range(CONFIG.plate_image_height_rounds):
-        here = FacePlane(plane.point + offset * n, n, plane.offset_sd, plane.tilt_sd)
+        here = replace(plane, point=plane.point + offset * n)
         fitted = _fit_on_plane(image, points, cal, here, out.centre if out else start, radius_mm, thickness_mm,
                                var_offset)
         if fitted is None:
@@ -286,6 +369,26 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
         return None
     # the face's decoded points' height over the found plates' plane, against both SDs
     return replace(out, face_on_plane=abs(h_last) <= 3.0 * math.sqrt(var_plane + var_h_last))
+
+
+def _fit_on_table(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
+                  radius_mm: float, thickness_mm: float, var_plane: float) -> PlateImageFit | None:
+    """``fit_plate_image`` on a plane measured at the table (``FacePlane.from_table``): the
+    face the fitted thickness above it, in one fit. The face is where that plane puts it where
+    its thickness is the kit's within CONFIG.plate_image_thickness_tolerance, and the face's
+    decoded points (where at least CONFIG.plate_image_min_face_points decode) lie on it within
+    3 SD (the table's, theirs and the thickness's)."""
+    fitted = _fit_on_plane(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane)
+    if fitted is None:
+        return None
+    out, heights = fitted
+    if not _near_start(cal, out, start, plane.normal, radius_mm):
+        return None
+    ok = abs(out.thickness_mm - thickness_mm) <= CONFIG.plate_image_thickness_tolerance * thickness_mm
+    if len(heights) >= CONFIG.plate_image_min_face_points:
+        var_h = (1.2533 * robust_sigma(heights)) ** 2 / len(heights)
+        ok = ok and abs(float(np.median(heights))) <= 3.0 * math.sqrt(var_plane + var_h + out.thickness_sd**2)
+    return replace(out, face_on_plane=ok)
 
 
 def _near_start(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal: np.ndarray,
@@ -322,7 +425,7 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     vv, uu = np.mgrid[v0:v1, u0:u1]
     du, dv = (uu - uu.mean()) / max(u1 - u0, 1), (vv - vv.mean()) / max(v1 - v0, 1)
     c0 = (start - plane.point) @ E.T
-    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv)
+    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None)
     lo, hi = CONFIG.image_fit_blur_range_px
     p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm])
     t_hi = CONFIG.plate_image_max_thickness_ratio * thickness_mm
@@ -336,33 +439,48 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     c2 = sol.x[:2]
     if not np.isfinite(sol.x).all():
         return None
-    cov2 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)
-    if cov2 is None:
+    cov4 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)
+    if cov4 is None:
         return None
     r = model.residuals(sol.x)
     sd = robust_sigma(r, 0.0)
     coef = model.last_coef
-    world = plane.point + c2 @ E
+    # the face's own height over the plane (from a table's plane: the fitted thickness's excess)
+    rise = float(sol.x[3]) - thickness_mm if plane.from_table else 0.0
+    world = plane.point + c2 @ E + rise * n
     ray = (world - cal.camera.center) / np.linalg.norm(world - cal.camera.center)
     along = ray / abs(float(ray @ n))
-    cov3 = E.T @ cov2 @ E + var_offset * np.outer(along, along) + CONFIG.sd_floor_mm**2 * np.eye(3)
+    J = np.column_stack([E.T, np.zeros(3), n if plane.from_table else np.zeros(3)])
+    cov3 = (J @ cov4 @ J.T + E.T @ _image_error(rays, c2, f) @ E + var_offset * np.outer(along, along)
+            + CONFIG.sd_floor_mm**2 * np.eye(3))
     light = cal.projector.center - world
     light /= np.linalg.norm(light)
     uv = cal.camera.project(world[None])[0]
     face_sd = model.coef_sd(sd)
     share = model.face_share(sol.x)
     on_face = (share >= CONFIG.plate_image_face_share) & np.isfinite(P[:, 0])
-    heights = (P[on_face] - plane.point) @ n
+    heights = (P[on_face] - plane.point) @ n - rise
     face = share >= 0.5
     seen = float(keep.ravel()[face].mean()) if face.any() else 0.0
     fit = PlateImageFit(world, cov3, (float(uv[0]), float(uv[1])), float(math.exp(sol.x[2])), float(sol.x[3]),
-                        sd / noise - 1.0,
+                        math.sqrt(max(float(cov4[3, 3]), 0.0)), sd / noise - 1.0,
                         float((coef[0] - coef[1]) / max(face_sd, 1e-12)), int(keep.sum()), seen, float(coef[0]),
                         noise, False,
                         robust_sigma(heights) if len(heights) > 1 else 0.0,
                         math.degrees(math.acos(min(abs(float(ray @ n)), 1.0))),
                         math.degrees(math.acos(min(abs(float(light @ n)), 1.0))))
     return fit, heights
+
+
+def _image_error(rays: _Rays, c: np.ndarray, f: int) -> np.ndarray:
+    """(2, 2) mm², in the plane: CONFIG.plate_image_model_error_px of the image carried to the
+    plane at the sample nearest the centre ``c`` (at a grazing view a tenth of a pixel across
+    the ellipse is most of a millimetre along the view)."""
+    k = np.unravel_index(int(np.argmin(np.abs(rays.a - complex(c[0], c[1])))), rays.a.shape)
+    jx, jy = rays.jx[k], rays.jy[k]
+    J = f * np.array([[jx.real, jx.imag], [jy.real, jy.imag]])
+    out: np.ndarray = CONFIG.plate_image_model_error_px**2 * (J @ J.T)
+    return out
 
 
 def _window(shape: tuple[int, ...], cal: Calibration, plane: FacePlane, centre: np.ndarray, radius_mm: float,
@@ -421,8 +539,12 @@ class _Model:
     """The drawn plate's pixels for one centre and blur, its light solved linearly."""
 
     def __init__(self, rays: _Rays, radius_mm: float, f: int, pad: int, keep: np.ndarray,
-                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray):
+                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None):
         self.rays, self.r, self.f, self.pad = rays, radius_mm, f, pad
+        # None: the face on the rays' plane; else the thickness the rays' plane is above the
+        # table at, the face moving with the fitted thickness (a ray's in-plane point moves by
+        # ``w`` per mm down)
+        self.floating_from = floating_from
         self.keep, self.lum = keep.ravel(), crop.ravel()
         self.du, self.dv = du.ravel(), dv.ravel()
         self.last_coef = np.zeros(4)
@@ -439,7 +561,7 @@ class _Model:
         """(plate light per unit face light, table's visible share) per sample, the plate ``T`` mm thick."""
         R, r = self.rays, self.r
         T = max(T, 1e-6)
-        a = R.a - c
+        a = self._face_points(T) - c
         wT = T * R.w
         A2 = wT.real**2 + wT.imag**2
         B2 = (a * wT.conjugate()).real
@@ -469,9 +591,16 @@ class _Model:
         out: np.ndarray = px[pad:-pad, pad:-pad].ravel()
         return out
 
+    def _face_points(self, T: float) -> np.ndarray:
+        """Where each sample's ray meets the face's plane, the plate ``T`` mm thick."""
+        if self.floating_from is None:
+            return self.rays.a
+        out: np.ndarray = self.rays.a - (T - self.floating_from) * self.rays.w
+        return out
+
     def face_share(self, p: np.ndarray) -> np.ndarray:
         """Per pixel (flat), the share of its blurred light that is the face's."""
-        a = self.rays.a - complex(p[0], p[1])
+        a = self._face_points(float(p[3])) - complex(p[0], p[1])
         face = ndtr(self._signed(a, self.r - np.abs(a)) / 0.5)
         return self._pixels(face, math.exp(p[2]))
 
@@ -490,8 +619,8 @@ class _Model:
         return out
 
     def covariance(self, p: np.ndarray, huber: float) -> np.ndarray | None:
-        """(2, 2) the centre's covariance at ``p``, with the blur and the thickness it trades
-        with: central differences (least_squares' own Jacobian is of its robust loss, and a
+        """(4, 4) the covariance of ``p`` (the centre, the blur and the thickness it trades
+        with): central differences (least_squares' own Jacobian is of its robust loss, and a
         parameter at a round value can get a zero column), Huber weights, the residuals' robust
         SD. None where singular."""
         r = self.residuals(p)
@@ -505,7 +634,7 @@ class _Model:
         J = np.column_stack(cols)
         self.residuals(p)  # leave the solution's light as the last solved
         try:
-            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J))[:2, :2] * robust_sigma(r, 0.0) ** 2
+            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J)) * robust_sigma(r, 0.0) ** 2
         except np.linalg.LinAlgError:
             return None
         return cov if np.isfinite(cov).all() else None

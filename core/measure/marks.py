@@ -220,10 +220,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         else:
             result.rejected.append(Rejection.of(f.mark.pixel, out))
     result.rejected.extend(selection.left_out)
-    if prefer is MarkKind.PLATE and thick is not None:
-        # table plates seen too obliquely for their rims: drawn whole on the plane of those found
-        starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in refused]
-        for plate in table_plates_by_image(result.marks, starts, image, points, cal, r0, thick):
+    if prefer is MarkKind.PLATE and thick is not None and len(result.marks) < len(LABELS):
+        # table plates seen too obliquely for their rims: drawn whole on the plane of those
+        # found, or of the table round them; started from every hypothesis no chosen fit took
+        taken = {id(f.hypothesis) for f in selection.chosen}
+        others = refused + [f.hypothesis for f in fits if id(f.hypothesis) not in taken]
+        starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in others]
+        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick):
             result.marks.append(plate)
             result.rejected = [r for r in result.rejected
                                if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
