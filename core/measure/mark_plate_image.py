@@ -129,7 +129,7 @@ def surround_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibratio
 
 @dataclass(frozen=True)
 class PlateStart:
-    """Where a hypothesis no fit took may be a plate: its camera pixel and, where its blob
+    """Where a hypothesis no chosen fit took may be a plate: its camera pixel and, where its blob
     decodes, its median world point (mm)."""
 
     pixel: tuple[float, float]
@@ -141,7 +141,7 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
                           thickness_mm: float) -> list[Mark]:
     """The table plates the search missed, in a capture of plates where fewer than seven marks
     and fewer than three plates facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z)
-    were found. Each of ``starts`` (the hypotheses no fit took) is fitted on a plane
+    were found. Each of ``starts`` (the hypotheses no chosen fit took) is fitted on a plane
     (``fit_plate_image``): that of two found table plates (``face_plane``) where their normals
     agree within CONFIG.table_normal_spread_deg, else the table round the start
     (``surround_plane``; facing up, and within that spread of a found table plate's normal),
@@ -246,9 +246,9 @@ def _thickness_sd(plates: Sequence[Mark]) -> float:
 
 def _passes(fit: PlateImageFit, expected: float) -> bool:
     """A plate of the kit's: its face's light at least CONFIG.plate_image_min_light_share of
-    what the found plates' albedo gives there (``expected``), a contrast of CONFIG.image_fit_min_contrast_z SDs,
-    CONFIG.min_seen_share of its face seen, its face's decoded points on the plane (their
-    median within 3 SD of the plane's height there), and residuals within the noise and the
+    what the found plates' albedo gives there (``expected``), a contrast of
+    CONFIG.image_fit_min_contrast_z SDs, CONFIG.min_seen_share of its face seen, its face where
+    the plane puts it (``PlateImageFit.face_on_plane``), and residuals within the noise and the
     model's own error (CONFIG.image_fit_max_excess of the noise, and
     CONFIG.plate_image_model_error of the face's light, in quadrature: the light is modelled to
     a few per cent, Lambert's law per plate and a table lit linearly, which a bright face shows
