@@ -97,11 +97,12 @@ def test_flicker_back_to_the_old_level_counts_from_the_last_change():
 
 
 def test_real_clock_path_with_the_simulated_camera(sim):
-    # The driver on the real clock, with a 60 ms lag; a loose bound: the machine is shared.
+    # The driver on the real clock, with a 60 ms lag; a loose upper bound: the machine is
+    # shared. Below, the lag is read to within one step between capture calls (59.98 ms seen).
     import time
     cam = LaggedCamera(*sim, time.monotonic, 0.06, 0.0)
     result = sync.run_latency_test(cam, cam.show, toggles=2, hold_s=0.2, clock=time.monotonic)
-    assert 0.06 <= result.latency_s < 0.15
+    assert 0.06 - result.resolution_s <= result.latency_s < 0.15
 
 
 def test_settle_registry_is_per_camera():
