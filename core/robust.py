@@ -7,6 +7,7 @@ import numpy as np
 import numpy.typing as npt
 
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4): MAD x this = SD for normally distributed values
+MEDIAN_SD_FACTOR = 1.2533  # sqrt(pi / 2): a median's SD is this times the mean's
 
 
 def robust_sigma(values: npt.ArrayLike, centre: float | None = None) -> float:
@@ -15,6 +16,13 @@ def robust_sigma(values: npt.ArrayLike, centre: float | None = None) -> float:
     v = np.asarray(values, dtype=float).ravel()
     c = median(v) if centre is None else centre
     return MAD_TO_SIGMA * median_in_place(np.abs(v - c))
+
+
+def median_sd(values: npt.ArrayLike) -> float:
+    """The SD of the median of ``values`` (normal noise): sqrt(π / 2) = 1.2533 times their
+    ``robust_sigma`` over the square root of their number."""
+    v = np.asarray(values, dtype=float).ravel()
+    return MEDIAN_SD_FACTOR * robust_sigma(v) / float(np.sqrt(len(v)))
 
 
 def median(values: np.ndarray) -> float:

@@ -50,7 +50,7 @@ from anklescan.core.measure.mark_edges import face_shape
 from anklescan.core.measure.mark_fit import fit_plane, plane_consensus, plane_tilt_sd
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.measure.marks_surface import local_frame
-from anklescan.core.robust import robust_sigma
+from anklescan.core.robust import median_sd, robust_sigma
 from anklescan.core.vocabulary import LABEL_KEYS, TABLE_LABEL_KEYS, MarkKind
 
 
@@ -238,10 +238,10 @@ def _albedo(image: np.ndarray, cal: Calibration, plates: Sequence[Mark], radius_
 
 
 def _thickness_sd(plates: Sequence[Mark]) -> float:
-    """The SD (mm) of the kit's thickness as the median of the found plates' steps (1.2533 of
-    their robust SD over √N; 0 for fewer than two)."""
+    """The SD (mm) of the kit's thickness as the median of the found plates' steps (0 for
+    fewer than two)."""
     steps = np.array([m.step_mm for m in plates if m.step_mm is not None], float)
-    return 1.2533 * robust_sigma(steps) / math.sqrt(len(steps)) if len(steps) > 1 else 0.0
+    return median_sd(steps) if len(steps) > 1 else 0.0
 
 
 def _passes(fit: PlateImageFit, expected: float) -> bool:
@@ -358,8 +358,7 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
             break  # its height would not make it match: the rounds refine a fit that does
         if len(heights) >= CONFIG.plate_image_min_face_points:
             h_last = float(np.median(heights)) + offset  # over the found plates' plane
-            # the median's SD: 1.2533 σ / √N
-            var_h_last = max((1.2533 * robust_sigma(heights)) ** 2 / len(heights), 1e-12)
+            var_h_last = max(median_sd(heights) ** 2, 1e-12)
             var_offset = 1.0 / (1.0 / var_h_last + 1.0 / var_plane)
             moved = max(moved, abs(h_last * var_offset / var_h_last - offset))
             offset = h_last * var_offset / var_h_last
@@ -386,7 +385,7 @@ def _fit_on_table(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
         return None
     ok = abs(out.thickness_mm - thickness_mm) <= CONFIG.plate_image_thickness_tolerance * thickness_mm
     if len(heights) >= CONFIG.plate_image_min_face_points:
-        var_h = (1.2533 * robust_sigma(heights)) ** 2 / len(heights)
+        var_h = median_sd(heights) ** 2
         ok = ok and abs(float(np.median(heights))) <= 3.0 * math.sqrt(var_plane + var_h + out.thickness_sd**2)
     return replace(out, face_on_plane=ok)
 
