@@ -1,6 +1,7 @@
 """A table plate seen at a grazing view, fitted to its image on the other plates' plane
-(``core/measure/mark_plate_image.py``): against an independent ray tracer of one plate, and
-the plane those plates give. The whole chain on simulated captures is the case table's
+(``core/measure/mark_plate_image.py``), and a plate placed again by its image on its own face
+(``mark_plate_refit``): against an independent ray tracer of one plate, and the plane those
+plates give. The whole chain on simulated captures is the case table's
 (tests/data/mark_cases.csv, "drawn 1419 full")."""
 
 from __future__ import annotations
@@ -15,14 +16,17 @@ import pytest
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_plate_image import (
     FacePlane,
+    FitShape,
     PlateStart,
     face_plane,
     fit_plate_image,
     surround_plane,
     table_plates_by_image,
 )
+from anklescan.core.measure.mark_plate_refit import pooled, refit_plates
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.measure.marks_surface import local_frame
+from anklescan.core.vocabulary import MarkKind
 from anklescan.hardware.simrig import SimRig
 
 
@@ -205,3 +209,49 @@ def test_no_table_plates_without_a_table(cal: Calibration) -> None:
     # a blob whose decoded points stand off the table (the leg) is not fitted as a table plate
     on_leg = [PlateStart((800.0, 600.0), np.array([0.0, 0.0, 60.0]))]
     assert table_plates_by_image([_plate([0, 0, 0], up)], on_leg, image, points, None, cal, 8.0, 1.5) == []
+
+
+def _with_face_points(points: np.ndarray, cal: Calibration, X: np.ndarray, n: np.ndarray, r: float,
+                      noise_mm: float, seed: int) -> np.ndarray:
+    """``points`` with the face's decoded points (within 0.8 radii of its centre ``X``) added,
+    off by Gaussian noise along each ray."""
+    F = local_frame(X, n)
+    uv = cal.camera.project(X + 0.8 * r * np.stack([np.cos(t) * F[0] + np.sin(t) * F[1]
+                                                      for t in np.linspace(0, 2 * np.pi, 36)]))
+    (u0, v0), (u1, v1) = np.floor(uv.min(axis=0)).astype(int), np.ceil(uv.max(axis=0)).astype(int)
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    d = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()]).astype(float))
+    o = cal.camera.center
+    t = ((X - o) @ n) / (d @ n) + np.random.default_rng(seed).normal(0.0, noise_mm, len(d))
+    Q = o + t[:, None] * d
+    on = np.linalg.norm(Q - X, axis=1) < 0.8 * r
+    out = points.copy()
+    out[vv.ravel()[on], uu.ravel()[on]] = Q[on]
+    return out
+
+
+@pytest.mark.slow
+def test_plate_placed_again_by_its_image_where_its_rim_fit_lies_along_the_view(cal: Calibration) -> None:
+    """A rim fit 0.4 mm off along the view with its radius read 0.15 mm small (edges under a
+    1.3 px blur): the image fit on the plate's own face plane places it within 0.08 mm, and
+    with the radius free measures that radius."""
+    view_deg, r, T = 62.0, 6.1, 1.5
+    X, n = _tilted_plane(cal, view_deg)
+    image = _traced(cal, X, n, r, T, blur=1.3, noise=0.01, seed=62)
+    points = _with_face_points(_table_points(cal, X - T * n, n, r, image.shape, 0.1, 6), cal, X, n, r, 0.03, 7)
+    ray = (X - cal.camera.center) / np.linalg.norm(X - cal.camera.center)
+    along = ray - (ray @ n) * n
+    along /= np.linalg.norm(along)
+    rim = Mark(X - 0.4 * along + 0.01 * n, n, r - 0.15, 0.05, 0.03, 0.2**2 * np.eye(3), (0.0, 0.0), 20, 300,
+               kind=MarkKind.PLATE, step_mm=1.4)
+    placed, kit = refit_plates([rim], image, points, cal, r, given=True)
+    assert kit is None
+    err = float(np.linalg.norm(placed[0].centre - X))
+    sd_along = math.sqrt(float(np.max(np.linalg.eigvalsh(placed[0].covariance))))
+    assert err < 0.08 and err < 3 * sd_along, (err, sd_along)
+    plane = FacePlane(rim.centre, n, 0.01, 0.0)
+    fit = fit_plate_image(image, points, cal, plane, rim.centre, r - 0.15, 1.4, FitShape(0.5, 2, free_radius=True))
+    assert fit is not None and fit.centre_radius_cov is not None
+    assert abs(fit.radius_mm - r) < 0.05 and abs(fit.radius_mm - r) < 3 * fit.radius_sd, (fit.radius_mm, fit.radius_sd)
+    kit_r = pooled([fit])
+    assert kit_r is not None and kit_r.radius_mm == pytest.approx(fit.radius_mm)

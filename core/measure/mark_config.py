@@ -381,6 +381,15 @@ class MarkConfig:
     #: Gaussian beside a wall on one side only), in its covariance
     plate_image_model_error_px: float = 0.1
 
+    # ---- every chosen plate placed again by its image on its face's plane (``mark_plate_refit``)
+    #: radii: how far the image fit's centre may move from the rim fit's (its window and reach)
+    plate_refit_reach: float = 0.5
+    #: sample rays per pixel per axis in that fit (the step above takes CONFIG.image_fit_subsamples:
+    #: it starts radii away; from a rim fit's start 2 × 2 place the centre within 0.02 mm of 3 × 3)
+    plate_refit_subsamples: int = 2
+    #: of the kit's radius: the bounds of a fitted face's radius
+    plate_refit_radius_range: tuple[float, float] = (0.8, 1.25)
+
     # ---- a plate's side wall (``mark_wall``)
     #: blurs (SD as read from the image, the pixel's width in it): the wall points fitted are
     #: imaged at least this far from the wall's top and bottom (nearer, the pixel also sees the

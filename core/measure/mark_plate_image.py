@@ -255,10 +255,10 @@ def _passes(fit: PlateImageFit, expected: float) -> bool:
     above the noise)."""
     return (fit.face_light >= CONFIG.plate_image_min_light_share * expected
             and fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
-            and fit.face_on_plane and _within_model(fit))
+            and fit.face_on_plane and within_model(fit))
 
 
-def _within_model(fit: PlateImageFit) -> bool:
+def within_model(fit: PlateImageFit) -> bool:
     """Residuals within the noise and the model's error (``_passes``)."""
     allowed = math.hypot(1.0 + CONFIG.image_fit_max_excess, CONFIG.plate_image_model_error * fit.face_light / fit.noise)
     return 1.0 + fit.excess <= allowed
@@ -310,6 +310,18 @@ class PlateImageFit:
     face_rms: float  # mm, the face's decoded points about its plane (0 where none decode)
     view_deg: float  # between the normal and the camera ray
     light_deg: float  # between the normal and the projector ray
+    radius_mm: float = float("nan")  # the face's radius: the one given, or fitted (``FitShape.free_radius``)
+    radius_sd: float = 0.0  # its SD (0 where given)
+    centre_radius_cov: np.ndarray | None = None  # (3,) mm², the centre's covariance with a fitted radius
+
+
+@dataclass(frozen=True)
+class FitShape:
+    """How a plate's image is fitted: its window, its sampling and whether its radius is free."""
+
+    reach: float = CONFIG.image_fit_reach  # radii the centre may lie from its start
+    subsamples: int = CONFIG.image_fit_subsamples  # sample rays per pixel, per axis
+    free_radius: bool = False  # the face's radius fitted (its start the one given)
 
 
 @dataclass(frozen=True, eq=False)
@@ -327,13 +339,14 @@ class _Rays:
 
 
 def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane,
-                    start: np.ndarray, radius_mm: float, thickness_mm: float) -> PlateImageFit | None:
+                    start: np.ndarray, radius_mm: float, thickness_mm: float,
+                    shape: FitShape = FitShape()) -> PlateImageFit | None:
     """The plate of radius ``radius_mm`` and thickness ``thickness_mm`` whose face lies on
     ``plane``, fitted to ``image`` (the lit image) from the world point ``start`` (mm, moved
     onto the plane). ``points``: (H, W, 3) decoded world points per pixel (those off both the
     face's and the table's plane are left out; those on the fitted face set its height, below).
     None where the window leaves the image, too few pixels are left, or the fit does not
-    converge or moves beyond CONFIG.image_fit_reach radii of the start in the image (``_near_start``).
+    converge or moves beyond ``shape.reach`` radii of the start in the image (``_near_start``).
 
     The plane's height at the plate is the plane's, corrected by the face's own decoded points
     (the pixels whose light is the face's alone, ``CONFIG.plate_image_face_share``), each
@@ -343,18 +356,18 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
     start = np.asarray(start, float)
     var_plane = plane.offset_sd_at(start) ** 2
     if plane.from_table:
-        return _fit_on_table(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane)
+        return _fit_on_table(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane, shape)
     offset, var_offset, var_h_last, h_last = 0.0, var_plane, 0.0, math.inf
     out: PlateImageFit | None = None
     for _ in range(CONFIG.plate_image_height_rounds):
         here = replace(plane, point=plane.point + offset * n)
         fitted = _fit_on_plane(image, points, cal, here, out.centre if out else start, radius_mm, thickness_mm,
-                               var_offset)
+                               var_offset, shape)
         if fitted is None:
             return None
         moved = float("inf") if out is None else float(np.linalg.norm(fitted[0].centre - out.centre))
         out, heights = fitted
-        if not _within_model(out):
+        if not within_model(out):
             break  # its height would not make it match: the rounds refine a fit that does
         if len(heights) >= CONFIG.plate_image_min_face_points:
             h_last = float(np.median(heights)) + offset  # over the found plates' plane
@@ -364,24 +377,24 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
             offset = h_last * var_offset / var_h_last
         if moved < CONFIG.plate_image_height_tol_mm:
             break
-    if out is None or not _near_start(cal, out, start, plane.normal, radius_mm):
+    if out is None or not _near_start(cal, out, start, plane.normal, radius_mm, shape.reach):
         return None
     # the face's decoded points' height over the found plates' plane, against both SDs
     return replace(out, face_on_plane=abs(h_last) <= 3.0 * math.sqrt(var_plane + var_h_last))
 
 
 def _fit_on_table(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
-                  radius_mm: float, thickness_mm: float, var_plane: float) -> PlateImageFit | None:
+                  radius_mm: float, thickness_mm: float, var_plane: float, shape: FitShape) -> PlateImageFit | None:
     """``fit_plate_image`` on a plane measured at the table (``FacePlane.from_table``): the
     face the fitted thickness above it, in one fit. The face is where that plane puts it where
     its thickness is the kit's within CONFIG.plate_image_thickness_tolerance, and the face's
     decoded points (where at least CONFIG.plate_image_min_face_points decode) lie on it within
     3 SD (the table's, theirs and the thickness's)."""
-    fitted = _fit_on_plane(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane)
+    fitted = _fit_on_plane(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane, shape)
     if fitted is None:
         return None
     out, heights = fitted
-    if not _near_start(cal, out, start, plane.normal, radius_mm):
+    if not _near_start(cal, out, start, plane.normal, radius_mm, shape.reach):
         return None
     ok = abs(out.thickness_mm - thickness_mm) <= CONFIG.plate_image_thickness_tolerance * thickness_mm
     if len(heights) >= CONFIG.plate_image_min_face_points:
@@ -391,25 +404,25 @@ def _fit_on_table(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
 
 
 def _near_start(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal: np.ndarray,
-                radius_mm: float) -> bool:
-    """The fitted plate's image within CONFIG.image_fit_reach of its radii (its image's longest,
+                radius_mm: float, reach: float) -> bool:
+    """The fitted plate's image within ``reach`` of its radii (its image's longest,
     pixels) of the start's: at a grazing view a pixel across the ellipse spans millimetres, and
     a start a few pixels off (a blob of face, wall and shadow) is a radius off in the plane."""
     pixel, semi = _image_radius(cal, fit.centre, normal, radius_mm)
-    return bool(np.linalg.norm(cal.camera.project(start[None])[0] - pixel) <= CONFIG.image_fit_reach * semi)
+    return bool(np.linalg.norm(cal.camera.project(start[None])[0] - pixel) <= reach * semi)
 
 
 def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
-                  radius_mm: float, thickness_mm: float,
-                  var_offset: float) -> tuple[PlateImageFit, np.ndarray] | None:
+                  radius_mm: float, thickness_mm: float, var_offset: float,
+                  shape: FitShape) -> tuple[PlateImageFit, np.ndarray] | None:
     """``fit_plate_image`` on one plane (of height variance ``var_offset`` at the plate), and
     the heights over it of the decoded points on the fitted face."""
     F = local_frame(plane.point, plane.normal)
     E, n = F[:2], F[2]
     start = start - ((start - plane.point) @ n) * n
-    f = CONFIG.image_fit_subsamples
+    f = shape.subsamples
     pad = int(math.ceil(3.0 * CONFIG.image_fit_blur_range_px[1]))
-    window = _window(image.shape, cal, plane, start, radius_mm, thickness_mm, pad)
+    window = _window(image.shape, cal, plane, start, radius_mm, thickness_mm, pad, shape.reach)
     if window is None:
         return None
     (v0, v1), (u0, u1) = window
@@ -426,19 +439,22 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     c0 = (start - plane.point) @ E.T
     model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None)
     lo, hi = CONFIG.image_fit_blur_range_px
-    p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm])
+    p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm, radius_mm])
     t_hi = CONFIG.plate_image_max_thickness_ratio * thickness_mm
+    r_lo, r_hi = (k * radius_mm for k in CONFIG.plate_refit_radius_range)
+    k = 5 if shape.free_radius else 4
     try:
-        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
-                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2]),
-                            bounds=([-np.inf, -np.inf, math.log(lo), 0.0], [np.inf, np.inf, math.log(hi), t_hi]),
-                            diff_step=np.full(4, 1e-3), max_nfev=CONFIG.image_fit_iterations * 5)
+        sol = least_squares(model.residuals, p0[:k], method="trf", loss="huber",
+                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
+                            bounds=([-np.inf, -np.inf, math.log(lo), 0.0, r_lo][:k],
+                                    [np.inf, np.inf, math.log(hi), t_hi, r_hi][:k]),
+                            diff_step=np.full(k, 1e-3), max_nfev=CONFIG.image_fit_iterations * 5)
     except (ValueError, np.linalg.LinAlgError):
         return None
     c2 = sol.x[:2]
     if not np.isfinite(sol.x).all():
         return None
-    cov4 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)
+    cov4 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)  # 5 x 5 with a free radius
     if cov4 is None:
         return None
     r = model.residuals(sol.x)
@@ -449,7 +465,7 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     world = plane.point + c2 @ E + rise * n
     ray = (world - cal.camera.center) / np.linalg.norm(world - cal.camera.center)
     along = ray / abs(float(ray @ n))
-    J = np.column_stack([E.T, np.zeros(3), n if plane.from_table else np.zeros(3)])
+    J = np.column_stack([E.T, np.zeros(3), n if plane.from_table else np.zeros(3), np.zeros((3, k - 4))])
     cov3 = (J @ cov4 @ J.T + E.T @ _image_error(rays, c2, f) @ E + var_offset * np.outer(along, along)
             + CONFIG.sd_floor_mm**2 * np.eye(3))
     light = cal.projector.center - world
@@ -467,7 +483,10 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
                         noise, False,
                         robust_sigma(heights) if len(heights) > 1 else 0.0,
                         math.degrees(math.acos(min(abs(float(ray @ n)), 1.0))),
-                        math.degrees(math.acos(min(abs(float(light @ n)), 1.0))))
+                        math.degrees(math.acos(min(abs(float(light @ n)), 1.0))),
+                        float(sol.x[4]) if shape.free_radius else radius_mm,
+                        math.sqrt(max(float(cov4[4, 4]), 0.0)) if shape.free_radius else 0.0,
+                        (J @ cov4[:, 4]) if shape.free_radius else None)
     return fit, heights
 
 
@@ -483,14 +502,14 @@ def _image_error(rays: _Rays, c: np.ndarray, f: int) -> np.ndarray:
 
 
 def _window(shape: tuple[int, ...], cal: Calibration, plane: FacePlane, centre: np.ndarray, radius_mm: float,
-            thickness_mm: float, pad: int) -> tuple[tuple[int, int], tuple[int, int]] | None:
+            thickness_mm: float, pad: int, reach: float) -> tuple[tuple[int, int], tuple[int, int]] | None:
     """Rows and columns of the pixels round the plate's image (face and base rims out to
-    CONFIG.image_fit_reach + 1 radii), with room for the blur's ``pad`` inside the image."""
+    ``reach`` + 1 radii, and its shadow's far rim), with room for the blur's ``pad`` inside the image."""
     F = local_frame(plane.point, plane.normal)
     t = np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)
-    reach = (CONFIG.image_fit_reach + 1.0) * radius_mm
-    ring = centre + reach * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
-    uv = cal.camera.project(np.vstack([ring, ring - thickness_mm * F[2]]))
+    ring = centre + (reach + 1.0) * radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    rim = centre + radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    uv = cal.camera.project(np.vstack([ring, ring - thickness_mm * F[2], _shadow_of(rim, cal, F[2], thickness_mm)]))
     if not np.isfinite(uv).all():
         return None
     m = CONFIG.image_fit_margin_px
@@ -500,6 +519,15 @@ def _window(shape: tuple[int, ...], cal: Calibration, plane: FacePlane, centre: 
     if u0 - pad < 0 or v0 - pad < 0 or u1 + pad > W or v1 + pad > H:
         return None
     return (int(v0), int(v1)), (int(u0), int(u1))
+
+
+def _shadow_of(X: np.ndarray, cal: Calibration, normal: np.ndarray, height_mm: float) -> np.ndarray:
+    """(N, 3) where the points ``X`` (N, 3), ``height_mm`` above a plane of ``normal``, cast
+    their shadows on it from the projector."""
+    light = cal.projector.center - X
+    light /= np.linalg.norm(light, axis=1, keepdims=True)
+    out: np.ndarray = X - (height_mm / np.maximum(light @ normal, 1e-3))[:, None] * light
+    return out
 
 
 def _sample_rays(cal: Calibration, plane: FacePlane, F: np.ndarray, rows: tuple[int, int], cols: tuple[int, int],
@@ -548,27 +576,54 @@ class _Model:
         self.du, self.dv = du.ravel(), dv.ravel()
         self.last_coef = np.zeros(4)
         self._last_A: np.ndarray | None = None
+        # beyond four samples' width (mm) of every edge the drawing is the plain face or table
+        # (Φ(-8) = 6e-16); a segment's wall and shadow reach (mm per mm of thickness) past the rim
+        self.margin = 4.0 * float(np.max(np.abs(rays.jx) + np.abs(rays.jy)))
+        self.reach_per_mm = float(np.max(np.abs(rays.w))) + abs(rays.shadow_step)
 
-    def _signed(self, p: np.ndarray, mm: np.ndarray) -> np.ndarray:
-        """``mm`` (r minus a distance from the axis at in-plane offset ``p``, complex) in samples."""
+    @staticmethod
+    def _signed(p: np.ndarray, mm: np.ndarray, jx: np.ndarray, jy: np.ndarray) -> np.ndarray:
+        """``mm`` (r minus a distance from the axis at in-plane offset ``p``, complex) in samples
+        (of image Jacobians ``jx``, ``jy``)."""
         unit = p / np.maximum(np.abs(p), 1e-9)
-        g = unit.real * self.rays.jx + unit.imag * self.rays.jy
+        g = unit.real * jx + unit.imag * jy
         out: np.ndarray = mm / np.maximum(np.abs(g), 1e-9)
         return out
 
-    def _occupancy(self, c: complex, T: float) -> tuple[np.ndarray, np.ndarray]:
-        """(plate light per unit face light, table's visible share) per sample, the plate ``T`` mm thick."""
-        R, r = self.rays, self.r
+    def _radius(self, p: np.ndarray) -> float:
+        """The face's radius at parameters ``p``: the fifth where fitted, else the one given."""
+        return float(p[4]) if len(p) > 4 else self.r
+
+    def _occupancy(self, c: complex, T: float, r: float) -> tuple[np.ndarray, np.ndarray]:
+        """(plate light per unit face light, table's visible share) per sample, the plate ``T`` mm
+        thick and ``r`` in radius. On a fixed face plane only the band round the rim that the wall,
+        the shadow and the edges' blur reach is drawn: the rest is the plain face or table."""
+        R = self.rays
         T = max(T, 1e-6)
-        a = self._face_points(T) - c
-        wT = T * R.w
+        if self.floating_from is not None:
+            return self._drawn(self._face_points(T) - c, R.w, R.jx, R.jy, T, r)
+        a = R.a - c
+        rho = np.abs(a)
+        inner = rho < r - self.margin
+        band = ~inner & (rho <= r + self.margin + T * self.reach_per_mm)
+        plate = inner.astype(np.float64)
+        table = 1.0 - plate
+        plate[band], table[band] = self._drawn(a[band], R.w[band], R.jx[band], R.jy[band], T, r)
+        return plate, table
+
+    def _drawn(self, a: np.ndarray, w: np.ndarray, jx: np.ndarray, jy: np.ndarray, T: float,
+               r: float) -> tuple[np.ndarray, np.ndarray]:
+        """``_occupancy`` of the samples at face offsets ``a`` (from the centre), of in-plane
+        moves ``w`` per mm down and image Jacobians ``jx``, ``jy``."""
+        R = self.rays
+        wT = T * w
         A2 = wT.real**2 + wT.imag**2
         B2 = (a * wT.conjugate()).real
         near = a + np.clip(-B2 / np.maximum(A2, 1e-12), 0.0, 1.0) * wT
         rho = np.abs(a)
         h = 0.5  # Φ(d / (half a sample))
-        face = ndtr(self._signed(a, r - rho) / h)
-        solid = ndtr(self._signed(near, r - np.abs(near)) / h)
+        face = ndtr(self._signed(a, r - rho, jx, jy) / h)
+        solid = ndtr(self._signed(near, r - np.abs(near), jx, jy) / h)
         wall = np.maximum(solid - face, 0.0)
         # where the ray enters the wall: the segment's first point at distance r from the axis
         disc = np.maximum(B2 * B2 - A2 * (rho * rho - r * r), 0.0)
@@ -578,7 +633,7 @@ class _Model:
         b = a + wT
         up = T * R.shadow_step
         sh = b + np.clip(-(b * up.conjugate()).real / max(abs(up) ** 2, 1e-12), 0.0, 1.0) * up
-        shadow = ndtr(self._signed(sh, r - np.abs(sh)) / h)
+        shadow = ndtr(self._signed(sh, r - np.abs(sh), jx, jy) / h)
         return face + lam * wall, (1.0 - solid) * (1.0 - shadow)
 
     def _pixels(self, sample: np.ndarray, blur: float) -> np.ndarray:
@@ -600,11 +655,11 @@ class _Model:
     def face_share(self, p: np.ndarray) -> np.ndarray:
         """Per pixel (flat), the share of its blurred light that is the face's."""
         a = self._face_points(float(p[3])) - complex(p[0], p[1])
-        face = ndtr(self._signed(a, self.r - np.abs(a)) / 0.5)
+        face = ndtr(self._signed(a, self._radius(p) - np.abs(a), self.rays.jx, self.rays.jy) / 0.5)
         return self._pixels(face, math.exp(p[2]))
 
     def design(self, p: np.ndarray) -> np.ndarray:
-        plate, table = self._occupancy(complex(p[0], p[1]), float(p[3]))
+        plate, table = self._occupancy(complex(p[0], p[1]), float(p[3]), self._radius(p))
         blur = math.exp(p[2])
         P, Tb = self._pixels(plate, blur), self._pixels(table, blur)
         return np.column_stack([P, Tb, Tb * self.du, Tb * self.dv])
@@ -618,13 +673,13 @@ class _Model:
         return out
 
     def covariance(self, p: np.ndarray, huber: float) -> np.ndarray | None:
-        """(4, 4) the covariance of ``p`` (the centre, the blur and the thickness it trades
-        with): central differences (least_squares' own Jacobian is of its robust loss, and a
+        """The covariance of ``p`` (the centre, the blur, the thickness it trades with and a
+        fitted radius): central differences (least_squares' own Jacobian is of its robust loss, and a
         parameter at a round value can get a zero column), Huber weights, the residuals' robust
         SD. None where singular."""
         r = self.residuals(p)
         w = np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-12))
-        steps = np.array([0.01, 0.01, 0.01, 0.01])
+        steps = np.full(len(p), 0.01)
         cols = []
         for k, h in enumerate(steps):
             e = np.zeros_like(p)

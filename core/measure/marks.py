@@ -63,6 +63,7 @@ from anklescan.core.measure.mark_hypotheses import (
 )
 from anklescan.core.measure.mark_labels import label_marks
 from anklescan.core.measure.mark_plate_image import PlateStart, table_plates_by_image
+from anklescan.core.measure.mark_plate_refit import refit_plates
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, select_marks, settled
 from anklescan.core.measure.mark_types import (
     Blob,
@@ -109,8 +110,10 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     (``mark_hypotheses``), (2) each fitted once with that size as a prior, without its
     covariance, and scored in SD units (``mark_selection.fit_score``), (3) the non-overlapping
     set of seven the labels accept with the best total score (``select_marks``), and only those
-    fitted again with their covariance; (4) in a capture of plates, the table plates those
-    seven lack fitted to their image on the found table plates' plane (``table_plates_by_image``).
+    fitted again with their covariance; (4) in a capture of plates, every plate placed again
+    by its image on its own face's plane, and the kit's radius from those fits (``refit_plates``);
+    (5) the table plates those seven lack fitted to their image on the found table plates'
+    plane (``table_plates_by_image``).
     """
     image = np.asarray(lit, np.float32)
     points = points_image(cloud, image.shape)
@@ -220,6 +223,12 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         else:
             result.rejected.append(Rejection.of(f.mark.pixel, out))
     result.rejected.extend(selection.left_out)
+    if prefer is MarkKind.PLATE:
+        # every plate placed again by its whole image, and the kit's radius from those fits
+        result.marks, kit = refit_plates(result.marks, image, points, cal, r0, given=mark_diameter_mm is not None)
+        if kit is not None:
+            r0 = kit.radius_mm
+            result.diameter = (2.0 * kit.radius_mm, 2.0 * kit.sd_mm)
     if prefer is MarkKind.PLATE and thick is not None and len(result.marks) < len(LABELS):
         # table plates seen too obliquely for their rims: drawn whole on the plane of those
         # found, or of the table round them; started from every hypothesis no chosen fit took
