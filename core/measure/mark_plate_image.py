@@ -253,8 +253,13 @@ def _passes(fit: PlateImageFit, expected: float) -> bool:
     CONFIG.plate_image_model_error of the face's light, in quadrature: the light is modelled to
     a few per cent, Lambert's law per plate and a table lit linearly, which a bright face shows
     above the noise)."""
-    return (fit.face_light >= CONFIG.plate_image_min_light_share * expected
-            and fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
+    return fit.face_light >= CONFIG.plate_image_min_light_share * expected and model_holds(fit)
+
+
+def model_holds(fit: PlateImageFit) -> bool:
+    """A fit whose drawing is the plate's image: its contrast, the share of its face seen, its
+    face where the plane puts it and its residuals (``_passes``, less the kit's light)."""
+    return (fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
             and fit.face_on_plane and within_model(fit))
 
 
@@ -507,8 +512,8 @@ def _window(shape: tuple[int, ...], cal: Calibration, plane: FacePlane, centre: 
     ``reach`` + 1 radii, and its shadow's far rim), with room for the blur's ``pad`` inside the image."""
     F = local_frame(plane.point, plane.normal)
     t = np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)
-    ring = centre + (reach + 1.0) * radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
-    rim = centre + radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    circle = radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+    ring, rim = centre + (reach + 1.0) * circle, centre + circle
     uv = cal.camera.project(np.vstack([ring, ring - thickness_mm * F[2], _shadow_of(rim, cal, F[2], thickness_mm)]))
     if not np.isfinite(uv).all():
         return None

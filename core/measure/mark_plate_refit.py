@@ -11,12 +11,13 @@ radius, is within 0.02 mm.
 to every pixel of the plate's image. Here the plane is the plate's own: through its fitted centre
 with its fitted normal, its height corrected by the face's decoded points (``fit_plate_image``).
 The face's radius is fitted too: the ellipse's long axis is not foreshortened, so it is known at
-any view. The kit's radius is the one given, or the weighted mean of the other plates' fitted
-radii; each centre is then conditioned on it through its covariance with its own fitted radius.
+any view. The kit's radius is the one given, or the weighted mean of the other table plates'
+fitted radii (facing up: a leg's plate bares more wall); each centre is then conditioned on it
+through its covariance with its own fitted radius.
 
-A plate keeps its rim fit where the image fit fails, leaves its reach, or its residuals exceed
-the noise and the model's error (``mark_plate_image.within_model``): a plate on a leg curving
-away under it images a surround the model's linear light does not follow.
+A plate keeps its rim fit where the image fit fails, leaves its reach, or its drawing is not its
+image (``mark_plate_image.model_holds``: residuals past the noise and the model's error): a
+plate on a leg curving away under it images a surround the model's linear light does not follow.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 
 from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
-from anklescan.core.measure.mark_plate_image import FacePlane, FitShape, PlateImageFit, fit_plate_image, within_model
+from anklescan.core.measure.mark_plate_image import FacePlane, FitShape, PlateImageFit, fit_plate_image, model_holds
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.vocabulary import MarkKind
 
@@ -86,11 +87,7 @@ def _image_fit(mark: Mark, image: np.ndarray, points: np.ndarray, cal: Calibrati
     plane = FacePlane(mark.centre, n, math.sqrt(max(float(n @ mark.covariance @ n), 0.0)), 0.0)
     shape = FitShape(CONFIG.plate_refit_reach, CONFIG.plate_refit_subsamples, free_radius=True)
     fit = fit_plate_image(image, points, cal, plane, mark.centre, radius_mm, mark.step_mm, shape)
-    if fit is None or fit.centre_radius_cov is None:
-        return None
-    holds = (fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
-             and fit.face_on_plane and within_model(fit))
-    return fit if holds else None
+    return fit if fit is not None and fit.centre_radius_cov is not None and model_holds(fit) else None
 
 
 def _placed(mark: Mark, fit: PlateImageFit, kit: KitRadius | None, cal: Calibration) -> Mark:
