@@ -364,12 +364,18 @@ def fit_plate_image(image: np.ndarray, points: np.ndarray, cal: Calibration, pla
         return _fit_on_table(image, points, cal, plane, start, radius_mm, thickness_mm, var_plane, shape)
     offset, var_offset, var_h_last, h_last = 0.0, var_plane, 0.0, math.inf
     out: PlateImageFit | None = None
+    warm: PlateImageFit | None = None
     for _ in range(CONFIG.plate_image_height_rounds):
         here = replace(plane, point=plane.point + offset * n)
         fitted = _fit_on_plane(image, points, cal, here, out.centre if out else start, radius_mm, thickness_mm,
-                               var_offset, shape)
+                               var_offset, shape, warm)
         if fitted is None:
             return None
+        # the next round starts at this one's blur and thickness where the centre stayed within a
+        # pixel of its start: from its start values it would solve this round's problem again.
+        # A centre that moved further restarts them (a fit a radius off with no wall, its
+        # thickness at 0, was stuck where it stood)
+        warm = fitted[0] if _within_a_pixel(cal, fitted[0], out.centre if out else start, n, radius_mm) else None
         moved = float("inf") if out is None else float(np.linalg.norm(fitted[0].centre - out.centre))
         out, heights = fitted
         if not within_model(out):
@@ -417,11 +423,20 @@ def _near_start(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal:
     return bool(np.linalg.norm(cal.camera.project(start[None])[0] - pixel) <= reach * semi)
 
 
+def _within_a_pixel(cal: Calibration, fit: PlateImageFit, start: np.ndarray, normal: np.ndarray,
+                    radius_mm: float) -> bool:
+    """The fitted centre within a pixel of ``start`` (mm, the shortest a pixel spans on the plate:
+    along its image's long axis)."""
+    _, semi = _image_radius(cal, fit.centre, normal, radius_mm)
+    return float(np.linalg.norm(fit.centre - start)) <= radius_mm / max(semi, 1e-9)
+
+
 def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane: FacePlane, start: np.ndarray,
-                  radius_mm: float, thickness_mm: float, var_offset: float,
-                  shape: FitShape) -> tuple[PlateImageFit, np.ndarray] | None:
+                  radius_mm: float, thickness_mm: float, var_offset: float, shape: FitShape,
+                  warm: PlateImageFit | None = None) -> tuple[PlateImageFit, np.ndarray] | None:
     """``fit_plate_image`` on one plane (of height variance ``var_offset`` at the plate), and
-    the heights over it of the decoded points on the fitted face."""
+    the heights over it of the decoded points on the fitted face. The blur, thickness and
+    radius start at ``warm``'s where given, else at theirs."""
     F = local_frame(plane.point, plane.normal)
     E, n = F[:2], F[2]
     start = start - ((start - plane.point) @ n) * n
@@ -445,15 +460,18 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None)
     lo, hi = CONFIG.image_fit_blur_range_px
     p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm, radius_mm])
+    if warm is not None:
+        p0[2:] = math.log(warm.blur_px), warm.thickness_mm, warm.radius_mm
     t_hi = CONFIG.plate_image_max_thickness_ratio * thickness_mm
     r_lo, r_hi = (k * radius_mm for k in CONFIG.plate_refit_radius_range)
     k = 5 if shape.free_radius else 4
+    lower = np.array([-np.inf, -np.inf, math.log(lo), 0.0, r_lo][:k])
+    upper = np.array([np.inf, np.inf, math.log(hi), t_hi, r_hi][:k])
     try:
         sol = least_squares(model.residuals, p0[:k], method="trf", loss="huber",
                             f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
-                            bounds=([-np.inf, -np.inf, math.log(lo), 0.0, r_lo][:k],
-                                    [np.inf, np.inf, math.log(hi), t_hi, r_hi][:k]),
-                            diff_step=np.full(k, 1e-3), max_nfev=CONFIG.image_fit_iterations * 5)
+                            bounds=(lower, upper),
+                            jac=lambda x: model.jacobian(x, lower, upper), max_nfev=CONFIG.image_fit_iterations * 5)
     except (ValueError, np.linalg.LinAlgError):
         return None
     c2 = sol.x[:2]
@@ -559,6 +577,18 @@ def _sample_rays(cal: Calibration, plane: FacePlane, F: np.ndarray, rows: tuple[
                  complex(l2[0], l2[1]) / nl, complex(l2[0], l2[1]), nl)
 
 
+def _derivative(img: np.ndarray, axis: int) -> np.ndarray:
+    """The derivative of ``img`` along ``axis`` per sample: the five-point central difference,
+    the three-point one a sample from the ends and one-sided at them (``np.gradient``). On a
+    refit plate's drawing blurred over about a sample, the centre's Jacobian columns it gives
+    are 3-4 % from central differences of the model, the three-point one's 7-8 %."""
+    out: np.ndarray = np.gradient(img, axis=axis)
+    x = np.moveaxis(img, axis, 0)
+    o = np.moveaxis(out, axis, 0)
+    o[2:-2] = (x[:-4] - 8.0 * x[1:-3] + 8.0 * x[3:-1] - x[4:]) / 12.0
+    return out
+
+
 def _sees_plate_or_table(P: np.ndarray, plane: FacePlane, thickness_mm: float) -> np.ndarray:
     """(N,) of the points ``P`` (N, 3): undecoded, or decoded on or between the face's plane and the table's."""
     h = (P - plane.point) @ plane.normal
@@ -567,8 +597,23 @@ def _sees_plate_or_table(P: np.ndarray, plane: FacePlane, thickness_mm: float) -
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class _Drawing:
+    """The plate drawn at parameters ``p``: its samples (plate, table) before and after the blur."""
+
+    p: np.ndarray
+    drawn: np.ndarray  # (2, Hs, Ws)
+    blurred: np.ndarray  # (2, H f, W f), the window's samples
+
+
 class _Model:
     """The drawn plate's pixels for one centre and blur, its light solved linearly."""
+
+    #: mm (centre, thickness, radius) or of the blur's log: the Jacobian's difference step, small
+    #: against the drawing's edges (Φ over half a sample, tens of micrometres and more) and large
+    #: against rounding (a step relative to the parameter, as least_squares takes, is 0.1 mm for
+    #: a centre 100 mm from its plane's point and 1e-8 mm for one at it)
+    step = 1e-4
 
     def __init__(self, rays: _Rays, radius_mm: float, f: int, pad: int, keep: np.ndarray,
                  crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None):
@@ -581,10 +626,17 @@ class _Model:
         self.du, self.dv = du.ravel(), dv.ravel()
         self.last_coef = np.zeros(4)
         self._last_A: np.ndarray | None = None
+        self._last: _Drawing | None = None
         # beyond four samples' width (mm) of every edge the drawing is the plain face or table
         # (Φ(-8) = 6e-16); a segment's wall and shadow reach (mm per mm of thickness) past the rim
         self.margin = 4.0 * float(np.max(np.abs(rays.jx) + np.abs(rays.jy)))
         self.reach_per_mm = float(np.max(np.abs(rays.w))) + abs(rays.shadow_step)
+        # per window sample: the inverse transpose of d(a_x, a_y) / d(u, v) (samples), which
+        # carries a sample gradient to the plane's (``_centre_derivatives``)
+        cut = pad * f
+        jx, jy = rays.jx[cut:-cut, cut:-cut], rays.jy[cut:-cut, cut:-cut]
+        M = np.stack([np.stack([jx.real, jx.imag], axis=-1), np.stack([jy.real, jy.imag], axis=-1)], axis=-2)
+        self.plane_from_samples = np.linalg.inv(M).swapaxes(-1, -2)
 
     @staticmethod
     def _signed(p: np.ndarray, mm: np.ndarray, jx: np.ndarray, jy: np.ndarray) -> np.ndarray:
@@ -599,27 +651,38 @@ class _Model:
         """The face's radius at parameters ``p``: the fifth where fitted, else the one given."""
         return float(p[4]) if len(p) > 4 else self.r
 
-    def _occupancy(self, c: complex, T: float, r: float) -> tuple[np.ndarray, np.ndarray]:
-        """(plate light per unit face light, table's visible share) per sample, the plate ``T`` mm
-        thick and ``r`` in radius. On a fixed face plane only the band round the rim that the wall,
-        the shadow and the edges' blur reach is drawn: the rest is the plain face or table."""
+    def _radii(self, ps: np.ndarray) -> np.ndarray:
+        """(m,) the face's radius of each row of parameters ``ps`` (m, k) (``_radius``)."""
+        out: np.ndarray = ps[:, 4] if ps.shape[1] > 4 else np.full(len(ps), self.r)
+        return out
+
+    def _occupancy(self, c: np.ndarray, T: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(plate light per unit face light, table's visible share) per sample, (m, Hs, Ws): the
+        plate of centre ``c`` (m,) complex, ``T`` (m,) mm thick and ``r`` (m,) in radius. On a
+        fixed face plane only the band round the rim that the wall, the shadow and the edges'
+        blur reach (of any of the m plates) is drawn: the rest is the plain face or table."""
         R = self.rays
-        T = max(T, 1e-6)
+        T = np.maximum(T, 1e-6)
         if self.floating_from is not None:
-            return self._drawn(self._face_points(T) - c, R.w, R.jx, R.jy, T, r)
-        a = R.a - c
-        rho = np.abs(a)
-        inner = rho < r - self.margin
-        band = ~inner & (rho <= r + self.margin + T * self.reach_per_mm)
-        plate = inner.astype(np.float64)
+            a = self._face_points(T) - c[:, None, None]
+            return self._drawn(a, R.w[None], R.jx[None], R.jy[None], T[:, None, None], r[:, None, None])
+        # one band for all m plates: round the first's rim, widened by how far the others' rims
+        # lie from it (a Jacobian's plates differ by its steps)
+        c0, spread = c[0], float(np.max(np.abs(c - c[0])))
+        rho = np.abs(R.a - c0)
+        lo, hi = float(r.min()) - self.margin - spread, float(np.max(r + T * self.reach_per_mm)) + self.margin + spread
+        band = (rho >= lo) & (rho <= hi)
+        plate = np.repeat((rho < lo)[None].astype(np.float64), len(c), axis=0)
         table = 1.0 - plate
-        plate[band], table[band] = self._drawn(a[band], R.w[band], R.jx[band], R.jy[band], T, r)
+        plate[:, band], table[:, band] = self._drawn(R.a[band][None] - c[:, None], R.w[band][None], R.jx[band][None],
+                                                     R.jy[band][None], T[:, None], r[:, None])
         return plate, table
 
-    def _drawn(self, a: np.ndarray, w: np.ndarray, jx: np.ndarray, jy: np.ndarray, T: float,
-               r: float) -> tuple[np.ndarray, np.ndarray]:
-        """``_occupancy`` of the samples at face offsets ``a`` (from the centre), of in-plane
-        moves ``w`` per mm down and image Jacobians ``jx``, ``jy``."""
+    def _drawn(self, a: np.ndarray, w: np.ndarray, jx: np.ndarray, jy: np.ndarray, T: np.ndarray,
+               r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_occupancy`` of the samples at face offsets ``a`` (m, ...) (from the m centres), of
+        in-plane moves ``w`` per mm down and image Jacobians ``jx``, ``jy`` (1, ...), the plates
+        ``T`` thick and ``r`` in radius (m, 1, ...)."""
         R = self.rays
         wT = T * w
         A2 = wT.real**2 + wT.imag**2
@@ -637,44 +700,131 @@ class _Model:
         lam = np.maximum((m * R.light_2d.conjugate()).real, 0.0) / R.n_dot_l
         b = a + wT
         up = T * R.shadow_step
-        sh = b + np.clip(-(b * up.conjugate()).real / max(abs(up) ** 2, 1e-12), 0.0, 1.0) * up
+        sh = b + np.clip(-(b * up.conjugate()).real / np.maximum(np.abs(up) ** 2, 1e-12), 0.0, 1.0) * up
         shadow = ndtr(self._signed(sh, r - np.abs(sh), jx, jy) / h)
         return face + lam * wall, (1.0 - solid) * (1.0 - shadow)
 
-    def _pixels(self, sample: np.ndarray, blur: float) -> np.ndarray:
-        """Blurred by ``blur`` px, averaged to pixels, cropped to the window; flat."""
-        f, pad = self.f, self.pad
-        img = cv2.GaussianBlur(sample, (0, 0), blur * f)
-        Hs, Ws = img.shape
-        px = img.reshape(Hs // f, f, Ws // f, f).mean(axis=(1, 3))
-        out: np.ndarray = px[pad:-pad, pad:-pad].ravel()
+    def _pixels(self, samples: np.ndarray, blur: float) -> np.ndarray:
+        """``samples`` (C, Hs, Ws) blurred by ``blur`` px, cropped to the window and averaged to
+        pixels: (N, C)."""
+        return self._averaged(self._blurred(samples, blur))
+
+    def _blurred(self, samples: np.ndarray, blur: float) -> np.ndarray:
+        """``samples`` (C, Hs, Ws) blurred by ``blur`` px, each channel on its own (OpenCV blurs a
+        large window's channels one by one in half the time it blurs them interleaved), and
+        cropped to the window's samples."""
+        cut = self.pad * self.f
+        out: np.ndarray = np.stack([cv2.GaussianBlur(c, (0, 0), blur * self.f)[cut:-cut, cut:-cut] for c in samples])
         return out
 
-    def _face_points(self, T: float) -> np.ndarray:
-        """Where each sample's ray meets the face's plane, the plate ``T`` mm thick."""
+    def _averaged(self, img: np.ndarray) -> np.ndarray:
+        """The window's samples ``img`` (C, H f, W f) averaged to its pixels: (N, C). A sum of
+        the f² strided views (a mean over a reshape's two axes took four times as long)."""
+        f = self.f
+        out = img[:, ::f, ::f].copy()
+        for i, j in ((i, j) for i in range(f) for j in range(f) if i or j):
+            out += img[:, i::f, j::f]
+        flat: np.ndarray = out.reshape(len(img), -1).T / (f * f)
+        return flat
+
+    def _centre_derivatives(self, img: np.ndarray) -> np.ndarray:
+        """(2, N, C): the derivatives in the centre's x and y of the blurred drawings ``img``
+        (C, ..., ``_blurred``) at the pixels. The drawing depends on a sample's place in the
+        plane less the centre (the Jacobians the signed distances are carried by vary over the
+        window, not with the centre), so moving the centre moves it in the plane: the derivative
+        is minus its plane gradient, the image's sample gradient through the plane's inverse
+        Jacobian. Blurring and differentiating commute; the blurred drawing is smooth at a sample."""
+        gv, gu = _derivative(img, 1), _derivative(img, 2)
+        it = self.plane_from_samples
+        dx = -(it[..., 0, 0] * gu + it[..., 0, 1] * gv)
+        dy = -(it[..., 1, 0] * gu + it[..., 1, 1] * gv)
+        return np.stack([self._averaged(dx), self._averaged(dy)])
+
+    def _face_points(self, T: np.ndarray) -> np.ndarray:
+        """(m, Hs, Ws): where each sample's ray meets the face's plane, the plate ``T`` (m,) mm thick."""
         if self.floating_from is None:
-            return self.rays.a
-        out: np.ndarray = self.rays.a - (T - self.floating_from) * self.rays.w
+            return np.repeat(self.rays.a[None], len(T), axis=0)
+        out: np.ndarray = self.rays.a[None] - (T - self.floating_from)[:, None, None] * self.rays.w[None]
         return out
 
     def face_share(self, p: np.ndarray) -> np.ndarray:
         """Per pixel (flat), the share of its blurred light that is the face's."""
-        a = self._face_points(float(p[3])) - complex(p[0], p[1])
-        face = ndtr(self._signed(a, self._radius(p) - np.abs(a), self.rays.jx, self.rays.jy) / 0.5)
-        return self._pixels(face, math.exp(p[2]))
+        T = np.array([float(p[3])])
+        a = self._face_points(T) - complex(p[0], p[1])
+        face = ndtr(self._signed(a, self._radius(p) - np.abs(a), self.rays.jx[None], self.rays.jy[None]) / 0.5)
+        return self._pixels(face, math.exp(p[2]))[:, 0]
 
-    def design(self, p: np.ndarray) -> np.ndarray:
-        plate, table = self._occupancy(complex(p[0], p[1]), float(p[3]), self._radius(p))
-        blur = math.exp(p[2])
-        P, Tb = self._pixels(plate, blur), self._pixels(table, blur)
-        return np.column_stack([P, Tb, Tb * self.du, Tb * self.dv])
+    def designs(self, ps: np.ndarray) -> np.ndarray:
+        """(m, N, 4) the linear light's design at each row of parameters ``ps`` (m, k): the plate's
+        and the table's blurred drawings, the table's times the pixel's offsets. The rows are drawn
+        together and blurred together where their blurs agree."""
+        geo, which = np.unique(np.column_stack([ps[:, [0, 1, 3]], self._radii(ps)]), axis=0, return_inverse=True)
+        which = which.ravel()
+        plate, table = self._occupancy(geo[:, 0] + 1j * geo[:, 1], geo[:, 2], geo[:, 3])
+        out = np.empty((len(ps), len(self.lum), 4))
+        for blur in np.unique(ps[:, 2]):
+            rows = np.flatnonzero(ps[:, 2] == blur)
+            img = self._blurred(np.concatenate([plate[which[rows]], table[which[rows]]]), math.exp(blur))
+            out[rows] = self._design_of(self._averaged(img), len(rows))
+        return out
 
-    def residuals(self, p: np.ndarray) -> np.ndarray:
-        A = self.design(p)[self.keep]
+    def _design_of(self, px: np.ndarray, m: int) -> np.ndarray:
+        """(m, N, 4) from the blurred drawings at the pixels ``px`` (N, 2 m): m plates', then m tables'."""
+        P, Tb = px[:, :m].T, px[:, m:].T
+        out: np.ndarray = np.stack([P, Tb, Tb * self.du, Tb * self.dv], axis=2)
+        return out
+
+    def _drawing_at(self, p: np.ndarray) -> _Drawing:
+        """The plate and table drawn and blurred at ``p``: the last one drawn where it is at ``p``
+        (least_squares asks for the Jacobian where it last asked for the residuals)."""
+        if self._last is None or not np.array_equal(self._last.p, p):
+            plate, table = self._occupancy(np.array([complex(p[0], p[1])]), p[3:4], self._radii(p[None]))
+            drawn = np.concatenate([plate, table])
+            self._last = _Drawing(p.copy(), drawn, self._blurred(drawn, math.exp(p[2])))
+        return self._last
+
+    def _solved(self, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The light's coefficients for the design ``A`` (N kept, 4) by least squares, and the residuals."""
         y = self.lum[self.keep]
         coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        self.last_coef, self._last_A = coef, A
-        out: np.ndarray = A @ coef - y
+        return coef, A @ coef - y
+
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        """The residuals at ``p``, its light solved linearly (kept as the last solved)."""
+        at = self._drawing_at(np.asarray(p, float))
+        A = self._design_of(self._averaged(at.blurred), 1)[0][self.keep]
+        self.last_coef, r = self._solved(A)
+        self._last_A = A
+        return r
+
+    def _residuals_of(self, ps: np.ndarray) -> np.ndarray:
+        """(m, N kept) the residuals at each row of ``ps``, the light solved linearly for each."""
+        return np.array([self._solved(A)[1] for A in self.designs(ps)[:, self.keep]])
+
+    def jacobian(self, p: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+        """The residuals' Jacobian at ``p``, the light solved linearly at each (Golub and Pereyra's
+        derivative of the projected residual): in the centre from the drawing's own gradient
+        (``_centre_derivatives``); in the blur by forward differences of ``step`` of the drawing
+        at ``p`` blurred again; in the thickness and a fitted radius by forward differences of
+        ``step``, drawn in one call (backward where forward would leave the bounds ``lower``,
+        ``upper``)."""
+        p = np.asarray(p, float)
+        h = np.where(p + self.step <= upper, self.step, -self.step)
+        h = np.where(p + h >= lower, h, 0.0)
+        at = self._drawing_at(p)
+        A0 = self._design_of(self._averaged(at.blurred), 1)[0][self.keep]
+        coef, r0 = self._solved(A0)
+        pinv = np.linalg.pinv(A0)
+        out = np.empty((len(r0), len(p)))
+        for j, d in enumerate(self._centre_derivatives(at.blurred)):
+            dA = self._design_of(d, 1)[0][self.keep]
+            moved = dA @ coef
+            out[:, j] = moved - A0 @ (pinv @ moved) - A0 @ (pinv @ (pinv.T @ (dA.T @ r0)))
+        blurred = self._blurred(at.drawn, math.exp(p[2] + h[2]))
+        others = self.designs(p + np.diag(h)[3:])[:, self.keep] if len(p) > 3 else np.zeros((0, len(r0), 4))
+        for j, A in zip(range(2, len(p)), [self._design_of(self._averaged(blurred), 1)[0][self.keep], *others],
+                        strict=True):
+            out[:, j] = (self._solved(A)[1] - r0) / h[j] if h[j] != 0.0 else 0.0
         return out
 
     def covariance(self, p: np.ndarray, huber: float) -> np.ndarray | None:
@@ -682,18 +832,15 @@ class _Model:
         fitted radius): central differences (least_squares' own Jacobian is of its robust loss, and a
         parameter at a round value can get a zero column), Huber weights, the residuals' robust
         SD. None where singular."""
-        r = self.residuals(p)
-        w = np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-12))
-        steps = np.full(len(p), 0.01)
-        cols = []
-        for k, h in enumerate(steps):
-            e = np.zeros_like(p)
-            e[k] = h
-            cols.append((self.residuals(p + e) - self.residuals(p - e)) / (2.0 * h))
-        J = np.column_stack(cols)
+        p = np.asarray(p, float)
+        h = 0.01
+        rows = np.vstack([p, p + h * np.eye(len(p)), p - h * np.eye(len(p))])
+        r = self._residuals_of(rows)
+        w = np.minimum(1.0, huber / np.maximum(np.abs(r[0]), 1e-12))
+        J = ((r[1:1 + len(p)] - r[1 + len(p):]) / (2.0 * h)).T
         self.residuals(p)  # leave the solution's light as the last solved
         try:
-            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J)) * robust_sigma(r, 0.0) ** 2
+            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J)) * robust_sigma(r[0], 0.0) ** 2
         except np.linalg.LinAlgError:
             return None
         return cov if np.isfinite(cov).all() else None
