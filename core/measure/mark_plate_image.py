@@ -467,8 +467,10 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     k = 5 if shape.free_radius else 4
     lower = np.array([-np.inf, -np.inf, math.log(lo), 0.0, r_lo][:k])
     upper = np.array([np.inf, np.inf, math.log(hi), t_hi, r_hi][:k])
+    # a warm start on a bound comes back from exp and log an ulp past it: least_squares refuses that
+    p0 = np.clip(p0[:k], lower, upper)
     try:
-        sol = least_squares(model.residuals, p0[:k], method="trf", loss="huber",
+        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
                             f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
                             bounds=(lower, upper),
                             jac=lambda x: model.jacobian(x, lower, upper), max_nfev=CONFIG.image_fit_iterations * 5)
@@ -647,12 +649,9 @@ class _Model:
         out: np.ndarray = mm / np.maximum(np.abs(g), 1e-9)
         return out
 
-    def _radius(self, p: np.ndarray) -> float:
-        """The face's radius at parameters ``p``: the fifth where fitted, else the one given."""
-        return float(p[4]) if len(p) > 4 else self.r
-
     def _radii(self, ps: np.ndarray) -> np.ndarray:
-        """(m,) the face's radius of each row of parameters ``ps`` (m, k) (``_radius``)."""
+        """(m,) the face's radius of each row of parameters ``ps`` (m, k): the fifth where fitted,
+        else the one given."""
         out: np.ndarray = ps[:, 4] if ps.shape[1] > 4 else np.full(len(ps), self.r)
         return out
 
@@ -751,7 +750,7 @@ class _Model:
         """Per pixel (flat), the share of its blurred light that is the face's."""
         T = np.array([float(p[3])])
         a = self._face_points(T) - complex(p[0], p[1])
-        face = ndtr(self._signed(a, self._radius(p) - np.abs(a), self.rays.jx[None], self.rays.jy[None]) / 0.5)
+        face = ndtr(self._signed(a, self._radii(p[None])[0] - np.abs(a), self.rays.jx[None], self.rays.jy[None]) / 0.5)
         return self._pixels(face, math.exp(p[2]))[:, 0]
 
     def designs(self, ps: np.ndarray) -> np.ndarray:
