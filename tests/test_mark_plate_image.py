@@ -18,6 +18,8 @@ from anklescan.core.measure.mark_plate_image import (
     FacePlane,
     FitShape,
     PlateStart,
+    _plane_at,
+    _table_planes,
     face_plane,
     fit_plate_image,
     surround_plane,
@@ -255,3 +257,63 @@ def test_plate_placed_again_by_its_image_where_its_rim_fit_lies_along_the_view(c
     assert abs(fit.radius_mm - r) < 0.05 and abs(fit.radius_mm - r) < 3 * fit.radius_sd, (fit.radius_mm, fit.radius_sd)
     kit_r = pooled([fit])
     assert kit_r is not None and kit_r.radius_mm == pytest.approx(fit.radius_mm)
+
+
+def _table_strip(cal: Calibration, X: np.ndarray, n: np.ndarray, half: tuple[float, float], noise_mm: float,
+                 seed: int) -> np.ndarray:
+    """(H, W, 3) decoded points of the plane through ``X`` (normal ``n``) within ``half`` (mm,
+    along its local frame's two axes) of ``X``, off by Gaussian noise along each ray."""
+    H, W = cal.camera.height, cal.camera.width
+    F = local_frame(X, n)
+    corners = X + np.array([[sx * half[0], sy * half[1]] for sx in (-1, 1) for sy in (-1, 1)]) @ F[:2]
+    uv = cal.camera.project(corners)
+    u0, v0 = np.maximum(np.floor(uv.min(axis=0)).astype(int), 0)
+    u1, v1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int), (W, H))
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    d = cal.camera.rays(np.column_stack([uu.ravel(), vv.ravel()]).astype(float))
+    o = cal.camera.center
+    t = ((X - o) @ n) / (d @ n)
+    Q = o + t[:, None] * d
+    inside = np.all(np.abs((Q - X) @ F[:2].T) <= half, axis=1)
+    Q += np.random.default_rng(seed).normal(0.0, noise_mm, len(t))[:, None] * d
+    points = np.full((H, W, 3), np.nan, np.float32)
+    points[vv.ravel()[inside], uu.ravel()[inside]] = Q[inside]
+    return points
+
+
+def test_a_table_seen_near_grazing_is_one_plane_from_every_plate_round_it(cal: Calibration) -> None:
+    """Where no table plate was found and the table round one start decodes too little for a
+    plane of its own, the plane measured round the others serves it, refitted to every start's
+    surround: its height where that start lies is right within its SD (its tilt's SD is
+    about the points' narrowest spread, so it errs large), and surer than the one
+    surround's plane carried 100 mm."""
+    r, T = 5.2, 2.6
+    X, _ = _tilted_plane(cal, 77.0)
+    v = (cal.camera.center - X) / np.linalg.norm(cal.camera.center - X)
+    up = np.array([0.0, 0.0, 1.0]) - v[2] * v
+    n = math.cos(math.radians(77.0)) * v + math.sin(math.radians(77.0)) * up / np.linalg.norm(up)
+    assert n[2] > 0.7  # faces up, as a table does
+    F = local_frame(X, n)
+    points = _table_strip(cal, X, n, (130.0, 55.0), 0.5, 3)
+    sigma = np.where(np.isfinite(points[..., 0]), 0.5, np.nan).astype(np.float32)
+    sites = [X + x * F[0] + y * F[1] for x, y in ((-100.0, -25.0), (0.0, 25.0), (100.0, -25.0))]  # a triangle
+    # the far site's surround decodes four points: no plane of its own
+    far = sites[2]
+    dist = np.linalg.norm(points - far, axis=2)
+    ring = np.argwhere((dist >= 2.0 * r) & (dist <= 4.0 * r))
+    for v, u in ring[4:]:
+        points[v, u] = np.nan
+        sigma[v, u] = np.nan
+    assert surround_plane(points, sigma, cal, far, r, T, 0.0) is None
+    starts = [PlateStart(tuple(cal.camera.project(s[None])[0]), s + T * n) for s in sites]
+    image = np.zeros(points.shape[:2], np.float32)
+    # no table plate found, and no plate drawn in the image: nothing is fitted, nothing raised
+    assert table_plates_by_image([], starts, image, points, sigma, cal, r, T) == []
+    planes = _table_planes(points, sigma, cal, [s + T * n for s in sites], [], r, T, 0.0)
+    plane = _plane_at(far + T * n, planes, T)
+    assert plane is not None and plane.from_table
+    height = float((far + T * n - plane.point) @ plane.normal)
+    sd = plane.offset_sd_at(far)
+    assert abs(height) < 0.05 and abs(height) < 3.0 * sd, (height, sd)
+    alone = surround_plane(points, sigma, cal, sites[1], r, T, 0.0)
+    assert alone is not None and alone.offset_sd_at(far) > 1.2 * sd, (alone.offset_sd_at(far), sd)

@@ -103,6 +103,14 @@ def surround_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibratio
     by weighted least squares, then raised ``thickness_mm`` towards the camera (its SD
     ``thickness_sd`` added to the offset's). None where fewer than CONFIG.min_interior_points
     decode there. Its tilt's SD is about the points' narrowest spread."""
+    P, s = _surround(points, sigma, cal, at, radius_mm)
+    return _plane_through(P, s, cal, thickness_mm, thickness_sd)
+
+
+def _surround(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
+              radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The decoded points (N, 3) between CONFIG.plate_image_surround_radii of ``at`` and their
+    SDs (mm; 0.05 without ``sigma``)."""
     inner, outer = (k * radius_mm for k in CONFIG.plate_image_surround_radii)
     depth = float(np.linalg.norm(at - cal.camera.center))
     half = int(math.ceil(float(plate_radius_px(cal, depth, outer))))
@@ -113,9 +121,14 @@ def surround_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibratio
     s = (sigma[rows, cols].ravel().astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
     dist = np.linalg.norm(P - at, axis=1)
     ok = np.isfinite(dist) & (dist >= inner) & (dist <= outer)
-    if int(ok.sum()) < CONFIG.min_interior_points:
+    return P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01)
+
+
+def _plane_through(P: np.ndarray, s: np.ndarray, cal: Calibration, thickness_mm: float,
+                   thickness_sd: float) -> FacePlane | None:
+    """``surround_plane`` through the points ``P`` of SDs ``s``."""
+    if len(P) < CONFIG.min_interior_points:
         return None
-    P, s = P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01)
     sel = plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
     if int(sel.sum()) < CONFIG.min_interior_points:
         return None
@@ -138,7 +151,8 @@ class PlateStart:
 
 def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], image: np.ndarray,
                           points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, radius_mm: float,
-                          thickness_mm: float) -> list[Mark]:
+                          thickness_mm: float, table_points: np.ndarray | None = None,
+                          table_sigma: np.ndarray | None = None) -> list[Mark]:
     """The table plates the search missed, in a capture of plates where fewer than seven marks
     and fewer than three plates facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z)
     were found. Each of ``starts`` (the hypotheses no chosen fit took) is fitted on a plane
@@ -163,13 +177,18 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     o = cal.camera.center
     passed: list[tuple[PlateImageFit, FacePlane]] = []
     tried: list[PlateImageFit] = []
+    planes = ([shared] if shared else
+              _table_planes(points if table_points is None else table_points,
+                            sigma if table_points is None else table_sigma, cal,
+                            [st.point for st in starts if st.point is not None], up, radius_mm, thickness_mm,
+                            thickness_sd))
     for st in starts:
         if st.point is None:
             continue
-        plane = shared or _table_plane(points, sigma, cal, st.point, up, radius_mm, thickness_mm, thickness_sd)
         # a table plate's face decodes where it is lit: a blob with no decoded point on the
         # table's band is a shadow, the dark past an outline, or on the leg
-        if plane is None or not _on_or_between(st.point, plane, thickness_mm):
+        plane = _plane_at(st.point, planes, thickness_mm)
+        if plane is None:
             continue
         d = cal.camera.rays(np.array([st.pixel], float))[0]
         if d @ plane.normal >= 0.0:
@@ -196,16 +215,46 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     return out
 
 
-def _table_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
-                 up: Sequence[Mark], radius_mm: float, thickness_mm: float, thickness_sd: float) -> FacePlane | None:
-    """The face plane of a table plate at ``at`` where fewer than two table plates were found
-    (``table_plates_by_image``): the table round it, where it faces up and agrees with the
-    found table plate; else that one plate's plane; else None."""
-    plane = surround_plane(points, sigma, cal, at, radius_mm, thickness_mm, thickness_sd)
-    if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
-            and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
-        return plane
-    return face_plane(up, cal.camera.center) if up else None
+def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: Sequence[np.ndarray],
+                  up: Sequence[Mark], radius_mm: float, thickness_mm: float, thickness_sd: float) -> list[FacePlane]:
+    """The face planes a table plate may lie on where fewer than two table plates were found
+    (``table_plates_by_image``): the found table plate's; and the table round each of the world
+    points ``at`` where it faces up and agrees with the found table plate, each refitted
+    (``_joined``) to the points round every one of ``at`` that lie on it. The table is one
+    plane: the surround of one plate tilts by tenths of a degree, a millimetre 150 mm away,
+    which a ray at 78° carries 4 mm along the table."""
+    planes = [face_plane(up, cal.camera.center)] if up else []
+    rings = [_surround(points, sigma, cal, x, radius_mm) for x in at]
+    for P, s in rings:
+        plane = _plane_through(P, s, cal, thickness_mm, thickness_sd)
+        if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
+                and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
+            planes.append(_joined(plane, rings, cal, thickness_mm, thickness_sd) or plane)
+    return planes
+
+
+def _joined(seed: FacePlane, rings: Sequence[tuple[np.ndarray, np.ndarray]], cal: Calibration,
+            thickness_mm: float, thickness_sd: float) -> FacePlane | None:
+    """The table's plane through the points of ``rings`` within 3 SD (theirs and ``seed``'s
+    there) of ``seed``'s table (a thickness below its face), as ``surround_plane`` fits them."""
+    P = np.vstack([r[0] for r in rings])
+    s = np.concatenate([r[1] for r in rings])
+    table = seed.point - thickness_mm * seed.normal
+    rel = P - table
+    along = rel @ seed.normal
+    across = np.linalg.norm(rel - along[:, None] * seed.normal, axis=1)
+    band = 3.0 * np.sqrt(s**2 + seed.offset_sd**2 + (across * seed.tilt_sd) ** 2)
+    on = np.abs(along) <= band
+    return _plane_through(P[on], s[on], cal, thickness_mm, thickness_sd)
+
+
+def _plane_at(x: np.ndarray, planes: Sequence[FacePlane], thickness_mm: float) -> FacePlane | None:
+    """Of ``planes``, the one that puts ``x`` on or between the face and the table
+    (``_on_or_between``) with the least SD at ``x``: the table is one plane, so the table
+    measured round one plate serves another whose own surround decodes too sparsely (a table
+    seen near grazing), and the nearest measure of it is not always the best."""
+    on = [p for p in planes if _on_or_between(x, p, thickness_mm)]
+    return min(on, key=lambda p: p.offset_sd_at(x)) if on else None
 
 
 def _spread_deg(normals: Sequence[np.ndarray]) -> float:

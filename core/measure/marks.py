@@ -155,6 +155,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         label_marks(result)
         return result
     scene = _Scene(image, points, sigma, albedo, cal, clipped, r0, sd0, thick, prefer)
+    wide = _WideCloud(wide_points, image.shape)
     fits: list[MarkFit] = []
     refused: list[Hypothesis] = []
 
@@ -185,14 +186,13 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         hyps = sized_hypotheses(image, albedo, points, cal, r0)
         consider(recut(hyps))
         selection = select_marks(fits, r0)
-        if wide_points is not None and not settled(selection, HypothesisSource.SIZED.tier):
+        if wide.available and not settled(selection, HypothesisSource.SIZED.tier):
             # and the re-cuts of every decoded point, past the cloud's noise limit too: averaged
             # into normals (the shading correction) and as a sign of a decoded surface they are
             # no worse, and a table lit and seen obliquely decodes mostly past that limit. The
             # fits still rest on the cloud's points and its shading correction. Where the cloud's
             # re-cuts settle the choice, these could not change it (``settled``) and are not made.
-            wide = points_image(wide_points(), image.shape)
-            more = sized_hypotheses(image, shading_corrected(image, wide, cal), wide, cal, r0)
+            more = sized_hypotheses(image, shading_corrected(image, wide.points, cal), wide.points, cal, r0)
             consider(recut(with_new_regions(hyps, more)[len(hyps):]))
             selection = select_marks(fits, r0)
     if not settled(selection, HypothesisSource.WIDER.tier):
@@ -235,7 +235,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         taken = {id(f.hypothesis) for f in selection.chosen}
         others = refused + [f.hypothesis for f in fits if id(f.hypothesis) not in taken]
         starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in others]
-        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick):
+        # the table's plane from every decoded point: seen near grazing, it decodes mostly past the cloud's limit
+        table = (wide.points, wide.sigma) if wide.available else (points, sigma)
+        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick, *table):
             result.marks.append(plate)
             result.rejected = [r for r in result.rejected
                                if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
@@ -246,6 +248,36 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         result.problems.append(result.size_error)
     label_marks(result)
     return result
+
+
+class _WideCloud:
+    """The cloud of every decoded point up to CONFIG.hypothesis_max_point_sd_mm (``find_marks``'
+    ``wide_points``) as camera images, made on first use."""
+
+    def __init__(self, make: Callable[[], PointCloud] | None, shape: tuple[int, ...]):
+        self._make, self._shape = make, shape
+        self._images: tuple[np.ndarray, np.ndarray | None] | None = None
+
+    @property
+    def available(self) -> bool:
+        return self._make is not None
+
+    def _made(self) -> tuple[np.ndarray, np.ndarray | None]:
+        if self._images is None:
+            assert self._make is not None, "no wide cloud to make"
+            cloud = self._make()
+            self._images = points_image(cloud, self._shape), sigma_image(cloud, self._shape)
+        return self._images
+
+    @property
+    def points(self) -> np.ndarray:
+        """(H, W, 3) its world points per camera pixel (NaN where none)."""
+        return self._made()[0]
+
+    @property
+    def sigma(self) -> np.ndarray | None:
+        """(H, W) its points' predicted SDs (``sigma_image``)."""
+        return self._made()[1]
 
 
 def _one_predicted_outline(fits: list[MarkFit]) -> list[MarkFit]:
