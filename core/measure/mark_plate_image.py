@@ -157,10 +157,11 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     and fewer than three plates facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z)
     were found. Each of ``starts`` (the hypotheses no chosen fit took) is fitted on a plane
     (``fit_plate_image``): that of two found table plates (``face_plane``) where their normals
-    agree within CONFIG.table_normal_spread_deg, else the table round the start
-    (``surround_plane``; facing up, and within that spread of a found table plate's normal),
-    else one found table plate's. A start is skipped where it lies on a found mark, its blob has
-    no decoded point on the plate's height over the table (by CONFIG.image_fit_off_surface_mm),
+    agree within CONFIG.table_normal_spread_deg; else, of the table's (``_table_planes``, from
+    ``table_points`` and ``table_sigma`` where given: every decoded point, not the cloud's
+    alone) and one found table plate's, the one with the least SD at the start (``_plane_at``).
+    A start is skipped where it lies on a found mark, its blob has no decoded point on the
+    plate's height over the table on any of these planes (by CONFIG.image_fit_off_surface_mm),
     or a plate fitted from another start covers its pixel. Of the fits that are one of the kit's
     plates (``_passes``) and lie on no found mark, the best (least residuals) that do not
     overlap, as many as the table lacks."""

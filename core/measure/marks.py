@@ -236,8 +236,9 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         others = refused + [f.hypothesis for f in fits if id(f.hypothesis) not in taken]
         starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in others]
         # the table's plane from every decoded point: seen near grazing, it decodes mostly past the cloud's limit
-        table = (wide.points, wide.sigma) if wide.available else (points, sigma)
-        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick, *table):
+        table_points, table_sigma = (wide.points, wide.sigma) if wide.available else (points, sigma)
+        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick,
+                                           table_points=table_points, table_sigma=table_sigma):
             result.marks.append(plate)
             result.rejected = [r for r in result.rejected
                                if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
