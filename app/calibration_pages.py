@@ -47,6 +47,8 @@ else:
 
 STEPS = ("1  Place the box", "2  Scan the box", "3  Quality report", "4  Manual (paper)", "5  Verify")
 PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)
+NO_REPORT_YET = ("<b>No calibration fitted yet.</b><br>Scan the box (step 2), or use the manual method (step 4): "
+                 "the fit's quality report appears here, with Accept and save.")
 ProjectorShows = Literal["white", "spot"]  # what the dialog puts on the projector
 ScanPurpose = Literal["calibrate", "board", "verify", "level"]  # what a scan of the dialog is for
 
@@ -169,7 +171,8 @@ class WizardPages(_DialogBase):
         self.report_view = ZoomView()
         self.report_summary = QLabel("")
         self.report_summary.setWordWrap(True)
-        self.report_verdict = QLabel("")  # the answer first, large: may this calibration be used?
+        # the answer first, large: may this calibration be used? Before a fit, what brings one here
+        self.report_verdict = QLabel(NO_REPORT_YET)
         self.report_verdict.setWordWrap(True)
         self.report_verdict.setObjectName("calibrationVerdict")
         self.report_text = QPlainTextEdit()
@@ -182,6 +185,7 @@ class WizardPages(_DialogBase):
         self.report_details.toggled.connect(self.report_text.setVisible)
         self.report_details.toggled.connect(lambda on: self.report_details.setText(
             "Hide the fitted parameters" if on else "Show the fitted parameters"))
+        self.report_details.hide()  # no parameters before a fit (``_report_summary_text``)
         side = QWidget()
         sv = QVBoxLayout(side)
         sv.setContentsMargins(0, 0, 0, 0)
@@ -324,6 +328,7 @@ class WizardPages(_DialogBase):
             + ("<span style='color:#2e6b3a'>no warnings</span>" if ok else
                f"<span style='color:#b3261e'>{len(rep.warnings)} warning(s), see below</span>"))
         self.report_text.setPlainText(rep.format_text())
+        self.report_details.show()
 
     def show_unverified(self, text: str) -> None:
         """The Verify page once another calibration became current: the verdict and distances shown

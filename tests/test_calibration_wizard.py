@@ -63,6 +63,20 @@ def _click_step(qtbot, wiz, page):
     qtbot.mouseClick(wiz.steps.viewport(), Qt.MouseButton.LeftButton, pos=rect.center())
 
 
+def test_quality_page_before_a_fit_says_how_to_get_one(setup, qtbot):
+    """The step list opens "3 Quality report" before any scan: it says what brings a report there,
+    and there is nothing to accept."""
+    from anklescan.app.calibration_wizard import PAGE_REPORT
+
+    _, _, _, wiz = setup
+    _click_step(qtbot, wiz, PAGE_REPORT)
+    assert wiz.pages.currentIndex() == PAGE_REPORT
+    assert wiz.report_verdict.isVisible() and "No calibration fitted yet" in wiz.report_verdict.text()
+    assert "Scan the box" in wiz.report_verdict.text() and not wiz.accept_button.isEnabled()
+    assert not wiz.report_details.isVisible()  # no fitted parameters to show
+    _shot(wiz, "calib_report_empty.png")
+
+
 @pytest.mark.slow
 def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     from PySide6.QtCore import Qt
@@ -88,6 +102,7 @@ def test_guided_flow_calibrates_saves_and_verifies(setup, qtbot, tmp_path):
     assert "RMS" in wiz.report_summary.text() and "±" in wiz.report_text.toPlainText()
     # the verdict first, large; the parameter dump only on request
     assert "Good calibration" in wiz.report_verdict.text() and not wiz.report_text.isVisible()
+    assert wiz.report_details.isVisible()
     wiz.report_details.click()
     assert wiz.report_text.isVisible()
     wiz.report_details.click()
