@@ -57,6 +57,7 @@ class BannerTopic(enum.Enum):
 
     OTHER = "other"
     DAILY_CHECK = "daily check"  # the rig's daily check failed or is missing: a passed check takes it back
+    CALIBRATION = "calibration"  # no calibration, or an old one: a current, recent one takes it back
 
 
 class Banner(QWidget):

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 from PySide6.QtCore import QObject, QTimer
 from PySide6.QtGui import QAction, QActionGroup, QGuiApplication
 
-from anklescan.app.main_parts import PAGE_SCAN
+from anklescan.app.main_parts import PAGE_SCAN, BannerTopic
 from anklescan.core.vocabulary import Severity
 
 if TYPE_CHECKING:
@@ -263,7 +263,7 @@ class RigSetup(QObject):
 
     def _calibration_accepted(self, cal: Calibration, cid: int | None, path: str) -> None:
         self.parts.session.use_calibration(cal, cid)
-        self.parts.banner.clear(Severity.WARNING)
+        self.parts.banner.clear(topic=BannerTopic.CALIBRATION)
         self._flow.update_enabled()
         if not self.parts.session.operator:  # who calibrated: asked now, not only at the first session
             self.parts.banner.show_message(Severity.INFO, "Calibration saved. Who is operating? Your name or initials sign "
@@ -278,9 +278,12 @@ class RigSetup(QObject):
             return
         if parts.session.calibration is None:
             parts.banner.show_message(Severity.WARNING, "No calibration yet: calibrate the scanner before measuring patients.",
-                                    ("Calibrate…", self.open_calibration))
+                                      ("Calibrate…", self.open_calibration), topic=BannerTopic.CALIBRATION)
         elif text:
-            parts.banner.show_message(Severity.WARNING, text, ("Calibrate…", self.open_calibration))
+            parts.banner.show_message(Severity.WARNING, text, ("Calibrate…", self.open_calibration),
+                                      topic=BannerTopic.CALIBRATION)
+        else:  # a current, recent calibration: what was said of none, or of an old one, no longer holds
+            parts.banner.clear(topic=BannerTopic.CALIBRATION)
 
     # ---- the projector window -------------------------------------------------------------
     def _ensure_projector(self) -> None:

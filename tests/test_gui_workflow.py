@@ -252,7 +252,8 @@ def test_scan_is_blocked_without_calibration_and_bad_angles_are_refused(qtbot, f
     menu_action(win, "Scan/Start scan").trigger()  # F5 with no calibration: blocked, the way out shown
     assert not win.controller.busy and win.store.trials.all(win.records.current_session_id()) == []
     assert "No calibration" in win.banner.text and win.banner.action.text() == "Calibrate…"
-    use_true_calibration(win)
+    use_true_calibration(win)  # as Scan ▸ Choose calibration… loads one
+    assert "No calibration" not in win.banner.text  # taken back, not left to mislead
     form = win.scan_page.form
     _type(form.inversion.edit, "95")
     assert form.inversion.edit.text() == "95" and "outside" in form.inversion.message.text()
