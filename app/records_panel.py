@@ -16,6 +16,7 @@ from PySide6.QtWidgets import (
     QHBoxLayout,
     QInputDialog,
     QLabel,
+    QListView,
     QListWidget,
     QListWidgetItem,
     QMessageBox,
@@ -45,6 +46,12 @@ class RecordsPanel(QWidget):
         super().__init__(parent)
         self.logic = logic
         self.patients, self.sessions, self.trials = QListWidget(), QListWidget(), QListWidget()
+        for lst in (self.patients, self.sessions, self.trials):
+            # a line too long for the narrow column wraps at a word: cut, "· simulated" or a trial's
+            # "[excluded]" went out of sight behind a horizontal scroll bar
+            lst.setWordWrap(True)
+            lst.setResizeMode(QListView.ResizeMode.Adjust)
+            lst.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.patients.currentItemChanged.connect(lambda *_: self.show_patient())
         self.sessions.currentItemChanged.connect(lambda *_: self.show_session())
         self.trials.currentItemChanged.connect(lambda item, _prev: self._trial_clicked(item))

@@ -137,6 +137,33 @@ def test_exclude_asks_about_the_trial_by_the_number_the_list_shows(qtbot, new_cl
     assert asked == ["Why is trial 1 left out of the statistics?"]
 
 
+def test_a_trials_line_is_read_whole_in_the_narrow_list(qtbot, new_clinician):
+    """At 1280 × 780 a simulated, excluded trial's line ("Trial 1   +15.0° / −10.0°   · simulated
+    [excluded: …]") ran past the list's edge behind a horizontal scroll bar: it wraps instead."""
+    win = new_clinician
+    win.resize(1280, 780)
+    store = win.store
+    session = store.sessions.start(store.patients.add("P-206").id, condition="barefoot", operator="op")
+    for _ in range(2):
+        t = store.trials.add(session.id, ref_inversion=15.0, ref_plantar_flexion=-10.0, status="complete")
+        store.trials.set_simulated(t.id)
+    store.trials.exclude(t.id, "patient moved")
+    win.records.refresh_patients()
+    _click_item(win.records.patients, 0)
+    trials = win.records.trials
+    qtbot.waitUntil(lambda: trials.count() == 2)
+    texts = [trials.item(i).text() for i in range(2)]
+    assert all("simulated" in x for x in texts) and "patient moved" in texts[1], texts
+    assert not trials.horizontalScrollBar().isVisible()
+    width = trials.viewport().width()
+    for i in range(2):
+        rect = trials.visualItemRect(trials.item(i))
+        assert rect.left() >= 0 and rect.right() < width, (rect, width)
+        assert trials.fontMetrics().boundingRect(rect, int(Qt.TextFlag.TextWordWrap), texts[i]).width() <= rect.width()
+    if os.environ.get("ANKLESCAN_SHOTS"):
+        win.grab().save(str(Path(os.environ["ANKLESCAN_SHOTS"]) / "trials_wrapped.png"))
+
+
 def _start_verification(wiz):
     """Click step 5 in the wizard's step list, then its Run verification scan button."""
     steps = wiz.steps
