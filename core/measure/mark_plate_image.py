@@ -162,9 +162,9 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     alone) and one found table plate's, the one with the least SD at the start (``_plane_at``).
     A start is skipped where it lies on a found mark, its blob has no decoded point on the
     plate's height over the table on any of these planes (by CONFIG.image_fit_off_surface_mm),
-    or a plate fitted from another start covers its pixel. Of the fits that are one of the kit's
-    plates (``_passes``) and lie on no found mark, the best (least residuals) that do not
-    overlap, as many as the table lacks."""
+    or a plate another start's fit placed (a fit that is one of the kit's plates) covers its
+    pixel. Of the fits that are one of the kit's plates (``_passes``) and lie on no found mark,
+    the best (least residuals) that do not overlap, as many as the table lacks."""
     up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is MarkKind.PLATE]
     need = len(TABLE_LABEL_KEYS) - len(up)
     if need <= 0 or len(marks) >= len(LABEL_KEYS):
@@ -177,7 +177,6 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     thickness_sd = _thickness_sd(plates)
     o = cal.camera.center
     passed: list[tuple[PlateImageFit, FacePlane]] = []
-    tried: list[PlateImageFit] = []
     planes = ([shared] if shared else
               _table_planes(points if table_points is None else table_points,
                             sigma if table_points is None else table_sigma, cal,
@@ -195,14 +194,16 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
         if d @ plane.normal >= 0.0:
             continue
         start = o + float((plane.point - o) @ plane.normal / (d @ plane.normal)) * d
-        covered = [m.centre for m in marks] + [t.centre for t in tried]
+        # a fit that holds covers its pixel; one that does not says nothing of where the plate is
+        # (from a start a radius off a large plate seen near grazing a fit sticks millimetres off,
+        # and kept a nearer start, which places it, from being tried)
+        covered = [m.centre for m in marks] + [f.centre for f, _ in passed]
         if _on_a_mark(start, marks, radius_mm) or any(_in_image_of(cal, c, st.pixel, radius_mm, plane.normal)
                                                        for c in covered):
             continue
         fit = fit_plate_image(image, points, cal, plane, start, radius_mm, thickness_mm)
         if fit is None:
             continue
-        tried.append(fit)
         expected = albedo * _irradiance(cal, fit.centre, plane.normal)
         if _passes(fit, expected) and not _on_a_mark(fit.centre, marks, radius_mm):
             passed.append((fit, plane))
@@ -332,7 +333,7 @@ def _on_a_mark(x: np.ndarray, marks: Sequence[Mark], radius_mm: float) -> bool:
 def _in_image_of(cal: Calibration, centre: np.ndarray, uv: tuple[float, float], radius_mm: float,
                  normal: np.ndarray) -> bool:
     """The pixel ``uv`` within the longest radius (pixels) of the image of a plate at ``centre``
-    on the table's plane: a start on a mark found, or one a fit has tried."""
+    on the table's plane: a start on a mark found, or on a plate a fit has placed."""
     pixel, semi = _image_radius(cal, centre, normal, radius_mm)
     return bool(np.linalg.norm(np.asarray(uv) - pixel) <= semi)
 
