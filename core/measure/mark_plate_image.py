@@ -103,14 +103,22 @@ def surround_plane(points: np.ndarray, sigma: np.ndarray | None, cal: Calibratio
     by weighted least squares, then raised ``thickness_mm`` towards the camera (its SD
     ``thickness_sd`` added to the offset's). None where fewer than CONFIG.min_interior_points
     decode there. Its tilt's SD is about the points' narrowest spread."""
-    P, s = _surround(points, sigma, cal, at, radius_mm)
-    return _plane_through(P, s, cal, thickness_mm, thickness_sd)
+    ring = _surround(points, sigma, cal, at, radius_mm)
+    return _plane_through(ring.points, ring.sd, cal, thickness_mm, thickness_sd)
+
+
+@dataclass(frozen=True)
+class _Ring:
+    """The decoded points round a plate (``_surround``)."""
+
+    points: np.ndarray  # (N, 3) world points, mm
+    sd: np.ndarray  # (N,) their SDs, mm
 
 
 def _surround(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
-              radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """The decoded points (N, 3) between CONFIG.plate_image_surround_radii of ``at`` and their
-    SDs (mm; 0.05 without ``sigma``)."""
+              radius_mm: float) -> _Ring:
+    """The decoded points between CONFIG.plate_image_surround_radii of ``at`` and their SDs
+    (0.05 mm without ``sigma``)."""
     inner, outer = (k * radius_mm for k in CONFIG.plate_image_surround_radii)
     depth = float(np.linalg.norm(at - cal.camera.center))
     half = int(math.ceil(float(plate_radius_px(cal, depth, outer))))
@@ -121,7 +129,7 @@ def _surround(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at
     s = (sigma[rows, cols].ravel().astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
     dist = np.linalg.norm(P - at, axis=1)
     ok = np.isfinite(dist) & (dist >= inner) & (dist <= outer)
-    return P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01)
+    return _Ring(P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01))
 
 
 def _plane_through(P: np.ndarray, s: np.ndarray, cal: Calibration, thickness_mm: float,
@@ -227,20 +235,20 @@ def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration
     which a ray at 78° carries 4 mm along the table."""
     planes = [face_plane(up, cal.camera.center)] if up else []
     rings = [_surround(points, sigma, cal, x, radius_mm) for x in at]
-    for P, s in rings:
-        plane = _plane_through(P, s, cal, thickness_mm, thickness_sd)
+    for ring in rings:
+        plane = _plane_through(ring.points, ring.sd, cal, thickness_mm, thickness_sd)
         if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
                 and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
             planes.append(_joined(plane, rings, cal, thickness_mm, thickness_sd) or plane)
     return planes
 
 
-def _joined(seed: FacePlane, rings: Sequence[tuple[np.ndarray, np.ndarray]], cal: Calibration,
-            thickness_mm: float, thickness_sd: float) -> FacePlane | None:
+def _joined(seed: FacePlane, rings: Sequence[_Ring], cal: Calibration, thickness_mm: float,
+            thickness_sd: float) -> FacePlane | None:
     """The table's plane through the points of ``rings`` within 3 SD (theirs and ``seed``'s
     there) of ``seed``'s table (a thickness below its face), as ``surround_plane`` fits them."""
-    P = np.vstack([r[0] for r in rings])
-    s = np.concatenate([r[1] for r in rings])
+    P = np.vstack([r.points for r in rings])
+    s = np.concatenate([r.sd for r in rings])
     table = seed.point - thickness_mm * seed.normal
     rel = P - table
     along = rel @ seed.normal
