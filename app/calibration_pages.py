@@ -5,6 +5,7 @@ the flow (scans, background jobs, accepting); the logic without widgets is app.l
 
 from __future__ import annotations
 
+import enum
 from typing import TYPE_CHECKING, Literal
 
 import cv2
@@ -50,7 +51,15 @@ PAGE_PLACE, PAGE_SCAN, PAGE_REPORT, PAGE_MANUAL, PAGE_VERIFY = range(5)
 NO_REPORT_YET = ("<b>No calibration fitted yet.</b><br>Scan the box (step 2), or use the manual method (step 4): "
                  "the fit's quality report appears here, with Accept and save.")
 ProjectorShows = Literal["white", "spot"]  # what the dialog puts on the projector
-ScanPurpose = Literal["calibrate", "board", "verify", "level"]  # what a scan of the dialog is for
+
+
+class ScanPurpose(enum.Enum):
+    """What a scan of the dialog is for (its value names its capture folder)."""
+
+    CALIBRATE = "calibrate"  # the box, for a calibration
+    BOARD = "board"  # a chessboard's views, for a calibration
+    VERIFY = "verify"  # the box again, against the current calibration
+    LEVEL = "level"  # the reference table, to level the current calibration
 
 
 class WizardPages(_DialogBase):
@@ -115,7 +124,7 @@ class WizardPages(_DialogBase):
         self.place_view = ZoomView()
         self.place_count = QLabel("")
         self.scan_box_button = QPushButton("Scan the box")
-        self.scan_box_button.clicked.connect(lambda: self.start_scan("calibrate"))
+        self.scan_box_button.clicked.connect(lambda: self.start_scan(ScanPurpose.CALIBRATE))
         row = QHBoxLayout()
         row.addWidget(self.place_count, 1)
         row.addWidget(self.scan_box_button)
@@ -137,7 +146,7 @@ class WizardPages(_DialogBase):
         self.board_square.setSuffix(" mm")
         self.board_square.setValue(40.0)
         self.scan_board_button = QPushButton("Scan board view")
-        self.scan_board_button.clicked.connect(lambda: self.start_scan("board"))
+        self.scan_board_button.clicked.connect(lambda: self.start_scan(ScanPurpose.BOARD))
         self.board_count = QLabel("")
         self.calibrate_board_button = QPushButton("Calibrate from board views")
         self.calibrate_board_button.clicked.connect(self.calibrate_board)
@@ -255,7 +264,7 @@ class WizardPages(_DialogBase):
                           f"drawing. Pass: RMS error ≤ {PASS_RMS_MM:g} mm and every distance within "
                           f"{PASS_MAX_MM:g} mm.")
         self.verify_button = QPushButton("Run verification scan")
-        self.verify_button.clicked.connect(lambda: self.start_scan("verify"))
+        self.verify_button.clicked.connect(lambda: self.start_scan(ScanPurpose.VERIFY))
         self.verify_verdict = QLabel("Not verified yet.")
         self.verify_verdict.setWordWrap(True)
         self.verify_table = QTableWidget(0, 5)
@@ -271,7 +280,7 @@ class WizardPages(_DialogBase):
         self.level_button.setToolTip("Set the reference table level (0°, 0°), its whole top in view, then scan it: "
                                      "the current calibration is re-expressed in the clinic's frame (SPEC §1) "
                                      "and saved as a new version.")
-        self.level_button.clicked.connect(lambda: self.start_scan("level"))
+        self.level_button.clicked.connect(lambda: self.start_scan(ScanPurpose.LEVEL))
         row = QHBoxLayout()
         row.addWidget(self.verify_verdict, 1)
         row.addWidget(self.level_button)

@@ -101,9 +101,9 @@ __all__ = ["CalibrationWizard", "PAGE_MANUAL", "PAGE_PLACE", "PAGE_REPORT", "PAG
 PREVIEW_MS = 300
 # what the status line says when the work on a capture fails, by what the capture was for
 JOB_FAILED: dict[ScanPurpose, str] = {
-    "calibrate": "Calibration failed", "board": "Calibration failed",
-    "verify": "The verification could not be made (the current calibration is unchanged)",
-    "level": "Levelling failed (the current calibration is unchanged)"}
+    ScanPurpose.CALIBRATE: "Calibration failed", ScanPurpose.BOARD: "Calibration failed",
+    ScanPurpose.VERIFY: "The verification could not be made (the current calibration is unchanged)",
+    ScanPurpose.LEVEL: "Levelling failed (the current calibration is unchanged)"}
 
 
 class PreviewFrame(NamedTuple):
@@ -278,13 +278,13 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         from anklescan.core.scan.patterns import make_pattern_set
         if self.controller.busy or self._job is not None:
             return False
-        if purpose in ("verify", "level") and self.calibration is None:
+        if purpose in (ScanPurpose.VERIFY, ScanPurpose.LEVEL) and self.calibration is None:
             self.calibration, _ = load_current_calibration(self.settings)
             self.accepted_calibration = self.calibration
             if self.calibration is None:
-                self.status.setText(f"There is no calibration to {purpose} yet.")
+                self.status.setText(f"There is no calibration to {purpose.value} yet.")
                 return False
-        if purpose == "verify" and self.calibration is not self.accepted_calibration:
+        if purpose is ScanPurpose.VERIFY and self.calibration is not self.accepted_calibration:
             # its verdict would be written to the current calibration's record, not to this fit's
             self.status.setText("This calibration is not accepted yet: accept it on the quality report (step 3) "
                                 "first. A verification's verdict is kept with the current calibration.")
@@ -294,10 +294,10 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         w, h = self.projector.projector_size
         pset = make_pattern_set("default", w, h, axes=(Axis.COLUMN, Axis.ROW))
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        folder = self.data_folder / "calibrations" / "captures" / f"{purpose}_{stamp}"
+        folder = self.data_folder / "calibrations" / "captures" / f"{purpose.value}_{stamp}"
         n = 1
         while folder.exists():
-            folder = folder.with_name(f"{purpose}_{stamp}_{n}")
+            folder = folder.with_name(f"{purpose.value}_{stamp}_{n}")
             n += 1
         from anklescan.core.atomic import make_private_dir
         make_private_dir(folder.parent, tighten=False)  # 0700: the data folder is private
@@ -305,16 +305,16 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             self._show_on_projector("white")
         self.scan_progress.setRange(0, len(pset.frames))
         camera, what = self.camera, "box"
-        if purpose == "board":
+        if purpose is ScanPurpose.BOARD:
             cols, rows, square = self._board_spec()
             camera, what = board_camera(self.rig, len(self.board_captures), cols, rows, square), "chessboard"
-        elif purpose == "level":
+        elif purpose is ScanPurpose.LEVEL:
             camera, what = self.rig.camera, "reference table"
-        if purpose in ("calibrate", "board"):
+        if purpose in (ScanPurpose.CALIBRATE, ScanPurpose.BOARD):
             self.go(PAGE_SCAN)
         self.status.setText(f"Scanning the {what}…")
         self.controller.start(ScanJob(pset, camera, folder, settle_s=self.settle_s,
-                                      metadata={"purpose": f"calibration {what} ({purpose})"}))
+                                      metadata={"purpose": f"calibration {what} ({purpose.value})"}))
         return True
 
     def _scan_progress(self, done: int, total: int, text: str) -> None:
@@ -324,15 +324,15 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
 
     def _scan_failed(self, message: str) -> None:
         self.status.setText(f"The scan stopped: {message}")
-        self.go(PAGE_PLACE if self._scan_purpose in ("calibrate", "board") else self.pages.currentIndex())
+        self.go(PAGE_PLACE if self._scan_purpose in (ScanPurpose.CALIBRATE, ScanPurpose.BOARD) else self.pages.currentIndex())
 
     def _scan_finished(self, result: ScanResult) -> None:
         folder = result.folder
-        if self._scan_purpose == "board":
+        if self._scan_purpose is ScanPurpose.BOARD:
             cols, rows = self.board_cols.value(), self.board_rows.value()
             self._run(lambda: check_board_folder(folder, cols, rows), self._board_view_scanned)
             return
-        if self._scan_purpose == "level":
+        if self._scan_purpose is ScanPurpose.LEVEL:
             to_level = self.calibration  # a name of its own: mypy keeps its narrowing in the lambda
             assert to_level is not None, "start_scan levels only with a calibration"
             table_size = str(self.settings.table_size)
@@ -340,7 +340,7 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
             self._run(lambda: level_folder(folder, to_level, table_size), self._levelled)
             return
         self.status.setText("Finding the control points…")
-        if self._scan_purpose == "calibrate":
+        if self._scan_purpose is ScanPurpose.CALIBRATE:
             size_c, size_p = self.camera_size, self.projector.projector_size  # a tuple already
             if not self._adding_position:
                 self.box_captures = []
@@ -379,11 +379,11 @@ class CalibrationWizard(WizardPages, ManualCalibration, QDialog):
         """``deliver``: hands the job's result on (not called when the job failed)."""
         self._job = None
         if error:
-            if self._scan_purpose == "calibrate" and self.box_captures:
+            if self._scan_purpose is ScanPurpose.CALIBRATE and self.box_captures:
                 self.box_captures.pop()  # a refused position is not kept
             # the job's own words: a refused levelling or verification leaves the calibration as it was
-            self.status.setText(f"{JOB_FAILED.get(self._scan_purpose or 'calibrate', 'Calibration failed')}: {error}")
-            if self._scan_purpose in ("board", "calibrate"):  # back to placing the box: scan it again
+            self.status.setText(f"{JOB_FAILED[self._scan_purpose or ScanPurpose.CALIBRATE]}: {error}")
+            if self._scan_purpose in (ScanPurpose.BOARD, ScanPurpose.CALIBRATE):  # back to placing the box: scan it again
                 self.go(PAGE_PLACE)
             return
         deliver()
