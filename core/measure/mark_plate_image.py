@@ -247,8 +247,10 @@ def _joined(seed: FacePlane, rings: Sequence[_Ring], cal: Calibration, thickness
             thickness_sd: float) -> FacePlane | None:
     """The table's plane through the points of ``rings`` within 3 SD (theirs and ``seed``'s
     there) of ``seed``'s table (a thickness below its face), as ``surround_plane`` fits them."""
-    P = np.vstack([r.points for r in rings])
-    s = np.concatenate([r.sd for r in rings])
+    # starts near one plate share their rings' points: each point once, or the plane's SDs
+    # would count it as many times as there are starts round it
+    P, first = np.unique(np.vstack([r.points for r in rings]), axis=0, return_index=True)
+    s = np.concatenate([r.sd for r in rings])[first]
     table = seed.point - thickness_mm * seed.normal
     rel = P - table
     along = rel @ seed.normal
