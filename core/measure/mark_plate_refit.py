@@ -44,12 +44,13 @@ class KitRadius:
 
 
 def refit_plates(marks: Sequence[Mark], image: np.ndarray, points: np.ndarray, cal: Calibration,
-                 radius_mm: float, given: bool) -> tuple[list[Mark], KitRadius | None]:
+                 radius_mm: float, given: bool, thickness_mm: float | None = None) -> tuple[list[Mark], KitRadius | None]:
     """``marks`` with each plate's centre and covariance from its image fit where the model
     holds, and the kit's radius those fits measure (None where ``given``, or no fit holds).
     ``radius_mm``: the kit's radius, given or measured from the rims (the fits' start);
-    ``points``: (H, W, 3) decoded world points per camera pixel."""
-    fits = [_image_fit(m, image, points, cal, radius_mm) for m in marks]
+    ``thickness_mm``: the kit's thickness (the plates' median step), each fit's start, else its
+    plate's own step; ``points``: (H, W, 3) decoded world points per camera pixel."""
+    fits = [_image_fit(m, image, points, cal, radius_mm, thickness_mm) for m in marks]
     # the radius from plates on the table (facing up): a leg curving away under a plate bares
     # more of its wall than the model's plane below does, and reads its radius large
     held = [f for m, f in zip(marks, fits, strict=True) if f is not None and abs(m.normal[2]) >= CONFIG.leg_normal_max_z]
@@ -77,16 +78,22 @@ def pooled(fits: Sequence[PlateImageFit]) -> KitRadius | None:
 
 
 def _image_fit(mark: Mark, image: np.ndarray, points: np.ndarray, cal: Calibration,
-               radius_mm: float) -> PlateImageFit | None:
-    """The plate's image fit with its radius free, on its face's plane; None for a sticker, or
-    where the fit fails or the model does not hold."""
+               radius_mm: float, thickness_mm: float | None) -> PlateImageFit | None:
+    """The plate's image fit with its radius free, on its face's plane, started at the kit's
+    ``thickness_mm`` where known; None for a sticker, or where the fit fails or the model does
+    not hold."""
     if mark.kind is not MarkKind.PLATE or mark.step_mm is None or mark.step_mm <= CONFIG.sticker_max_step_mm:
         return None
     n = mark.normal if mark.normal @ (cal.camera.center - mark.centre) >= 0 else -mark.normal
     # the plane's own point is the plate's centre: its tilt moves nothing there
     plane = FacePlane(mark.centre, n, math.sqrt(max(float(n @ mark.covariance @ n), 0.0)), 0.0)
     shape = FitShape(CONFIG.plate_refit_reach, CONFIG.plate_refit_subsamples, free_radius=True)
-    fit = fit_plate_image(image, points, cal, plane, mark.centre, radius_mm, mark.step_mm, shape)
+    # every plate is one of the kit: its own step can read far off (a third of the kit's, on a
+    # table plate whose surround decodes sparsely), and the fit's window, the points it keeps
+    # (those between the face and the table that far below) and its thickness's bound follow
+    # the thickness it starts at
+    start = mark.step_mm if thickness_mm is None else thickness_mm
+    fit = fit_plate_image(image, points, cal, plane, mark.centre, radius_mm, start, shape)
     return fit if fit is not None and fit.centre_radius_cov is not None and model_holds(fit) else None
 
 

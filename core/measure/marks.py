@@ -225,7 +225,8 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
     result.rejected.extend(selection.left_out)
     if prefer is MarkKind.PLATE:
         # every plate placed again by its whole image, and the kit's radius from those fits
-        result.marks, kit = refit_plates(result.marks, image, points, cal, r0, given=mark_diameter_mm is not None)
+        result.marks, kit = refit_plates(result.marks, image, points, cal, r0, given=mark_diameter_mm is not None,
+                                         thickness_mm=thick)
         if kit is not None:
             r0 = kit.radius_mm
             result.diameter = (2.0 * kit.radius_mm, 2.0 * kit.sd_mm)
