@@ -530,24 +530,25 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     upper = np.array([np.inf, np.inf, math.log(hi), t_hi, r_hi][:k])
     # a warm start on a bound comes back from exp and log an ulp past it: least_squares refuses that
     p0 = np.clip(p0[:k], lower, upper)
-    try:
-        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
-                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
-                            bounds=(lower, upper),
-                            jac=lambda x: model.jacobian(x, lower, upper), max_nfev=CONFIG.image_fit_iterations * 5)
-    except (ValueError, np.linalg.LinAlgError):
+    if f > 1 and warm is None:
+        # from a start a radius off, most of the evaluations walk the centre to the plate: walked
+        # on one sample a pixel (1/f² of the samples to draw and blur), then polished on all f²
+        coarse = _Model(_sample_rays(cal, plane, F, (v0 - pad, v1 + pad), (u0 - pad, u1 + pad), 1, start),
+                        radius_mm, 1, pad, keep, crop, du, dv, model.floating_from)
+        walked = _solved(coarse, p0, lower, upper, noise)
+        p0 = np.clip(walked, lower, upper) if walked is not None else p0
+    x = _solved(model, p0, lower, upper, noise)
+    if x is None:
         return None
-    c2 = sol.x[:2]
-    if not np.isfinite(sol.x).all():
-        return None
-    cov4 = model.covariance(sol.x, CONFIG.image_fit_huber * noise)  # 5 x 5 with a free radius
+    c2 = x[:2]
+    cov4 = model.covariance(x, CONFIG.image_fit_huber * noise)  # 5 x 5 with a free radius
     if cov4 is None:
         return None
-    r = model.residuals(sol.x)
+    r = model.residuals(x)
     sd = robust_sigma(r, 0.0)
     coef = model.last_coef
     # the face's own height over the plane (from a table's plane: the fitted thickness's excess)
-    rise = float(sol.x[3]) - thickness_mm if plane.from_table else 0.0
+    rise = float(x[3]) - thickness_mm if plane.from_table else 0.0
     world = plane.point + c2 @ E + rise * n
     ray = (world - cal.camera.center) / np.linalg.norm(world - cal.camera.center)
     along = ray / abs(float(ray @ n))
@@ -558,22 +559,37 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     light /= np.linalg.norm(light)
     uv = cal.camera.project(world[None])[0]
     face_sd = model.coef_sd(sd)
-    share = model.face_share(sol.x)
+    share = model.face_share(x)
     on_face = (share >= CONFIG.plate_image_face_share) & np.isfinite(P[:, 0])
     heights = (P[on_face] - plane.point) @ n - rise
     face = share >= 0.5
     seen = float(keep.ravel()[face].mean()) if face.any() else 0.0
-    fit = PlateImageFit(world, cov3, (float(uv[0]), float(uv[1])), float(math.exp(sol.x[2])), float(sol.x[3]),
+    fit = PlateImageFit(world, cov3, (float(uv[0]), float(uv[1])), float(math.exp(x[2])), float(x[3]),
                         math.sqrt(max(float(cov4[3, 3]), 0.0)), sd / noise - 1.0,
                         float((coef[0] - coef[1]) / max(face_sd, 1e-12)), int(keep.sum()), seen, float(coef[0]),
                         noise, False,
                         robust_sigma(heights) if len(heights) > 1 else 0.0,
                         math.degrees(math.acos(min(abs(float(ray @ n)), 1.0))),
                         math.degrees(math.acos(min(abs(float(light @ n)), 1.0))),
-                        float(sol.x[4]) if shape.free_radius else radius_mm,
+                        float(x[4]) if shape.free_radius else radius_mm,
                         math.sqrt(max(float(cov4[4, 4]), 0.0)) if shape.free_radius else 0.0,
                         (J @ cov4[:, 4]) if shape.free_radius else None)
     return fit, heights
+
+
+def _solved(model: _Model, p0: np.ndarray, lower: np.ndarray, upper: np.ndarray, noise: float) -> np.ndarray | None:
+    """The parameters that fit ``model`` from ``p0`` within the bounds (Huber's loss at
+    CONFIG.image_fit_huber of the ``noise``); None where the solver fails or leaves them not finite."""
+    k = len(p0)
+    try:
+        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
+                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
+                            bounds=(lower, upper),
+                            jac=lambda x: model.jacobian(x, lower, upper), max_nfev=CONFIG.image_fit_iterations * 5)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    x: np.ndarray = sol.x
+    return x if np.isfinite(x).all() else None
 
 
 def _image_error(rays: _Rays, c: np.ndarray, f: int) -> np.ndarray:

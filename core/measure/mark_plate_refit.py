@@ -88,7 +88,7 @@ def _image_fit(mark: Mark, image: np.ndarray, points: np.ndarray, cal: Calibrati
     # the plane's own point is the plate's centre: its tilt moves nothing there
     plane = FacePlane(mark.centre, n, math.sqrt(max(float(n @ mark.covariance @ n), 0.0)), 0.0)
     shape = FitShape(CONFIG.plate_refit_reach, CONFIG.plate_refit_subsamples, free_radius=True)
-    # every plate is one of the kit: its own step can read far off (a third of the kit's, on a
+    # every plate is one of the kit: its own step can read far off (a quarter of the kit's, on a
     # table plate whose surround decodes sparsely), and the fit's window, the points it keeps
     # (those between the face and the table that far below) and its thickness's bound follow
     # the thickness it starts at
