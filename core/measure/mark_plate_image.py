@@ -317,11 +317,14 @@ def _passes(fit: PlateImageFit, expected: float) -> bool:
     return fit.face_light >= CONFIG.plate_image_min_light_share * expected and model_holds(fit)
 
 
-def model_holds(fit: PlateImageFit) -> bool:
+def model_holds(fit: PlateImageFit, untested_height: bool = False) -> bool:
     """A fit whose drawing is the plate's image: its contrast, the share of its face seen, its
-    face where the plane puts it and its residuals (``_passes``, less the kit's light)."""
+    face where the plane puts it and its residuals (``_passes``, less the kit's light). With
+    ``untested_height``, a face too few of whose points decode to test its height
+    (CONFIG.plate_image_min_face_points) passes that test."""
+    untested = untested_height and fit.face_points < CONFIG.plate_image_min_face_points
     return (fit.contrast_z >= CONFIG.image_fit_min_contrast_z and fit.seen >= CONFIG.min_seen_share
-            and fit.face_on_plane and within_model(fit))
+            and (fit.face_on_plane or untested) and within_model(fit))
 
 
 def within_model(fit: PlateImageFit) -> bool:
@@ -379,6 +382,7 @@ class PlateImageFit:
     radius_mm: float = float("nan")  # the face's radius: the one given, or fitted (``FitShape.free_radius``)
     radius_sd: float = 0.0  # its SD (0 where given)
     centre_radius_cov: np.ndarray | None = None  # (3,) mm², the centre's covariance with a fitted radius
+    face_points: int = 0  # the face's decoded points (pixels CONFIG.plate_image_face_share face)
 
 
 @dataclass(frozen=True)
@@ -573,7 +577,7 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
                         math.degrees(math.acos(min(abs(float(light @ n)), 1.0))),
                         float(x[4]) if shape.free_radius else radius_mm,
                         math.sqrt(max(float(cov4[4, 4]), 0.0)) if shape.free_radius else 0.0,
-                        (J @ cov4[:, 4]) if shape.free_radius else None)
+                        (J @ cov4[:, 4]) if shape.free_radius else None, len(heights))
     return fit, heights
 
 

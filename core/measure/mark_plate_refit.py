@@ -94,7 +94,21 @@ def _image_fit(mark: Mark, image: np.ndarray, points: np.ndarray, cal: Calibrati
     # the thickness it starts at
     start = mark.step_mm if thickness_mm is None else thickness_mm
     fit = fit_plate_image(image, points, cal, plane, mark.centre, radius_mm, start, shape)
-    return fit if fit is not None and fit.centre_radius_cov is not None and model_holds(fit) else None
+    if fit is None or fit.centre_radius_cov is None:
+        return None
+    if model_holds(fit):
+        return fit
+    # a plate the search found rests on its rim's points, and needs no more of its face to
+    # decode; but where too few do to test the face's height, the image fit stands on its plane's
+    # alone, which a grazing ray carries along the view: it replaces the rim fit only where it is
+    # the surer of the two along its longest axis
+    surer = _major_variance(fit.covariance) < _major_variance(mark.covariance)
+    return fit if surer and model_holds(fit, untested_height=True) else None
+
+
+def _major_variance(cov: np.ndarray) -> float:
+    """mm²: a covariance's largest eigenvalue."""
+    return float(np.linalg.eigvalsh(cov)[-1])
 
 
 def _placed(mark: Mark, fit: PlateImageFit, kit: KitRadius | None, cal: Calibration) -> Mark:
