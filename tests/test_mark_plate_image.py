@@ -7,6 +7,7 @@ plates give. The whole chain on simulated captures is the case table's
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -234,18 +235,39 @@ def _with_face_points(points: np.ndarray, cal: Calibration, X: np.ndarray, n: np
     return out
 
 
+@dataclass(frozen=True)
+class _Oblique:
+    """A plate seen at 62° on the independent ray tracer: its face centre and normal, its lit
+    image, the decoded points, and the in-plane direction along the view."""
+
+    X: np.ndarray
+    n: np.ndarray
+    image: np.ndarray
+    points: np.ndarray
+    along: np.ndarray
+
+
+def _oblique_plate(cal: Calibration, r: float, T: float, *, face_decoded: bool) -> _Oblique:
+    """A plate of radius ``r`` and thickness ``T`` seen at 62° under a 1.3 px blur, its table
+    decoded round it and, where ``face_decoded``, its face too."""
+    X, n = _tilted_plane(cal, 62.0)
+    image = _traced(cal, X, n, r, T, blur=1.3, noise=0.01, seed=62)
+    points = _table_points(cal, X - T * n, n, r, image.shape, 0.1, 6)
+    if face_decoded:
+        points = _with_face_points(points, cal, X, n, r, 0.03, 7)
+    ray = (X - cal.camera.center) / np.linalg.norm(X - cal.camera.center)
+    along = ray - (ray @ n) * n
+    return _Oblique(X, n, image, points, along / np.linalg.norm(along))
+
+
 @pytest.mark.slow
 def test_plate_placed_again_by_its_image_where_its_rim_fit_lies_along_the_view(cal: Calibration) -> None:
     """A rim fit 0.4 mm off along the view with its radius read 0.15 mm small (edges under a
     1.3 px blur): the image fit on the plate's own face plane places it within 0.08 mm, and
     with the radius free measures that radius."""
-    view_deg, r, T = 62.0, 6.1, 1.5
-    X, n = _tilted_plane(cal, view_deg)
-    image = _traced(cal, X, n, r, T, blur=1.3, noise=0.01, seed=62)
-    points = _with_face_points(_table_points(cal, X - T * n, n, r, image.shape, 0.1, 6), cal, X, n, r, 0.03, 7)
-    ray = (X - cal.camera.center) / np.linalg.norm(X - cal.camera.center)
-    along = ray - (ray @ n) * n
-    along /= np.linalg.norm(along)
+    r, T = 6.1, 1.5
+    seen = _oblique_plate(cal, r, T, face_decoded=True)
+    X, n, image, points, along = seen.X, seen.n, seen.image, seen.points, seen.along
     rim = Mark(X - 0.4 * along + 0.01 * n, n, r - 0.15, 0.05, 0.03, 0.2**2 * np.eye(3), (0.0, 0.0), 20, 300,
                kind=MarkKind.PLATE, step_mm=1.4)
     placed, kit = refit_plates([rim], image, points, cal, r, given=True)
@@ -270,13 +292,9 @@ def test_a_found_plate_whose_face_barely_decodes_takes_the_surer_fit(cal: Calibr
     across) and is within 0.08 mm; a rim fit surer than it along its longest axis stays. A
     plate the search has not found needs its face to decode on the plane to be one
     (``model_holds`` without ``untested_height``)."""
-    view_deg, r, T = 62.0, 6.1, 1.5
-    X, n = _tilted_plane(cal, view_deg)
-    image = _traced(cal, X, n, r, T, blur=1.3, noise=0.01, seed=62)
-    points = _table_points(cal, X - T * n, n, r, image.shape, 0.1, 6)
-    ray = (X - cal.camera.center) / np.linalg.norm(X - cal.camera.center)
-    along = ray - (ray @ n) * n
-    along /= np.linalg.norm(along)
+    r, T = 6.1, 1.5
+    seen = _oblique_plate(cal, r, T, face_decoded=False)
+    X, n, image, points, along = seen.X, seen.n, seen.image, seen.points, seen.along
     off = X - 0.4 * along + 0.01 * n
 
     def rim(sd: float, sd_along: float) -> Mark:  # a rim fit's SD is longest along the view
@@ -300,13 +318,9 @@ def test_a_plate_whose_own_step_reads_far_off_is_refitted_at_the_kits_thickness(
     Started at the kit's thickness: 0.01 mm. (Drawn 1426, a table plate at 59° whose step read
     0.52 of 2.08 mm: its fit from that step did not hold, 0.23 mm off, and its rim fit stayed,
     0.31 mm off; from the kit's, 0.06 mm.)"""
-    view_deg, r, T = 62.0, 6.1, 2.0
-    X, n = _tilted_plane(cal, view_deg)
-    image = _traced(cal, X, n, r, T, blur=1.3, noise=0.01, seed=62)
-    points = _with_face_points(_table_points(cal, X - T * n, n, r, image.shape, 0.1, 6), cal, X, n, r, 0.03, 7)
-    ray = (X - cal.camera.center) / np.linalg.norm(X - cal.camera.center)
-    along = ray - (ray @ n) * n
-    along /= np.linalg.norm(along)
+    r, T = 6.1, 2.0
+    seen = _oblique_plate(cal, r, T, face_decoded=True)
+    X, n, image, points, along = seen.X, seen.n, seen.image, seen.points, seen.along
     rim = Mark(X - 0.4 * along + 0.01 * n, n, r, 0.05, 0.03, 0.2**2 * np.eye(3), (0.0, 0.0), 20, 300,
                kind=MarkKind.PLATE, step_mm=0.55)
     own, _ = refit_plates([rim], image, points, cal, r, given=True)
