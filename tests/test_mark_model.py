@@ -14,9 +14,12 @@ from anklescan.core.measure.mark_hypotheses import (
     blob_point,
     on_a_fitted_disk,
 )
+from anklescan.core.measure.mark_plate_image import PlateStart
 from anklescan.core.measure.mark_selection import MarkFit, fit_score, overlaps, select_marks
-from anklescan.core.measure.mark_types import Blob, Mark, RefusalReason
+from anklescan.core.measure.mark_types import Blob, Mark, MarkSet, RefusalReason
+from anklescan.core.measure.marks import _with_table_marks
 from anklescan.hardware.sim_scene import leg_scene
+from anklescan.hardware.simrig import SimRig
 
 R = 7.5  # the default scene's plates' radius, mm
 
@@ -155,6 +158,36 @@ def test_a_doubtful_fit_gives_way_to_a_sure_one_and_not_beside_seven():
     assert any(f is alone for f in select_marks(sure[:6] + [alone], R).chosen)
     sel = select_marks(sure + [alone], R)
     assert not any(f is alone for f in sel.chosen) and "doubtful radius" in sel.left_out[-1].detail
+
+
+def test_a_doubtful_table_mark_gives_way_to_one_placed_by_its_image():
+    """Stage 5 is started from each doubtful mark too, sees only the sure ones, and a mark it
+    places within a radius of a doubtful one replaces it; a doubtful mark elsewhere stays while
+    there is room for it among seven, and is dropped where there is not."""
+    cal = SimRig(scale=1.0).true_calibration()
+    scene = leg_scene(10, -10)
+    true = {k: _mark(m.centre, m.normal) for k, m in scene.marks.items()}
+    off = _mark(true["5"].centre + [1.4, 0.0, 0.0], true["5"].normal, doubtful=True)
+    seen: list[tuple[list[Mark], list[PlateStart]]] = []
+
+    def placing(*marks: Mark):
+        def placed_by(sure, starts):
+            seen.append((sure, starts))
+            return list(marks)
+        return placed_by
+
+    result = MarkSet(marks=[true[k] for k in "12346"] + [off])
+    _with_table_marks(result, [], placing(true["5"], true["7"]), cal, R)
+    sure, starts = seen[-1]
+    assert off not in sure and [s.point for s in starts] == [off.centre]
+    assert len(result.marks) == 7 and not any(m.doubtful for m in result.marks)
+    far = _mark(true["6"].centre + [0.0, 60.0, 0.0], true["6"].normal, doubtful=True)
+    result = MarkSet(marks=[true[k] for k in "1234"] + [far, true["6"]])
+    _with_table_marks(result, [], placing(true["5"]), cal, R)
+    assert any(m is far for m in result.marks) and len(result.marks) == 7
+    result = MarkSet(marks=[true[k] for k in "1234"] + [far, true["6"]])
+    _with_table_marks(result, [], placing(true["5"], true["7"]), cal, R)
+    assert not any(m is far for m in result.marks) and len(result.marks) == 7
 
 
 def test_a_thin_disk_image_is_elliptical_and_a_crescent_is_not():

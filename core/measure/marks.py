@@ -232,7 +232,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         if kit is not None:
             r0 = kit.radius_mm
             result.diameter = (2.0 * kit.radius_mm, 2.0 * kit.sd_mm)
-    if prefer is MarkKind.PLATE and thick is not None and len(result.marks) < len(LABELS):
+    if prefer is MarkKind.PLATE and thick is not None and sum(not m.doubtful for m in result.marks) < len(LABELS):
         # table plates seen too obliquely for their rims: drawn whole on the plane of those
         # found, or of the table round them; started from every hypothesis no chosen fit took
         taken = {id(f.hypothesis) for f in selection.chosen}
@@ -240,18 +240,36 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         starts = [PlateStart(h.pixel, blob_point(h.blob, points)) for h in others]
         # the table's plane from every decoded point: seen near grazing, it decodes mostly past the cloud's limit
         table_points, table_sigma = (wide.points, wide.sigma) if wide.available else (points, sigma)
-        for plate in table_plates_by_image(result.marks, starts, image, points, sigma, cal, r0, thick,
-                                           table_points=table_points, table_sigma=table_sigma):
-            result.marks.append(plate)
-            result.rejected = [r for r in result.rejected
-                               if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
-                               > _radius_px(cal, plate, r0)]
+        _with_table_marks(result, starts, lambda sure, all_starts: table_plates_by_image(
+            sure, all_starts, image, points, sigma, cal, r0, thick, table_points=table_points,
+            table_sigma=table_sigma), cal, r0)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g.radius:.1f} mm ({g.n})" for g in sizes[:3]) or "none"
         result.size_error = f"no mark fits the given diameter {mark_diameter_mm:g} mm: sizes seen {seen}"
         result.problems.append(result.size_error)
     label_marks(result)
     return result
+
+
+def _with_table_marks(result: MarkSet, starts: list[PlateStart],
+                      placed_by: Callable[[list[Mark], list[PlateStart]], list[Mark]], cal: Calibration,
+                      radius_mm: float) -> None:
+    """Adds to ``result`` the table marks ``placed_by`` (``table_plates_by_image`` over the marks
+    that are not doubtful and the starts) fits to their image from ``starts`` and from each
+    doubtful mark (its free radius is not the marks' size: the weakest of fits, chosen where
+    nothing else was). A doubtful mark gives way to a mark so placed within a radius of it, and
+    is dropped where the marks would otherwise pass seven."""
+    sure = [m for m in result.marks if not m.doubtful]
+    doubtful = [m for m in result.marks if m.doubtful]
+    placed = placed_by(sure, starts + [PlateStart(m.pixel, m.centre) for m in doubtful])
+    room = len(LABELS) - len(sure) - len(placed)
+    kept = [m for m in doubtful
+            if not any(float(np.linalg.norm(m.centre - p.centre)) <= radius_mm for p in placed)][:max(room, 0)]
+    result.marks = [m for m in result.marks if not m.doubtful or any(m is k for k in kept)] + placed
+    for plate in placed:
+        result.rejected = [r for r in result.rejected
+                           if float(np.hypot(r.pixel[0] - plate.pixel[0], r.pixel[1] - plate.pixel[1]))
+                           > _radius_px(cal, plate, radius_mm)]
 
 
 class _WideCloud:
