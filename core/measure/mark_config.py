@@ -367,6 +367,9 @@ class MarkConfig:
     #: decoded points between these distances of a plate's blob (inside: the plate, its wall and
     #: its shadow, which at 78° light reaches 4.7 thicknesses past the rim)
     plate_image_surround_radii: tuple[float, float] = (2.0, 4.0)
+    #: points: the table's plane through every decoded point on it is fitted to at most this
+    #: many, evenly thinned (its consensus tries each of CONFIG.consensus_trials planes on each)
+    table_plane_max_points: int = 20000
     #: share of the capture's thickness a plate so fitted on the table's plane may differ by (the
     #: capture's is read where the leg plates meet the skin, which curves away: 5 % low seen)
     plate_image_thickness_tolerance: float = 0.25

@@ -24,12 +24,12 @@ blurred by a Gaussian of SD s px (fitted) and averaged to pixels.
 
 The plane is not this plate's own: its face decodes a handful of pixels. It is the plane of
 the other table plates' faces (``face_plane``: SPEC §2's three plates lie on one flat table), or
-where fewer than two were found, the table's decoded surface round the plate (``surround_plane``,
-where the face lies the fitted thickness above it). So only the centre in that plane, the blur
-and the thickness are fitted, by robust least squares over the pixels that see the plate or
-the table (a decoded pixel off both planes sees something else). The centre's covariance is the
-fit's, scaled by its residuals, plus the model's error in placing the image and the plane's own
-uncertainty carried along the camera ray.
+where fewer than two were found, the table's decoded surface, grown from round the plate over
+every point on it (``_table_planes``; the face lies the fitted thickness above it). So only the
+centre in that plane, the blur and the thickness are fitted, by robust least squares over the
+pixels that see the plate or the table (a decoded pixel off both planes sees something else).
+The centre's covariance is the fit's, scaled by its residuals, plus the model's error in
+placing the image and the plane's own uncertainty carried along the camera ray.
 """
 
 from __future__ import annotations
@@ -133,14 +133,20 @@ def _surround(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at
 
 
 def _plane_through(P: np.ndarray, s: np.ndarray, cal: Calibration, thickness_mm: float,
-                   thickness_sd: float) -> FacePlane | None:
-    """``surround_plane`` through the points ``P`` of SDs ``s``."""
+                   thickness_sd: float, wide: bool = False) -> FacePlane | None:
+    """``surround_plane`` through the points ``P`` of SDs ``s``. ``wide``: points from far
+    round, where other surfaces meet the plane (a table's front edge, a foot on it): a point is
+    on the plane within 3 of its own SDs (not the points' median SD's), and weighs no more than
+    the median point (else an edge's points, seen face-on and precise, lie within their band of
+    the table only in a strip along it, and outweigh it there)."""
     if len(P) < CONFIG.min_interior_points:
         return None
-    sel = plane_consensus(P, max(3.0 * float(np.median(s)), 0.1))
+    typical = float(np.median(s))
+    sel = plane_consensus(P, np.maximum(3.0 * s, 0.1) if wide else max(3.0 * typical, 0.1))
     if int(sel.sum()) < CONFIG.min_interior_points:
         return None
-    fit = fit_plane(P[sel], weights=1.0 / s[sel] ** 2, min_keep=CONFIG.min_interior_points)
+    weights = 1.0 / (np.maximum(s[sel], typical) if wide else s[sel]) ** 2
+    fit = fit_plane(P[sel], weights=weights, min_keep=CONFIG.min_interior_points)
     n = fit.normal if fit.normal @ (cal.camera.center - fit.centroid) >= 0 else -fit.normal
     point_sd = max(fit.rms, float(np.median(s[sel])))
     tilt = plane_tilt_sd(P[sel], fit.centroid, n, point_sd)
@@ -229,35 +235,64 @@ def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration
                   up: Sequence[Mark], radius_mm: float, thickness_mm: float, thickness_sd: float) -> list[FacePlane]:
     """The face planes a table plate may lie on where fewer than two table plates were found
     (``table_plates_by_image``): the found table plate's; and the table round each of the world
-    points ``at`` where it faces up and agrees with the found table plate, each refitted
-    (``_joined``) to the points round every one of ``at`` that lie on it. The table is one
-    plane: the surround of one plate tilts by tenths of a degree, a millimetre 150 mm away,
-    which a ray at 78° carries 4 mm along the table."""
+    points ``at`` (on a plate's face) where it faces up and agrees with the found table plate,
+    grown from there over every decoded point that lies on it (``_joined``; a start on a table
+    already grown adds no plane). The table is one plane: the surround of one plate tilts by
+    tenths of a degree, a millimetre 150 mm away, which a ray at 78° carries 4 mm along the
+    table; and seen that near grazing, the surround of a plate may decode a few dozen points
+    where the table top decodes thousands."""
     planes = [face_plane(up, cal.camera.center)] if up else []
-    rings = [_surround(points, sigma, cal, x, radius_mm) for x in at]
-    for ring in rings:
+    every = _decoded(points, sigma)
+    grown: list[FacePlane] = []
+    for x in at:
+        if any(_on_or_between(x, p, thickness_mm) for p in grown):
+            continue
+        ring = _surround(points, sigma, cal, x, radius_mm)
         plane = _plane_through(ring.points, ring.sd, cal, thickness_mm, thickness_sd)
         if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
                 and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
-            planes.append(_joined(plane, rings, cal, thickness_mm, thickness_sd) or plane)
+            joined = _joined(plane, x, every, cal, radius_mm, thickness_mm, thickness_sd)
+            planes.append(joined or plane)
+            grown += [joined] if joined else []
     return planes
 
 
-def _joined(seed: FacePlane, rings: Sequence[_Ring], cal: Calibration, thickness_mm: float,
-            thickness_sd: float) -> FacePlane | None:
-    """The table's plane through the points of ``rings`` within 3 SD (theirs and ``seed``'s
-    there) of ``seed``'s table (a thickness below its face), as ``surround_plane`` fits them."""
-    # starts near one plate share their rings' points: each point once, or the plane's SDs
-    # would count it as many times as there are starts round it
-    P, first = np.unique(np.vstack([r.points for r in rings]), axis=0, return_index=True)
-    s = np.concatenate([r.sd for r in rings])[first]
-    table = seed.point - thickness_mm * seed.normal
-    rel = P - table
-    along = rel @ seed.normal
-    across = np.linalg.norm(rel - along[:, None] * seed.normal, axis=1)
-    band = 3.0 * np.sqrt(s**2 + seed.offset_sd**2 + (across * seed.tilt_sd) ** 2)
-    on = np.abs(along) <= band
-    return _plane_through(P[on], s[on], cal, thickness_mm, thickness_sd)
+def _decoded(points: np.ndarray, sigma: np.ndarray | None) -> _Ring:
+    """Every decoded point of the (H, W, 3) ``points`` and its SD (as ``_surround``)."""
+    P = points.reshape(-1, 3)
+    ok = np.isfinite(P[:, 0])
+    s = sigma.ravel()[ok].astype(np.float64) if sigma is not None else np.full(int(ok.sum()), 0.05)
+    return _Ring(P[ok].astype(np.float64), np.maximum(np.nan_to_num(s, nan=0.5), 0.01))
+
+
+def _joined(seed: FacePlane, at: np.ndarray, every: _Ring, cal: Calibration, radius_mm: float,
+            thickness_mm: float, thickness_sd: float) -> FacePlane | None:
+    """The table's plane grown from ``seed`` (fitted round the world point ``at``): refitted, as
+    ``surround_plane`` fits them, to the decoded points ``every`` within 3 SD (theirs and the
+    plane's there) of its table (a thickness below its face), out to twice as far from ``at``
+    each round (from twice the surround's outer radius), until no point lies further. Grown
+    at once, a plane tilted by its surround's half a degree takes in the floor a metre away
+    (whose points outnumber the table's). Each round fits at most CONFIG.table_plane_max_points,
+    evenly thinned (its consensus tries each of CONFIG.consensus_trials planes on each)."""
+    plane: FacePlane | None = seed
+    out: FacePlane | None = None
+    reach = 2.0 * CONFIG.plate_image_surround_radii[1] * radius_mm
+    dist = np.linalg.norm(every.points - at, axis=1)
+    far = float(dist.max()) if len(dist) else 0.0
+    while plane is not None:
+        table = plane.point - thickness_mm * plane.normal
+        rel = every.points - table
+        along = rel @ plane.normal
+        across = np.linalg.norm(rel - along[:, None] * plane.normal, axis=1)
+        band = 3.0 * np.sqrt(every.sd**2 + plane.offset_sd**2 + (across * plane.tilt_sd) ** 2)
+        on = np.flatnonzero((np.abs(along) <= band) & (dist <= reach))
+        on = on[::max(1, math.ceil(len(on) / CONFIG.table_plane_max_points))]
+        plane = _plane_through(every.points[on], every.sd[on], cal, thickness_mm, thickness_sd, wide=True)
+        out = plane or out
+        if reach >= far:
+            break
+        reach *= 2.0
+    return out
 
 
 def _plane_at(x: np.ndarray, planes: Sequence[FacePlane], thickness_mm: float) -> FacePlane | None:
