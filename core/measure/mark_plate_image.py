@@ -20,7 +20,8 @@ is the face's times Lambert's ratio λ(φ) = max(0, m·l) / (n·l) (one albedo, 
 alone in the lit image; m the wall's normal where the ray enters it, l towards the projector,
 n the plane's normal): left free, a wall 2 px tall under a 1 px blur images its height times its
 brightness, and the centre moves along the view by the trade between them. The drawing is
-blurred by a Gaussian of SD s px (fitted) and averaged to pixels.
+blurred by a Gaussian of SD s px (fitted) and averaged to pixels. A sticker is a disk of no
+thickness: I = F w_face + (1 − w_face) B, its thickness held at 0 (``_Model.flat``).
 
 The plane is not this plate's own: its face decodes a handful of pixels. It is the plane of
 the other table plates' faces (``face_plane``: SPEC §2's three plates lie on one flat table), or
@@ -167,35 +168,42 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
                           points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, radius_mm: float,
                           thickness_mm: float, table_points: np.ndarray | None = None,
                           table_sigma: np.ndarray | None = None) -> list[Mark]:
-    """The table plates the search missed, in a capture of plates where fewer than seven marks
-    and fewer than three plates facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z)
-    were found. Each of ``starts`` (the hypotheses no chosen fit took) is fitted on a plane
-    (``fit_plate_image``): that of two found table plates (``face_plane``) where their normals
-    agree within CONFIG.table_normal_spread_deg; else, of the table's (``_table_planes``, from
-    ``table_points`` and ``table_sigma`` where given: every decoded point, not the cloud's
-    alone) and one found table plate's, the one with the least SD at the start (``_plane_at``).
+    """The table marks the search missed, where fewer than seven marks and fewer than three of
+    the capture's kind facing up (as table marks do: |n_z| ≥ CONFIG.leg_normal_max_z) were
+    found: plates ``thickness_mm`` thick, or stickers where it is 0 (a disk on the table's
+    plane, no wall and no shadow). Each of ``starts`` (the hypotheses no chosen fit took) is
+    fitted on a plane (``fit_plate_image``): that of two found table plates (``face_plane``)
+    where their normals agree within CONFIG.table_normal_spread_deg; else, of the table's
+    (``_table_planes``, from ``table_points`` and ``table_sigma`` where given: every decoded
+    point, not the cloud's alone; round the found table marks and the starts) and one
+    found table plate's, the one with the least SD at the start (``_plane_at``).
     A start is skipped where it lies on a found mark, its blob has no decoded point on the
     plate's height over the table on any of these planes (by CONFIG.image_fit_off_surface_mm),
     or a plate another start's fit placed (a fit that is one of the kit's plates) covers its
     pixel. Of the fits that are one of the kit's plates (``_passes``) and lie on no found mark,
     the best (least residuals) that do not overlap, as many as the table lacks."""
-    up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is MarkKind.PLATE]
+    kind = MarkKind.PLATE if thickness_mm > 0.0 else MarkKind.STICKER
+    up = [m for m in marks if abs(m.normal[2]) >= CONFIG.leg_normal_max_z and m.kind is kind]
     need = len(TABLE_LABEL_KEYS) - len(up)
     if need <= 0 or len(marks) >= len(LABEL_KEYS):
         return []
     if len(up) == 2 and _spread_deg([m.normal for m in up]) > CONFIG.table_normal_spread_deg:
         return []
-    shared = face_plane(up, cal.camera.center) if len(up) == 2 else None
-    plates = [m for m in marks if m.kind is MarkKind.PLATE]
+    # a sticker's normal is its surface's, fitted round it: at a grazing view from a few dozen
+    # points (two table stickers' normals agreed within 0.05° and were both 0.7° off the
+    # table's, 2 mm of height 200 mm away), so the table's plane is the decoded table's alone
+    found = [face_plane(up, cal.camera.center)] if up and kind is MarkKind.PLATE else []
+    plates = [m for m in marks if m.kind is kind]
     albedo = _albedo(image, cal, plates, radius_mm)
-    thickness_sd = _thickness_sd(plates)
+    thickness_sd = _thickness_sd(plates) if kind is MarkKind.PLATE else 0.0
     o = cal.camera.center
     passed: list[tuple[PlateImageFit, FacePlane]] = []
-    planes = ([shared] if shared else
-              _table_planes(points if table_points is None else table_points,
-                            sigma if table_points is None else table_sigma, cal,
-                            [st.point for st in starts if st.point is not None], up, radius_mm, thickness_mm,
-                            thickness_sd))
+    # the table round the found table marks too: its surround decodes there (the marks were found)
+    seeds = [m.centre for m in up] + [st.point for st in starts if st.point is not None]
+    planes = (found if len(found) == 1 and len(up) == 2 else
+              found + _table_planes(points if table_points is None else table_points,
+                                    sigma if table_points is None else table_sigma, cal, seeds, up, radius_mm,
+                                    thickness_mm, thickness_sd))
     for st in starts:
         if st.point is None:
             continue
@@ -227,21 +235,20 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
             edge_rms = CONFIG.max_circle_rms_mm * max(fit.excess, 0.0) / CONFIG.image_fit_max_excess
             out.append(Mark(fit.centre, plane.normal.copy(), radius_mm, edge_rms, fit.face_rms, fit.covariance,
                             fit.pixel, 0, fit.n_pixels, view_deg=fit.view_deg, light_deg=fit.light_deg,
-                            kind=MarkKind.PLATE, step_mm=fit.thickness_mm))
+                            kind=kind, step_mm=fit.thickness_mm))
     return out
 
 
 def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: Sequence[np.ndarray],
                   up: Sequence[Mark], radius_mm: float, thickness_mm: float, thickness_sd: float) -> list[FacePlane]:
-    """The face planes a table plate may lie on where fewer than two table plates were found
-    (``table_plates_by_image``): the found table plate's; and the table round each of the world
-    points ``at`` (on a plate's face) where it faces up and agrees with the found table plate,
-    grown from there over every decoded point that lies on it (``_joined``; a start on a table
-    already grown adds no plane). The table is one plane: the surround of one plate tilts by
-    tenths of a degree, a millimetre 150 mm away, which a ray at 78° carries 4 mm along the
-    table; and seen that near grazing, the surround of a plate may decode a few dozen points
-    where the table top decodes thousands."""
-    planes = [face_plane(up, cal.camera.center)] if up else []
+    """The face planes a table mark may lie on (``table_plates_by_image``): the table round each
+    of the world points ``at`` (on a mark's face) where it faces up and agrees with the found
+    table marks ``up`` (CONFIG.table_normal_spread_deg), grown from there over every decoded
+    point that lies on it (``_joined``; a start on a table already grown adds no plane). The
+    table is one plane: the surround of one plate tilts by tenths of a degree, a millimetre
+    150 mm away, which a ray at 78° carries 4 mm along the table; and seen that near grazing,
+    the surround of a mark may decode a few dozen points where the table top decodes thousands."""
+    planes: list[FacePlane] = []
     every = _decoded(points, sigma)
     grown: list[FacePlane] = []
     for x in at:
@@ -557,7 +564,8 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     vv, uu = np.mgrid[v0:v1, u0:u1]
     du, dv = (uu - uu.mean()) / max(u1 - u0, 1), (vv - vv.mean()) / max(v1 - v0, 1)
     c0 = (start - plane.point) @ E.T
-    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None)
+    flat = thickness_mm <= 0.0  # a sticker: no wall, no shadow, its thickness held at 0
+    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None, flat)
     lo, hi = CONFIG.image_fit_blur_range_px
     p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm, radius_mm])
     if warm is not None:
@@ -567,20 +575,22 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     k = 5 if shape.free_radius else 4
     lower = np.array([-np.inf, -np.inf, math.log(lo), 0.0, r_lo][:k])
     upper = np.array([np.inf, np.inf, math.log(hi), t_hi, r_hi][:k])
+    free = np.ones(k, bool)
+    free[3] = not flat
     # a warm start on a bound comes back from exp and log an ulp past it: least_squares refuses that
     p0 = np.clip(p0[:k], lower, upper)
     if f > 1 and warm is None:
         # from a start a radius off, most of the evaluations walk the centre to the plate: walked
         # on one sample a pixel (1/f² of the samples to draw and blur), then polished on all f²
         coarse = _Model(_sample_rays(cal, plane, F, (v0 - pad, v1 + pad), (u0 - pad, u1 + pad), 1, start),
-                        radius_mm, 1, pad, keep, crop, du, dv, model.floating_from)
-        walked = _solved(coarse, p0, lower, upper, noise)
+                        radius_mm, 1, pad, keep, crop, du, dv, model.floating_from, flat)
+        walked = _solved(coarse, p0, lower, upper, noise, free)
         p0 = np.clip(walked, lower, upper) if walked is not None else p0
-    x = _solved(model, p0, lower, upper, noise)
+    x = _solved(model, p0, lower, upper, noise, free)
     if x is None:
         return None
     c2 = x[:2]
-    cov4 = model.covariance(x, CONFIG.image_fit_huber * noise)  # 5 x 5 with a free radius
+    cov4 = model.covariance(x, CONFIG.image_fit_huber * noise, free)  # 5 x 5 with a free radius
     if cov4 is None:
         return None
     r = model.residuals(x)
@@ -616,18 +626,27 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     return fit, heights
 
 
-def _solved(model: _Model, p0: np.ndarray, lower: np.ndarray, upper: np.ndarray, noise: float) -> np.ndarray | None:
+def _solved(model: _Model, p0: np.ndarray, lower: np.ndarray, upper: np.ndarray, noise: float,
+            free: np.ndarray) -> np.ndarray | None:
     """The parameters that fit ``model`` from ``p0`` within the bounds (Huber's loss at
-    CONFIG.image_fit_huber of the ``noise``); None where the solver fails or leaves them not finite."""
+    CONFIG.image_fit_huber of the ``noise``), those not ``free`` held at ``p0``'s; None where
+    the solver fails or leaves them not finite."""
     k = len(p0)
+
+    def full(x: np.ndarray) -> np.ndarray:
+        out = p0.copy()
+        out[free] = x
+        return out
+
     try:
-        sol = least_squares(model.residuals, p0, method="trf", loss="huber",
-                            f_scale=CONFIG.image_fit_huber * noise, x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k],
-                            bounds=(lower, upper),
-                            jac=lambda x: model.jacobian(x, lower, upper), max_nfev=CONFIG.image_fit_iterations * 5)
+        sol = least_squares(lambda x: model.residuals(full(x)), p0[free], method="trf", loss="huber",
+                            f_scale=CONFIG.image_fit_huber * noise,
+                            x_scale=np.array([0.5, 0.5, 0.2, 0.2, 0.2])[:k][free], bounds=(lower[free], upper[free]),
+                            jac=lambda x: model.jacobian(full(x), lower, upper, free),
+                            max_nfev=CONFIG.image_fit_iterations * 5)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    x: np.ndarray = sol.x
+    x = full(sol.x)
     return x if np.isfinite(x).all() else None
 
 
@@ -734,8 +753,10 @@ class _Model:
     step = 1e-4
 
     def __init__(self, rays: _Rays, radius_mm: float, f: int, pad: int, keep: np.ndarray,
-                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None):
+                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None, flat: bool = False):
         self.rays, self.r, self.f, self.pad = rays, radius_mm, f, pad
+        # a disk of no thickness (a sticker): its face is all of it, and it casts no shadow
+        self.flat = flat
         # None: the face on the rays' plane; else the thickness the rays' plane is above the
         # table at, the face moving with the fitted thickness (a ray's in-plane point moves by
         # ``w`` per mm down)
@@ -799,12 +820,15 @@ class _Model:
         in-plane moves ``w`` per mm down and image Jacobians ``jx``, ``jy`` (1, ...), the plates
         ``T`` thick and ``r`` in radius (m, 1, ...)."""
         R = self.rays
+        h = 0.5  # Φ(d / (half a sample))
+        if self.flat:
+            disk = ndtr(self._signed(a, r - np.abs(a), jx, jy) / h)
+            return disk, 1.0 - disk
         wT = T * w
         A2 = wT.real**2 + wT.imag**2
         B2 = (a * wT.conjugate()).real
         near = a + np.clip(-B2 / np.maximum(A2, 1e-12), 0.0, 1.0) * wT
         rho = np.abs(a)
-        h = 0.5  # Φ(d / (half a sample))
         face = ndtr(self._signed(a, r - rho, jx, jy) / h)
         solid = ndtr(self._signed(near, r - np.abs(near), jx, jy) / h)
         wall = np.maximum(solid - face, 0.0)
@@ -916,13 +940,13 @@ class _Model:
         """(m, N kept) the residuals at each row of ``ps``, the light solved linearly for each."""
         return np.array([self._solved(A)[1] for A in self.designs(ps)[:, self.keep]])
 
-    def jacobian(self, p: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    def jacobian(self, p: np.ndarray, lower: np.ndarray, upper: np.ndarray, free: np.ndarray) -> np.ndarray:
         """The residuals' Jacobian at ``p``, the light solved linearly at each (Golub and Pereyra's
         derivative of the projected residual): in the centre from the drawing's own gradient
         (``_centre_derivatives``); in the blur by forward differences of ``step`` of the drawing
         at ``p`` blurred again; in the thickness and a fitted radius by forward differences of
         ``step``, drawn in one call (backward where forward would leave the bounds ``lower``,
-        ``upper``)."""
+        ``upper``). Only the ``free`` parameters' columns."""
         p = np.asarray(p, float)
         h = np.where(p + self.step <= upper, self.step, -self.step)
         h = np.where(p + h >= lower, h, 0.0)
@@ -936,29 +960,35 @@ class _Model:
             moved = dA @ coef
             out[:, j] = moved - A0 @ (pinv @ moved) - A0 @ (pinv @ (pinv.T @ (dA.T @ r0)))
         blurred = self._blurred(at.drawn, math.exp(p[2] + h[2]))
-        others = self.designs(p + np.diag(h)[3:])[:, self.keep] if len(p) > 3 else np.zeros((0, len(r0), 4))
-        for j, A in zip(range(2, len(p)), [self._design_of(self._averaged(blurred), 1)[0][self.keep], *others],
+        drawn = [j for j in range(3, len(p)) if free[j]]
+        others = self.designs(p + np.diag(h)[drawn])[:, self.keep] if drawn else np.zeros((0, len(r0), 4))
+        for j, A in zip([2, *drawn], [self._design_of(self._averaged(blurred), 1)[0][self.keep], *others],
                         strict=True):
             out[:, j] = (self._solved(A)[1] - r0) / h[j] if h[j] != 0.0 else 0.0
-        return out
+        return out[:, free]
 
-    def covariance(self, p: np.ndarray, huber: float) -> np.ndarray | None:
+    def covariance(self, p: np.ndarray, huber: float, free: np.ndarray) -> np.ndarray | None:
         """The covariance of ``p`` (the centre, the blur, the thickness it trades with and a
         fitted radius): central differences (least_squares' own Jacobian is of its robust loss, and a
         parameter at a round value can get a zero column), Huber weights, the residuals' robust
-        SD. None where singular."""
+        SD. The rows and columns of parameters not ``free`` (held) are 0. None where singular."""
         p = np.asarray(p, float)
         h = 0.01
-        rows = np.vstack([p, p + h * np.eye(len(p)), p - h * np.eye(len(p))])
-        r = self._residuals_of(rows)
+        steps = h * np.eye(len(p))[free]
+        m = len(steps)
+        r = self._residuals_of(np.vstack([p, p + steps, p - steps]))
         w = np.minimum(1.0, huber / np.maximum(np.abs(r[0]), 1e-12))
-        J = ((r[1:1 + len(p)] - r[1 + len(p):]) / (2.0 * h)).T
+        J = ((r[1:1 + m] - r[1 + m:]) / (2.0 * h)).T
         self.residuals(p)  # leave the solution's light as the last solved
         try:
-            cov: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J)) * robust_sigma(r[0], 0.0) ** 2
+            held: np.ndarray = np.linalg.inv(J.T @ (w[:, None] * J)) * robust_sigma(r[0], 0.0) ** 2
         except np.linalg.LinAlgError:
             return None
-        return cov if np.isfinite(cov).all() else None
+        if not np.isfinite(held).all():
+            return None
+        cov = np.zeros((len(p), len(p)))
+        cov[np.ix_(free, free)] = held
+        return cov
 
     def coef_sd(self, sd: float) -> float:
         """SD of the face's light less the table's (first two coefficients), at residual SD ``sd``."""

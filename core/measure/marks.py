@@ -232,8 +232,10 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         if kit is not None:
             r0 = kit.radius_mm
             result.diameter = (2.0 * kit.radius_mm, 2.0 * kit.sd_mm)
-    if prefer is MarkKind.PLATE and thick is not None and sum(not m.doubtful for m in result.marks) < len(LABELS):
-        # table plates seen too obliquely for their rims: drawn whole on the plane of those
+    # a table plate's thickness, or a sticker's none
+    table_thickness = thick if prefer is MarkKind.PLATE else 0.0 if prefer is MarkKind.STICKER else None
+    if table_thickness is not None and sum(not m.doubtful for m in result.marks) < len(LABELS):
+        # table marks seen too obliquely for their rims: drawn whole on the plane of those
         # found, or of the table round them; started from every hypothesis no chosen fit took
         taken = {id(f.hypothesis) for f in selection.chosen}
         others = refused + [f.hypothesis for f in fits if id(f.hypothesis) not in taken]
@@ -241,7 +243,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         # the table's plane from every decoded point: seen near grazing, it decodes mostly past the cloud's limit
         table_points, table_sigma = (wide.points, wide.sigma) if wide.available else (points, sigma)
         _with_table_marks(result, starts, lambda sure, all_starts: table_plates_by_image(
-            sure, all_starts, image, points, sigma, cal, r0, thick, table_points=table_points,
+            sure, all_starts, image, points, sigma, cal, r0, table_thickness, table_points=table_points,
             table_sigma=table_sigma), cal, r0)
     if mark_diameter_mm is not None and not result.marks:
         seen = ", ".join(f"{2 * g.radius:.1f} mm ({g.n})" for g in sizes[:3]) or "none"
