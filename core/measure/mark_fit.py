@@ -802,9 +802,9 @@ def plane_tilt_sd(P: np.ndarray, c: np.ndarray, n: np.ndarray, point_sd: float) 
 
 def plane_consensus(P: np.ndarray, tol: float | np.ndarray) -> np.ndarray:
     """Inliers of the plane through three of the points that has the most points within
-    ``tol`` (mm, or (N,) one per point; deterministic sampling; the first such plane of the samples). All the samples'
-    planes and inlier counts at once: the same triples, normals and counts as one sample at a
-    time (to rounding), in a sixth of the time."""
+    ``tol`` (mm, or (N,) one per point; deterministic sampling; the first such plane of the
+    samples). All the samples' planes and inlier counts at once: the same triples, normals and
+    counts as one sample at a time (to rounding), in a sixth of the time."""
     rng = np.random.default_rng(len(P))
     idx = np.array([rng.choice(len(P), 3, replace=False) for _ in range(CONFIG.consensus_trials)])
     a = P[idx[:, 0]]

@@ -198,12 +198,14 @@ def table_plates_by_image(marks: Sequence[Mark], starts: Sequence[PlateStart], i
     thickness_sd = _thickness_sd(plates) if kind is MarkKind.PLATE else 0.0
     o = cal.camera.center
     passed: list[tuple[PlateImageFit, FacePlane]] = []
-    # the table round the found table marks too: its surround decodes there (the marks were found)
-    seeds = [m.centre for m in up] + [st.point for st in starts if st.point is not None]
-    planes = (found if len(found) == 1 and len(up) == 2 else
-              found + _table_planes(points if table_points is None else table_points,
-                                    sigma if table_points is None else table_sigma, cal, seeds, up, radius_mm,
-                                    thickness_mm, thickness_sd))
+    if found and len(up) == 2:
+        planes = found  # two plates' faces: the table needs no decoding
+    else:
+        # the table round the found table marks too: its surround decodes there (they were found)
+        seeds = [m.centre for m in up] + [st.point for st in starts if st.point is not None]
+        planes = found + _table_planes(points if table_points is None else table_points,
+                                       sigma if table_points is None else table_sigma, cal, seeds, up, radius_mm,
+                                       thickness_mm, thickness_sd)
     for st in starts:
         if st.point is None:
             continue
