@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -230,7 +231,7 @@ def _sized_blobs(img: np.ndarray, points: np.ndarray, cal: Calibration, radius_m
 
 def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration, radius_mm: float,
             thickness: float | None, *, recut: bool = False, kind: MarkKind | None = None,
-            wide_points: np.ndarray | None = None) -> list[Hypothesis]:
+            wide_points: Callable[[], np.ndarray] | None = None) -> list[Hypothesis]:
     """What a blob that no cut fits may still be: its wider cut and its cuts at other radii
     (``blob_union``'s ``other_cuts``); and for a blob of the first
     search (not a ``recut`` at the marks' size, whose surround was already searched at that
@@ -239,8 +240,8 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
     thickness times tan(view) off, 3.9 mm for a 1.1 mm table plate seen at 82°), and the disk
     (and, where the capture's plates have a thickness, the plate) of the marks' size predicted
     on the surface round it (``points``: (H, W, 3) decoded world points per pixel, NaN where
-    none; where too few of them decode round it, ``wide_points``, every decoded point, where
-    given), slid to where it stands out most."""
+    none; where too few of them decode round it, every decoded point, ``wide_points()``, made
+    only then, where given), slid to where it stands out most."""
     out = []
     if blob.wider is not None:
         out.append(Hypothesis(blob.wider, HypothesisSource.WIDER, CutImage.LIT, blob))
@@ -257,7 +258,7 @@ def derived(blob: Blob, image: np.ndarray, points: np.ndarray, cal: Calibration,
         if disk is None and wide_points is not None:
             # dark skin lit obliquely decodes mostly past the cloud's noise limit, and a plane
             # through a few hundred noisier points is no worse an outline
-            disk = predicted_disk(wide_points, cal, blob.centre, radius_mm, thickness=height)
+            disk = predicted_disk(wide_points(), cal, blob.centre, radius_mm, thickness=height)
         found = None if disk is None else disk_contrast_peak(image, disk)
         if found is not None:
             out.append(Hypothesis(found, source, CutImage.LIT, blob))

@@ -279,10 +279,11 @@ def _joined(seed: FacePlane, at: np.ndarray, every: _Ring, cal: Calibration, rad
     """The table's plane grown from ``seed`` (fitted round the world point ``at``): refitted, as
     ``surround_plane`` fits them, to the decoded points ``every`` within 3 SD (theirs and the
     plane's there) of its table (a thickness below its face), out to twice as far from ``at``
-    each round (from twice the surround's outer radius), until no point lies further. Grown
-    at once, a plane tilted by its surround's half a degree takes in the floor a metre away
-    (whose points outnumber the table's). Each round fits at most CONFIG.table_plane_max_points,
-    evenly thinned (its consensus tries each of CONFIG.consensus_trials planes on each)."""
+    each round (from twice the surround's outer radius), until the ring a round adds holds none
+    of them (the table ends inside it) or no point lies further. Grown at once, a plane tilted
+    by its surround's half a degree takes in the floor a metre away (whose points outnumber the
+    table's). Each round fits at most CONFIG.table_plane_max_points, evenly thinned (its
+    consensus tries each of CONFIG.consensus_trials planes on each)."""
     plane: FacePlane | None = seed
     out: FacePlane | None = None
     reach = 2.0 * CONFIG.plate_image_surround_radii[1] * radius_mm
@@ -294,7 +295,10 @@ def _joined(seed: FacePlane, at: np.ndarray, every: _Ring, cal: Calibration, rad
         along = rel @ plane.normal
         across = np.linalg.norm(rel - along[:, None] * plane.normal, axis=1)
         band = 3.0 * np.sqrt(every.sd**2 + plane.offset_sd**2 + (across * plane.tilt_sd) ** 2)
-        on = np.flatnonzero((np.abs(along) <= band) & (dist <= reach))
+        inside = (np.abs(along) <= band) & (dist <= reach)
+        if out is not None and not np.any(inside & (dist > 0.5 * reach)):
+            break
+        on = np.flatnonzero(inside)
         on = on[::max(1, math.ceil(len(on) / CONFIG.table_plane_max_points))]
         plane = _plane_through(every.points[on], every.sd[on], cal, thickness_mm, thickness_sd, wide=True)
         out = plane or out

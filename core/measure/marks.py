@@ -202,7 +202,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         # doubtful re-cut 0.18 mm off, the predicted plate outline 0.66 mm off on clean edges)
         kept = [f.mark for f in fits if math.isfinite(f.score)]
         before = len(fits)
-        every_point = wide.points if wide.available else None
+        every_point = (lambda: wide.points) if wide.available else None
         consider([d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
                   for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0, kind=prefer,
                                    wide_points=every_point)])
