@@ -119,18 +119,17 @@ class _Ring:
 def _surround(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration, at: np.ndarray,
               radius_mm: float) -> _Ring:
     """The decoded points between CONFIG.plate_image_surround_radii of ``at`` and their SDs
-    (0.05 mm without ``sigma``)."""
+    (as ``_decoded``)."""
     inner, outer = (k * radius_mm for k in CONFIG.plate_image_surround_radii)
     depth = float(np.linalg.norm(at - cal.camera.center))
     half = int(math.ceil(float(plate_radius_px(cal, depth, outer))))
     u, v = (int(round(float(x))) for x in cal.camera.project(np.asarray(at, float)[None])[0])
     H, W = points.shape[:2]
     rows, cols = slice(max(v - half, 0), min(v + half + 1, H)), slice(max(u - half, 0), min(u + half + 1, W))
-    P = points[rows, cols].reshape(-1, 3).astype(np.float64)
-    s = (sigma[rows, cols].ravel().astype(np.float64) if sigma is not None else np.full(len(P), 0.05))
-    dist = np.linalg.norm(P - at, axis=1)
-    ok = np.isfinite(dist) & (dist >= inner) & (dist <= outer)
-    return _Ring(P[ok], np.maximum(np.nan_to_num(s[ok], nan=0.5), 0.01))
+    near = _decoded(points[rows, cols], None if sigma is None else sigma[rows, cols])
+    dist = np.linalg.norm(near.points - at, axis=1)
+    ok = (dist >= inner) & (dist <= outer)
+    return _Ring(near.points[ok], near.sd[ok])
 
 
 def _plane_through(P: np.ndarray, s: np.ndarray, cal: Calibration, thickness_mm: float,
@@ -267,7 +266,8 @@ def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration
 
 
 def _decoded(points: np.ndarray, sigma: np.ndarray | None) -> _Ring:
-    """Every decoded point of the (H, W, 3) ``points`` and its SD (as ``_surround``)."""
+    """Every decoded point of the (H, W, 3) ``points`` and its SD (``sigma``, 0.05 mm where not
+    given; 0.5 mm where not finite, and at least 0.01 mm)."""
     P = points.reshape(-1, 3)
     ok = np.isfinite(P[:, 0])
     s = sigma.ravel()[ok].astype(np.float64) if sigma is not None else np.full(int(ok.sum()), 0.05)
