@@ -3,9 +3,12 @@ selection of the seven non-overlapping fits the labels accept, and hypotheses fo
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
+from anklescan.core.calibration.model.device_model import Device
+from anklescan.core.calibration.model.file import Calibration
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_hypotheses import (
     CutImage,
@@ -230,12 +233,59 @@ def test_a_blob_of_two_disks_leaves_the_unfitted_one_as_a_hypothesis():
     both[5:15, 5:55] = True  # two 25 mm disks side by side, cut as one
     blob = _whole(both, (30.0, 10.0))
     left = _mark([17.5, 0.0, 300.0], [0.0, 0.0, 1.0])
-    rest = unexplained(blob, points, [left], 12.5)
+    cal = _facing(10.0)
+    rest = unexplained(blob, points, cal, [left], 12.5)
     assert rest is not None and rest.centre[0] > 35.0 and rest.region.sum() < both.sum()
-    assert unexplained(blob, points, [], 12.5) is blob
+    assert unexplained(blob, points, cal, [], 12.5) is blob
     alone = _whole(np.zeros((20, 60), bool), blob.centre)
     alone.region[5:15, 8:27] = True  # the left disk's own pixels only
-    assert unexplained(alone, points, [left], 12.5) is None
+    assert unexplained(alone, points, cal, [left], 12.5) is None
+
+
+def _facing(cy: float) -> Calibration:
+    """A camera at the origin looking along +z whose pixel (u, v) sees the point (u, v − cy,
+    300) mm: the synthetic point images' own geometry."""
+    cam = Device(100, 40, [[300.0, 0.0, 0.0], [0.0, 300.0, cy], [0.0, 0.0, 1.0]], [], np.eye(3), np.zeros(3))
+    prj = Device(100, 80, [[300.0, 0.0, 49.5], [0.0, 300.0, 39.5], [0.0, 0.0, 1.0]], [], np.eye(3),
+                 np.array([-100.0, 0.0, 0.0]), "column")
+    return Calibration(cam, prj)
+
+
+def test_a_plates_side_wall_is_not_part_of_the_disk_beside_it():
+    """A blob of a 3 mm plate seen at 65° and a disk beside its side wall. The wall decodes
+    nothing, so the fitted plate's points do not explain it, and wall and disk made one rest
+    that was not elliptical (drawn 1722: a lateral ankle plate 2 mm from the front one, cut
+    with it as one blob). The plate's image explains it: face and base, its kit's thickness
+    below. The rest is the disk beside it."""
+    from anklescan.core.measure.mark_hypotheses import unexplained
+
+    cal, r, T = _facing(20.0), 12.5, 3.0
+    C = np.array([50.0, 0.0, 300.0])
+    n = np.array([math.sin(math.radians(65.0)), 0.0, -math.cos(math.radians(65.0))])
+    vv, uu = np.mgrid[0:40, 0:100].astype(float)
+    d = np.stack([uu, vv - 20.0, np.full_like(uu, 300.0)], axis=-1)
+
+    def on_disk(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        X = d * ((centre @ n) / (d @ n))[..., None]
+        return np.linalg.norm(X - centre, axis=-1) <= r, X
+
+    face, X = on_disk(C)
+    base, _ = on_disk(C - T * n)
+    hull = np.zeros((40, 100), np.uint8)
+    v, u = np.nonzero(face | base)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.column_stack([u, v]).astype(np.int32)), 1)
+    wall = (hull > 0) & ~face
+    left = int(np.flatnonzero(wall.any(axis=0))[0])
+    other = np.hypot(uu - (left - 9.0), vv - 20.0) <= 10.0  # touching the wall
+    points = np.full((40, 100, 3), np.nan, np.float32)
+    points[face] = X[face]
+    points[other] = d[other] * 1.1  # the plane z = 330 mm: beside the plate in the image, 2 radii from it
+    blob = _whole(face | wall | other, (50.0, 20.0))
+    plate = _mark(C, n, radius=r)
+    rest = unexplained(blob, points, cal, [plate], r, thickness_mm=T)
+    assert wall.sum() > 20 and (wall & ~face).any()
+    assert rest is not None and not (rest.region & wall).any()
+    assert (rest.region & ~other).sum() == 0 and rest.region.sum() >= 0.8 * other.sum()
 
 
 def test_a_band_round_the_fitted_disk_is_not_part_of_the_other():
@@ -255,7 +305,7 @@ def test_a_band_round_the_fitted_disk_is_not_part_of_the_other():
     neck = (yy >= 20) & (yy <= 21) & (xx >= 37) & (xx <= 41)  # 2 px joining it to the other disk
     region = (r_left <= 12.5) | band | neck | other
     blob = _whole(region, (36.0, 20.0))
-    rest = unexplained(blob, points, [_mark([20.0, 0.0, 300.0], [0.0, 0.0, 1.0])], 12.5)
+    rest = unexplained(blob, points, _facing(20.0), [_mark([20.0, 0.0, 300.0], [0.0, 0.0, 1.0])], 12.5)
     assert rest is not None
     assert not (rest.region & band).any() and (rest.region & other).sum() == other.sum()
     assert abs(rest.centre[0] - 52) < 0.5 and abs(rest.centre[1] - 20) < 0.5

@@ -54,6 +54,7 @@ from anklescan.core.measure.mark_candidates import (
 )
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_types import Blob, Mark
+from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.vocabulary import MarkKind
 
 
@@ -68,6 +69,7 @@ class HypothesisSource(enum.Enum):
     LIT_STICKER = "sticker on the lit edges"
     PREDICTED = "predicted disk"
     PREDICTED_PLATE = "predicted plate"
+    REST = "a blob less the disks fitted in it"
 
     @property
     def tier(self) -> int:
@@ -121,15 +123,18 @@ def on_a_fitted_disk(blob: Blob, points: np.ndarray, marks: list[Mark], radius_m
     return any(float(np.linalg.norm(p - m.centre)) < radius_mm for m in marks)
 
 
-def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: float) -> Blob | None:
+def unexplained(blob: Blob, points: np.ndarray, cal: Calibration, marks: list[Mark], radius_mm: float,
+                thickness_mm: float | None = None) -> Blob | None:
     """``blob`` less the pixels a fitted disk explains (decoded points within
-    CONFIG.explained_radii radii of a mark's centre): the blob itself where none does, its
-    largest remaining connected part where some do (two disks side by side cut as one blob, one
-    of them fitted: the other's hypothesis), None where less than CONFIG.unexplained_min_share of
-    it remains (another view of a disk fitted: its face, its side wall)."""
+    CONFIG.explained_radii radii of a mark's centre, or pixels inside its image out to those
+    radii, with a plate's base ``thickness_mm`` below, the kit's: ``_in_images_of``): the blob
+    itself where none does, its largest remaining connected part where some do (two disks side
+    by side cut as one blob, one of them fitted: the other's hypothesis), None where less than
+    CONFIG.unexplained_min_share of it remains (another view of a disk fitted: its face, its
+    side wall)."""
     region = np.asarray(blob.region, bool)
     P = points[blob.window]
-    inside = np.zeros(region.shape, bool)
+    inside = _in_images_of(blob, cal, marks, radius_mm, thickness_mm or 0.0)
     for m in marks:
         d = np.linalg.norm(P - m.centre, axis=-1)
         inside |= np.nan_to_num(d, nan=np.inf) < CONFIG.explained_radii * radius_mm
@@ -143,6 +148,30 @@ def unexplained(blob: Blob, points: np.ndarray, marks: list[Mark], radius_mm: fl
     v, u = np.nonzero(part)
     x0, y0 = blob.origin
     return Blob(blob.window, part, (float(u.mean() + x0), float(v.mean() + y0)))
+
+
+def _in_images_of(blob: Blob, cal: Calibration, marks: list[Mark], radius_mm: float, thickness_mm: float) -> np.ndarray:
+    """(h, w) bool over ``blob``'s window: inside the image of a fitted disk out to
+    CONFIG.explained_radii radii, of its face and, for a plate, of its base ``thickness_mm``
+    below (the hull of the two: the side wall between them; the kit's thickness, as a plate's own
+    step can read far off). A plate's wall and the blur past its rim
+    decode little and lie past those radii in the world, and as the decoded points alone
+    explain it, a band of them joined the rest of a blob that held two plates side by side."""
+    x0, y0 = blob.origin
+    out = np.zeros(np.shape(blob.region), np.uint8)
+    t = np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)
+    for m in marks:
+        n = m.normal if m.normal @ (cal.camera.center - m.centre) >= 0 else -m.normal
+        F = local_frame(m.centre, n)
+        ring = CONFIG.explained_radii * radius_mm * (np.cos(t)[:, None] * F[0] + np.sin(t)[:, None] * F[1])
+        drop = thickness_mm if m.kind is MarkKind.PLATE else 0.0
+        uv = cal.camera.project(np.vstack([m.centre + ring, m.centre - drop * n + ring]))
+        if not np.isfinite(uv).all():
+            continue
+        hull = cv2.convexHull(np.round(uv - [x0, y0]).astype(np.int32))
+        cv2.fillConvexPoly(out, hull, 1)
+    k = 2 * CONFIG.unexplained_opening_px + 1
+    return cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
 
 
 def _other_disk(rest: np.ndarray) -> np.ndarray:

@@ -179,7 +179,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         explained = sure()
 
         def recut(hyps: list[Hypothesis]) -> list[Hypothesis]:  # less what the first fits' sure ones explain
-            rests = [(h, unexplained(h.blob, points, explained, r0)) for h in hyps]
+            rests = [(h, unexplained(h.blob, points, cal, explained, r0, thick)) for h in hyps]
             return [h if rest is h.blob else Hypothesis(rest, h.source, h.image, h.blob) for h, rest in rests
                     if rest is not None]
 
@@ -203,9 +203,15 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         kept = [f.mark for f in fits if math.isfinite(f.score)]
         before = len(fits)
         every_point = (lambda: wide.points) if wide.available else None
-        consider([d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
-                  for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0, kind=prefer,
-                                   wide_points=every_point)])
+        # a blob that holds a fitted disk and more (two disks side by side cut as one, fitted as
+        # one of them or refused): the rest
+        cut = {id(h.blob): h for h in parents + [f.hypothesis for f in fits[:before]]
+               if h.source.tier < HypothesisSource.WIDER.tier}
+        rests = [Hypothesis(rest, HypothesisSource.REST, h.image, h.blob) for h in cut.values()
+                 if (rest := unexplained(h.blob, points, cal, kept, r0, thick)) is not None and rest is not h.blob]
+        consider(rests + [d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
+                          for d in derived(h.blob, image, points, cal, r0, thick, recut=h.source.tier > 0,
+                                           kind=prefer, wide_points=every_point)])
         fits[before:] = _one_predicted_outline(fits[before:])
         selection = select_marks(fits, r0)
     if prefer is not MarkKind.PLATE:
