@@ -153,10 +153,11 @@ def unexplained(blob: Blob, points: np.ndarray, cal: Calibration, marks: list[Ma
 def _in_images_of(blob: Blob, cal: Calibration, marks: list[Mark], radius_mm: float, thickness_mm: float) -> np.ndarray:
     """(h, w) bool over ``blob``'s window: inside the image of a fitted disk out to
     CONFIG.explained_radii radii, of its face and, for a plate, of its base ``thickness_mm``
-    below (the hull of the two: the side wall between them; the kit's thickness, as a plate's own
-    step can read far off). A plate's wall and the blur past its rim
-    decode little and lie past those radii in the world, and as the decoded points alone
-    explain it, a band of them joined the rest of a blob that held two plates side by side."""
+    below (the hull of the two: the side wall between them; the kit's thickness, as a plate's
+    own step can read far off), grown by CONFIG.unexplained_opening_px. A plate's wall and the
+    blur past its rim decode little and lie past those radii in the world: explained by the
+    decoded points alone, a band of them joins the rest of a blob that holds two plates side by
+    side to the other plate (and makes it "not elliptical")."""
     x0, y0 = blob.origin
     out = np.zeros(np.shape(blob.region), np.uint8)
     t = np.linspace(0.0, 2.0 * math.pi, 48, endpoint=False)

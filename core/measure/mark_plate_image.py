@@ -852,9 +852,9 @@ class _Model:
         in_shadow = self._signed(sh, r - np.abs(sh), jx, jy)
         # the table is hidden where the plate or its shadow covers it: Φ of the union's distance
         # (the larger), not the product of the two Φs. The shadow's region holds the plate's base,
-        # so on a lit side both rims are one, and (1 − Φ)² darkened the table there by a
-        # softening's width: the base rim read outward, the thickness low, and the centre moved
-        # towards the camera by an amount that followed the samples per pixel (a 23 mm plate seen
+        # so on a lit side both rims are one, where the product (1 − Φ)² would darken the table
+        # over a softening's width: the base rim reads outward, the thickness low, and the centre
+        # moves towards the camera by as much as the samples per pixel allow (a 23 mm plate seen
         # at 60°: 0.32 mm drawn 2 × 2 per pixel, 0.15 mm 12 × 12; as the union, 0.11 mm at both)
         return face + lam * wall, 1.0 - ndtr(np.maximum(in_solid, in_shadow) / h)
 
