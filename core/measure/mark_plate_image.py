@@ -252,7 +252,7 @@ def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration
     150 mm away, which a ray at 78° carries 4 mm along the table; and seen that near grazing,
     the surround of a mark may decode a few dozen points where the table top decodes thousands."""
     planes: list[FacePlane] = []
-    every = _decoded(points, sigma)
+    every: _Ring | None = None  # made where a surround faces up: where every one is upright, never
     grown: list[FacePlane] = []
     for x in at:
         if any(_on_or_between(x, p, thickness_mm) for p in grown):
@@ -261,6 +261,8 @@ def _table_planes(points: np.ndarray, sigma: np.ndarray | None, cal: Calibration
         plane = _plane_through(ring.points, ring.sd, cal, thickness_mm, thickness_sd)
         if (plane is not None and abs(float(plane.normal[2])) >= CONFIG.leg_normal_max_z
                 and _spread_deg([plane.normal] + [m.normal for m in up]) <= CONFIG.table_normal_spread_deg):
+            if every is None:
+                every = _decoded(points, sigma)
             joined = _joined(plane, x, every, cal, radius_mm, thickness_mm, thickness_sd)
             planes.append(joined or plane)
             grown += [joined] if joined else []

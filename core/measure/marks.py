@@ -205,8 +205,7 @@ def find_marks(lit: np.ndarray, cloud: PointCloud, cal: Calibration, *,
         every_point = (lambda: wide.points) if wide.available else None
         # a blob that holds a fitted disk and more (two disks side by side cut as one, fitted as
         # one of them or refused): the rest
-        cut = {id(h.blob): h for h in parents + [f.hypothesis for f in fits[:before]]
-               if h.source.tier < HypothesisSource.WIDER.tier}
+        cut = {id(h.blob): h for h in parents + [f.hypothesis for f in fits]}  # tiers 0 and 1 so far
         rests = [Hypothesis(rest, HypothesisSource.REST, h.image, h.blob) for h in cut.values()
                  if (rest := unexplained(h.blob, points, cal, kept, r0, thick)) is not None and rest is not h.blob]
         consider(rests + [d for h in parents if not on_a_fitted_disk(h.blob, points, kept, r0)
