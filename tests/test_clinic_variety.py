@@ -115,11 +115,8 @@ CASES = {
     # pixels in one row, and a plane of any tilt through them put it 3.7 mm off
     "8 mm plates": (None, 0, -20, "plate", 8.0),
 }
-# docs/marks.md, known limits ("Plates seen at 63-75°"): the table plate 5, seen at 71° at this
-# scale, decodes 4 face points, so its image fit stands on its rim fit's plane, 0.09 mm low:
-# 0.32 mm off along the view (0.29 mm before the plate model hid the table by the union of
-# plate and shadow; on the true plane 0.05 mm), within its SD (0.33 mm)
-KNOWN = {"8 mm plates": "a table plate at 71° whose height rests on its rim fit: 0.32 mm (SD 0.33 mm)"}
+# cases today's detector fails, by name, with why (docs/marks.md, known limits): none
+KNOWN: dict[str, str] = {}
 
 
 @pytest.mark.slow

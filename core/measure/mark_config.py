@@ -383,6 +383,20 @@ class MarkConfig:
     #: px: the same model's error in where it places the plate's image (a blur that is not one
     #: Gaussian beside a wall on one side only), in its covariance
     plate_image_model_error_px: float = 0.1
+    #: px: the surround round a plate (``mark_surround``) is measured from decoded points at least
+    #: this far outside its face, base and shadow: a point within a blur's reach of the plate's
+    #: edges mixes their light and reads a depth between the two (on a flat table, 3 px clear
+    #: of a plate read it curved away 80-100 mm round; the same cut out read it flat)
+    surround_quadric_clear_px: float = 3.0
+    #: radii: the ring the surround is measured in reaches this far past that, and so do the
+    #: pixels its image fit reads (past it the quadric is not measured, and other surfaces enter)
+    surround_quadric_radii: float = 0.6
+    #: and is measured where at least this share of that ring's pixels decode (a table seen near
+    #: grazing decodes a handful of points round a plate, which a quadric fits to any surface)
+    surround_quadric_min_decoded: float = 0.5
+    #: the surround's tilt and curvature are drawn where they differ from none by these χ² over
+    #: their own covariance (1 % at their 2 and 3 degrees of freedom)
+    surround_quadric_chi2: tuple[float, float] = (9.21, 11.34)
 
     # ---- every chosen plate placed again by its image on its face's plane (``mark_plate_refit``)
     #: radii: how far the image fit's centre may move from the rim fit's (its window and reach)

@@ -6,7 +6,7 @@ ellipse is short. Neither rim is an edge one can read: the far rim lies against 
 decodes nothing at such a view and is about as bright as the face, and the near rim is the
 wall's. Every pixel still carries the plate's image, so the plate is drawn and fitted to them all:
 
-    I(u, v) = F (w_face + λ(φ) w_wall) + (1 − w_hidden) B(u, v)
+    I(u, v) = F (w_face + λ(φ) w_wall) + (1 − w_hidden) S B(u, v)
 
 per sample ray of each pixel (``CONFIG.image_fit_subsamples`` squared), with ``w_face`` the
 ray meeting the face (a disk of radius r in the face's plane), ``w_solid`` the ray passing
@@ -24,6 +24,14 @@ n the plane's normal): left free, a wall 2 px tall under a 1 px blur images its 
 brightness, and the centre moves along the view by the trade between them. The drawing is
 blurred by a Gaussian of SD s px (fitted) and averaged to pixels. A sticker is a disk of no
 thickness: I = F w_face + (1 − w_face) B, its thickness held at 0 (``_Model.flat``).
+
+The table is the plane T below the face, or where the decoded points round the plate measure
+it (``mark_surround``: a leg that falls away under the rim, or a face tilted off its surround),
+a quadric: each ray meets it at the depth three fixed-point steps find, the wall reaching down
+to it, the shadow cast on it, and S its Lambert shading over the base plane's (1 on a plane).
+The pixels fitted are then those near the plate where that quadric is measured
+(``_round_the_plate``). The centre's Jacobian still moves the drawing with the centre as a whole
+(``_Model._centre_derivatives``); the surround, fixed in the plane, varies over millimetres.
 
 The plane is not this plate's own: its face decodes a handful of pixels. It is the plane of
 the other table plates' faces (``face_plane``: SPEC §2's three plates lie on one flat table), or
@@ -51,6 +59,7 @@ from anklescan.core.measure.mark_candidates import ellipse_pixels, noise_sigma, 
 from anklescan.core.measure.mark_config import CONFIG
 from anklescan.core.measure.mark_edges import face_shape
 from anklescan.core.measure.mark_fit import fit_plane, plane_consensus, plane_tilt_sd
+from anklescan.core.measure.mark_surround import Surround, surround_of
 from anklescan.core.measure.mark_types import Mark
 from anklescan.core.measure.marks_surface import local_frame
 from anklescan.core.robust import median_sd, robust_sigma
@@ -566,6 +575,7 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     rays = _sample_rays(cal, plane, F, (v0 - pad, v1 + pad), (u0 - pad, u1 + pad), f, start)
     crop = np.asarray(image[v0:v1, u0:u1], np.float64)
     P = points[v0:v1, u0:u1].reshape(-1, 3).astype(np.float64)
+    flat = thickness_mm <= 0.0  # a sticker: no wall, no shadow, its thickness held at 0
     keep = _sees_plate_or_table(P, plane, thickness_mm).reshape(crop.shape) & np.isfinite(crop)
     if int(keep.sum()) < CONFIG.min_interior_points:
         return None
@@ -574,8 +584,7 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
     vv, uu = np.mgrid[v0:v1, u0:u1]
     du, dv = (uu - uu.mean()) / max(u1 - u0, 1), (vv - vv.mean()) / max(v1 - v0, 1)
     c0 = (start - plane.point) @ E.T
-    flat = thickness_mm <= 0.0  # a sticker: no wall, no shadow, its thickness held at 0
-    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, thickness_mm if plane.from_table else None, flat)
+    floating = thickness_mm if plane.from_table else None
     lo, hi = CONFIG.image_fit_blur_range_px
     p0 = np.array([c0[0], c0[1], math.log(CONFIG.image_fit_blur_start_px), thickness_mm, radius_mm])
     if warm is not None:
@@ -593,9 +602,15 @@ def _fit_on_plane(image: np.ndarray, points: np.ndarray, cal: Calibration, plane
         # from a start a radius off, most of the evaluations walk the centre to the plate: walked
         # on one sample a pixel (1/f² of the samples to draw and blur), then polished on all f²
         coarse = _Model(_sample_rays(cal, plane, F, (v0 - pad, v1 + pad), (u0 - pad, u1 + pad), 1, start),
-                        radius_mm, 1, pad, keep, crop, du, dv, model.floating_from, flat)
+                        radius_mm, 1, pad, keep, crop, du, dv, floating, flat)
         walked = _solved(coarse, p0, lower, upper, noise, free)
         p0 = np.clip(walked, lower, upper) if walked is not None else p0
+    surround = Surround()
+    if not flat:
+        surround, keep = _round_the_plate(rays, f, pad, P, plane, p0, keep, floating, radius_mm)
+        if int(keep.sum()) < CONFIG.min_interior_points:
+            return None
+    model = _Model(rays, radius_mm, f, pad, keep, crop, du, dv, floating, flat, surround)
     x = _solved(model, p0, lower, upper, noise, free)
     if x is None:
         return None
@@ -736,12 +751,67 @@ def _derivative(img: np.ndarray, axis: int) -> np.ndarray:
     return out
 
 
-def _sees_plate_or_table(P: np.ndarray, plane: FacePlane, thickness_mm: float) -> np.ndarray:
-    """(N,) of the points ``P`` (N, 3): undecoded, or decoded on or between the face's plane and the table's."""
+def _sees_plate_or_table(P: np.ndarray, plane: FacePlane, thickness_mm: float,
+                         surround: Surround | None = None) -> np.ndarray:
+    """(N,) of the points ``P`` (N, 3): undecoded, or decoded on or between the face's plane and the table's
+    (the ``surround``'s, where given)."""
     h = (P - plane.point) @ plane.normal
     tol = CONFIG.image_fit_off_surface_mm
-    out: np.ndarray = ~np.isfinite(h) | ((h >= -thickness_mm - tol) & (h <= tol))
+    depth: np.ndarray | float = thickness_mm
+    if surround is not None and not surround.flat:
+        E = local_frame(plane.point, plane.normal)[:2]
+        xy = (P - plane.point) @ E.T
+        depth = thickness_mm + np.maximum(surround.drop(xy[:, 0] + 1j * xy[:, 1]), 0.0)
+    out: np.ndarray = ~np.isfinite(h) | ((h >= -depth - tol) & (h <= tol))
     return out
+
+
+def _clearance(rays: _Rays, f: int, pad: int, c: complex, T: float, r: float,
+               lift: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per window pixel: how far (mm, in the plane) its ray passes outside the plate's face, its
+    base and its shadow on the base's plane (disks of radius ``r``, the face's centred at ``c``
+    ``lift`` mm over the rays' plane, ``T`` thick), and a pixel's width there (mm)."""
+    cut = pad * f
+    H, W = (rays.a.shape[0] - 2 * cut) // f, (rays.a.shape[1] - 2 * cut) // f
+
+    def per_pixel(x: np.ndarray) -> np.ndarray:
+        out: np.ndarray = x[cut:-cut, cut:-cut].reshape(H, f, W, f).mean(axis=(1, 3))
+        return out
+
+    w = per_pixel(rays.w)
+    face = per_pixel(rays.a) - lift * w
+    base = face + T * w
+    d = np.minimum(np.minimum(np.abs(face - c), np.abs(base - c)), np.abs(base + T * rays.shadow_step - c)) - r
+    return d.ravel(), (f * np.maximum(np.abs(per_pixel(rays.jx)), np.abs(per_pixel(rays.jy)))).ravel()
+
+
+def _round_the_plate(rays: _Rays, f: int, pad: int, P: np.ndarray, plane: FacePlane, p: np.ndarray,
+                     keep: np.ndarray, floating_from: float | None, radius_mm: float) -> tuple[Surround, np.ndarray]:
+    """The surround of the plate at parameters ``p`` (``mark_surround.surround_of``) from the
+    decoded points ``P`` (N, 3) of the window's pixels that lie CONFIG.surround_quadric_clear_px to
+    that plus CONFIG.surround_quadric_radii radii outside its face, base and shadow (where at least
+    CONFIG.surround_quadric_min_decoded of them decode), and the pixels
+    ``keep`` (a window's mask) fitted where it is measured: those that reach no farther out,
+    see the plate or the surround, and where undecoded, lie within CONFIG.surround_quadric_clear_px of
+    the plate (an undecoded pixel beyond is another surface's shadow or silhouette). The base's
+    plane and ``keep`` as given where the surround is not measured."""
+    F = local_frame(plane.point, plane.normal)
+    T = float(p[3])
+    lift = 0.0 if floating_from is None else T - floating_from  # the face over the rays' plane
+    c = complex(p[0], p[1])
+    clear, px_mm = _clearance(rays, f, pad, c, T, radius_mm, lift)
+    near = clear <= CONFIG.surround_quadric_clear_px * px_mm
+    ring = ~near & (clear <= CONFIG.surround_quadric_clear_px * px_mm + CONFIG.surround_quadric_radii * radius_mm)
+    decoded = ring & np.isfinite(P[:, 0])
+    if int(decoded.sum()) < CONFIG.surround_quadric_min_decoded * int(ring.sum()):
+        return Surround(), keep  # a handful of points round it: not measured
+    centre = plane.point + c.real * F[0] + c.imag * F[1] + lift * F[2]
+    surround = surround_of((P[decoded] - centre) @ F.T, T, c)
+    if surround.flat:
+        return surround, keep
+    out = (keep.ravel() & _sees_plate_or_table(P, plane, T - lift, surround)
+           & (clear <= CONFIG.surround_quadric_radii * radius_mm) & (np.isfinite(P[:, 0]) | near))
+    return surround, out.reshape(keep.shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -763,8 +833,11 @@ class _Model:
     step = 1e-4
 
     def __init__(self, rays: _Rays, radius_mm: float, f: int, pad: int, keep: np.ndarray,
-                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None, flat: bool = False):
+                 crop: np.ndarray, du: np.ndarray, dv: np.ndarray, floating_from: float | None, flat: bool = False,
+                 surround: Surround | None = None):
         self.rays, self.r, self.f, self.pad = rays, radius_mm, f, pad
+        # the surface round the plate (``mark_surround``) along the rays: None, the base's plane
+        self.surround = None if surround is None or surround.flat else surround.along(rays.a, rays.w)
         # a disk of no thickness (a sticker): its face is all of it, and it casts no shadow
         self.flat = flat
         # None: the face on the rays' plane; else the thickness the rays' plane is above the
@@ -810,26 +883,47 @@ class _Model:
         R = self.rays
         T = np.maximum(T, 1e-6)
         if self.floating_from is not None:
-            a = self._face_points(T) - c[:, None, None]
-            return self._drawn(a, R.w[None], R.jx[None], R.jy[None], T[:, None, None], r[:, None, None])
+            D, shade = self._under(T)
+            return self._drawn(self._face_points(T), c[:, None, None], R.w[None], R.jx[None], R.jy[None], D,
+                               r[:, None, None], shade)
         # one band for all m plates: round the first's rim, widened by how far the others' rims
-        # lie from it (a Jacobian's plates differ by its steps)
+        # lie from it (a Jacobian's plates differ by its steps) and as far as the wall and the
+        # shadow reach down to the surround; past it the surround's shade, inside it the face
         c0, spread = c[0], float(np.max(np.abs(c - c[0])))
         rho = np.abs(R.a - c0)
-        lo, hi = float(r.min()) - self.margin - spread, float(np.max(r + T * self.reach_per_mm)) + self.margin + spread
-        band = (rho >= lo) & (rho <= hi)
+        lo = float(r.min()) - self.margin - spread
         plate = np.repeat((rho < lo)[None].astype(np.float64), len(c), axis=0)
-        table = 1.0 - plate
-        plate[:, band], table[:, band] = self._drawn(R.a[band][None] - c[:, None], R.w[band][None], R.jx[band][None],
-                                                     R.jy[band][None], T[:, None], r[:, None])
+        D, shade = self._under(T)
+        reach = float(r.max()) + np.max(D, axis=0) * self.reach_per_mm + self.margin + spread
+        band = (rho >= lo) & (rho <= reach)
+        table = 1.0 - plate if shade is None else (rho >= lo) * shade
+        plate[:, band], table[:, band] = self._drawn(R.a[band][None], c[:, None], R.w[band][None], R.jx[band][None],
+                                                     R.jy[band][None], D[:, band], r[:, None],
+                                                     None if shade is None else shade[:, band])
         return plate, table
 
-    def _drawn(self, a: np.ndarray, w: np.ndarray, jx: np.ndarray, jy: np.ndarray, T: np.ndarray,
-               r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``_occupancy`` of the samples at face offsets ``a`` (m, ...) (from the m centres), of
-        in-plane moves ``w`` per mm down and image Jacobians ``jx``, ``jy`` (1, ...), the plates
-        ``T`` thick and ``r`` in radius (m, 1, ...)."""
+    def _under(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(m, Hs, Ws): how far below each of the m plates' faces (``T`` (m,) mm thick) each
+        sample's ray meets the surround, and the surround's shade there (None on the base's
+        plane, where the depth is T)."""
+        T = T[:, None, None]
+        if self.surround is None:
+            return np.broadcast_to(T, (len(T),) + self.rays.a.shape), None
+        # below the rays' plane the base lies T less the face's lift over it (the thickness the
+        # plane was put at, where it floats)
+        lift = 0.0 if self.floating_from is None else T - self.floating_from
+        s = self.surround.meets(T - lift)
+        return np.maximum(s + lift, 0.0) * np.ones_like(T), self.surround.shade(s, self.rays.light_2d,
+                                                                                 self.rays.n_dot_l) * np.ones_like(T)
+
+    def _drawn(self, z: np.ndarray, c: np.ndarray, w: np.ndarray, jx: np.ndarray, jy: np.ndarray, T: np.ndarray,
+               r: np.ndarray, shade: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``_occupancy`` of the samples whose rays meet the face's plane at ``z`` (m, ...), for
+        the m plates centred at ``c`` (m, 1, ...) and ``r`` in radius, of in-plane moves ``w``
+        per mm down and image Jacobians ``jx``, ``jy`` (1, ...), each ray meeting the surround
+        ``T`` (m, ...) below the face, lit there ``shade`` times the base plane's light (None: 1)."""
         R = self.rays
+        a = z - c
         h = 0.5  # Φ(d / (half a sample))
         if self.flat:
             disk = ndtr(self._signed(a, r - np.abs(a), jx, jy) / h)
@@ -858,7 +952,8 @@ class _Model:
         # over a softening's width: the base rim reads outward, the thickness low, and the centre
         # moves towards the camera by as much as the samples per pixel allow (a 23 mm plate seen
         # at 60°: 0.32 mm drawn 2 × 2 per pixel, 0.15 mm 12 × 12; as the union, 0.11 mm at both)
-        return face + lam * wall, 1.0 - ndtr(np.maximum(in_solid, in_shadow) / h)
+        table = 1.0 - ndtr(np.maximum(in_solid, in_shadow) / h)
+        return face + lam * wall, table if shade is None else table * shade
 
     def _pixels(self, samples: np.ndarray, blur: float) -> np.ndarray:
         """``samples`` (C, Hs, Ws) blurred by ``blur`` px, cropped to the window and averaged to

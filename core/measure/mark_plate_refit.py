@@ -15,9 +15,10 @@ any view. The kit's radius is the one given, or the weighted mean of the other t
 fitted radii (facing up: a leg's plate bares more wall); each centre is then conditioned on it
 through its covariance with its own fitted radius.
 
-A plate keeps its rim fit where the image fit fails, leaves its reach, or its drawing is not its
-image (``mark_plate_image.model_holds``: residuals past the noise and the model's error): a
-plate on a leg curving away under it images a surround the model's linear light does not follow.
+On a leg the surface falls away under the rim; where the skin round the plate decodes, the model
+draws it (``mark_surround``). A plate keeps its rim fit where the image fit fails, leaves its
+reach, or its drawing is not its image (``mark_plate_image.model_holds``: residuals past the
+noise and the model's error).
 """
 
 from __future__ import annotations
