@@ -133,12 +133,14 @@ def _hits(cal: Calibration, under: _Under, r: float, d: np.ndarray) -> tuple[np.
     table = ~face & ~wall & np.isfinite(tt)
     qt = o + tt[table][:, None] * d[table]
     lit = lambert(qt, under.normal(qt)) * 0.45
-    # hidden from the projector: the segment towards it, up to the face's height, passes the axis within r
+    # hidden from the projector: the segment towards it, up to the face's height, passes the axis
+    # within r (its closest approach, the radial part of the segment being linear along it)
     toward = P - qt
-    s = np.linspace(0.0, 1.0, 64)[None, :, None] * (-((qt - X) @ n) / (toward @ n))[:, None, None] * toward[:, None, :]
-    up = qt[:, None, :] + s - X
-    radial = up - (up @ n)[..., None] * n
-    lit[np.any(np.linalg.norm(radial, axis=2) < r, axis=1)] = 0.0
+    end = -((qt - X) @ n) / (toward @ n)
+    p0 = (qt - X) - ((qt - X) @ n)[:, None] * n
+    dr = toward - (toward @ n)[:, None] * n
+    t = np.clip(-np.sum(p0 * dr, axis=1) / np.maximum(np.sum(dr * dr, axis=1), 1e-12), 0.0, end)
+    lit[np.linalg.norm(p0 + t[:, None] * dr, axis=1) < r] = 0.0
     shade[table] = lit
     Q[table] = qt
     surround = np.zeros(len(d), bool)
