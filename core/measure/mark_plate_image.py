@@ -27,8 +27,8 @@ thickness: I = F w_face + (1 − w_face) B, its thickness held at 0 (``_Model.fl
 
 The table is the plane T below the face, or where the decoded points round the plate measure
 it (``mark_surround``: a leg that falls away under the rim, or a face tilted off its surround),
-a quadric: each ray meets it at the depth three fixed-point steps find, the wall reaching down
-to it, the shadow cast on it, and S its Lambert shading over the base plane's (1 on a plane).
+a quadric: each ray meets it where a quadratic along the ray says, the wall reaching down to
+it, the shadow cast on it, and S its Lambert shading over the base plane's (1 on a plane).
 The pixels fitted are then those near the plate where that quadric is measured
 (``_round_the_plate``). The centre's Jacobian still moves the drawing with the centre as a whole
 (``_Model._centre_derivatives``); the surround, fixed in the plane, varies over millimetres.

@@ -6,7 +6,7 @@ rim: ½ k ρ² at ρ from the centre on a curve of curvature k (1.1 mm at a 19 m
 leg of 40 mm radius, as much as the plate is thick). A plane at the base then puts the wall's
 foot and the shadow in the wrong place, and a leg lit at 70° turns its skin away from the
 projector across the plate's width. The surround is a quadric in the face's frame, fitted to
-the decoded points in a ring clear of the plate (``plate_image._round_the_plate``).
+the decoded points in a ring clear of the plate (``mark_plate_image._round_the_plate``).
 
 Only what is measured is drawn: the quadric's tilt against the face (whose normal, from its
 rim, can be off the surround's by a degree or two) and its curvature each enter where they
